@@ -1,0 +1,211 @@
+//! The byte layout of LAS point records (ASPRS LAS 1.4 R15, §2.6-2.16), point data record formats
+//! (PDRF) 0 to 10, plus trailing extra bytes.
+//!
+//! mortar moves points as raw records: it reads X, Y, Z as `i32` at offsets 0, 4, 8 and treats
+//! everything else as named byte ranges ([`Attribute`]). A record can therefore be taken apart into
+//! columns and put back together bit for bit, whatever its format, and no per-point `las::Point` is
+//! ever built.
+
+/// Bytes of the X, Y, Z integers at the start of every record.
+pub const XYZ_BYTES: usize = 12;
+
+/// One named byte range of a record, other than X/Y/Z.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Attribute {
+    /// Stable name, used on the command line (`--attributes`), in `info --json` and in batch files.
+    pub name: String,
+    /// Byte offset within the record.
+    pub offset: usize,
+    /// Width in bytes.
+    pub width: usize,
+}
+
+/// Which family of point formats: the legacy formats 0-5 or the LAS 1.4 formats 6-10.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Family {
+    Legacy,
+    Extended,
+}
+
+/// The layout of one point data record format with its extra bytes.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct RecordLayout {
+    /// Point data record format, 0-10.
+    pub format: u8,
+    /// Full record length including extra bytes.
+    pub record_len: usize,
+    /// The named byte ranges, in record order, covering every byte after X/Y/Z.
+    pub attributes: Vec<Attribute>,
+}
+
+/// Error for a record format mortar cannot lay out.
+#[derive(Debug, thiserror::Error, PartialEq, Eq)]
+pub enum LayoutError {
+    #[error("point data record format {0} is not defined (LAS knows 0 to 10)")]
+    UnknownFormat(u8),
+    #[error("point record length {len} is shorter than the {min} bytes point format {format} needs")]
+    RecordTooShort { format: u8, len: usize, min: usize },
+}
+
+/// Base record length of each format, without extra bytes.
+pub fn base_len(format: u8) -> Option<usize> {
+    Some(match format {
+        0 => 20,
+        1 => 28,
+        2 => 26,
+        3 => 34,
+        4 => 57,
+        5 => 63,
+        6 => 30,
+        7 => 36,
+        8 => 38,
+        9 => 59,
+        10 => 67,
+        _ => return None,
+    })
+}
+
+impl RecordLayout {
+    /// The layout of `format` with records of `record_len` bytes (the rest are extra bytes).
+    pub fn new(format: u8, record_len: usize) -> Result<RecordLayout, LayoutError> {
+        let base = base_len(format).ok_or(LayoutError::UnknownFormat(format))?;
+        if record_len < base {
+            return Err(LayoutError::RecordTooShort { format, len: record_len, min: base });
+        }
+        let mut attrs: Vec<(&str, usize, usize)> = Vec::new();
+        if format <= 5 {
+            attrs.extend([
+                ("intensity", 12, 2),
+                ("flags", 14, 1),
+                ("classification", 15, 1),
+                ("scan_angle", 16, 1),
+                ("user_data", 17, 1),
+                ("point_source_id", 18, 2),
+            ]);
+            if matches!(format, 1 | 3 | 4 | 5) {
+                attrs.push(("gps_time", 20, 8));
+            }
+            match format {
+                2 => attrs.push(("rgb", 20, 6)),
+                3 | 5 => attrs.push(("rgb", 28, 6)),
+                _ => {}
+            }
+            match format {
+                4 => attrs.push(("wave_packet", 28, 29)),
+                5 => attrs.push(("wave_packet", 34, 29)),
+                _ => {}
+            }
+        } else {
+            attrs.extend([
+                ("intensity", 12, 2),
+                ("flags", 14, 2),
+                ("classification", 16, 1),
+                ("user_data", 17, 1),
+                ("scan_angle", 18, 2),
+                ("point_source_id", 20, 2),
+                ("gps_time", 22, 8),
+            ]);
+            if matches!(format, 7 | 8 | 10) {
+                attrs.push(("rgb", 30, 6));
+            }
+            if matches!(format, 8 | 10) {
+                attrs.push(("nir", 36, 2));
+            }
+            match format {
+                9 => attrs.push(("wave_packet", 30, 29)),
+                10 => attrs.push(("wave_packet", 38, 29)),
+                _ => {}
+            }
+        }
+        if record_len > base {
+            attrs.push(("extra_bytes", base, record_len - base));
+        }
+        let attributes =
+            attrs.into_iter().map(|(n, o, w)| Attribute { name: n.to_string(), offset: o, width: w }).collect();
+        Ok(RecordLayout { format, record_len, attributes })
+    }
+
+    pub fn family(&self) -> Family {
+        if self.format <= 5 {
+            Family::Legacy
+        } else {
+            Family::Extended
+        }
+    }
+
+    /// The attribute of this name, if the format has it.
+    pub fn attribute(&self, name: &str) -> Option<&Attribute> {
+        self.attributes.iter().find(|a| a.name == name)
+    }
+
+    pub fn has_gps_time(&self) -> bool {
+        self.attribute("gps_time").is_some()
+    }
+
+    pub fn has_rgb(&self) -> bool {
+        self.attribute("rgb").is_some()
+    }
+
+    /// Offset of the byte that holds the return number.
+    pub fn return_number(&self, record: &[u8]) -> u8 {
+        match self.family() {
+            Family::Legacy => record[14] & 0x07,
+            Family::Extended => record[14] & 0x0f,
+        }
+    }
+
+    /// The classification code (without the legacy flag bits).
+    pub fn classification(&self, record: &[u8]) -> u8 {
+        match self.family() {
+            Family::Legacy => record[15] & 0x1f,
+            Family::Extended => record[16],
+        }
+    }
+}
+
+/// X, Y, Z integers of a record.
+#[inline]
+pub fn read_xyz(record: &[u8]) -> [i32; 3] {
+    [
+        i32::from_le_bytes([record[0], record[1], record[2], record[3]]),
+        i32::from_le_bytes([record[4], record[5], record[6], record[7]]),
+        i32::from_le_bytes([record[8], record[9], record[10], record[11]]),
+    ]
+}
+
+/// Overwrites X, Y, Z of a record.
+#[inline]
+pub fn write_xyz(record: &mut [u8], xyz: [i32; 3]) {
+    record[0..4].copy_from_slice(&xyz[0].to_le_bytes());
+    record[4..8].copy_from_slice(&xyz[1].to_le_bytes());
+    record[8..12].copy_from_slice(&xyz[2].to_le_bytes());
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn attributes_cover_every_byte_once() {
+        for format in 0..=10u8 {
+            let base = base_len(format).unwrap();
+            for extra in [0usize, 3] {
+                let l = RecordLayout::new(format, base + extra).unwrap();
+                let mut covered = vec![0u8; base + extra];
+                covered[..XYZ_BYTES].iter_mut().for_each(|c| *c += 1);
+                for a in &l.attributes {
+                    for c in &mut covered[a.offset..a.offset + a.width] {
+                        *c += 1;
+                    }
+                }
+                assert!(covered.iter().all(|&c| c == 1), "format {format} extra {extra}: {covered:?}");
+            }
+        }
+    }
+
+    #[test]
+    fn rejects_bad_formats() {
+        assert_eq!(RecordLayout::new(11, 40), Err(LayoutError::UnknownFormat(11)));
+        assert!(matches!(RecordLayout::new(3, 20), Err(LayoutError::RecordTooShort { .. })));
+    }
+}
