@@ -1,1 +1,62 @@
-fn main() {}
+//! `mortar`: the command line. Thin: arguments -> configuration -> one library call -> output.
+//! One file per subcommand.
+
+mod batch;
+mod common;
+mod info;
+mod sort;
+
+use clap::{Parser, Subcommand};
+
+#[derive(Parser)]
+#[command(name = "mortar", version, about = "LAS/LAZ to GPU-ready Morton-sorted batch files, sorted LAS/LAZ, and more")]
+struct Cli {
+    /// Worker threads (default: all cores).
+    #[arg(long, global = true)]
+    threads: Option<usize>,
+    /// No warnings on stderr.
+    #[arg(long, short, global = true)]
+    quiet: bool,
+    #[command(subcommand)]
+    cmd: Cmd,
+}
+
+#[derive(Subcommand)]
+enum Cmd {
+    /// Describe LAS/LAZ files and batch files.
+    Info(info::Args),
+    /// Write every point in Morton order as LAS/LAZ (to a file or stdout).
+    Sort(sort::Args),
+    /// Convert to a Morton-sorted, quantized batch file (paper 003).
+    Batch(batch::Args),
+}
+
+fn main() {
+    let cli = Cli::parse();
+    if let Some(t) = cli.threads {
+        if let Err(e) = rayon::ThreadPoolBuilder::new().num_threads(t.max(1)).build_global() {
+            eprintln!("mortar: error: cannot set up {t} threads: {e}");
+            std::process::exit(1);
+        }
+    }
+    common::set_quiet(cli.quiet);
+    let _ = ctrlc::set_handler(|| {
+        mortar_io::sort::INTERRUPTED.store(true, std::sync::atomic::Ordering::Relaxed);
+        mortar_io::cleanup::remove_all();
+        eprintln!("mortar: interrupted");
+        std::process::exit(130);
+    });
+    let r = match cli.cmd {
+        Cmd::Info(a) => info::run(a),
+        Cmd::Sort(a) => sort::run(a),
+        Cmd::Batch(a) => batch::run(a),
+    };
+    if let Err(e) = r {
+        mortar_io::cleanup::remove_all();
+        if common::is_broken_pipe(&e) {
+            std::process::exit(0);
+        }
+        eprintln!("mortar: error: {e:#}");
+        std::process::exit(1);
+    }
+}

@@ -1,0 +1,62 @@
+//! Helpers shared by the subcommands: warnings, sizes, inputs.
+
+use std::sync::atomic::{AtomicBool, Ordering};
+
+static QUIET: AtomicBool = AtomicBool::new(false);
+
+pub fn set_quiet(q: bool) {
+    QUIET.store(q, Ordering::Relaxed);
+}
+
+pub fn warn(msg: &str) {
+    if !QUIET.load(Ordering::Relaxed) {
+        eprintln!("mortar: warning: {msg}");
+    }
+}
+
+/// Whether an error is a closed stdout pipe (which ends mortar quietly with status 0).
+pub fn is_broken_pipe(e: &anyhow::Error) -> bool {
+    e.chain().any(|c| {
+        if let Some(io) = c.downcast_ref::<std::io::Error>() {
+            return io.kind() == std::io::ErrorKind::BrokenPipe;
+        }
+        if let Some(mortar_io::Error::Io { source, .. }) = c.downcast_ref::<mortar_io::Error>() {
+            return source.kind() == std::io::ErrorKind::BrokenPipe;
+        }
+        false
+    })
+}
+
+/// Parses sizes like `512M`, `4G`, `1.5GiB`, `100000` (bytes).
+pub fn parse_size(s: &str) -> Result<u64, String> {
+    let t = s.trim();
+    let split = t.find(|c: char| !(c.is_ascii_digit() || c == '.')).unwrap_or(t.len());
+    let (num, unit) = t.split_at(split);
+    let v: f64 = num.parse().map_err(|_| format!("'{s}' is not a size (try 512M or 4G)"))?;
+    let mult = match unit.trim().to_ascii_lowercase().as_str() {
+        "" | "b" => 1u64,
+        "k" | "kb" | "kib" => 1 << 10,
+        "m" | "mb" | "mib" => 1 << 20,
+        "g" | "gb" | "gib" => 1 << 30,
+        "t" | "tb" | "tib" => 1 << 40,
+        _ => return Err(format!("'{s}': unknown unit (use K, M, G or T)")),
+    };
+    Ok((v * mult as f64) as u64)
+}
+
+/// Where temporary files go: `--tmp-dir`, else `$TMPDIR`, else `/tmp`.
+pub fn tmp_dir(arg: &Option<std::path::PathBuf>) -> std::path::PathBuf {
+    arg.clone().unwrap_or_else(std::env::temp_dir)
+}
+
+pub fn print_warnings(ws: &[String]) {
+    for w in ws {
+        warn(w);
+    }
+}
+
+/// Opens the inputs of a command as one dataset.
+pub fn open_dataset(inputs: &[String]) -> anyhow::Result<mortar_io::dataset::Dataset> {
+    let paths = mortar_io::source::expand_inputs(inputs)?;
+    Ok(mortar_io::dataset::Dataset::open_las(&paths)?)
+}

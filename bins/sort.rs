@@ -1,0 +1,46 @@
+//! `mortar sort`: Morton-ordered LAS/LAZ.
+
+use crate::common;
+use anyhow::Result;
+use mortar_io::sink_las::{LasSink, LasTemplate, Target};
+use mortar_io::sort::{default_memory, sort, SortOptions};
+use std::path::PathBuf;
+
+#[derive(clap::Args)]
+pub struct Args {
+    /// LAS/LAZ files, directories, glob patterns, batch files, or - for stdin.
+    #[arg(required = true)]
+    pub inputs: Vec<String>,
+    /// Output .las or .laz file, or - for stdout (LAS unless --laz).
+    #[arg(short, long)]
+    pub output: String,
+    /// Write LAZ (the default for a .laz output file).
+    #[arg(long)]
+    pub laz: bool,
+    /// Memory budget for sorting (e.g. 2G); larger inputs use an external sort.
+    #[arg(long, value_parser = common::parse_size)]
+    pub memory: Option<u64>,
+    /// Directory for temporary files of the external sort.
+    #[arg(long)]
+    pub tmp_dir: Option<PathBuf>,
+}
+
+pub fn run(a: Args) -> Result<()> {
+    let ds = common::open_dataset(&a.inputs)?;
+    common::print_warnings(&ds.warnings);
+    let target = Target::parse(&a.output);
+    let compressed = a.laz || a.output.to_ascii_lowercase().ends_with(".laz");
+    let tmp = common::tmp_dir(&a.tmp_dir);
+    let template = LasTemplate {
+        header: ds.template.clone(),
+        vlrs: ds.vlrs.clone(),
+        evlrs: ds.evlrs.clone(),
+        layout: ds.layout.clone(),
+        grid: ds.grid,
+    };
+    let mut sink = LasSink::new(target, compressed, template, &tmp)?;
+    let opts = SortOptions::with_memory(a.memory.unwrap_or_else(default_memory), tmp);
+    sort(&ds, &opts, &mut sink)?;
+    sink.finish()?;
+    Ok(())
+}

@@ -1,0 +1,221 @@
+//! Writing Morton-ordered points as LAS or LAZ, to a file (atomically: temporary name, then
+//! rename) or to stdout.
+
+use crate::cleanup::TempPath;
+use crate::error::{Error, Result};
+use crate::las::{self, Header, HeaderOut, Vlr};
+use crate::sort::{OrderedSink, Summary};
+use mortar_core::grid::Grid;
+use mortar_core::layout::RecordLayout;
+use std::fs::File;
+use std::io::{BufWriter, Seek, SeekFrom, Write};
+use std::path::{Path, PathBuf};
+
+/// Where the output goes.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Target {
+    File(PathBuf),
+    Stdout,
+}
+
+impl Target {
+    pub fn parse(s: &str) -> Target {
+        if s == "-" {
+            Target::Stdout
+        } else {
+            Target::File(PathBuf::from(s))
+        }
+    }
+    pub fn display(&self) -> String {
+        match self {
+            Target::File(p) => p.display().to_string(),
+            Target::Stdout => "<stdout>".into(),
+        }
+    }
+}
+
+/// Everything of the dataset a LAS writer needs besides the points.
+#[derive(Clone, Debug)]
+pub struct LasTemplate {
+    pub header: Header,
+    pub vlrs: Vec<Vlr>,
+    pub evlrs: Vec<Vlr>,
+    pub layout: RecordLayout,
+    pub grid: Grid,
+}
+
+enum Out {
+    Las(BufWriter<File>),
+    Stdout(BufWriter<std::io::Stdout>),
+    Laz(Box<laz::ParLasZipCompressor<BufWriter<File>>>),
+}
+
+/// A LAS/LAZ writer for [`crate::sort::sort`].
+pub struct LasSink {
+    target: Target,
+    compressed: bool,
+    t: LasTemplate,
+    /// The file being written (the target itself for LAS/LAZ files; a temporary for LAZ on stdout).
+    tmp: Option<TempPath>,
+    out: Option<Out>,
+    summary: Option<Summary>,
+    written: u64,
+}
+
+fn io_err(t: &Path) -> impl Fn(std::io::Error) -> Error + '_ {
+    move |e| Error::io(t, e)
+}
+
+impl LasSink {
+    /// `compressed` chooses LAZ; for files it follows the extension unless forced.
+    pub fn new(target: Target, compressed: bool, template: LasTemplate, tmp_dir: &Path) -> Result<LasSink> {
+        let tmp = match &target {
+            Target::File(p) => Some(TempPath::beside(p)),
+            Target::Stdout if compressed => {
+                std::fs::create_dir_all(tmp_dir).map_err(|e| Error::io(tmp_dir, e))?;
+                Some(TempPath::beside(&tmp_dir.join("stdout.laz")))
+            }
+            Target::Stdout => None,
+        };
+        Ok(LasSink { target, compressed, t: template, tmp, out: None, summary: None, written: 0 })
+    }
+
+    fn header_bytes(&self, s: &Summary, evlr_start: u64) -> Result<Vec<u8>> {
+        let g = &self.t.grid;
+        let mut vlrs = self.t.vlrs.clone();
+        if self.compressed {
+            let extra = (self.t.layout.record_len - mortar_core::layout::base_len(self.t.layout.format).unwrap()) as u16;
+            let v = laz::LazVlrBuilder::default()
+                .with_point_format(self.t.layout.format, extra)
+                .map_err(|e| Error::Usage(format!("cannot write LAZ for point format {}: {e}", self.t.layout.format)))?
+                .build();
+            let mut data = Vec::new();
+            v.write_to(&mut data).map_err(|e| Error::Usage(e.to_string()))?;
+            let mut user_id = [0u8; 16];
+            user_id[..14].copy_from_slice(b"laszip encoded");
+            let mut description = [0u8; 32];
+            let d = b"mortar (laz-rs)";
+            description[..d.len()].copy_from_slice(d);
+            vlrs.push(Vlr { reserved: 0, user_id, record_id: 22204, description, data });
+        }
+        let world = |a: usize, v: i32| g.offset[a] + g.scale[a] * v as f64;
+        let h = HeaderOut {
+            template: &self.t.header,
+            point_format: self.t.layout.format,
+            compressed: self.compressed,
+            record_len: self.t.layout.record_len as u16,
+            point_count: s.count,
+            points_by_return: s.points_by_return,
+            scale: g.scale,
+            offset: g.offset,
+            min: [world(0, s.min[0]), world(1, s.min[1]), world(2, s.min[2])],
+            max: [world(0, s.max[0]), world(1, s.max[1]), world(2, s.max[2])],
+            vlrs: &vlrs,
+            evlr_start,
+            evlr_count: if evlr_start > 0 { self.t.evlrs.len() as u32 } else { 0 },
+        };
+        las::write_header(&h).map_err(|e| Error::Usage(format!("{}: {e}", self.target.display())))
+    }
+
+    /// Finishes the file: LAZ chunk table, EVLRs, header fix-up, rename into place.
+    pub fn finish(mut self) -> Result<u64> {
+        let s = self.summary.clone().ok_or_else(|| Error::Usage("sink finished before it began".into()))?;
+        if self.written != s.count {
+            return Err(Error::Usage(format!("{}: wrote {} of {} points", self.target.display(), self.written, s.count)));
+        }
+        let evlrs = las::write_evlrs(&self.t.evlrs);
+        let has_evlrs = !self.t.evlrs.is_empty() && self.t.header.version.1 >= 4;
+        match self.out.take() {
+            Some(Out::Stdout(mut w)) => {
+                if has_evlrs {
+                    w.write_all(&evlrs).map_err(io_err(Path::new("<stdout>")))?;
+                }
+                w.flush().map_err(io_err(Path::new("<stdout>")))?;
+            }
+            Some(out) => {
+                let tmp = self.tmp.as_ref().expect("file output has a temporary path");
+                let p = tmp.path().to_path_buf();
+                let mut w = match out {
+                    Out::Las(w) => w,
+                    Out::Laz(mut c) => {
+                        c.done().map_err(|e| Error::Usage(format!("{}: LAZ compression failed: {e}", self.target.display())))?;
+                        c.into_inner()
+                    }
+                    Out::Stdout(_) => unreachable!(),
+                };
+                if has_evlrs {
+                    let at = w.stream_position().map_err(io_err(&p))?;
+                    w.write_all(&evlrs).map_err(io_err(&p))?;
+                    let hb = self.header_bytes(&s, at)?;
+                    w.seek(SeekFrom::Start(0)).map_err(io_err(&p))?;
+                    w.write_all(&hb).map_err(io_err(&p))?;
+                }
+                let f = w.into_inner().map_err(|e| Error::io(&p, e.into_error()))?;
+                f.sync_all().map_err(io_err(&p))?;
+                drop(f);
+                let tmp = self.tmp.take().unwrap();
+                match &self.target {
+                    Target::File(target) => tmp.persist(target).map_err(io_err(target))?,
+                    Target::Stdout => {
+                        let mut f = File::open(tmp.path()).map_err(io_err(tmp.path()))?;
+                        let mut so = std::io::stdout().lock();
+                        std::io::copy(&mut f, &mut so).map_err(io_err(Path::new("<stdout>")))?;
+                        so.flush().map_err(io_err(Path::new("<stdout>")))?;
+                    }
+                }
+            }
+            None => return Err(Error::Usage("sink finished before it began".into())),
+        }
+        Ok(s.count)
+    }
+}
+
+impl OrderedSink for LasSink {
+    fn begin(&mut self, s: &Summary) -> Result<()> {
+        self.summary = Some(s.clone());
+        let has_evlrs = !self.t.evlrs.is_empty() && self.t.header.version.1 >= 4;
+        match (&self.target, self.compressed) {
+            (Target::Stdout, false) => {
+                // the EVLR position is known up front: right after the points
+                let hb0 = self.header_bytes(s, 0)?;
+                let evlr_start = if has_evlrs { hb0.len() as u64 + s.count * self.t.layout.record_len as u64 } else { 0 };
+                let hb = self.header_bytes(s, evlr_start)?;
+                let mut w = BufWriter::with_capacity(1 << 20, std::io::stdout());
+                w.write_all(&hb).map_err(io_err(Path::new("<stdout>")))?;
+                self.out = Some(Out::Stdout(w));
+            }
+            _ => {
+                let p = self.tmp.as_ref().unwrap().path().to_path_buf();
+                let f = File::create(&p).map_err(io_err(&p))?;
+                let mut w = BufWriter::with_capacity(1 << 20, f);
+                let hb = self.header_bytes(s, 0)?;
+                w.write_all(&hb).map_err(io_err(&p))?;
+                if self.compressed {
+                    let extra = (self.t.layout.record_len - mortar_core::layout::base_len(self.t.layout.format).unwrap()) as u16;
+                    let vlr = laz::LazVlrBuilder::default()
+                        .with_point_format(self.t.layout.format, extra)
+                        .map_err(|e| Error::Usage(e.to_string()))?
+                        .build();
+                    let c = laz::ParLasZipCompressor::new(w, vlr).map_err(|e| Error::Usage(e.to_string()))?;
+                    self.out = Some(Out::Laz(Box::new(c)));
+                } else {
+                    self.out = Some(Out::Las(w));
+                }
+            }
+        }
+        Ok(())
+    }
+
+    fn write(&mut self, records: &[u8]) -> Result<()> {
+        let n = (records.len() / self.t.layout.record_len) as u64;
+        let target = self.target.display();
+        match self.out.as_mut() {
+            Some(Out::Las(w)) => w.write_all(records).map_err(|e| Error::io(&target, e))?,
+            Some(Out::Stdout(w)) => w.write_all(records).map_err(|e| Error::io(&target, e))?,
+            Some(Out::Laz(c)) => c.compress_many(records).map_err(|e| Error::io(&target, e))?,
+            None => return Err(Error::Usage("write before begin".into())),
+        }
+        self.written += n;
+        Ok(())
+    }
+}

@@ -1,0 +1,369 @@
+//! The Morton sort: every point of a dataset, in Morton order (paper 003 §3.1), handed to a sink
+//! as ordered chunks of records.
+//!
+//! In memory when the dataset fits the memory budget: pieces are read (LAZ decoded) in parallel,
+//! a key `(morton code, piece, index)` is made per point, the keys are sorted by a parallel
+//! radix partition on the top code bits followed by a sort of each bucket, and records are
+//! gathered in key order. Otherwise an external sort ([`crate::external`]): points are bucketed
+//! by Morton prefix into temporary files, and each bucket is sorted in memory in turn.
+//!
+//! The Morton grid is defined by the actual integer bounds of the points, and ties are broken by
+//! input order, so the output is the same on every path and on every run.
+
+use crate::dataset::Dataset;
+use crate::error::{Error, Result};
+use mortar_core::layout::{read_xyz, RecordLayout};
+use mortar_core::morton::MortonGrid;
+use rayon::prelude::*;
+use std::borrow::Cow;
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
+
+/// Set by the binary's Ctrl-C handler; long loops check it and stop with [`Error::Interrupted`].
+pub static INTERRUPTED: AtomicBool = AtomicBool::new(false);
+
+pub fn check_interrupted() -> Result<()> {
+    if INTERRUPTED.load(Ordering::Relaxed) {
+        Err(Error::Interrupted)
+    } else {
+        Ok(())
+    }
+}
+
+/// Sort key of one point. Ordering: code, then input order.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, PartialOrd, Ord)]
+#[repr(C)]
+pub struct Key {
+    pub code: u64,
+    pub slab: u32,
+    pub idx: u32,
+}
+
+/// Facts about the whole dataset, known before the first record is emitted.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Summary {
+    pub count: u64,
+    /// Integer bounds (inclusive) on the merged grid; meaningless when `count == 0`.
+    pub min: [i32; 3],
+    pub max: [i32; 3],
+    pub points_by_return: [u64; 15],
+    /// Largest RGB component (0 without RGB).
+    pub max_rgb: u16,
+    pub max_intensity: u16,
+    pub morton: MortonGrid,
+}
+
+/// Per-piece statistics, merged into a [`Summary`].
+#[derive(Clone, Debug)]
+pub struct PieceStats {
+    pub count: u64,
+    pub min: [i32; 3],
+    pub max: [i32; 3],
+    pub by_return: [u64; 15],
+    pub max_rgb: u16,
+    pub max_intensity: u16,
+}
+
+impl Default for PieceStats {
+    fn default() -> Self {
+        PieceStats { count: 0, min: [i32::MAX; 3], max: [i32::MIN; 3], by_return: [0; 15], max_rgb: 0, max_intensity: 0 }
+    }
+}
+
+impl PieceStats {
+    pub fn of(records: &[u8], layout: &RecordLayout) -> PieceStats {
+        let mut s = PieceStats::default();
+        let rgb = layout.attribute("rgb").map(|a| a.offset);
+        for r in records.chunks_exact(layout.record_len) {
+            let p = read_xyz(r);
+            for a in 0..3 {
+                s.min[a] = s.min[a].min(p[a]);
+                s.max[a] = s.max[a].max(p[a]);
+            }
+            let rn = layout.return_number(r) as usize;
+            if (1..=15).contains(&rn) {
+                s.by_return[rn - 1] += 1;
+            }
+            s.max_intensity = s.max_intensity.max(u16::from_le_bytes([r[12], r[13]]));
+            if let Some(o) = rgb {
+                for c in 0..3 {
+                    s.max_rgb = s.max_rgb.max(u16::from_le_bytes([r[o + 2 * c], r[o + 2 * c + 1]]));
+                }
+            }
+        }
+        s.count = (records.len() / layout.record_len) as u64;
+        s
+    }
+
+    pub fn merge(&mut self, o: &PieceStats) {
+        self.count += o.count;
+        for a in 0..3 {
+            self.min[a] = self.min[a].min(o.min[a]);
+            self.max[a] = self.max[a].max(o.max[a]);
+        }
+        for i in 0..15 {
+            self.by_return[i] += o.by_return[i];
+        }
+        self.max_rgb = self.max_rgb.max(o.max_rgb);
+        self.max_intensity = self.max_intensity.max(o.max_intensity);
+    }
+
+    pub fn summary(&self) -> Summary {
+        let (min, max) = if self.count == 0 { ([0; 3], [0; 3]) } else { (self.min, self.max) };
+        let morton = MortonGrid::for_bounds(min.map(|v| v as i64), max.map(|v| v as i64));
+        Summary {
+            count: self.count,
+            min,
+            max,
+            points_by_return: self.by_return,
+            max_rgb: self.max_rgb,
+            max_intensity: self.max_intensity,
+            morton,
+        }
+    }
+}
+
+/// A consumer of Morton-ordered records.
+pub trait OrderedSink: Send {
+    /// Called once, before any record.
+    fn begin(&mut self, summary: &Summary) -> Result<()>;
+    /// Called with consecutive runs of records in Morton order.
+    fn write(&mut self, records: &[u8]) -> Result<()>;
+}
+
+/// Sort settings.
+#[derive(Clone, Debug)]
+pub struct SortOptions {
+    /// Memory budget in bytes for sorting; larger datasets go through the external sort.
+    pub memory: u64,
+    /// Where temporary bucket files go.
+    pub tmp_dir: PathBuf,
+    /// Records per emitted chunk.
+    pub chunk_points: usize,
+}
+
+impl SortOptions {
+    pub fn with_memory(memory: u64, tmp_dir: PathBuf) -> SortOptions {
+        SortOptions { memory, tmp_dir, chunk_points: 10_240 * 32 }
+    }
+}
+
+/// Default memory budget: half the machine's memory, at most 16 GiB, at least 256 MiB.
+pub fn default_memory() -> u64 {
+    let total = std::fs::read_to_string("/proc/meminfo")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("MemTotal:"))
+                .and_then(|l| l.split_whitespace().nth(1).and_then(|v| v.parse::<u64>().ok()))
+        })
+        .map(|kb| kb * 1024)
+        .unwrap_or(8 << 30);
+    (total / 2).clamp(256 << 20, 16 << 30)
+}
+
+/// Bytes the in-memory sort needs for `points` records of `record_len` bytes.
+pub fn in_memory_need(points: u64, record_len: usize, chunk_points: usize) -> u64 {
+    points * (record_len as u64 + 2 * std::mem::size_of::<Key>() as u64) + 4 * (chunk_points * record_len) as u64
+}
+
+/// What [`sort`] did.
+#[derive(Clone, Debug)]
+pub struct SortReport {
+    pub summary: Summary,
+    pub external: bool,
+    pub buckets: usize,
+}
+
+/// Sorts the dataset and feeds the sink.
+pub fn sort(ds: &Dataset, opts: &SortOptions, sink: &mut dyn OrderedSink) -> Result<SortReport> {
+    let need = in_memory_need(ds.declared_points(), ds.layout.record_len, opts.chunk_points);
+    if need > opts.memory {
+        return crate::external::sort_external(ds, opts, sink);
+    }
+    let pieces = ds.pieces();
+    // Read (decode) every piece in parallel with its statistics.
+    let slabs: Vec<(Cow<[u8]>, PieceStats)> = pieces
+        .par_iter()
+        .map(|p| {
+            check_interrupted()?;
+            let r = ds.read_piece(p)?;
+            let s = PieceStats::of(&r, &ds.layout);
+            Ok((r, s))
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let mut total = PieceStats::default();
+    for (_, s) in &slabs {
+        total.merge(s);
+    }
+    let summary = total.summary();
+    let records: Vec<&[u8]> = slabs.iter().map(|(r, _)| &**r).collect();
+    let keys = make_keys(&records, ds.layout.record_len, &summary.morton)?;
+    let keys = sort_keys(keys);
+    sink.begin(&summary)?;
+    emit(&records, &keys, ds.layout.record_len, opts.chunk_points, sink)?;
+    Ok(SortReport { summary, external: false, buckets: 1 })
+}
+
+/// One key per record, slab by slab, in parallel.
+pub fn make_keys(slabs: &[&[u8]], record_len: usize, morton: &MortonGrid) -> Result<Vec<Key>> {
+    let n: usize = slabs.iter().map(|s| s.len() / record_len).sum();
+    if slabs.len() > u32::MAX as usize || slabs.iter().any(|s| s.len() / record_len > u32::MAX as usize) {
+        return Err(Error::Usage("too many points for one in-memory sort".into()));
+    }
+    let mut keys = vec![Key::default(); n];
+    let mut rest: &mut [Key] = &mut keys;
+    let mut parts = Vec::with_capacity(slabs.len());
+    for (i, s) in slabs.iter().enumerate() {
+        let (a, b) = rest.split_at_mut(s.len() / record_len);
+        parts.push((i, *s, a));
+        rest = b;
+    }
+    parts.into_par_iter().for_each(|(slab, records, out)| {
+        for (idx, (r, k)) in records.chunks_exact(record_len).zip(out.iter_mut()).enumerate() {
+            let p = read_xyz(r);
+            *k = Key { code: morton.code([p[0] as i64, p[1] as i64, p[2] as i64]), slab: slab as u32, idx: idx as u32 };
+        }
+    });
+    Ok(keys)
+}
+
+struct SendPtr(*mut Key);
+unsafe impl Send for SendPtr {}
+unsafe impl Sync for SendPtr {}
+
+/// Sorts keys: a parallel radix partition on the top 16 used bits of the code, then each bucket
+/// sorted on its own (in cache).
+pub fn sort_keys(mut keys: Vec<Key>) -> Vec<Key> {
+    let n = keys.len();
+    if n < (1 << 16) {
+        keys.par_sort_unstable();
+        return keys;
+    }
+    let max = keys.par_iter().map(|k| k.code).max().unwrap_or(0);
+    let high = 64 - max.leading_zeros();
+    let bits = high.min(16);
+    let shift = high - bits;
+    let nb = 1usize << bits;
+    let parts = rayon::current_num_threads() * 4;
+    let part_len = n.div_ceil(parts);
+    let hists: Vec<Vec<u32>> = keys
+        .par_chunks(part_len)
+        .map(|c| {
+            let mut h = vec![0u32; nb];
+            for k in c {
+                h[(k.code >> shift) as usize] += 1;
+            }
+            h
+        })
+        .collect();
+    // bucket starts, and per-part write cursors
+    let mut starts = vec![0usize; nb + 1];
+    for b in 0..nb {
+        starts[b + 1] = starts[b] + hists.iter().map(|h| h[b] as usize).sum::<usize>();
+    }
+    let mut cursors: Vec<Vec<usize>> = Vec::with_capacity(hists.len());
+    let mut running = starts[..nb].to_vec();
+    for h in &hists {
+        cursors.push(running.clone());
+        for b in 0..nb {
+            running[b] += h[b] as usize;
+        }
+    }
+    let mut out: Vec<Key> = Vec::with_capacity(n);
+    let ptr = SendPtr(out.as_mut_ptr());
+    keys.par_chunks(part_len).zip(cursors.into_par_iter()).for_each(|(c, mut cur)| {
+        let p = &ptr;
+        for k in c {
+            let b = (k.code >> shift) as usize;
+            // SAFETY: the cursors of all parts partition 0..n, each position is written once.
+            unsafe { p.0.add(cur[b]).write(*k) };
+            cur[b] += 1;
+        }
+    });
+    // SAFETY: every one of the n positions was written above.
+    unsafe { out.set_len(n) };
+    drop(keys);
+    let mut slices = Vec::with_capacity(nb);
+    let mut rest: &mut [Key] = &mut out;
+    for b in 0..nb {
+        let (a, r) = rest.split_at_mut(starts[b + 1] - starts[b]);
+        if a.len() > 1 {
+            slices.push(a);
+        }
+        rest = r;
+    }
+    slices.into_par_iter().for_each(|s| s.sort_unstable());
+    out
+}
+
+/// Gathers records in key order, in chunks, and writes them to the sink. Gathering (parallel)
+/// overlaps with the sink's work on the previous chunks.
+pub fn emit(
+    slabs: &[&[u8]],
+    keys: &[Key],
+    record_len: usize,
+    chunk_points: usize,
+    sink: &mut dyn OrderedSink,
+) -> Result<()> {
+    let gather = |ks: &[Key]| -> Vec<u8> {
+        let mut buf = Vec::with_capacity(ks.len() * record_len);
+        for k in ks {
+            let s = k.idx as usize * record_len;
+            buf.extend_from_slice(&slabs[k.slab as usize][s..s + record_len]);
+        }
+        buf
+    };
+    let group = rayon::current_num_threads().max(2);
+    let chunks: Vec<&[Key]> = keys.chunks(chunk_points.max(1)).collect();
+    std::thread::scope(|scope| -> Result<()> {
+        let (tx, rx) = std::sync::mpsc::sync_channel::<Vec<u8>>(group);
+        let writer = scope.spawn(move || -> Result<()> {
+            for buf in rx {
+                sink.write(&buf)?;
+            }
+            Ok(())
+        });
+        let mut send_failed = false;
+        for g in chunks.chunks(group) {
+            if check_interrupted().is_err() {
+                break;
+            }
+            let bufs: Vec<Vec<u8>> = g.par_iter().map(|ks| gather(ks)).collect();
+            for b in bufs {
+                if tx.send(b).is_err() {
+                    send_failed = true;
+                    break;
+                }
+            }
+            if send_failed {
+                break;
+            }
+        }
+        drop(tx);
+        writer.join().map_err(|_| Error::Usage("writer thread panicked".into()))??;
+        check_interrupted()
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn radix_sort_matches_std_sort() {
+        let mut state = 0x9e37_79b9_7f4a_7c15u64;
+        let mut next = || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            state
+        };
+        let keys: Vec<Key> = (0..300_000)
+            .map(|i| Key { code: next() >> 3 & 0xffff_ffff_ff, slab: (i % 7) as u32, idx: i as u32 })
+            .collect();
+        let mut expect = keys.clone();
+        expect.sort();
+        assert_eq!(sort_keys(keys), expect);
+    }
+}

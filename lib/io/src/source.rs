@@ -1,0 +1,388 @@
+//! LAS/LAZ sources: inputs named as files, directories, globs or `-` (stdin), opened as memory
+//! maps and read in pieces that can be decoded in parallel.
+//!
+//! A LAS file is read in place: a piece is a borrowed slice of the memory map, no copy. A LAZ file
+//! is read chunk by chunk (LASzip compresses independent chunks, usually 50,000 points), each
+//! chunk decoded on its own thread by laz-rs. Nothing is allocated from a header's claims before
+//! it has been checked against the bytes that exist.
+
+use crate::error::{Error, Result};
+use crate::las::{self, LasMeta};
+use memmap2::Mmap;
+use mortar_core::layout::RecordLayout;
+use std::borrow::Cow;
+use std::io::Read;
+use std::path::{Path, PathBuf};
+
+/// Points per piece of a LAS file.
+pub const LAS_PIECE_POINTS: u64 = 1 << 20;
+/// Largest LAZ chunk mortar decodes (points); real files use 50,000.
+pub const MAX_LAZ_CHUNK_POINTS: u64 = 1 << 24;
+
+/// The bytes of an input: a memory map, or a buffer (stdin).
+pub enum Bytes {
+    Map(Mmap),
+    Owned(Vec<u8>),
+}
+
+impl std::ops::Deref for Bytes {
+    type Target = [u8];
+    fn deref(&self) -> &[u8] {
+        match self {
+            Bytes::Map(m) => m,
+            Bytes::Owned(v) => v,
+        }
+    }
+}
+
+/// Expands command-line inputs: files as given, directories to their `.las`/`.laz` files (sorted,
+/// recursive), glob patterns to their matches (sorted), `-` to stdin.
+pub fn expand_inputs(args: &[String]) -> Result<Vec<PathBuf>> {
+    let mut out = Vec::new();
+    for a in args {
+        if a == "-" {
+            out.push(PathBuf::from("-"));
+            continue;
+        }
+        let p = Path::new(a);
+        if p.is_dir() {
+            let mut found = Vec::new();
+            collect_dir(p, &mut found)?;
+            if found.is_empty() {
+                return Err(Error::input(p, "directory holds no .las or .laz files"));
+            }
+            found.sort();
+            out.extend(found);
+        } else if p.exists() {
+            out.push(p.to_path_buf());
+        } else if a.contains(['*', '?', '[']) {
+            let paths = glob::glob(a).map_err(|e| Error::Usage(format!("{a}: bad pattern: {e}")))?;
+            let mut found: Vec<PathBuf> = paths.filter_map(|r| r.ok()).filter(|p| p.is_file()).collect();
+            if found.is_empty() {
+                return Err(Error::Usage(format!("{a}: no file matches this pattern")));
+            }
+            found.sort();
+            out.extend(found);
+        } else {
+            return Err(Error::input(p, "no such file or directory"));
+        }
+    }
+    if out.is_empty() {
+        return Err(Error::Usage("no input given".into()));
+    }
+    Ok(out)
+}
+
+fn collect_dir(dir: &Path, out: &mut Vec<PathBuf>) -> Result<()> {
+    let rd = std::fs::read_dir(dir).map_err(|e| Error::io(dir, e))?;
+    for entry in rd {
+        let entry = entry.map_err(|e| Error::io(dir, e))?;
+        let p = entry.path();
+        if p.is_dir() {
+            collect_dir(&p, out)?;
+        } else if let Some(ext) = p.extension().and_then(|e| e.to_str()) {
+            if ext.eq_ignore_ascii_case("las") || ext.eq_ignore_ascii_case("laz") {
+                out.push(p);
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Reads a whole file (or stdin for `-`) as bytes.
+pub fn open_bytes(path: &Path) -> Result<Bytes> {
+    if path == Path::new("-") {
+        let mut v = Vec::new();
+        std::io::stdin().lock().read_to_end(&mut v).map_err(|e| Error::io("<stdin>", e))?;
+        return Ok(Bytes::Owned(v));
+    }
+    let f = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+    let len = f.metadata().map_err(|e| Error::io(path, e))?.len();
+    if len == 0 {
+        return Ok(Bytes::Owned(Vec::new()));
+    }
+    // SAFETY: the map is read-only; a file truncated by another process while mortar reads it
+    // is outside what mortar can guard against (as with every mmap-based reader).
+    let m = unsafe { Mmap::map(&f) }.map_err(|e| Error::io(path, e))?;
+    Ok(Bytes::Map(m))
+}
+
+/// One LAZ chunk: where its bytes are and how many points it holds.
+#[derive(Clone, Debug)]
+struct LazChunk {
+    offset: usize,
+    len: usize,
+    points: u64,
+}
+
+enum Kind {
+    Las { start: usize },
+    Laz { vlr: laz::LazVlr, chunks: Vec<LazChunk> },
+    /// LAZ without a chunk table (fixed-size chunks): decoded sequentially as one piece.
+    LazSequential { vlr: laz::LazVlr, start: usize },
+}
+
+/// A range of points of one input that is read as a unit.
+#[derive(Clone, Copy, Debug)]
+pub struct Piece {
+    pub index: usize,
+    pub first_point: u64,
+    pub points: u64,
+}
+
+/// An opened LAS/LAZ input.
+pub struct LasInput {
+    pub path: PathBuf,
+    bytes: Bytes,
+    pub meta: LasMeta,
+    pub layout: RecordLayout,
+    pub point_count: u64,
+    kind: Kind,
+    pieces: Vec<Piece>,
+}
+
+impl std::fmt::Debug for LasInput {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("LasInput").field("path", &self.path).field("points", &self.point_count).finish()
+    }
+}
+
+impl LasInput {
+    /// Opens and checks a LAS/LAZ file (or stdin for `-`).
+    pub fn open(path: &Path) -> Result<LasInput> {
+        let bytes = open_bytes(path)?;
+        Self::from_bytes(path.to_path_buf(), bytes)
+    }
+
+    pub fn from_bytes(path: PathBuf, bytes: Bytes) -> Result<LasInput> {
+        let err = |m: String| Error::input(&path, m);
+        let mut meta = las::parse(&bytes).map_err(err)?;
+        let h = &meta.header;
+        let layout = RecordLayout::new(h.point_format, h.record_len as usize).map_err(|e| err(e.to_string()))?;
+        let start = h.offset_to_point_data as usize;
+        let laszip = meta.vlrs.iter().find(|v| v.is_laszip());
+        let kind;
+        let mut pieces = Vec::new();
+        let point_count = h.point_count;
+        if h.compressed || laszip.is_some() {
+            let Some(lv) = laszip else {
+                return Err(err("point format is marked compressed but the file has no LASzip VLR".into()));
+            };
+            let vlr = laz::LazVlr::from_buffer(&lv.data).map_err(|e| err(format!("LASzip VLR is invalid: {e}")))?;
+            if vlr.items_size() != h.record_len as u64 {
+                return Err(err(format!(
+                    "LASzip VLR describes {}-byte points but the header says {}",
+                    vlr.items_size(),
+                    h.record_len
+                )));
+            }
+            // Reject unknown items up front (decoding them would fail or panic mid-way).
+            if let Err(e) = check_laz_items(&vlr) {
+                return Err(err(e));
+            }
+            let data_end = if h.evlr_start > 0 && h.evlr_count > 0 { h.evlr_start as usize } else { bytes.len() };
+            match read_chunk_table(&bytes, start, data_end, &vlr, point_count) {
+                Ok(Some(chunks)) => {
+                    let mut first = 0;
+                    for (i, c) in chunks.iter().enumerate() {
+                        pieces.push(Piece { index: i, first_point: first, points: c.points });
+                        first += c.points;
+                    }
+                    kind = Kind::Laz { vlr, chunks };
+                }
+                Ok(None) => {
+                    if vlr.uses_variable_size_chunks() {
+                        return Err(err("LAZ file uses variable-size chunks but has no chunk table".into()));
+                    }
+                    if point_count > 0 {
+                        let max = (data_end - start) as u64 * 1000;
+                        if point_count > max {
+                            return Err(err(format!("header claims {point_count} points, implausible for {} bytes of LAZ data", data_end - start)));
+                        }
+                        pieces.push(Piece { index: 0, first_point: 0, points: point_count });
+                    }
+                    kind = Kind::LazSequential { vlr, start };
+                }
+                Err(e) => return Err(err(e)),
+            }
+            meta.vlrs.retain(|v| !v.is_laszip());
+        } else {
+            let rl = h.record_len as u64;
+            let mut end = bytes.len() as u64;
+            if h.evlr_start > 0 && h.evlr_count > 0 && h.evlr_start >= start as u64 {
+                end = end.min(h.evlr_start);
+            }
+            if h.waveform_start > start as u64 && (h.global_encoding & 0x2) != 0 {
+                end = end.min(h.waveform_start);
+            }
+            let available = (end - start as u64) / rl;
+            if point_count > available {
+                return Err(err(format!(
+                    "header says {point_count} points but the file holds only {available} ({} bytes of point data, {rl} per point): truncated or damaged",
+                    end - start as u64
+                )));
+            }
+            let mut first = 0;
+            let mut i = 0;
+            while first < point_count {
+                let n = LAS_PIECE_POINTS.min(point_count - first);
+                pieces.push(Piece { index: i, first_point: first, points: n });
+                first += n;
+                i += 1;
+            }
+            kind = Kind::Las { start };
+        }
+        Ok(LasInput { path, bytes, meta, layout, point_count, kind, pieces })
+    }
+
+    pub fn is_laz(&self) -> bool {
+        !matches!(self.kind, Kind::Las { .. })
+    }
+
+    pub fn pieces(&self) -> &[Piece] {
+        &self.pieces
+    }
+
+    /// Drops the pages of a LAS piece from this process's mapping (they stay in the page cache),
+    /// so that a pass over a file larger than the memory budget keeps a bounded resident size.
+    pub fn release_piece(&self, piece: &Piece) {
+        if let (Kind::Las { start }, Bytes::Map(m)) = (&self.kind, &self.bytes) {
+            let rl = self.layout.record_len;
+            let s = start + piece.first_point as usize * rl;
+            let page = 4096;
+            let a = s.div_ceil(page) * page;
+            let e = (s + piece.points as usize * rl) / page * page;
+            if e > a {
+                // SAFETY: the map is private and read-only, nothing holds references into this
+                // range after the piece was processed; DONTNEED only drops the pages from the map.
+                let _ = unsafe { m.unchecked_advise_range(memmap2::UncheckedAdvice::DontNeed, a, e - a) };
+            }
+        }
+    }
+
+    /// The raw records of one piece: borrowed from the map for LAS, decoded for LAZ.
+    pub fn read_piece(&self, piece: &Piece) -> Result<Cow<'_, [u8]>> {
+        let rl = self.layout.record_len;
+        match &self.kind {
+            Kind::Las { start } => {
+                let s = start + piece.first_point as usize * rl;
+                Ok(Cow::Borrowed(&self.bytes[s..s + piece.points as usize * rl]))
+            }
+            Kind::Laz { vlr, chunks } => {
+                let c = &chunks[piece.index];
+                let mut out = vec![0u8; c.points as usize * rl];
+                let entry = laz::laszip::ChunkTableEntry { point_count: c.points, byte_count: c.len as u64 };
+                let src = &self.bytes[c.offset..c.offset + c.len];
+                let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                    laz::par_decompress(src, &mut out, vlr, std::slice::from_ref(&entry))
+                }));
+                match r {
+                    Ok(Ok(())) => Ok(Cow::Owned(out)),
+                    Ok(Err(e)) => Err(Error::input(&self.path, format!("LAZ chunk {} is corrupt: {e}", piece.index))),
+                    Err(_) => Err(Error::input(&self.path, format!("LAZ chunk {} is corrupt (the decoder gave up)", piece.index))),
+                }
+            }
+            Kind::LazSequential { vlr, start } => {
+                let mut out = Vec::new();
+                let src = std::io::Cursor::new(&self.bytes[*start..]);
+                let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| -> std::result::Result<(), String> {
+                    let mut d = laz::LasZipDecompressor::new(src, vlr.clone()).map_err(|e| e.to_string())?;
+                    // grow as points decode, never by the header's claim alone
+                    let step = 65_536usize;
+                    let mut done = 0u64;
+                    while done < piece.points {
+                        let n = (piece.points - done).min(step as u64) as usize;
+                        let at = out.len();
+                        out.resize(at + n * rl, 0);
+                        d.decompress_many(&mut out[at..]).map_err(|e| e.to_string())?;
+                        done += n as u64;
+                    }
+                    Ok(())
+                }));
+                match r {
+                    Ok(Ok(())) => Ok(Cow::Owned(out)),
+                    Ok(Err(e)) => Err(Error::input(&self.path, format!("LAZ data is corrupt: {e}"))),
+                    Err(_) => Err(Error::input(&self.path, "LAZ data is corrupt (the decoder gave up)")),
+                }
+            }
+        }
+    }
+}
+
+fn check_laz_items(vlr: &laz::LazVlr) -> std::result::Result<(), String> {
+    use laz::LazItemType as T;
+    for item in vlr.items() {
+        let ok = match item.item_type() {
+            T::Point10 | T::GpsTime | T::RGB12 | T::Byte(_) => matches!(item.version(), 1 | 2),
+            T::Point14 | T::RGB14 | T::RGBNIR14 | T::Byte14(_) => item.version() == 3 || item.version() == 4,
+            T::WavePacket13 => item.version() == 1,
+            T::WavePacket14 => item.version() == 3 || item.version() == 4,
+            #[allow(unreachable_patterns)]
+            _ => false,
+        };
+        if !ok {
+            return Err(format!("LASzip item {:?} version {} is not supported", item.item_type(), item.version()));
+        }
+    }
+    Ok(())
+}
+
+/// Reads and checks the LAZ chunk table; `Ok(None)` when the file has none.
+fn read_chunk_table(
+    b: &[u8],
+    start: usize,
+    data_end: usize,
+    vlr: &laz::LazVlr,
+    point_count: u64,
+) -> std::result::Result<Option<Vec<LazChunk>>, String> {
+    if data_end < start + 8 || data_end > b.len() {
+        return if point_count == 0 { Ok(Some(Vec::new())) } else { Err("LAZ point data is missing".into()) };
+    }
+    let mut table_at = i64::from_le_bytes(b[start..start + 8].try_into().unwrap());
+    if table_at <= start as i64 || table_at as u64 + 8 > data_end as u64 {
+        // writers that could not seek back put the offset in the last 8 bytes
+        let tail = i64::from_le_bytes(b[data_end - 8..data_end].try_into().unwrap());
+        if tail > start as i64 && (tail as u64) + 8 <= data_end as u64 {
+            table_at = tail;
+        } else {
+            return Ok(None);
+        }
+    }
+    let table_at = table_at as usize;
+    let n_chunks = u32::from_le_bytes(b[table_at + 4..table_at + 8].try_into().unwrap()) as u64;
+    let data_bytes = (table_at - start - 8) as u64;
+    if n_chunks > data_bytes.max(1) || n_chunks > (1 << 26) {
+        return Err(format!("LAZ chunk table claims {n_chunks} chunks, impossible in {data_bytes} bytes of data"));
+    }
+    let variable = vlr.uses_variable_size_chunks();
+    let mut cur = std::io::Cursor::new(&b[table_at..data_end]);
+    let table = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| laz::laszip::ChunkTable::read(&mut cur, variable)))
+        .map_err(|_| "LAZ chunk table is corrupt".to_string())?
+        .map_err(|e| format!("LAZ chunk table is corrupt: {e}"))?;
+    let mut chunks = Vec::with_capacity(n_chunks as usize);
+    let mut offset = start as u64 + 8;
+    let mut total = 0u64;
+    let entries = table.as_ref();
+    for (i, e) in entries.iter().enumerate() {
+        let points = if variable {
+            e.point_count
+        } else if i + 1 == entries.len() {
+            point_count.saturating_sub(total)
+        } else {
+            vlr.chunk_size() as u64
+        };
+        if points > MAX_LAZ_CHUNK_POINTS {
+            return Err(format!("LAZ chunk {i} claims {points} points, more than mortar accepts per chunk"));
+        }
+        if offset + e.byte_count > table_at as u64 {
+            return Err(format!("LAZ chunk {i} runs past the chunk table (corrupt chunk table)"));
+        }
+        chunks.push(LazChunk { offset: offset as usize, len: e.byte_count as usize, points });
+        offset += e.byte_count;
+        total += points;
+    }
+    if total != point_count {
+        return Err(format!("header says {point_count} points but the LAZ chunk table holds {total}"));
+    }
+    Ok(Some(chunks))
+}
