@@ -58,5 +58,5 @@ pub fn print_warnings(ws: &[String]) {
 /// Opens the inputs of a command as one dataset.
 pub fn open_dataset(inputs: &[String]) -> anyhow::Result<mortar_io::dataset::Dataset> {
     let paths = mortar_io::source::expand_inputs(inputs)?;
-    Ok(mortar_io::dataset::Dataset::open_las(&paths)?)
+    Ok(mortar_io::dataset::Dataset::open(&paths)?)
 }

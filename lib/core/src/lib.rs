@@ -3,15 +3,18 @@
 //! This crate knows no files and no GPU (see `ARCHITECTURE.md`). It holds the definitions that every
 //! other part shares: Morton codes over the LAS integer grid ([`morton`]), the byte layout of LAS
 //! point records ([`layout`]), merging the integer grids of several inputs ([`grid`]), the batch
-//! quantization of paper 003 §3.3 ([`quantize`]), splitting sorted points into batches ([`batching`])
-//! and the render colour derived from the source's fields ([`color`]).
+//! quantization of paper 003 §3.3 ([`quantize`]), splitting sorted points into batches ([`batching`]),
+//! the render colour derived from the source's fields ([`color`]) and the rendering logic of paper
+//! 003 §3.2-3.4: camera, culling, adaptive precision, the CPU rasterizer and the resolve ([`render`]).
 
+pub mod batch;
 pub mod batching;
 pub mod color;
 pub mod grid;
 pub mod layout;
 pub mod morton;
 pub mod quantize;
+pub mod render;
 
 /// Points per full batch: 128 threads x 80 points (paper 003 §3.1).
 pub const BATCH_SIZE: usize = 10_240;

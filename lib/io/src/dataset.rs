@@ -153,11 +153,15 @@ impl Dataset {
         Ok(Dataset { inputs, grid, maps, layout, template, vlrs, evlrs, warnings })
     }
 
-    /// Opens LAS/LAZ inputs and merges them; warnings about each file come first.
-    pub fn open_las(paths: &[PathBuf]) -> Result<Dataset> {
+    /// Opens LAS/LAZ files and batch files and merges them; warnings about each file come first.
+    pub fn open(paths: &[PathBuf]) -> Result<Dataset> {
         let mut warnings = Vec::new();
         let mut inputs: Vec<Box<dyn RecordSource>> = Vec::new();
         for p in paths {
+            if p != Path::new("-") && crate::batchfile::is_batch_file(p) {
+                inputs.push(Box::new(crate::batchfile::BatchFile::open(p)?));
+                continue;
+            }
             let i = LasInput::open(p)?;
             warnings.extend(i.meta.warnings.iter().map(|w| format!("{}: {w}", p.display())));
             inputs.push(Box::new(i));

@@ -11,3 +11,4 @@ pub mod dataset;
 pub mod external;
 pub mod sort;
 pub mod sink_las;
+pub mod batchfile;

@@ -1,0 +1,474 @@
+//! The CPU reference rasterizer (paper 003 §3.2-3.3): one task per batch, frustum culling of whole
+//! batches, adaptive precision, and per point a projection, an early depth test and an atomic
+//! minimum on the 64-bit depth|index key.
+//!
+//! The GPU rasterizer (wgpu, `atomicMin` on `atomic<u64>`) follows the same steps with the same
+//! per-batch record ([`BatchProjection`]) and must produce the same keys; this module is the
+//! reference it is tested against. Batches run in parallel on rayon; the image does not depend on
+//! their order or on thread scheduling because the smallest key wins in every pixel.
+//!
+//! Per point only the words the batch's precision needs are read, the decode is integer work
+//! ([`crate::quantize::join_words`] and a shift), and the transform is f32: no f64, no allocation,
+//! no dynamic dispatch.
+
+use super::camera::{BatchProjection, Camera, CameraError};
+use super::framebuffer::{pack_key, Framebuffer};
+use super::frustum::{Containment, Frustum};
+use super::math::{length, sub, Aabb};
+use super::precision::{choose_precision, PrecisionMode};
+use crate::grid::Grid;
+use crate::quantize::{join_words, BatchGrid, Precision};
+use rayon::prelude::*;
+
+/// Pixels by which the culling frustum is wider than the viewport on each side: a batch is culled
+/// only if every point of it would land at least this far outside, so f32 rounding in the
+/// per-point projection can never bring a culled point on screen.
+pub const CULL_MARGIN_PX: f64 = 1.0;
+
+/// Relative depth margin of culling, in units of (distance to the batch + batch size): covers the
+/// f32 rounding of the per-point depth against the near and far planes.
+const CULL_DEPTH_MARGIN: f64 = 1e-5;
+
+/// One batch to draw: its quantization frame, world bounds and packed coordinate words.
+#[derive(Clone, Copy, Debug)]
+pub struct BatchRef<'a> {
+    /// The batch's quantization frame (integer min and bits per axis).
+    pub grid: BatchGrid,
+    /// Smallest world coordinate of the batch's points.
+    pub bounds_min: [f64; 3],
+    /// Largest world coordinate of the batch's points.
+    pub bounds_max: [f64; 3],
+    /// Coarse, medium and fine words, one per point each; all three of the same length.
+    pub words: [&'a [u32]; 3],
+    /// Global index of the batch's first point (the index written to the framebuffer).
+    pub first_index: u32,
+}
+
+impl BatchRef<'_> {
+    /// Number of points.
+    pub fn len(&self) -> usize {
+        self.words[0].len()
+    }
+
+    /// Whether the batch has no points.
+    pub fn is_empty(&self) -> bool {
+        self.words[0].is_empty()
+    }
+
+    /// The world bounds as a box.
+    pub fn bounds(&self) -> Aabb {
+        Aabb::new(self.bounds_min, self.bounds_max)
+    }
+}
+
+/// Choices of a rasterization.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct RasterOptions {
+    /// How each batch's precision is chosen.
+    pub precision: PrecisionMode,
+    /// Whether batches outside the view frustum are skipped (the image is the same either way).
+    pub cull: bool,
+}
+
+impl Default for RasterOptions {
+    fn default() -> Self {
+        RasterOptions { precision: PrecisionMode::Adaptive, cull: true }
+    }
+}
+
+/// What a rasterization did.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+pub struct RasterStats {
+    /// Batches looked at.
+    pub batches: u64,
+    /// Batches skipped by frustum culling.
+    pub batches_culled: u64,
+    /// Batches whose points were projected.
+    pub batches_drawn: u64,
+    /// Points projected, by the number of words loaded: `[10 bits, 20 bits, 30 bits]`.
+    pub points_by_precision: [u64; 3],
+    /// Points that landed in the viewport and depth range and were depth-tested.
+    pub points_drawn: u64,
+}
+
+impl RasterStats {
+    /// Points projected at any precision.
+    pub fn points_projected(&self) -> u64 {
+        self.points_by_precision.iter().sum()
+    }
+
+    fn merge(mut self, o: RasterStats) -> RasterStats {
+        self.batches += o.batches;
+        self.batches_culled += o.batches_culled;
+        self.batches_drawn += o.batches_drawn;
+        for i in 0..3 {
+            self.points_by_precision[i] += o.points_by_precision[i];
+        }
+        self.points_drawn += o.points_drawn;
+        self
+    }
+}
+
+/// Why a rasterization was refused (before anything was drawn).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum RasterError {
+    /// The camera is not usable.
+    #[error(transparent)]
+    Camera(#[from] CameraError),
+    /// Framebuffer and camera viewport differ.
+    #[error("framebuffer is {fb_width}x{fb_height} but the camera's viewport is {width}x{height}")]
+    Viewport {
+        /// Framebuffer width.
+        fb_width: u32,
+        /// Framebuffer height.
+        fb_height: u32,
+        /// Camera width.
+        width: u32,
+        /// Camera height.
+        height: u32,
+    },
+    /// A batch's three word arrays have different lengths.
+    #[error("batch {batch}: coarse, medium and fine words have different lengths {lengths:?}")]
+    WordCounts {
+        /// Position of the batch in the slice.
+        batch: usize,
+        /// The three lengths.
+        lengths: [usize; 3],
+    },
+    /// A batch's point indices do not fit in 32 bits.
+    #[error("batch {batch}: points {first_index}.. ({count} points) exceed the 32-bit point index")]
+    IndexOverflow {
+        /// Position of the batch in the slice.
+        batch: usize,
+        /// Its first index.
+        first_index: u32,
+        /// Its point count.
+        count: usize,
+    },
+}
+
+/// Viewport and depth range as the per-point loop (and the GPU shader) reads them.
+///
+/// `#[repr(C)]` and Pod: the uniform the GPU rasterizer will read (keep the WGSL mirror in sync; 16 bytes).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct RasterUniforms {
+    /// Viewport width in pixels.
+    pub width: u32,
+    /// Viewport height in pixels.
+    pub height: u32,
+    /// Near plane (view depth), f32.
+    pub near: f32,
+    /// Far plane (view depth), f32.
+    pub far: f32,
+}
+
+const _: () = assert!(std::mem::size_of::<RasterUniforms>() == 16);
+
+impl RasterUniforms {
+    /// The uniforms of a camera.
+    pub fn new(camera: &Camera) -> RasterUniforms {
+        RasterUniforms { width: camera.width, height: camera.height, near: camera.near as f32, far: camera.far as f32 }
+    }
+}
+
+/// Draws `batches` into `fb` (which is not cleared: several calls accumulate, e.g. progressive or
+/// per-file passes). `grid` is the world grid of the batches' integer coordinates.
+pub fn rasterize(
+    fb: &Framebuffer,
+    batches: &[BatchRef<'_>],
+    grid: &Grid,
+    camera: &Camera,
+    options: &RasterOptions,
+) -> Result<RasterStats, RasterError> {
+    camera.validate()?;
+    if fb.width() != camera.width || fb.height() != camera.height {
+        return Err(RasterError::Viewport {
+            fb_width: fb.width(),
+            fb_height: fb.height(),
+            width: camera.width,
+            height: camera.height,
+        });
+    }
+    for (i, b) in batches.iter().enumerate() {
+        let lengths = b.words.map(<[u32]>::len);
+        if lengths[1] != lengths[0] || lengths[2] != lengths[0] {
+            return Err(RasterError::WordCounts { batch: i, lengths });
+        }
+        if b.first_index as u64 + lengths[0] as u64 > 1u64 << 32 {
+            return Err(RasterError::IndexOverflow { batch: i, first_index: b.first_index, count: lengths[0] });
+        }
+    }
+    let frustum = Frustum::new(camera, CULL_MARGIN_PX);
+    let uniforms = RasterUniforms::new(camera);
+    let stats = batches
+        .par_iter()
+        .map(|b| draw_batch(fb, b, grid, camera, &frustum, &uniforms, options))
+        .reduce(RasterStats::default, RasterStats::merge);
+    Ok(stats)
+}
+
+/// Culls, chooses the precision and draws one batch.
+fn draw_batch(
+    fb: &Framebuffer,
+    b: &BatchRef<'_>,
+    grid: &Grid,
+    camera: &Camera,
+    frustum: &Frustum,
+    uniforms: &RasterUniforms,
+    options: &RasterOptions,
+) -> RasterStats {
+    let mut stats = RasterStats { batches: 1, ..RasterStats::default() };
+    if b.is_empty() {
+        return stats;
+    }
+    let (precision, _) = choose_precision(options.precision, camera, grid, &b.grid);
+    if options.cull {
+        // Decoded positions may lie up to the error bound outside the points' bounds; f32 depth
+        // may be off by a tiny fraction of the distance.
+        let bounds = b.bounds();
+        let err = b.grid.error_bound(precision);
+        let slack = CULL_DEPTH_MARGIN * (length(sub(bounds.center(), camera.eye)) + bounds.diagonal());
+        let margin = [0, 1, 2].map(|a| err[a] * grid.scale[a].abs() + slack);
+        if frustum.test_aabb(&bounds.expanded(margin)) == Containment::Outside {
+            stats.batches_culled = 1;
+            return stats;
+        }
+    }
+    let bp = camera.batch_projection(grid, &b.grid, precision);
+    stats.batches_drawn = 1;
+    stats.points_by_precision[precision.words() - 1] = b.len() as u64;
+    stats.points_drawn = match precision {
+        Precision::Bits10 => draw_points::<1>(fb, &bp, b, uniforms),
+        Precision::Bits20 => draw_points::<2>(fb, &bp, b, uniforms),
+        Precision::Bits30 => draw_points::<3>(fb, &bp, b, uniforms),
+    };
+    stats
+}
+
+/// The per-point loop, reading the first `WORDS` word arrays only. Returns the points depth-tested.
+#[inline(never)]
+fn draw_points<const WORDS: usize>(fb: &Framebuffer, bp: &BatchProjection, b: &BatchRef<'_>, u: &RasterUniforms) -> u64 {
+    let precision = match WORDS {
+        1 => Precision::Bits10,
+        2 => Precision::Bits20,
+        _ => Precision::Bits30,
+    };
+    let n = b.len();
+    let coarse = &b.words[0][..n];
+    let medium = &b.words[1][..if WORDS >= 2 { n } else { 0 }];
+    let fine = &b.words[2][..if WORDS >= 3 { n } else { 0 }];
+    let [ox, oy] = bp.pixel_origin;
+    let (x_lo, x_hi) = (-ox as f32, (u.width as i32 - ox) as f32);
+    let (y_lo, y_hi) = (-oy as f32, (u.height as i32 - oy) as f32);
+    let width = u.width as usize;
+    let mut drawn = 0u64;
+    for i in 0..n {
+        let words = [
+            coarse[i],
+            if WORDS >= 2 { medium[i] } else { 0 },
+            if WORDS >= 3 { fine[i] } else { 0 },
+        ];
+        let [x, y, depth, w] = bp.transform(bp.local(join_words(words, precision)));
+        // Also rejects NaN. Inside [near, far], w > 0 (w is the depth, or 1 for orthographic).
+        if !(depth >= u.near && depth <= u.far) {
+            continue;
+        }
+        let (fx, fy) = (x / w, y / w);
+        if !(fx >= x_lo && fx < x_hi && fy >= y_lo && fy < y_hi) {
+            continue;
+        }
+        let px = (fx.floor() as i32 + ox) as usize;
+        let py = (fy.floor() as i32 + oy) as usize;
+        fb.depth_test(py * width + px, pack_key(depth, b.first_index + i as u32));
+        drawn += 1;
+    }
+    drawn
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::render::camera::{Projection, ViewPreset};
+    use crate::render::framebuffer::{key_index, EMPTY_KEY};
+    use crate::render::testutil::{Rng, Scene};
+
+    fn render(scene: &Scene, camera: &Camera, options: RasterOptions) -> (Vec<u64>, RasterStats) {
+        let fb = Framebuffer::new(camera.width, camera.height);
+        let stats = rasterize(&fb, &scene.refs(), &scene.grid, camera, &options).unwrap();
+        (fb.into_keys(), stats)
+    }
+
+    fn covered(keys: &[u64]) -> usize {
+        keys.iter().filter(|&&k| k != EMPTY_KEY).count()
+    }
+
+    #[test]
+    fn nearer_point_occludes_and_ties_go_to_the_smaller_index() {
+        // Points on a column above (50, 50): seen from the top, the highest is nearest.
+        let pts = vec![[5000, 5000, 100], [5000, 5000, 900], [5000, 5000, 500], [9000, 9000, 0], [9000, 9000, 0]];
+        let scene = Scene::from_points(Grid { scale: [0.01; 3], offset: [0.0; 3] }, pts, 2);
+        let bounds = Aabb::new([0.0; 3], [100.0, 100.0, 10.0]);
+        let cam = Camera::frame_orthographic(&bounds, ViewPreset::Top, 64, 64).unwrap();
+        let (keys, stats) = render(&scene, &cam, RasterOptions::default());
+        assert_eq!(stats.points_drawn, 5);
+        assert_eq!(covered(&keys), 2);
+        let winners: Vec<u32> = keys.iter().filter(|&&k| k != EMPTY_KEY).map(|&k| key_index(k)).collect();
+        let z_of = |i: u32| scene.points[i as usize][2];
+        let x_of = |i: u32| scene.points[i as usize][0];
+        for w in winners {
+            if x_of(w) == 5000 {
+                assert_eq!(z_of(w), 900, "the highest point of the column must win");
+            } else {
+                // Two identical points: the smaller global index wins.
+                let twins: Vec<u32> = (0..5).filter(|&i| x_of(i) == 9000).collect();
+                assert_eq!(w, *twins.iter().min().unwrap());
+            }
+        }
+    }
+
+    #[test]
+    fn deterministic_across_runs_orders_and_threads() {
+        let scene = Scene::terrain(200_000, 11, Grid { scale: [0.001; 3], offset: [500_000.0, 5_400_000.0, 0.0] });
+        let cam = Camera::frame_perspective(&scene.bounds, ViewPreset::Iso, 0.8, 320, 240).unwrap();
+        let (a, sa) = render(&scene, &cam, RasterOptions::default());
+        let (b, sb) = render(&scene, &cam, RasterOptions::default());
+        assert_eq!(a, b);
+        assert_eq!(sa, sb);
+        // Dense: points compete for pixels, so the order could matter if the result were not deterministic.
+        assert!(sa.points_drawn > 2 * covered(&a) as u64);
+        // Reversed batch order, and a single thread.
+        let mut refs = scene.refs();
+        refs.reverse();
+        let fb = Framebuffer::new(320, 240);
+        rasterize(&fb, &refs, &scene.grid, &cam, &RasterOptions::default()).unwrap();
+        assert_eq!(fb.into_keys(), a);
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
+        let c = pool.install(|| render(&scene, &cam, RasterOptions::default()).0);
+        assert_eq!(c, a);
+    }
+
+    #[test]
+    fn culling_skips_batches_but_not_pixels() {
+        let scene = Scene::terrain(300_000, 5, Grid { scale: [0.001; 3], offset: [6_400_000.0, 0.0, 0.0] });
+        let c = scene.bounds.center();
+        let size = scene.bounds.size();
+        let mut cams = vec![
+            // Close-up inside the scene, looking along the terrain.
+            Camera {
+                eye: [c[0] - size[0] * 0.1, c[1] - size[1] * 0.1, scene.bounds.max[2] + 2.0],
+                target: [c[0] + size[0] * 0.2, c[1] + size[1] * 0.1, scene.bounds.min[2]],
+                up: [0.0, 0.0, 1.0],
+                projection: Projection::Perspective { fov_y: 0.7 },
+                near: 0.5,
+                far: 1e5,
+                width: 300,
+                height: 200,
+            },
+            // Zoomed orthographic top view of one corner.
+            Camera {
+                eye: [scene.bounds.min[0] + 20.0, scene.bounds.min[1] + 20.0, 500.0],
+                target: [scene.bounds.min[0] + 20.0, scene.bounds.min[1] + 20.0, 0.0],
+                up: [0.0, 1.0, 0.0],
+                projection: Projection::Orthographic { height: 30.0 },
+                near: 1.0,
+                far: 1000.0,
+                width: 300,
+                height: 300,
+            },
+        ];
+        cams.push(Camera::frame_perspective(&scene.bounds, ViewPreset::Front, 0.5, 200, 100).unwrap());
+        for (i, cam) in cams.iter().enumerate() {
+            let (on, s_on) = render(&scene, cam, RasterOptions { cull: true, ..Default::default() });
+            let (off, s_off) = render(&scene, cam, RasterOptions { cull: false, ..Default::default() });
+            assert_eq!(on, off, "camera {i}: culling changed the image");
+            assert_eq!(s_on.points_drawn, s_off.points_drawn, "camera {i}");
+            assert_eq!(s_off.batches_culled, 0);
+            assert_eq!(s_on.batches_culled + s_on.batches_drawn, s_on.batches);
+            if i < 2 {
+                assert!(s_on.batches_culled * 2 > s_on.batches, "camera {i}: culled only {} of {}", s_on.batches_culled, s_on.batches);
+            }
+            assert!(covered(&on) > 1000, "camera {i}: covered {}", covered(&on));
+        }
+    }
+
+    #[test]
+    fn adaptive_precision_matches_full_precision_in_an_overview() {
+        // Dense terrain at millimetre scale: batches need ~16 bits, so 10 bits are lossy.
+        let scene = Scene::terrain(1_000_000, 21, Grid { scale: [0.001; 3], offset: [300_000.0, 4_000_000.0, 0.0] });
+        assert!(scene.batches.iter().all(|b| b.grid.bits.iter().any(|&bits| bits > 10)));
+        for preset in [ViewPreset::Top, ViewPreset::Iso] {
+            let cam = Camera::frame_perspective(&scene.bounds, preset, 0.8, 800, 600).unwrap();
+            let (adaptive, sa) = render(&scene, &cam, RasterOptions::default());
+            let (full, sf) = render(&scene, &cam, RasterOptions { precision: PrecisionMode::Fixed(Precision::Bits30), ..Default::default() });
+            assert!(sa.points_by_precision[0] * 10 > sa.points_projected() * 9, "{preset:?}: {sa:?}");
+            assert_eq!(sf.points_by_precision[0], 0);
+            let n = covered(&full);
+            let coverage_diff = adaptive.iter().zip(&full).filter(|(a, b)| (**a == EMPTY_KEY) != (**b == EMPTY_KEY)).count();
+            let index_diff = adaptive.iter().zip(&full).filter(|(a, b)| key_index(**a) != key_index(**b)).count();
+            eprintln!("{preset:?}: covered {n}, coverage differs {coverage_diff}, winner differs {index_diff}");
+            let colour_diff = adaptive
+                .iter()
+                .zip(&full)
+                .filter(|(a, b)| {
+                    let ca = (**a != EMPTY_KEY).then(|| scene.colors[key_index(**a) as usize]);
+                    let cb = (**b != EMPTY_KEY).then(|| scene.colors[key_index(**b) as usize]);
+                    ca != cb
+                })
+                .count();
+            eprintln!("{preset:?}: colour differs {colour_diff}");
+        }
+        panic!("measure");
+    }
+
+    #[test]
+    fn full_precision_matches_f64_brute_force() {
+        // Every point projected in f64 from its exact world position, nearest depth wins: the
+        // rasterizer at 30 bits must give the same winner in nearly every pixel.
+        let scene = Scene::terrain(300_000, 9, Grid { scale: [0.0001; 3], offset: [6_400_000.0, 6_400_000.0, 6_400_000.0] });
+        for preset in [ViewPreset::Top, ViewPreset::Iso] {
+            let cam = Camera::frame_perspective(&scene.bounds, preset, 0.8, 640, 480).unwrap();
+            let (keys, _) = render(&scene, &cam, RasterOptions { precision: PrecisionMode::Fixed(Precision::Bits30), cull: true });
+            let mut best = vec![(f64::INFINITY, u32::MAX); 640 * 480];
+            for (i, p) in scene.points.iter().enumerate() {
+                let world = [0, 1, 2].map(|a| scene.grid.world(a, p[a] as i64));
+                if let Some(q) = cam.project(world) {
+                    let (x, y) = (q.x.floor(), q.y.floor());
+                    if x >= 0.0 && x < 640.0 && y >= 0.0 && y < 480.0 {
+                        let slot = &mut best[y as usize * 640 + x as usize];
+                        if (q.depth, i as u32) < *slot {
+                            *slot = (q.depth, i as u32);
+                        }
+                    }
+                }
+            }
+            let n = best.iter().filter(|b| b.1 != u32::MAX).count();
+            let differ = keys.iter().zip(&best).filter(|(k, b)| (**k == EMPTY_KEY) != (b.1 == u32::MAX) || (**k != EMPTY_KEY && key_index(**k) != b.1)).count();
+            assert!(n > 50_000, "{preset:?}: {n}");
+            assert!(differ as f64 <= 1e-4 * n as f64, "{preset:?}: {differ} of {n} pixels differ");
+        }
+    }
+
+    #[test]
+    fn stats_and_errors() {
+        let scene = Scene::terrain(50_000, 1, Grid { scale: [0.01; 3], offset: [0.0; 3] });
+        let cam = Camera::frame_orthographic(&scene.bounds, ViewPreset::Top, 100, 100).unwrap();
+        let (_, s) = render(&scene, &cam, RasterOptions::default());
+        assert_eq!(s.batches, scene.batches.len() as u64);
+        assert_eq!(s.points_projected(), 50_000);
+        assert_eq!(s.points_drawn, 50_000, "a framed top view shows every point");
+        let fb = Framebuffer::new(99, 100);
+        assert!(matches!(rasterize(&fb, &scene.refs(), &scene.grid, &cam, &RasterOptions::default()), Err(RasterError::Viewport { .. })));
+        let fb = Framebuffer::new(100, 100);
+        let mut refs = scene.refs();
+        refs[1].words[2] = &refs[1].words[2][1..];
+        assert!(matches!(rasterize(&fb, &refs, &scene.grid, &cam, &RasterOptions::default()), Err(RasterError::WordCounts { batch: 1, .. })));
+        let mut refs = scene.refs();
+        refs[0].first_index = u32::MAX - 5;
+        assert!(matches!(rasterize(&fb, &refs, &scene.grid, &cam, &RasterOptions::default()), Err(RasterError::IndexOverflow { batch: 0, .. })));
+        let mut bad = cam;
+        bad.far = bad.near;
+        assert!(matches!(rasterize(&fb, &scene.refs(), &scene.grid, &bad, &RasterOptions::default()), Err(RasterError::Camera(_))));
+        let _ = Rng(0);
+    }
+}

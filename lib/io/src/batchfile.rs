@@ -1,0 +1,680 @@
+//! The batch file (paper 003 §3.1-3.3): Morton-ordered points in batches of 10,240, coordinates
+//! quantized to 30 bits per batch and split into coarse/medium/fine 10-bit words, each section a
+//! separate array so a renderer reads only what it needs. The byte layout is in
+//! `lib/io/BATCH_FORMAT.md`; the structs read in place are in [`mortar_core::batch`].
+//!
+//! [`BatchSink`] writes one from the Morton sort; [`BatchFile`] opens one as a read-only memory
+//! map with zero-copy access to any batch's arrays (uncompressed files), and is itself a
+//! [`RecordSource`] so a batch file converts back to LAS bit for bit.
+
+use crate::cleanup::TempPath;
+use crate::dataset::RecordSource;
+use crate::error::{Error, Result};
+use crate::las::{self, Header, HeaderOut, Vlr};
+use crate::source::{open_bytes, Bytes, Piece};
+use crate::sort::{OrderedSink, Summary};
+use mortar_core::batch::*;
+use mortar_core::batching::{plan_batches, PlannedBatch};
+use mortar_core::color::{ColorSource, RgbDepth};
+use mortar_core::grid::Grid;
+use mortar_core::layout::{read_xyz, write_xyz, Attribute, RecordLayout};
+use mortar_core::morton::MortonGrid;
+use mortar_core::BATCH_SIZE;
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use std::borrow::Cow;
+use std::fs::File;
+use std::io::{BufWriter, Seek, SeekFrom, Write};
+use std::path::{Path, PathBuf};
+
+/// Section compression.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Compression {
+    None,
+    Zstd,
+}
+
+/// A byte range in the file.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Range {
+    pub offset: u64,
+    pub len: u64,
+}
+
+/// How the render colour was derived.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ColorMeta {
+    /// `rgb` or `intensity`.
+    pub source: String,
+    /// For rgb: 8 or 16 (how the 16-bit fields were read).
+    pub rgb_bits: Option<u8>,
+    pub max_intensity: u16,
+}
+
+/// The JSON metadata of a batch file.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Meta {
+    pub generator: String,
+    pub batch_size: usize,
+    pub compression: Compression,
+    pub point_format: u8,
+    pub record_len: usize,
+    pub scale: [f64; 3],
+    pub offset: [f64; 3],
+    /// Integer bounds of all points (inclusive).
+    pub int_min: [i32; 3],
+    pub int_max: [i32; 3],
+    pub world_min: [f64; 3],
+    pub world_max: [f64; 3],
+    pub morton_origin: [i64; 3],
+    pub morton_shift: u32,
+    pub points_by_return: [u64; 15],
+    pub color: ColorMeta,
+    /// Kept attributes, in section order from section 4.
+    pub attributes: Vec<AttributeMeta>,
+    /// Attributes of the source format not kept (zero when converted back to LAS).
+    pub dropped: Vec<String>,
+    /// The source's LAS header and VLRs (parseable as a LAS header) and its EVLRs.
+    pub las_header: Range,
+    pub evlrs: Range,
+}
+
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct AttributeMeta {
+    pub name: String,
+    pub offset: usize,
+    pub width: usize,
+}
+
+/// What to keep besides coordinates and colour.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum AttributeSelection {
+    All,
+    Only(Vec<String>),
+}
+
+impl AttributeSelection {
+    /// Parses `all`, `none` or a comma-separated list of names.
+    pub fn parse(s: &str) -> AttributeSelection {
+        match s {
+            "all" => AttributeSelection::All,
+            "none" | "" => AttributeSelection::Only(Vec::new()),
+            _ => AttributeSelection::Only(s.split(',').map(|n| n.trim().to_string()).collect()),
+        }
+    }
+
+    /// The attributes of `layout` this selection keeps; an error names an unknown attribute.
+    pub fn resolve(&self, layout: &RecordLayout) -> std::result::Result<Vec<Attribute>, String> {
+        match self {
+            AttributeSelection::All => Ok(layout.attributes.clone()),
+            AttributeSelection::Only(names) => {
+                let mut out = Vec::new();
+                for n in names {
+                    match layout.attribute(n) {
+                        Some(a) => out.push(a.clone()),
+                        None => {
+                            let have: Vec<&str> = layout.attributes.iter().map(|a| a.name.as_str()).collect();
+                            return Err(format!(
+                                "point format {} has no attribute '{n}' (it has: {})",
+                                layout.format,
+                                have.join(", ")
+                            ));
+                        }
+                    }
+                }
+                out.sort_by_key(|a| a.offset);
+                out.dedup();
+                Ok(out)
+            }
+        }
+    }
+}
+
+/// The source metadata a batch file keeps.
+#[derive(Clone, Debug)]
+pub struct BatchTemplate {
+    pub header: Header,
+    pub vlrs: Vec<Vlr>,
+    pub evlrs: Vec<Vlr>,
+    pub layout: RecordLayout,
+    pub grid: Grid,
+}
+
+/// Writes a batch file from Morton-ordered records.
+pub struct BatchSink {
+    target: PathBuf,
+    tmp: TempPath,
+    t: BatchTemplate,
+    attributes: Vec<Attribute>,
+    compression: Compression,
+    out: Option<BufWriter<File>>,
+    pos: u64,
+    carry: Vec<u8>,
+    entries: Vec<BatchEntry>,
+    sections: Vec<SectionEntry>,
+    meta: Option<Meta>,
+    color: Option<ColorSource>,
+    written: u64,
+}
+
+struct BuiltBatch {
+    entry: BatchEntry,
+    sections: Vec<Vec<u8>>,
+}
+
+impl BatchSink {
+    pub fn new(target: &Path, t: BatchTemplate, attributes: Vec<Attribute>, compression: Compression) -> BatchSink {
+        BatchSink {
+            target: target.to_path_buf(),
+            tmp: TempPath::beside(target),
+            t,
+            attributes,
+            compression,
+            out: None,
+            pos: 0,
+            carry: Vec::new(),
+            entries: Vec::new(),
+            sections: Vec::new(),
+            meta: None,
+            color: None,
+            written: 0,
+        }
+    }
+
+    fn section_count(&self) -> usize {
+        FIRST_ATTRIBUTE_SECTION + self.attributes.len()
+    }
+
+    fn put(&mut self, bytes: &[u8]) -> Result<Range> {
+        let p = self.tmp.path().to_path_buf();
+        let w = self.out.as_mut().expect("begun");
+        let pad = (SECTION_ALIGN - self.pos % SECTION_ALIGN) % SECTION_ALIGN;
+        w.write_all(&[0u8; SECTION_ALIGN as usize][..pad as usize]).map_err(|e| Error::io(&p, e))?;
+        self.pos += pad;
+        let r = Range { offset: self.pos, len: bytes.len() as u64 };
+        w.write_all(bytes).map_err(|e| Error::io(&p, e))?;
+        self.pos += bytes.len() as u64;
+        Ok(r)
+    }
+
+    fn build(&self, records: &[u8], b: &PlannedBatch) -> Result<BuiltBatch> {
+        let rl = self.t.layout.record_len;
+        let n = b.range.len();
+        let recs = &records[b.range.start * rl..b.range.end * rl];
+        let grid = b.grid;
+        let mut words = [Vec::with_capacity(n), Vec::with_capacity(n), Vec::with_capacity(n)];
+        let mut color = Vec::with_capacity(n);
+        let cs = self.color.expect("begun");
+        for r in recs.chunks_exact(rl) {
+            let w = grid.encode(read_xyz(r));
+            words[0].push(w[0]);
+            words[1].push(w[1]);
+            words[2].push(w[2]);
+            color.push(cs.rgba(r));
+        }
+        let mut sections: Vec<Vec<u8>> = Vec::with_capacity(self.section_count());
+        for w in &words {
+            sections.push(bytemuck::cast_slice(w).to_vec());
+        }
+        sections.push(bytemuck::cast_slice(&color).to_vec());
+        for a in &self.attributes {
+            let mut col = Vec::with_capacity(n * a.width);
+            for r in recs.chunks_exact(rl) {
+                col.extend_from_slice(&r[a.offset..a.offset + a.width]);
+            }
+            sections.push(col);
+        }
+        if self.compression == Compression::Zstd {
+            for s in sections.iter_mut() {
+                *s = zstd::bulk::compress(s, 3).map_err(|e| Error::Usage(format!("zstd: {e}")))?;
+            }
+        }
+        let g = &self.t.grid;
+        let world = |a: usize, v: i32| g.offset[a] + g.scale[a] * v as f64;
+        let entry = BatchEntry {
+            count: n as u32,
+            flags: 0,
+            bits: [grid.bits[0], grid.bits[1], grid.bits[2], 0],
+            min: grid.min,
+            max: b.max,
+            _pad: 0,
+            first_point: 0,
+            world_min: [world(0, grid.min[0]), world(1, grid.min[1]), world(2, grid.min[2])],
+            world_max: [world(0, b.max[0]), world(1, b.max[1]), world(2, b.max[2])],
+        };
+        Ok(BuiltBatch { entry, sections })
+    }
+
+    /// Builds and writes the batches of `records`; a trailing partial batch stays in the carry
+    /// unless `last`.
+    fn flush_records(&mut self, records: &[u8], last: bool) -> Result<()> {
+        let rl = self.t.layout.record_len;
+        let n = records.len() / rl;
+        let full = if last { n } else { n / BATCH_SIZE * BATCH_SIZE };
+        if full > 0 {
+            let xyz: Vec<[i32; 3]> = records[..full * rl].par_chunks_exact(rl).map(read_xyz).collect();
+            let mut plan = Vec::new();
+            plan_batches(&xyz, BATCH_SIZE, 0, &mut plan);
+            let built: Vec<BuiltBatch> =
+                plan.par_iter().map(|b| self.build(records, b)).collect::<Result<Vec<_>>>()?;
+            for mut b in built {
+                for s in &b.sections {
+                    let r = self.put(s)?;
+                    self.sections.push(SectionEntry { offset: r.offset, stored_len: r.len });
+                }
+                b.entry.first_point = self.written;
+                self.written += b.entry.count as u64;
+                self.entries.push(b.entry);
+            }
+        }
+        self.carry = records[full * rl..].to_vec();
+        Ok(())
+    }
+
+    /// Writes the tail, the metadata and the tables, then renames the file into place.
+    pub fn finish(mut self) -> Result<u64> {
+        let carry = std::mem::take(&mut self.carry);
+        self.flush_records(&carry, true)?;
+        let meta = self.meta.clone().ok_or_else(|| Error::Usage("batch sink finished before it began".into()))?;
+        let json = serde_json::to_vec_pretty(&meta).map_err(|e| Error::Usage(e.to_string()))?;
+        let meta_r = self.put(&json)?;
+        let entries = std::mem::take(&mut self.entries);
+        let sections = std::mem::take(&mut self.sections);
+        let table = self.put(bytemuck::cast_slice(&entries))?;
+        self.put(bytemuck::cast_slice(&sections))?;
+        let header = FileHeader {
+            magic: MAGIC,
+            version: VERSION,
+            flags: if self.compression == Compression::Zstd { FLAG_ZSTD } else { 0 },
+            point_count: self.written,
+            batch_count: entries.len() as u64,
+            section_count: self.section_count() as u32,
+            _pad: 0,
+            meta_offset: meta_r.offset,
+            meta_len: meta_r.len,
+            table_offset: table.offset,
+        };
+        let p = self.tmp.path().to_path_buf();
+        let mut w = self.out.take().expect("begun");
+        w.seek(SeekFrom::Start(0)).map_err(|e| Error::io(&p, e))?;
+        w.write_all(bytemuck::bytes_of(&header)).map_err(|e| Error::io(&p, e))?;
+        let f = w.into_inner().map_err(|e| Error::io(&p, e.into_error()))?;
+        f.sync_all().map_err(|e| Error::io(&p, e))?;
+        drop(f);
+        let written = self.written;
+        let BatchSink { tmp, target, .. } = self;
+        tmp.persist(&target).map_err(|e| Error::io(&target, e))?;
+        Ok(written)
+    }
+}
+
+impl OrderedSink for BatchSink {
+    fn begin(&mut self, s: &Summary) -> Result<()> {
+        let p = self.tmp.path().to_path_buf();
+        let f = File::create(&p).map_err(|e| Error::io(&p, e))?;
+        self.out = Some(BufWriter::with_capacity(1 << 20, f));
+        self.put(&[0u8; std::mem::size_of::<FileHeader>()])?;
+        let g = self.t.grid;
+        let world = |a: usize, v: i32| g.offset[a] + g.scale[a] * v as f64;
+        let world_min = [world(0, s.min[0]), world(1, s.min[1]), world(2, s.min[2])];
+        let world_max = [world(0, s.max[0]), world(1, s.max[1]), world(2, s.max[2])];
+        let hb = las::write_header(&HeaderOut {
+            template: &self.t.header,
+            point_format: self.t.layout.format,
+            compressed: false,
+            record_len: self.t.layout.record_len as u16,
+            point_count: s.count,
+            points_by_return: s.points_by_return,
+            scale: g.scale,
+            offset: g.offset,
+            min: world_min,
+            max: world_max,
+            vlrs: &self.t.vlrs,
+            evlr_start: 0,
+            evlr_count: 0,
+        })
+        .map_err(|e| Error::input(&self.target, e))?;
+        let las_header = self.put(&hb)?;
+        let evlrs = self.put(&las::write_evlrs(&self.t.evlrs))?;
+        let color = match self.t.layout.attribute("rgb") {
+            Some(a) if s.max_rgb > 0 => ColorSource::Rgb { offset: a.offset, depth: RgbDepth::detect(s.max_rgb) },
+            _ => ColorSource::Intensity { max_intensity: s.max_intensity },
+        };
+        self.color = Some(color);
+        let color_meta = match color {
+            ColorSource::Rgb { depth, .. } => ColorMeta {
+                source: "rgb".into(),
+                rgb_bits: Some(if depth == RgbDepth::Eight { 8 } else { 16 }),
+                max_intensity: s.max_intensity,
+            },
+            ColorSource::Intensity { max_intensity } => ColorMeta { source: "intensity".into(), rgb_bits: None, max_intensity },
+        };
+        self.meta = Some(Meta {
+            generator: format!("mortar {}", env!("CARGO_PKG_VERSION")),
+            batch_size: BATCH_SIZE,
+            compression: self.compression,
+            point_format: self.t.layout.format,
+            record_len: self.t.layout.record_len,
+            scale: g.scale,
+            offset: g.offset,
+            int_min: s.min,
+            int_max: s.max,
+            world_min,
+            world_max,
+            morton_origin: s.morton.origin,
+            morton_shift: s.morton.shift,
+            points_by_return: s.points_by_return,
+            color: color_meta,
+            attributes: self
+                .attributes
+                .iter()
+                .map(|a| AttributeMeta { name: a.name.clone(), offset: a.offset, width: a.width })
+                .collect(),
+            dropped: self
+                .t
+                .layout
+                .attributes
+                .iter()
+                .filter(|a| !self.attributes.contains(a))
+                .map(|a| a.name.clone())
+                .collect(),
+            las_header,
+            evlrs,
+        });
+        Ok(())
+    }
+
+    fn write(&mut self, records: &[u8]) -> Result<()> {
+        if self.carry.is_empty() {
+            self.flush_records(records, false)
+        } else {
+            let mut joined = std::mem::take(&mut self.carry);
+            joined.extend_from_slice(records);
+            self.flush_records(&joined, false)
+        }
+    }
+}
+
+/// One batch's arrays, borrowed from the map (uncompressed files) or decompressed.
+pub struct BatchView<'a> {
+    pub entry: &'a BatchEntry,
+    sections: Vec<Cow<'a, [u8]>>,
+}
+
+impl<'a> BatchView<'a> {
+    /// Coordinate words: 0 coarse, 1 medium, 2 fine.
+    pub fn words(&self, level: usize) -> &[u32] {
+        bytemuck::cast_slice(&self.sections[SECTION_COARSE + level])
+    }
+    /// Render colours, RGBA8 packed as `r | g << 8 | b << 16 | a << 24`.
+    pub fn colors(&self) -> &[u32] {
+        bytemuck::cast_slice(&self.sections[SECTION_COLOR])
+    }
+    /// Raw bytes of kept attribute `i` (`width` bytes per point).
+    pub fn attribute(&self, i: usize) -> &[u8] {
+        &self.sections[FIRST_ATTRIBUTE_SECTION + i]
+    }
+    pub fn len(&self) -> usize {
+        self.entry.count as usize
+    }
+    pub fn is_empty(&self) -> bool {
+        self.entry.count == 0
+    }
+}
+
+/// An opened batch file.
+pub struct BatchFile {
+    pub path: PathBuf,
+    bytes: Bytes,
+    pub header: FileHeader,
+    pub meta: Meta,
+    pub las: las::LasMeta,
+    pub layout: RecordLayout,
+    table_offset: usize,
+}
+
+impl std::fmt::Debug for BatchFile {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("BatchFile").field("path", &self.path).field("batches", &self.header.batch_count).finish()
+    }
+}
+
+/// Whether the bytes start like a batch file.
+pub fn is_batch_file(path: &Path) -> bool {
+    let mut m = [0u8; 8];
+    File::open(path).and_then(|mut f| std::io::Read::read_exact(&mut f, &mut m)).is_ok() && m == MAGIC
+}
+
+impl BatchFile {
+    pub fn open(path: &Path) -> Result<BatchFile> {
+        let bytes = open_bytes(path)?;
+        let err = |m: String| Error::input(path, m);
+        let hs = std::mem::size_of::<FileHeader>();
+        if bytes.len() < hs || bytes[..8] != MAGIC {
+            return Err(err("not a mortar batch file".into()));
+        }
+        let header: FileHeader = bytemuck::pod_read_unaligned(&bytes[..hs]);
+        if header.version != VERSION {
+            return Err(err(format!("batch file version {} is not supported (this mortar reads {VERSION})", header.version)));
+        }
+        let len = bytes.len() as u64;
+        let in_file = |o: u64, l: u64| o.checked_add(l).is_some_and(|e| e <= len);
+        if !in_file(header.meta_offset, header.meta_len) {
+            return Err(err("metadata lies outside the file (truncated?)".into()));
+        }
+        let meta: Meta = serde_json::from_slice(&bytes[header.meta_offset as usize..(header.meta_offset + header.meta_len) as usize])
+            .map_err(|e| err(format!("metadata is not valid: {e}")))?;
+        let sc = header.section_count as u64;
+        if sc != (FIRST_ATTRIBUTE_SECTION + meta.attributes.len()) as u64 {
+            return Err(err("section count disagrees with the metadata".into()));
+        }
+        let table_len = header
+            .batch_count
+            .checked_mul(96)
+            .and_then(|a| header.batch_count.checked_mul(sc).and_then(|b| b.checked_mul(16)).and_then(|b| a.checked_add(b)));
+        match table_len {
+            Some(tl) if in_file(header.table_offset, tl) && header.table_offset % 8 == 0 => {}
+            _ => return Err(err("batch table lies outside the file (truncated?)".into())),
+        }
+        if !in_file(meta.las_header.offset, meta.las_header.len) || !in_file(meta.evlrs.offset, meta.evlrs.len) {
+            return Err(err("LAS header record lies outside the file".into()));
+        }
+        let hb = &bytes[meta.las_header.offset as usize..(meta.las_header.offset + meta.las_header.len) as usize];
+        let mut lasmeta = las::parse(hb).map_err(|e| err(format!("stored LAS header is invalid: {e}")))?;
+        let eb = &bytes[meta.evlrs.offset as usize..(meta.evlrs.offset + meta.evlrs.len) as usize];
+        lasmeta.evlrs = parse_evlr_blob(eb).map_err(|e| err(format!("stored EVLRs are invalid: {e}")))?;
+        let layout = RecordLayout::new(meta.point_format, meta.record_len).map_err(|e| err(e.to_string()))?;
+        let f = BatchFile { path: path.to_path_buf(), bytes, header, meta, las: lasmeta, layout, table_offset: header.table_offset as usize };
+        f.check_table().map_err(err)?;
+        Ok(f)
+    }
+
+    /// All batch entries (zero-copy).
+    pub fn entries(&self) -> &[BatchEntry] {
+        let n = self.header.batch_count as usize;
+        bytemuck::cast_slice(&self.bytes[self.table_offset..self.table_offset + n * 96])
+    }
+
+    fn section_entries(&self) -> &[SectionEntry] {
+        let n = self.header.batch_count as usize;
+        let s = self.table_offset + n * 96;
+        bytemuck::cast_slice(&self.bytes[s..s + n * self.header.section_count as usize * 16])
+    }
+
+    fn widths(&self) -> Vec<usize> {
+        let mut w = vec![4, 4, 4, 4];
+        w.extend(self.meta.attributes.iter().map(|a| a.width));
+        w
+    }
+
+    fn check_table(&self) -> std::result::Result<(), String> {
+        let sc = self.header.section_count as usize;
+        let widths = self.widths();
+        let mut total = 0u64;
+        for (i, e) in self.entries().iter().enumerate() {
+            if e.count as usize > (1 << 24) || e.bits.iter().take(3).any(|&b| b > 30) {
+                return Err(format!("batch {i} has an invalid entry"));
+            }
+            if e.first_point != total {
+                return Err(format!("batch {i} starts at point {} but {total} points precede it", e.first_point));
+            }
+            total += e.count as u64;
+            for (s, se) in self.section_entries()[i * sc..(i + 1) * sc].iter().enumerate() {
+                if se.offset.checked_add(se.stored_len).is_none_or(|end| end > self.bytes.len() as u64) {
+                    return Err(format!("batch {i} section {s} lies outside the file (truncated?)"));
+                }
+                let raw = e.count as u64 * widths[s] as u64;
+                if self.meta.compression == Compression::None && (se.stored_len != raw || se.offset % 4 != 0) {
+                    return Err(format!("batch {i} section {s} has {} bytes, expected {raw}", se.stored_len));
+                }
+            }
+        }
+        if total != self.header.point_count {
+            return Err(format!("batches hold {total} points but the header says {}", self.header.point_count));
+        }
+        Ok(())
+    }
+
+    pub fn batch_count(&self) -> usize {
+        self.header.batch_count as usize
+    }
+
+    /// The arrays of batch `i`; sections listed in `which` (others left empty). Uncompressed
+    /// files are borrowed from the map without copying.
+    pub fn batch_sections(&self, i: usize, which: &[usize]) -> Result<BatchView<'_>> {
+        let e = &self.entries()[i];
+        let sc = self.header.section_count as usize;
+        let widths = self.widths();
+        let ses = &self.section_entries()[i * sc..(i + 1) * sc];
+        let mut sections = Vec::with_capacity(sc);
+        for (s, se) in ses.iter().enumerate() {
+            if !which.contains(&s) {
+                sections.push(Cow::Borrowed(&[][..]));
+                continue;
+            }
+            let stored = &self.bytes[se.offset as usize..(se.offset + se.stored_len) as usize];
+            let raw = e.count as usize * widths[s];
+            match self.meta.compression {
+                Compression::None => sections.push(Cow::Borrowed(stored)),
+                Compression::Zstd => {
+                    let mut v = zstd::bulk::decompress(stored, raw)
+                        .map_err(|er| Error::input(&self.path, format!("batch {i} section {s} is corrupt: {er}")))?;
+                    if v.len() != raw {
+                        return Err(Error::input(&self.path, format!("batch {i} section {s} decompresses to {} bytes, expected {raw}", v.len())));
+                    }
+                    // keep u32 sections aligned
+                    if widths[s] == 4 && (v.as_ptr() as usize) % 4 != 0 {
+                        v = v.to_vec();
+                    }
+                    sections.push(Cow::Owned(v));
+                }
+            }
+        }
+        Ok(BatchView { entry: e, sections })
+    }
+
+    /// Every array of batch `i`.
+    pub fn batch(&self, i: usize) -> Result<BatchView<'_>> {
+        let all: Vec<usize> = (0..self.header.section_count as usize).collect();
+        self.batch_sections(i, &all)
+    }
+
+    pub fn grid(&self) -> Grid {
+        Grid { scale: self.meta.scale, offset: self.meta.offset }
+    }
+
+    pub fn morton(&self) -> MortonGrid {
+        MortonGrid { origin: self.meta.morton_origin, shift: self.meta.morton_shift }
+    }
+
+    /// Rebuilds LAS records of batches `range` (dropped attributes are zero).
+    pub fn records(&self, range: std::ops::Range<usize>) -> Result<Vec<u8>> {
+        let rl = self.layout.record_len;
+        let n: usize = self.entries()[range.clone()].iter().map(|e| e.count as usize).sum();
+        let mut out = vec![0u8; n * rl];
+        let mut at = 0;
+        for i in range {
+            let b = self.batch(i)?;
+            let g = b.entry.grid();
+            let (c, m, f) = (b.words(0), b.words(1), b.words(2));
+            for k in 0..b.len() {
+                let rec = &mut out[(at + k) * rl..(at + k + 1) * rl];
+                write_xyz(rec, g.decode_exact([c[k], m[k], f[k]]));
+            }
+            for (ai, a) in self.meta.attributes.iter().enumerate() {
+                let col = b.attribute(ai);
+                for k in 0..b.len() {
+                    out[(at + k) * rl + a.offset..(at + k) * rl + a.offset + a.width]
+                        .copy_from_slice(&col[k * a.width..(k + 1) * a.width]);
+                }
+            }
+            at += b.len();
+        }
+        Ok(out)
+    }
+}
+
+fn parse_evlr_blob(b: &[u8]) -> std::result::Result<Vec<Vlr>, String> {
+    let mut out = Vec::new();
+    let mut p = 0usize;
+    while p < b.len() {
+        if p + 60 > b.len() {
+            return Err("truncated EVLR".into());
+        }
+        let len = u64::from_le_bytes(b[p + 20..p + 28].try_into().unwrap());
+        let end = (p as u64 + 60).checked_add(len).filter(|&e| e <= b.len() as u64).ok_or("truncated EVLR")? as usize;
+        out.push(Vlr {
+            reserved: u16::from_le_bytes([b[p], b[p + 1]]),
+            user_id: b[p + 2..p + 18].try_into().unwrap(),
+            record_id: u16::from_le_bytes([b[p + 18], b[p + 19]]),
+            description: b[p + 28..p + 60].try_into().unwrap(),
+            data: b[p + 60..end].to_vec(),
+        });
+        p = end;
+    }
+    Ok(out)
+}
+
+/// Batches per piece when a batch file is read back as records.
+const BATCHES_PER_PIECE: usize = 64;
+
+impl RecordSource for BatchFile {
+    fn path(&self) -> &Path {
+        &self.path
+    }
+    fn header(&self) -> &Header {
+        &self.las.header
+    }
+    fn vlrs(&self) -> &[Vlr] {
+        &self.las.vlrs
+    }
+    fn evlrs(&self) -> &[Vlr] {
+        &self.las.evlrs
+    }
+    fn layout(&self) -> &RecordLayout {
+        &self.layout
+    }
+    fn point_count(&self) -> u64 {
+        self.header.point_count
+    }
+    fn pieces(&self) -> Vec<Piece> {
+        let e = self.entries();
+        (0..e.len())
+            .step_by(BATCHES_PER_PIECE)
+            .enumerate()
+            .map(|(i, s)| {
+                let end = (s + BATCHES_PER_PIECE).min(e.len());
+                Piece { index: i, first_point: e[s].first_point, points: e[s..end].iter().map(|x| x.count as u64).sum() }
+            })
+            .collect()
+    }
+    fn read_piece(&self, piece: &Piece) -> Result<Cow<'_, [u8]>> {
+        let s = piece.index * BATCHES_PER_PIECE;
+        let end = (s + BATCHES_PER_PIECE).min(self.batch_count());
+        Ok(Cow::Owned(self.records(s..end)?))
+    }
+    fn is_compressed(&self) -> bool {
+        self.meta.compression != Compression::None
+    }
+}
