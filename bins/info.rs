@@ -1,6 +1,107 @@
-//! `mortar info`.
+//! `mortar info`: describe inputs, as text or as JSON (`docs/info-json.md`).
+
+use crate::common;
+use anyhow::Result;
+use mortar_io::batchfile::{is_batch_file, BatchFile};
+use mortar_io::info::{describe, FileInfo};
+use mortar_io::source::{expand_inputs, LasInput};
+use std::io::Write;
+use std::path::Path;
+
 #[derive(clap::Args)]
-pub struct Args {}
-pub fn run(_a: Args) -> anyhow::Result<()> {
-    anyhow::bail!("not yet")
+pub struct Args {
+    /// LAS/LAZ files, batch files, directories, glob patterns, or - for stdin.
+    #[arg(required = true)]
+    pub inputs: Vec<String>,
+    /// One JSON document on stdout: an array with one object per input.
+    #[arg(long)]
+    pub json: bool,
+    /// Read every point: real bounds, attribute ranges, class and return counts.
+    #[arg(long)]
+    pub stats: bool,
+}
+
+fn info_of(p: &Path, stats: bool) -> Result<FileInfo> {
+    if p != Path::new("-") && is_batch_file(p) {
+        let b = BatchFile::open(p)?;
+        return Ok(describe(&b, "batch", stats, Some(&b))?);
+    }
+    let i = LasInput::open(p)?;
+    let mut info = describe(&i, if i.is_laz() { "laz" } else { "las" }, stats, None)?;
+    let mut w = i.meta.warnings.clone();
+    w.append(&mut info.warnings);
+    info.warnings = w;
+    Ok(info)
+}
+
+pub fn run(a: Args) -> Result<()> {
+    let paths = expand_inputs(&a.inputs)?;
+    let infos = paths.iter().map(|p| info_of(p, a.stats)).collect::<Result<Vec<_>>>()?;
+    let mut out = std::io::stdout().lock();
+    if a.json {
+        serde_json::to_writer_pretty(&mut out, &infos)?;
+        writeln!(out)?;
+        return Ok(());
+    }
+    for i in &infos {
+        for w in &i.warnings {
+            common::warn(&format!("{}: {w}", i.path));
+        }
+        print_text(&mut out, i)?;
+    }
+    Ok(())
+}
+
+fn print_text(o: &mut impl Write, i: &FileInfo) -> std::io::Result<()> {
+    writeln!(o, "{}", i.path)?;
+    writeln!(o, "  kind            {} (LAS {}, point format {}, {} bytes per point)", i.kind, i.version, i.point_format, i.record_length)?;
+    writeln!(o, "  points          {}", i.point_count)?;
+    let by_ret: Vec<String> = i.points_by_return.iter().take_while(|&&c| c > 0).map(|c| c.to_string()).collect();
+    if !by_ret.is_empty() {
+        writeln!(o, "  by return       {}", by_ret.join(" "))?;
+    }
+    writeln!(o, "  scale           {} {} {}", i.scale[0], i.scale[1], i.scale[2])?;
+    writeln!(o, "  offset          {} {} {}", i.offset[0], i.offset[1], i.offset[2])?;
+    let b = &i.header_bounds;
+    writeln!(o, "  header bounds   x [{}, {}]  y [{}, {}]  z [{}, {}]", b.min[0], b.max[0], b.min[1], b.max[1], b.min[2], b.max[2])?;
+    let crs = match (&i.crs.name, i.crs.epsg) {
+        (Some(n), Some(e)) => format!("{n} (EPSG:{e}, {})", i.crs.kind),
+        (Some(n), None) => format!("{n} ({})", i.crs.kind),
+        (None, Some(e)) => format!("EPSG:{e} ({})", i.crs.kind),
+        (None, None) => i.crs.kind.clone(),
+    };
+    writeln!(o, "  crs             {crs}")?;
+    writeln!(o, "  software        {} / {}", i.generating_software, i.system_identifier)?;
+    let names: Vec<&str> = i.attributes.iter().map(|a| a.name.as_str()).collect();
+    writeln!(o, "  attributes      {}", names.join(", "))?;
+    for e in &i.extra_bytes {
+        writeln!(o, "  extra bytes     {} ({}) {}", e.name, e.data_type, e.description)?;
+    }
+    for v in &i.vlrs {
+        writeln!(o, "  vlr             {} {} ({} bytes) {}", v.user_id, v.record_id, v.length, v.description)?;
+    }
+    for v in &i.evlrs {
+        writeln!(o, "  evlr            {} {} ({} bytes) {}", v.user_id, v.record_id, v.length, v.description)?;
+    }
+    if let Some(b) = &i.batch {
+        writeln!(o, "  batches         {} ({} to {} points), compression {}", b.batch_count, b.smallest_batch, b.largest_batch, b.compression)?;
+        let h: Vec<String> = b.bits_histogram.iter().map(|(k, v)| format!("{k} bits: {v}")).collect();
+        writeln!(o, "  batch bits      {}", h.join(", "))?;
+        writeln!(o, "  colour          {}{}", b.color_source, b.rgb_bits.map(|x| format!(" ({x}-bit)")).unwrap_or_default())?;
+        if !b.dropped_attributes.is_empty() {
+            writeln!(o, "  dropped         {}", b.dropped_attributes.join(", "))?;
+        }
+    }
+    if let Some(s) = &i.stats {
+        let b = &s.bounds;
+        writeln!(o, "  real bounds     x [{}, {}]  y [{}, {}]  z [{}, {}]", b.min[0], b.max[0], b.min[1], b.max[1], b.min[2], b.max[2])?;
+        for (k, r) in &s.ranges {
+            writeln!(o, "  {:<15} [{}, {}]", k, r.min, r.max)?;
+        }
+        let c: Vec<String> = s.classification_counts.iter().map(|(k, v)| format!("{k}: {v}")).collect();
+        writeln!(o, "  classes         {}", c.join(", "))?;
+        let r: Vec<String> = s.return_counts.iter().map(|(k, v)| format!("{k}: {v}")).collect();
+        writeln!(o, "  returns         {}", r.join(", "))?;
+    }
+    Ok(())
 }

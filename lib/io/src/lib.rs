@@ -12,3 +12,5 @@ pub mod external;
 pub mod sort;
 pub mod sink_las;
 pub mod batchfile;
+pub mod crs;
+pub mod info;

@@ -143,8 +143,10 @@ pub struct SortOptions {
 }
 
 impl SortOptions {
+    /// Options for a budget of `memory` bytes; emitted chunks shrink with small budgets.
     pub fn with_memory(memory: u64, tmp_dir: PathBuf) -> SortOptions {
-        SortOptions { memory, tmp_dir, chunk_points: 10_240 * 32 }
+        let chunk_points = ((memory / 64 / 64) as usize).clamp(10_240, 10_240 * 32);
+        SortOptions { memory, tmp_dir, chunk_points }
     }
 }
 
@@ -164,7 +166,8 @@ pub fn default_memory() -> u64 {
 
 /// Bytes the in-memory sort needs for `points` records of `record_len` bytes.
 pub fn in_memory_need(points: u64, record_len: usize, chunk_points: usize) -> u64 {
-    points * (record_len as u64 + 2 * std::mem::size_of::<Key>() as u64) + 4 * (chunk_points * record_len) as u64
+    let chunk = points.min(chunk_points as u64);
+    points * (record_len as u64 + 2 * std::mem::size_of::<Key>() as u64) + 4 * chunk * record_len as u64
 }
 
 /// What [`sort`] did.

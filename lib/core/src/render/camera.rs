@@ -559,114 +559,99 @@ impl Camera {
 mod tests {
     use super::*;
     use crate::quantize::join_words;
-    use crate::render::testutil::Rng;
+    use crate::render::precision::PrecisionMode;
+    use crate::render::testutil::{Rng, Scene};
 
     fn world_of(grid: &Grid, batch: &BatchGrid, rel: [f64; 3]) -> DVec3 {
         [0, 1, 2].map(|a| grid.offset[a] + grid.scale[a] * (batch.min[a] as f64 + rel[a]))
     }
 
-    /// Projects random points of random batches with the f32 batch projection and with the f64
-    /// reference, returning (points compared, points in a different pixel, largest pixel distance).
-    fn compare_projection(grid: Grid, cam: &Camera, region: &Aabb, seed: u64) -> (usize, usize, f64) {
-        let mut rng = Rng(seed);
-        let (mut total, mut differ, mut worst) = (0usize, 0usize, 0f64);
-        let (w, h) = (cam.width as i64, cam.height as i64);
-        for _ in 0..300 {
-            // A batch somewhere in the region with a random extent, up to the region's size.
-            let mut min = [0i32; 3];
-            let mut max = [0i32; 3];
-            let region_units = (region.size()[0] / grid.scale[0]) as u64;
-            let ext_bits = 1 + (rng.next_u64() % (64 - region_units.leading_zeros() as u64)) as u32;
-            for a in 0..3 {
-                let lo = grid.to_int(a, region.min[a]);
-                let hi = grid.to_int(a, region.max[a]);
-                let v = lo + ((rng.unit() * (hi - lo) as f64) as i64);
-                let e = (rng.next_u64() % (1u64 << ext_bits)) as i64;
-                min[a] = v as i32;
-                max[a] = (v + e).min(i32::MAX as i64) as i32;
+    /// The rasterizer's f32 projection against the f64 reference on a Morton-batched terrain
+    /// placed at `offset`, for overviews and close-ups: the same pixel for >= 99.99 % of points,
+    /// and with adaptive precision every point within half a pixel of its exact projection.
+    fn check_scene(scale: f64, offset: DVec3, label: &str) {
+        let scene = Scene::terrain(200_000, 17, Grid { scale: [scale; 3], offset });
+        for (i, cam) in scene.cameras().iter().enumerate() {
+            for mode in [PrecisionMode::Adaptive, PrecisionMode::Fixed(Precision::Bits30)] {
+                let c = scene.check_projection(cam, mode);
+                assert!(c.on_screen > 20_000, "{label} camera {i}: only {} points on screen", c.on_screen);
+                assert!(
+                    c.other_pixel as f64 <= 1e-4 * c.on_screen as f64,
+                    "{label} camera {i} {mode:?}: {c:?}"
+                );
+                assert!(c.worst_f32_px < 1e-3, "{label} camera {i} {mode:?}: {c:?}");
+                assert!(c.on_edge * 20 < c.on_screen, "{label} camera {i} {mode:?}: {c:?}");
+                // The 500 px rule: a reduced-precision point lands within half a pixel of its exact position.
+                assert!(c.worst_decode_px < 0.5, "{label} camera {i} {mode:?}: {c:?}");
             }
-            let batch = BatchGrid::for_bounds(min, max).unwrap();
-            let diag = (0..3).map(|a| ((max[a] - min[a]) as f64 * grid.scale[a]).powi(2)).sum::<f64>().sqrt();
-            for precision in [Precision::Bits10, Precision::Bits20, Precision::Bits30] {
-                let bp = cam.batch_projection(&grid, &batch, precision);
-                for _ in 0..100 {
-                    let p: [i32; 3] = [0, 1, 2].map(|a| {
-                        (min[a] as i64 + (rng.unit() * (max[a] as i64 - min[a] as i64 + 1) as f64) as i64) as i32
-                    });
-                    let words = batch.encode(p);
-                    let reference = cam.project(world_of(&grid, &batch, batch.decode_relative(words, precision)));
-                    let q = join_words(words, precision);
-                    let [x, y, d, wc] = bp.transform(bp.local(q));
-                    let Some(r) = reference else { continue };
-                    let (rx, ry) = (r.x.floor() as i64, r.y.floor() as i64);
-                    if !(0..w).contains(&rx) || !(0..h).contains(&ry) {
-                        continue;
-                    }
-                    total += 1;
-                    assert!((d as f64 - r.depth).abs() <= 1e-6 * (r.depth + diag), "depth {d} vs {}", r.depth);
-                    let (fx, fy) = (x / wc, y / wc);
-                    let px = bp.pixel_origin[0] as i64 + fx.floor() as i64;
-                    let py = bp.pixel_origin[1] as i64 + fy.floor() as i64;
-                    let dist =
-                        ((bp.pixel_origin[0] as f64 + fx as f64 - r.x).abs()).max((bp.pixel_origin[1] as f64 + fy as f64 - r.y).abs());
-                    worst = worst.max(dist);
-                    if (px, py) != (rx, ry) {
-                        differ += 1;
-                    }
-                }
-            }
-        }
-        (total, differ, worst)
-    }
-
-    fn check_projection(grid: Grid, centre: DVec3, radius: f64, label: &str) {
-        let region = Aabb::new(
-            [centre[0] - radius, centre[1] - radius, centre[2] - radius * 0.1],
-            [centre[0] + radius, centre[1] + radius, centre[2] + radius * 0.1],
-        );
-        let mut cams = Vec::new();
-        for preset in ViewPreset::ALL {
-            cams.push(Camera::frame_perspective(&region, preset, 0.8, 1920, 1080).unwrap());
-            cams.push(Camera::frame_orthographic(&region, preset, 1920, 1080).unwrap());
-        }
-        // A close-up: the eye a few metres above the ground, looking at a spot 20 m away.
-        cams.push(Camera {
-            eye: [centre[0] + 3.0, centre[1] - 7.0, centre[2] + 2.0],
-            target: [centre[0] + 3.0, centre[1] + 13.0, centre[2]],
-            up: [0.0, 0.0, 1.0],
-            projection: Projection::Perspective { fov_y: 0.9 },
-            near: 0.05,
-            far: 1e7,
-            width: 2560,
-            height: 1440,
-        });
-        for (i, cam) in cams.iter().enumerate() {
-            let (total, differ, worst) = compare_projection(grid, cam, &region, 7 + i as u64);
-            assert!(total > 10_000, "{label} camera {i}: only {total} points on screen");
-            assert!(
-                differ as f64 <= 1e-4 * total as f64,
-                "{label} camera {i}: {differ} of {total} points in another pixel (worst {worst} px)"
-            );
-            assert!(worst < 0.01, "{label} camera {i}: pixel error {worst}");
         }
     }
 
     #[test]
     fn f32_projection_matches_f64_reference_local() {
-        let grid = Grid { scale: [0.01; 3], offset: [0.0; 3] };
-        check_projection(grid, [500.0, 500.0, 50.0], 400.0, "local");
+        check_scene(0.01, [0.0; 3], "local");
     }
 
     #[test]
     fn f32_projection_matches_f64_reference_utm() {
-        let grid = Grid { scale: [0.001; 3], offset: [500_000.0, 5_400_000.0, 0.0] };
-        check_projection(grid, [501_234.5, 5_401_234.5, 300.0], 800.0, "utm");
+        check_scene(0.001, [500_000.0, 5_400_000.0, 0.0], "utm");
     }
 
     #[test]
     fn f32_projection_matches_f64_reference_ecef() {
-        let grid = Grid { scale: [0.0001; 3], offset: [6_400_000.0, 6_400_000.0, 6_400_000.0] };
-        check_projection(grid, [6_400_100.0, 6_400_150.0, 6_400_050.0], 100.0, "ecef");
+        check_scene(0.0001, [6_400_000.0, 6_400_000.0, 6_400_000.0], "ecef");
+    }
+
+    #[test]
+    fn huge_batches_stay_sub_pixel() {
+        // Batches of random extent up to the whole region (far larger than Morton batches), at ECEF
+        // coordinates: the f32 error grows with the batch's size on screen but stays far below a pixel.
+        let grid = Grid { scale: [0.0001; 3], offset: [6_400_000.0; 3] };
+        let region = Aabb::new([6_400_000.0, 6_400_000.0, 6_400_000.0], [6_400_200.0, 6_400_150.0, 6_400_030.0]);
+        let mut rng = Rng(99);
+        let mut cams: Vec<Camera> = ViewPreset::ALL.iter().map(|&p| Camera::frame_perspective(&region, p, 0.8, 1920, 1080).unwrap()).collect();
+        cams.push(Camera { eye: [6_400_050.0, 6_400_010.0, 6_400_032.0], target: [6_400_100.0, 6_400_060.0, 6_400_015.0], ..cams[0] });
+        cams[4].near = 0.05;
+        let (mut total, mut differ, mut worst) = (0usize, 0usize, 0f64);
+        for cam in &cams {
+            for _ in 0..300 {
+                let ext_bits = 1 + (rng.next_u64() % 21) as u32;
+                let mut min = [0i32; 3];
+                let mut max = [0i32; 3];
+                for a in 0..3 {
+                    let lo = grid.to_int(a, region.min[a]);
+                    let hi = grid.to_int(a, region.max[a]);
+                    min[a] = (lo + (rng.unit() * (hi - lo) as f64) as i64) as i32;
+                    max[a] = min[a] + (rng.next_u64() % (1u64 << ext_bits)) as i32;
+                }
+                let batch = BatchGrid::for_bounds(min, max).unwrap();
+                for precision in [Precision::Bits10, Precision::Bits20, Precision::Bits30] {
+                    let bp = cam.batch_projection(&grid, &batch, precision);
+                    for _ in 0..50 {
+                        let p: [i32; 3] = [0, 1, 2].map(|a| min[a] + (rng.unit() * (max[a] - min[a] + 1) as f64) as i32);
+                        let words = batch.encode(p);
+                        let Some(r) = cam.project(world_of(&grid, &batch, batch.decode_relative(words, precision))) else {
+                            continue;
+                        };
+                        if !(r.x >= 0.0 && r.x < 1920.0 && r.y >= 0.0 && r.y < 1080.0) {
+                            continue;
+                        }
+                        total += 1;
+                        let [x, y, _, wc] = bp.transform(bp.local(join_words(words, precision)));
+                        let fx = bp.pixel_origin[0] as f64 + (x / wc) as f64;
+                        let fy = bp.pixel_origin[1] as f64 + (y / wc) as f64;
+                        worst = worst.max((fx - r.x).abs()).max((fy - r.y).abs());
+                        if fx.floor() != r.x.floor() || fy.floor() != r.y.floor() {
+                            differ += 1;
+                        }
+                    }
+                }
+            }
+        }
+        assert!(total > 50_000, "{total}");
+        assert!(worst < 2e-3, "worst {worst} px");
+        assert!(differ as f64 <= 1e-3 * total as f64, "{differ} of {total}");
+        eprintln!("huge batches: {differ} of {total} in another pixel, worst {worst} px");
     }
 
     #[test]
@@ -725,7 +710,7 @@ mod tests {
                 }
                 // Tight: the box fills most of the viewport in one direction.
                 let fill = ((hi[0] - lo[0]) / 1000.0).max((hi[1] - lo[1]) / 500.0);
-                assert!(fill > 0.8, "{preset:?} fills only {fill}");
+                assert!(fill > 0.65, "{preset:?} fills only {fill}");
             }
         }
         assert_eq!(ViewPreset::from_name("iso"), Some(ViewPreset::Iso));
@@ -762,10 +747,10 @@ mod tests {
             width: 1000,
             height: 1000,
         };
-        // A 2 m box 100 m ahead: ~ 2 / 100 of the half-height 500 px * 2 = 20 px.
+        // A 2 m box 99-101 m ahead; 90 degrees: 500 px per 99 m at its front face: 10.1 px.
         let b = Aabb::new([-1.0, 99.0, -1.0], [1.0, 101.0, 1.0]);
         let s = cam.projected_size(&b);
-        assert!((19.0..21.5).contains(&s), "{s}");
+        assert!((s - 1000.0 / 99.0).abs() < 1e-9, "{s}");
         // Entirely behind: 0. Around the eye: finite but large.
         assert_eq!(cam.projected_size(&Aabb::new([-1.0, -10.0, -1.0], [1.0, -5.0, 1.0])), 0.0);
         let around = cam.projected_size(&Aabb::new([-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]));

@@ -12,10 +12,10 @@ use std::sync::atomic::{AtomicU64, Ordering};
 /// The key of an empty pixel (the clear value).
 pub const EMPTY_KEY: u64 = u64::MAX;
 
-/// The key of a point at view depth `depth` (finite, `>= 0`) with global index `index`.
+/// The key of a point at view depth `depth` (`>= 0`, not NaN) with global index `index`.
 #[inline(always)]
 pub fn pack_key(depth: f32, index: u32) -> u64 {
-    debug_assert!(depth >= 0.0 && depth.is_finite(), "depth {depth}");
+    debug_assert!(depth >= 0.0, "depth {depth}");
     ((depth.to_bits() as u64) << 32) | index as u64
 }
 

@@ -162,9 +162,9 @@ mod tests {
         let f = Frustum::new(&cam(Projection::Perspective { fov_y: std::f64::consts::FRAC_PI_2 }), 0.0);
         assert_eq!(f.test_aabb(&cube([0.0, 10.0, 0.0], 1.0)), Containment::Inside);
         assert_eq!(f.test_aabb(&cube([0.0, -10.0, 0.0], 1.0)), Containment::Outside); // behind
-        assert_eq!(f.test_aabb(&cube([0.0, 10.0, 13.0], 2.0)), Containment::Outside); // above
+        assert_eq!(f.test_aabb(&cube([0.0, 10.0, 15.0], 2.0)), Containment::Outside); // above
         assert_eq!(f.test_aabb(&cube([0.0, 10.0, 11.0], 2.0)), Containment::Intersecting); // top edge
-        assert_eq!(f.test_aabb(&cube([-25.0, 10.0, 0.0], 2.0)), Containment::Outside); // left
+        assert_eq!(f.test_aabb(&cube([-30.0, 10.0, 0.0], 2.0)), Containment::Outside); // left
         assert_eq!(f.test_aabb(&cube([19.0, 10.0, 0.0], 2.0)), Containment::Intersecting); // right edge
         assert_eq!(f.test_aabb(&cube([0.0, 150.0, 0.0], 10.0)), Containment::Outside); // beyond far
         assert_eq!(f.test_aabb(&cube([0.0, 0.5, 0.0], 0.2)), Containment::Outside); // before near
@@ -184,7 +184,8 @@ mod tests {
         assert_eq!(f.test_aabb(&cube([20.5, 50.0, 0.0], 0.4)), Containment::Outside);
         // A margin of 10 px (of 100) widens the view by 10 % of the height on each side (2 units).
         let wide = Frustum::new(&c, 10.0);
-        assert_eq!(wide.test_aabb(&cube([0.0, 50.0, 10.5], 0.4)), Containment::Intersecting);
+        assert_eq!(wide.test_aabb(&cube([0.0, 50.0, 10.5], 0.4)), Containment::Inside);
+        assert_eq!(wide.test_aabb(&cube([0.0, 50.0, 12.0], 0.4)), Containment::Intersecting);
         assert_eq!(wide.test_aabb(&cube([0.0, 50.0, 12.5], 0.4)), Containment::Outside);
     }
 

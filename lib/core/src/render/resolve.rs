@@ -344,7 +344,7 @@ pub fn gps_time_color(t: f64, range: [f64; 2]) -> u32 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::render::framebuffer::pack_key;
+    use crate::render::framebuffer::{pack_key, unpack_key};
 
     const E: u64 = EMPTY_KEY;
 
@@ -406,6 +406,39 @@ mod tests {
         assert!(at(1, 3)[0] < 100, "far pixel next to the near square is darkened: {:?}", at(1, 3));
         assert_eq!(at(1, 3)[3], 255);
         assert_eq!(resolve(&keys, w, h, |_| white, &ResolveOptions::default()), vec![white; 64]);
+    }
+
+    #[test]
+    fn resolves_a_rasterized_scene() {
+        use crate::grid::Grid;
+        use crate::render::camera::{Camera, ViewPreset};
+        use crate::render::framebuffer::Framebuffer;
+        use crate::render::raster::{rasterize, RasterOptions};
+        use crate::render::testutil::Scene;
+        // Sparse (~1 point per pixel), so plain resolve leaves holes that filling closes.
+        let scene = Scene::terrain(40_000, 4, Grid { scale: [0.01; 3], offset: [0.0; 3] });
+        let cam = Camera::frame_orthographic(&scene.bounds, ViewPreset::Top, 240, 180).unwrap();
+        let fb = Framebuffer::new(240, 180);
+        rasterize(&fb, &scene.refs(), &scene.grid, &cam, &RasterOptions::default()).unwrap();
+        let keys = fb.into_keys();
+        let bg = rgba(0, 0, 255, 255);
+        let plain = resolve_with_colors(&keys, 240, 180, &scene.colors, &ResolveOptions { background: bg, ..Default::default() });
+        for (k, c) in keys.iter().zip(&plain) {
+            match unpack_key(*k) {
+                Some((_, i)) => assert_eq!(*c, scene.colors[i as usize]),
+                None => assert_eq!(*c, bg),
+            }
+        }
+        let holes = |img: &[u32]| img.iter().filter(|&&c| c == bg).count();
+        let filled = resolve_with_colors(
+            &keys,
+            240,
+            180,
+            &scene.colors,
+            &ResolveOptions { background: bg, hole_fill: Some(HoleFill { min_neighbors: 3 }), ..Default::default() },
+        );
+        assert!(holes(&plain) > 5_000, "{}", holes(&plain));
+        assert!(holes(&filled) * 3 < holes(&plain), "{} -> {}", holes(&plain), holes(&filled));
     }
 
     #[test]

@@ -109,3 +109,100 @@ impl Scene {
             .collect()
     }
 }
+
+use super::camera::Camera;
+use super::precision::{choose_precision, PrecisionMode};
+use crate::quantize::join_words;
+
+/// Per-point comparison of the f32 batch projection with the f64 reference, over a scene.
+#[derive(Debug, Default)]
+pub(crate) struct ProjectionCheck {
+    /// Points whose reference pixel lies in the viewport (and depth range).
+    pub on_screen: usize,
+    /// Of those, points the f32 projection puts in another pixel (or drops).
+    pub other_pixel: usize,
+    /// Points left out of the pixel comparison because their reference position lies within 1e-6 px
+    /// of a pixel edge: integer-grid data seen by a framed camera puts some points exactly on an
+    /// edge, where the f64 reference's own rounding decides the side.
+    pub on_edge: usize,
+    /// Largest distance (pixels, per axis) between the f32 and f64 projections of a decoded point.
+    pub worst_f32_px: f64,
+    /// Largest distance (pixels, per axis) between a point decoded at the chosen precision and the
+    /// exact point, both projected in f64, over batches drawn at less than full precision.
+    pub worst_decode_px: f64,
+    /// Points projected at each precision.
+    pub by_precision: [usize; 3],
+}
+
+impl Scene {
+    /// World position of a local position (relative to the grid offset).
+    pub fn world(&self, local: [f64; 3]) -> [f64; 3] {
+        [0, 1, 2].map(|a| self.grid.offset[a] + local[a])
+    }
+
+    /// Compares, for every point, the rasterizer's f32 projection with the f64 reference.
+    pub fn check_projection(&self, cam: &Camera, mode: PrecisionMode) -> ProjectionCheck {
+        let mut c = ProjectionCheck::default();
+        let (w, h) = (cam.width as f64, cam.height as f64);
+        let near = cam.near as f32;
+        let far = cam.far as f32;
+        for b in &self.batches {
+            let (precision, _) = choose_precision(mode, cam, &self.grid, &b.grid);
+            let bp = cam.batch_projection(&self.grid, &b.grid, precision);
+            c.by_precision[precision.words() - 1] += b.range.len();
+            for i in b.range.clone() {
+                let words = [self.words[0][i], self.words[1][i], self.words[2][i]];
+                let rel = b.grid.decode_relative(words, precision);
+                let decoded = [0, 1, 2].map(|a| self.grid.offset[a] + self.grid.scale[a] * (b.grid.min[a] as f64 + rel[a]));
+                let exact = [0, 1, 2].map(|a| self.grid.world(a, self.points[i][a] as i64));
+                let Some(r) = cam.project(decoded) else { continue };
+                if let Some(e) = cam.project(exact) {
+                    if precision.bits() < 30 {
+                        c.worst_decode_px = c.worst_decode_px.max((r.x - e.x).abs()).max((r.y - e.y).abs());
+                    }
+                }
+                if !(r.x >= 0.0 && r.x < w && r.y >= 0.0 && r.y < h) {
+                    continue;
+                }
+                let edge = |v: f64| (v - v.round()).abs() < 1e-6;
+                if edge(r.x) || edge(r.y) {
+                    c.on_edge += 1;
+                    continue;
+                }
+                c.on_screen += 1;
+                let [x, y, d, wc] = bp.transform(bp.local(join_words(words, precision)));
+                let (fx, fy) = ((x / wc) as f64 + bp.pixel_origin[0] as f64, (y / wc) as f64 + bp.pixel_origin[1] as f64);
+                c.worst_f32_px = c.worst_f32_px.max((fx - r.x).abs()).max((fy - r.y).abs());
+                let same = d >= near && d <= far && fx.floor() == r.x.floor() && fy.floor() == r.y.floor();
+                if !same {
+                    c.other_pixel += 1;
+                }
+            }
+        }
+        c
+    }
+
+    /// Cameras that see the scene: every preset in perspective and orthographic at 1920x1080,
+    /// and two close-ups from 2 m above the terrain (local terrain coordinates of [`Scene::terrain`]).
+    pub fn cameras(&self) -> Vec<Camera> {
+        use super::camera::{Projection, ViewPreset};
+        let mut cams = Vec::new();
+        for preset in ViewPreset::ALL {
+            cams.push(Camera::frame_perspective(&self.bounds, preset, 0.8, 1920, 1080).unwrap());
+            cams.push(Camera::frame_orthographic(&self.bounds, preset, 1920, 1080).unwrap());
+        }
+        for (eye, target) in [([60.0, 40.0, 32.0], [110.0, 90.0, 15.0]), ([150.0, 20.0, 30.0], [140.0, 60.0, 22.0])] {
+            cams.push(Camera {
+                eye: self.world(eye),
+                target: self.world(target),
+                up: [0.0, 0.0, 1.0],
+                projection: Projection::Perspective { fov_y: 0.9 },
+                near: 0.05,
+                far: 1e4,
+                width: 2560,
+                height: 1440,
+            });
+        }
+        cams
+    }
+}

@@ -1,0 +1,326 @@
+//! `mortar info`: what a LAS/LAZ file or a batch file holds. The JSON form ([`FileInfo`]) is
+//! stable: fields are only ever added (documented in `docs/info-json.md`).
+
+use crate::batchfile::BatchFile;
+use crate::crs::{self, CrsInfo};
+use crate::dataset::RecordSource;
+use crate::error::Result;
+use crate::las::{c_str, Vlr};
+use crate::sort::check_interrupted;
+use mortar_core::layout::{read_xyz, Family, RecordLayout};
+use rayon::prelude::*;
+use serde::Serialize;
+use std::collections::BTreeMap;
+
+#[derive(Clone, Debug, Serialize)]
+pub struct Bounds {
+    pub min: [f64; 3],
+    pub max: [f64; 3],
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct VlrInfo {
+    pub user_id: String,
+    pub record_id: u16,
+    pub description: String,
+    pub length: usize,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct ExtraBytesInfo {
+    pub name: String,
+    pub data_type: String,
+    pub description: String,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct AttributeInfo {
+    pub name: String,
+    pub offset: usize,
+    pub width: usize,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct BatchInfo {
+    pub batch_count: u64,
+    pub compression: String,
+    /// Largest per-axis bit count of each batch, histogram: bits -> batches.
+    pub bits_histogram: BTreeMap<u8, u64>,
+    pub smallest_batch: u32,
+    pub largest_batch: u32,
+    pub kept_attributes: Vec<String>,
+    pub dropped_attributes: Vec<String>,
+    pub color_source: String,
+    pub rgb_bits: Option<u8>,
+}
+
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct Range {
+    pub min: f64,
+    pub max: f64,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct Stats {
+    pub point_count: u64,
+    pub bounds: Bounds,
+    /// Ranges of the numeric attributes present (rgb per channel, gps_time in seconds).
+    pub ranges: BTreeMap<String, Range>,
+    /// Points per classification code.
+    pub classification_counts: BTreeMap<u8, u64>,
+    /// Points per return number.
+    pub return_counts: BTreeMap<u8, u64>,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct FileInfo {
+    pub path: String,
+    /// `las`, `laz` or `batch`.
+    pub kind: String,
+    pub version: String,
+    pub point_format: u8,
+    pub record_length: usize,
+    pub point_count: u64,
+    pub points_by_return: Vec<u64>,
+    pub scale: [f64; 3],
+    pub offset: [f64; 3],
+    pub header_bounds: Bounds,
+    pub system_identifier: String,
+    pub generating_software: String,
+    pub creation_day: u16,
+    pub creation_year: u16,
+    pub crs: CrsInfo,
+    pub attributes: Vec<AttributeInfo>,
+    pub extra_bytes: Vec<ExtraBytesInfo>,
+    pub vlrs: Vec<VlrInfo>,
+    pub evlrs: Vec<VlrInfo>,
+    pub batch: Option<BatchInfo>,
+    pub stats: Option<Stats>,
+    /// Disagreements found (header against points, broken records).
+    pub warnings: Vec<String>,
+}
+
+fn vlr_info(v: &Vlr) -> VlrInfo {
+    VlrInfo { user_id: v.user_id_str(), record_id: v.record_id, description: v.description_str(), length: v.data.len() }
+}
+
+fn extra_bytes(vlrs: &[Vlr]) -> Vec<ExtraBytesInfo> {
+    const TYPES: [&str; 11] = ["undocumented", "u8", "i8", "u16", "i16", "u32", "i32", "u64", "i64", "f32", "f64"];
+    let mut out = Vec::new();
+    for v in vlrs.iter().filter(|v| v.user_id_str() == "LASF_Spec" && v.record_id == 4) {
+        for d in v.data.chunks_exact(192) {
+            let t = d[2] as usize;
+            let data_type = if t < TYPES.len() {
+                TYPES[t].to_string()
+            } else if t <= 30 {
+                format!("{}[{}]", TYPES[(t - 1) % 10 + 1], (t - 1) / 10 + 1)
+            } else {
+                format!("type {t}")
+            };
+            out.push(ExtraBytesInfo { name: c_str(&d[4..36]), data_type, description: c_str(&d[160..192]) });
+        }
+    }
+    out
+}
+
+/// Describes one input; `stats` adds a full pass over the points.
+pub fn describe(src: &dyn RecordSource, kind: &str, stats: bool, batch: Option<&BatchFile>) -> Result<FileInfo> {
+    let h = src.header();
+    let all: Vec<&Vlr> = src.vlrs().iter().chain(src.evlrs()).collect();
+    let mut warnings = Vec::new();
+    let crs = crs::describe(&all);
+    warnings.extend(crs.problems.iter().cloned());
+    let layout = src.layout();
+    let mut info = FileInfo {
+        path: src.path().display().to_string(),
+        kind: kind.into(),
+        version: format!("{}.{}", h.version.0, h.version.1),
+        point_format: layout.format,
+        record_length: layout.record_len,
+        point_count: src.point_count(),
+        points_by_return: h.points_by_return.to_vec(),
+        scale: h.scale,
+        offset: h.offset,
+        header_bounds: Bounds { min: h.min, max: h.max },
+        system_identifier: c_str(&h.system_identifier),
+        generating_software: c_str(&h.generating_software),
+        creation_day: h.creation_day,
+        creation_year: h.creation_year,
+        crs,
+        attributes: layout.attributes.iter().map(|a| AttributeInfo { name: a.name.clone(), offset: a.offset, width: a.width }).collect(),
+        extra_bytes: extra_bytes(src.vlrs()),
+        vlrs: src.vlrs().iter().map(vlr_info).collect(),
+        evlrs: src.evlrs().iter().map(vlr_info).collect(),
+        batch: batch.map(batch_info),
+        stats: None,
+        warnings,
+    };
+    if stats {
+        let s = full_stats(src)?;
+        let tol = |a: usize| h.scale[a] * 0.5 + 1e-9;
+        for a in 0..3 {
+            if s.point_count > 0 && ((s.bounds.min[a] - h.min[a]).abs() > tol(a) || (s.bounds.max[a] - h.max[a]).abs() > tol(a)) {
+                info.warnings.push(format!(
+                    "header bounds on {} are [{}, {}] but the points span [{}, {}]",
+                    ["x", "y", "z"][a],
+                    h.min[a],
+                    h.max[a],
+                    s.bounds.min[a],
+                    s.bounds.max[a]
+                ));
+            }
+        }
+        info.stats = Some(s);
+    }
+    Ok(info)
+}
+
+fn batch_info(b: &BatchFile) -> BatchInfo {
+    let mut hist = BTreeMap::new();
+    let mut smallest = u32::MAX;
+    let mut largest = 0;
+    for e in b.entries() {
+        *hist.entry(e.bits[0].max(e.bits[1]).max(e.bits[2])).or_insert(0) += 1;
+        smallest = smallest.min(e.count);
+        largest = largest.max(e.count);
+    }
+    BatchInfo {
+        batch_count: b.header.batch_count,
+        compression: format!("{:?}", b.meta.compression).to_lowercase(),
+        bits_histogram: hist,
+        smallest_batch: if b.entries().is_empty() { 0 } else { smallest },
+        largest_batch: largest,
+        kept_attributes: b.meta.attributes.iter().map(|a| a.name.clone()).collect(),
+        dropped_attributes: b.meta.dropped.clone(),
+        color_source: b.meta.color.source.clone(),
+        rgb_bits: b.meta.color.rgb_bits,
+    }
+}
+
+#[derive(Clone)]
+struct Acc {
+    n: u64,
+    min: [i32; 3],
+    max: [i32; 3],
+    ranges: BTreeMap<String, (f64, f64)>,
+    class: [u64; 256],
+    ret: [u64; 16],
+}
+
+impl Acc {
+    fn new() -> Acc {
+        Acc { n: 0, min: [i32::MAX; 3], max: [i32::MIN; 3], ranges: BTreeMap::new(), class: [0; 256], ret: [0; 16] }
+    }
+    fn merge(mut self, o: Acc) -> Acc {
+        self.n += o.n;
+        for a in 0..3 {
+            self.min[a] = self.min[a].min(o.min[a]);
+            self.max[a] = self.max[a].max(o.max[a]);
+        }
+        for (k, (lo, hi)) in o.ranges {
+            let e = self.ranges.entry(k).or_insert((f64::INFINITY, f64::NEG_INFINITY));
+            e.0 = e.0.min(lo);
+            e.1 = e.1.max(hi);
+        }
+        for i in 0..256 {
+            self.class[i] += o.class[i];
+        }
+        for i in 0..16 {
+            self.ret[i] += o.ret[i];
+        }
+        self
+    }
+}
+
+/// Numeric fields for ranges: (name, fn(record) -> value).
+fn numeric_fields(layout: &RecordLayout) -> Vec<(&'static str, Box<dyn Fn(&[u8]) -> f64 + Sync>)> {
+    let u16_at = |o: usize| move |r: &[u8]| u16::from_le_bytes([r[o], r[o + 1]]) as f64;
+    let mut f: Vec<(&'static str, Box<dyn Fn(&[u8]) -> f64 + Sync>)> = vec![("intensity", Box::new(u16_at(12)))];
+    match layout.family() {
+        Family::Legacy => {
+            f.push(("number_of_returns", Box::new(|r: &[u8]| ((r[14] >> 3) & 7) as f64)));
+            f.push(("scan_angle", Box::new(|r: &[u8]| r[16] as i8 as f64)));
+            f.push(("user_data", Box::new(|r: &[u8]| r[17] as f64)));
+            f.push(("point_source_id", Box::new(u16_at(18))));
+        }
+        Family::Extended => {
+            f.push(("number_of_returns", Box::new(|r: &[u8]| (r[14] >> 4) as f64)));
+            f.push(("scanner_channel", Box::new(|r: &[u8]| ((r[15] >> 4) & 3) as f64)));
+            f.push(("user_data", Box::new(|r: &[u8]| r[17] as f64)));
+            f.push(("scan_angle", Box::new(|r: &[u8]| i16::from_le_bytes([r[18], r[19]]) as f64 * 0.006)));
+            f.push(("point_source_id", Box::new(u16_at(20))));
+        }
+    }
+    if let Some(a) = layout.attribute("gps_time") {
+        let o = a.offset;
+        f.push(("gps_time", Box::new(move |r: &[u8]| f64::from_le_bytes(r[o..o + 8].try_into().unwrap()))));
+    }
+    if let Some(a) = layout.attribute("rgb") {
+        let o = a.offset;
+        f.push(("red", Box::new(u16_at(o))));
+        f.push(("green", Box::new(u16_at(o + 2))));
+        f.push(("blue", Box::new(u16_at(o + 4))));
+    }
+    if let Some(a) = layout.attribute("nir") {
+        f.push(("nir", Box::new(u16_at(a.offset))));
+    }
+    f
+}
+
+fn full_stats(src: &dyn RecordSource) -> Result<Stats> {
+    let layout = src.layout();
+    let fields = numeric_fields(layout);
+    let acc = src
+        .pieces()
+        .par_iter()
+        .map(|p| -> Result<Acc> {
+            check_interrupted()?;
+            let recs = src.read_piece(p)?;
+            let mut acc = Acc::new();
+            let mut lo = vec![f64::INFINITY; fields.len()];
+            let mut hi = vec![f64::NEG_INFINITY; fields.len()];
+            for r in recs.chunks_exact(layout.record_len) {
+                let xyz = read_xyz(r);
+                for a in 0..3 {
+                    acc.min[a] = acc.min[a].min(xyz[a]);
+                    acc.max[a] = acc.max[a].max(xyz[a]);
+                }
+                for (i, (_, f)) in fields.iter().enumerate() {
+                    let v = f(r);
+                    if v < lo[i] {
+                        lo[i] = v;
+                    }
+                    if v > hi[i] {
+                        hi[i] = v;
+                    }
+                }
+                acc.class[layout.classification(r) as usize] += 1;
+                acc.ret[layout.return_number(r) as usize] += 1;
+                acc.n += 1;
+            }
+            for (i, (name, _)) in fields.iter().enumerate() {
+                if acc.n > 0 {
+                    acc.ranges.insert(name.to_string(), (lo[i], hi[i]));
+                }
+            }
+            Ok(acc)
+        })
+        .try_reduce(Acc::new, |a, b| Ok(a.merge(b)))?;
+    let h = src.header();
+    let w = |a: usize, v: i32| h.offset[a] + h.scale[a] * v as f64;
+    let bounds = if acc.n == 0 {
+        Bounds { min: [0.0; 3], max: [0.0; 3] }
+    } else {
+        Bounds {
+            min: [w(0, acc.min[0]), w(1, acc.min[1]), w(2, acc.min[2])],
+            max: [w(0, acc.max[0]), w(1, acc.max[1]), w(2, acc.max[2])],
+        }
+    };
+    Ok(Stats {
+        point_count: acc.n,
+        bounds,
+        ranges: acc.ranges.into_iter().map(|(k, (min, max))| (k, Range { min, max })).collect(),
+        classification_counts: acc.class.iter().enumerate().filter(|(_, &c)| c > 0).map(|(i, &c)| (i as u8, c)).collect(),
+        return_counts: acc.ret.iter().enumerate().filter(|(_, &c)| c > 0).map(|(i, &c)| (i as u8, c)).collect(),
+    })
+}
