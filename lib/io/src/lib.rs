@@ -14,3 +14,4 @@ pub mod sink_las;
 pub mod batchfile;
 pub mod crs;
 pub mod info;
+pub mod synth;

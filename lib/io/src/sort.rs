@@ -30,6 +30,13 @@ pub fn check_interrupted() -> Result<()> {
     }
 }
 
+/// Prints the time since `t0` when `MORTAR_TRACE` is set (for profiling phases).
+pub fn trace(phase: &str, t0: std::time::Instant) {
+    if std::env::var_os("MORTAR_TRACE").is_some() {
+        eprintln!("mortar: trace: {phase} done at {:.3} s", t0.elapsed().as_secs_f64());
+    }
+}
+
 /// Sort key of one point. Ordering: code, then input order.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, PartialOrd, Ord)]
 #[repr(C)]
@@ -185,6 +192,7 @@ pub fn sort(ds: &Dataset, opts: &SortOptions, sink: &mut dyn OrderedSink) -> Res
         return crate::external::sort_external(ds, opts, sink);
     }
     let pieces = ds.pieces();
+    let t0 = std::time::Instant::now();
     // Read (decode) every piece in parallel with its statistics.
     let slabs: Vec<(Cow<[u8]>, PieceStats)> = pieces
         .par_iter()
@@ -201,10 +209,14 @@ pub fn sort(ds: &Dataset, opts: &SortOptions, sink: &mut dyn OrderedSink) -> Res
     }
     let summary = total.summary();
     let records: Vec<&[u8]> = slabs.iter().map(|(r, _)| &**r).collect();
+    trace("read", t0);
     let keys = make_keys(&records, ds.layout.record_len, &summary.morton)?;
+    trace("keys", t0);
     let keys = sort_keys(keys);
+    trace("sort", t0);
     sink.begin(&summary)?;
     emit(&records, &keys, ds.layout.record_len, opts.chunk_points, sink)?;
+    trace("emit", t0);
     Ok(SortReport { summary, external: false, buckets: 1 })
 }
 

@@ -9,7 +9,8 @@
 //!
 //! Per point only the words the batch's precision needs are read, the decode is integer work
 //! ([`crate::quantize::join_words`] and a shift), and the transform is f32: no f64, no allocation,
-//! no dynamic dispatch.
+//! no dynamic dispatch. As in §3.4, the word arrays are read as linear streams (struct of arrays,
+//! one loop per batch) and the early depth test keeps most points away from the atomic.
 
 use super::camera::{BatchProjection, Camera, CameraError};
 use super::framebuffer::{pack_key, Framebuffer};
@@ -223,10 +224,10 @@ fn draw_batch(
         return stats;
     }
     let (precision, _) = choose_precision(options.precision, camera, grid, &b.grid);
+    let bounds = b.bounds();
     if options.cull {
         // Decoded positions may lie up to the error bound outside the points' bounds; f32 depth
         // may be off by a tiny fraction of the distance.
-        let bounds = b.bounds();
         let err = b.grid.error_bound(precision);
         let slack = CULL_DEPTH_MARGIN * (length(sub(bounds.center(), camera.eye)) + bounds.diagonal());
         let margin = [0, 1, 2].map(|a| err[a] * grid.scale[a].abs() + slack);
@@ -235,7 +236,7 @@ fn draw_batch(
             return stats;
         }
     }
-    let bp = camera.batch_projection(grid, &b.grid, precision);
+    let bp = camera.batch_projection(grid, &b.grid, &bounds, precision);
     stats.batches_drawn = 1;
     stats.points_by_precision[precision.words() - 1] = b.len() as u64;
     stats.points_drawn = match precision {
@@ -291,7 +292,7 @@ mod tests {
     use super::*;
     use crate::render::camera::{Projection, ViewPreset};
     use crate::render::framebuffer::{key_index, EMPTY_KEY};
-    use crate::render::testutil::{Rng, Scene};
+    use crate::render::testutil::Scene;
 
     fn render(scene: &Scene, camera: &Camera, options: RasterOptions) -> (Vec<u64>, RasterStats) {
         let fb = Framebuffer::new(camera.width, camera.height);
@@ -491,6 +492,5 @@ mod tests {
         let mut bad = cam;
         bad.far = bad.near;
         assert!(matches!(rasterize(&fb, &scene.refs(), &scene.grid, &bad, &RasterOptions::default()), Err(RasterError::Camera(_))));
-        let _ = Rng(0);
     }
 }

@@ -146,9 +146,9 @@ impl Scene {
         let (w, h) = (cam.width as f64, cam.height as f64);
         let near = cam.near as f32;
         let far = cam.far as f32;
-        for b in &self.batches {
+        for (b, bounds) in self.batches.iter().zip(&self.batch_bounds) {
             let (precision, _) = choose_precision(mode, cam, &self.grid, &b.grid);
-            let bp = cam.batch_projection(&self.grid, &b.grid, precision);
+            let bp = cam.batch_projection(&self.grid, &b.grid, bounds, precision);
             c.by_precision[precision.words() - 1] += b.range.len();
             for i in b.range.clone() {
                 let words = [self.words[0][i], self.words[1][i], self.words[2][i]];
