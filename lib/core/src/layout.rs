@@ -209,3 +209,58 @@ mod tests {
         assert!(matches!(RecordLayout::new(3, 20), Err(LayoutError::RecordTooShort { .. })));
     }
 }
+
+/// Copies `n`-byte fields: `dst[i] = src[i * stride + offset .. + width]` for every record, with
+/// fixed-size copies for the common widths (a hot path of batching and gathering).
+pub fn copy_column(src: &[u8], stride: usize, offset: usize, width: usize, dst: &mut Vec<u8>) {
+    fn fixed<const W: usize>(src: &[u8], stride: usize, offset: usize, dst: &mut Vec<u8>) {
+        let n = src.len() / stride;
+        let start = dst.len();
+        dst.resize(start + n * W, 0);
+        for (d, r) in dst[start..].chunks_exact_mut(W).zip(src.chunks_exact(stride)) {
+            let s: &[u8; W] = r[offset..offset + W].try_into().unwrap();
+            let d: &mut [u8; W] = d.try_into().unwrap();
+            *d = *s;
+        }
+    }
+    match width {
+        1 => fixed::<1>(src, stride, offset, dst),
+        2 => fixed::<2>(src, stride, offset, dst),
+        4 => fixed::<4>(src, stride, offset, dst),
+        6 => fixed::<6>(src, stride, offset, dst),
+        8 => fixed::<8>(src, stride, offset, dst),
+        _ => {
+            for r in src.chunks_exact(stride) {
+                dst.extend_from_slice(&r[offset..offset + width]);
+            }
+        }
+    }
+}
+
+/// Copies whole records of `record_len` bytes, record `i` of `dst` from `src(i)`, with
+/// fixed-size copies for every standard record length.
+pub fn gather_records<'a>(record_len: usize, n: usize, src: impl Fn(usize) -> &'a [u8], dst: &mut Vec<u8>) {
+    fn fixed<'a, const W: usize>(n: usize, src: impl Fn(usize) -> &'a [u8], dst: &mut Vec<u8>) {
+        let start = dst.len();
+        dst.resize(start + n * W, 0);
+        for (i, d) in dst[start..].chunks_exact_mut(W).enumerate() {
+            let s: &[u8; W] = src(i)[..W].try_into().unwrap();
+            let d: &mut [u8; W] = d.try_into().unwrap();
+            *d = *s;
+        }
+    }
+    match record_len {
+        20 => fixed::<20>(n, src, dst),
+        26 => fixed::<26>(n, src, dst),
+        28 => fixed::<28>(n, src, dst),
+        30 => fixed::<30>(n, src, dst),
+        34 => fixed::<34>(n, src, dst),
+        36 => fixed::<36>(n, src, dst),
+        38 => fixed::<38>(n, src, dst),
+        _ => {
+            for i in 0..n {
+                dst.extend_from_slice(&src(i)[..record_len]);
+            }
+        }
+    }
+}

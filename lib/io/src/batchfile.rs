@@ -24,7 +24,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::borrow::Cow;
 use std::fs::File;
-use std::io::{BufWriter, Seek, SeekFrom, Write};
+use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
 
 /// Section compression.
@@ -148,7 +148,7 @@ pub struct BatchSink {
     t: BatchTemplate,
     attributes: Vec<Attribute>,
     compression: Compression,
-    out: Option<BufWriter<File>>,
+    out: Option<File>,
     pos: u64,
     carry: Vec<u8>,
     entries: Vec<BatchEntry>,
@@ -188,14 +188,11 @@ impl BatchSink {
 
     fn put(&mut self, bytes: &[u8]) -> Result<Range> {
         let p = self.tmp.path().to_path_buf();
-        let w = self.out.as_mut().expect("begun");
-        let pad = (SECTION_ALIGN - self.pos % SECTION_ALIGN) % SECTION_ALIGN;
-        w.write_all(&[0u8; SECTION_ALIGN as usize][..pad as usize]).map_err(|e| Error::io(&p, e))?;
-        self.pos += pad;
-        let r = Range { offset: self.pos, len: bytes.len() as u64 };
-        w.write_all(bytes).map_err(|e| Error::io(&p, e))?;
-        self.pos += bytes.len() as u64;
-        Ok(r)
+        let w = self.out.as_ref().expect("begun");
+        let offset = self.pos.next_multiple_of(SECTION_ALIGN);
+        w.write_all_at(bytes, offset).map_err(|e| Error::io(&p, e))?;
+        self.pos = offset + bytes.len() as u64;
+        Ok(Range { offset, len: bytes.len() as u64 })
     }
 
     fn build(&self, records: &[u8], b: &PlannedBatch) -> Result<BuiltBatch> {
@@ -203,26 +200,21 @@ impl BatchSink {
         let n = b.range.len();
         let recs = &records[b.range.start * rl..b.range.end * rl];
         let grid = b.grid;
-        let mut words = [Vec::with_capacity(n), Vec::with_capacity(n), Vec::with_capacity(n)];
-        let mut color = Vec::with_capacity(n);
         let cs = self.color.expect("begun");
-        for r in recs.chunks_exact(rl) {
-            let w = grid.encode(read_xyz(r));
-            words[0].push(w[0]);
-            words[1].push(w[1]);
-            words[2].push(w[2]);
-            color.push(cs.rgba(r));
+        let mut sections: Vec<Vec<u8>> = vec![vec![0u8; n * 4]; FIRST_ATTRIBUTE_SECTION];
+        {
+            let [c, m, f, col] = &mut sections[..4] else { unreachable!() };
+            for (k, r) in recs.chunks_exact(rl).enumerate() {
+                let w = grid.encode(read_xyz(r));
+                c[4 * k..4 * k + 4].copy_from_slice(&w[0].to_le_bytes());
+                m[4 * k..4 * k + 4].copy_from_slice(&w[1].to_le_bytes());
+                f[4 * k..4 * k + 4].copy_from_slice(&w[2].to_le_bytes());
+                col[4 * k..4 * k + 4].copy_from_slice(&cs.rgba(r).to_le_bytes());
+            }
         }
-        let mut sections: Vec<Vec<u8>> = Vec::with_capacity(self.section_count());
-        for w in &words {
-            sections.push(bytemuck::cast_slice(w).to_vec());
-        }
-        sections.push(bytemuck::cast_slice(&color).to_vec());
         for a in &self.attributes {
             let mut col = Vec::with_capacity(n * a.width);
-            for r in recs.chunks_exact(rl) {
-                col.extend_from_slice(&r[a.offset..a.offset + a.width]);
-            }
+            mortar_core::layout::copy_column(recs, rl, a.offset, a.width, &mut col);
             sections.push(col);
         }
         if self.compression == Compression::Zstd {
@@ -253,19 +245,40 @@ impl BatchSink {
         let n = records.len() / rl;
         let full = if last { n } else { n / BATCH_SIZE * BATCH_SIZE };
         if full > 0 {
+            let t0 = std::time::Instant::now();
             let xyz: Vec<[i32; 3]> = records[..full * rl].par_chunks_exact(rl).map(read_xyz).collect();
             let mut plan = Vec::new();
             plan_batches(&xyz, BATCH_SIZE, 0, &mut plan);
             let built: Vec<BuiltBatch> =
                 plan.par_iter().map(|b| self.build(records, b)).collect::<Result<Vec<_>>>()?;
+            let t1 = t0.elapsed().as_secs_f64();
+            // place every section (aligned), then write all batches in parallel at their offsets
+            let mut placed = Vec::with_capacity(built.len());
             for mut b in built {
+                let base = self.pos.next_multiple_of(SECTION_ALIGN);
+                let mut at = base;
                 for s in &b.sections {
-                    let r = self.put(s)?;
-                    self.sections.push(SectionEntry { offset: r.offset, stored_len: r.len });
+                    self.sections.push(SectionEntry { offset: at, stored_len: s.len() as u64 });
+                    at = (at + s.len() as u64).next_multiple_of(SECTION_ALIGN);
                 }
+                self.pos = at;
                 b.entry.first_point = self.written;
                 self.written += b.entry.count as u64;
                 self.entries.push(b.entry);
+                placed.push((base, b.sections));
+            }
+            let f = self.out.as_ref().expect("begun");
+            let p = self.tmp.path();
+            placed.par_iter().try_for_each(|(base, sections)| -> Result<()> {
+                let mut at = *base;
+                for s in sections {
+                    f.write_all_at(s, at).map_err(|e| Error::io(p, e))?;
+                    at = (at + s.len() as u64).next_multiple_of(SECTION_ALIGN);
+                }
+                Ok(())
+            })?;
+            if std::env::var_os("MORTAR_TRACE").is_some() {
+                eprintln!("mortar: trace: batch chunk {} points: build {:.3} s, write {:.3} s", n, t1, t0.elapsed().as_secs_f64() - t1);
             }
         }
         self.carry = records[full * rl..].to_vec();
@@ -296,10 +309,9 @@ impl BatchSink {
             table_offset: table.offset,
         };
         let p = self.tmp.path().to_path_buf();
-        let mut w = self.out.take().expect("begun");
-        w.seek(SeekFrom::Start(0)).map_err(|e| Error::io(&p, e))?;
-        w.write_all(bytemuck::bytes_of(&header)).map_err(|e| Error::io(&p, e))?;
-        let f = w.into_inner().map_err(|e| Error::io(&p, e.into_error()))?;
+        let f = self.out.take().expect("begun");
+        f.write_all_at(bytemuck::bytes_of(&header), 0).map_err(|e| Error::io(&p, e))?;
+        f.set_len(self.pos).map_err(|e| Error::io(&p, e))?;
         f.sync_all().map_err(|e| Error::io(&p, e))?;
         drop(f);
         let written = self.written;
@@ -313,7 +325,7 @@ impl OrderedSink for BatchSink {
     fn begin(&mut self, s: &Summary) -> Result<()> {
         let p = self.tmp.path().to_path_buf();
         let f = File::create(&p).map_err(|e| Error::io(&p, e))?;
-        self.out = Some(BufWriter::with_capacity(1 << 20, f));
+        self.out = Some(f);
         self.put(&[0u8; std::mem::size_of::<FileHeader>()])?;
         let g = self.t.grid;
         let world = |a: usize, v: i32| g.offset[a] + g.scale[a] * v as f64;

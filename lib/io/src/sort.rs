@@ -226,20 +226,25 @@ pub fn make_keys(slabs: &[&[u8]], record_len: usize, morton: &MortonGrid) -> Res
     if slabs.len() > u32::MAX as usize || slabs.iter().any(|s| s.len() / record_len > u32::MAX as usize) {
         return Err(Error::Usage("too many points for one in-memory sort".into()));
     }
-    let mut keys = vec![Key::default(); n];
-    let mut rest: &mut [Key] = &mut keys;
-    let mut parts = Vec::with_capacity(slabs.len());
-    for (i, s) in slabs.iter().enumerate() {
-        let (a, b) = rest.split_at_mut(s.len() / record_len);
-        parts.push((i, *s, a));
-        rest = b;
+    let mut keys: Vec<Key> = Vec::with_capacity(n);
+    let mut starts = Vec::with_capacity(slabs.len());
+    let mut at = 0usize;
+    for s in slabs {
+        starts.push(at);
+        at += s.len() / record_len;
     }
-    parts.into_par_iter().for_each(|(slab, records, out)| {
-        for (idx, (r, k)) in records.chunks_exact(record_len).zip(out.iter_mut()).enumerate() {
-            let p = read_xyz(r);
-            *k = Key { code: morton.code([p[0] as i64, p[1] as i64, p[2] as i64]), slab: slab as u32, idx: idx as u32 };
+    let ptr = SendPtr(keys.as_mut_ptr());
+    slabs.par_iter().zip(starts.par_iter()).enumerate().for_each(|(slab, (records, &start))| {
+        let p = &ptr;
+        for (idx, r) in records.chunks_exact(record_len).enumerate() {
+            let q = read_xyz(r);
+            let k = Key { code: morton.code([q[0] as i64, q[1] as i64, q[2] as i64]), slab: slab as u32, idx: idx as u32 };
+            // SAFETY: slab ranges [start, start + len) partition 0..n; each slot written once.
+            unsafe { p.0.add(start + idx).write(k) };
         }
     });
+    // SAFETY: all n keys were written above.
+    unsafe { keys.set_len(n) };
     Ok(keys)
 }
 
@@ -323,10 +328,15 @@ pub fn emit(
 ) -> Result<()> {
     let gather = |ks: &[Key]| -> Vec<u8> {
         let mut buf = Vec::with_capacity(ks.len() * record_len);
-        for k in ks {
-            let s = k.idx as usize * record_len;
-            buf.extend_from_slice(&slabs[k.slab as usize][s..s + record_len]);
-        }
+        mortar_core::layout::gather_records(
+            record_len,
+            ks.len(),
+            |i| {
+                let k = ks[i];
+                &slabs[k.slab as usize][k.idx as usize * record_len..]
+            },
+            &mut buf,
+        );
         buf
     };
     let group = rayon::current_num_threads().max(2);

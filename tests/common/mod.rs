@@ -1,0 +1,129 @@
+//! Helpers for the end-to-end tests: run the built binaries, find the shared fixtures, read
+//! LAS files with the las crate (an implementation independent of mortar's own reader).
+#![allow(dead_code)]
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output, Stdio};
+use std::time::{Duration, Instant};
+
+pub fn mortar() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_mortar"))
+}
+
+pub fn gen() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_mortar-gen"))
+}
+
+pub fn root() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+}
+
+/// `../shared/data` (or `$MORTAR_TEST_DATA`), if present.
+pub fn shared_data() -> Option<PathBuf> {
+    let p = std::env::var_os("MORTAR_TEST_DATA").map(PathBuf::from).unwrap_or_else(|| root().join("../shared/data"));
+    if p.is_dir() {
+        Some(p)
+    } else {
+        eprintln!("SKIP: no shared fixtures at {} (set MORTAR_TEST_DATA)", p.display());
+        None
+    }
+}
+
+/// The bad inputs listed in `../shared/data/README.md`.
+pub const BAD_INPUTS: &[&str] = &[
+    "LASzip/data/broken_coder.laz",
+    "LASzip/data/broken_compressor.laz",
+    "LASzip/data/broken_size.laz",
+    "LASzip/data/broken_type.laz",
+    "PDAL/test/data/apps/simple-laszip-compressor-version-1.2r0.laz",
+    "copc-validator/src/test/data/bad-ellipsoid.copc.laz",
+    "PDAL/test/data/las/1.2-with-color-clipped.las",
+    "PDAL/test/data/las/permutations/1.2-no-points.las",
+    "PDAL/test/data/las/garbage_nVariableLength.las",
+];
+
+/// Every readable LAS/LAZ fixture (every 8th file of the 290-file EPT set).
+pub fn readable_fixtures(data: &Path) -> Vec<PathBuf> {
+    let mut out = Vec::new();
+    walk(data, &mut out);
+    out.sort();
+    let mut ept = 0;
+    out.retain(|p| {
+        let rel = p.strip_prefix(data).unwrap().to_string_lossy().to_string();
+        if BAD_INPUTS.contains(&rel.as_str()) {
+            return false;
+        }
+        if rel.contains("PyForestScan/example_data/ept/ept-data/") {
+            ept += 1;
+            return ept % 8 == 1;
+        }
+        true
+    });
+    out
+}
+
+fn walk(d: &Path, out: &mut Vec<PathBuf>) {
+    for e in std::fs::read_dir(d).unwrap() {
+        let p = e.unwrap().path();
+        if p.is_dir() {
+            walk(&p, out);
+        } else if matches!(p.extension().and_then(|e| e.to_str()), Some("las" | "laz")) {
+            out.push(p);
+        }
+    }
+}
+
+/// Runs a command with a time limit; kills it and panics when it runs over.
+pub fn run_limited(mut c: Command, limit: Duration) -> Output {
+    c.stdout(Stdio::piped()).stderr(Stdio::piped());
+    let mut child = c.spawn().expect("spawn");
+    let start = Instant::now();
+    loop {
+        if let Some(_status) = child.try_wait().unwrap() {
+            return child.wait_with_output().unwrap();
+        }
+        if start.elapsed() > limit {
+            let _ = child.kill();
+            panic!("command ran past {limit:?}: {c:?}");
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    }
+}
+
+pub fn run_ok(c: &mut Command) -> Output {
+    let o = c.output().expect("spawn");
+    assert!(o.status.success(), "{c:?} failed: {}", String::from_utf8_lossy(&o.stderr));
+    o
+}
+
+/// Raw point records and header of a LAS/LAZ file, read by the las crate.
+pub fn las_records(p: &Path) -> Result<(Vec<u8>, usize, las::Header), String> {
+    let mut r = las::Reader::from_path(p).map_err(|e| e.to_string())?;
+    let header = r.header().clone();
+    let pd = r.read_all().map_err(|e| e.to_string())?;
+    Ok((pd.raw_bytes().to_vec(), pd.record_len(), header))
+}
+
+/// The records as a sorted list (a multiset).
+pub fn multiset(bytes: &[u8], rl: usize) -> Vec<&[u8]> {
+    let mut v: Vec<&[u8]> = bytes.chunks_exact(rl).collect();
+    v.sort_unstable();
+    v
+}
+
+pub fn tempdir(tag: &str) -> PathBuf {
+    static N: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
+    let n = N.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let d = std::env::temp_dir().join(format!("mortar-test-{tag}-{}-{n}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+/// Files left in a directory.
+pub fn entries(d: &Path) -> Vec<String> {
+    let mut v: Vec<String> =
+        std::fs::read_dir(d).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
+    v.sort();
+    v
+}
