@@ -4,6 +4,7 @@
 mod batch;
 mod common;
 mod info;
+mod render;
 mod sort;
 
 use clap::{Parser, Subcommand};
@@ -29,6 +30,8 @@ enum Cmd {
     Sort(sort::Args),
     /// Convert to a Morton-sorted, quantized batch file (paper 003).
     Batch(batch::Args),
+    /// Draw a view of a batch file or LAS/LAZ to PNG (CPU reference rasterizer, paper 003).
+    Render(render::Args),
 }
 
 fn main() {
@@ -50,6 +53,7 @@ fn main() {
         Cmd::Info(a) => info::run(a),
         Cmd::Sort(a) => sort::run(a),
         Cmd::Batch(a) => batch::run(a),
+        Cmd::Render(a) => render::run(a),
     };
     if let Err(e) = r {
         mortar_io::cleanup::remove_all();

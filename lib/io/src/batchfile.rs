@@ -12,7 +12,7 @@ use crate::dataset::RecordSource;
 use crate::error::{Error, Result};
 use crate::las::{self, Header, HeaderOut, Vlr};
 use crate::source::{open_bytes, Bytes, Piece};
-use crate::sort::{OrderedSink, Summary};
+use crate::sort::{Key, OrderedSink, Summary};
 use mortar_core::batch::*;
 use mortar_core::batching::{plan_batches, PlannedBatch};
 use mortar_core::color::{ColorSource, RgbDepth};
@@ -155,6 +155,8 @@ pub struct BatchSink {
     sections: Vec<SectionEntry>,
     meta: Option<Meta>,
     color: Option<ColorSource>,
+    /// Batches placed in the file but not yet written (written while the next ones are built).
+    pending: Vec<(u64, Vec<Vec<u8>>)>,
     written: u64,
 }
 
@@ -178,6 +180,7 @@ impl BatchSink {
             sections: Vec::new(),
             meta: None,
             color: None,
+            pending: Vec::new(),
             written: 0,
         }
     }
@@ -238,49 +241,69 @@ impl BatchSink {
         Ok(BuiltBatch { entry, sections })
     }
 
-    /// Builds and writes the batches of `records`; a trailing partial batch stays in the carry
-    /// unless `last`.
+    /// Quantizes one window of at most 10,240 consecutive records (split if oversized).
+    fn build_window(&self, recs: &[u8]) -> Result<Vec<BuiltBatch>> {
+        let xyz: Vec<[i32; 3]> = recs.chunks_exact(self.t.layout.record_len).map(read_xyz).collect();
+        let mut plan = Vec::new();
+        plan_batches(&xyz, BATCH_SIZE, 0, &mut plan);
+        plan.iter().map(|b| self.build(recs, b)).collect()
+    }
+
+    /// Builds the batches of `windows` windows in parallel, `window(i)` giving the records of
+    /// window `i`, while the batches of the previous call are written (pipelined).
+    fn build_and_write<'a, F>(&mut self, windows: usize, window: F) -> Result<()>
+    where
+        F: Fn(usize) -> Cow<'a, [u8]> + Sync,
+    {
+        let pending = std::mem::take(&mut self.pending);
+        let this = &*self;
+        let (written, built) = rayon::join(
+            || this.write_placed(&pending),
+            || -> Result<Vec<Vec<BuiltBatch>>> {
+                (0..windows).into_par_iter().map(|w| this.build_window(&window(w))).collect()
+            },
+        );
+        written?;
+        let built = built?;
+        for mut b in built.into_iter().flatten() {
+            let base = self.pos.next_multiple_of(SECTION_ALIGN);
+            let mut at = base;
+            for s in &b.sections {
+                self.sections.push(SectionEntry { offset: at, stored_len: s.len() as u64 });
+                at = (at + s.len() as u64).next_multiple_of(SECTION_ALIGN);
+            }
+            self.pos = at;
+            b.entry.first_point = self.written;
+            self.written += b.entry.count as u64;
+            self.entries.push(b.entry);
+            self.pending.push((base, b.sections));
+        }
+        Ok(())
+    }
+
+    fn write_placed(&self, placed: &[(u64, Vec<Vec<u8>>)]) -> Result<()> {
+        let f = self.out.as_ref().expect("begun");
+        let p = self.tmp.path();
+        for (base, sections) in placed {
+            let mut at = *base;
+            for s in sections {
+                f.write_all_at(s, at).map_err(|e| Error::io(p, e))?;
+                at = (at + s.len() as u64).next_multiple_of(SECTION_ALIGN);
+            }
+        }
+        Ok(())
+    }
+
+    /// Builds and writes the batches of contiguous `records`; a trailing partial batch stays in
+    /// the carry unless `last`.
     fn flush_records(&mut self, records: &[u8], last: bool) -> Result<()> {
         let rl = self.t.layout.record_len;
         let n = records.len() / rl;
         let full = if last { n } else { n / BATCH_SIZE * BATCH_SIZE };
-        if full > 0 {
-            let t0 = std::time::Instant::now();
-            let xyz: Vec<[i32; 3]> = records[..full * rl].par_chunks_exact(rl).map(read_xyz).collect();
-            let mut plan = Vec::new();
-            plan_batches(&xyz, BATCH_SIZE, 0, &mut plan);
-            let built: Vec<BuiltBatch> =
-                plan.par_iter().map(|b| self.build(records, b)).collect::<Result<Vec<_>>>()?;
-            let t1 = t0.elapsed().as_secs_f64();
-            // place every section (aligned), then write all batches in parallel at their offsets
-            let mut placed = Vec::with_capacity(built.len());
-            for mut b in built {
-                let base = self.pos.next_multiple_of(SECTION_ALIGN);
-                let mut at = base;
-                for s in &b.sections {
-                    self.sections.push(SectionEntry { offset: at, stored_len: s.len() as u64 });
-                    at = (at + s.len() as u64).next_multiple_of(SECTION_ALIGN);
-                }
-                self.pos = at;
-                b.entry.first_point = self.written;
-                self.written += b.entry.count as u64;
-                self.entries.push(b.entry);
-                placed.push((base, b.sections));
-            }
-            let f = self.out.as_ref().expect("begun");
-            let p = self.tmp.path();
-            placed.par_iter().try_for_each(|(base, sections)| -> Result<()> {
-                let mut at = *base;
-                for s in sections {
-                    f.write_all_at(s, at).map_err(|e| Error::io(p, e))?;
-                    at = (at + s.len() as u64).next_multiple_of(SECTION_ALIGN);
-                }
-                Ok(())
-            })?;
-            if std::env::var_os("MORTAR_TRACE").is_some() {
-                eprintln!("mortar: trace: batch chunk {} points: build {:.3} s, write {:.3} s", n, t1, t0.elapsed().as_secs_f64() - t1);
-            }
-        }
+        let windows = full.div_ceil(BATCH_SIZE);
+        self.build_and_write(windows, |w| {
+            Cow::Borrowed(&records[w * BATCH_SIZE * rl..((w + 1) * BATCH_SIZE).min(full) * rl])
+        })?;
         self.carry = records[full * rl..].to_vec();
         Ok(())
     }
@@ -289,6 +312,8 @@ impl BatchSink {
     pub fn finish(mut self) -> Result<u64> {
         let carry = std::mem::take(&mut self.carry);
         self.flush_records(&carry, true)?;
+        let pending = std::mem::take(&mut self.pending);
+        self.write_placed(&pending)?;
         let meta = self.meta.clone().ok_or_else(|| Error::Usage("batch sink finished before it began".into()))?;
         let json = serde_json::to_vec_pretty(&meta).map_err(|e| Error::Usage(e.to_string()))?;
         let meta_r = self.put(&json)?;
@@ -394,6 +419,22 @@ impl OrderedSink for BatchSink {
             las_header,
             evlrs,
         });
+        Ok(())
+    }
+
+    fn prefers_keyed(&self) -> bool {
+        true
+    }
+
+    fn write_keyed(&mut self, slabs: &[&[u8]], keys: &[Key], rl: usize) -> Result<()> {
+        if !self.carry.is_empty() {
+            return self.write(&crate::sort::gather(slabs, keys, rl));
+        }
+        let full = keys.len() / BATCH_SIZE * BATCH_SIZE;
+        self.build_and_write(full / BATCH_SIZE, |w| {
+            Cow::Owned(crate::sort::gather(slabs, &keys[w * BATCH_SIZE..(w + 1) * BATCH_SIZE], rl))
+        })?;
+        self.carry = crate::sort::gather(slabs, &keys[full..], rl);
         Ok(())
     }
 

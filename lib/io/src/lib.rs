@@ -15,3 +15,4 @@ pub mod batchfile;
 pub mod crs;
 pub mod info;
 pub mod synth;
+pub mod render_input;

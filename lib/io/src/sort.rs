@@ -136,6 +136,31 @@ pub trait OrderedSink: Send {
     fn begin(&mut self, summary: &Summary) -> Result<()>;
     /// Called with consecutive runs of records in Morton order.
     fn write(&mut self, records: &[u8]) -> Result<()>;
+    /// Called instead of [`write`](Self::write) by [`emit`] with the records given by
+    /// keys into slabs; the default gathers them and calls `write`. Sinks that consume records
+    /// in small groups override it to gather into cache-sized buffers instead.
+    fn write_keyed(&mut self, slabs: &[&[u8]], keys: &[Key], record_len: usize) -> Result<()> {
+        self.write(&gather(slabs, keys, record_len))
+    }
+    /// Whether [`write_keyed`](Self::write_keyed) is better than gathered chunks.
+    fn prefers_keyed(&self) -> bool {
+        false
+    }
+}
+
+/// The records of `keys`, gathered in order.
+pub fn gather(slabs: &[&[u8]], keys: &[Key], record_len: usize) -> Vec<u8> {
+    let mut buf = Vec::with_capacity(keys.len() * record_len);
+    mortar_core::layout::gather_records(
+        record_len,
+        keys.len(),
+        |i| {
+            let k = keys[i];
+            &slabs[k.slab as usize][k.idx as usize * record_len..]
+        },
+        &mut buf,
+    );
+    buf
 }
 
 /// Sort settings.
@@ -226,7 +251,7 @@ pub fn make_keys(slabs: &[&[u8]], record_len: usize, morton: &MortonGrid) -> Res
     if slabs.len() > u32::MAX as usize || slabs.iter().any(|s| s.len() / record_len > u32::MAX as usize) {
         return Err(Error::Usage("too many points for one in-memory sort".into()));
     }
-    let mut keys: Vec<Key> = Vec::with_capacity(n);
+    let mut keys = key_buffer(n);
     let mut starts = Vec::with_capacity(slabs.len());
     let mut at = 0usize;
     for s in slabs {
@@ -246,6 +271,23 @@ pub fn make_keys(slabs: &[&[u8]], record_len: usize, morton: &MortonGrid) -> Res
     // SAFETY: all n keys were written above.
     unsafe { keys.set_len(n) };
     Ok(keys)
+}
+
+/// A vector of `n` uninitialised keys whose pages are backed by transparent huge pages where
+/// the kernel offers them (fewer page faults on the hundreds of MiB a large sort needs).
+fn key_buffer(n: usize) -> Vec<Key> {
+    let v: Vec<Key> = Vec::with_capacity(n);
+    let bytes = n * std::mem::size_of::<Key>();
+    if bytes >= 8 << 20 {
+        let huge = 2usize << 20;
+        let start = (v.as_ptr() as usize).next_multiple_of(huge);
+        let end = (v.as_ptr() as usize + bytes) / huge * huge;
+        if end > start {
+            // SAFETY: advice on memory this vector owns; it changes no contents.
+            unsafe { libc::madvise(start as *mut libc::c_void, end - start, libc::MADV_HUGEPAGE) };
+        }
+    }
+    v
 }
 
 struct SendPtr(*mut Key);
@@ -290,7 +332,7 @@ pub fn sort_keys(mut keys: Vec<Key>) -> Vec<Key> {
             running[b] += h[b] as usize;
         }
     }
-    let mut out: Vec<Key> = Vec::with_capacity(n);
+    let mut out = key_buffer(n);
     let ptr = SendPtr(out.as_mut_ptr());
     keys.par_chunks(part_len).zip(cursors.into_par_iter()).for_each(|(c, mut cur)| {
         let p = &ptr;
@@ -326,19 +368,14 @@ pub fn emit(
     chunk_points: usize,
     sink: &mut dyn OrderedSink,
 ) -> Result<()> {
-    let gather = |ks: &[Key]| -> Vec<u8> {
-        let mut buf = Vec::with_capacity(ks.len() * record_len);
-        mortar_core::layout::gather_records(
-            record_len,
-            ks.len(),
-            |i| {
-                let k = ks[i];
-                &slabs[k.slab as usize][k.idx as usize * record_len..]
-            },
-            &mut buf,
-        );
-        buf
-    };
+    if sink.prefers_keyed() {
+        for ks in keys.chunks(chunk_points.max(1)) {
+            check_interrupted()?;
+            sink.write_keyed(slabs, ks, record_len)?;
+        }
+        return Ok(());
+    }
+    let gather = |ks: &[Key]| gather(slabs, ks, record_len);
     let group = rayon::current_num_threads().max(2);
     let chunks: Vec<&[Key]> = keys.chunks(chunk_points.max(1)).collect();
     std::thread::scope(|scope| -> Result<()> {

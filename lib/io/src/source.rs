@@ -103,7 +103,14 @@ pub fn open_bytes(path: &Path) -> Result<Bytes> {
     }
     // SAFETY: the map is read-only; a file truncated by another process while mortar reads it
     // is outside what mortar can guard against (as with every mmap-based reader).
-    let m = unsafe { Mmap::map(&f) }.map_err(|e| Error::io(path, e))?;
+    // Files that fit comfortably in memory are mapped with MAP_POPULATE: one system call instead
+    // of a page fault per 4 KiB when the points are read.
+    let populate = len < crate::sort::default_memory() / 2;
+    let mut opts = memmap2::MmapOptions::new();
+    if populate {
+        opts.populate();
+    }
+    let m = unsafe { opts.map(&f) }.map_err(|e| Error::io(path, e))?;
     Ok(Bytes::Map(m))
 }
 

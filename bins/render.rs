@@ -1,0 +1,360 @@
+//! `mortar render`: one view of a batch file (or of LAS/LAZ batched on the fly) drawn by the CPU
+//! reference rasterizer (paper 003 §3.2-3.4) to a PNG.
+
+use crate::common;
+use anyhow::{anyhow, bail, Context, Result};
+use mortar_core::quantize::Precision;
+use mortar_core::render::resolve::{EyeDome, HoleFill, ResolveOptions};
+use mortar_core::render::{Aabb, Camera, PrecisionMode, Projection, RasterOptions, ViewPreset};
+use mortar_io::cleanup::TempPath;
+use mortar_io::render_input::{self, ColorChoice, RenderSettings, RenderSource};
+use mortar_io::sort::{default_memory, SortOptions};
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// Which rasterizer draws.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Backend {
+    /// The CPU reference rasterizer.
+    Cpu,
+    /// The wgpu compute rasterizer (not built yet).
+    Gpu,
+    /// The best available: the CPU rasterizer for now.
+    Auto,
+}
+
+/// Precision of the coordinate words each batch loads.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum PrecisionArg {
+    /// From each batch's size on screen (the 500 px rule).
+    Adaptive,
+    /// The coarse word only.
+    #[value(name = "10")]
+    Bits10,
+    /// Coarse and medium words.
+    #[value(name = "20")]
+    Bits20,
+    /// All three words (exact).
+    #[value(name = "30")]
+    Bits30,
+}
+
+impl PrecisionArg {
+    pub fn mode(self) -> PrecisionMode {
+        match self {
+            PrecisionArg::Adaptive => PrecisionMode::Adaptive,
+            PrecisionArg::Bits10 => PrecisionMode::Fixed(Precision::Bits10),
+            PrecisionArg::Bits20 => PrecisionMode::Fixed(Precision::Bits20),
+            PrecisionArg::Bits30 => PrecisionMode::Fixed(Precision::Bits30),
+        }
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            PrecisionArg::Adaptive => "adaptive",
+            PrecisionArg::Bits10 => "10",
+            PrecisionArg::Bits20 => "20",
+            PrecisionArg::Bits30 => "30",
+        }
+    }
+}
+
+/// Framed views of the data.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ViewArg {
+    /// From above, north up.
+    Top,
+    /// From the south.
+    Front,
+    /// From the east.
+    Side,
+    /// From the south-west and above.
+    Iso,
+    /// Looking down at 45 degrees at the middle, about a tenth of the extent wide.
+    Closeup,
+    /// From inside the data: above the middle at 30 % of the height, looking north.
+    Inside,
+}
+
+/// Where the camera is.
+#[derive(clap::Args, Clone, Debug)]
+pub struct CameraArgs {
+    /// A view framing the data.
+    #[arg(long, value_enum, conflicts_with = "eye")]
+    pub view: Option<ViewArg>,
+    /// Eye position x,y,z (world coordinates, as in the file); needs --target.
+    #[arg(long, value_parser = parse_vec3, requires = "target", allow_hyphen_values = true)]
+    pub eye: Option<[f64; 3]>,
+    /// The point looked at, x,y,z.
+    #[arg(long, value_parser = parse_vec3, requires = "eye", allow_hyphen_values = true)]
+    pub target: Option<[f64; 3]>,
+    /// Up direction x,y,z.
+    #[arg(long, value_parser = parse_vec3, default_value = "0,0,1", allow_hyphen_values = true)]
+    pub up: [f64; 3],
+    /// Vertical field of view in degrees (perspective; with --ortho it sets the visible height
+    /// at the target's distance).
+    #[arg(long, default_value_t = 50.0)]
+    pub fov: f64,
+    /// Orthographic projection instead of perspective.
+    #[arg(long)]
+    pub ortho: bool,
+}
+
+/// `x,y,z` as three numbers.
+pub fn parse_vec3(s: &str) -> std::result::Result<[f64; 3], String> {
+    let v: Vec<f64> = s
+        .split(',')
+        .map(|t| t.trim().parse::<f64>().map_err(|_| format!("'{s}' is not x,y,z (three numbers)")))
+        .collect::<std::result::Result<_, _>>()?;
+    match v[..] {
+        [x, y, z] if v.iter().all(|c| c.is_finite()) => Ok([x, y, z]),
+        _ => Err(format!("'{s}' is not x,y,z (three finite numbers)")),
+    }
+}
+
+/// `lo,hi` as two numbers.
+fn parse_range(s: &str) -> std::result::Result<[f64; 2], String> {
+    let v: Vec<f64> = s.split(',').map(|t| t.trim().parse::<f64>()).collect::<std::result::Result<_, _>>().map_err(|_| format!("'{s}' is not lo,hi"))?;
+    match v[..] {
+        [lo, hi] if lo.is_finite() && hi.is_finite() && lo < hi => Ok([lo, hi]),
+        _ => Err(format!("'{s}' is not lo,hi with lo < hi")),
+    }
+}
+
+/// A colour: a name (black, white, grey, transparent) or #rrggbb / #rrggbbaa; RGBA8 packed.
+pub fn parse_color(s: &str) -> std::result::Result<u32, String> {
+    let rgba = |r: u32, g: u32, b: u32, a: u32| r | g << 8 | b << 16 | a << 24;
+    match s.to_ascii_lowercase().as_str() {
+        "black" => return Ok(rgba(0, 0, 0, 255)),
+        "white" => return Ok(rgba(255, 255, 255, 255)),
+        "grey" | "gray" => return Ok(rgba(128, 128, 128, 255)),
+        "transparent" | "none" => return Ok(0),
+        _ => {}
+    }
+    let hex = s.strip_prefix('#').unwrap_or(s);
+    let bad = || format!("'{s}' is not a colour (black, white, grey, transparent, #rrggbb or #rrggbbaa)");
+    if !(hex.len() == 6 || hex.len() == 8) || !hex.chars().all(|c| c.is_ascii_hexdigit()) {
+        return Err(bad());
+    }
+    let byte = |i: usize| u32::from_str_radix(&hex[2 * i..2 * i + 2], 16).map_err(|_| bad());
+    let a = if hex.len() == 8 { byte(3)? } else { 255 };
+    Ok(rgba(byte(0)?, byte(1)?, byte(2)?, a))
+}
+
+fn parse_color_choice(s: &str) -> std::result::Result<ColorChoice, String> {
+    ColorChoice::from_name(s).ok_or_else(|| format!("'{s}' is not a colour mode (one of {})", ColorChoice::names().join(", ")))
+}
+
+#[derive(clap::Args)]
+pub struct Args {
+    /// A batch file, or LAS/LAZ files, directories, glob patterns or - (batched on the fly into a
+    /// temporary batch file, as `mortar batch` would).
+    #[arg(required = true)]
+    pub inputs: Vec<String>,
+    /// Output PNG (- for stdout).
+    #[arg(short, long)]
+    pub output: PathBuf,
+    /// Image width in pixels.
+    #[arg(long, default_value_t = 1280)]
+    pub width: u32,
+    /// Image height in pixels.
+    #[arg(long, default_value_t = 720)]
+    pub height: u32,
+    #[command(flatten)]
+    pub camera: CameraArgs,
+    /// Colour mode: auto (the stored colour: RGB, else intensity), rgb, intensity, classification,
+    /// elevation, return-number, gps-time.
+    #[arg(long, default_value = "auto", value_parser = parse_color_choice)]
+    pub color: ColorChoice,
+    /// Range lo,hi of intensity, elevation and gps-time colours (default: 1st to 99th percentile
+    /// of the visible points).
+    #[arg(long, value_parser = parse_range, allow_hyphen_values = true)]
+    pub range: Option<[f64; 2]>,
+    /// Coordinate precision: adaptive (paper 003's 500 px rule) or 10, 20, 30 bits for every batch.
+    #[arg(long, value_enum, default_value = "adaptive")]
+    pub precision: PrecisionArg,
+    /// Draw every batch, also those outside the view (same image, slower).
+    #[arg(long)]
+    pub no_cull: bool,
+    /// Rasterizer: cpu; gpu is not built yet; auto picks cpu.
+    #[arg(long, value_enum, default_value = "cpu")]
+    pub backend: Backend,
+    /// Fill empty pixels from their nearest neighbour where at least N of the 8 neighbours hold a
+    /// point (--hole-fill alone: N = 3, which keeps silhouettes).
+    #[arg(long, value_name = "N", num_args = 0..=1, default_missing_value = "3", value_parser = clap::value_parser!(u32).range(1..=8))]
+    pub hole_fill: Option<u32>,
+    /// Eye-dome lighting (shading from depth differences), with an optional strength.
+    #[arg(long, value_name = "STRENGTH", num_args = 0..=1, default_missing_value = "1.0")]
+    pub edl: Option<f32>,
+    /// Background colour: black, white, grey, transparent, #rrggbb or #rrggbbaa.
+    #[arg(long, default_value = "black", value_parser = parse_color)]
+    pub background: u32,
+    /// Print statistics as JSON on stdout (on stderr when the PNG goes to stdout).
+    #[arg(long)]
+    pub json: bool,
+    /// Memory budget for sorting LAS/LAZ input (e.g. 2G).
+    #[arg(long, value_parser = common::parse_size)]
+    pub memory: Option<u64>,
+    /// Directory for the temporary batch file of LAS/LAZ input.
+    #[arg(long)]
+    pub tmp_dir: Option<PathBuf>,
+}
+
+/// Opens the inputs: a single batch file as it is, anything else batched into a temporary file.
+pub fn open_source(inputs: &[String], memory: Option<u64>, tmp_dir: &Option<PathBuf>) -> Result<RenderSource> {
+    if let [one] = inputs {
+        let p = Path::new(one);
+        if one != "-" && p.is_file() && mortar_io::batchfile::is_batch_file(p) {
+            return Ok(RenderSource::open_batch_file(p)?);
+        }
+    }
+    let ds = common::open_dataset(inputs)?;
+    common::print_warnings(&ds.warnings);
+    let opts = SortOptions::with_memory(memory.unwrap_or_else(default_memory), common::tmp_dir(tmp_dir));
+    Ok(RenderSource::batch_dataset(&ds, &opts)?)
+}
+
+/// The camera the arguments ask for, framing `bounds` where a view is asked for.
+pub fn build_camera(a: &CameraArgs, bounds: &Aabb, width: u32, height: u32) -> Result<Camera> {
+    if !(a.fov > 0.0 && a.fov < 180.0) {
+        bail!("--fov {}: must be between 0 and 180 degrees", a.fov);
+    }
+    let fov = a.fov.to_radians();
+    let cam = match (a.eye, a.target) {
+        (Some(eye), Some(target)) => Camera::look_at(eye, target, a.up, Projection::Perspective { fov_y: fov }, bounds, width, height)?,
+        _ => match a.view.unwrap_or(ViewArg::Iso) {
+            ViewArg::Closeup => Camera::close_up(bounds, fov, width, height)?,
+            ViewArg::Inside => Camera::inside(bounds, fov, width, height)?,
+            v => {
+                let preset = match v {
+                    ViewArg::Top => ViewPreset::Top,
+                    ViewArg::Front => ViewPreset::Front,
+                    ViewArg::Side => ViewPreset::Side,
+                    _ => ViewPreset::Iso,
+                };
+                if a.ortho {
+                    return Ok(Camera::frame_orthographic(bounds, preset, width, height)?);
+                }
+                Camera::frame_perspective(bounds, preset, fov, width, height)?
+            }
+        },
+    };
+    if !a.ortho {
+        return Ok(cam);
+    }
+    // Orthographic with the perspective view's visible height at the target's distance.
+    let d: f64 = (0..3).map(|i| (cam.target[i] - cam.eye[i]).powi(2)).sum::<f64>().sqrt();
+    let height_world = 2.0 * d * (0.5 * fov).tan();
+    Ok(Camera::look_at(cam.eye, cam.target, cam.up, Projection::Orthographic { height: height_world }, bounds, width, height)?)
+}
+
+/// PNG bytes of an RGBA8 image (packed `r | g << 8 | b << 16 | a << 24`, row-major).
+pub fn encode_png(width: u32, height: u32, rgba: &[u32]) -> Result<Vec<u8>> {
+    let mut out = Vec::new();
+    {
+        let mut enc = png::Encoder::new(&mut out, width, height);
+        enc.set_color(png::ColorType::Rgba);
+        enc.set_depth(png::BitDepth::Eight);
+        let mut w = enc.write_header()?;
+        let bytes: Vec<u8> = rgba.iter().flat_map(|c| c.to_le_bytes()).collect();
+        w.write_image_data(&bytes)?;
+        w.finish()?;
+    }
+    Ok(out)
+}
+
+/// Writes bytes to `path` atomically (temporary file beside it, then rename), or to stdout for `-`.
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
+    if path.as_os_str() == "-" {
+        let mut out = std::io::stdout().lock();
+        out.write_all(bytes)?;
+        out.flush()?;
+        return Ok(());
+    }
+    let tmp = TempPath::beside(path);
+    std::fs::write(tmp.path(), bytes).with_context(|| format!("{}: cannot write", path.display()))?;
+    tmp.persist(path).with_context(|| format!("{}: cannot write", path.display()))?;
+    Ok(())
+}
+
+fn camera_json(c: &Camera) -> serde_json::Value {
+    let projection = match c.projection {
+        Projection::Perspective { fov_y } => serde_json::json!({ "perspective": { "fov_degrees": fov_y.to_degrees() } }),
+        Projection::Orthographic { height } => serde_json::json!({ "orthographic": { "height": height } }),
+    };
+    serde_json::json!({ "eye": c.eye, "target": c.target, "up": c.up, "projection": projection, "near": c.near, "far": c.far })
+}
+
+pub fn run(a: Args) -> Result<()> {
+    match a.backend {
+        Backend::Gpu => bail!("--backend gpu: the GPU rasterizer is not built yet; use --backend cpu (or auto)"),
+        Backend::Cpu | Backend::Auto => {}
+    }
+    if a.width == 0 || a.height == 0 || a.width > 16384 || a.height > 16384 {
+        bail!("--width {} --height {}: each side must be 1 to 16384 pixels", a.width, a.height);
+    }
+    let start = Instant::now();
+    let source = open_source(&a.inputs, a.memory, &a.tmp_dir)?;
+    let batch_seconds = start.elapsed().as_secs_f64();
+    let file = &source.file;
+    let label = if source.is_temporary() { a.inputs.join(" ") } else { file.path.display().to_string() };
+    if file.header.point_count == 0 {
+        bail!("{label}: no points to draw");
+    }
+    render_input::check_color(file, a.color)?;
+    let bounds = render_input::file_bounds(file);
+    let camera = build_camera(&a.camera, &bounds, a.width, a.height).map_err(|e| anyhow!("{label}: {e:#}"))?;
+    let views = render_input::load_words(file)?;
+    let refs = render_input::batch_refs(file, &views)?;
+    let settings = RenderSettings {
+        raster: RasterOptions { precision: a.precision.mode(), cull: !a.no_cull },
+        color: a.color,
+        range: a.range,
+        resolve: ResolveOptions {
+            background: a.background,
+            hole_fill: a.hole_fill.map(|n| HoleFill { min_neighbors: n }),
+            eye_dome: a.edl.map(|strength| EyeDome { strength, ..EyeDome::default() }),
+        },
+    };
+    let r = render_input::render(file, &refs, &camera, &settings)?;
+    let t = Instant::now();
+    let png = encode_png(r.width, r.height, &r.rgba)?;
+    write_atomic(&a.output, &png)?;
+    let png_seconds = t.elapsed().as_secs_f64();
+    if a.json {
+        let s = &r.stats;
+        let j = serde_json::json!({
+            "input": label,
+            "output": a.output,
+            "width": r.width,
+            "height": r.height,
+            "backend": "cpu",
+            "precision": a.precision.name(),
+            "cull": !a.no_cull,
+            "color": a.color.name(),
+            "color_range": r.color_range,
+            "camera": camera_json(&camera),
+            "points": file.header.point_count,
+            "batches": s.batches,
+            "batches_culled": s.batches_culled,
+            "batches_drawn": s.batches_drawn,
+            "points_projected": s.points_projected(),
+            "points_by_precision": { "10": s.points_by_precision[0], "20": s.points_by_precision[1], "30": s.points_by_precision[2] },
+            "points_drawn": s.points_drawn,
+            "pixels_covered": r.covered,
+            "batch_seconds": if source.is_temporary() { Some(batch_seconds) } else { None },
+            "raster_seconds": r.raster_seconds,
+            "resolve_seconds": r.resolve_seconds,
+            "png_seconds": png_seconds,
+            "points_per_second": s.points_projected() as f64 / r.raster_seconds.max(1e-9),
+        });
+        let text = serde_json::to_string_pretty(&j)?;
+        if a.output.as_os_str() == "-" {
+            eprintln!("{text}");
+        } else {
+            println!("{text}");
+        }
+    }
+    Ok(())
+}
