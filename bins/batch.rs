@@ -63,7 +63,9 @@ pub fn run(a: Args) -> Result<()> {
     let tmp = common::tmp_dir(&a.tmp_dir);
     let opts = SortOptions::with_memory(a.memory.unwrap_or_else(default_memory), tmp);
     let report = sort(&ds, &opts, &mut sink)?;
+    mortar_io::sort::trace("sorted", start);
     let points = sink.finish()?;
+    mortar_io::sort::trace("finished", start);
     let secs = start.elapsed().as_secs_f64();
     if a.json {
         let j = serde_json::json!({

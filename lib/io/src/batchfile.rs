@@ -337,7 +337,6 @@ impl BatchSink {
         let f = self.out.take().expect("begun");
         f.write_all_at(bytemuck::bytes_of(&header), 0).map_err(|e| Error::io(&p, e))?;
         f.set_len(self.pos).map_err(|e| Error::io(&p, e))?;
-        f.sync_all().map_err(|e| Error::io(&p, e))?;
         drop(f);
         let written = self.written;
         let BatchSink { tmp, target, .. } = self;

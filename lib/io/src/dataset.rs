@@ -22,6 +22,19 @@ pub trait RecordSource: Send + Sync {
     fn is_compressed(&self) -> bool;
     /// Lets go of a piece's memory once it was processed (external sort).
     fn release_piece(&self, _piece: &Piece) {}
+    /// Whether [`read_piece`](Self::read_piece) borrows without work (LAS in a memory map).
+    fn borrows_pieces(&self) -> bool {
+        false
+    }
+    /// Reads a piece into `out`, which holds exactly `piece.points` records.
+    fn read_piece_into(&self, piece: &Piece, out: &mut [u8]) -> Result<()> {
+        let r = self.read_piece(piece)?;
+        if r.len() != out.len() {
+            return Err(Error::input(self.path(), format!("piece {} holds {} bytes, expected {}", piece.index, r.len(), out.len())));
+        }
+        out.copy_from_slice(&r);
+        Ok(())
+    }
 }
 
 impl RecordSource for LasInput {
@@ -54,6 +67,12 @@ impl RecordSource for LasInput {
     }
     fn release_piece(&self, piece: &Piece) {
         LasInput::release_piece(self, piece)
+    }
+    fn borrows_pieces(&self) -> bool {
+        !self.is_laz()
+    }
+    fn read_piece_into(&self, piece: &Piece, out: &mut [u8]) -> Result<()> {
+        LasInput::read_piece_into(self, piece, out)
     }
 }
 
@@ -184,6 +203,22 @@ impl Dataset {
             .enumerate()
             .flat_map(|(i, s)| s.pieces().into_iter().map(move |p| DatasetPiece { input: i, piece: p }))
             .collect()
+    }
+
+    /// Reads a piece into `out` (exactly its size), on the merged grid.
+    pub fn read_piece_into(&self, p: &DatasetPiece, out: &mut [u8]) -> Result<()> {
+        let src = &self.inputs[p.input];
+        src.read_piece_into(&p.piece, out)?;
+        let map = self.maps[p.input];
+        if !map.is_identity() {
+            for r in out.chunks_exact_mut(self.layout.record_len) {
+                let xyz = map.apply(read_xyz(r)).ok_or_else(|| {
+                    Error::input(src.path(), "a point lies outside the bounds its header declares, beyond what the merged grid can hold")
+                })?;
+                write_xyz(r, xyz);
+            }
+        }
+        Ok(())
     }
 
     /// The records of a piece on the merged grid.

@@ -14,7 +14,7 @@
 use crate::cleanup::TempPath;
 use crate::dataset::Dataset;
 use crate::error::{Error, Result};
-use crate::sort::{check_interrupted, emit, in_memory_need, make_keys, sort_keys, OrderedSink, PieceStats, SortOptions, SortReport};
+use crate::sort::{declared_grid, check_interrupted, emit, in_memory_need, make_keys, sort_keys, OrderedSink, PieceStats, SortOptions, SortReport};
 use mortar_core::layout::read_xyz;
 use mortar_core::morton::MortonGrid;
 use rayon::prelude::*;
@@ -120,23 +120,6 @@ fn pass1(ds: &Dataset, opts: &SortOptions, morton: &MortonGrid, dir: &Path) -> R
         i = j;
     }
     Ok((runs, stats))
-}
-
-/// The Morton grid from the bounds the headers declare.
-fn declared_grid(ds: &Dataset) -> MortonGrid {
-    let mut min = [i64::MAX; 3];
-    let mut max = [i64::MIN; 3];
-    for (i, m) in ds.inputs.iter().zip(&ds.maps) {
-        let h = i.header();
-        for a in 0..3 {
-            let g = mortar_core::grid::Grid { scale: h.scale, offset: h.offset };
-            let lo = g.to_int(a, h.min[a]) * m.factor[a] + m.shift[a];
-            let hi = g.to_int(a, h.max[a]) * m.factor[a] + m.shift[a];
-            min[a] = min[a].min(lo.clamp(i32::MIN as i64, i32::MAX as i64));
-            max[a] = max[a].max(hi.clamp(i32::MIN as i64, i32::MAX as i64));
-        }
-    }
-    MortonGrid::for_bounds(min, max)
 }
 
 /// Sorts a dataset larger than the memory budget.

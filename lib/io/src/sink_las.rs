@@ -151,7 +151,6 @@ impl LasSink {
                     w.write_all(&hb).map_err(io_err(&p))?;
                 }
                 let f = w.into_inner().map_err(|e| Error::io(&p, e.into_error()))?;
-                f.sync_all().map_err(io_err(&p))?;
                 drop(f);
                 let tmp = self.tmp.take().unwrap();
                 match &self.target {

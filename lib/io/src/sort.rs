@@ -10,7 +10,7 @@
 //! The Morton grid is defined by the actual integer bounds of the points, and ties are broken by
 //! input order, so the output is the same on every path and on every run.
 
-use crate::dataset::Dataset;
+use crate::dataset::{Dataset, DatasetPiece};
 use crate::error::{Error, Result};
 use mortar_core::layout::{read_xyz, RecordLayout};
 use mortar_core::morton::MortonGrid;
@@ -38,7 +38,7 @@ pub fn trace(phase: &str, t0: std::time::Instant) {
 }
 
 /// Sort key of one point. Ordering: code, then input order.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, PartialOrd, Ord)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, PartialOrd, Ord, bytemuck::Zeroable, bytemuck::Pod)]
 #[repr(C)]
 pub struct Key {
     pub code: u64,
@@ -218,14 +218,56 @@ pub fn sort(ds: &Dataset, opts: &SortOptions, sink: &mut dyn OrderedSink) -> Res
     }
     let pieces = ds.pieces();
     let t0 = std::time::Instant::now();
-    // Read (decode) every piece in parallel with its statistics.
-    let slabs: Vec<(Cow<[u8]>, PieceStats)> = pieces
-        .par_iter()
-        .map(|p| {
+    let rl = ds.layout.record_len;
+    // Keys are made while each piece is hot in cache, on the grid the headers declare; if the
+    // points' real bounds give another grid, they are made again.
+    let guess = declared_grid(ds);
+    let n: usize = pieces.iter().map(|p| p.piece.points as usize).sum();
+    if pieces.len() > u32::MAX as usize || pieces.iter().any(|p| p.piece.points > u32::MAX as u64) {
+        return Err(Error::Usage("too many points for one in-memory sort".into()));
+    }
+    let buffered = |p: &DatasetPiece| !ds.inputs[p.input].borrows_pieces() || !ds.maps[p.input].is_identity();
+    let arena_len: usize = pieces.iter().filter(|p| buffered(p)).map(|p| p.piece.points as usize * rl).sum();
+    let mut arena = zeroed_huge::<u8>(arena_len);
+    let mut keys = zeroed_huge::<Key>(n);
+    let mut work = Vec::with_capacity(pieces.len());
+    {
+        let mut rest_a: &mut [u8] = &mut arena;
+        let mut rest_k: &mut [Key] = &mut keys;
+        for (i, p) in pieces.iter().enumerate() {
+            let np = p.piece.points as usize;
+            let (k, rk) = rest_k.split_at_mut(np);
+            rest_k = rk;
+            let buf = if buffered(p) {
+                let (b, ra) = rest_a.split_at_mut(np * rl);
+                rest_a = ra;
+                Some(b)
+            } else {
+                None
+            };
+            work.push((i, *p, buf, k));
+        }
+    }
+    let slabs: Vec<(Cow<[u8]>, PieceStats)> = work
+        .into_par_iter()
+        .map(|(i, p, buf, ks)| {
             check_interrupted()?;
-            let r = ds.read_piece(p)?;
-            let s = PieceStats::of(&r, &ds.layout);
-            Ok((r, s))
+            let slab: Cow<[u8]> = match buf {
+                Some(b) => {
+                    ds.read_piece_into(&p, b)?;
+                    Cow::Borrowed(&*b)
+                }
+                None => ds.read_piece(&p)?,
+            };
+            if slab.len() != ks.len() * rl {
+                return Err(Error::input(ds.inputs[p.input].path(), format!("piece {} holds another number of points than declared", p.piece.index)));
+            }
+            let s = PieceStats::of(&slab, &ds.layout);
+            for (idx, (r, k)) in slab.chunks_exact(rl).zip(ks.iter_mut()).enumerate() {
+                let q = read_xyz(r);
+                *k = Key { code: guess.code([q[0] as i64, q[1] as i64, q[2] as i64]), slab: i as u32, idx: idx as u32 };
+            }
+            Ok((slab, s))
         })
         .collect::<Result<Vec<_>>>()?;
     let mut total = PieceStats::default();
@@ -235,14 +277,33 @@ pub fn sort(ds: &Dataset, opts: &SortOptions, sink: &mut dyn OrderedSink) -> Res
     let summary = total.summary();
     let records: Vec<&[u8]> = slabs.iter().map(|(r, _)| &**r).collect();
     trace("read", t0);
-    let keys = make_keys(&records, ds.layout.record_len, &summary.morton)?;
-    trace("keys", t0);
+    if summary.morton != guess && summary.count > 0 {
+        keys = make_keys(&records, rl, &summary.morton)?;
+        trace("keys again (header bounds differ from the points)", t0);
+    }
     let keys = sort_keys(keys);
     trace("sort", t0);
     sink.begin(&summary)?;
     emit(&records, &keys, ds.layout.record_len, opts.chunk_points, sink)?;
     trace("emit", t0);
     Ok(SortReport { summary, external: false, buckets: 1 })
+}
+
+/// The Morton grid from the bounds the headers declare.
+pub fn declared_grid(ds: &Dataset) -> MortonGrid {
+    let mut min = [i64::MAX; 3];
+    let mut max = [i64::MIN; 3];
+    for (i, m) in ds.inputs.iter().zip(&ds.maps) {
+        let h = i.header();
+        for a in 0..3 {
+            let g = mortar_core::grid::Grid { scale: h.scale, offset: h.offset };
+            let lo = g.to_int(a, h.min[a]) * m.factor[a] + m.shift[a];
+            let hi = g.to_int(a, h.max[a]) * m.factor[a] + m.shift[a];
+            min[a] = min[a].min(lo.clamp(i32::MIN as i64, i32::MAX as i64));
+            max[a] = max[a].max(hi.clamp(i32::MIN as i64, i32::MAX as i64));
+        }
+    }
+    MortonGrid::for_bounds(min, max)
 }
 
 /// One key per record, slab by slab, in parallel.
@@ -273,20 +334,32 @@ pub fn make_keys(slabs: &[&[u8]], record_len: usize, morton: &MortonGrid) -> Res
     Ok(keys)
 }
 
+/// A zeroed vector of `n` elements whose pages are backed by transparent huge pages where the
+/// kernel offers them. The zero pages come from the allocator untouched, so the advice applies
+/// before the first write.
+fn zeroed_huge<T: bytemuck::Zeroable + Copy>(n: usize) -> Vec<T> {
+    let v: Vec<T> = bytemuck::zeroed_vec(n);
+    advise_huge(v.as_ptr() as usize, n * std::mem::size_of::<T>());
+    v
+}
+
+fn advise_huge(addr: usize, bytes: usize) {
+    let huge = 2usize << 20;
+    if bytes >= 8 << 20 {
+        let start = addr.next_multiple_of(huge);
+        let end = (addr + bytes) / huge * huge;
+        if end > start {
+            // SAFETY: advice on memory the caller owns; it changes no contents.
+            unsafe { libc::madvise(start as *mut libc::c_void, end - start, libc::MADV_HUGEPAGE) };
+        }
+    }
+}
+
 /// A vector of `n` uninitialised keys whose pages are backed by transparent huge pages where
 /// the kernel offers them (fewer page faults on the hundreds of MiB a large sort needs).
 fn key_buffer(n: usize) -> Vec<Key> {
     let v: Vec<Key> = Vec::with_capacity(n);
-    let bytes = n * std::mem::size_of::<Key>();
-    if bytes >= 8 << 20 {
-        let huge = 2usize << 20;
-        let start = (v.as_ptr() as usize).next_multiple_of(huge);
-        let end = (v.as_ptr() as usize + bytes) / huge * huge;
-        if end > start {
-            // SAFETY: advice on memory this vector owns; it changes no contents.
-            unsafe { libc::madvise(start as *mut libc::c_void, end - start, libc::MADV_HUGEPAGE) };
-        }
-    }
+    advise_huge(v.as_ptr() as usize, n * std::mem::size_of::<Key>());
     v
 }
 

@@ -267,6 +267,37 @@ impl LasInput {
         }
     }
 
+    /// Decodes one piece into `out` (exactly `piece.points` records).
+    pub fn read_piece_into(&self, piece: &Piece, out: &mut [u8]) -> Result<()> {
+        let rl = self.layout.record_len;
+        if out.len() != piece.points as usize * rl {
+            return Err(Error::input(&self.path, "internal: piece buffer of the wrong size"));
+        }
+        match &self.kind {
+            Kind::Laz { vlr, chunks } => {
+                let c = &chunks[piece.index];
+                let entry = laz::laszip::ChunkTableEntry { point_count: c.points, byte_count: c.len as u64 };
+                let src = &self.bytes[c.offset..c.offset + c.len];
+                let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                    laz::par_decompress(src, out, vlr, std::slice::from_ref(&entry))
+                }));
+                match r {
+                    Ok(Ok(())) => Ok(()),
+                    Ok(Err(e)) => Err(Error::input(&self.path, format!("LAZ chunk {} is corrupt: {e}", piece.index))),
+                    Err(_) => Err(Error::input(&self.path, format!("LAZ chunk {} is corrupt (the decoder gave up)", piece.index))),
+                }
+            }
+            _ => {
+                let r = self.read_piece(piece)?;
+                if r.len() != out.len() {
+                    return Err(Error::input(&self.path, format!("LAZ data ends early: {} of {} points", r.len() / rl, piece.points)));
+                }
+                out.copy_from_slice(&r);
+                Ok(())
+            }
+        }
+    }
+
     /// The raw records of one piece: borrowed from the map for LAS, decoded for LAZ.
     pub fn read_piece(&self, piece: &Piece) -> Result<Cow<'_, [u8]>> {
         let rl = self.layout.record_len;
@@ -275,19 +306,10 @@ impl LasInput {
                 let s = start + piece.first_point as usize * rl;
                 Ok(Cow::Borrowed(&self.bytes[s..s + piece.points as usize * rl]))
             }
-            Kind::Laz { vlr, chunks } => {
-                let c = &chunks[piece.index];
-                let mut out = vec![0u8; c.points as usize * rl];
-                let entry = laz::laszip::ChunkTableEntry { point_count: c.points, byte_count: c.len as u64 };
-                let src = &self.bytes[c.offset..c.offset + c.len];
-                let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-                    laz::par_decompress(src, &mut out, vlr, std::slice::from_ref(&entry))
-                }));
-                match r {
-                    Ok(Ok(())) => Ok(Cow::Owned(out)),
-                    Ok(Err(e)) => Err(Error::input(&self.path, format!("LAZ chunk {} is corrupt: {e}", piece.index))),
-                    Err(_) => Err(Error::input(&self.path, format!("LAZ chunk {} is corrupt (the decoder gave up)", piece.index))),
-                }
+            Kind::Laz { chunks, .. } => {
+                let mut out = vec![0u8; chunks[piece.index].points as usize * rl];
+                self.read_piece_into(piece, &mut out)?;
+                Ok(Cow::Owned(out))
             }
             Kind::LazSequential { vlr, start } => {
                 let mut out = Vec::new();

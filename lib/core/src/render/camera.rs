@@ -462,6 +462,73 @@ impl Camera {
         Ok(cam)
     }
 
+    /// A camera at `eye` looking at `target`, with clip planes that hold all of `bounds`: the far
+    /// plane just behind the box's farthest corner, the near plane just before its nearest corner
+    /// in front of the eye, or a small fraction of the box's size when the eye is inside the box.
+    /// For [`Projection::Orthographic`] the clip planes follow the same rule.
+    pub fn look_at(
+        eye: DVec3,
+        target: DVec3,
+        up: DVec3,
+        projection: Projection,
+        bounds: &Aabb,
+        width: u32,
+        height: u32,
+    ) -> Result<Camera, CameraError> {
+        if bounds.is_empty() || !bounds.min.iter().chain(&bounds.max).all(|v| v.is_finite()) {
+            return Err(CameraError::Bounds { min: bounds.min, max: bounds.max });
+        }
+        let mut cam = Camera { eye, target, up, projection, near: 1.0, far: 2.0, width, height };
+        cam.validate()?;
+        let axes = cam.axes_or_panic();
+        let extent = bounds.diagonal().max(1e-6 * length(bounds.center())).max(1e-9);
+        let (mut min_d, mut max_d) = (f64::INFINITY, f64::NEG_INFINITY);
+        for k in bounds.corners() {
+            let d = dot(axes.forward, sub(k, eye));
+            min_d = min_d.min(d);
+            max_d = max_d.max(d);
+        }
+        let floor = extent * 1e-5;
+        cam.far = (max_d + 0.01 * extent).max(2.0 * floor);
+        cam.near = if min_d > floor { (min_d - 0.01 * extent).max(floor) } else { floor };
+        if cam.near >= cam.far {
+            cam.near = cam.far * 0.5;
+        }
+        cam.validate()?;
+        Ok(cam)
+    }
+
+    /// A perspective close-up of the middle of `bounds`: looking down at 45 degrees from the
+    /// south-west at the box's centre, from a distance at which the view is about a tenth of the
+    /// box's horizontal extent wide (a view in which most batches are large on screen).
+    pub fn close_up(bounds: &Aabb, fov_y: f64, width: u32, height: u32) -> Result<Camera, CameraError> {
+        if bounds.is_empty() || !bounds.min.iter().chain(&bounds.max).all(|v| v.is_finite()) {
+            return Err(CameraError::Bounds { min: bounds.min, max: bounds.max });
+        }
+        let c = bounds.center();
+        let size = bounds.size();
+        let across = (size[0].max(size[1]) * 0.1).max(bounds.diagonal() * 0.05).max(1e-9);
+        let dist = 0.5 * across / (0.5 * fov_y).tan();
+        let h = std::f64::consts::FRAC_1_SQRT_2;
+        // Unit vector: horizontal part (1, 1) / sqrt(2) times cos 45, vertical -sin 45.
+        let dir = [0.5, 0.5, -h];
+        let eye = sub(c, scale(dir, dist));
+        Camera::look_at(eye, c, [0.0, 0.0, 1.0], Projection::Perspective { fov_y }, bounds, width, height)
+    }
+
+    /// A perspective view from inside `bounds`: the eye above the centre of the box's footprint at
+    /// 30 % of its height, looking horizontally north (+y). For a forest or a city this stands
+    /// among the trees or buildings; for a scanned object it looks at its inner side.
+    pub fn inside(bounds: &Aabb, fov_y: f64, width: u32, height: u32) -> Result<Camera, CameraError> {
+        if bounds.is_empty() || !bounds.min.iter().chain(&bounds.max).all(|v| v.is_finite()) {
+            return Err(CameraError::Bounds { min: bounds.min, max: bounds.max });
+        }
+        let c = bounds.center();
+        let eye = [c[0], c[1], bounds.min[2] + 0.3 * bounds.size()[2]];
+        let target = [eye[0], eye[1] + bounds.diagonal().max(1e-9), eye[2]];
+        Camera::look_at(eye, target, [0.0, 0.0, 1.0], Projection::Perspective { fov_y }, bounds, width, height)
+    }
+
     fn framing_start(
         bounds: &Aabb,
         preset: ViewPreset,

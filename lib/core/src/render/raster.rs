@@ -13,12 +13,12 @@
 //! one loop per batch) and the early depth test keeps most points away from the atomic.
 
 use super::camera::{BatchProjection, Camera, CameraError};
-use super::framebuffer::{pack_key, Framebuffer};
+use super::framebuffer::Framebuffer;
 use super::frustum::{Containment, Frustum};
 use super::math::{length, sub, Aabb};
 use super::precision::{choose_precision, PrecisionMode};
 use crate::grid::Grid;
-use crate::quantize::{join_words, BatchGrid, Precision};
+use crate::quantize::{BatchGrid, Precision};
 use rayon::prelude::*;
 
 /// Pixels by which the culling frustum is wider than the viewport on each side: a batch is culled
@@ -239,52 +239,186 @@ fn draw_batch(
     let bp = camera.batch_projection(grid, &b.grid, &bounds, precision);
     stats.batches_drawn = 1;
     stats.points_by_precision[precision.words() - 1] = b.len() as u64;
+    let perspective = camera.is_perspective();
     stats.points_drawn = match precision {
-        Precision::Bits10 => draw_points::<1>(fb, &bp, b, uniforms),
-        Precision::Bits20 => draw_points::<2>(fb, &bp, b, uniforms),
-        Precision::Bits30 => draw_points::<3>(fb, &bp, b, uniforms),
+        Precision::Bits10 => draw_points::<1>(fb, &bp, b, uniforms, perspective),
+        Precision::Bits20 => draw_points::<2>(fb, &bp, b, uniforms, perspective),
+        Precision::Bits30 => draw_points::<3>(fb, &bp, b, uniforms, perspective),
     };
     stats
 }
 
-/// The per-point loop, reading the first `WORDS` word arrays only. Returns the points depth-tested.
-#[inline(never)]
-fn draw_points<const WORDS: usize>(fb: &Framebuffer, bp: &BatchProjection, b: &BatchRef<'_>, u: &RasterUniforms) -> u64 {
-    let precision = match WORDS {
-        1 => Precision::Bits10,
-        2 => Precision::Bits20,
-        _ => Precision::Bits30,
-    };
-    let n = b.len();
-    let coarse = &b.words[0][..n];
-    let medium = &b.words[1][..if WORDS >= 2 { n } else { 0 }];
-    let fine = &b.words[2][..if WORDS >= 3 { n } else { 0 }];
-    let [ox, oy] = bp.pixel_origin;
-    let (x_lo, x_hi) = (-ox as f32, (u.width as i32 - ox) as f32);
-    let (y_lo, y_hi) = (-oy as f32, (u.height as i32 - oy) as f32);
-    let width = u.width as usize;
-    let mut drawn = 0u64;
+/// Points per block of the two-phase per-point loop.
+const BLOCK: usize = 64;
+
+/// Marks a point of a block that is not drawn.
+const SKIP: u32 = u32::MAX;
+
+/// The per-batch constants of the per-point loop, taken from the [`BatchProjection`] and the
+/// uniforms.
+#[derive(Clone, Copy, Debug)]
+struct Kernel {
+    /// Rows X, Y, D of `pixel_from_local` (W is D for perspective and 1 for orthographic).
+    m: [[f32; 4]; 3],
+    shift: [u32; 3],
+    anchor: [i32; 3],
+    near: f32,
+    far: f32,
+    x_lo: f32,
+    x_hi: f32,
+    y_lo: f32,
+    y_hi: f32,
+    origin: [i32; 2],
+    width: i32,
+}
+
+impl Kernel {
+    fn new(bp: &BatchProjection, u: &RasterUniforms) -> Kernel {
+        let [ox, oy] = bp.pixel_origin;
+        let m = &bp.pixel_from_local;
+        Kernel {
+            m: [m[0], m[1], m[2]],
+            shift: bp.shift,
+            anchor: bp.anchor,
+            near: u.near,
+            far: u.far,
+            x_lo: -ox as f32,
+            x_hi: (u.width as i32 - ox) as f32,
+            y_lo: -oy as f32,
+            y_hi: (u.height as i32 - oy) as f32,
+            origin: [ox, oy],
+            width: u.width as i32,
+        }
+    }
+}
+
+/// `floor(v)` for a float whose floor fits in an i32 (exact: truncation, minus one below zero
+/// where the value is not whole). Avoids the libm call `f32::floor` is on baseline x86-64.
+#[inline(always)]
+fn floor_i32(v: f32) -> i32 {
+    let t = v as i32;
+    t - ((v < t as f32) as i32)
+}
+
+/// Phase 1 of a block: decodes, projects and tests up to [`BLOCK`] points, writing each point's
+/// pixel (or [`SKIP`]) and depth bits. Branch-free over the block so that it vectorizes.
+#[inline(always)]
+fn project_block<const WORDS: usize, const PERSPECTIVE: bool>(
+    k: &Kernel,
+    coarse: &[u32],
+    medium: &[u32],
+    fine: &[u32],
+    pixels: &mut [u32; BLOCK],
+    depths: &mut [u32; BLOCK],
+) {
+    let n = coarse.len().min(BLOCK);
+    let medium = &medium[..if WORDS >= 2 { n } else { 0 }];
+    let fine = &fine[..if WORDS >= 3 { n } else { 0 }];
     for i in 0..n {
-        let words = [
-            coarse[i],
-            if WORDS >= 2 { medium[i] } else { 0 },
-            if WORDS >= 3 { fine[i] } else { 0 },
+        // join_words, written out per axis: bits [20, 30) from the coarse word, [10, 20) medium, [0, 10) fine.
+        let c = coarse[i];
+        let mut q = [(c & 0x3ff) << 20, ((c >> 10) & 0x3ff) << 20, ((c >> 20) & 0x3ff) << 20];
+        if WORDS >= 2 {
+            let w = medium[i];
+            q = [q[0] | (w & 0x3ff) << 10, q[1] | ((w >> 10) & 0x3ff) << 10, q[2] | ((w >> 20) & 0x3ff) << 10];
+        }
+        if WORDS >= 3 {
+            let w = fine[i];
+            q = [q[0] | (w & 0x3ff), q[1] | ((w >> 10) & 0x3ff), q[2] | ((w >> 20) & 0x3ff)];
+        }
+        // BatchProjection::local and ::transform, in the same order of operations.
+        let l = [
+            ((q[0] >> k.shift[0]) as i32).wrapping_sub(k.anchor[0]) as f32,
+            ((q[1] >> k.shift[1]) as i32).wrapping_sub(k.anchor[1]) as f32,
+            ((q[2] >> k.shift[2]) as i32).wrapping_sub(k.anchor[2]) as f32,
         ];
-        let [x, y, depth, w] = bp.transform(bp.local(join_words(words, precision)));
-        // Also rejects NaN. Inside [near, far], w > 0 (w is the depth, or 1 for orthographic).
-        if !(depth >= u.near && depth <= u.far) {
-            continue;
+        let row = |r: usize| k.m[r][0] * l[0] + k.m[r][1] * l[1] + k.m[r][2] * l[2] + k.m[r][3];
+        let (x, y, depth) = (row(0), row(1), row(2));
+        let (fx, fy) = if PERSPECTIVE { (x / depth, y / depth) } else { (x, y) };
+        // Also rejects NaN. Inside [near, far], the perspective divisor (the depth) is positive.
+        let inside = (depth >= k.near) & (depth <= k.far) & (fx >= k.x_lo) & (fx < k.x_hi) & (fy >= k.y_lo) & (fy < k.y_hi);
+        let px = floor_i32(fx).wrapping_add(k.origin[0]);
+        let py = floor_i32(fy).wrapping_add(k.origin[1]);
+        let pixel = py.wrapping_mul(k.width).wrapping_add(px) as u32;
+        pixels[i] = if inside { pixel } else { SKIP };
+        depths[i] = depth.to_bits();
+    }
+}
+
+/// The per-point loop over one batch, reading the first `WORDS` word arrays only. Returns the
+/// points depth-tested.
+///
+/// Two phases per block of [`BLOCK`] points (paper 003 §3.4's prefetching, on a CPU): first every
+/// point of the block is decoded and projected with no branch and no memory access besides its
+/// words (so the compiler vectorizes it), then the surviving points go through the early depth
+/// test and the atomic minimum one by one. The result is the same as projecting each point with
+/// [`BatchProjection::local`] and [`BatchProjection::transform`] and flooring `(X / W, Y / W)`.
+#[inline(always)]
+fn draw_points_impl<const WORDS: usize, const PERSPECTIVE: bool>(fb: &Framebuffer, k: &Kernel, b: &BatchRef<'_>) -> u64 {
+    let n = b.len();
+    let mut pixels = [0u32; BLOCK];
+    let mut depths = [0u32; BLOCK];
+    let mut drawn = 0u64;
+    let mut start = 0;
+    while start < n {
+        let end = (start + BLOCK).min(n);
+        let medium = if WORDS >= 2 { &b.words[1][start..end] } else { &[][..] };
+        let fine = if WORDS >= 3 { &b.words[2][start..end] } else { &[][..] };
+        project_block::<WORDS, PERSPECTIVE>(k, &b.words[0][start..end], medium, fine, &mut pixels, &mut depths);
+        let first = b.first_index.wrapping_add(start as u32);
+        for i in 0..end - start {
+            let p = pixels[i];
+            if p != SKIP {
+                drawn += 1;
+                fb.depth_test(p as usize, ((depths[i] as u64) << 32) | first.wrapping_add(i as u32) as u64);
+            }
         }
-        let (fx, fy) = (x / w, y / w);
-        if !(fx >= x_lo && fx < x_hi && fy >= y_lo && fy < y_hi) {
-            continue;
-        }
-        let px = (fx.floor() as i32 + ox) as usize;
-        let py = (fy.floor() as i32 + oy) as usize;
-        fb.depth_test(py * width + px, pack_key(depth, b.first_index + i as u32));
-        drawn += 1;
+        start = end;
     }
     drawn
+}
+
+/// [`draw_points_impl`] compiled for AVX2 (8 points per instruction in the projection phase).
+/// Only integer and single-rounding IEEE operations are used (no fused multiply-add), so the keys
+/// are bit for bit those of the baseline build.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn draw_points_avx2<const WORDS: usize, const PERSPECTIVE: bool>(fb: &Framebuffer, k: &Kernel, b: &BatchRef<'_>) -> u64 {
+    draw_points_impl::<WORDS, PERSPECTIVE>(fb, k, b)
+}
+
+/// Whether the AVX2 build of the per-point loop can run here (checked once).
+fn use_avx2() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        static AVX2: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+        *AVX2.get_or_init(|| std::is_x86_feature_detected!("avx2") && std::env::var_os("MORTAR_NO_AVX2").is_none())
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
+}
+
+#[inline(never)]
+fn draw_points<const WORDS: usize>(fb: &Framebuffer, bp: &BatchProjection, b: &BatchRef<'_>, u: &RasterUniforms, perspective: bool) -> u64 {
+    let k = Kernel::new(bp, u);
+    #[cfg(target_arch = "x86_64")]
+    if use_avx2() {
+        // SAFETY: the CPU supports AVX2 (checked at run time by use_avx2).
+        return unsafe {
+            if perspective {
+                draw_points_avx2::<WORDS, true>(fb, &k, b)
+            } else {
+                draw_points_avx2::<WORDS, false>(fb, &k, b)
+            }
+        };
+    }
+    if perspective {
+        draw_points_impl::<WORDS, true>(fb, &k, b)
+    } else {
+        draw_points_impl::<WORDS, false>(fb, &k, b)
+    }
 }
 
 #[cfg(test)]
