@@ -26,6 +26,8 @@ pub trait RecordSource: Send + Sync {
     fn borrows_pieces(&self) -> bool {
         false
     }
+    /// Prepares to read everything soon (the in-memory sort).
+    fn prefetch(&self) {}
     /// Reads a piece into `out`, which holds exactly `piece.points` records.
     fn read_piece_into(&self, piece: &Piece, out: &mut [u8]) -> Result<()> {
         let r = self.read_piece(piece)?;
@@ -70,6 +72,9 @@ impl RecordSource for LasInput {
     }
     fn borrows_pieces(&self) -> bool {
         !self.is_laz()
+    }
+    fn prefetch(&self) {
+        LasInput::prefetch(self)
     }
     fn read_piece_into(&self, piece: &Piece, out: &mut [u8]) -> Result<()> {
         LasInput::read_piece_into(self, piece, out)

@@ -218,6 +218,7 @@ pub fn sort(ds: &Dataset, opts: &SortOptions, sink: &mut dyn OrderedSink) -> Res
     }
     let pieces = ds.pieces();
     let t0 = std::time::Instant::now();
+    ds.inputs.par_iter().for_each(|i| i.prefetch());
     let rl = ds.layout.record_len;
     // Keys are made while each piece is hot in cache, on the grid the headers declare; if the
     // points' real bounds give another grid, they are made again.
@@ -428,8 +429,68 @@ pub fn sort_keys(mut keys: Vec<Key>) -> Vec<Key> {
         }
         rest = r;
     }
-    slices.into_par_iter().for_each(|s| s.sort_unstable());
+    slices.into_par_iter().for_each_init(Vec::new, |scratch, s| sort_bucket(s, shift, scratch));
     out
+}
+
+/// Sorts one bucket whose keys are in input order and share the code bits from `bits` up: a
+/// stable LSD radix sort on the lower code bits (8 bits per pass, passes where every key has the
+/// same digit skipped), so ties keep input order without comparing it.
+fn sort_bucket(s: &mut [Key], bits: u32, scratch: &mut Vec<Key>) {
+    if s.len() <= 32 {
+        // insertion sort, stable
+        for i in 1..s.len() {
+            let k = s[i];
+            let mut j = i;
+            while j > 0 && s[j - 1].code > k.code {
+                s[j] = s[j - 1];
+                j -= 1;
+            }
+            s[j] = k;
+        }
+        return;
+    }
+    scratch.clear();
+    scratch.extend_from_slice(s);
+    let mut src_is_s = true;
+    let mut shift = 0;
+    while shift < bits {
+        let mut count = [0usize; 256];
+        {
+            let src: &[Key] = if src_is_s { s } else { scratch };
+            for k in src {
+                count[((k.code >> shift) & 0xff) as usize] += 1;
+            }
+        }
+        if count.iter().any(|&c| c == s.len()) {
+            shift += 8;
+            continue;
+        }
+        let mut pos = [0usize; 256];
+        let mut sum = 0;
+        for d in 0..256 {
+            pos[d] = sum;
+            sum += count[d];
+        }
+        if src_is_s {
+            for k in s.iter() {
+                let d = ((k.code >> shift) & 0xff) as usize;
+                scratch[pos[d]] = *k;
+                pos[d] += 1;
+            }
+        } else {
+            for k in scratch.iter() {
+                let d = ((k.code >> shift) & 0xff) as usize;
+                s[pos[d]] = *k;
+                pos[d] += 1;
+            }
+        }
+        src_is_s = !src_is_s;
+        shift += 8;
+    }
+    if !src_is_s {
+        s.copy_from_slice(scratch);
+    }
 }
 
 /// Gathers records in key order, in chunks, and writes them to the sink. Gathering (parallel)
@@ -494,9 +555,20 @@ mod tests {
             state ^= state << 17;
             state
         };
-        let keys: Vec<Key> = (0..300_000)
-            .map(|i| Key { code: next() >> 3 & 0xffff_ffff_ff, slab: (i % 7) as u32, idx: i as u32 })
-            .collect();
+        // keys come in input order (slab, idx); codes with many ties and with wide ranges
+        for mask in [0xffff_ffff_ffu64, 0x3ff, (1 << 62) - 1] {
+            let keys: Vec<Key> = (0..300_000u32)
+                .map(|i| Key { code: next() & mask, slab: i / 40_000, idx: i % 40_000 })
+                .collect();
+            let mut expect = keys.clone();
+            expect.sort();
+            assert_eq!(sort_keys(keys), expect, "mask {mask:x}");
+        }
+    }
+
+    #[test]
+    fn radix_sort_small_inputs() {
+        let keys: Vec<Key> = (0..1000u32).map(|i| Key { code: (i as u64 * 7919) % 13, slab: 0, idx: i }).collect();
         let mut expect = keys.clone();
         expect.sort();
         assert_eq!(sort_keys(keys), expect);
