@@ -131,9 +131,19 @@ fn inputs_on_different_grids_merge_exactly() {
     expect.extend(world_points(&b));
     expect.sort();
     assert_eq!(world_points(&out), expect);
-    // different point formats: a clear error before any work
+    // point formats 3 and 1 merge into 3 (RGB of the format-1 points is zero)
     let other = data.join("laz-rs/tests/data/point-time.las");
-    let o = mortar().args(["sort"]).arg(&a).arg(&other).arg("-o").arg(dir.join("x.las")).output().unwrap();
+    let merged = dir.join("formats.las");
+    let o = sort_to(&[&a, &other], &merged, &[]);
+    assert!(String::from_utf8_lossy(&o.stderr).contains("merged into point format 3"));
+    let (m, rl, h) = las_records(&merged).unwrap();
+    assert_eq!(h.point_format().to_u8().unwrap(), 3);
+    let (p1, rl1, _) = las_records(&other).unwrap();
+    assert_eq!(m.len() / rl, 110_000 + p1.len() / rl1);
+    let zero_rgb = m.chunks_exact(rl).filter(|r| r[28..34] == [0; 6]).count();
+    assert!(zero_rgb >= p1.len() / rl1);
+    // legacy and LAS 1.4 formats: a clear error before any work
+    let o = mortar().args(["sort"]).arg(&a).arg(data.join("PDAL/test/data/las/test1_4.las")).arg("-o").arg(dir.join("x.las")).output().unwrap();
     assert_eq!(o.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&o.stderr).contains("point format"));
     assert!(!dir.join("x.las").exists());

@@ -264,3 +264,109 @@ pub fn gather_records<'a>(record_len: usize, n: usize, src: impl Fn(usize) -> &'
         }
     }
 }
+
+/// How records of one layout become records of another: byte ranges to copy, the rest zero.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Conversion {
+    pub target_len: usize,
+    /// (source offset, target offset, length)
+    pub copies: Vec<(usize, usize, usize)>,
+}
+
+impl Conversion {
+    /// Converts `src` records (source layout) into `dst` (target layout, zeroed or not).
+    pub fn apply(&self, src: &[u8], source_len: usize, dst: &mut [u8]) {
+        for (s, d) in src.chunks_exact(source_len).zip(dst.chunks_exact_mut(self.target_len)) {
+            d.fill(0);
+            for &(so, to, n) in &self.copies {
+                d[to..to + n].copy_from_slice(&s[so..so + n]);
+            }
+        }
+    }
+}
+
+/// The smallest layout that holds every field of every input layout, and the conversion of each
+/// input into it (`None` where an input already has it). Formats merge within a family: 0-3
+/// (adding GPS time and RGB as needed) or 6-8 (adding RGB and NIR); waveform formats and
+/// different extra bytes merge only with themselves.
+pub fn merge_layouts(layouts: &[RecordLayout]) -> Result<(RecordLayout, Vec<Option<Conversion>>), String> {
+    let first = &layouts[0];
+    if layouts.iter().all(|l| l == first) {
+        return Ok((first.clone(), vec![None; layouts.len()]));
+    }
+    let extra = |l: &RecordLayout| l.record_len - base_len(l.format).unwrap();
+    if layouts.iter().any(|l| matches!(l.format, 4 | 5 | 9 | 10)) {
+        return Err("inputs with waveform point formats (4, 5, 9, 10) can only be merged with the same format".into());
+    }
+    if layouts.iter().any(|l| l.family() != first.family()) {
+        return Err(format!(
+            "point formats {} cannot be merged: legacy formats (0-5) and LAS 1.4 formats (6-10) differ in layout",
+            layouts.iter().map(|l| l.format.to_string()).collect::<Vec<_>>().join(", ")
+        ));
+    }
+    if layouts.iter().any(|l| extra(l) != extra(first)) {
+        return Err("inputs have different numbers of extra bytes per point".into());
+    }
+    let any = |name: &str| layouts.iter().any(|l| l.attribute(name).is_some());
+    let target_format = match first.family() {
+        Family::Legacy => match (any("gps_time"), any("rgb")) {
+            (false, false) => 0,
+            (true, false) => 1,
+            (false, true) => 2,
+            (true, true) => 3,
+        },
+        Family::Extended => {
+            if any("nir") {
+                8
+            } else if any("rgb") {
+                7
+            } else {
+                6
+            }
+        }
+    };
+    let target = RecordLayout::new(target_format, base_len(target_format).unwrap() + extra(first)).map_err(|e| e.to_string())?;
+    let convs = layouts
+        .iter()
+        .map(|l| {
+            if *l == target {
+                return None;
+            }
+            let mut copies = vec![(0, 0, XYZ_BYTES)];
+            for a in &l.attributes {
+                let t = target.attribute(&a.name).expect("target holds every field");
+                copies.push((a.offset, t.offset, a.width));
+            }
+            Some(Conversion { target_len: target.record_len, copies })
+        })
+        .collect();
+    Ok((target, convs))
+}
+
+#[cfg(test)]
+mod merge_tests {
+    use super::*;
+
+    #[test]
+    fn legacy_formats_merge_to_their_union() {
+        let a = RecordLayout::new(1, 28).unwrap();
+        let b = RecordLayout::new(2, 26).unwrap();
+        let (t, c) = merge_layouts(&[a.clone(), b.clone()]).unwrap();
+        assert_eq!(t.format, 3);
+        let mut src = vec![0u8; 26];
+        src[20..26].copy_from_slice(&[1, 2, 3, 4, 5, 6]);
+        src[0] = 9;
+        let mut dst = vec![0xffu8; 34];
+        c[1].as_ref().unwrap().apply(&src, 26, &mut dst);
+        assert_eq!(dst[0], 9);
+        assert_eq!(&dst[28..34], &[1, 2, 3, 4, 5, 6]);
+        assert_eq!(&dst[20..28], &[0; 8], "no gps time in the source: zero");
+    }
+
+    #[test]
+    fn families_do_not_mix() {
+        assert!(merge_layouts(&[RecordLayout::new(1, 28).unwrap(), RecordLayout::new(6, 30).unwrap()]).is_err());
+        assert!(merge_layouts(&[RecordLayout::new(1, 30).unwrap(), RecordLayout::new(1, 28).unwrap()]).is_err());
+        assert_eq!(merge_layouts(&[RecordLayout::new(6, 30).unwrap(), RecordLayout::new(8, 38).unwrap()]).unwrap().0.format, 8);
+    }
+}

@@ -4,7 +4,7 @@ use crate::error::{Error, Result};
 use crate::las::{Header, Vlr};
 use crate::source::{LasInput, Piece};
 use mortar_core::grid::{self, Grid, GridInput, GridMap};
-use mortar_core::layout::{read_xyz, write_xyz, RecordLayout};
+use mortar_core::layout::{merge_layouts, read_xyz, write_xyz, Conversion, RecordLayout};
 use std::borrow::Cow;
 use std::path::{Path, PathBuf};
 
@@ -94,6 +94,8 @@ pub struct Dataset {
     pub grid: Grid,
     pub maps: Vec<GridMap>,
     pub layout: RecordLayout,
+    /// Per input, how its records become `layout` records (`None`: already are).
+    pub conversions: Vec<Option<Conversion>>,
     /// Header fields (version, ids, software) taken from the first input.
     pub template: Header,
     pub vlrs: Vec<Vlr>,
@@ -109,22 +111,18 @@ impl Dataset {
             return Err(Error::Usage("no input given".into()));
         }
         let first = &inputs[0];
-        let layout = first.layout().clone();
         let mut warnings = Vec::new();
-        for i in &inputs[1..] {
-            if i.layout() != &layout {
-                return Err(Error::input(
-                    i.path(),
-                    format!(
-                        "point format {} with {}-byte records cannot be merged with {} (point format {}, {}-byte records); convert the inputs to one format first",
-                        i.layout().format,
-                        i.layout().record_len,
-                        first.path().display(),
-                        layout.format,
-                        layout.record_len
-                    ),
-                ));
-            }
+        let layouts: Vec<RecordLayout> = inputs.iter().map(|i| i.layout().clone()).collect();
+        let (layout, conversions) = merge_layouts(&layouts).map_err(|e| {
+            let odd = inputs.iter().find(|i| i.layout() != first.layout()).unwrap_or(first);
+            Error::input(odd.path(), format!("{e} (this file has point format {}, {} has {})", odd.layout().format, first.path().display(), first.layout().format))
+        })?;
+        if conversions.iter().any(|c| c.is_some()) {
+            warnings.push(format!(
+                "inputs have point formats {}; merged into point format {} (missing fields are zero)",
+                layouts.iter().map(|l| l.format.to_string()).collect::<Vec<_>>().join(", "),
+                layout.format
+            ));
         }
         let gin: Vec<GridInput> = inputs
             .iter()
@@ -174,7 +172,7 @@ impl Dataset {
                 ));
             }
         }
-        Ok(Dataset { inputs, grid, maps, layout, template, vlrs, evlrs, warnings })
+        Ok(Dataset { inputs, grid, maps, layout, conversions, template, vlrs, evlrs, warnings })
     }
 
     /// Opens LAS/LAZ files and batch files and merges them; warnings about each file come first.
@@ -210,37 +208,60 @@ impl Dataset {
             .collect()
     }
 
-    /// Reads a piece into `out` (exactly its size), on the merged grid.
-    pub fn read_piece_into(&self, p: &DatasetPiece, out: &mut [u8]) -> Result<()> {
-        let src = &self.inputs[p.input];
-        src.read_piece_into(&p.piece, out)?;
-        let map = self.maps[p.input];
-        if !map.is_identity() {
-            for r in out.chunks_exact_mut(self.layout.record_len) {
-                let xyz = map.apply(read_xyz(r)).ok_or_else(|| {
-                    Error::input(src.path(), "a point lies outside the bounds its header declares, beyond what the merged grid can hold")
-                })?;
-                write_xyz(r, xyz);
-            }
+    /// Whether reading a piece of input `i` needs a buffer (decoding, conversion or regridding).
+    pub fn needs_buffer(&self, i: usize) -> bool {
+        !self.inputs[i].borrows_pieces() || !self.maps[i].is_identity() || self.conversions[i].is_some()
+    }
+
+    fn regrid(&self, input: usize, records: &mut [u8]) -> Result<()> {
+        let map = self.maps[input];
+        if map.is_identity() {
+            return Ok(());
+        }
+        for r in records.chunks_exact_mut(self.layout.record_len) {
+            let xyz = map.apply(read_xyz(r)).ok_or_else(|| {
+                Error::input(
+                    self.inputs[input].path(),
+                    "a point lies outside the bounds its header declares, beyond what the merged grid can hold",
+                )
+            })?;
+            write_xyz(r, xyz);
         }
         Ok(())
     }
 
-    /// The records of a piece on the merged grid.
+    /// Reads a piece into `out` (exactly its size in merged records), on the merged grid.
+    pub fn read_piece_into(&self, p: &DatasetPiece, out: &mut [u8]) -> Result<()> {
+        let src = &self.inputs[p.input];
+        match &self.conversions[p.input] {
+            None => src.read_piece_into(&p.piece, out)?,
+            Some(c) => {
+                let r = src.read_piece(&p.piece)?;
+                let srl = src.layout().record_len;
+                if r.len() / srl * c.target_len != out.len() {
+                    return Err(Error::input(src.path(), format!("piece {} holds another number of points than declared", p.piece.index)));
+                }
+                c.apply(&r, srl, out);
+            }
+        }
+        self.regrid(p.input, out)
+    }
+
+    /// The records of a piece, converted to the merged layout and grid.
     pub fn read_piece(&self, p: &DatasetPiece) -> Result<Cow<'_, [u8]>> {
         let src = &self.inputs[p.input];
         let records = src.read_piece(&p.piece)?;
-        let map = self.maps[p.input];
-        if map.is_identity() {
-            return Ok(records);
-        }
-        let mut owned = records.into_owned();
-        for r in owned.chunks_exact_mut(self.layout.record_len) {
-            let xyz = map.apply(read_xyz(r)).ok_or_else(|| {
-                Error::input(src.path(), "a point lies outside the bounds its header declares, beyond what the merged grid can hold")
-            })?;
-            write_xyz(r, xyz);
-        }
+        let mut owned = match &self.conversions[p.input] {
+            None if self.maps[p.input].is_identity() => return Ok(records),
+            None => records.into_owned(),
+            Some(c) => {
+                let srl = src.layout().record_len;
+                let mut out = vec![0u8; records.len() / srl * c.target_len];
+                c.apply(&records, srl, &mut out);
+                out
+            }
+        };
+        self.regrid(p.input, &mut owned)?;
         Ok(Cow::Owned(owned))
     }
 }

@@ -227,7 +227,7 @@ pub fn sort(ds: &Dataset, opts: &SortOptions, sink: &mut dyn OrderedSink) -> Res
     if pieces.len() > u32::MAX as usize || pieces.iter().any(|p| p.piece.points > u32::MAX as u64) {
         return Err(Error::Usage("too many points for one in-memory sort".into()));
     }
-    let buffered = |p: &DatasetPiece| !ds.inputs[p.input].borrows_pieces() || !ds.maps[p.input].is_identity();
+    let buffered = |p: &DatasetPiece| ds.needs_buffer(p.input);
     let arena_len: usize = pieces.iter().filter(|p| buffered(p)).map(|p| p.piece.points as usize * rl).sum();
     let mut arena = zeroed_huge::<u8>(arena_len);
     let mut keys = zeroed_huge::<Key>(n);
