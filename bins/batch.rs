@@ -74,6 +74,8 @@ pub fn run(a: Args) -> Result<()> {
             "seconds": secs,
             "points_per_second": points as f64 / secs.max(1e-9),
             "external_sort": report.external,
+            "peak_rss_bytes": common::peak_rss_bytes(),
+            "threads": rayon::current_num_threads(),
             "buckets": report.buckets,
         });
         println!("{}", serde_json::to_string_pretty(&j)?);

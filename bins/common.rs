@@ -60,3 +60,10 @@ pub fn open_dataset(inputs: &[String]) -> anyhow::Result<mortar_io::dataset::Dat
     let paths = mortar_io::source::expand_inputs(inputs)?;
     Ok(mortar_io::dataset::Dataset::open(&paths)?)
 }
+
+/// Peak resident memory of this process so far (Linux `VmHWM`), in bytes.
+pub fn peak_rss_bytes() -> Option<u64> {
+    let s = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = s.lines().find(|l| l.starts_with("VmHWM:"))?;
+    line.split_whitespace().nth(1)?.parse::<u64>().ok().map(|kb| kb * 1024)
+}
