@@ -239,3 +239,35 @@ fn info_json_is_stable() {
     assert_eq!(f["stats"]["point_count"], 110000);
     assert_eq!(f["crs"]["kind"], "wkt+geotiff");
 }
+
+#[test]
+fn ctrl_c_removes_temporary_files_and_partial_output() {
+    let dir = tempdir("sigint");
+    let las = dir.join("big.las");
+    run_ok(gen().args(["--points", "3000000", "-o"]).arg(&las));
+    let tmp = dir.join("tmp");
+    std::fs::create_dir_all(&tmp).unwrap();
+    let out_dir = dir.join("out");
+    std::fs::create_dir_all(&out_dir).unwrap();
+    let child = mortar()
+        .args(["batch", "--memory", "4M", "--tmp-dir"])
+        .arg(&tmp)
+        .arg(&las)
+        .arg("-o")
+        .arg(out_dir.join("o.mbat"))
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    // wait until the external sort has written temporary files, then interrupt
+    let start = std::time::Instant::now();
+    while entries(&tmp).is_empty() && start.elapsed() < std::time::Duration::from_secs(20) {
+        std::thread::sleep(std::time::Duration::from_millis(5));
+    }
+    assert!(!entries(&tmp).is_empty(), "the external sort should have started");
+    std::process::Command::new("kill").args(["-INT", &child.id().to_string()]).status().unwrap();
+    let out = child.wait_with_output().unwrap();
+    assert_eq!(out.status.code(), Some(130), "stderr: {}", String::from_utf8_lossy(&out.stderr));
+    assert!(entries(&tmp).is_empty(), "temporary files left: {:?}", entries(&tmp));
+    assert!(entries(&out_dir).is_empty(), "partial output left: {:?}", entries(&out_dir));
+    std::fs::remove_dir_all(&dir).unwrap();
+}
