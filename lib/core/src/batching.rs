@@ -85,3 +85,75 @@ mod tests {
         assert_eq!(total, 200);
     }
 }
+
+#[cfg(test)]
+mod geo_tests {
+    use super::*;
+    use crate::grid::Grid;
+    use crate::quantize::Precision;
+    use proptest::prelude::*;
+
+    /// A Morton-ordered-ish cloud (sorted by x) around a world origin on a grid.
+    fn cloud(origin: [f64; 3], scale: f64, extent_m: f64, seed: u64, n: usize) -> (Grid, Vec<[i32; 3]>) {
+        let grid = Grid { scale: [scale; 3], offset: origin };
+        let mut s = seed | 1;
+        let mut next = || {
+            s ^= s << 13;
+            s ^= s >> 7;
+            s ^= s << 17;
+            (s >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let mut pts: Vec<[i32; 3]> = (0..n)
+            .map(|_| {
+                let p = [next() * extent_m, next() * extent_m, next() * extent_m * 0.1];
+                p.map(|v| (v / scale).round() as i32)
+            })
+            .collect();
+        pts.sort();
+        (grid, pts)
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(24))]
+        /// ECEF-scale (6.4e6 m, scale 0.0001) and geographic degrees (scale 1e-7): every batch
+        /// decodes exactly from three words, and from one or two words within the error bound,
+        /// measured in world units.
+        #[test]
+        fn georeferenced_batches(seed in any::<u64>(), which in 0usize..2, extent in 1.0f64..200.0) {
+            let (origin, scale, ext) = if which == 0 {
+                ([6.4e6, 1.2e5, 6.3e6], 1e-4, extent)
+            } else {
+                ([-123.07, 44.05, 0.0], 1e-7, extent * 1e-5)
+            };
+            let (grid, pts) = cloud(origin, scale, ext, seed, 30_000);
+            let mut plan = Vec::new();
+            plan_batches(&pts, crate::BATCH_SIZE, 0, &mut plan);
+            prop_assert_eq!(plan.iter().map(|b| b.range.len()).sum::<usize>(), pts.len());
+            for b in &plan {
+                for p in &pts[b.range.clone()] {
+                    let w = b.grid.encode(*p);
+                    prop_assert_eq!(b.grid.decode_exact(w), *p);
+                    for prec in [Precision::Bits10, Precision::Bits20] {
+                        let r = b.grid.decode_relative(w, prec);
+                        let bound = b.grid.error_bound(prec);
+                        for a in 0..3 {
+                            let world_err = ((r[a] - (p[a] as f64 - b.grid.min[a] as f64)) * grid.scale[a]).abs();
+                            prop_assert!(world_err <= bound[a] * grid.scale[a] + 1e-12);
+                        }
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn single_point_batches_and_extreme_coordinates() {
+        for p in [[i32::MIN; 3], [i32::MAX; 3], [i32::MIN, 0, i32::MAX]] {
+            let mut plan = Vec::new();
+            plan_batches(&[p], crate::BATCH_SIZE, 0, &mut plan);
+            assert_eq!(plan.len(), 1);
+            assert_eq!(plan[0].grid.bits, [0, 0, 0]);
+            assert_eq!(plan[0].grid.decode_exact(plan[0].grid.encode(p)), p);
+        }
+    }
+}

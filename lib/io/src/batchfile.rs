@@ -451,21 +451,36 @@ impl OrderedSink for BatchSink {
 /// One batch's arrays, borrowed from the map (uncompressed files) or decompressed.
 pub struct BatchView<'a> {
     pub entry: &'a BatchEntry,
-    sections: Vec<Cow<'a, [u8]>>,
+    sections: Vec<SectionData<'a>>,
+}
+
+/// One section's bytes: borrowed from the map, or decompressed into a `u32`-aligned buffer.
+enum SectionData<'a> {
+    Borrowed(&'a [u8]),
+    Owned(Vec<u32>, usize),
+}
+
+impl SectionData<'_> {
+    fn bytes(&self) -> &[u8] {
+        match self {
+            SectionData::Borrowed(b) => b,
+            SectionData::Owned(v, len) => &bytemuck::cast_slice(v)[..*len],
+        }
+    }
 }
 
 impl<'a> BatchView<'a> {
     /// Coordinate words: 0 coarse, 1 medium, 2 fine.
     pub fn words(&self, level: usize) -> &[u32] {
-        bytemuck::cast_slice(&self.sections[SECTION_COARSE + level])
+        bytemuck::cast_slice(self.sections[SECTION_COARSE + level].bytes())
     }
     /// Render colours, RGBA8 packed as `r | g << 8 | b << 16 | a << 24`.
     pub fn colors(&self) -> &[u32] {
-        bytemuck::cast_slice(&self.sections[SECTION_COLOR])
+        bytemuck::cast_slice(self.sections[SECTION_COLOR].bytes())
     }
     /// Raw bytes of kept attribute `i` (`width` bytes per point).
     pub fn attribute(&self, i: usize) -> &[u8] {
-        &self.sections[FIRST_ATTRIBUTE_SECTION + i]
+        self.sections[FIRST_ATTRIBUTE_SECTION + i].bytes()
     }
     pub fn len(&self) -> usize {
         self.entry.count as usize
@@ -602,24 +617,22 @@ impl BatchFile {
         let mut sections = Vec::with_capacity(sc);
         for (s, se) in ses.iter().enumerate() {
             if !which.contains(&s) {
-                sections.push(Cow::Borrowed(&[][..]));
+                sections.push(SectionData::Owned(Vec::new(), 0));
                 continue;
             }
             let stored = &self.bytes[se.offset as usize..(se.offset + se.stored_len) as usize];
             let raw = e.count as usize * widths[s];
             match self.meta.compression {
-                Compression::None => sections.push(Cow::Borrowed(stored)),
+                Compression::None => sections.push(SectionData::Borrowed(stored)),
                 Compression::Zstd => {
-                    let mut v = zstd::bulk::decompress(stored, raw)
+                    let mut v = vec![0u32; raw.div_ceil(4)];
+                    let n = zstd::bulk::Decompressor::new()
+                        .and_then(|mut d| d.decompress_to_buffer(stored, &mut bytemuck::cast_slice_mut::<u32, u8>(&mut v)[..raw]))
                         .map_err(|er| Error::input(&self.path, format!("batch {i} section {s} is corrupt: {er}")))?;
-                    if v.len() != raw {
-                        return Err(Error::input(&self.path, format!("batch {i} section {s} decompresses to {} bytes, expected {raw}", v.len())));
+                    if n != raw {
+                        return Err(Error::input(&self.path, format!("batch {i} section {s} decompresses to {n} bytes, expected {raw}")));
                     }
-                    // keep u32 sections aligned
-                    if widths[s] == 4 && (v.as_ptr() as usize) % 4 != 0 {
-                        v = v.to_vec();
-                    }
-                    sections.push(Cow::Owned(v));
+                    sections.push(SectionData::Owned(v, raw));
                 }
             }
         }
@@ -634,6 +647,11 @@ impl BatchFile {
 
     pub fn grid(&self) -> Grid {
         Grid { scale: self.meta.scale, offset: self.meta.offset }
+    }
+
+    /// The whole file as bytes (the memory map), e.g. to check that views point into it.
+    pub fn bytes(&self) -> &[u8] {
+        &self.bytes
     }
 
     pub fn morton(&self) -> MortonGrid {

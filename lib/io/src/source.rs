@@ -216,6 +216,11 @@ impl LasInput {
                 end = end.min(h.waveform_start);
             }
             let available = (end - start as u64) / rl;
+            if available > point_count && (h.evlr_count == 0 || h.evlr_start == 0) {
+                meta.warnings.push(format!(
+                    "the file holds {available} points of data but the header says {point_count}; reading {point_count}"
+                ));
+            }
             if point_count > available {
                 return Err(err(format!(
                     "header says {point_count} points but the file holds only {available} ({} bytes of point data, {rl} per point): truncated or damaged",
