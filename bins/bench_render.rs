@@ -80,7 +80,10 @@ struct Row {
     color_diff: u64,
     /// PSNR of the RGB image against the reference, dB (infinite when identical).
     psnr: f64,
+    /// Pixels covered in the reference.
     covered: u64,
+    /// Pixels covered in this render.
+    covered_self: u64,
 }
 
 fn median(v: &mut [f64]) -> f64 {
@@ -93,6 +96,12 @@ fn median(v: &mut [f64]) -> f64 {
     }
 }
 
+/// Per configuration: the keys of its last run, its stats and its raster times.
+type Measured = Vec<(Vec<u64>, RasterStats, Vec<f64>)>;
+
+/// The brute-force render: keys, image and the colour range it used.
+type Reference = (Vec<u64>, Vec<u32>, Option<[f64; 2]>);
+
 /// Draws every configuration once untimed, then `runs` rounds in which each configuration draws
 /// once into its cleared framebuffer (interleaved, so that load from other processes on a shared
 /// machine spreads over all configurations alike). Returns per configuration the keys of its last
@@ -103,7 +112,7 @@ fn measure(
     cam: &Camera,
     configs: &[RasterOptions],
     runs: usize,
-) -> Result<Vec<(Vec<u64>, RasterStats, Vec<f64>)>> {
+) -> Result<Measured> {
     let grid = file.grid();
     let mut fbs: Vec<Framebuffer> = configs.iter().map(|_| Framebuffer::new(cam.width, cam.height)).collect();
     let mut out: Vec<(RasterStats, Vec<f64>)> = Vec::with_capacity(configs.len());
@@ -178,9 +187,9 @@ fn main() -> Result<()> {
         threads,
         a.runs
     )?;
-    writeln!(md, "Error is against the brute-force render (30 bits, no culling) of the same view; `winner` counts pixels whose nearest point is another point, `colour` pixels whose colour differs, `coverage` pixels empty in one image and not the other, all as a share of the pixels covered in the reference.\n")?;
-    writeln!(md, "| view | precision | cull | raster ms (min-max) | M points/s | batches drawn/culled | points projected (10/20/30 bits) | points depth-tested | winner % | colour % | coverage % | PSNR dB |")?;
-    writeln!(md, "|---|---|---|---|---|---|---|---|---|---|---|---|")?;
+    writeln!(md, "Error is against the brute-force render (30 bits, no culling) of the same view; `winner` counts pixels whose nearest point is another point, `colour` pixels whose colour differs, `coverage` pixels empty in one image and not the other, all as a share of the pixels covered in the reference; `covered Δ` is the net change of covered pixels (negative: holes opened).\n")?;
+    writeln!(md, "| view | precision | cull | raster ms (min-max) | M points/s | batches drawn/culled | points projected (10/20/30 bits) | points depth-tested | winner % | colour % | coverage % | covered Δ % | PSNR dB |")?;
+    writeln!(md, "|---|---|---|---|---|---|---|---|---|---|---|---|---|")?;
     let mut summaries = Vec::new();
     for &view in &a.views {
         let cam_args = CameraArgs { view: Some(view), eye: None, target: None, up: [0.0, 0.0, 1.0], fov: a.fov, ortho: false };
@@ -193,7 +202,7 @@ fn main() -> Result<()> {
             .collect();
         let options: Vec<RasterOptions> = configs.iter().map(|&(p, cull)| RasterOptions { precision: p.mode(), cull }).collect();
         let measured = measure(&refs, file, &cam, &options, a.runs)?;
-        let mut reference: Option<(Vec<u64>, Vec<u32>, Option<[f64; 2]>)> = None;
+        let mut reference: Option<Reference> = None;
         let mut rows = Vec::new();
         for ((precision, cull), (keys, stats, mut times)) in configs.into_iter().zip(measured) {
             let (min, max) = (times.iter().copied().fold(f64::INFINITY, f64::min), times.iter().copied().fold(0.0, f64::max));
@@ -217,6 +226,7 @@ fn main() -> Result<()> {
                 color_diff: 0,
                 psnr: psnr(&rgba, rc),
                 covered: rk.iter().filter(|&&k| k != EMPTY_KEY).count() as u64,
+                covered_self: keys.iter().filter(|&&k| k != EMPTY_KEY).count() as u64,
             };
             for i in 0..keys.len() {
                 let (k, r) = (keys[i], rk[i]);
@@ -244,7 +254,7 @@ fn main() -> Result<()> {
             let s = &r.stats;
             writeln!(
                 md,
-                "| {view_name} | {} | {} | {:.1} ({:.1}-{:.1}) | {:.0} | {}/{} | {} ({}/{}/{}) | {} | {:.3} | {:.3} | {:.4} | {} |",
+                "| {view_name} | {} | {} | {:.1} ({:.1}-{:.1}) | {:.0} | {}/{} | {} ({}/{}/{}) | {} | {:.3} | {:.3} | {:.4} | {:+.4} | {} |",
                 r.precision.name(),
                 if r.cull { "on" } else { "off" },
                 r.median * 1e3,
@@ -261,6 +271,7 @@ fn main() -> Result<()> {
                 pct(r.winner_diff, r.covered),
                 pct(r.color_diff, r.covered),
                 pct(r.coverage_diff, r.covered),
+                100.0 * (r.covered_self as f64 - r.covered as f64) / r.covered.max(1) as f64,
                 if r.psnr.is_finite() { format!("{:.1}", r.psnr) } else { "inf".into() },
             )?;
         }

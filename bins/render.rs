@@ -41,6 +41,7 @@ pub enum PrecisionArg {
 }
 
 impl PrecisionArg {
+    /// The rasterizer's precision mode.
     pub fn mode(self) -> PrecisionMode {
         match self {
             PrecisionArg::Adaptive => PrecisionMode::Adaptive,
@@ -50,6 +51,7 @@ impl PrecisionArg {
         }
     }
 
+    /// The name on the command line.
     pub fn name(self) -> &'static str {
         match self {
             PrecisionArg::Adaptive => "adaptive",
@@ -146,6 +148,7 @@ fn parse_color_choice(s: &str) -> std::result::Result<ColorChoice, String> {
     ColorChoice::from_name(s).ok_or_else(|| format!("'{s}' is not a colour mode (one of {})", ColorChoice::names().join(", ")))
 }
 
+/// Arguments of `mortar render`.
 #[derive(clap::Args)]
 pub struct Args {
     /// A batch file, or LAS/LAZ files, directories, glob patterns or - (batched on the fly into a
@@ -163,8 +166,8 @@ pub struct Args {
     pub height: u32,
     #[command(flatten)]
     pub camera: CameraArgs,
-    /// Colour mode: auto (the stored colour: RGB, else intensity), rgb, intensity, classification,
-    /// elevation, return-number, gps-time.
+    /// Colour mode: auto (RGB if the points have colours, else intensity), stored (the batch
+    /// file's render colour), rgb, intensity, classification, elevation, return-number, gps-time.
     #[arg(long, default_value = "auto", value_parser = parse_color_choice)]
     pub color: ColorChoice,
     /// Range lo,hi of intensity, elevation and gps-time colours (default: 1st to 99th percentile
@@ -286,6 +289,7 @@ fn camera_json(c: &Camera) -> serde_json::Value {
     serde_json::json!({ "eye": c.eye, "target": c.target, "up": c.up, "projection": projection, "near": c.near, "far": c.far })
 }
 
+/// Opens the input, draws the view, writes the PNG and (with `--json`) the statistics.
 pub fn run(a: Args) -> Result<()> {
     match a.backend {
         Backend::Gpu => bail!("--backend gpu: the GPU rasterizer is not built yet; use --backend cpu (or auto)"),
@@ -294,19 +298,24 @@ pub fn run(a: Args) -> Result<()> {
     if a.width == 0 || a.height == 0 || a.width > 16384 || a.height > 16384 {
         bail!("--width {} --height {}: each side must be 1 to 16384 pixels", a.width, a.height);
     }
+    // Checked again by build_camera; here so that a typo fails before LAS input is batched.
+    if !(a.camera.fov > 0.0 && a.camera.fov < 180.0) {
+        bail!("--fov {}: must be between 0 and 180 degrees", a.camera.fov);
+    }
     let start = Instant::now();
     let source = open_source(&a.inputs, a.memory, &a.tmp_dir)?;
     let batch_seconds = start.elapsed().as_secs_f64();
     let file = &source.file;
-    let label = if source.is_temporary() { a.inputs.join(" ") } else { file.path.display().to_string() };
+    let own = |e| source.own_error(e);
+    let label = source.name.display().to_string();
     if file.header.point_count == 0 {
         bail!("{label}: no points to draw");
     }
-    render_input::check_color(file, a.color)?;
+    render_input::check_color(file, a.color).map_err(own)?;
     let bounds = render_input::file_bounds(file);
     let camera = build_camera(&a.camera, &bounds, a.width, a.height).map_err(|e| anyhow!("{label}: {e:#}"))?;
-    let views = render_input::load_words(file)?;
-    let refs = render_input::batch_refs(file, &views)?;
+    let views = render_input::load_words(file).map_err(own)?;
+    let refs = render_input::batch_refs(file, &views).map_err(own)?;
     let settings = RenderSettings {
         raster: RasterOptions { precision: a.precision.mode(), cull: !a.no_cull },
         color: a.color,
@@ -317,7 +326,7 @@ pub fn run(a: Args) -> Result<()> {
             eye_dome: a.edl.map(|strength| EyeDome { strength, ..EyeDome::default() }),
         },
     };
-    let r = render_input::render(file, &refs, &camera, &settings)?;
+    let r = render_input::render(file, &refs, &camera, &settings).map_err(own)?;
     let t = Instant::now();
     let png = encode_png(r.width, r.height, &r.rgba)?;
     write_atomic(&a.output, &png)?;
@@ -332,7 +341,7 @@ pub fn run(a: Args) -> Result<()> {
             "backend": "cpu",
             "precision": a.precision.name(),
             "cull": !a.no_cull,
-            "color": a.color.name(),
+            "color": a.color.resolved(file).name(),
             "color_range": r.color_range,
             "camera": camera_json(&camera),
             "points": file.header.point_count,

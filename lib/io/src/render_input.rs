@@ -23,7 +23,7 @@ use mortar_core::render::resolve::{
 };
 use mortar_core::render::{rasterize, Aabb, BatchRef, Camera, Framebuffer, RasterOptions, RasterStats};
 use rayon::prelude::*;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 /// Sections of a batch holding the coarse, medium and fine words.
@@ -39,6 +39,8 @@ const FIRST_ATTRIBUTE_SECTION: usize = 4;
 pub struct RenderSource {
     /// The batch file.
     pub file: BatchFile,
+    /// What the user gave: the batch file's path, or the LAS/LAZ inputs.
+    pub name: PathBuf,
     // Dropped after `file` (declaration order): the map is closed before the directory goes.
     temp: Option<TempPath>,
 }
@@ -46,12 +48,13 @@ pub struct RenderSource {
 impl RenderSource {
     /// Opens an existing batch file.
     pub fn open_batch_file(path: &Path) -> Result<RenderSource> {
-        Ok(RenderSource { file: BatchFile::open(path)?, temp: None })
+        Ok(RenderSource { file: BatchFile::open(path)?, name: path.to_path_buf(), temp: None })
     }
 
     /// Morton-sorts and batches `ds` exactly as `mortar batch` does (every attribute kept, no
     /// compression) into a temporary batch file under `opts.tmp_dir`, and opens it.
     pub fn batch_dataset(ds: &Dataset, opts: &SortOptions) -> Result<RenderSource> {
+        let names: Vec<String> = ds.inputs.iter().map(|i| i.path().display().to_string()).collect();
         let dir = TempPath::dir_in(&opts.tmp_dir, "render").map_err(|e| Error::io(&opts.tmp_dir, e))?;
         let path = dir.path().join("input.mbat");
         let attributes = AttributeSelection::parse("all").resolve(&ds.layout).map_err(Error::Usage)?;
@@ -65,7 +68,17 @@ impl RenderSource {
         let mut sink = BatchSink::new(&path, template, attributes, Compression::None);
         sort(ds, opts, &mut sink)?;
         sink.finish()?;
-        Ok(RenderSource { file: BatchFile::open(&path)?, temp: Some(dir) })
+        Ok(RenderSource { file: BatchFile::open(&path)?, name: PathBuf::from(names.join(" ")), temp: Some(dir) })
+    }
+
+    /// `e` with the temporary batch file's path replaced by the inputs' names, so that messages
+    /// name what the user gave.
+    pub fn own_error(&self, e: Error) -> Error {
+        match e {
+            Error::Input { path, problem } if path == self.file.path => Error::Input { path: self.name.clone(), problem },
+            Error::Io { path, source } if path == self.file.path => Error::Io { path: self.name.clone(), source },
+            e => e,
+        }
     }
 
     /// Whether the batch file is a temporary one made from LAS/LAZ.
@@ -113,36 +126,50 @@ pub fn batch_refs<'a>(file: &BatchFile, views: &'a [BatchView<'_>]) -> Result<Ve
 /// What the points are coloured by.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Default)]
 pub enum ColorChoice {
-    /// The batch file's stored render colour: RGB when the source has it, else a grey ramp of
-    /// intensity (`auto` on the command line).
+    /// RGB when the source has colours, else intensity over the visible points' range, else the
+    /// stored colour ([`resolved`](Self::resolved) says which).
     #[default]
+    Auto,
+    /// The batch file's stored render colour: RGB when the source has it, else a grey ramp of
+    /// intensity over the dataset's whole intensity range.
     Stored,
     /// An attribute colour mode.
     Mode(ColorMode),
 }
 
 impl ColorChoice {
-    /// Names accepted on the command line: `auto` and the names of [`ColorMode`].
+    /// Names accepted on the command line: `auto`, `stored` and the names of [`ColorMode`].
     pub fn names() -> Vec<&'static str> {
-        let mut v = vec!["auto"];
+        let mut v = vec!["auto", "stored"];
         v.extend(ColorMode::ALL.iter().map(|m| m.name()));
         v
     }
 
     /// The choice of a name from [`names`](Self::names).
     pub fn from_name(name: &str) -> Option<ColorChoice> {
-        if name == "auto" {
-            Some(ColorChoice::Stored)
-        } else {
-            ColorMode::from_name(name).map(ColorChoice::Mode)
+        match name {
+            "auto" => Some(ColorChoice::Auto),
+            "stored" => Some(ColorChoice::Stored),
+            _ => ColorMode::from_name(name).map(ColorChoice::Mode),
         }
     }
 
     /// The name of the choice.
     pub fn name(self) -> &'static str {
         match self {
-            ColorChoice::Stored => "auto",
+            ColorChoice::Auto => "auto",
+            ColorChoice::Stored => "stored",
             ColorChoice::Mode(m) => m.name(),
+        }
+    }
+
+    /// The choice `Auto` stands for in `file`; other choices unchanged.
+    pub fn resolved(self, file: &BatchFile) -> ColorChoice {
+        match self {
+            ColorChoice::Auto if file.meta.color.source == "rgb" => ColorChoice::Mode(ColorMode::Rgb),
+            ColorChoice::Auto if file.meta.attributes.iter().any(|a| a.name == "intensity") => ColorChoice::Mode(ColorMode::Intensity),
+            ColorChoice::Auto => ColorChoice::Stored,
+            c => c,
         }
     }
 
@@ -165,8 +192,8 @@ enum Source {
 
 /// Checks that `file` has what `choice` needs, and says where it is.
 fn source_of(file: &BatchFile, choice: ColorChoice) -> Result<Source> {
-    let mode = match choice {
-        ColorChoice::Stored => return Ok(Source::Stored),
+    let mode = match choice.resolved(file) {
+        ColorChoice::Auto | ColorChoice::Stored => return Ok(Source::Stored),
         ColorChoice::Mode(ColorMode::Elevation) => return Ok(Source::Elevation),
         ColorChoice::Mode(ColorMode::Rgb) => {
             return if file.meta.color.source == "rgb" {
@@ -240,6 +267,7 @@ fn quantile(v: &mut [f64], q: f64) -> Option<f64> {
 /// 99th percentile of the visible points' values (robust against outliers; it depends on the view,
 /// but not on anything else). Only the batches holding visible points are read.
 pub fn colors_for_keys(file: &BatchFile, keys: &[u64], choice: ColorChoice, range: Option<[f64; 2]>) -> Result<PointColors> {
+    let choice = choice.resolved(file);
     let source = source_of(file, choice)?;
     let mut indices: Vec<u32> = keys.par_iter().filter(|&&k| k != EMPTY_KEY).map(|&k| key_index(k)).collect();
     indices.par_sort_unstable();
@@ -266,7 +294,7 @@ pub fn colors_for_keys(file: &BatchFile, keys: &[u64], choice: ColorChoice, rang
     };
     let scalar = choice.uses_range();
     let mode = match choice {
-        ColorChoice::Stored | ColorChoice::Mode(ColorMode::Rgb) => None,
+        ColorChoice::Auto | ColorChoice::Stored | ColorChoice::Mode(ColorMode::Rgb) => None,
         ColorChoice::Mode(m) => Some(m),
     };
     let family = file.layout.family();
@@ -359,7 +387,7 @@ pub struct RenderSettings {
 
 impl Default for RenderSettings {
     fn default() -> Self {
-        RenderSettings { raster: RasterOptions::default(), color: ColorChoice::Stored, range: None, resolve: ResolveOptions::default() }
+        RenderSettings { raster: RasterOptions::default(), color: ColorChoice::Auto, range: None, resolve: ResolveOptions::default() }
     }
 }
 
@@ -415,3 +443,29 @@ pub fn render(file: &BatchFile, refs: &[BatchRef<'_>], camera: &Camera, settings
     })
 }
 
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn colour_choice_names_round_trip() {
+        for name in ColorChoice::names() {
+            assert_eq!(ColorChoice::from_name(name).map(ColorChoice::name), Some(name));
+        }
+        assert_eq!(ColorChoice::from_name("height"), None);
+        assert!(ColorChoice::Mode(ColorMode::GpsTime).uses_range());
+        assert!(!ColorChoice::Mode(ColorMode::Classification).uses_range());
+    }
+
+    #[test]
+    fn quantiles_and_lookup() {
+        let mut v: Vec<f64> = (0..=100).rev().map(f64::from).collect();
+        assert_eq!(quantile(&mut v, 0.01), Some(1.0));
+        assert_eq!(quantile(&mut v, 0.99), Some(99.0));
+        assert_eq!(quantile(&mut [], 0.5), None);
+        let c = PointColors { indices: vec![3, 9, 40], colors: vec![30, 90, 400], range: None };
+        assert_eq!((c.get(9), c.get(40), c.get(4)), (Some(90), Some(400), None));
+        assert_eq!(c.len(), 3);
+    }
+}

@@ -499,8 +499,9 @@ impl Camera {
     }
 
     /// A perspective close-up of the middle of `bounds`: looking down at 45 degrees from the
-    /// south-west at the box's centre, from a distance at which the view is about a tenth of the
-    /// box's horizontal extent wide (a view in which most batches are large on screen).
+    /// south-west at the box's centre, from the distance at which the view shows, from top to
+    /// bottom, about a tenth of the box's larger horizontal extent (a view in which most drawn
+    /// batches are large on screen).
     pub fn close_up(bounds: &Aabb, fov_y: f64, width: u32, height: u32) -> Result<Camera, CameraError> {
         if bounds.is_empty() || !bounds.min.iter().chain(&bounds.max).all(|v| v.is_finite()) {
             return Err(CameraError::Bounds { min: bounds.min, max: bounds.max });
@@ -795,6 +796,40 @@ mod tests {
         }
         assert_eq!(ViewPreset::from_name("iso"), Some(ViewPreset::Iso));
         assert!(Camera::frame_orthographic(&Aabb::EMPTY, ViewPreset::Top, 10, 10).is_err());
+    }
+
+    #[test]
+    fn look_at_close_up_and_inside_hold_the_data_between_their_clip_planes() {
+        let region = Aabb::new([684_700.0, 5_017_700.0, 0.0], [685_500.0, 5_018_200.0, 30.0]);
+        let depth = |cam: &Camera, p: DVec3| dot(cam.axes().unwrap().forward, sub(p, cam.eye));
+        let eye = [684_600.0, 5_017_600.0, 400.0];
+        let cam = Camera::look_at(eye, region.center(), [0.0, 0.0, 1.0], Projection::Perspective { fov_y: 0.9 }, &region, 640, 480).unwrap();
+        for k in region.corners() {
+            let d = depth(&cam, k);
+            assert!(d > cam.near && d < cam.far, "corner depth {d} outside [{}, {}]", cam.near, cam.far);
+        }
+        // The centre is looked at: it projects to the middle of the image.
+        let c = cam.project(region.center()).unwrap();
+        assert!((c.x - 320.0).abs() < 1e-6 && (c.y - 240.0).abs() < 1e-6, "{c:?}");
+
+        let close = Camera::close_up(&region, 0.9, 640, 480).unwrap();
+        // About a tenth of the 800 m extent is visible from top to bottom at the target.
+        let visible = 2.0 * length(sub(close.target, close.eye)) * (0.45f64).tan();
+        assert!((visible - 80.0).abs() < 1.0, "{visible}");
+        assert!(close.projected_size(&region) > 5000.0, "a close-up is much larger than the viewport");
+        let d = close.axes().unwrap().forward;
+        assert!((d[2] + std::f64::consts::FRAC_1_SQRT_2).abs() < 1e-9 && (d[0] - d[1]).abs() < 1e-9, "{d:?}");
+
+        let inside = Camera::inside(&region, 1.2, 640, 480).unwrap();
+        let e = inside.eye;
+        assert!((0..3).all(|a| e[a] > region.min[a] && e[a] < region.max[a]), "eye {e:?} not inside");
+        assert!((e[2] - 9.0).abs() < 1e-9);
+        assert!(inside.near < 0.1 && inside.far > region.size()[1] * 0.5);
+        // Looking north along the ground: a point ahead at eye height projects to the image centre row.
+        let ahead = inside.project([e[0], e[1] + 50.0, e[2]]).unwrap();
+        assert!((ahead.y - 240.0).abs() < 1e-6 && (ahead.x - 320.0).abs() < 1e-6);
+        assert!(Camera::inside(&Aabb::EMPTY, 1.0, 10, 10).is_err());
+        assert!(Camera::close_up(&Aabb::EMPTY, 1.0, 10, 10).is_err());
     }
 
     #[test]

@@ -292,12 +292,19 @@ impl Kernel {
     }
 }
 
-/// `floor(v)` for a float whose floor fits in an i32 (exact: truncation, minus one below zero
-/// where the value is not whole). Avoids the libm call `f32::floor` is on baseline x86-64.
+/// `floor(v)` as an i32, exact for `|v| < 1e9`; any other input (NaN included) gives some value
+/// the caller rejects anyway. Truncation, minus one below zero where the value is not whole: no
+/// libm call (which `f32::floor` is on baseline x86-64) and no saturating conversion (which does
+/// not vectorize).
 #[inline(always)]
 fn floor_i32(v: f32) -> i32 {
-    let t = v as i32;
-    t - ((v < t as f32) as i32)
+    // `max` returns the other operand for NaN, so the clamped value is always finite (`clamp`
+    // would keep the NaN, which `to_int_unchecked` must not see).
+    #[allow(clippy::manual_clamp)]
+    let c = v.max(-1.0e9).min(1.0e9);
+    // SAFETY: `c` is finite and within i32's range.
+    let t = unsafe { c.to_int_unchecked::<i32>() };
+    t - ((c < t as f32) as i32)
 }
 
 /// Phase 1 of a block: decodes, projects and tests up to [`BLOCK`] points, writing each point's
@@ -604,6 +611,118 @@ mod tests {
             assert!(n > 50_000, "{preset:?}: {n}");
             assert!(differ as f64 <= 1e-4 * n as f64, "{preset:?}: {differ} of {n} pixels differ");
         }
+    }
+
+    fn avx2_present() -> bool {
+        #[cfg(target_arch = "x86_64")]
+        {
+            std::is_x86_feature_detected!("avx2")
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        {
+            false
+        }
+    }
+
+    /// One batch through the baseline or the AVX2 build of the per-point loop.
+    fn draw_with(fb: &Framebuffer, k: &Kernel, b: &BatchRef<'_>, p: Precision, persp: bool, avx2: bool) -> u64 {
+        #[cfg(target_arch = "x86_64")]
+        if avx2 {
+            assert!(avx2_present());
+            // SAFETY: AVX2 is present (asserted just above).
+            return unsafe {
+                match (p, persp) {
+                    (Precision::Bits10, true) => draw_points_avx2::<1, true>(fb, k, b),
+                    (Precision::Bits10, false) => draw_points_avx2::<1, false>(fb, k, b),
+                    (Precision::Bits20, true) => draw_points_avx2::<2, true>(fb, k, b),
+                    (Precision::Bits20, false) => draw_points_avx2::<2, false>(fb, k, b),
+                    (Precision::Bits30, true) => draw_points_avx2::<3, true>(fb, k, b),
+                    (Precision::Bits30, false) => draw_points_avx2::<3, false>(fb, k, b),
+                }
+            };
+        }
+        assert!(!avx2, "no AVX2 build on this architecture");
+        match (p, persp) {
+            (Precision::Bits10, true) => draw_points_impl::<1, true>(fb, k, b),
+            (Precision::Bits10, false) => draw_points_impl::<1, false>(fb, k, b),
+            (Precision::Bits20, true) => draw_points_impl::<2, true>(fb, k, b),
+            (Precision::Bits20, false) => draw_points_impl::<2, false>(fb, k, b),
+            (Precision::Bits30, true) => draw_points_impl::<3, true>(fb, k, b),
+            (Precision::Bits30, false) => draw_points_impl::<3, false>(fb, k, b),
+        }
+    }
+
+    /// The reference per-point path the kernel must reproduce: `BatchProjection::local` and
+    /// `::transform`, `(X / W, Y / W)` floored with `f32::floor`, one point at a time.
+    fn reference_keys(scene: &Scene, cam: &Camera, precision: Precision) -> Vec<u64> {
+        let u = RasterUniforms::new(cam);
+        let mut keys = vec![EMPTY_KEY; (cam.width * cam.height) as usize];
+        for b in scene.refs() {
+            let p = precision.min(crate::render::precision::sufficient_precision(&b.grid));
+            let bp = cam.batch_projection(&scene.grid, &b.grid, &b.bounds(), p);
+            for i in 0..b.len() {
+                let w = [b.words[0][i], b.words[1][i], b.words[2][i]];
+                let [x, y, depth, wc] = bp.transform(bp.local(crate::quantize::join_words(w, p)));
+                if !(depth >= u.near && depth <= u.far) {
+                    continue;
+                }
+                let (fx, fy) = ((x / wc).floor() as i64 + bp.pixel_origin[0] as i64, (y / wc).floor() as i64 + bp.pixel_origin[1] as i64);
+                if fx < 0 || fy < 0 || fx >= cam.width as i64 || fy >= cam.height as i64 {
+                    continue;
+                }
+                let slot = &mut keys[fy as usize * cam.width as usize + fx as usize];
+                *slot = (*slot).min(crate::render::framebuffer::pack_key(depth, b.first_index + i as u32));
+            }
+        }
+        keys
+    }
+
+    #[test]
+    fn kernel_matches_the_per_point_reference_with_and_without_avx2() {
+        let scene = Scene::terrain(120_000, 3, Grid { scale: [0.001; 3], offset: [500_000.0, 5_400_000.0, 0.0] });
+        let c = scene.bounds.center();
+        let mut cams = vec![
+            Camera::frame_perspective(&scene.bounds, ViewPreset::Iso, 0.8, 320, 200).unwrap(),
+            Camera::frame_orthographic(&scene.bounds, ViewPreset::Top, 320, 200).unwrap(),
+            Camera::close_up(&scene.bounds, 0.8, 320, 200).unwrap(),
+            Camera::inside(&scene.bounds, 1.2, 320, 200).unwrap(),
+        ];
+        // A camera looking partly past the data, so that points fall on every side of the viewport.
+        cams.push(Camera { eye: [c[0] - 30.0, c[1], c[2] + 5.0], target: [c[0] + 10.0, c[1] + 25.0, c[2]], ..cams[0] });
+        for (ci, cam) in cams.iter().enumerate() {
+            for precision in [Precision::Bits10, Precision::Bits20, Precision::Bits30] {
+                let want = reference_keys(&scene, cam, precision);
+                let opts = RasterOptions { precision: PrecisionMode::Fixed(precision), cull: false };
+                let (got, _) = render(&scene, cam, opts);
+                let differ = got.iter().zip(&want).filter(|(a, b)| a != b).count();
+                assert_eq!(differ, 0, "camera {ci} {precision:?}: {differ} pixels differ from the per-point reference");
+                assert!(covered(&got) > 500, "camera {ci}: {}", covered(&got));
+                // The baseline build of the loop and the AVX2 build write the same keys.
+                let u = RasterUniforms::new(cam);
+                let (base, wide) = (Framebuffer::new(cam.width, cam.height), Framebuffer::new(cam.width, cam.height));
+                for b in scene.refs() {
+                    let p = precision.min(crate::render::precision::sufficient_precision(&b.grid));
+                    let k = Kernel::new(&cam.batch_projection(&scene.grid, &b.grid, &b.bounds(), p), &u);
+                    let n1 = draw_with(&base, &k, &b, p, cam.is_perspective(), false);
+                    if avx2_present() {
+                        assert_eq!(n1, draw_with(&wide, &k, &b, p, cam.is_perspective(), true));
+                    }
+                }
+                assert_eq!(base.keys(), want, "camera {ci} {precision:?}: baseline loop");
+                if avx2_present() {
+                    assert_eq!(wide.keys(), want, "camera {ci} {precision:?}: AVX2 loop");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn floor_is_exact_where_it_matters() {
+        for v in [-3.5f32, -3.0, -0.25, -0.0, 0.0, 0.9999999, 1.0, 1919.9999, 32767.5, -32768.0, 1.0e8] {
+            assert_eq!(floor_i32(v), v.floor() as i32, "{v}");
+        }
+        // Anything else gives some value without undefined behaviour.
+        let _ = (floor_i32(f32::NAN), floor_i32(f32::INFINITY), floor_i32(-1.0e30));
     }
 
     #[test]
