@@ -79,10 +79,18 @@ impl Default for PieceStats {
 
 impl PieceStats {
     pub fn of(records: &[u8], layout: &RecordLayout) -> PieceStats {
+        Self::of_with(records, layout, |_, _| {})
+    }
+
+    /// The statistics of `records`, calling `each(i, xyz)` for every record in the same pass
+    /// (the sort makes its keys there while the record is in cache).
+    #[inline]
+    pub fn of_with(records: &[u8], layout: &RecordLayout, mut each: impl FnMut(usize, [i32; 3])) -> PieceStats {
         let mut s = PieceStats::default();
         let rgb = layout.attribute("rgb").map(|a| a.offset);
-        for r in records.chunks_exact(layout.record_len) {
+        for (i, r) in records.chunks_exact(layout.record_len).enumerate() {
             let p = read_xyz(r);
+            each(i, p);
             for a in 0..3 {
                 s.min[a] = s.min[a].min(p[a]);
                 s.max[a] = s.max[a].max(p[a]);
@@ -263,11 +271,9 @@ pub fn sort(ds: &Dataset, opts: &SortOptions, sink: &mut dyn OrderedSink) -> Res
             if slab.len() != ks.len() * rl {
                 return Err(Error::input(ds.inputs[p.input].path(), format!("piece {} holds another number of points than declared", p.piece.index)));
             }
-            let s = PieceStats::of(&slab, &ds.layout);
-            for (idx, (r, k)) in slab.chunks_exact(rl).zip(ks.iter_mut()).enumerate() {
-                let q = read_xyz(r);
-                *k = Key { code: guess.code([q[0] as i64, q[1] as i64, q[2] as i64]), slab: i as u32, idx: idx as u32 };
-            }
+            let s = PieceStats::of_with(&slab, &ds.layout, |idx, q| {
+                ks[idx] = Key { code: guess.code([q[0] as i64, q[1] as i64, q[2] as i64]), slab: i as u32, idx: idx as u32 };
+            });
             Ok((slab, s))
         })
         .collect::<Result<Vec<_>>>()?;
