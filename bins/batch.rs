@@ -47,13 +47,7 @@ pub fn run(a: Args) -> Result<()> {
     let attributes = AttributeSelection::parse(&a.attributes)
         .resolve(&ds.layout)
         .map_err(|e| anyhow::anyhow!("--attributes: {e}"))?;
-    let template = BatchTemplate {
-        header: ds.template.clone(),
-        vlrs: ds.vlrs.clone(),
-        evlrs: ds.evlrs.clone(),
-        layout: ds.layout.clone(),
-        grid: ds.grid,
-    };
+    let template = BatchTemplate::of(&ds);
     let compression = match a.compress {
         Compress::None => Compression::None,
         Compress::Zstd => Compression::Zstd,

@@ -31,13 +31,7 @@ pub fn run(a: Args) -> Result<()> {
     let target = Target::parse(&a.output);
     let compressed = a.laz || a.output.to_ascii_lowercase().ends_with(".laz");
     let tmp = common::tmp_dir(&a.tmp_dir);
-    let template = LasTemplate {
-        header: ds.template.clone(),
-        vlrs: ds.vlrs.clone(),
-        evlrs: ds.evlrs.clone(),
-        layout: ds.layout.clone(),
-        grid: ds.grid,
-    };
+    let template = LasTemplate::of(&ds);
     let mut sink = LasSink::new(target, compressed, template, &tmp)?;
     let opts = SortOptions::with_memory(a.memory.unwrap_or_else(default_memory), tmp);
     sort(&ds, &opts, &mut sink)?;

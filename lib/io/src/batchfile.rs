@@ -141,6 +141,19 @@ pub struct BatchTemplate {
     pub grid: Grid,
 }
 
+impl BatchTemplate {
+    /// The metadata of a merged dataset.
+    pub fn of(ds: &crate::dataset::Dataset) -> BatchTemplate {
+        BatchTemplate {
+            header: ds.template.clone(),
+            vlrs: ds.vlrs.clone(),
+            evlrs: ds.evlrs.clone(),
+            layout: ds.layout.clone(),
+            grid: ds.grid,
+        }
+    }
+}
+
 /// Writes a batch file from Morton-ordered records.
 pub struct BatchSink {
     target: PathBuf,

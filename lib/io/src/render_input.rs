@@ -58,13 +58,7 @@ impl RenderSource {
         let dir = TempPath::dir_in(&opts.tmp_dir, "render").map_err(|e| Error::io(&opts.tmp_dir, e))?;
         let path = dir.path().join("input.mbat");
         let attributes = AttributeSelection::parse("all").resolve(&ds.layout).map_err(Error::Usage)?;
-        let template = BatchTemplate {
-            header: ds.template.clone(),
-            vlrs: ds.vlrs.clone(),
-            evlrs: ds.evlrs.clone(),
-            layout: ds.layout.clone(),
-            grid: ds.grid,
-        };
+        let template = BatchTemplate::of(ds);
         let mut sink = BatchSink::new(&path, template, attributes, Compression::None);
         sort(ds, opts, &mut sink)?;
         sink.finish()?;

@@ -44,6 +44,19 @@ pub struct LasTemplate {
     pub grid: Grid,
 }
 
+impl LasTemplate {
+    /// The metadata of a merged dataset.
+    pub fn of(ds: &crate::dataset::Dataset) -> LasTemplate {
+        LasTemplate {
+            header: ds.template.clone(),
+            vlrs: ds.vlrs.clone(),
+            evlrs: ds.evlrs.clone(),
+            layout: ds.layout.clone(),
+            grid: ds.grid,
+        }
+    }
+}
+
 enum Out {
     Las(BufWriter<File>),
     Stdout(BufWriter<std::io::Stdout>),

@@ -21,7 +21,7 @@ fn make_batch_file(dir: &std::path::Path, compression: Compression) -> (std::pat
     sink.finish().unwrap();
     let ds = Dataset::open(&[las]).unwrap();
     let attrs = AttributeSelection::All.resolve(&ds.layout).unwrap();
-    let t = BatchTemplate { header: ds.template.clone(), vlrs: ds.vlrs.clone(), evlrs: ds.evlrs.clone(), layout: ds.layout.clone(), grid: ds.grid };
+    let t = BatchTemplate::of(&ds);
     let out = dir.join(format!("{compression:?}.mbat"));
     let mut bs = BatchSink::new(&out, t, attrs, compression);
     sort(&ds, &SortOptions::with_memory(1 << 30, dir.to_path_buf()), &mut bs).unwrap();
