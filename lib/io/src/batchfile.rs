@@ -702,19 +702,9 @@ fn parse_evlr_blob(b: &[u8]) -> std::result::Result<Vec<Vlr>, String> {
     let mut out = Vec::new();
     let mut p = 0usize;
     while p < b.len() {
-        if p + 60 > b.len() {
-            return Err("truncated EVLR".into());
-        }
-        let len = u64::from_le_bytes(b[p + 20..p + 28].try_into().unwrap());
-        let end = (p as u64 + 60).checked_add(len).filter(|&e| e <= b.len() as u64).ok_or("truncated EVLR")? as usize;
-        out.push(Vlr {
-            reserved: u16::from_le_bytes([b[p], b[p + 1]]),
-            user_id: b[p + 2..p + 18].try_into().unwrap(),
-            record_id: u16::from_le_bytes([b[p + 18], b[p + 19]]),
-            description: b[p + 28..p + 60].try_into().unwrap(),
-            data: b[p + 60..end].to_vec(),
-        });
-        p = end;
+        let (v, next) = las::parse_evlr(b, p)?;
+        out.push(v);
+        p = next;
     }
     Ok(out)
 }

@@ -232,23 +232,32 @@ pub fn parse(b: &[u8]) -> Result<LasMeta, String> {
             if pos + EVLR_HEADER as u64 > b.len() as u64 {
                 return Err(format!("header says {} EVLRs but the file ends after {i}", header.evlr_count));
             }
-            let p = pos as usize;
-            let len = u64_at(b, p + 20);
-            if pos + EVLR_HEADER as u64 + len > b.len() as u64 {
-                return Err(format!("EVLR {i} claims {len} bytes, more than the file holds"));
-            }
-            let len = len as usize;
-            evlrs.push(Vlr {
-                reserved: u16_at(b, p),
-                user_id: b[p + 2..p + 18].try_into().unwrap(),
-                record_id: u16_at(b, p + 18),
-                description: b[p + 28..p + 60].try_into().unwrap(),
-                data: b[p + EVLR_HEADER..p + EVLR_HEADER + len].to_vec(),
-            });
-            pos += EVLR_HEADER as u64 + len as u64;
+            let (v, next) = parse_evlr(b, pos as usize).map_err(|e| format!("EVLR {i}: {e}"))?;
+            evlrs.push(v);
+            pos = next as u64;
         }
     }
     Ok(LasMeta { header, vlrs, evlrs, warnings })
+}
+
+/// Parses the EVLR starting at byte `at` of `b`; returns it and the position after it.
+pub fn parse_evlr(b: &[u8], at: usize) -> Result<(Vlr, usize), String> {
+    if at.checked_add(EVLR_HEADER).is_none_or(|e| e > b.len()) {
+        return Err("truncated EVLR header".into());
+    }
+    let len = u64_at(b, at + 20);
+    let end = (at as u64 + EVLR_HEADER as u64)
+        .checked_add(len)
+        .filter(|&e| e <= b.len() as u64)
+        .ok_or_else(|| format!("claims {len} bytes, more than the file holds"))? as usize;
+    let v = Vlr {
+        reserved: u16_at(b, at),
+        user_id: b[at + 2..at + 18].try_into().unwrap(),
+        record_id: u16_at(b, at + 18),
+        description: b[at + 28..at + 60].try_into().unwrap(),
+        data: b[at + EVLR_HEADER..end].to_vec(),
+    };
+    Ok((v, end))
 }
 
 /// What a writer needs to put a header in front of points.
