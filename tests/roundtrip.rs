@@ -109,3 +109,23 @@ fn laz_output_round_trips() {
     assert_eq!(a, b, "the las crate reads mortar's LAZ as the same points in the same order");
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+#[test]
+fn laz_output_keeps_evlrs() {
+    let Some(data) = shared_data() else { return };
+    let src = data.join("laspy/tests/data/1_4_w_evlr.las");
+    let dir = tempdir("evlr");
+    let z = dir.join("e.laz");
+    let s = dir.join("e.las");
+    run_ok(mortar().arg("sort").arg(&src).arg("-o").arg(&z));
+    run_ok(mortar().arg("sort").arg(&src).arg("-o").arg(&s));
+    let (a, rl, ha) = las_records(&z).unwrap();
+    let (b, _, hb) = las_records(&s).unwrap();
+    let (_, _, hsrc) = las_records(&src).unwrap();
+    assert_eq!(a, b);
+    assert_eq!(a.len() / rl, 1000);
+    assert_eq!(ha.evlrs().len(), hsrc.evlrs().len());
+    assert_eq!(hb.evlrs().len(), hsrc.evlrs().len());
+    assert_eq!(ha.evlrs()[0].data, hsrc.evlrs()[0].data);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
