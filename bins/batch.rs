@@ -2,7 +2,7 @@
 
 use crate::common;
 use anyhow::{bail, Result};
-use mortar_io::batchfile::{AttributeSelection, BatchSink, BatchTemplate, Compression};
+use mortar_io::batchfile::{AttributeSelection, BatchSink, Compression};
 use mortar_io::sort::{default_memory, sort, SortOptions};
 use std::path::PathBuf;
 
@@ -47,7 +47,7 @@ pub fn run(a: Args) -> Result<()> {
     let attributes = AttributeSelection::parse(&a.attributes)
         .resolve(&ds.layout)
         .map_err(|e| anyhow::anyhow!("--attributes: {e}"))?;
-    let template = BatchTemplate::of(&ds);
+    let template = ds.source_meta();
     let compression = match a.compress {
         Compress::None => Compression::None,
         Compress::Zstd => Compression::Zstd,

@@ -5,7 +5,8 @@
 use anyhow::Result;
 use clap::Parser;
 use mortar_io::las::Header;
-use mortar_io::sink_las::{LasSink, LasTemplate, Target};
+use mortar_io::dataset::SourceMeta;
+use mortar_io::sink_las::{LasSink, Target};
 use mortar_io::sort::{OrderedSink, PieceStats};
 use mortar_io::synth::{self, SynthOptions};
 
@@ -36,7 +37,7 @@ fn main() -> Result<()> {
     let header: Header = synth::header(&o);
     let layout = mortar_core::layout::RecordLayout::new(3, 34)?;
     let grid = mortar_core::grid::Grid { scale: header.scale, offset: header.offset };
-    let template = LasTemplate { header, vlrs: Vec::new(), evlrs: Vec::new(), layout, grid };
+    let template = SourceMeta { header, vlrs: Vec::new(), evlrs: Vec::new(), layout, grid };
     let compressed = a.output.to_ascii_lowercase().ends_with(".laz");
     let mut sink = LasSink::new(Target::parse(&a.output), compressed, template, &std::env::temp_dir())?;
     // statistics first (the header needs bounds), then the points

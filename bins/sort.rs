@@ -2,7 +2,7 @@
 
 use crate::common;
 use anyhow::Result;
-use mortar_io::sink_las::{LasSink, LasTemplate, Target};
+use mortar_io::sink_las::{LasSink, Target};
 use mortar_io::sort::{default_memory, sort, SortOptions};
 use std::path::PathBuf;
 
@@ -31,7 +31,7 @@ pub fn run(a: Args) -> Result<()> {
     let target = Target::parse(&a.output);
     let compressed = a.laz || a.output.to_ascii_lowercase().ends_with(".laz");
     let tmp = common::tmp_dir(&a.tmp_dir);
-    let template = LasTemplate::of(&ds);
+    let template = ds.source_meta();
     let mut sink = LasSink::new(target, compressed, template, &tmp)?;
     let opts = SortOptions::with_memory(a.memory.unwrap_or_else(default_memory), tmp);
     sort(&ds, &opts, &mut sink)?;

@@ -8,7 +8,7 @@
 //! [`RecordSource`] so a batch file converts back to LAS bit for bit.
 
 use crate::cleanup::TempPath;
-use crate::dataset::RecordSource;
+use crate::dataset::{RecordSource, SourceMeta};
 use crate::error::{Error, Result};
 use crate::las::{self, Header, HeaderOut, Vlr};
 use crate::source::{open_bytes, Bytes, Piece};
@@ -131,34 +131,11 @@ impl AttributeSelection {
     }
 }
 
-/// The source metadata a batch file keeps.
-#[derive(Clone, Debug)]
-pub struct BatchTemplate {
-    pub header: Header,
-    pub vlrs: Vec<Vlr>,
-    pub evlrs: Vec<Vlr>,
-    pub layout: RecordLayout,
-    pub grid: Grid,
-}
-
-impl BatchTemplate {
-    /// The metadata of a merged dataset.
-    pub fn of(ds: &crate::dataset::Dataset) -> BatchTemplate {
-        BatchTemplate {
-            header: ds.template.clone(),
-            vlrs: ds.vlrs.clone(),
-            evlrs: ds.evlrs.clone(),
-            layout: ds.layout.clone(),
-            grid: ds.grid,
-        }
-    }
-}
-
 /// Writes a batch file from Morton-ordered records.
 pub struct BatchSink {
     target: PathBuf,
     tmp: TempPath,
-    t: BatchTemplate,
+    t: SourceMeta,
     attributes: Vec<Attribute>,
     compression: Compression,
     out: Option<File>,
@@ -179,7 +156,7 @@ struct BuiltBatch {
 }
 
 impl BatchSink {
-    pub fn new(target: &Path, t: BatchTemplate, attributes: Vec<Attribute>, compression: Compression) -> BatchSink {
+    pub fn new(target: &Path, t: SourceMeta, attributes: Vec<Attribute>, compression: Compression) -> BatchSink {
         BatchSink {
             target: target.to_path_buf(),
             tmp: TempPath::beside(target),

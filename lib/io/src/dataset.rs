@@ -81,6 +81,17 @@ impl RecordSource for LasInput {
     }
 }
 
+/// What a writer needs of a dataset besides its points: the header fields to keep, the (E)VLRs,
+/// the record layout and the integer grid. Both the LAS/LAZ writer and the batch writer take it.
+#[derive(Clone, Debug)]
+pub struct SourceMeta {
+    pub header: Header,
+    pub vlrs: Vec<Vlr>,
+    pub evlrs: Vec<Vlr>,
+    pub layout: RecordLayout,
+    pub grid: Grid,
+}
+
 /// A piece of one input of a dataset.
 #[derive(Clone, Copy, Debug)]
 pub struct DatasetPiece {
@@ -192,6 +203,17 @@ impl Dataset {
         warnings.append(&mut ds.warnings);
         ds.warnings = warnings;
         Ok(ds)
+    }
+
+    /// The metadata the writers need.
+    pub fn source_meta(&self) -> SourceMeta {
+        SourceMeta {
+            header: self.template.clone(),
+            vlrs: self.vlrs.clone(),
+            evlrs: self.evlrs.clone(),
+            layout: self.layout.clone(),
+            grid: self.grid,
+        }
     }
 
     /// Points the headers declare in total.

@@ -10,7 +10,7 @@
 //! a culled batch) are never read from disk. zstd files are decompressed (the three word sections
 //! of every batch) before drawing.
 
-use crate::batchfile::{AttributeSelection, BatchFile, BatchSink, BatchTemplate, BatchView, Compression};
+use crate::batchfile::{AttributeSelection, BatchFile, BatchSink, BatchView, Compression};
 use crate::cleanup::TempPath;
 use crate::dataset::Dataset;
 use crate::error::{Error, Result};
@@ -58,7 +58,7 @@ impl RenderSource {
         let dir = TempPath::dir_in(&opts.tmp_dir, "render").map_err(|e| Error::io(&opts.tmp_dir, e))?;
         let path = dir.path().join("input.mbat");
         let attributes = AttributeSelection::parse("all").resolve(&ds.layout).map_err(Error::Usage)?;
-        let template = BatchTemplate::of(ds);
+        let template = ds.source_meta();
         let mut sink = BatchSink::new(&path, template, attributes, Compression::None);
         sort(ds, opts, &mut sink)?;
         sink.finish()?;

@@ -2,11 +2,10 @@
 //! rename) or to stdout.
 
 use crate::cleanup::TempPath;
+use crate::dataset::SourceMeta;
 use crate::error::{Error, Result};
-use crate::las::{self, Header, HeaderOut, Vlr};
+use crate::las::{self, HeaderOut, Vlr};
 use crate::sort::{OrderedSink, Summary};
-use mortar_core::grid::Grid;
-use mortar_core::layout::RecordLayout;
 use std::fs::File;
 use std::io::{BufWriter, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
@@ -34,29 +33,6 @@ impl Target {
     }
 }
 
-/// Everything of the dataset a LAS writer needs besides the points.
-#[derive(Clone, Debug)]
-pub struct LasTemplate {
-    pub header: Header,
-    pub vlrs: Vec<Vlr>,
-    pub evlrs: Vec<Vlr>,
-    pub layout: RecordLayout,
-    pub grid: Grid,
-}
-
-impl LasTemplate {
-    /// The metadata of a merged dataset.
-    pub fn of(ds: &crate::dataset::Dataset) -> LasTemplate {
-        LasTemplate {
-            header: ds.template.clone(),
-            vlrs: ds.vlrs.clone(),
-            evlrs: ds.evlrs.clone(),
-            layout: ds.layout.clone(),
-            grid: ds.grid,
-        }
-    }
-}
-
 enum Out {
     Las(BufWriter<File>),
     Stdout(BufWriter<std::io::Stdout>),
@@ -67,7 +43,7 @@ enum Out {
 pub struct LasSink {
     target: Target,
     compressed: bool,
-    t: LasTemplate,
+    t: SourceMeta,
     /// The file being written (the target itself for LAS/LAZ files; a temporary for LAZ on stdout).
     tmp: Option<TempPath>,
     out: Option<Out>,
@@ -81,7 +57,7 @@ fn io_err(t: &Path) -> impl Fn(std::io::Error) -> Error + '_ {
 
 impl LasSink {
     /// `compressed` chooses LAZ; for files it follows the extension unless forced.
-    pub fn new(target: Target, compressed: bool, template: LasTemplate, tmp_dir: &Path) -> Result<LasSink> {
+    pub fn new(target: Target, compressed: bool, template: SourceMeta, tmp_dir: &Path) -> Result<LasSink> {
         let tmp = match &target {
             Target::File(p) => Some(TempPath::beside(p)),
             Target::Stdout if compressed => {

@@ -2,9 +2,9 @@
 //! that decode back to the source points.
 
 use mortar_core::layout::{read_xyz, RecordLayout};
-use mortar_io::batchfile::{AttributeSelection, BatchFile, BatchSink, BatchTemplate, Compression};
-use mortar_io::dataset::Dataset;
-use mortar_io::sink_las::{LasSink, LasTemplate, Target};
+use mortar_io::batchfile::{AttributeSelection, BatchFile, BatchSink, Compression};
+use mortar_io::dataset::{Dataset, SourceMeta};
+use mortar_io::sink_las::{LasSink, Target};
 use mortar_io::sort::{sort, OrderedSink, SortOptions};
 use mortar_io::synth::{self, SynthOptions};
 
@@ -14,14 +14,14 @@ fn make_batch_file(dir: &std::path::Path, compression: Compression) -> (std::pat
     let header = synth::header(&o);
     let grid = mortar_core::grid::Grid { scale: header.scale, offset: header.offset };
     let las = dir.join("in.las");
-    let mut sink = LasSink::new(Target::File(las.clone()), false, LasTemplate { header, vlrs: vec![], evlrs: vec![], layout, grid }, dir).unwrap();
+    let mut sink = LasSink::new(Target::File(las.clone()), false, SourceMeta { header, vlrs: vec![], evlrs: vec![], layout, grid }, dir).unwrap();
     let (records, stats) = synth::records(&o, 0, o.points);
     sink.begin(&stats.summary()).unwrap();
     sink.write(&records).unwrap();
     sink.finish().unwrap();
     let ds = Dataset::open(&[las]).unwrap();
     let attrs = AttributeSelection::All.resolve(&ds.layout).unwrap();
-    let t = BatchTemplate::of(&ds);
+    let t = ds.source_meta();
     let out = dir.join(format!("{compression:?}.mbat"));
     let mut bs = BatchSink::new(&out, t, attrs, compression);
     sort(&ds, &SortOptions::with_memory(1 << 30, dir.to_path_buf()), &mut bs).unwrap();
