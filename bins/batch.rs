@@ -3,7 +3,7 @@
 use crate::common;
 use anyhow::{bail, Result};
 use mortar_io::batchfile::{AttributeSelection, BatchSink, Compression};
-use mortar_io::sort::{default_memory, sort, SortOptions};
+use mortar_io::sort::sort;
 use std::path::PathBuf;
 
 #[derive(clap::ValueEnum, Clone, Copy, Debug)]
@@ -27,12 +27,8 @@ pub struct Args {
     /// Compress each section with zstd (smaller; not memory-mappable without copying).
     #[arg(long, value_enum, default_value = "none")]
     pub compress: Compress,
-    /// Memory budget for sorting (e.g. 2G); larger inputs use an external sort.
-    #[arg(long, value_parser = common::parse_size)]
-    pub memory: Option<u64>,
-    /// Directory for temporary files of the external sort.
-    #[arg(long)]
-    pub tmp_dir: Option<PathBuf>,
+    #[command(flatten)]
+    pub sort: common::SortArgs,
     /// Print a JSON summary on stdout.
     #[arg(long)]
     pub json: bool,
@@ -54,8 +50,7 @@ pub fn run(a: Args) -> Result<()> {
     };
     let start = std::time::Instant::now();
     let mut sink = BatchSink::new(&a.output, template, attributes, compression);
-    let tmp = common::tmp_dir(&a.tmp_dir);
-    let opts = SortOptions::with_memory(a.memory.unwrap_or_else(default_memory), tmp);
+    let opts = a.sort.options();
     let report = sort(&ds, &opts, &mut sink)?;
     mortar_io::sort::trace("sorted", start);
     let points = sink.finish()?;

@@ -67,3 +67,23 @@ pub fn peak_rss_bytes() -> Option<u64> {
     let line = s.lines().find(|l| l.starts_with("VmHWM:"))?;
     line.split_whitespace().nth(1)?.parse::<u64>().ok().map(|kb| kb * 1024)
 }
+
+/// The sort's settings, shared by every command that sorts (`sort`, `batch`, `render`).
+#[derive(clap::Args, Clone, Debug, Default)]
+pub struct SortArgs {
+    /// Memory budget for sorting (e.g. 2G); larger inputs use an external sort.
+    #[arg(long, value_parser = parse_size)]
+    pub memory: Option<u64>,
+    /// Directory for temporary files (external sort buckets, temporary batch files).
+    #[arg(long)]
+    pub tmp_dir: Option<std::path::PathBuf>,
+}
+
+impl SortArgs {
+    pub fn tmp_dir(&self) -> std::path::PathBuf {
+        tmp_dir(&self.tmp_dir)
+    }
+    pub fn options(&self) -> mortar_io::sort::SortOptions {
+        mortar_io::sort::SortOptions::with_memory(self.memory.unwrap_or_else(mortar_io::sort::default_memory), self.tmp_dir())
+    }
+}

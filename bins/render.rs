@@ -8,7 +8,6 @@ use mortar_core::render::resolve::{EyeDome, HoleFill, ResolveOptions};
 use mortar_core::render::{Aabb, Camera, PrecisionMode, Projection, RasterOptions, ViewPreset};
 use mortar_io::cleanup::TempPath;
 use mortar_io::render_input::{self, ColorChoice, RenderSettings, RenderSource};
-use mortar_io::sort::{default_memory, SortOptions};
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -196,16 +195,12 @@ pub struct Args {
     /// Print statistics as JSON on stdout (on stderr when the PNG goes to stdout).
     #[arg(long)]
     pub json: bool,
-    /// Memory budget for sorting LAS/LAZ input (e.g. 2G).
-    #[arg(long, value_parser = common::parse_size)]
-    pub memory: Option<u64>,
-    /// Directory for the temporary batch file of LAS/LAZ input.
-    #[arg(long)]
-    pub tmp_dir: Option<PathBuf>,
+    #[command(flatten)]
+    pub sort: common::SortArgs,
 }
 
 /// Opens the inputs: a single batch file as it is, anything else batched into a temporary file.
-pub fn open_source(inputs: &[String], memory: Option<u64>, tmp_dir: &Option<PathBuf>) -> Result<RenderSource> {
+pub fn open_source(inputs: &[String], sort: &common::SortArgs) -> Result<RenderSource> {
     if let [one] = inputs {
         let p = Path::new(one);
         if one != "-" && p.is_file() && mortar_io::batchfile::is_batch_file(p) {
@@ -214,8 +209,7 @@ pub fn open_source(inputs: &[String], memory: Option<u64>, tmp_dir: &Option<Path
     }
     let ds = common::open_dataset(inputs)?;
     common::print_warnings(&ds.warnings);
-    let opts = SortOptions::with_memory(memory.unwrap_or_else(default_memory), common::tmp_dir(tmp_dir));
-    Ok(RenderSource::batch_dataset(&ds, &opts)?)
+    Ok(RenderSource::batch_dataset(&ds, &sort.options())?)
 }
 
 /// The camera the arguments ask for, framing `bounds` where a view is asked for.
@@ -303,7 +297,7 @@ pub fn run(a: Args) -> Result<()> {
         bail!("--fov {}: must be between 0 and 180 degrees", a.camera.fov);
     }
     let start = Instant::now();
-    let source = open_source(&a.inputs, a.memory, &a.tmp_dir)?;
+    let source = open_source(&a.inputs, &a.sort)?;
     let batch_seconds = start.elapsed().as_secs_f64();
     let file = &source.file;
     let own = |e| source.own_error(e);

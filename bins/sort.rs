@@ -3,8 +3,7 @@
 use crate::common;
 use anyhow::Result;
 use mortar_io::sink_las::{LasSink, Target};
-use mortar_io::sort::{default_memory, sort, SortOptions};
-use std::path::PathBuf;
+use mortar_io::sort::sort;
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -17,12 +16,8 @@ pub struct Args {
     /// Write LAZ (the default for a .laz output file).
     #[arg(long)]
     pub laz: bool,
-    /// Memory budget for sorting (e.g. 2G); larger inputs use an external sort.
-    #[arg(long, value_parser = common::parse_size)]
-    pub memory: Option<u64>,
-    /// Directory for temporary files of the external sort.
-    #[arg(long)]
-    pub tmp_dir: Option<PathBuf>,
+    #[command(flatten)]
+    pub sort: common::SortArgs,
 }
 
 pub fn run(a: Args) -> Result<()> {
@@ -30,10 +25,10 @@ pub fn run(a: Args) -> Result<()> {
     common::print_warnings(&ds.warnings);
     let target = Target::parse(&a.output);
     let compressed = a.laz || a.output.to_ascii_lowercase().ends_with(".laz");
-    let tmp = common::tmp_dir(&a.tmp_dir);
+    let tmp = a.sort.tmp_dir();
     let template = ds.source_meta();
     let mut sink = LasSink::new(target, compressed, template, &tmp)?;
-    let opts = SortOptions::with_memory(a.memory.unwrap_or_else(default_memory), tmp);
+    let opts = a.sort.options();
     sort(&ds, &opts, &mut sink)?;
     sink.finish()?;
     Ok(())
