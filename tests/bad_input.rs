@@ -33,6 +33,8 @@ fn check_all_commands(f: &Path) {
     expect_clean_failure(&["sort", fs, "-o", las.to_str().unwrap()], f, &dir);
     expect_clean_failure(&["sort", fs, "-o", laz.to_str().unwrap()], f, &dir);
     expect_clean_failure(&["batch", fs, "-o", mbat.to_str().unwrap()], f, &dir);
+    let png = dir.join("out.png");
+    expect_clean_failure(&["render", fs, "-o", png.to_str().unwrap(), "--tmp-dir", dir.to_str().unwrap()], f, &dir);
     expect_clean_failure(&["batch", fs, "-o", mbat.to_str().unwrap(), "--memory", "64K", "--tmp-dir", dir.to_str().unwrap()], f, &dir);
     std::fs::remove_dir_all(&dir).unwrap();
 }
