@@ -1,5 +1,24 @@
-//! mortar-render: the wgpu compute rasterizer and the preview window.
+//! mortar-render: the wgpu compute rasterizer (paper 003), the GPU twin of mortar-core's CPU
+//! reference rasterizer.
 //!
-//! Not built yet: this crate exists so the crate graph of `ARCHITECTURE.md` is in place from the
-//! start (`bins -> {io, render} -> core`). The GPU renderer arrives with the "shared renderer,
-//! part 2" issue; until then `mortar` has no GPU code.
+//! - [`context`]: headless device setup with the adapter's real limits, 64-bit atomics
+//!   (SHADER_INT64 + SHADER_INT64_ATOMIC_MIN_MAX) and timestamps where present, and the choice of
+//!   the 64-bit or the 32-bit two-pass atomic path at run time.
+//! - [`scene`]: point batches streamed into chunked storage buffers sized to the device.
+//! - [`raster`]: per frame, the shared [`mortar_core::render::Planner`] decides culling, precision
+//!   and projection per batch; the GPU clears, draws (one workgroup of 128 threads per batch,
+//!   dispatches split past 65,535 workgroups) and resolves.
+//! - [`shaders`]: the WGSL modules of `shaders/`, assembled from `shaders/common/` and one file
+//!   per pass.
+//!
+//! This crate opens no files: callers hand it in-memory batches ([`mortar_core::render::BatchRef`]).
+//! The preview window (winit surface) arrives with the live-preview issue.
+
+pub mod context;
+pub mod raster;
+pub mod scene;
+pub mod shaders;
+
+pub use context::{AdapterSummary, AtomicPath, GpuContext, GpuError, GpuOptions};
+pub use raster::{GpuFrame, GpuRasterizer, GpuTimings};
+pub use scene::{GpuBatch, GpuScene, SceneOptions};

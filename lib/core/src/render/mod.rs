@@ -1,24 +1,25 @@
 //! Rendering logic shared by the CPU reference rasterizer and the GPU one (paper 003 §3.2-3.4):
 //! camera and per-batch f32 projection ([`camera`]), frustum culling ([`frustum`]), adaptive
 //! precision with the 500 px rule ([`precision`]), the 64-bit depth|index visibility buffer
-//! ([`framebuffer`]), the CPU rasterizer ([`raster`]) and the resolve from point indices to colours
+//! ([`framebuffer`]), the records the GPU rasterizer reads ([`gpu`]), the CPU rasterizer ([`raster`]) and the resolve from point indices to colours
 //! with hole filling, eye-dome lighting and attribute colour modes ([`resolve`]).
 //!
 //! No files and no GPU here: the GPU crate uploads the `#[repr(C)]` records defined in these modules.
 
 pub mod camera;
 pub mod framebuffer;
+pub mod gpu;
 pub mod frustum;
 pub mod math;
 pub mod precision;
 pub mod raster;
 pub mod resolve;
-#[cfg(test)]
-pub(crate) mod testutil;
+#[doc(hidden)]
+pub mod testutil;
 
 pub use camera::{BatchProjection, Camera, CameraError, Projection, ProjectedPoint, ViewAxes, ViewPreset};
 pub use framebuffer::{pack_key, unpack_key, Framebuffer, EMPTY_KEY};
 pub use frustum::{Containment, Frustum, Plane};
 pub use math::{Aabb, DMat4, DVec3};
 pub use precision::{choose_precision, precision_for_pixels, PrecisionMode};
-pub use raster::{rasterize, BatchRef, RasterError, RasterOptions, RasterStats, RasterUniforms};
+pub use raster::{rasterize, validate_batches, BatchPlan, BatchRef, Planner, RasterError, RasterOptions, RasterStats, RasterUniforms};

@@ -98,7 +98,8 @@ impl RasterStats {
         self.points_by_precision.iter().sum()
     }
 
-    fn merge(mut self, o: RasterStats) -> RasterStats {
+    /// The sum of two statistics.
+    pub fn merge(mut self, o: RasterStats) -> RasterStats {
         self.batches += o.batches;
         self.batches_culled += o.batches_culled;
         self.batches_drawn += o.batches_drawn;
@@ -173,6 +174,85 @@ impl RasterUniforms {
     }
 }
 
+/// Checks the batches a rasterizer is given: equal word counts and 32-bit point indices.
+pub fn validate_batches(batches: &[BatchRef<'_>]) -> Result<(), RasterError> {
+    for (i, b) in batches.iter().enumerate() {
+        let lengths = b.words.map(<[u32]>::len);
+        if lengths[1] != lengths[0] || lengths[2] != lengths[0] {
+            return Err(RasterError::WordCounts { batch: i, lengths });
+        }
+        if b.first_index as u64 + lengths[0] as u64 > 1u64 << 32 {
+            return Err(RasterError::IndexOverflow { batch: i, first_index: b.first_index, count: lengths[0] });
+        }
+    }
+    Ok(())
+}
+
+/// What a rasterizer does with one batch in one view.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum BatchPlan {
+    /// The batch has no points.
+    Empty,
+    /// Frustum culling skipped it.
+    Culled,
+    /// Draw it at `precision` with `projection`.
+    Draw {
+        /// How many words per point are read.
+        precision: Precision,
+        /// The per-batch transform of the per-point loop.
+        projection: BatchProjection,
+    },
+}
+
+/// The per-view decisions about whole batches, shared by the CPU rasterizer and the GPU one so
+/// that both cull the same batches, choose the same precision and project with the same
+/// [`BatchProjection`] (paper 003 §3.2-3.3). The paper makes these decisions inside each
+/// workgroup from f32 bounds; mortar makes them per batch in f64 on the host because the
+/// projection itself must be built in f64 for georeferenced coordinates (1e6 m and more), and
+/// it is the same decision for every point of the batch either way.
+#[derive(Clone, Debug)]
+pub struct Planner {
+    camera: Camera,
+    grid: Grid,
+    frustum: Frustum,
+    options: RasterOptions,
+}
+
+impl Planner {
+    /// The planner of a view; fails if the camera is unusable.
+    pub fn new(camera: &Camera, grid: &Grid, options: &RasterOptions) -> Result<Planner, RasterError> {
+        camera.validate()?;
+        Ok(Planner { camera: *camera, grid: *grid, frustum: Frustum::new(camera, CULL_MARGIN_PX), options: *options })
+    }
+
+    /// The camera planned for.
+    pub fn camera(&self) -> &Camera {
+        &self.camera
+    }
+
+    /// Culls one batch of `len` points with quantization frame `batch` and world `bounds`, and
+    /// chooses its precision and projection.
+    pub fn plan(&self, batch: &BatchGrid, bounds: &Aabb, len: usize) -> BatchPlan {
+        if len == 0 {
+            return BatchPlan::Empty;
+        }
+        let camera = &self.camera;
+        let grid = &self.grid;
+        let (precision, _) = choose_precision(self.options.precision, camera, grid, batch);
+        if self.options.cull {
+            // Decoded positions may lie up to the error bound outside the points' bounds; f32 depth
+            // may be off by a tiny fraction of the distance.
+            let err = batch.error_bound(precision);
+            let slack = CULL_DEPTH_MARGIN * (length(sub(bounds.center(), camera.eye)) + bounds.diagonal());
+            let margin = [0, 1, 2].map(|a| err[a] * grid.scale[a].abs() + slack);
+            if self.frustum.test_aabb(&bounds.expanded(margin)) == Containment::Outside {
+                return BatchPlan::Culled;
+            }
+        }
+        BatchPlan::Draw { precision, projection: camera.batch_projection(grid, batch, bounds, precision) }
+    }
+}
+
 /// Draws `batches` into `fb` (which is not cleared: several calls accumulate, e.g. progressive or
 /// per-file passes). `grid` is the world grid of the batches' integer coordinates.
 pub fn rasterize(
@@ -191,55 +271,30 @@ pub fn rasterize(
             height: camera.height,
         });
     }
-    for (i, b) in batches.iter().enumerate() {
-        let lengths = b.words.map(<[u32]>::len);
-        if lengths[1] != lengths[0] || lengths[2] != lengths[0] {
-            return Err(RasterError::WordCounts { batch: i, lengths });
-        }
-        if b.first_index as u64 + lengths[0] as u64 > 1u64 << 32 {
-            return Err(RasterError::IndexOverflow { batch: i, first_index: b.first_index, count: lengths[0] });
-        }
-    }
-    let frustum = Frustum::new(camera, CULL_MARGIN_PX);
+    validate_batches(batches)?;
+    let planner = Planner::new(camera, grid, options)?;
     let uniforms = RasterUniforms::new(camera);
     let stats = batches
         .par_iter()
-        .map(|b| draw_batch(fb, b, grid, camera, &frustum, &uniforms, options))
+        .map(|b| draw_batch(fb, b, &planner, &uniforms))
         .reduce(RasterStats::default, RasterStats::merge);
     Ok(stats)
 }
 
 /// Culls, chooses the precision and draws one batch.
-fn draw_batch(
-    fb: &Framebuffer,
-    b: &BatchRef<'_>,
-    grid: &Grid,
-    camera: &Camera,
-    frustum: &Frustum,
-    uniforms: &RasterUniforms,
-    options: &RasterOptions,
-) -> RasterStats {
+fn draw_batch(fb: &Framebuffer, b: &BatchRef<'_>, planner: &Planner, uniforms: &RasterUniforms) -> RasterStats {
     let mut stats = RasterStats { batches: 1, ..RasterStats::default() };
-    if b.is_empty() {
-        return stats;
-    }
-    let (precision, _) = choose_precision(options.precision, camera, grid, &b.grid);
-    let bounds = b.bounds();
-    if options.cull {
-        // Decoded positions may lie up to the error bound outside the points' bounds; f32 depth
-        // may be off by a tiny fraction of the distance.
-        let err = b.grid.error_bound(precision);
-        let slack = CULL_DEPTH_MARGIN * (length(sub(bounds.center(), camera.eye)) + bounds.diagonal());
-        let margin = [0, 1, 2].map(|a| err[a] * grid.scale[a].abs() + slack);
-        if frustum.test_aabb(&bounds.expanded(margin)) == Containment::Outside {
+    let (precision, bp) = match planner.plan(&b.grid, &b.bounds(), b.len()) {
+        BatchPlan::Empty => return stats,
+        BatchPlan::Culled => {
             stats.batches_culled = 1;
             return stats;
         }
-    }
-    let bp = camera.batch_projection(grid, &b.grid, &bounds, precision);
+        BatchPlan::Draw { precision, projection } => (precision, projection),
+    };
     stats.batches_drawn = 1;
     stats.points_by_precision[precision.words() - 1] = b.len() as u64;
-    let perspective = camera.is_perspective();
+    let perspective = planner.camera.is_perspective();
     stats.points_drawn = match precision {
         Precision::Bits10 => draw_points::<1>(fb, &bp, b, uniforms, perspective),
         Precision::Bits20 => draw_points::<2>(fb, &bp, b, uniforms, perspective),

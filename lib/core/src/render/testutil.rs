@@ -1,7 +1,8 @@
-//! Helpers shared by the render tests: a seeded generator and synthetic batched scenes.
+//! Helpers shared by the render tests of mortar-core and mortar-render (not a stable API): a
+//! seeded generator and synthetic batched scenes.
 
 /// A small deterministic generator (SplitMix64).
-pub(crate) struct Rng(pub u64);
+pub struct Rng(pub u64);
 
 impl Rng {
     pub fn next_u64(&mut self) -> u64 {
@@ -25,7 +26,7 @@ use crate::grid::Grid;
 use crate::morton::MortonGrid;
 
 /// A batched point cloud in memory, as a batch file would hold it.
-pub(crate) struct Scene {
+pub struct Scene {
     pub grid: Grid,
     /// Integer coordinates in global index order (Morton order).
     pub points: Vec<[i32; 3]>,
@@ -116,7 +117,7 @@ use crate::quantize::join_words;
 
 /// Per-point comparison of the f32 batch projection with the f64 reference, over a scene.
 #[derive(Debug, Default)]
-pub(crate) struct ProjectionCheck {
+pub struct ProjectionCheck {
     /// Points whose reference pixel lies in the viewport (and depth range).
     pub on_screen: usize,
     /// Of those, points the f32 projection puts in another pixel (or drops).

@@ -1,0 +1,218 @@
+//! Point data on the GPU: batches streamed in one at a time into chunked storage buffers.
+//!
+//! A chunk holds the coarse, medium and fine words (and optionally the RGBA8 colours) of whole
+//! batches, one `u32` per point each, in a buffer no larger than the device's largest storage
+//! binding (128 MiB on lavapipe, up to 2 GiB on NVIDIA; at most 1 GiB here so that allocations stay
+//! reasonable). A batch never straddles two chunks. Batches arrive in point-index order
+//! (`first_index` consecutive from 0, as in a batch file), so the index the framebuffer stores is
+//! the batch file's point index and the colour of index `i` sits at `i - chunk.first_index`.
+//! Uploads go through a host staging area per chunk and are written when it fills, when a chunk
+//! is full, or before a frame is drawn ([`GpuScene::flush`]), so data can keep arriving between
+//! frames.
+
+use crate::context::{GpuContext, GpuError};
+use mortar_core::grid::Grid;
+use mortar_core::quantize::BatchGrid;
+use mortar_core::render::{Aabb, BatchRef};
+
+/// The largest chunk, in points (1 GiB per word buffer).
+pub const MAX_CHUNK_POINTS: u32 = 1 << 28;
+
+/// Points staged on the host before a write to the GPU.
+const STAGING_POINTS: usize = 4 << 20;
+
+/// Choices of a scene.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub struct SceneOptions {
+    /// Points per chunk (`None`: as many as the device's largest binding holds, at most
+    /// [`MAX_CHUNK_POINTS`]). Small values exercise the chunking in tests.
+    pub chunk_points: Option<u32>,
+    /// Whether batches come with colours (for the resolve pass).
+    pub colors: bool,
+}
+
+/// Where one batch is and what the planner needs to know of it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct GpuBatch {
+    /// Quantization frame.
+    pub grid: BatchGrid,
+    /// World bounds of its points.
+    pub bounds: Aabb,
+    /// Chunk holding it.
+    pub chunk: u32,
+    /// Position of its first point in the chunk.
+    pub offset: u32,
+    /// Number of points.
+    pub count: u32,
+    /// Index of its first point.
+    pub first_index: u32,
+}
+
+pub(crate) struct Chunk {
+    pub words: [wgpu::Buffer; 3],
+    pub colors: Option<wgpu::Buffer>,
+    pub capacity: u32,
+    pub len: u32,
+    /// Point index of the chunk's first point.
+    pub first_index: u32,
+    /// Points of the chunk already written to the GPU.
+    pub written: u32,
+}
+
+/// The batches on the GPU.
+pub struct GpuScene {
+    grid: Grid,
+    options: SceneOptions,
+    chunk_points: u32,
+    expected_points: u64,
+    points: u64,
+    pub(crate) chunks: Vec<Chunk>,
+    pub(crate) batches: Vec<GpuBatch>,
+    staged: [Vec<u32>; 4],
+}
+
+impl GpuScene {
+    /// An empty scene of points on the world grid `grid`. `expected_points` sizes the chunks
+    /// (the last one is no larger than needed); more points may still come.
+    pub fn new(ctx: &GpuContext, grid: Grid, expected_points: u64, options: SceneOptions) -> Result<GpuScene, GpuError> {
+        let by_device = (ctx.max_binding() / 4).min(MAX_CHUNK_POINTS as u64) as u32 & !255;
+        let chunk_points = options.chunk_points.unwrap_or(by_device).min(by_device).max(1);
+        Ok(GpuScene {
+            grid,
+            options,
+            chunk_points,
+            expected_points,
+            points: 0,
+            chunks: Vec::new(),
+            batches: Vec::new(),
+            staged: Default::default(),
+        })
+    }
+
+    /// The world grid of the points' integer coordinates.
+    pub fn grid(&self) -> &Grid {
+        &self.grid
+    }
+
+    /// Points added so far.
+    pub fn points(&self) -> u64 {
+        self.points
+    }
+
+    /// Batches added so far.
+    pub fn batches(&self) -> &[GpuBatch] {
+        &self.batches
+    }
+
+    /// Number of chunks.
+    pub fn chunk_count(&self) -> usize {
+        self.chunks.len()
+    }
+
+    /// Points per full chunk.
+    pub fn chunk_points(&self) -> u32 {
+        self.chunk_points
+    }
+
+    /// Whether the scene holds colours.
+    pub fn has_colors(&self) -> bool {
+        self.options.colors
+    }
+
+    /// Bytes of GPU memory the chunks occupy.
+    pub fn gpu_bytes(&self) -> u64 {
+        self.chunks.iter().map(|c| c.capacity as u64 * 4 * (3 + c.colors.is_some() as u64)).sum()
+    }
+
+    /// Adds one batch (its `first_index` must be the number of points added before) and, if the
+    /// scene has colours, its points' RGBA8 colours.
+    pub fn push(&mut self, ctx: &GpuContext, b: &BatchRef<'_>, colors: Option<&[u32]>) -> Result<(), GpuError> {
+        let n = b.len();
+        if b.words[1].len() != n || b.words[2].len() != n {
+            return Err(mortar_core::render::RasterError::WordCounts { batch: self.batches.len(), lengths: b.words.map(<[u32]>::len) }.into());
+        }
+        if b.first_index as u64 != self.points {
+            return Err(GpuError::FirstIndex { expected: self.points, got: b.first_index });
+        }
+        if self.points + n as u64 > 1u64 << 32 {
+            return Err(mortar_core::render::RasterError::IndexOverflow { batch: self.batches.len(), first_index: b.first_index, count: n }.into());
+        }
+        match (self.options.colors, colors) {
+            (true, Some(c)) if c.len() == n => {}
+            (true, Some(c)) => return Err(GpuError::Colors(format!("{} colours for a batch of {n} points", c.len()))),
+            (true, None) => return Err(GpuError::Colors("the scene has colours but a batch came without".into())),
+            (false, Some(_)) => return Err(GpuError::Colors("the scene was made without colours".into())),
+            (false, None) => {}
+        }
+        if n > self.chunk_points as usize {
+            return Err(GpuError::TooLarge { what: "one batch", needed: n as u64 * 4, limit: self.chunk_points as u64 * 4 });
+        }
+        let fits = self.chunks.last().is_some_and(|c| c.capacity - c.len >= n as u32);
+        if !fits {
+            self.flush(ctx)?;
+            self.new_chunk(ctx, n as u32)?;
+        }
+        let chunk = self.chunks.len() - 1;
+        let c = self.chunks.last_mut().expect("a chunk was just made");
+        self.batches.push(GpuBatch {
+            grid: b.grid,
+            bounds: b.bounds(),
+            chunk: chunk as u32,
+            offset: c.len,
+            count: n as u32,
+            first_index: b.first_index,
+        });
+        c.len += n as u32;
+        self.points += n as u64;
+        for (s, w) in self.staged.iter_mut().zip(b.words) {
+            s.extend_from_slice(w);
+        }
+        if let Some(col) = colors {
+            self.staged[3].extend_from_slice(col);
+        }
+        if self.staged[0].len() >= STAGING_POINTS {
+            self.flush(ctx)?;
+        }
+        Ok(())
+    }
+
+    fn new_chunk(&mut self, ctx: &GpuContext, at_least: u32) -> Result<(), GpuError> {
+        let remaining = self.expected_points.saturating_sub(self.points);
+        let capacity = (remaining.min(self.chunk_points as u64) as u32).max(at_least).max(1);
+        let first_index = self.points as u32;
+        let make = |label: &str| {
+            ctx.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size: capacity as u64 * 4,
+                usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            })
+        };
+        let words = [make("coarse words"), make("medium words"), make("fine words")];
+        let colors = self.options.colors.then(|| make("colours"));
+        ctx.check()?;
+        self.chunks.push(Chunk { words, colors, capacity, len: 0, first_index, written: 0 });
+        Ok(())
+    }
+
+    /// Writes the staged points to the GPU.
+    pub fn flush(&mut self, ctx: &GpuContext) -> Result<(), GpuError> {
+        let Some(c) = self.chunks.last_mut() else { return Ok(()) };
+        if self.staged[0].is_empty() {
+            return Ok(());
+        }
+        let offset = c.written as u64 * 4;
+        for (buf, s) in c.words.iter().zip(&self.staged[..3]) {
+            ctx.queue.write_buffer(buf, offset, bytemuck::cast_slice(s));
+        }
+        if let Some(buf) = &c.colors {
+            ctx.queue.write_buffer(buf, offset, bytemuck::cast_slice(&self.staged[3]));
+        }
+        c.written += self.staged[0].len() as u32;
+        for s in &mut self.staged {
+            s.clear();
+        }
+        ctx.queue.submit([]);
+        ctx.check()
+    }
+}

@@ -1,0 +1,69 @@
+//! The WGSL passes of the GPU rasterizer, assembled from `shaders/` exactly as the pipelines and
+//! the validation test use them: WGSL has no `#include`, so each pass is the shared files of
+//! `shaders/common/` followed by the pass's own file.
+
+/// The shared types and the split-dispatch helper (every pass).
+const TYPES: &str = include_str!("../../../shaders/common/types.wgsl");
+/// The one position decode and projection (draw passes).
+const DECODE: &str = include_str!("../../../shaders/common/decode.wgsl");
+/// The drawn-point counter (draw passes that count).
+const COUNTERS: &str = include_str!("../../../shaders/common/counters.wgsl");
+
+/// A compute pass of the rasterizer; one WGSL file each.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Pass {
+    /// Sets framebuffer words to all ones (`shaders/clear.wgsl`).
+    Clear,
+    /// Draws batches with 64-bit `atomicMin` on depth|index keys (`shaders/draw.wgsl`).
+    Draw64,
+    /// 32-bit path, step 1: `atomicMin` of the depth (`shaders/draw_depth.wgsl`).
+    DrawDepth32,
+    /// 32-bit path, step 2: `atomicMin` of the index among the nearest (`shaders/draw_index.wgsl`).
+    DrawIndex32,
+    /// Point index to colour (`shaders/resolve.wgsl`).
+    Resolve,
+}
+
+impl Pass {
+    /// Every pass.
+    pub const ALL: [Pass; 5] = [Pass::Clear, Pass::Draw64, Pass::DrawDepth32, Pass::DrawIndex32, Pass::Resolve];
+
+    /// The pass's file under `shaders/`.
+    pub fn file(self) -> &'static str {
+        match self {
+            Pass::Clear => "clear.wgsl",
+            Pass::Draw64 => "draw.wgsl",
+            Pass::DrawDepth32 => "draw_depth.wgsl",
+            Pass::DrawIndex32 => "draw_index.wgsl",
+            Pass::Resolve => "resolve.wgsl",
+        }
+    }
+
+    fn own_source(self) -> &'static str {
+        match self {
+            Pass::Clear => include_str!("../../../shaders/clear.wgsl"),
+            Pass::Draw64 => include_str!("../../../shaders/draw.wgsl"),
+            Pass::DrawDepth32 => include_str!("../../../shaders/draw_depth.wgsl"),
+            Pass::DrawIndex32 => include_str!("../../../shaders/draw_index.wgsl"),
+            Pass::Resolve => include_str!("../../../shaders/resolve.wgsl"),
+        }
+    }
+
+    /// Whether the pass uses 64-bit integers and atomics (SHADER_INT64 +
+    /// SHADER_INT64_ATOMIC_MIN_MAX).
+    pub fn needs_int64(self) -> bool {
+        self == Pass::Draw64
+    }
+
+    /// The complete WGSL module of the pass, as the pipeline compiles it.
+    pub fn source(self) -> String {
+        let mut parts = vec![TYPES];
+        match self {
+            Pass::Clear | Pass::Resolve => {}
+            Pass::Draw64 | Pass::DrawIndex32 => parts.extend([DECODE, COUNTERS]),
+            Pass::DrawDepth32 => parts.push(DECODE),
+        }
+        parts.push(self.own_source());
+        parts.join("\n")
+    }
+}

@@ -1,0 +1,179 @@
+//! The GPU rasterizer against the CPU reference on the same scenes and views: identical keys
+//! (winning point per pixel and its depth) on both atomic paths, with chunked buffers and split
+//! dispatches, and the resolve pass against the CPU resolve.
+//!
+//! Runs on any adapter, software ones included (lavapipe in CI). Skips with a printed reason only
+//! where no adapter exists at all, unless `MORTAR_REQUIRE_GPU` is set (CI sets it).
+
+use mortar_core::grid::Grid;
+use mortar_core::quantize::Precision;
+use mortar_core::render::framebuffer::{key_depth, key_index, EMPTY_KEY};
+use mortar_core::render::resolve::{resolve_with_colors, ResolveOptions};
+use mortar_core::render::testutil::Scene;
+use mortar_core::render::{rasterize, Camera, Framebuffer, PrecisionMode, RasterOptions, RasterStats, ViewPreset};
+use mortar_render::{AtomicPath, GpuContext, GpuError, GpuOptions, GpuRasterizer, GpuScene, SceneOptions};
+
+fn context(atomics: AtomicPath, max_dispatch: Option<u32>) -> Option<GpuContext> {
+    let opts = GpuOptions { atomics: Some(atomics), allow_software: true, max_workgroups_per_dimension: max_dispatch };
+    match GpuContext::new(&opts) {
+        Ok(c) => Some(c),
+        Err(GpuError::NoAdapter(why)) if std::env::var_os("MORTAR_REQUIRE_GPU").is_none() => {
+            eprintln!("SKIPPED: no GPU adapter at all{why}");
+            None
+        }
+        Err(GpuError::NoInt64Atomics { adapter }) if std::env::var_os("MORTAR_REQUIRE_GPU").is_none() => {
+            eprintln!("SKIPPED (64-bit path): {adapter} has no 64-bit atomics");
+            None
+        }
+        Err(e) => panic!("GPU context: {e}"),
+    }
+}
+
+fn cpu_keys(scene: &Scene, cam: &Camera, opts: &RasterOptions) -> (Vec<u64>, RasterStats) {
+    let fb = Framebuffer::new(cam.width, cam.height);
+    let stats = rasterize(&fb, &scene.refs(), &scene.grid, cam, opts).unwrap();
+    (fb.into_keys(), stats)
+}
+
+fn upload(ctx: &GpuContext, scene: &Scene, chunk_points: Option<u32>) -> GpuScene {
+    let mut g = GpuScene::new(ctx, scene.grid, scene.points.len() as u64, SceneOptions { chunk_points, colors: true }).unwrap();
+    for b in scene.refs() {
+        let s = b.first_index as usize;
+        g.push(ctx, &b, Some(&scene.colors[s..s + b.len()])).unwrap();
+    }
+    g
+}
+
+/// Pixels whose winner differs, split into exact depth ties (same depth, other index) and others.
+fn compare(gpu: &[u64], cpu: &[u64]) -> (usize, usize) {
+    let (mut ties, mut other) = (0, 0);
+    for (g, c) in gpu.iter().zip(cpu) {
+        if g == c {
+            continue;
+        }
+        if *g != EMPTY_KEY && *c != EMPTY_KEY && key_depth(*g) == key_depth(*c) && key_index(*g) != key_index(*c) {
+            ties += 1;
+        } else {
+            other += 1;
+        }
+    }
+    (ties, other)
+}
+
+fn cameras(scene: &Scene) -> Vec<(String, Camera)> {
+    let mut cams = vec![
+        ("iso".to_string(), Camera::frame_perspective(&scene.bounds, ViewPreset::Iso, 0.8, 640, 400).unwrap()),
+        ("top ortho".to_string(), Camera::frame_orthographic(&scene.bounds, ViewPreset::Top, 500, 380).unwrap()),
+        ("close-up".to_string(), Camera::close_up(&scene.bounds, 0.8, 640, 400).unwrap()),
+        ("inside".to_string(), Camera::inside(&scene.bounds, 1.2, 640, 400).unwrap()),
+    ];
+    let c = scene.bounds.center();
+    // Looking partly past the data: points on every side of the viewport, batches culled.
+    cams.push(("past".to_string(), Camera { eye: [c[0] - 30.0, c[1], c[2] + 5.0], target: [c[0] + 10.0, c[1] + 25.0, c[2]], ..cams[0].1 }));
+    cams
+}
+
+fn check_scene(name: &str, scene: &Scene, path: AtomicPath, chunk_points: Option<u32>, max_dispatch: Option<u32>) {
+    let Some(ctx) = context(path, max_dispatch) else { return };
+    assert_eq!(ctx.atomic_path(), path);
+    let mut gs = upload(&ctx, scene, chunk_points);
+    if let Some(cp) = chunk_points {
+        assert!(gs.chunk_count() as u64 >= scene.points.len() as u64 / cp as u64, "{name}: {} chunks", gs.chunk_count());
+    }
+    let mut total_ties = 0;
+    for (cam_name, cam) in cameras(scene) {
+        let mut gr = GpuRasterizer::new(&ctx, cam.width, cam.height).unwrap();
+        for mode in [PrecisionMode::Adaptive, PrecisionMode::Fixed(Precision::Bits30), PrecisionMode::Fixed(Precision::Bits10)] {
+            for cull in [true, false] {
+                let opts = RasterOptions { precision: mode, cull };
+                let (want, want_stats) = cpu_keys(scene, &cam, &opts);
+                let frame = gr.draw(&ctx, &mut gs, &cam, &opts, None).unwrap();
+                let got = gr.read_keys(&ctx).unwrap();
+                let (ties, other) = compare(&got, &want);
+                let covered = want.iter().filter(|&&k| k != EMPTY_KEY).count();
+                assert_eq!(other, 0, "{name} {path:?} {cam_name} {mode:?} cull={cull}: {other} of {covered} pixels differ beyond exact depth ties");
+                total_ties += ties;
+                assert_eq!(frame.stats, want_stats, "{name} {path:?} {cam_name} {mode:?} cull={cull}: statistics");
+                assert!(covered > 1000, "{name} {cam_name}: only {covered} pixels covered");
+            }
+        }
+    }
+    eprintln!("{name} {path:?}: exact depth ties that differ: {total_ties}");
+}
+
+fn utm_terrain(n: usize) -> Scene {
+    Scene::terrain(n, 7, Grid { scale: [0.001; 3], offset: [500_000.0, 5_400_000.0, 0.0] })
+}
+
+#[test]
+fn u64_path_matches_cpu_on_utm_terrain() {
+    check_scene("UTM", &utm_terrain(300_000), AtomicPath::U64, None, None);
+}
+
+#[test]
+fn two_pass_32_bit_path_matches_cpu_on_utm_terrain() {
+    check_scene("UTM", &utm_terrain(300_000), AtomicPath::TwoPass32, None, None);
+}
+
+#[test]
+fn both_paths_match_cpu_on_ecef_with_chunks_and_split_dispatches() {
+    // ECEF-sized coordinates at 0.1 mm, several chunks of points and dispatches split at 7
+    // workgroups per dimension.
+    let scene = Scene::terrain(200_000, 3, Grid { scale: [0.0001; 3], offset: [6_400_000.0, 6_400_000.0, 6_400_000.0] });
+    for path in [AtomicPath::U64, AtomicPath::TwoPass32] {
+        check_scene("ECEF chunked", &scene, path, Some(50_000), Some(7));
+    }
+}
+
+#[test]
+fn resolve_matches_cpu_resolve() {
+    let scene = utm_terrain(120_000);
+    for path in [AtomicPath::U64, AtomicPath::TwoPass32] {
+        let Some(ctx) = context(path, None) else { continue };
+        let mut gs = upload(&ctx, &scene, Some(30_000));
+        let cam = Camera::frame_perspective(&scene.bounds, ViewPreset::Iso, 0.8, 400, 300).unwrap();
+        let mut gr = GpuRasterizer::new(&ctx, cam.width, cam.height).unwrap();
+        let background = 0xff20_1008;
+        gr.draw(&ctx, &mut gs, &cam, &RasterOptions::default(), Some(background)).unwrap();
+        let keys = gr.read_keys(&ctx).unwrap();
+        let image = gr.read_image(&ctx).unwrap();
+        let want = resolve_with_colors(&keys, cam.width, cam.height, &scene.colors, &ResolveOptions { background, ..Default::default() });
+        assert_eq!(image, want, "{path:?}");
+        assert!(image.iter().filter(|&&c| c != background).count() > 10_000);
+    }
+}
+
+#[test]
+fn bad_calls_are_errors_not_panics() {
+    let Some(ctx) = context(AtomicPath::TwoPass32, None) else { return };
+    let scene = utm_terrain(30_000);
+    let refs = scene.refs();
+    let mut gs = GpuScene::new(&ctx, scene.grid, 30_000, SceneOptions::default()).unwrap();
+    // Out of order.
+    assert!(matches!(gs.push(&ctx, &refs[1], None), Err(GpuError::FirstIndex { expected: 0, .. })));
+    // Colours where the scene has none.
+    assert!(matches!(gs.push(&ctx, &refs[0], Some(&scene.colors[..refs[0].len()])), Err(GpuError::Colors(_))));
+    gs.push(&ctx, &refs[0], None).unwrap();
+    let cam = Camera::frame_perspective(&scene.bounds, ViewPreset::Top, 0.8, 64, 48).unwrap();
+    let mut gr = GpuRasterizer::new(&ctx, 64, 48).unwrap();
+    // Resolve without colours, and a camera of another size.
+    assert!(matches!(gr.draw(&ctx, &mut gs, &cam, &RasterOptions::default(), Some(0)), Err(GpuError::Colors(_))));
+    let other = Camera { width: 65, ..cam };
+    assert!(matches!(gr.draw(&ctx, &mut gs, &other, &RasterOptions::default(), None), Err(GpuError::Raster(_))));
+    // A framebuffer beyond the device's largest binding.
+    assert!(matches!(GpuRasterizer::new(&ctx, 1 << 15, 1 << 15), Err(GpuError::TooLarge { .. })) || ctx.max_binding() >= 1u64 << 32);
+    // An empty scene draws nothing.
+    let mut empty = GpuScene::new(&ctx, scene.grid, 0, SceneOptions::default()).unwrap();
+    let f = gr.draw(&ctx, &mut empty, &cam, &RasterOptions::default(), None).unwrap();
+    assert_eq!(f.stats.points_drawn, 0);
+    assert!(gr.read_keys(&ctx).unwrap().iter().all(|&k| k == EMPTY_KEY));
+}
+
+#[test]
+fn adapter_is_reported() {
+    let Some(ctx) = context(AtomicPath::TwoPass32, None) else { return };
+    let a = ctx.adapter();
+    eprintln!("adapter: {} ({}, {}, driver {}), timestamps: {}, largest binding: {} MiB", a.name, a.backend, a.device_type, a.driver, ctx.has_timestamps(), ctx.max_binding() >> 20);
+    assert!(!a.name.is_empty());
+    assert!(ctx.max_binding() >= 128 << 20);
+}

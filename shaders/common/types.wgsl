@@ -1,0 +1,53 @@
+// Types shared by the passes of the GPU rasterizer.
+//
+// KEEP IN SYNC with their #[repr(C)] twins in Rust (one definition per layout; mortar-render's
+// layout test compares the offsets and sizes naga computes here with the Rust ones):
+//   BatchProjection  lib/core/src/render/camera.rs  (112 bytes)
+//   DrawRecord       lib/core/src/render/gpu.rs     (128 bytes)
+//   FrameUniforms    lib/core/src/render/gpu.rs     (32 bytes)
+//   ResolveUniforms  lib/core/src/render/gpu.rs     (32 bytes)
+
+struct BatchProjection {
+    // Rows X, Y, D, W of pixel_from_local (row-major, as in Rust; not a WGSL matrix).
+    pixel_from_local: array<vec4<f32>, 4>,
+    anchor: vec3<i32>,
+    words: u32,
+    shift: vec3<u32>,
+    _pad0: u32,
+    pixel_origin: vec2<i32>,
+    _pad1: vec2<u32>,
+}
+
+struct DrawRecord {
+    projection: BatchProjection,
+    offset: u32,
+    count: u32,
+    first_index: u32,
+    _pad: u32,
+}
+
+struct FrameUniforms {
+    width: u32,
+    height: u32,
+    near: f32,
+    far: f32,
+    perspective: u32,
+    one: f32,
+    _pad: vec2<u32>,
+}
+
+struct ResolveUniforms {
+    width: u32,
+    height: u32,
+    key_stride: u32,
+    depth_offset: u32,
+    first_index: u32,
+    count: u32,
+    background: u32,
+    write_background: u32,
+}
+
+// The linear index of a workgroup in a dispatch split over x and y (at most 65,535 per dimension).
+fn workgroup_linear(wg: vec3<u32>, groups: vec3<u32>) -> u32 {
+    return wg.y * groups.x + wg.x;
+}
