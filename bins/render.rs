@@ -1,5 +1,7 @@
 //! `mortar render`: one view of a batch file (or of LAS/LAZ batched on the fly) drawn by the CPU
-//! reference rasterizer (paper 003 §3.2-3.4) to a PNG.
+//! reference rasterizer or the wgpu compute rasterizer (paper 003 §3.2-3.4) to a PNG. Both leave
+//! the same visibility buffer; the colours, hole filling and eye-dome lighting are then resolved
+//! on the host from the visible points alone.
 
 use crate::common;
 use anyhow::{anyhow, bail, Context, Result};
@@ -7,7 +9,10 @@ use mortar_core::quantize::Precision;
 use mortar_core::render::resolve::{EyeDome, HoleFill, ResolveOptions};
 use mortar_core::render::{Aabb, Camera, PrecisionMode, Projection, RasterOptions, ViewPreset};
 use mortar_io::cleanup::TempPath;
-use mortar_io::render_input::{self, ColorChoice, RenderSettings, RenderSource};
+use mortar_core::render::BatchRef;
+use mortar_io::batchfile::BatchFile;
+use mortar_io::render_input::{self, ColorChoice, RenderSettings, RenderSource, Rendered};
+use mortar_render::{AtomicPath, GpuContext, GpuError, GpuOptions, GpuRasterizer, GpuScene, SceneOptions};
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -17,10 +22,23 @@ use std::time::Instant;
 pub enum Backend {
     /// The CPU reference rasterizer.
     Cpu,
-    /// The wgpu compute rasterizer (not built yet).
+    /// The wgpu compute rasterizer on the best adapter, software ones (a CPU Vulkan) included.
     Gpu,
-    /// The best available: the CPU rasterizer for now.
+    /// The GPU rasterizer on a hardware adapter if there is one, else the CPU rasterizer.
     Auto,
+}
+
+/// Which atomics the GPU rasterizer uses.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum AtomicsArg {
+    /// 64-bit where the adapter has them, else 32-bit.
+    Auto,
+    /// One pass with 64-bit atomicMin on depth|index keys.
+    #[value(name = "64")]
+    U64,
+    /// Two passes with 32-bit atomics (depth, then index).
+    #[value(name = "32")]
+    U32,
 }
 
 /// Precision of the coordinate words each batch loads.
@@ -179,9 +197,13 @@ pub struct Args {
     /// Draw every batch, also those outside the view (same image, slower).
     #[arg(long)]
     pub no_cull: bool,
-    /// Rasterizer: cpu; gpu is not built yet; auto picks cpu.
-    #[arg(long, value_enum, default_value = "cpu")]
+    /// Rasterizer: cpu, gpu (any adapter, software included) or auto (a hardware GPU if there is
+    /// one, else cpu).
+    #[arg(long, value_enum, default_value = "auto")]
     pub backend: Backend,
+    /// Atomics of the GPU rasterizer: auto, 64 or 32 (the two-pass fallback).
+    #[arg(long, value_enum, default_value = "auto")]
+    pub atomics: AtomicsArg,
     /// Fill empty pixels from their nearest neighbour where at least N of the 8 neighbours hold a
     /// point (--hole-fill alone: N = 3, which keeps silhouettes).
     #[arg(long, value_name = "N", num_args = 0..=1, default_missing_value = "3", value_parser = clap::value_parser!(u32).range(1..=8))]
@@ -285,10 +307,6 @@ fn camera_json(c: &Camera) -> serde_json::Value {
 
 /// Opens the input, draws the view, writes the PNG and (with `--json`) the statistics.
 pub fn run(a: Args) -> Result<()> {
-    match a.backend {
-        Backend::Gpu => bail!("--backend gpu: the GPU rasterizer is not built yet; use --backend cpu (or auto)"),
-        Backend::Cpu | Backend::Auto => {}
-    }
     if a.width == 0 || a.height == 0 || a.width > 16384 || a.height > 16384 {
         bail!("--width {} --height {}: each side must be 1 to 16384 pixels", a.width, a.height);
     }
@@ -320,7 +338,23 @@ pub fn run(a: Args) -> Result<()> {
             eye_dome: a.edl.map(|strength| EyeDome { strength, ..EyeDome::default() }),
         },
     };
-    let r = render_input::render(file, &refs, &camera, &settings).map_err(own)?;
+    let atomics = match a.atomics {
+        AtomicsArg::Auto => None,
+        AtomicsArg::U64 => Some(AtomicPath::U64),
+        AtomicsArg::U32 => Some(AtomicPath::TwoPass32),
+    };
+    let gpu = match a.backend {
+        Backend::Cpu => None,
+        Backend::Gpu => Some(GpuContext::new(&GpuOptions { atomics, allow_software: true, ..Default::default() }).map_err(|e| anyhow!("--backend gpu: {e}"))?),
+        Backend::Auto => GpuContext::new(&GpuOptions { atomics, allow_software: false, ..Default::default() }).ok(),
+    };
+    let (r, gpu_json) = match &gpu {
+        None => (render_input::render(file, &refs, &camera, &settings).map_err(own)?, serde_json::Value::Null),
+        Some(ctx) => {
+            let (r, j) = render_gpu(ctx, file, &refs, &camera, &settings).map_err(|e| anyhow!("{label}: GPU: {e}"))?;
+            (r.map_err(own)?, j)
+        }
+    };
     let t = Instant::now();
     let png = encode_png(r.width, r.height, &r.rgba)?;
     write_atomic(&a.output, &png)?;
@@ -332,7 +366,8 @@ pub fn run(a: Args) -> Result<()> {
             "output": a.output,
             "width": r.width,
             "height": r.height,
-            "backend": "cpu",
+            "backend": if gpu.is_some() { "gpu" } else { "cpu" },
+            "gpu": gpu_json,
             "precision": a.precision.name(),
             "cull": !a.no_cull,
             "color": a.color.resolved(file).name(),
@@ -351,6 +386,7 @@ pub fn run(a: Args) -> Result<()> {
             "resolve_seconds": r.resolve_seconds,
             "png_seconds": png_seconds,
             "points_per_second": s.points_projected() as f64 / r.raster_seconds.max(1e-9),
+            "gpu_points_per_second": gpu_json.get("draw_ms").and_then(|v| v.as_f64()).map(|ms| s.points_projected() as f64 / (ms * 1e-3).max(1e-12)),
         });
         let text = serde_json::to_string_pretty(&j)?;
         if a.output.as_os_str() == "-" {
@@ -360,4 +396,41 @@ pub fn run(a: Args) -> Result<()> {
         }
     }
     Ok(())
+}
+
+/// Draws `refs` with the GPU rasterizer: uploads the batches, draws one frame, reads the keys back
+/// and resolves them on the host exactly as the CPU path does. The outer error is the GPU's, the
+/// inner one the input's.
+fn render_gpu(ctx: &GpuContext, file: &BatchFile, refs: &[BatchRef<'_>], camera: &Camera, settings: &RenderSettings) -> std::result::Result<(mortar_io::Result<Rendered>, serde_json::Value), GpuError> {
+    if let Err(e) = render_input::check_color(file, settings.color) {
+        return Ok((Err(e), serde_json::Value::Null));
+    }
+    let t = Instant::now();
+    let mut scene = GpuScene::new(ctx, file.grid(), file.header.point_count, SceneOptions::default())?;
+    for b in refs {
+        scene.push(ctx, b, None)?;
+    }
+    scene.flush(ctx)?;
+    ctx.wait()?;
+    let upload_seconds = t.elapsed().as_secs_f64();
+    let mut raster = GpuRasterizer::new(ctx, camera.width, camera.height)?;
+    let frame = raster.draw(ctx, &mut scene, camera, &settings.raster, None)?;
+    let keys = raster.read_keys(ctx)?;
+    let a = ctx.adapter();
+    let timings = frame.timings.map(|t| serde_json::json!({ "clear_ms": t.clear_ms, "draw_ms": t.draw_ms }));
+    let j = serde_json::json!({
+        "adapter": a.name,
+        "api": a.backend,
+        "device_type": a.device_type,
+        "driver": a.driver,
+        "atomics": ctx.atomic_path().name(),
+        "chunks": scene.chunk_count(),
+        "gpu_bytes": scene.gpu_bytes(),
+        "upload_seconds": upload_seconds,
+        "plan_seconds": frame.plan_seconds,
+        "frame_seconds": frame.frame_seconds,
+        "timings": timings,
+        "draw_ms": frame.timings.map(|t| t.draw_ms),
+    });
+    Ok((render_input::resolve_keys(file, keys, frame.stats, frame.frame_seconds, camera, settings), j))
 }

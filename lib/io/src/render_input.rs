@@ -417,7 +417,13 @@ pub fn render(file: &BatchFile, refs: &[BatchRef<'_>], camera: &Camera, settings
     let t0 = Instant::now();
     let stats = rasterize(&fb, refs, &file.grid(), camera, &settings.raster).map_err(|e| Error::input(&file.path, e.to_string()))?;
     let raster_seconds = t0.elapsed().as_secs_f64();
-    let keys = fb.into_keys();
+    resolve_keys(file, fb.into_keys(), stats, raster_seconds, camera, settings)
+}
+
+/// Resolves a visibility buffer of `file`'s points (drawn by either rasterizer with `stats` in
+/// `raster_seconds`) into the image: colours of the visible points in the chosen mode, then hole
+/// filling and eye-dome lighting as asked.
+pub fn resolve_keys(file: &BatchFile, keys: Vec<u64>, stats: RasterStats, raster_seconds: f64, camera: &Camera, settings: &RenderSettings) -> Result<Rendered> {
     let t1 = Instant::now();
     let colors = colors_for_keys(file, &keys, settings.color, settings.range)?;
     let bg = settings.resolve.background;
@@ -436,7 +442,6 @@ pub fn render(file: &BatchFile, refs: &[BatchRef<'_>], camera: &Camera, settings
         color_range: colors.range,
     })
 }
-
 
 #[cfg(test)]
 mod tests {

@@ -201,10 +201,12 @@ pub struct BatchProjection {
     pub words: u32,
     /// Right shift from a 30-bit number to the integer offset, `30 - bits`, per axis.
     pub shift: [u32; 3],
-    _pad0: u32,
+    /// Padding (WGSL aligns vec3 to 16 bytes).
+    pub _pad0: u32,
     /// Integer pixel added to the projected pixel offsets.
     pub pixel_origin: [i32; 2],
-    _pad1: [u32; 2],
+    /// Padding to a multiple of 16 bytes.
+    pub _pad1: [u32; 2],
 }
 
 const _: () = assert!(std::mem::size_of::<BatchProjection>() == 112);
