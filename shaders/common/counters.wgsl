@@ -8,6 +8,11 @@ var<workgroup> drawn_in_group: atomic<u32>;
 // Sums every thread's count in the workgroup, then adds it once to the global count (low word,
 // carry into the high word). Call from uniform control flow.
 fn count_drawn(drawn: u32, lid: u32) {
+    // Workgroup memory is not zeroed for us (the pipelines switch that off).
+    if lid == 0u {
+        atomicStore(&drawn_in_group, 0u);
+    }
+    workgroupBarrier();
     atomicAdd(&drawn_in_group, drawn);
     workgroupBarrier();
     if lid == 0u {

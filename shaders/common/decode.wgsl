@@ -1,8 +1,7 @@
 // The one position decode and projection of the GPU rasterizer: the WGSL twin of
 // mortar_core::quantize::join_words + BatchProjection::local + ::transform and the pixel/inside
 // test of the CPU loop (lib/core/src/render/raster.rs, project_block). Same operations in the
-// same order; every product is multiplied by frame.one (1.0, unknown to the compiler) so that no
-// product can be fused into an FMA with the following addition.
+// same order, each rounded on its own (see opaque), and a correctly rounded division (div_rn).
 
 // The 30-bit numbers of a point from its first `words` words (coarse bits [20, 30), medium
 // [10, 20), fine [0, 10) per axis; axis a in bits [10a, 10a + 10) of each word).
@@ -26,26 +25,46 @@ struct Projected {
     inside: bool,
 }
 
-// One row of pixel_from_local applied to l: ((m.x l.x + m.y l.y) + m.z l.z) + m.w, each product
-// rounded on its own.
-fn row(m: vec4<f32>, l: vec3<f32>, one: f32) -> f32 {
-    let a = (m.x * l.x) * one;
-    let b = (m.y * l.y) * one;
-    let c = (m.z * l.z) * one;
-    return ((a + b) + c) + m.w;
+// The value of v, its bits xor-ed with `zero` (frame.zero, always 0): a barrier the shader
+// compiler cannot see through, so it can neither fuse the product before it with a following
+// addition (an FMA rounds once where the CPU rounds twice) nor reassociate across it.
+fn opaque(v: f32, zero: u32) -> f32 {
+    return bitcast<f32>(bitcast<u32>(v) ^ zero);
+}
+
+// One row of pixel_from_local applied to l: ((m.x l.x + m.y l.y) + m.z l.z) + m.w, every
+// operation rounded on its own, as in the CPU loop.
+fn row(m: vec4<f32>, l: vec3<f32>, zero: u32) -> f32 {
+    let a = opaque(m.x * l.x, zero);
+    let b = opaque(m.y * l.y, zero);
+    let c = opaque(m.z * l.z, zero);
+    return opaque(opaque(a + b, zero) + c, zero) + m.w;
+}
+
+// x / d correctly rounded, as the CPU divides. WGSL lets a GPU divide with an error of 2.5 ULP
+// (NVIDIA does), so the quotient is refined: a Newton step on the reciprocal, then the exact
+// remainder r = x - q d (one fused multiply-add) corrects q (Markstein; the sequence of CUDA's
+// div.rn). Valid for the normal, finite values of the points kept (d >= near > 0); a GPU whose
+// fma is not fused would make this no worse than plain division.
+fn div_rn(x: f32, d: f32, zero: u32) -> f32 {
+    let y0 = opaque(1.0 / d, zero);
+    let y = opaque(fma(opaque(fma(-d, y0, 1.0), zero), y0, y0), zero);
+    let q0 = opaque(x * y, zero);
+    let r = opaque(fma(-q0, d, x), zero);
+    return opaque(fma(r, y, q0), zero);
 }
 
 fn project(p: BatchProjection, q: vec3<u32>, frame: FrameUniforms) -> Projected {
     // Integer offset minus anchor (wrapping i32), then to f32: BatchProjection::local.
     let l = vec3<f32>(bitcast<vec3<i32>>(q >> p.shift) - p.anchor);
-    let x = row(p.pixel_from_local[0], l, frame.one);
-    let y = row(p.pixel_from_local[1], l, frame.one);
-    let depth = row(p.pixel_from_local[2], l, frame.one);
+    let x = row(p.pixel_from_local[0], l, frame.zero);
+    let y = row(p.pixel_from_local[1], l, frame.zero);
+    let depth = row(p.pixel_from_local[2], l, frame.zero);
     var fx = x;
     var fy = y;
     if frame.perspective != 0u {
-        fx = x / depth;
-        fy = y / depth;
+        fx = div_rn(x, depth, frame.zero);
+        fy = div_rn(y, depth, frame.zero);
     }
     let ox = p.pixel_origin.x;
     let oy = p.pixel_origin.y;

@@ -32,7 +32,7 @@ struct FrameUniforms {
     near: f32,
     far: f32,
     perspective: u32,
-    one: f32,
+    zero: u32,
     _pad: vec2<u32>,
 }
 

@@ -138,6 +138,12 @@ impl GpuContext {
     pub fn new(options: &GpuOptions) -> Result<GpuContext, GpuError> {
         // Vulkan, Metal and DX12 first; the GL backend (EGL probing, noisy on headless machines)
         // only when none of them has an adapter. WGPU_BACKEND overrides both.
+        // Mesa's device-select layer probes for a Wayland display and prints an error without one;
+        // mortar enumerates and ranks the adapters itself, so the layer is switched off (unless
+        // the user set NODEVICE_SELECT). This runs before any GPU thread exists.
+        if std::env::var_os("NODEVICE_SELECT").is_none() {
+            std::env::set_var("NODEVICE_SELECT", "1");
+        }
         let from_env = wgpu::Backends::from_env();
         let mut adapters = Vec::new();
         for backends in [from_env.unwrap_or(wgpu::Backends::PRIMARY), wgpu::Backends::GL] {

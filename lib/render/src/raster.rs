@@ -75,7 +75,8 @@ fn pipeline(ctx: &GpuContext, pass: Pass) -> wgpu::ComputePipeline {
         layout: None,
         module: &module,
         entry_point: Some("main"),
-        compilation_options: Default::default(),
+        // The passes initialise the little workgroup memory they use (common/counters.wgsl).
+        compilation_options: wgpu::PipelineCompilationOptions { zero_initialize_workgroup_memory: false, ..Default::default() },
         cache: None,
     })
 }
@@ -177,7 +178,7 @@ impl GpuRasterizer {
         // records starting at a storage-offset boundary (padding records have no points).
         let plans: Vec<BatchPlan> = scene.batches.par_iter().map(|b| planner.plan(&b.grid, &b.bounds, b.count as usize)).collect();
         let mut stats = RasterStats { batches: plans.len() as u64, ..Default::default() };
-        let align = (ctx.limits().min_storage_buffer_offset_alignment as usize / std::mem::size_of::<DrawRecord>()).max(1);
+        let align = ctx.limits().min_storage_buffer_offset_alignment.max(1) as usize;
         let mut records: Vec<DrawRecord> = Vec::new();
         let mut ranges: Vec<(usize, usize, usize)> = Vec::new(); // (chunk, first record, count)
         for (b, plan) in scene.batches.iter().zip(&plans) {
@@ -188,7 +189,9 @@ impl GpuRasterizer {
                     stats.batches_drawn += 1;
                     stats.points_by_precision[precision.words() - 1] += b.count as u64;
                     if ranges.last().is_none_or(|r| r.0 != b.chunk as usize) {
-                        records.resize(records.len().next_multiple_of(align), bytemuck::Zeroable::zeroed());
+                        while records.len() * std::mem::size_of::<DrawRecord>() % align != 0 {
+                            records.push(bytemuck::Zeroable::zeroed());
+                        }
                         ranges.push((b.chunk as usize, records.len(), 0));
                     }
                     records.push(DrawRecord { projection: *projection, offset: b.offset, count: b.count, first_index: b.first_index, _pad: 0 });
@@ -239,8 +242,8 @@ impl GpuRasterizer {
         for (step, pipe) in self.pipelines.draw.iter().enumerate() {
             let layout0 = pipe.get_bind_group_layout(0);
             let mut e0 = vec![entry(0, self.frame_uniforms.as_entire_binding()), entry(1, self.keys.as_entire_binding())];
-            let counts = self.path == AtomicPath::U64 || step == 1;
-            if counts {
+            // Every draw pass counts except the 32-bit path's first step.
+            if self.path == AtomicPath::U64 || step == 1 {
                 e0.push(entry(2, self.counters.as_entire_binding()));
             }
             if step == 1 {

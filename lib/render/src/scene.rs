@@ -69,6 +69,8 @@ pub struct GpuScene {
     pub(crate) chunks: Vec<Chunk>,
     pub(crate) batches: Vec<GpuBatch>,
     staged: [Vec<u32>; 4],
+    /// Bytes written since the last wait for the GPU (bounds wgpu's staging memory).
+    unwaited: u64,
 }
 
 impl GpuScene {
@@ -86,6 +88,7 @@ impl GpuScene {
             chunks: Vec::new(),
             batches: Vec::new(),
             staged: Default::default(),
+            unwaited: 0,
         })
     }
 
@@ -209,10 +212,17 @@ impl GpuScene {
             ctx.queue.write_buffer(buf, offset, bytemuck::cast_slice(&self.staged[3]));
         }
         c.written += self.staged[0].len() as u32;
+        self.unwaited += self.staged.iter().map(|s| s.len() as u64 * 4).sum::<u64>();
         for s in &mut self.staged {
             s.clear();
         }
         ctx.queue.submit([]);
+        // wgpu keeps a staging copy of every write until the GPU has done it: wait now and then
+        // so that streaming billions of points does not hold them all in host memory.
+        if self.unwaited > 1 << 30 {
+            self.unwaited = 0;
+            return ctx.wait();
+        }
         ctx.check()
     }
 }

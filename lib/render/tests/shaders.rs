@@ -91,7 +91,7 @@ fn shared_structs_have_the_rust_layout() {
                 ("near", offset_of!(FrameUniforms, near)),
                 ("far", offset_of!(FrameUniforms, far)),
                 ("perspective", offset_of!(FrameUniforms, perspective)),
-                ("one", offset_of!(FrameUniforms, one)),
+                ("zero", offset_of!(FrameUniforms, zero)),
                 ("_pad", offset_of!(FrameUniforms, _pad)),
             ],
         ),

@@ -38,10 +38,11 @@ pub struct FrameUniforms {
     pub far: f32,
     /// 1 for a perspective camera (pixel = X / W), 0 for orthographic (pixel = X).
     pub perspective: u32,
-    /// Always 1.0. Every product of the projection is multiplied by it: the shader compiler
-    /// cannot see that the factor is one, so it cannot fuse `a * b + c` into one rounding (an
-    /// FMA) and the GPU rounds each product as the CPU rasterizer does.
-    pub one: f32,
+    /// Always 0. The shader xors the bits of every intermediate result of the projection with
+    /// it: the compiler cannot see that this changes nothing, so it can neither fuse `a * b + c`
+    /// into one rounding (an FMA) nor reorder operations, and the GPU rounds each operation as
+    /// the CPU rasterizer does.
+    pub zero: u32,
     /// Padding to 32 bytes.
     pub _pad: [u32; 2],
 }
@@ -57,7 +58,7 @@ impl FrameUniforms {
             near: camera.near as f32,
             far: camera.far as f32,
             perspective: camera.is_perspective() as u32,
-            one: 1.0,
+            zero: 0,
             _pad: [0; 2],
         }
     }
