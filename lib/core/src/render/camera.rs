@@ -343,7 +343,12 @@ impl Camera {
     /// Continuous pixel coordinates of view coordinates (depth must be positive for perspective).
     #[inline]
     fn pixel_of_view(&self, v: DVec3) -> [f64; 2] {
-        let [hx, hy] = self.half_extent();
+        self.pixel_of_view_with(self.half_extent(), v)
+    }
+
+    /// [`Camera::pixel_of_view`] with the half extent computed once by the caller (a `tan`).
+    #[inline]
+    fn pixel_of_view_with(&self, [hx, hy]: [f64; 2], v: DVec3) -> [f64; 2] {
         let (nx, ny) = match self.projection {
             Projection::Perspective { .. } => (v[0] / (v[2] * hx), v[1] / (v[2] * hy)),
             Projection::Orthographic { .. } => (v[0] / hx, v[1] / hy),
@@ -370,10 +375,11 @@ impl Camera {
     pub fn screen_rect(&self, bounds: &Aabb) -> Option<([f64; 2], [f64; 2])> {
         let axes = self.axes_or_panic();
         let corners = bounds.corners().map(|c| self.view_of(&axes, c));
+        let half = self.half_extent();
         let mut lo = [f64::INFINITY; 2];
         let mut hi = [f64::NEG_INFINITY; 2];
         let mut add = |v: DVec3| {
-            let p = self.pixel_of_view(v);
+            let p = self.pixel_of_view_with(half, v);
             for a in 0..2 {
                 lo[a] = lo[a].min(p[a]);
                 hi[a] = hi[a].max(p[a]);
