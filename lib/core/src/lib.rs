@@ -4,8 +4,9 @@
 //! other part shares: Morton codes over the LAS integer grid ([`morton`]), the byte layout of LAS
 //! point records ([`layout`]), merging the integer grids of several inputs ([`grid`]), the batch
 //! quantization of paper 003 §3.3 ([`quantize`]), splitting sorted points into batches ([`batching`]),
-//! the render colour derived from the source's fields ([`color`]) and the rendering logic of paper
-//! 003 §3.2-3.4: camera, culling, adaptive precision, the CPU rasterizer and the resolve ([`render`]).
+//! the render colour derived from the source's fields ([`color`]), the incremental octree LOD builder
+//! of paper 004 §3-5 with its snapshots ([`octree`]) and the rendering logic of paper 003 §3.2-3.4:
+//! camera, culling, adaptive precision, the CPU rasterizer and the resolve ([`render`]).
 
 pub mod batch;
 pub mod batching;
@@ -13,6 +14,7 @@ pub mod color;
 pub mod grid;
 pub mod layout;
 pub mod morton;
+pub mod octree;
 pub mod quantize;
 pub mod render;
 

@@ -1,0 +1,245 @@
+//! The incremental octree LOD builder of paper 004 (SimLOD, Schütz, Herzberger, Wimmer), on the CPU.
+//!
+//! # Structure (paper 004 §3.1, §3.3)
+//!
+//! An octree over a power-of-two root [`Cube`] in the LAS integer grid. Leaves hold the original
+//! points ([`Point`]: integer coordinates, the caller's record index and an RGBA colour), at most
+//! [`BuilderConfig::leaf_capacity`] of them (50,000 by default). Inner nodes hold voxels ([`Voxel`])
+//! sampled on a 128³ grid inscribed in their cube: one voxel per occupied cell. Every input point
+//! ends in exactly one leaf; inner nodes are a redundant level of detail. Children are the octants
+//! of their parent, numbered `x | y << 1 | z << 2` from the upper bit of the offset in the parent
+//! (the bit order of [`crate::morton`]); a split creates all 8 children at once, empty ones
+//! included, and they get consecutive [`NodeId`]s.
+//!
+//! # One update (paper 004 §5, figure 6)
+//!
+//! [`Builder::add_batch`] inserts one batch (about 1 M points) in the paper's phases:
+//!
+//! 1. `expand` (§5.1): repeated *counting* (every point not yet in a final leaf descends to its
+//!    leaf, which counts it) and *splitting* (a leaf whose stored plus counted points exceed the
+//!    capacity becomes an inner node with 8 empty leaf children; the points it stored go to the
+//!    spill list and are counted again like batch points); leaves that do not split are final for
+//!    this update. It ends when no leaf splits. Spilled points descend from the node that spilled
+//!    them rather than from the root (the result is the same, the walk shorter).
+//! 2. `sample_voxels` (§5.2): every point walks down through the inner nodes on its path and, in
+//!    each, marks its cell of the 128³ grid; a cell that was empty becomes a new voxel, kept in a
+//!    per-node backlog. Spilled points sample only from the node that spilled them downward: the
+//!    ancestors above saw them when they were first inserted.
+//! 3. `insert_points` (§5.3-5.4): the paper's chunk allocation and insertion in one: each leaf
+//!    that receives points gets one new chunk of exactly that size, the points (spilled first,
+//!    then the batch, each in order) are scattered into those chunks, and the chunks are appended
+//!    to the leaves' lists of `Arc`-shared chunks ([`Chunks`]), as the paper links chunks.
+//! 4. `insert_voxels` (§5.4): each inner node appends its backlog of new voxels to its chunks.
+//!
+//! Then the changed nodes are published for [`Builder::snapshot`]. [`BatchStats`] reports what
+//! each update did and how long each phase took.
+//!
+//! Where it differs from the GPU paper:
+//!
+//! - Occupancy is sparse, not a dense 256 KiB bit grid per inner node: per octant of the grid
+//!   (64³ cells), a 512-entry table of 8³-cell bricks (1 KiB, allocated with the octant's first
+//!   voxel) and 64 bytes of bits per occupied brick, in the spirit of the hash maps of Wand et al.
+//!   that §3.1 mentions. A surface node of ~16 k voxels needs ~25 KiB; a full grid 264 KiB.
+//! - Sampling is deterministic instead of racing on atomics: the points of the update are
+//!   partitioned top-down, stably, by octant (as 20-byte records, so every level reads them
+//!   sequentially), and octant `o` of a node's grid is sampled by the task of its child `o`, in
+//!   arrival order. Cells of different octants never meet, so the 8 octants of every grid, the
+//!   root's included, are sampled in parallel without locks contending.
+//! - There is no chunk pool (§3.4): freed chunks are reference counted and may still be held by
+//!   snapshots. Chunks are not of one fixed size: see [`Chunks`] for how appends stay few and
+//!   large.
+//!
+//! # Colours
+//!
+//! [`ColorMode::FirstCome`] is the paper's choice: a voxel keeps the colour of the first point
+//! that fell into its cell, in arrival order. [`ColorMode::Averaged`] is the colour filtering that
+//! §8 names as future work: each voxel keeps a running sum and count and shows the rounded mean
+//! `(sum + count / 2) / count` per RGBA channel (see [`mean_color`]). It costs a cell → voxel
+//! index per octant (the same two-level bricks, 2 KiB per occupied brick), 28 bytes of sums per
+//! voxel and 4 bytes of voxel order, and since colours change, a node's voxel chunks (fixed
+//! chunks of [`AVERAGED_CHUNK`] voxels) are rebuilt whenever a batch changes a voxel in them. A
+//! voxel stops accumulating after [`MAX_AVERAGED_SAMPLES`] points (its sums are u32): its colour
+//! is then the mean of its first 2^24 points. Measured on a terrain surface: about 95 bytes of
+//! sampling state per voxel, against under 2 bytes per voxel for first-come occupancy.
+//!
+//! # Depth bound
+//!
+//! A leaf splits only if its cube is at least 128 grid units wide ([`MIN_INNER_SIZE_LOG2`]: an
+//! inner node's voxels are at least one grid unit) and its level is below
+//! [`BuilderConfig::max_level`]. Other leaves keep every point they receive and may exceed the
+//! capacity: many duplicate points, or points denser than the grid, end in a leaf 64 (or fewer)
+//! grid units wide. The depth is therefore at most `root.size_log2 - 6 <= 26`, whatever the input.
+//!
+//! # Snapshots and what is monotone
+//!
+//! [`Builder::snapshot`] returns an immutable [`Snapshot`] in O(1) (one `Arc` clone); payloads are
+//! shared, never copied. For two snapshots `a` taken before `b` of one builder:
+//!
+//! - `b` has at least the nodes of `a`; node `i` has the same key and cube in both.
+//! - a leaf of `a` is either a leaf of `b` whose point sequence starts with its point sequence in
+//!   `a`, or an inner node of `b` whose points are all in the leaves below it in `b`. So every
+//!   point (record) visible in `a` is visible in `b`, and the point count never drops.
+//! - an inner node of `a` is an inner node of `b`; its voxel sequence in `b` starts with the
+//!   voxels (cells) of `a`, in the same order. With [`ColorMode::FirstCome`] those voxels keep
+//!   their colours; with [`ColorMode::Averaged`] only their cells are kept, colours may change.
+//! - `a` itself never changes.
+//!
+//! A node view also carries the revision (batch number) of its last change, so that a store
+//! writer can write only [`Snapshot::changed_since`] its last commit.
+//!
+//! # Determinism
+//!
+//! The result depends only on the sequence of input points and where it is cut into batches,
+//! never on the thread count. Nor does the batching change the tree, the points of each leaf (in
+//! arrival order), the voxel cells of each node or any colour: a node is inner exactly when more
+//! than `leaf_capacity` points fall into its cube (and it may split), leaves keep their points in
+//! arrival order and every cell is sampled in arrival order. What batching does change is the
+//! order of a node's voxels (within one update they are ordered by octant, then arrival) and the
+//! chunking of payloads.
+//!
+//! # Costs
+//!
+//! Per update, besides the payloads: 4 bytes per batch point (its leaf) in `expand`, and two
+//! buffers of 20 bytes per point (batch plus spill) for the sampling partition, kept by the
+//! builder for the next update. Points in leaves cost 24 bytes each.
+//!
+//! # Limits (not done here)
+//!
+//! - In-core only, as the paper: all points live in memory.
+//! - No time budget per update (§7.2): an update runs to completion.
+//! - Ids inside one update are `u32`: a batch plus the points it spills must stay below 2^32
+//!   ([`OctreeError::BatchTooLarge`]).
+
+mod builder;
+mod chunks;
+mod cube;
+mod snapshot;
+mod voxels;
+
+#[cfg(test)]
+mod tests;
+
+pub use builder::{BatchStats, Builder, PhaseTimes};
+pub use chunks::Chunks;
+pub use cube::{Cube, NodeKey, MAX_ROOT_SIZE_LOG2};
+pub use snapshot::{NodeView, Payload, Snapshot};
+pub use voxels::{mean_color, AVERAGED_CHUNK, MAX_AVERAGED_SAMPLES};
+
+/// Cells per axis of an inner node's voxel grid (paper 004 §3.3).
+pub const GRID_SIZE: u32 = 128;
+/// `log2(GRID_SIZE)`.
+pub const GRID_LOG2: u8 = 7;
+/// Cubes narrower than `2^MIN_INNER_SIZE_LOG2` grid units never split: their voxels would be
+/// smaller than one grid unit.
+pub const MIN_INNER_SIZE_LOG2: u8 = GRID_LOG2;
+/// Default leaf capacity (paper 004 §3.1).
+pub const DEFAULT_LEAF_CAPACITY: u32 = 50_000;
+/// Default [`BuilderConfig::max_level`]: deep enough that the size rule binds first for any root.
+pub const DEFAULT_MAX_LEVEL: u8 = 32;
+/// Largest chunk of points a leaf's payload is built from.
+pub const POINT_CHUNK_MAX: usize = 1 << 16;
+/// Largest chunk of voxels an inner node's payload is built from in [`ColorMode::FirstCome`].
+pub const VOXEL_CHUNK_MAX: usize = 1 << 16;
+
+/// One input point: integer LAS-grid coordinates, RGBA colour, and the caller's index of the
+/// record it came from (opaque to the octree).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct Point {
+    /// Integer coordinates in the LAS grid.
+    pub pos: [i32; 3],
+    /// RGBA8 colour, `r | g << 8 | b << 16 | a << 24`.
+    pub color: u32,
+    /// Index of the point's record in the caller's storage.
+    pub record: u64,
+}
+
+const _: () = assert!(std::mem::size_of::<Point>() == 24);
+
+/// One voxel of an inner node: a cell of its 128³ grid and a colour.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+pub struct Voxel {
+    /// Cell coordinates, each in `0..128`; see [`Cube::voxel_min`] for its position.
+    pub coord: [u8; 3],
+    /// RGBA8 colour, `r | g << 8 | b << 16 | a << 24`.
+    pub color: u32,
+}
+
+const _: () = assert!(std::mem::size_of::<Voxel>() == 8);
+
+/// How inner-node voxels get their colour.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+pub enum ColorMode {
+    /// The colour of the first point that fell into the cell (paper 004 §5.2).
+    #[default]
+    FirstCome,
+    /// The rounded mean colour of the points that fell into the cell (paper 004 §8, future work).
+    Averaged,
+}
+
+/// Settings of a [`Builder`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct BuilderConfig {
+    /// Most points a leaf holds before it splits (at least 1). Leaves that may not split (see the
+    /// module docs) hold more.
+    pub leaf_capacity: u32,
+    /// How voxels get their colour.
+    pub color_mode: ColorMode,
+    /// Nodes at this level never split (the root is level 0).
+    pub max_level: u8,
+}
+
+impl Default for BuilderConfig {
+    fn default() -> Self {
+        BuilderConfig { leaf_capacity: DEFAULT_LEAF_CAPACITY, color_mode: ColorMode::FirstCome, max_level: DEFAULT_MAX_LEVEL }
+    }
+}
+
+/// Index of a node in a [`Snapshot`] (and in the builder); stable for the builder's lifetime.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct NodeId(pub u32);
+
+impl NodeId {
+    /// The root.
+    pub const ROOT: NodeId = NodeId(0);
+
+    /// The id as an index into [`Snapshot::nodes`].
+    #[inline]
+    pub fn index(self) -> usize {
+        self.0 as usize
+    }
+}
+
+/// Errors of the octree builder. A failed call leaves the builder as it was.
+#[derive(Debug, thiserror::Error, PartialEq, Eq)]
+pub enum OctreeError {
+    /// The configured leaf capacity is 0.
+    #[error("the leaf capacity must be at least 1")]
+    ZeroCapacity,
+    /// The root cube is wider than the i32 grid needs.
+    #[error("the root cube is 2^{size_log2} grid units wide; at most 2^{MAX_ROOT_SIZE_LOG2} is supported")]
+    RootTooLarge {
+        /// The requested `size_log2`.
+        size_log2: u8,
+    },
+    /// A point of the batch lies outside the root cube.
+    #[error("point {index} of the batch at {pos:?} lies outside the octree's root cube (min {min:?}, size {size})")]
+    PointOutsideRoot {
+        /// Index of the first such point in the batch.
+        index: usize,
+        /// Its coordinates.
+        pos: [i32; 3],
+        /// Root cube minimum.
+        min: [i64; 3],
+        /// Root cube size in grid units.
+        size: u64,
+    },
+    /// The batch plus the points it would spill do not fit the update's 32-bit ids.
+    #[error("a batch of {points} points that spills {spilled} stored points exceeds 2^32 - 1 points per update; add smaller batches")]
+    BatchTooLarge {
+        /// Points in the batch.
+        points: usize,
+        /// Stored points the batch would spill.
+        spilled: u64,
+    },
+}
