@@ -1,7 +1,7 @@
 // The one position decode and projection of the GPU rasterizer: the WGSL twin of
 // mortar_core::quantize::join_words + BatchProjection::local + ::transform and the pixel/inside
 // test of the CPU loop (lib/core/src/render/raster.rs, project_block). Same operations in the
-// same order, each rounded on its own (see opaque), and a correctly rounded division (div_rn).
+// same order, each rounded on its own (see opaque).
 
 // The 30-bit numbers of a point from its first `words` words (coarse bits [20, 30), medium
 // [10, 20), fine [0, 10) per axis; axis a in bits [10a, 10a + 10) of each word).
@@ -41,17 +41,23 @@ fn row(m: vec4<f32>, l: vec3<f32>, zero: u32) -> f32 {
     return opaque(opaque(a + b, zero) + c, zero) + m.w;
 }
 
-// x / d correctly rounded, as the CPU divides. WGSL lets a GPU divide with an error of 2.5 ULP
-// (NVIDIA does), so the quotient is refined: a Newton step on the reciprocal, then the exact
-// remainder r = x - q d (one fused multiply-add) corrects q (Markstein; the sequence of CUDA's
-// div.rn). Valid for the normal, finite values of the points kept (d >= near > 0); a GPU whose
-// fma is not fused would make this no worse than plain division.
+// x / d correctly rounded, as the CPU divides, on GPUs whose division is not: a Newton step on
+// the reciprocal, then one correction by the remainder r = x - q d from a fused multiply-add
+// (Markstein; the sequence of CUDA's div.rn). Valid for the normal, finite values of the points
+// kept (d >= near > 0) where fma is fused. Chosen by FrameUniforms.division (see gpu.rs).
 fn div_rn(x: f32, d: f32, zero: u32) -> f32 {
     let y0 = opaque(1.0 / d, zero);
     let y = opaque(fma(opaque(fma(-d, y0, 1.0), zero), y0, y0), zero);
     let q0 = opaque(x * y, zero);
     let r = opaque(fma(-q0, d, x), zero);
     return opaque(fma(r, y, q0), zero);
+}
+
+fn divide(x: f32, d: f32, frame: FrameUniforms) -> f32 {
+    if frame.division == 1u {
+        return div_rn(x, d, frame.zero);
+    }
+    return opaque(x / d, frame.zero);
 }
 
 fn project(p: BatchProjection, q: vec3<u32>, frame: FrameUniforms) -> Projected {
@@ -63,8 +69,8 @@ fn project(p: BatchProjection, q: vec3<u32>, frame: FrameUniforms) -> Projected 
     var fx = x;
     var fy = y;
     if frame.perspective != 0u {
-        fx = div_rn(x, depth, frame.zero);
-        fy = div_rn(y, depth, frame.zero);
+        fx = divide(x, depth, frame);
+        fy = divide(y, depth, frame);
     }
     let ox = p.pixel_origin.x;
     let oy = p.pixel_origin.y;

@@ -33,7 +33,8 @@ struct FrameUniforms {
     far: f32,
     perspective: u32,
     zero: u32,
-    _pad: vec2<u32>,
+    division: u32,
+    _pad: u32,
 }
 
 struct ResolveUniforms {

@@ -244,6 +244,20 @@ impl GpuContext {
         &self.limits
     }
 
+    /// How the draw passes divide (`mortar_core::render::gpu::DIVISION_*`): a software adapter
+    /// (lavapipe, LLVM on the CPU) divides correctly rounded with WGSL's `/` and gives keys equal
+    /// to the CPU's with it (tested in CI), while its `div_rn` sequence differed in 2 of 60,844
+    /// pixels of one test view (its `fma` appears not to be fused); a hardware GPU may divide with
+    /// 2.5 ULP of error, and on the H100 the refined division gave keys equal to the CPU's in every
+    /// test and benchmark view (plain `/`: 1-2 pixels differed in some views there).
+    pub fn division(&self) -> u32 {
+        if self.software {
+            mortar_core::render::gpu::DIVISION_PLAIN
+        } else {
+            mortar_core::render::gpu::DIVISION_REFINED
+        }
+    }
+
     /// The largest storage binding: what one chunk of points or one framebuffer may occupy.
     pub fn max_binding(&self) -> u64 {
         self.limits.max_storage_buffer_binding_size.min(self.limits.max_buffer_size)

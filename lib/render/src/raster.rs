@@ -213,7 +213,7 @@ impl GpuRasterizer {
         if !records.is_empty() {
             ctx.queue.write_buffer(records_buf, 0, bytemuck::cast_slice(&records));
         }
-        ctx.queue.write_buffer(&self.frame_uniforms, 0, bytemuck::bytes_of(&FrameUniforms::new(camera)));
+        ctx.queue.write_buffer(&self.frame_uniforms, 0, bytemuck::bytes_of(&FrameUniforms::new(camera, ctx.division())));
         ctx.queue.write_buffer(&self.counters, 0, &[0u8; 8]);
 
         let dev = &ctx.device;

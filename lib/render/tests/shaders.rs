@@ -92,6 +92,7 @@ fn shared_structs_have_the_rust_layout() {
                 ("far", offset_of!(FrameUniforms, far)),
                 ("perspective", offset_of!(FrameUniforms, perspective)),
                 ("zero", offset_of!(FrameUniforms, zero)),
+                ("division", offset_of!(FrameUniforms, division)),
                 ("_pad", offset_of!(FrameUniforms, _pad)),
             ],
         ),

@@ -43,15 +43,24 @@ pub struct FrameUniforms {
     /// into one rounding (an FMA) nor reorder operations, and the GPU rounds each operation as
     /// the CPU rasterizer does.
     pub zero: u32,
+    /// How the perspective division is done: [`DIVISION_PLAIN`] (WGSL `/`) or
+    /// [`DIVISION_REFINED`] (refined to the correctly rounded quotient with `fma`).
+    pub division: u32,
     /// Padding to 32 bytes.
-    pub _pad: [u32; 2],
+    pub _pad: u32,
 }
+
+/// WGSL's `/`: correctly rounded on lavapipe (a CPU), up to 2.5 ULP off elsewhere.
+pub const DIVISION_PLAIN: u32 = 0;
+/// `div_rn` of `shaders/common/decode.wgsl`: WGSL's reciprocal refined by a Newton step and
+/// corrected by an `fma` remainder; correctly rounded where `fma` is fused (measured on an H100).
+pub const DIVISION_REFINED: u32 = 1;
 
 const _: () = assert!(std::mem::size_of::<FrameUniforms>() == 32);
 
 impl FrameUniforms {
-    /// The uniforms of a camera.
-    pub fn new(camera: &Camera) -> FrameUniforms {
+    /// The uniforms of a camera, dividing as `division` says.
+    pub fn new(camera: &Camera, division: u32) -> FrameUniforms {
         FrameUniforms {
             width: camera.width,
             height: camera.height,
@@ -59,7 +68,8 @@ impl FrameUniforms {
             far: camera.far as f32,
             perspective: camera.is_perspective() as u32,
             zero: 0,
-            _pad: [0; 2],
+            division,
+            _pad: 0,
         }
     }
 }
