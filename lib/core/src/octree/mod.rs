@@ -87,6 +87,12 @@
 //! A node view also carries the revision (batch number) of its last change, so that a store
 //! writer can write only [`Snapshot::changed_since`] its last commit.
 //!
+//! # Drawing (paper 004 §6)
+//!
+//! [`lod`] turns nodes into quantized batches for the rasterizer ([`node_batch`]) and picks the
+//! nodes to draw for a view ([`select_nodes`]): culled by the frustum, refined while larger than
+//! 128 px on screen, within an optional point budget.
+//!
 //! # Determinism
 //!
 //! The result depends only on the sequence of input points and where it is cut into batches,
@@ -113,6 +119,7 @@
 mod builder;
 mod chunks;
 mod cube;
+pub mod lod;
 mod snapshot;
 mod voxels;
 
@@ -122,6 +129,7 @@ mod tests;
 pub use builder::{BatchStats, Builder, PhaseTimes};
 pub use chunks::Chunks;
 pub use cube::{Cube, NodeKey, MAX_ROOT_SIZE_LOG2};
+pub use lod::{node_batch, select_nodes, LodOptions, LodSelection, LodStats, NodeBatch, NodeBatchError, DEFAULT_THRESHOLD_PX};
 pub use snapshot::{NodeView, Payload, Snapshot};
 pub use voxels::{mean_color, AVERAGED_CHUNK, MAX_AVERAGED_SAMPLES};
 
