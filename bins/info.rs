@@ -22,6 +22,12 @@ pub struct Args {
 }
 
 fn info_of(p: &Path, stats: bool) -> Result<FileInfo> {
+    if mortar_io::store::is_store(p) {
+        let s = mortar_io::store::Store::open(p)?;
+        let mut info = describe(&s, "store", stats, None)?;
+        info.store = Some(mortar_io::info::store_info(&s));
+        return Ok(info);
+    }
     if p != Path::new("-") && is_batch_file(p) {
         let b = BatchFile::open(p)?;
         return Ok(describe(&b, "batch", stats, Some(&b))?);
@@ -91,6 +97,10 @@ fn print_text(o: &mut impl Write, i: &FileInfo) -> std::io::Result<()> {
         if !b.dropped_attributes.is_empty() {
             writeln!(o, "  dropped         {}", b.dropped_attributes.join(", "))?;
         }
+    }
+    if let Some(s) = &i.store {
+        writeln!(o, "  octree          {} nodes: {} leaves ({} empty, largest {} points, capacity {}), {} inner nodes with {} voxels, depth {}", s.nodes, s.leaves, s.empty_leaves, s.largest_leaf, s.leaf_capacity, s.inner_nodes, s.voxels, s.depth)?;
+        writeln!(o, "  store           commit {}, {} bytes of node payloads", s.commit, s.nodes_bytes)?;
     }
     if let Some(s) = &i.stats {
         let b = &s.bounds;

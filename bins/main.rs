@@ -2,6 +2,7 @@
 //! One file per subcommand.
 
 mod batch;
+mod build;
 mod common;
 mod info;
 mod render;
@@ -30,8 +31,10 @@ enum Cmd {
     Sort(sort::Args),
     /// Convert to a Morton-sorted, quantized batch file (paper 003).
     Batch(batch::Args),
-    /// Draw a view of a batch file or LAS/LAZ to PNG (CPU reference rasterizer, paper 003).
+    /// Draw a view of a batch file or LAS/LAZ to PNG (CPU or GPU rasterizer, paper 003).
     Render(render::Args),
+    /// Build an octree LOD store (paper 004) from LAS/LAZ or batch files.
+    Build(build::Args),
 }
 
 fn main() {
@@ -54,6 +57,7 @@ fn main() {
         Cmd::Sort(a) => sort::run(a),
         Cmd::Batch(a) => batch::run(a),
         Cmd::Render(a) => render::run(a),
+        Cmd::Build(a) => build::run(a),
     };
     if let Err(e) = r {
         mortar_io::cleanup::remove_all();

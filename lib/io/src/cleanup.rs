@@ -60,6 +60,19 @@ impl TempPath {
         Ok(TempPath { path, keep: false })
     }
 
+    /// Takes charge of an existing path (a directory being built): removed on drop and on Ctrl-C
+    /// unless kept.
+    pub fn adopt(path: PathBuf) -> TempPath {
+        register(&path);
+        TempPath { path, keep: false }
+    }
+
+    /// Leaves the path where it is, now and on Ctrl-C.
+    pub fn keep(mut self) {
+        self.keep = true;
+        unregister(&self.path);
+    }
+
     pub fn path(&self) -> &Path {
         &self.path
     }

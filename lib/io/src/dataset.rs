@@ -191,6 +191,10 @@ impl Dataset {
         let mut warnings = Vec::new();
         let mut inputs: Vec<Box<dyn RecordSource>> = Vec::new();
         for p in paths {
+            if p != Path::new("-") && crate::store::is_store(p) {
+                inputs.push(Box::new(crate::store::Store::open(p)?));
+                continue;
+            }
             if p != Path::new("-") && crate::batchfile::is_batch_file(p) {
                 inputs.push(Box::new(crate::batchfile::BatchFile::open(p)?));
                 continue;

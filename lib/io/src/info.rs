@@ -40,6 +40,43 @@ pub struct AttributeInfo {
     pub width: usize,
 }
 
+/// What an octree store holds (its last commit).
+#[derive(Clone, Debug, Serialize)]
+pub struct StoreInfo {
+    pub commit: u64,
+    pub nodes: u64,
+    pub leaves: u64,
+    pub inner_nodes: u64,
+    /// Leaves without points (the empty octants of split nodes).
+    pub empty_leaves: u64,
+    pub voxels: u64,
+    pub depth: u32,
+    pub leaf_capacity: u32,
+    pub largest_leaf: u64,
+    pub nodes_bytes: u64,
+    pub root_min: [i64; 3],
+    pub root_size_log2: u32,
+}
+
+/// The store section of `mortar info` for a store.
+pub fn store_info(s: &crate::store::Store) -> StoreInfo {
+    let leaves: Vec<&crate::store::NodeEntry> = s.entries.iter().filter(|e| e.kind == crate::store::LEAF).collect();
+    StoreInfo {
+        commit: s.header.commit,
+        nodes: s.entries.len() as u64,
+        leaves: leaves.len() as u64,
+        inner_nodes: (s.entries.len() - leaves.len()) as u64,
+        empty_leaves: leaves.iter().filter(|e| e.count == 0).count() as u64,
+        voxels: s.entries.iter().filter(|e| e.kind == crate::store::INNER).map(|e| e.count).sum(),
+        depth: s.entries.iter().map(|e| e.level).max().unwrap_or(0),
+        leaf_capacity: s.header.leaf_capacity,
+        largest_leaf: leaves.iter().map(|e| e.count).max().unwrap_or(0),
+        nodes_bytes: s.header.nodes_len,
+        root_min: s.header.root_min,
+        root_size_log2: s.header.root_size_log2,
+    }
+}
+
 #[derive(Clone, Debug, Serialize)]
 pub struct BatchInfo {
     pub batch_count: u64,
@@ -95,6 +132,8 @@ pub struct FileInfo {
     pub vlrs: Vec<VlrInfo>,
     pub evlrs: Vec<VlrInfo>,
     pub batch: Option<BatchInfo>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub store: Option<StoreInfo>,
     pub stats: Option<Stats>,
     /// Disagreements found (header against points, broken records).
     pub warnings: Vec<String>,
@@ -152,6 +191,7 @@ pub fn describe(src: &dyn RecordSource, kind: &str, stats: bool, batch: Option<&
         vlrs: src.vlrs().iter().map(vlr_info).collect(),
         evlrs: src.evlrs().iter().map(vlr_info).collect(),
         batch: batch.map(batch_info),
+        store: None,
         stats: None,
         warnings,
     };

@@ -16,3 +16,4 @@ pub mod crs;
 pub mod info;
 pub mod synth;
 pub mod render_input;
+pub mod store;

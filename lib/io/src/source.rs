@@ -45,7 +45,9 @@ pub fn expand_inputs(args: &[String]) -> Result<Vec<PathBuf>> {
             continue;
         }
         let p = Path::new(a);
-        if p.is_dir() {
+        if crate::store::is_store(p) {
+            out.push(p.to_path_buf());
+        } else if p.is_dir() {
             let mut found = Vec::new();
             collect_dir(p, &mut found)?;
             if found.is_empty() {

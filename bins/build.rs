@@ -1,0 +1,89 @@
+//! `mortar build`: the octree LOD store of paper 004 (`lib/io/STORE_FORMAT.md`).
+
+use crate::common;
+use anyhow::Result;
+use mortar_core::octree::{BuilderConfig, ColorMode, DEFAULT_LEAF_CAPACITY};
+use mortar_io::store::{build, BuildOptions, BuildProgress};
+use std::io::IsTerminal;
+use std::path::PathBuf;
+
+#[derive(clap::Args)]
+pub struct Args {
+    /// LAS/LAZ files, batch files, stores, directories, glob patterns, or - for stdin.
+    #[arg(required = true)]
+    pub inputs: Vec<String>,
+    /// The store directory to create (must not exist, or be empty).
+    #[arg(short, long)]
+    pub output: PathBuf,
+    /// Most points per leaf.
+    #[arg(long, default_value_t = DEFAULT_LEAF_CAPACITY)]
+    pub leaf_capacity: u32,
+    /// Voxel colours as the average of their points instead of the first point's (paper 004's
+    /// future work; slower, more memory).
+    #[arg(long)]
+    pub averaged_colors: bool,
+    /// Seconds between commits of the store while it is built (readers see each commit).
+    #[arg(long, default_value_t = 5.0)]
+    pub commit_every: f64,
+    /// Points per octree update.
+    #[arg(long, default_value_t = 1_000_000)]
+    pub batch_points: usize,
+    /// Memory for the input's records (the builder holds them all for now), e.g. 8G.
+    #[arg(long, value_parser = common::parse_size)]
+    pub memory: Option<u64>,
+    /// Print a JSON summary on stdout.
+    #[arg(long)]
+    pub json: bool,
+}
+
+pub fn run(a: Args) -> Result<()> {
+    if a.leaf_capacity == 0 {
+        anyhow::bail!("--leaf-capacity must be at least 1");
+    }
+    let ds = common::open_dataset(&a.inputs)?;
+    common::print_warnings(&ds.warnings);
+    let opts = BuildOptions {
+        config: BuilderConfig {
+            leaf_capacity: a.leaf_capacity,
+            color_mode: if a.averaged_colors { ColorMode::Averaged } else { ColorMode::FirstCome },
+            ..BuilderConfig::default()
+        },
+        batch_points: a.batch_points.max(1),
+        commit_every: a.commit_every.max(0.0),
+        memory: a.memory.unwrap_or_else(mortar_io::sort::default_memory),
+    };
+    let tty = std::io::stderr().is_terminal();
+    let mut progress = |p: &BuildProgress| {
+        if tty {
+            eprint!("\rmortar build: {} of {} points, {} nodes, {} commits   ", p.points, p.total, p.nodes, p.commits);
+        }
+    };
+    let r = build(&ds, &a.output, &opts, &mut progress)?;
+    if tty {
+        eprintln!();
+    }
+    if a.json {
+        let n = r.batch_seconds.len().max(1) as f64;
+        let j = serde_json::json!({
+            "output": a.output,
+            "points": r.points,
+            "nodes": r.nodes,
+            "leaves": r.leaves,
+            "voxels": r.voxels,
+            "commits": r.commits,
+            "nodes_bytes": r.nodes_bytes,
+            "seconds": r.seconds,
+            "read_seconds": r.read_seconds,
+            "build_seconds": r.batch_seconds.iter().sum::<f64>(),
+            "commit_seconds": r.commit_seconds,
+            "points_per_second": r.points as f64 / r.seconds.max(1e-9),
+            "batches": r.batch_seconds.len(),
+            "batch_seconds_mean": r.batch_seconds.iter().sum::<f64>() / n,
+            "batch_seconds_max": r.batch_seconds.iter().cloned().fold(0.0, f64::max),
+            "peak_rss_bytes": common::peak_rss_bytes(),
+            "threads": rayon::current_num_threads(),
+        });
+        println!("{}", serde_json::to_string_pretty(&j)?);
+    }
+    Ok(())
+}

@@ -1,0 +1,714 @@
+//! The octree LOD store (paper 004 on disk): `mortar build` writes it, `info`, `sort` and `batch`
+//! read it. Layout in `lib/io/STORE_FORMAT.md`.
+//!
+//! A directory that can be read while it grows:
+//!
+//! - `source.las`: the LAS header, VLRs and EVLRs of the source (no points), written once, so the
+//!   points go back to LAS with every field and record;
+//! - `nodes.bin`: node payloads, append-only. A payload is a variable-size batch in the quantized
+//!   layout of the batch file (paper 003 §3.5): coarse, medium and fine words relative to the
+//!   node's integer bounds, RGBA8 colours, and for leaves the rest of every original record
+//!   (all bytes after X, Y, Z), so leaves keep every attribute exactly. A node that changes is
+//!   appended again; the hierarchy points at its newest version;
+//! - `hierarchy.bin`: one entry per node (key, kind, count, payload offset and length) and the
+//!   length of `nodes.bin` it covers, replaced atomically at each commit (payloads written and
+//!   synced first, then a new hierarchy written, synced and renamed over the old one). A reader
+//!   that opens the directory at any moment sees the last commit; a crash or Ctrl-C leaves it.
+//!
+//! Not done yet: the builder holds every point in memory (the store writes nodes as they change,
+//! but a node is not dropped from memory once written), so memory is not bounded for inputs
+//! larger than RAM; old versions of changed nodes stay in `nodes.bin` (no compaction).
+
+use crate::cleanup::TempPath;
+use crate::dataset::{Dataset, RecordSource, SourceMeta};
+use crate::error::{Error, Result};
+use crate::las::{self, Header, HeaderOut, Vlr};
+use crate::source::{LasInput, Piece};
+use memmap2::Mmap;
+use mortar_core::color::{ColorSource, RgbDepth};
+use mortar_core::layout::RecordLayout;
+use mortar_core::octree::{Builder, BuilderConfig, Cube, NodeView, Payload, Point, Snapshot};
+use mortar_core::quantize::BatchGrid;
+use rayon::prelude::*;
+use std::borrow::Cow;
+use std::fs::File;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// The source's LAS header, VLRs and EVLRs (no points).
+pub const SOURCE_FILE: &str = "source.las";
+/// Node payloads, append-only.
+pub const NODES_FILE: &str = "nodes.bin";
+/// The committed hierarchy.
+pub const HIERARCHY_FILE: &str = "hierarchy.bin";
+
+const NODE_MAGIC: [u8; 8] = *b"MORTNODE";
+const HIERARCHY_MAGIC: [u8; 8] = *b"MORTHIER";
+const VERSION: u32 = 1;
+
+/// Node kinds.
+pub const LEAF: u32 = 0;
+/// An inner node (voxels).
+pub const INNER: u32 = 1;
+
+/// The header of one node payload in `nodes.bin` (64 bytes, little-endian).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct NodeHeader {
+    /// `MORTNODE`.
+    pub magic: [u8; 8],
+    /// Octree level (0: root).
+    pub level: u32,
+    /// [`LEAF`] or [`INNER`].
+    pub kind: u32,
+    /// Position of the node's cube among the cubes of its level.
+    pub index: [u32; 3],
+    /// Points (leaf) or voxels (inner node).
+    pub count: u32,
+    /// Integer minimum of the quantization frame.
+    pub min: [i32; 3],
+    /// Bits per axis of the quantization frame (three used).
+    pub bits: [u8; 4],
+    /// Bytes of attributes per point after the colours (record length - 12 for leaves, 0 for
+    /// inner nodes).
+    pub attr_len: u32,
+    /// Zero.
+    pub _pad: [u32; 3],
+}
+
+const _: () = assert!(std::mem::size_of::<NodeHeader>() == 64);
+
+/// The header of `hierarchy.bin` (80 bytes).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct HierarchyHeader {
+    /// `MORTHIER`.
+    pub magic: [u8; 8],
+    /// Format version (1).
+    pub version: u32,
+    /// Bytes per [`NodeEntry`] (48).
+    pub entry_size: u32,
+    /// Commit number, from 1.
+    pub commit: u64,
+    /// Number of node entries that follow.
+    pub node_count: u64,
+    /// Bytes of `nodes.bin` this commit covers.
+    pub nodes_len: u64,
+    /// Points in the leaves.
+    pub points: u64,
+    /// The root cube's integer minimum.
+    pub root_min: [i64; 3],
+    /// log2 of the root cube's edge.
+    pub root_size_log2: u32,
+    /// Leaf capacity the builder used.
+    pub leaf_capacity: u32,
+    /// Smallest integer coordinate of the points (LAS grid).
+    pub min: [i32; 3],
+    /// Largest integer coordinate of the points.
+    pub max: [i32; 3],
+}
+
+const _: () = assert!(std::mem::size_of::<HierarchyHeader>() == 104);
+
+/// Bytes of the hierarchy header.
+const HIERARCHY_HEADER: usize = std::mem::size_of::<HierarchyHeader>();
+
+/// One node of the hierarchy (48 bytes).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct NodeEntry {
+    /// Octree level.
+    pub level: u32,
+    /// [`LEAF`] or [`INNER`].
+    pub kind: u32,
+    /// Cube index at its level.
+    pub index: [u32; 3],
+    /// Zero.
+    pub _pad: u32,
+    /// Points or voxels.
+    pub count: u64,
+    /// Offset of the payload ([`NodeHeader`] first) in `nodes.bin`.
+    pub offset: u64,
+    /// Bytes of the payload.
+    pub length: u64,
+}
+
+const _: () = assert!(std::mem::size_of::<NodeEntry>() == 48);
+
+fn payload_len(count: u64, attr_len: u64) -> u64 {
+    let raw = 64 + count * (16 + attr_len);
+    raw.next_multiple_of(8)
+}
+
+/// The XYZ of a record (i32 at bytes 0, 4, 8).
+fn read_xyz(r: &[u8]) -> [i32; 3] {
+    [0, 4, 8].map(|o| i32::from_le_bytes([r[o], r[o + 1], r[o + 2], r[o + 3]]))
+}
+
+/// What a commit wrote.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct CommitStats {
+    /// Nodes (re)written.
+    pub nodes_written: u64,
+    /// Bytes appended to `nodes.bin`.
+    pub bytes: u64,
+}
+
+/// Writes a store: payloads of changed nodes, then an atomic hierarchy commit.
+pub struct StoreWriter {
+    dir: PathBuf,
+    nodes: File,
+    nodes_len: u64,
+    entries: Vec<Option<NodeEntry>>,
+    commit: u64,
+    last_revision: Option<u64>,
+    record_len: usize,
+    /// Registered for removal until the first commit.
+    guard: Option<TempPath>,
+}
+
+impl StoreWriter {
+    /// Creates the store directory `dir` (which must not exist, or be empty) with the source's
+    /// metadata.
+    pub fn create(dir: &Path, meta: &SourceMeta) -> Result<StoreWriter> {
+        if dir.exists() {
+            let empty = dir.is_dir() && std::fs::read_dir(dir).map_err(|e| Error::io(dir, e))?.next().is_none();
+            if !empty {
+                return Err(Error::input(dir, "exists and is not an empty directory; give a new directory for the store"));
+            }
+        } else {
+            std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
+        }
+        let guard = TempPath::adopt(dir.to_path_buf());
+        // source.las: header, VLRs, EVLRs, no points.
+        let g = &meta.grid;
+        let h = HeaderOut {
+            template: &meta.header,
+            point_format: meta.layout.format,
+            compressed: false,
+            record_len: meta.layout.record_len as u16,
+            point_count: 0,
+            points_by_return: [0; 15],
+            scale: g.scale,
+            offset: g.offset,
+            min: [0.0; 3],
+            max: [0.0; 3],
+            vlrs: &meta.vlrs,
+            evlr_start: 0,
+            evlr_count: 0,
+        };
+        let mut bytes = las::write_header(&h).map_err(|e| Error::input(dir, e))?;
+        if !meta.evlrs.is_empty() {
+            let start = bytes.len() as u64;
+            let h = HeaderOut { evlr_start: start, evlr_count: meta.evlrs.len() as u32, ..h };
+            bytes = las::write_header(&h).map_err(|e| Error::input(dir, e))?;
+            bytes.extend_from_slice(&las::write_evlrs(&meta.evlrs));
+        }
+        let src = dir.join(SOURCE_FILE);
+        std::fs::write(&src, &bytes).map_err(|e| Error::io(&src, e))?;
+        let np = dir.join(NODES_FILE);
+        let nodes = File::create(&np).map_err(|e| Error::io(&np, e))?;
+        Ok(StoreWriter {
+            dir: dir.to_path_buf(),
+            nodes,
+            nodes_len: 0,
+            entries: Vec::new(),
+            commit: 0,
+            last_revision: None,
+            record_len: meta.layout.record_len,
+            guard: Some(guard),
+        })
+    }
+
+    /// Commits: appends the payloads of the nodes changed since the last commit, syncs them, then
+    /// replaces the hierarchy atomically. `record(i)` returns the full record of point record `i`.
+    /// `bounds` are the integer bounds of all the points (recorded for readers).
+    pub fn commit<'r>(&mut self, snap: &Snapshot, bounds: ([i32; 3], [i32; 3]), record: &(dyn Fn(u64) -> &'r [u8] + Sync)) -> Result<CommitStats> {
+        let changed: Vec<(usize, &NodeView)> = match self.last_revision {
+            None => snap.iter().map(|(id, n)| (id.index(), n)).collect(),
+            Some(rev) => snap.changed_since(rev).map(|(id, n)| (id.index(), n)).collect(),
+        };
+        // Encode payloads in parallel, append in order.
+        let record_len = self.record_len;
+        let dir = self.dir.clone();
+        let payloads: Vec<(usize, NodeEntry, Vec<u8>)> = changed
+            .par_iter()
+            .map(|&(id, n)| encode_node(n, record_len, record).map(|(e, b)| (id, e, b)).map_err(|m| Error::input(&dir, m)))
+            .collect::<Result<_>>()?;
+        let mut stats = CommitStats::default();
+        let np = self.dir.join(NODES_FILE);
+        let mut w = std::io::BufWriter::with_capacity(8 << 20, &self.nodes);
+        for (id, mut entry, bytes) in payloads {
+            entry.offset = self.nodes_len;
+            w.write_all(&bytes).map_err(|e| Error::io(&np, e))?;
+            self.nodes_len += bytes.len() as u64;
+            stats.bytes += bytes.len() as u64;
+            stats.nodes_written += 1;
+            if self.entries.len() <= id {
+                self.entries.resize(id + 1, None);
+            }
+            self.entries[id] = Some(entry);
+        }
+        w.flush().map_err(|e| Error::io(&np, e))?;
+        drop(w);
+        self.nodes.sync_data().map_err(|e| Error::io(&np, e))?;
+        self.commit += 1;
+        let root = snap.root_cube();
+        let entries: Vec<NodeEntry> = self.entries.iter().flatten().copied().collect();
+        let header = HierarchyHeader {
+            magic: HIERARCHY_MAGIC,
+            version: VERSION,
+            entry_size: std::mem::size_of::<NodeEntry>() as u32,
+            commit: self.commit,
+            node_count: entries.len() as u64,
+            nodes_len: self.nodes_len,
+            points: snap.point_count(),
+            root_min: root.min,
+            root_size_log2: root.size_log2 as u32,
+            leaf_capacity: snap.config().leaf_capacity,
+            min: bounds.0,
+            max: bounds.1,
+        };
+        let mut bytes = bytemuck::bytes_of(&header).to_vec();
+        bytes.extend_from_slice(bytemuck::cast_slice(&entries));
+        let hp = self.dir.join(HIERARCHY_FILE);
+        let tmp = self.dir.join(format!("{HIERARCHY_FILE}.tmp"));
+        {
+            let mut f = File::create(&tmp).map_err(|e| Error::io(&tmp, e))?;
+            f.write_all(&bytes).map_err(|e| Error::io(&tmp, e))?;
+            f.sync_all().map_err(|e| Error::io(&tmp, e))?;
+        }
+        std::fs::rename(&tmp, &hp).map_err(|e| Error::io(&hp, e))?;
+        if let Ok(d) = File::open(&self.dir) {
+            let _ = d.sync_all();
+        }
+        self.last_revision = Some(snap.revision());
+        // From the first commit on, the directory is a readable store: Ctrl-C leaves it.
+        if let Some(g) = self.guard.take() {
+            g.keep();
+        }
+        Ok(stats)
+    }
+
+    /// Commits made.
+    pub fn commits(&self) -> u64 {
+        self.commit
+    }
+}
+
+/// Encodes one node's payload (entry offset left 0).
+fn encode_node<'r>(n: &NodeView, record_len: usize, record: &(dyn Fn(u64) -> &'r [u8] + Sync)) -> std::result::Result<(NodeEntry, Vec<u8>), String> {
+    let key = n.key();
+    let (kind, positions, colors, attr_len): (u32, Vec<[i32; 3]>, Vec<u32>, usize) = match n.payload() {
+        Payload::Points(p) => {
+            let pts: Vec<Point> = p.to_vec();
+            (LEAF, pts.iter().map(|q| q.pos).collect(), pts.iter().map(|q| q.color).collect(), record_len - 12)
+        }
+        Payload::Voxels(v) => {
+            let cube = n.cube();
+            let half = cube.voxel_size_log2().map_or(0i64, |s| if s == 0 { 0 } else { 1i64 << (s - 1) });
+            let vox = v.to_vec();
+            let pos = vox
+                .iter()
+                .map(|x| cube.voxel_min(x.coord).map(|m| (m + half).clamp(i32::MIN as i64, i32::MAX as i64) as i32))
+                .collect();
+            (INNER, pos, vox.iter().map(|x| x.color).collect(), 0)
+        }
+    };
+    let count = positions.len();
+    let (mut lo, mut hi) = ([i32::MAX; 3], [i32::MIN; 3]);
+    for p in &positions {
+        for a in 0..3 {
+            lo[a] = lo[a].min(p[a]);
+            hi[a] = hi[a].max(p[a]);
+        }
+    }
+    if count == 0 {
+        (lo, hi) = ([0; 3], [0; 3]);
+    }
+    let grid = BatchGrid::for_bounds(lo, hi).ok_or_else(|| format!("node {} spans more than 2^30 grid units on an axis", key.name()))?;
+    let len = payload_len(count as u64, attr_len as u64) as usize;
+    let mut out = Vec::with_capacity(len);
+    let header = NodeHeader {
+        magic: NODE_MAGIC,
+        level: key.level as u32,
+        kind,
+        index: key.index,
+        count: count as u32,
+        min: grid.min,
+        bits: [grid.bits[0], grid.bits[1], grid.bits[2], 0],
+        attr_len: attr_len as u32,
+        _pad: [0; 3],
+    };
+    out.extend_from_slice(bytemuck::bytes_of(&header));
+    let words: Vec<[u32; 3]> = positions.iter().map(|p| grid.encode(*p)).collect();
+    for level in 0..3 {
+        for w in &words {
+            out.extend_from_slice(&w[level].to_le_bytes());
+        }
+    }
+    for c in &colors {
+        out.extend_from_slice(&c.to_le_bytes());
+    }
+    if kind == LEAF {
+        if let Payload::Points(p) = n.payload() {
+            for q in p.iter() {
+                let r = record(q.record);
+                out.extend_from_slice(&r[12..]);
+            }
+        }
+    }
+    out.resize(len, 0);
+    let entry = NodeEntry { level: key.level as u32, kind, index: key.index, _pad: 0, count: count as u64, offset: 0, length: len as u64 };
+    Ok((entry, out))
+}
+
+/// Choices of `mortar build`.
+#[derive(Clone, Debug)]
+pub struct BuildOptions {
+    /// The builder's configuration (leaf capacity, colour mode).
+    pub config: BuilderConfig,
+    /// Points per `add_batch`.
+    pub batch_points: usize,
+    /// Seconds between commits (the last one is always made).
+    pub commit_every: f64,
+    /// Largest input (bytes of records) the builder may hold in memory.
+    pub memory: u64,
+}
+
+/// Progress of a build, reported after every batch.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct BuildProgress {
+    /// Points added so far.
+    pub points: u64,
+    /// Points in all.
+    pub total: u64,
+    /// Nodes so far.
+    pub nodes: usize,
+    /// Commits so far.
+    pub commits: u64,
+}
+
+/// What a build did.
+#[derive(Clone, Debug, Default)]
+pub struct BuildReport {
+    /// Points in the store.
+    pub points: u64,
+    /// Nodes, leaves.
+    pub nodes: u64,
+    /// Leaves.
+    pub leaves: u64,
+    /// Voxels of the inner nodes.
+    pub voxels: u64,
+    /// Commits.
+    pub commits: u64,
+    /// Bytes of `nodes.bin`.
+    pub nodes_bytes: u64,
+    /// Seconds reading (decoding) the input.
+    pub read_seconds: f64,
+    /// Seconds in `add_batch`, per batch.
+    pub batch_seconds: Vec<f64>,
+    /// Seconds committing.
+    pub commit_seconds: f64,
+    /// Seconds in all.
+    pub seconds: f64,
+}
+
+/// Builds the store `dir` from `ds`: reads every record (in parallel), then adds the points to
+/// the octree in batches of `batch_points` in input order, committing every `commit_every`
+/// seconds and at the end. On an error the directory is removed; on Ctrl-C the last commit
+/// stays readable.
+pub fn build(ds: &Dataset, dir: &Path, opts: &BuildOptions, progress: &mut dyn FnMut(&BuildProgress)) -> Result<BuildReport> {
+    let t0 = Instant::now();
+    let meta = ds.source_meta();
+    let rl = meta.layout.record_len;
+    let pieces = ds.pieces();
+    let total: u64 = pieces.iter().map(|p| p.piece.points).sum();
+    let bytes = total.checked_mul(rl as u64).unwrap_or(u64::MAX);
+    if bytes > opts.memory {
+        return Err(Error::Usage(format!(
+            "{total} points ({} MiB of records) exceed the builder's memory budget of {} MiB (--memory); the builder holds the whole input in memory for now",
+            bytes >> 20,
+            opts.memory >> 20
+        )));
+    }
+    let mut writer = StoreWriter::create(dir, &meta)?;
+    let result = build_into(ds, &mut writer, opts, progress, total, t0);
+    match result {
+        Ok(r) => Ok(r),
+        Err(Error::Interrupted) => Err(Error::Interrupted),
+        Err(e) => {
+            // Not a store the user asked for: remove what was written (also after commits).
+            let _ = std::fs::remove_dir_all(dir);
+            Err(e)
+        }
+    }
+}
+
+fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOptions, progress: &mut dyn FnMut(&BuildProgress), total: u64, t0: Instant) -> Result<BuildReport> {
+    let rl = ds.layout.record_len;
+    let pieces = ds.pieces();
+    // Read every piece into one arena.
+    let mut arena = vec![0u8; (total as usize) * rl];
+    {
+        let mut slices = Vec::with_capacity(pieces.len());
+        let mut rest = &mut arena[..];
+        for p in &pieces {
+            let (head, tail) = rest.split_at_mut(p.piece.points as usize * rl);
+            slices.push((p, head));
+            rest = tail;
+        }
+        slices.into_par_iter().try_for_each(|(p, out)| {
+            crate::sort::check_interrupted()?;
+            ds.read_piece_into(p, out)
+        })?;
+    }
+    let read_seconds = t0.elapsed().as_secs_f64();
+    // Bounds and colour source.
+    let stats = arena
+        .par_chunks(rl * 65_536)
+        .map(|c| crate::sort::PieceStats::of(c, &ds.layout))
+        .reduce(crate::sort::PieceStats::default, |mut a, b| {
+            a.merge(&b);
+            a
+        });
+    let s = stats.summary();
+    let color = match ds.layout.attribute("rgb") {
+        Some(a) if s.max_rgb > 0 => ColorSource::Rgb { offset: a.offset, depth: RgbDepth::detect(s.max_rgb) },
+        _ => ColorSource::Intensity { max_intensity: s.max_intensity },
+    };
+    let mut report = BuildReport { read_seconds, ..Default::default() };
+    let mut builder = Builder::for_bounds(s.min, s.max, opts.config).map_err(|e| Error::Usage(format!("octree: {e}")))?;
+    let record = |i: u64| -> &[u8] { &arena[i as usize * rl..(i as usize + 1) * rl] };
+    let mut last_commit = Instant::now();
+    let mut points: Vec<Point> = Vec::new();
+    let n = total as usize;
+    let mut start = 0usize;
+    while start < n {
+        crate::sort::check_interrupted()?;
+        let end = (start + opts.batch_points.max(1)).min(n);
+        points.clear();
+        points.par_extend((start..end).into_par_iter().map(|i| {
+            let r = record(i as u64);
+            Point { pos: read_xyz(r), color: color.rgba(r), record: i as u64 }
+        }));
+        let tb = Instant::now();
+        builder.add_batch(&points).map_err(|e| Error::Usage(format!("octree: {e}")))?;
+        report.batch_seconds.push(tb.elapsed().as_secs_f64());
+        start = end;
+        if start < n && last_commit.elapsed().as_secs_f64() >= opts.commit_every {
+            let tc = Instant::now();
+            writer.commit(&builder.snapshot(), (s.min, s.max), &record)?;
+            report.commit_seconds += tc.elapsed().as_secs_f64();
+            last_commit = Instant::now();
+        }
+        progress(&BuildProgress { points: start as u64, total, nodes: builder.node_count(), commits: writer.commits() });
+    }
+    let tc = Instant::now();
+    let snap = builder.snapshot();
+    writer.commit(&snap, (s.min, s.max), &record)?;
+    report.commit_seconds += tc.elapsed().as_secs_f64();
+    report.points = snap.point_count();
+    report.nodes = snap.node_count() as u64;
+    report.leaves = snap.leaves().count() as u64;
+    report.voxels = snap.voxel_count();
+    report.commits = writer.commits();
+    report.nodes_bytes = writer.nodes_len;
+    report.seconds = t0.elapsed().as_secs_f64();
+    Ok(report)
+}
+
+/// Whether `path` is a store directory.
+pub fn is_store(path: &Path) -> bool {
+    path.is_dir() && path.join(HIERARCHY_FILE).is_file() && path.join(SOURCE_FILE).is_file()
+}
+
+/// A store opened for reading (the last commit).
+pub struct Store {
+    /// The directory.
+    pub path: PathBuf,
+    /// The source's header (with the store's point count), VLRs and EVLRs.
+    pub meta: las::LasMeta,
+    /// The record layout.
+    pub layout: RecordLayout,
+    /// The hierarchy header.
+    pub header: HierarchyHeader,
+    /// Every node.
+    pub entries: Vec<NodeEntry>,
+    nodes: Option<Mmap>,
+    leaves: Vec<usize>,
+}
+
+/// One node's payload, borrowed from the memory map.
+#[derive(Clone, Copy, Debug)]
+pub struct NodeData<'a> {
+    /// The payload's header.
+    pub header: NodeHeader,
+    /// Coarse, medium, fine words.
+    pub words: [&'a [u32]; 3],
+    /// RGBA8 colours.
+    pub colors: &'a [u32],
+    /// `attr_len` bytes per point (leaves).
+    pub attributes: &'a [u8],
+}
+
+impl NodeData<'_> {
+    /// The quantization frame.
+    pub fn grid(&self) -> BatchGrid {
+        BatchGrid { min: self.header.min, bits: [self.header.bits[0], self.header.bits[1], self.header.bits[2]] }
+    }
+}
+
+impl Store {
+    /// Opens the last commit of the store `dir`, checking every length against the bytes that
+    /// exist.
+    pub fn open(dir: &Path) -> Result<Store> {
+        let bad = |m: String| Error::input(dir, m);
+        let src = LasInput::open(&dir.join(SOURCE_FILE))?;
+        let hp = dir.join(HIERARCHY_FILE);
+        let hb = std::fs::read(&hp).map_err(|e| Error::io(&hp, e))?;
+        if hb.len() < HIERARCHY_HEADER {
+            return Err(bad("hierarchy.bin is truncated".into()));
+        }
+        let header: HierarchyHeader = bytemuck::pod_read_unaligned(&hb[..HIERARCHY_HEADER]);
+        if header.magic != HIERARCHY_MAGIC {
+            return Err(bad("hierarchy.bin is not a mortar store hierarchy".into()));
+        }
+        if header.version != VERSION || header.entry_size != 48 {
+            return Err(bad(format!("store version {} (entry size {}) is not supported", header.version, header.entry_size)));
+        }
+        let avail = (hb.len() - HIERARCHY_HEADER) as u64 / 48;
+        if header.node_count != avail || (hb.len() - HIERARCHY_HEADER) % 48 != 0 {
+            return Err(bad(format!("hierarchy.bin declares {} nodes but holds {avail}", header.node_count)));
+        }
+        let entries: Vec<NodeEntry> = bytemuck::pod_collect_to_vec(&hb[HIERARCHY_HEADER..]);
+        let np = dir.join(NODES_FILE);
+        let f = File::open(&np).map_err(|e| Error::io(&np, e))?;
+        let file_len = f.metadata().map_err(|e| Error::io(&np, e))?.len();
+        if header.nodes_len > file_len {
+            return Err(bad(format!("nodes.bin holds {file_len} bytes, fewer than the {} the hierarchy covers", header.nodes_len)));
+        }
+        // SAFETY: the file is only appended to while it is mapped (by a builder); the part read
+        // (up to nodes_len) never changes after its commit.
+        let nodes = if file_len == 0 { None } else { Some(unsafe { Mmap::map(&f) }.map_err(|e| Error::io(&np, e))?) };
+        let layout = src.layout.clone();
+        let attr_len = layout.record_len as u64 - 12;
+        let mut leaves = Vec::new();
+        let mut points = 0u64;
+        for (i, e) in entries.iter().enumerate() {
+            let al = if e.kind == LEAF { attr_len } else { 0 };
+            if e.kind > INNER || e.offset % 8 != 0 || e.count > u32::MAX as u64 || e.length != payload_len(e.count, al) || e.offset.checked_add(e.length).is_none_or(|end| end > header.nodes_len) {
+                return Err(bad(format!("node entry {i} is damaged (kind {}, {} points, {} bytes at {})", e.kind, e.count, e.length, e.offset)));
+            }
+            let nb = &nodes.as_ref().expect("non-empty")[e.offset as usize..(e.offset + e.length) as usize];
+            let h: NodeHeader = bytemuck::pod_read_unaligned(&nb[..64]);
+            if h.magic != NODE_MAGIC || h.count as u64 != e.count || h.kind != e.kind || h.attr_len as u64 != al || h.bits[..3].iter().any(|&b| b > 30) {
+                return Err(bad(format!("node payload {i} does not match its hierarchy entry")));
+            }
+            if e.kind == LEAF {
+                leaves.push(i);
+                points += e.count;
+            }
+        }
+        if points != header.points {
+            return Err(bad(format!("the leaves hold {points} points, the hierarchy says {}", header.points)));
+        }
+        let mut meta = src.meta.clone();
+        meta.header.point_count = points;
+        if points > 0 {
+            let h = &mut meta.header;
+            for a in 0..3 {
+                let w = |v: i32| h.offset[a] + h.scale[a] * v as f64;
+                let (x, y) = (w(header.min[a]), w(header.max[a]));
+                h.min[a] = x.min(y);
+                h.max[a] = x.max(y);
+            }
+        }
+        Ok(Store { path: dir.to_path_buf(), meta, layout, header, entries, nodes, leaves })
+    }
+
+    /// Indices of the leaf entries.
+    pub fn leaves(&self) -> &[usize] {
+        &self.leaves
+    }
+
+    /// The root cube.
+    pub fn root_cube(&self) -> Cube {
+        Cube { min: self.header.root_min, size_log2: self.header.root_size_log2 as u8 }
+    }
+
+    /// The payload of node entry `i`.
+    pub fn node(&self, i: usize) -> NodeData<'_> {
+        let e = &self.entries[i];
+        let b = &self.nodes.as_ref().expect("checked at open")[e.offset as usize..(e.offset + e.length) as usize];
+        let header: NodeHeader = bytemuck::pod_read_unaligned(&b[..64]);
+        let n = header.count as usize;
+        // Offsets are multiples of 8 in a page-aligned map: the u32 arrays are aligned.
+        let words_at = |k: usize| -> &[u32] { bytemuck::cast_slice(&b[64 + 4 * n * k..64 + 4 * n * (k + 1)]) };
+        let attributes = &b[64 + 16 * n..64 + 16 * n + n * header.attr_len as usize];
+        NodeData { header, words: [words_at(0), words_at(1), words_at(2)], colors: words_at(3), attributes }
+    }
+}
+
+/// Leaves per piece when a store is read as records (about 1 M points with full leaves).
+const LEAVES_PER_PIECE: usize = 20;
+
+impl RecordSource for Store {
+    fn path(&self) -> &Path {
+        &self.path
+    }
+    fn header(&self) -> &Header {
+        &self.meta.header
+    }
+    fn vlrs(&self) -> &[Vlr] {
+        &self.meta.vlrs
+    }
+    fn evlrs(&self) -> &[Vlr] {
+        &self.meta.evlrs
+    }
+    fn layout(&self) -> &RecordLayout {
+        &self.layout
+    }
+    fn point_count(&self) -> u64 {
+        self.header.points
+    }
+    fn pieces(&self) -> Vec<Piece> {
+        let mut first = 0;
+        self.leaves
+            .chunks(LEAVES_PER_PIECE)
+            .enumerate()
+            .map(|(i, c)| {
+                let points = c.iter().map(|&l| self.entries[l].count).sum();
+                let p = Piece { index: i, first_point: first, points };
+                first += points;
+                p
+            })
+            .collect()
+    }
+    fn read_piece(&self, piece: &Piece) -> Result<Cow<'_, [u8]>> {
+        let rl = self.layout.record_len;
+        let start = piece.index * LEAVES_PER_PIECE;
+        let leaves = self.leaves.get(start..(start + LEAVES_PER_PIECE).min(self.leaves.len())).unwrap_or(&[]);
+        let mut out = Vec::with_capacity(piece.points as usize * rl);
+        for &l in leaves {
+            let d = self.node(l);
+            let g = d.grid();
+            let al = d.header.attr_len as usize;
+            for i in 0..d.header.count as usize {
+                let p = g.decode_exact([d.words[0][i], d.words[1][i], d.words[2][i]]);
+                for v in p {
+                    out.extend_from_slice(&v.to_le_bytes());
+                }
+                out.extend_from_slice(&d.attributes[i * al..(i + 1) * al]);
+            }
+        }
+        if out.len() != piece.points as usize * rl {
+            return Err(Error::input(&self.path, format!("piece {} holds another number of points than its leaves declare", piece.index)));
+        }
+        Ok(Cow::Owned(out))
+    }
+    fn is_compressed(&self) -> bool {
+        false
+    }
+}
