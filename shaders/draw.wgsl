@@ -5,10 +5,6 @@
 
 @group(0) @binding(0) var<uniform> frame: FrameUniforms;
 @group(0) @binding(1) var<storage, read_write> keys: array<atomic<u64>>;
-@group(1) @binding(0) var<storage, read> records: array<DrawRecord>;
-@group(1) @binding(1) var<storage, read> coarse: array<u32>;
-@group(1) @binding(2) var<storage, read> medium: array<u32>;
-@group(1) @binding(3) var<storage, read> fine: array<u32>;
 
 @compute @workgroup_size(128)
 fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
@@ -17,19 +13,9 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) groups: v
         return;
     }
     let rec = records[r];
-    let p = rec.projection;
     var drawn = 0u;
     for (var i = lid; i < rec.count; i += 128u) {
-        let s = rec.offset + i;
-        var m = 0u;
-        var f = 0u;
-        if p.words >= 2u {
-            m = medium[s];
-        }
-        if p.words >= 3u {
-            f = fine[s];
-        }
-        let pt = project(p, join_words(coarse[s], m, f, p.words), frame);
+        let pt = load_and_project(rec, i, frame);
         if pt.inside {
             drawn += 1u;
             let key = (u64(bitcast<u32>(pt.depth)) << 32u) | u64(rec.first_index + i);

@@ -14,22 +14,11 @@ use mortar_core::quantize::Precision;
 use mortar_core::render::framebuffer::{key_depth, EMPTY_KEY};
 use mortar_core::render::{rasterize, Camera, Framebuffer, PrecisionMode, RasterOptions, ViewPreset};
 use mortar_io::render_input::{self, RenderSource};
-use mortar_render::{AtomicPath, GpuContext, GpuError, GpuOptions, GpuRasterizer, GpuScene, SceneOptions};
+use mortar_render::{AtomicPath, GpuContext, GpuRasterizer, GpuScene, SceneOptions};
 use std::path::{Path, PathBuf};
 
 fn context(path: AtomicPath) -> Option<GpuContext> {
-    match GpuContext::new(&GpuOptions { atomics: Some(path), allow_software: true, ..Default::default() }) {
-        Ok(c) => Some(c),
-        Err(GpuError::NoAdapter(why)) if std::env::var_os("MORTAR_REQUIRE_GPU").is_none() => {
-            eprintln!("SKIPPED: no GPU adapter at all{why}");
-            None
-        }
-        Err(GpuError::NoInt64Atomics { adapter }) if std::env::var_os("MORTAR_REQUIRE_GPU").is_none() => {
-            eprintln!("SKIPPED (64-bit path): {adapter} has no 64-bit atomics");
-            None
-        }
-        Err(e) => panic!("GPU context: {e}"),
-    }
+    mortar_render::testing::context_or_skip(path, None)
 }
 
 fn sample() -> PathBuf {

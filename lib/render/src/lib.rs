@@ -18,6 +18,8 @@ pub mod context;
 pub mod raster;
 pub mod scene;
 pub mod shaders;
+#[doc(hidden)]
+pub mod testing;
 
 pub use context::{AdapterSummary, AtomicPath, GpuContext, GpuError, GpuOptions};
 pub use raster::{GpuFrame, GpuRasterizer, GpuTimings};

@@ -6,6 +6,8 @@
 const TYPES: &str = include_str!("../../../shaders/common/types.wgsl");
 /// The one position decode and projection (draw passes).
 const DECODE: &str = include_str!("../../../shaders/common/decode.wgsl");
+/// The batch bindings and the per-point load-decode-project step (draw passes).
+const BATCHES: &str = include_str!("../../../shaders/common/batches.wgsl");
 /// The drawn-point counter (draw passes that count).
 const COUNTERS: &str = include_str!("../../../shaders/common/counters.wgsl");
 
@@ -60,8 +62,8 @@ impl Pass {
         let mut parts = vec![TYPES];
         match self {
             Pass::Clear | Pass::Resolve => {}
-            Pass::Draw64 | Pass::DrawIndex32 => parts.extend([DECODE, COUNTERS]),
-            Pass::DrawDepth32 => parts.push(DECODE),
+            Pass::Draw64 | Pass::DrawIndex32 => parts.extend([DECODE, BATCHES, COUNTERS]),
+            Pass::DrawDepth32 => parts.extend([DECODE, BATCHES]),
         }
         parts.push(self.own_source());
         parts.join("\n")

@@ -11,22 +11,10 @@ use mortar_core::render::framebuffer::{key_depth, key_index, EMPTY_KEY};
 use mortar_core::render::resolve::{resolve_with_colors, ResolveOptions};
 use mortar_core::render::testutil::Scene;
 use mortar_core::render::{rasterize, Camera, Framebuffer, PrecisionMode, RasterOptions, RasterStats, ViewPreset};
-use mortar_render::{AtomicPath, GpuContext, GpuError, GpuOptions, GpuRasterizer, GpuScene, SceneOptions};
+use mortar_render::{AtomicPath, GpuContext, GpuError, GpuRasterizer, GpuScene, SceneOptions};
 
 fn context(atomics: AtomicPath, max_dispatch: Option<u32>) -> Option<GpuContext> {
-    let opts = GpuOptions { atomics: Some(atomics), allow_software: true, max_workgroups_per_dimension: max_dispatch };
-    match GpuContext::new(&opts) {
-        Ok(c) => Some(c),
-        Err(GpuError::NoAdapter(why)) if std::env::var_os("MORTAR_REQUIRE_GPU").is_none() => {
-            eprintln!("SKIPPED: no GPU adapter at all{why}");
-            None
-        }
-        Err(GpuError::NoInt64Atomics { adapter }) if std::env::var_os("MORTAR_REQUIRE_GPU").is_none() => {
-            eprintln!("SKIPPED (64-bit path): {adapter} has no 64-bit atomics");
-            None
-        }
-        Err(e) => panic!("GPU context: {e}"),
-    }
+    mortar_render::testing::context_or_skip(atomics, max_dispatch)
 }
 
 fn cpu_keys(scene: &Scene, cam: &Camera, opts: &RasterOptions) -> (Vec<u64>, RasterStats) {
