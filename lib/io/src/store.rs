@@ -425,7 +425,7 @@ pub fn build(ds: &Dataset, dir: &Path, opts: &BuildOptions, progress: &mut dyn F
     let rl = meta.layout.record_len;
     let pieces = ds.pieces();
     let total: u64 = pieces.iter().map(|p| p.piece.points).sum();
-    let bytes = total.checked_mul(rl as u64).unwrap_or(u64::MAX);
+    let bytes = total.saturating_mul(rl as u64);
     if bytes > opts.memory {
         return Err(Error::Usage(format!(
             "{total} points ({} MiB of records) exceed the builder's memory budget of {} MiB (--memory); the builder holds the whole input in memory for now",
