@@ -28,9 +28,10 @@ pub struct Args {
     /// Points per octree update.
     #[arg(long, default_value_t = 1_000_000)]
     pub batch_points: usize,
-    /// Memory for the input's records (the builder holds them all for now), e.g. 8G.
-    #[arg(long, value_parser = common::parse_size)]
-    pub memory: Option<u64>,
+    /// Memory budget, e.g. 2G (the default): the builder commits and pages the leaves' points
+    /// out to the store whenever the points held since the last commit exceed a third of it.
+    #[arg(long, value_parser = common::parse_size, default_value = "2G")]
+    pub memory: u64,
     /// Print a JSON summary on stdout.
     #[arg(long)]
     pub json: bool,
@@ -50,7 +51,7 @@ pub fn run(a: Args) -> Result<()> {
         },
         batch_points: a.batch_points.max(1),
         commit_every: a.commit_every.max(0.0),
-        memory: a.memory.unwrap_or_else(mortar_io::sort::default_memory),
+        memory: a.memory,
     };
     let tty = std::io::stderr().is_terminal();
     let mut progress = |p: &BuildProgress| {
@@ -76,6 +77,8 @@ pub fn run(a: Args) -> Result<()> {
             "read_seconds": r.read_seconds,
             "build_seconds": r.batch_seconds.iter().sum::<f64>(),
             "commit_seconds": r.commit_seconds,
+            "paged_in_leaves": r.paged_in_leaves,
+            "peak_interval_bytes": r.peak_interval_bytes,
             "points_per_second": r.points as f64 / r.seconds.max(1e-9),
             "batches": r.batch_seconds.len(),
             "batch_seconds_mean": r.batch_seconds.iter().sum::<f64>() / n,

@@ -45,6 +45,8 @@ fn store_round_trip_is_exact_on_the_sample() {
     assert!(j["commits"].as_u64().unwrap() >= 15, "{j}");
     assert!(j["leaves"].as_u64().unwrap() >= 110, "{j}");
     assert!(j["voxels"].as_u64().unwrap() > 0);
+    // Every commit pages the leaves out, so splits read leaves back from nodes.bin.
+    assert!(j["paged_in_leaves"].as_u64().unwrap() > 0, "{j}");
     let j = round_trip(&sample(), &["--averaged-colors", "--leaf-capacity", "3000"], "store-avg");
     assert_eq!(j["points"], 110_000);
 }
@@ -98,6 +100,41 @@ fn store_is_readable_at_every_commit_while_it_grows() {
     let s = Store::open(&store).unwrap();
     assert_eq!(s.header.points, 110_000);
     assert_eq!(s.header.commit, r.commits);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A small memory budget makes the builder commit and page out by memory, not by time: the
+/// points and records held between two commits stay within a third of the budget (plus one
+/// batch), and the store is still exact.
+#[test]
+fn a_small_memory_budget_bounds_what_is_held() {
+    let j = round_trip(&sample(), &["--memory", "3M", "--commit-every", "100000", "--batch-points", "5000", "--leaf-capacity", "2000"], "store-mem");
+    assert_eq!(j["points"], 110_000);
+    assert!(j["commits"].as_u64().unwrap() >= 5, "{j}");
+    assert!(j["paged_in_leaves"].as_u64().unwrap() > 0, "{j}");
+    // A third of the budget for the interval, plus the LAZ chunk being added (50,000 records):
+    // within the budget.
+    assert!(j["peak_interval_bytes"].as_u64().unwrap() <= 3 << 20, "{j}");
+}
+
+/// Points outside the bounds the header declares: the builder places the octree from the
+/// header, so this is a clear error naming the file, and no store is left behind.
+#[test]
+fn points_outside_the_header_bounds_are_an_error() {
+    let dir = tempdir("store-hdr");
+    let las = dir.join("bad.las");
+    run_ok(mortar().arg("sort").arg(sample()).arg("-o").arg(&las));
+    let mut b = std::fs::read(&las).unwrap();
+    // max X (f64 at 179) := min X (at 187) + 1 m
+    let min_x = f64::from_le_bytes(b[187..195].try_into().unwrap());
+    b[179..187].copy_from_slice(&(min_x + 1.0).to_le_bytes());
+    std::fs::write(&las, &b).unwrap();
+    let store = dir.join("s");
+    let o = mortar().arg("build").arg(&las).arg("-o").arg(&store).output().unwrap();
+    assert_eq!(o.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("bad.las") && err.contains("outside the bounds the header declares"), "{err}");
+    assert!(!store.exists(), "no half-written store");
     let _ = std::fs::remove_dir_all(&dir);
 }
 

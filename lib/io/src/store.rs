@@ -15,9 +15,15 @@
 //!   synced first, then a new hierarchy written, synced and renamed over the old one). A reader
 //!   that opens the directory at any moment sees the last commit; a crash or Ctrl-C leaves it.
 //!
-//! Not done yet: the builder holds every point in memory (the store writes nodes as they change,
-//! but a node is not dropped from memory once written), so memory is not bounded for inputs
-//! larger than RAM; old versions of changed nodes stay in `nodes.bin` (no compaction).
+//! Memory: the input is read piece by piece, never whole. After each commit the builder pages
+//! out the points of every leaf (they are in `nodes.bin` now) and the records of the points added
+//! since the last commit are dropped; a leaf that must split later gets its points back from its
+//! last payload. So what is held is the inner nodes' voxels, the hierarchy and the points of one
+//! commit interval: a commit is also made when those exceed a third of `--memory`.
+//!
+//! Not done yet: old versions of changed nodes stay in `nodes.bin` (no compaction): a leaf that
+//! receives points in many commit intervals is rewritten whole each time, so `nodes.bin` grows
+//! with input order as much as with input size (measured in BENCHMARKS.md).
 
 use crate::cleanup::TempPath;
 use crate::dataset::{Dataset, RecordSource, SourceMeta};
@@ -27,7 +33,7 @@ use crate::source::{LasInput, Piece};
 use memmap2::Mmap;
 use mortar_core::color::{ColorSource, RgbDepth};
 use mortar_core::layout::RecordLayout;
-use mortar_core::octree::{Builder, BuilderConfig, Cube, NodeView, Payload, Point, Snapshot};
+use mortar_core::octree::{Builder, BuilderConfig, Cube, NodeId, NodeView, OctreeError, Payload, Point, Snapshot};
 use mortar_core::quantize::BatchGrid;
 use rayon::prelude::*;
 use std::borrow::Cow;
@@ -159,6 +165,8 @@ pub struct CommitStats {
 pub struct StoreWriter {
     dir: PathBuf,
     nodes: File,
+    /// `nodes.bin` opened for reading old payloads back.
+    reader: File,
     nodes_len: u64,
     entries: Vec<Option<NodeEntry>>,
     commit: u64,
@@ -209,9 +217,11 @@ impl StoreWriter {
         std::fs::write(&src, &bytes).map_err(|e| Error::io(&src, e))?;
         let np = dir.join(NODES_FILE);
         let nodes = File::create(&np).map_err(|e| Error::io(&np, e))?;
+        let reader = File::open(&np).map_err(|e| Error::io(&np, e))?;
         Ok(StoreWriter {
             dir: dir.to_path_buf(),
             nodes,
+            reader,
             nodes_len: 0,
             entries: Vec::new(),
             commit: 0,
@@ -222,36 +232,31 @@ impl StoreWriter {
     }
 
     /// Commits: appends the payloads of the nodes changed since the last commit, syncs them, then
-    /// replaces the hierarchy atomically. `record(i)` returns the full record of point record `i`.
-    /// `bounds` are the integer bounds of all the points (recorded for readers).
+    /// replaces the hierarchy atomically. `record(h)` returns the full record of the point whose
+    /// [`Point::record`] is `h`. A changed leaf with paged-out points ([`NodeView::paged_points`])
+    /// is written whole: its last payload is read back and the new points appended. Payloads are
+    /// encoded in parallel in groups of at most [`COMMIT_GROUP_BYTES`], so a commit needs little
+    /// memory beyond the nodes themselves. `bounds` are the integer bounds of the points so far.
     pub fn commit<'r>(&mut self, snap: &Snapshot, bounds: ([i32; 3], [i32; 3]), record: &(dyn Fn(u64) -> &'r [u8] + Sync)) -> Result<CommitStats> {
         let changed: Vec<(usize, &NodeView)> = match self.last_revision {
             None => snap.iter().map(|(id, n)| (id.index(), n)).collect(),
             Some(rev) => snap.changed_since(rev).map(|(id, n)| (id.index(), n)).collect(),
         };
-        // Encode payloads in parallel, append in order.
-        let record_len = self.record_len;
-        let dir = self.dir.clone();
-        let payloads: Vec<(usize, NodeEntry, Vec<u8>)> = changed
-            .par_iter()
-            .map(|&(id, n)| encode_node(n, record_len, record).map(|(e, b)| (id, e, b)).map_err(|m| Error::input(&dir, m)))
-            .collect::<Result<_>>()?;
+        let attr_len = self.record_len as u64 - 12;
         let mut stats = CommitStats::default();
-        let np = self.dir.join(NODES_FILE);
-        let mut w = std::io::BufWriter::with_capacity(8 << 20, &self.nodes);
-        for (id, mut entry, bytes) in payloads {
-            entry.offset = self.nodes_len;
-            w.write_all(&bytes).map_err(|e| Error::io(&np, e))?;
-            self.nodes_len += bytes.len() as u64;
-            stats.bytes += bytes.len() as u64;
-            stats.nodes_written += 1;
-            if self.entries.len() <= id {
-                self.entries.resize(id + 1, None);
+        let mut start = 0;
+        while start < changed.len() {
+            let mut end = start;
+            let mut bytes = 0u64;
+            while end < changed.len() && (end == start || bytes < COMMIT_GROUP_BYTES) {
+                let n = changed[end].1;
+                bytes += if n.is_leaf() { payload_len(n.total_points(), attr_len) } else { payload_len(n.voxel_count(), 0) };
+                end += 1;
             }
-            self.entries[id] = Some(entry);
+            self.write_group(&changed[start..end], record, &mut stats)?;
+            start = end;
         }
-        w.flush().map_err(|e| Error::io(&np, e))?;
-        drop(w);
+        let np = self.dir.join(NODES_FILE);
         self.nodes.sync_data().map_err(|e| Error::io(&np, e))?;
         self.commit += 1;
         let root = snap.root_cube();
@@ -263,7 +268,7 @@ impl StoreWriter {
             commit: self.commit,
             node_count: entries.len() as u64,
             nodes_len: self.nodes_len,
-            points: snap.point_count(),
+            points: snap.total_points(),
             root_min: root.min,
             root_size_log2: root.size_log2 as u32,
             leaf_capacity: snap.config().leaf_capacity,
@@ -295,15 +300,148 @@ impl StoreWriter {
     pub fn commits(&self) -> u64 {
         self.commit
     }
+
+    /// Encodes `nodes` in parallel and appends them in order.
+    fn write_group<'r>(&mut self, nodes: &[(usize, &NodeView)], record: &(dyn Fn(u64) -> &'r [u8] + Sync), stats: &mut CommitStats) -> Result<()> {
+        let record_len = self.record_len;
+        let this = &*self;
+        let payloads: Vec<(usize, NodeEntry, Vec<u8>)> = nodes
+            .par_iter()
+            .map(|&(id, n)| {
+                let old = if n.paged_points() > 0 { Some(this.read_payload(id, Some(n.paged_points()))?) } else { None };
+                encode_node(n, old.as_deref(), record_len, record).map(|(e, b)| (id, e, b)).map_err(|m| Error::input(&this.dir, m))
+            })
+            .collect::<Result<_>>()?;
+        let np = self.dir.join(NODES_FILE);
+        let mut w = std::io::BufWriter::with_capacity(8 << 20, &self.nodes);
+        for (id, mut entry, bytes) in payloads {
+            entry.offset = self.nodes_len;
+            w.write_all(&bytes).map_err(|e| Error::io(&np, e))?;
+            self.nodes_len += bytes.len() as u64;
+            stats.bytes += bytes.len() as u64;
+            stats.nodes_written += 1;
+            if self.entries.len() <= id {
+                self.entries.resize(id + 1, None);
+            }
+            self.entries[id] = Some(entry);
+        }
+        w.flush().map_err(|e| Error::io(&np, e))?;
+        Ok(())
+    }
+
+    /// The last written payload of leaf `id`, which must hold `count` points.
+    fn read_payload(&self, id: usize, count: Option<u64>) -> Result<Vec<u8>> {
+        use std::os::unix::fs::FileExt;
+        let np = self.dir.join(NODES_FILE);
+        let e = self.entries.get(id).copied().flatten().ok_or_else(|| Error::input(&np, format!("leaf {id} has paged-out points but no payload")))?;
+        if e.kind != LEAF || count.is_some_and(|c| c != e.count) {
+            return Err(Error::input(&np, format!("leaf {id}: the last payload holds {} points, {count:?} were paged out", e.count)));
+        }
+        let mut buf = vec![0u8; e.length as usize];
+        self.reader.read_exact_at(&mut buf, e.offset).map_err(|err| Error::io(&np, err))?;
+        Ok(buf)
+    }
+
+    /// The paged-out points of leaf `id` (`count` of them, if given), read back from its last
+    /// payload for a split: their full records are appended to `records` and each point's
+    /// [`Point::record`] is `PAGED | index` of its record there.
+    pub fn page_in(&self, id: usize, count: Option<u64>, records: &std::sync::Mutex<Vec<u8>>) -> Result<Vec<Point>> {
+        let buf = self.read_payload(id, count)?;
+        let leaf = DecodedLeaf::parse(&buf).map_err(|m| Error::input(&self.dir.join(NODES_FILE), format!("leaf {id}: {m}")))?;
+        let rl = self.record_len;
+        let mut recs = vec![0u8; leaf.count * rl];
+        for (i, r) in recs.chunks_exact_mut(rl).enumerate() {
+            let p = leaf.position(i);
+            for a in 0..3 {
+                r[4 * a..4 * a + 4].copy_from_slice(&p[a].to_le_bytes());
+            }
+            r[12..].copy_from_slice(leaf.attributes(i));
+        }
+        let mut all = records.lock().map_err(|_| Error::Usage("a page-in thread panicked".into()))?;
+        let base = (all.len() / rl) as u64;
+        all.extend_from_slice(&recs);
+        drop(all);
+        Ok((0..leaf.count).map(|i| Point { pos: leaf.position(i), color: leaf.color(i), record: PAGED | (base + i as u64) }).collect())
+    }
 }
 
-/// Encodes one node's payload (entry offset left 0).
-fn encode_node<'r>(n: &NodeView, record_len: usize, record: &(dyn Fn(u64) -> &'r [u8] + Sync)) -> std::result::Result<(NodeEntry, Vec<u8>), String> {
+/// Tag of [`Point::record`] for points paged back in: the rest is an index into the paged-in
+/// records (see [`StoreWriter::page_in`]); without it, an index into the records read this
+/// commit interval.
+pub const PAGED: u64 = 1 << 63;
+
+/// Most bytes of payloads one commit encodes at once.
+pub const COMMIT_GROUP_BYTES: u64 = 128 << 20;
+
+/// A leaf payload read back from `nodes.bin`.
+struct DecodedLeaf<'a> {
+    count: usize,
+    grid: BatchGrid,
+    words: [&'a [u8]; 3],
+    colors: &'a [u8],
+    attributes: &'a [u8],
+    attr_len: usize,
+}
+
+impl<'a> DecodedLeaf<'a> {
+    fn parse(b: &'a [u8]) -> std::result::Result<DecodedLeaf<'a>, String> {
+        if b.len() < 64 {
+            return Err("payload shorter than its header".into());
+        }
+        let h: NodeHeader = bytemuck::pod_read_unaligned(&b[..64]);
+        let (n, al) = (h.count as usize, h.attr_len as usize);
+        if h.magic != NODE_MAGIC || h.kind != LEAF || (b.len() as u64) < payload_len(n as u64, al as u64) || h.bits[..3].iter().any(|&x| x > 30) {
+            return Err("damaged payload".into());
+        }
+        let w = |k: usize| &b[64 + 4 * n * k..64 + 4 * n * (k + 1)];
+        Ok(DecodedLeaf {
+            count: n,
+            grid: BatchGrid { min: h.min, bits: [h.bits[0], h.bits[1], h.bits[2]] },
+            words: [w(0), w(1), w(2)],
+            colors: w(3),
+            attributes: &b[64 + 16 * n..64 + 16 * n + n * al],
+            attr_len: al,
+        })
+    }
+
+    fn u32_at(b: &[u8], i: usize) -> u32 {
+        u32::from_le_bytes([b[4 * i], b[4 * i + 1], b[4 * i + 2], b[4 * i + 3]])
+    }
+
+    fn position(&self, i: usize) -> [i32; 3] {
+        self.grid.decode_exact([0, 1, 2].map(|k| Self::u32_at(self.words[k], i)))
+    }
+
+    fn color(&self, i: usize) -> u32 {
+        Self::u32_at(self.colors, i)
+    }
+
+    fn attributes(&self, i: usize) -> &'a [u8] {
+        &self.attributes[i * self.attr_len..(i + 1) * self.attr_len]
+    }
+}
+
+/// Encodes one node's payload (entry offset left 0). `old` is the node's last payload when it is
+/// a leaf with paged-out points: those come first.
+fn encode_node<'r>(n: &NodeView, old: Option<&[u8]>, record_len: usize, record: &(dyn Fn(u64) -> &'r [u8] + Sync)) -> std::result::Result<(NodeEntry, Vec<u8>), String> {
     let key = n.key();
-    let (kind, positions, colors, attr_len): (u32, Vec<[i32; 3]>, Vec<u32>, usize) = match n.payload() {
+    let attr_len = record_len - 12;
+    let old = old.map(DecodedLeaf::parse).transpose().map_err(|m| format!("leaf {}: {m}", key.name()))?;
+    if old.as_ref().is_some_and(|o| o.attr_len != attr_len || o.count as u64 != n.paged_points()) {
+        return Err(format!("leaf {}: its last payload does not match the points paged out", key.name()));
+    }
+    let (kind, positions, colors): (u32, Vec<[i32; 3]>, Vec<u32>) = match n.payload() {
         Payload::Points(p) => {
-            let pts: Vec<Point> = p.to_vec();
-            (LEAF, pts.iter().map(|q| q.pos).collect(), pts.iter().map(|q| q.color).collect(), record_len - 12)
+            let k = old.as_ref().map_or(0, |o| o.count);
+            let mut pos = Vec::with_capacity(k + p.len() as usize);
+            let mut col = Vec::with_capacity(k + p.len() as usize);
+            if let Some(o) = &old {
+                pos.extend((0..k).map(|i| o.position(i)));
+                col.extend((0..k).map(|i| o.color(i)));
+            }
+            pos.extend(p.iter().map(|q| q.pos));
+            col.extend(p.iter().map(|q| q.color));
+            (LEAF, pos, col)
         }
         Payload::Voxels(v) => {
             let cube = n.cube();
@@ -313,10 +451,14 @@ fn encode_node<'r>(n: &NodeView, record_len: usize, record: &(dyn Fn(u64) -> &'r
                 .iter()
                 .map(|x| cube.voxel_min(x.coord).map(|m| (m + half).clamp(i32::MIN as i64, i32::MAX as i64) as i32))
                 .collect();
-            (INNER, pos, vox.iter().map(|x| x.color).collect(), 0)
+            (INNER, pos, vox.iter().map(|x| x.color).collect())
         }
     };
+    let attr_len = if kind == LEAF { attr_len } else { 0 };
     let count = positions.len();
+    if count > u32::MAX as usize {
+        return Err(format!("node {} holds {count} points, more than a payload can (2^32 - 1)", key.name()));
+    }
     let (mut lo, mut hi) = ([i32::MAX; 3], [i32::MIN; 3]);
     for p in &positions {
         for a in 0..3 {
@@ -343,6 +485,7 @@ fn encode_node<'r>(n: &NodeView, record_len: usize, record: &(dyn Fn(u64) -> &'r
     };
     out.extend_from_slice(bytemuck::bytes_of(&header));
     let words: Vec<[u32; 3]> = positions.iter().map(|p| grid.encode(*p)).collect();
+    drop(positions);
     for level in 0..3 {
         for w in &words {
             out.extend_from_slice(&w[level].to_le_bytes());
@@ -352,6 +495,9 @@ fn encode_node<'r>(n: &NodeView, record_len: usize, record: &(dyn Fn(u64) -> &'r
         out.extend_from_slice(&c.to_le_bytes());
     }
     if kind == LEAF {
+        if let Some(o) = &old {
+            out.extend_from_slice(o.attributes);
+        }
         if let Payload::Points(p) = n.payload() {
             for q in p.iter() {
                 let r = record(q.record);
@@ -373,7 +519,8 @@ pub struct BuildOptions {
     pub batch_points: usize,
     /// Seconds between commits (the last one is always made).
     pub commit_every: f64,
-    /// Largest input (bytes of records) the builder may hold in memory.
+    /// Memory budget in bytes: a commit (after which the builder pages out every leaf's points)
+    /// is also made when the points and records held since the last one exceed a third of it.
     pub memory: u64,
 }
 
@@ -382,7 +529,7 @@ pub struct BuildOptions {
 pub struct BuildProgress {
     /// Points added so far.
     pub points: u64,
-    /// Points in all.
+    /// Points in all (as the headers declare).
     pub total: u64,
     /// Nodes so far.
     pub nodes: usize,
@@ -411,30 +558,51 @@ pub struct BuildReport {
     pub batch_seconds: Vec<f64>,
     /// Seconds committing.
     pub commit_seconds: f64,
+    /// Leaves paged back in for splits.
+    pub paged_in_leaves: u64,
+    /// Most bytes of points and records held between two commits.
+    pub peak_interval_bytes: u64,
     /// Seconds in all.
     pub seconds: f64,
 }
 
-/// Builds the store `dir` from `ds`: reads every record (in parallel), then adds the points to
-/// the octree in batches of `batch_points` in input order, committing every `commit_every`
-/// seconds and at the end. On an error the directory is removed; on Ctrl-C the last commit
-/// stays readable.
+/// The root cube's integer bounds from the inputs' headers (one unit of margin), on the merged
+/// grid.
+fn header_bounds(ds: &Dataset) -> Result<([i32; 3], [i32; 3])> {
+    let (mut lo, mut hi) = ([i64::MAX; 3], [i64::MIN; 3]);
+    for src in &ds.inputs {
+        let h = src.header();
+        if src.point_count() == 0 {
+            continue;
+        }
+        for a in 0..3 {
+            if !(h.min[a].is_finite() && h.max[a].is_finite()) || h.min[a] > h.max[a] {
+                return Err(Error::input(src.path(), format!("the header's bounds on axis {a} are not usable ({} .. {}); the builder places the octree from them", h.min[a], h.max[a])));
+            }
+            lo[a] = lo[a].min(ds.grid.to_int(a, h.min[a]).saturating_sub(1));
+            hi[a] = hi[a].max(ds.grid.to_int(a, h.max[a]).saturating_add(1));
+        }
+    }
+    if lo[0] > hi[0] {
+        return Ok(([0; 3], [0; 3]));
+    }
+    let c = |v: i64| v.clamp(i32::MIN as i64, i32::MAX as i64) as i32;
+    Ok((lo.map(c), hi.map(c)))
+}
+
+/// Builds the store `dir` from `ds`: reads the input piece by piece (pieces of a batch in
+/// parallel) and adds the points to the octree in batches of about `batch_points` in input order,
+/// committing every `commit_every` seconds, whenever the points held since the last commit exceed
+/// a third of the memory budget, and at the end; after each commit the leaves' points are paged
+/// out (see the module docs). The octree's root cube comes from the headers' bounds: a point
+/// outside them is an error naming the file. On an error the directory is removed; on Ctrl-C the
+/// last commit stays readable.
 pub fn build(ds: &Dataset, dir: &Path, opts: &BuildOptions, progress: &mut dyn FnMut(&BuildProgress)) -> Result<BuildReport> {
     let t0 = Instant::now();
     let meta = ds.source_meta();
-    let rl = meta.layout.record_len;
-    let pieces = ds.pieces();
-    let total: u64 = pieces.iter().map(|p| p.piece.points).sum();
-    let bytes = total.saturating_mul(rl as u64);
-    if bytes > opts.memory {
-        return Err(Error::Usage(format!(
-            "{total} points ({} MiB of records) exceed the builder's memory budget of {} MiB (--memory); the builder holds the whole input in memory for now",
-            bytes >> 20,
-            opts.memory >> 20
-        )));
-    }
+    let bounds = header_bounds(ds)?;
     let mut writer = StoreWriter::create(dir, &meta)?;
-    let result = build_into(ds, &mut writer, opts, progress, total, t0);
+    let result = build_into(ds, &mut writer, opts, progress, bounds, t0);
     match result {
         Ok(r) => Ok(r),
         Err(Error::Interrupted) => Err(Error::Interrupted),
@@ -446,70 +614,132 @@ pub fn build(ds: &Dataset, dir: &Path, opts: &BuildOptions, progress: &mut dyn F
     }
 }
 
-fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOptions, progress: &mut dyn FnMut(&BuildProgress), total: u64, t0: Instant) -> Result<BuildReport> {
+fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOptions, progress: &mut dyn FnMut(&BuildProgress), header: ([i32; 3], [i32; 3]), t0: Instant) -> Result<BuildReport> {
     let rl = ds.layout.record_len;
     let pieces = ds.pieces();
-    // Read every piece into one arena.
-    let mut arena = vec![0u8; (total as usize) * rl];
-    {
-        let mut slices = Vec::with_capacity(pieces.len());
-        let mut rest = &mut arena[..];
-        for p in &pieces {
-            let (head, tail) = rest.split_at_mut(p.piece.points as usize * rl);
-            slices.push((p, head));
-            rest = tail;
+    let total: u64 = pieces.iter().map(|p| p.piece.points).sum();
+    let batch = opts.batch_points.max(1);
+    // Bytes held per point between commits: its record, its Point in a leaf, the batch's work.
+    let per_point = rl as u64 + 24 + 48;
+    let interval_points = ((opts.memory / 3) / per_point).max(batch as u64);
+    let mut report = BuildReport::default();
+    let mut builder = Builder::for_bounds(header.0, header.1, opts.config).map_err(|e| Error::Usage(format!("octree: {e}")))?;
+    let root = builder.root();
+    // Records of the points added since the last commit (index = Point::record) and of points
+    // paged back in (PAGED | index).
+    let mut records: Vec<u8> = Vec::with_capacity((interval_points.min(total) as usize + batch).saturating_mul(rl).min(1 << 30));
+    let paged = std::sync::Mutex::new(Vec::<u8>::new());
+    let mut color: Option<ColorSource> = None;
+    let (mut lo, mut hi) = ([i32::MAX; 3], [i32::MIN; 3]);
+    let mut last_commit = Instant::now();
+    let mut points: Vec<Point> = Vec::new();
+    let mut done = 0u64;
+    let mut next = 0usize;
+    while next < pieces.len() {
+        crate::sort::check_interrupted()?;
+        // The next pieces, up to about one batch of points.
+        let first = next;
+        let mut n = 0u64;
+        while next < pieces.len() && (next == first || n + pieces[next].piece.points <= batch as u64) {
+            n += pieces[next].piece.points;
+            next += 1;
         }
-        slices.into_par_iter().try_for_each(|(p, out)| {
-            crate::sort::check_interrupted()?;
-            ds.read_piece_into(p, out)
-        })?;
-    }
-    let read_seconds = t0.elapsed().as_secs_f64();
-    // Bounds and colour source.
-    let stats = arena
-        .par_chunks(rl * 65_536)
-        .map(|c| crate::sort::PieceStats::of(c, &ds.layout))
-        .reduce(crate::sort::PieceStats::default, |mut a, b| {
+        let tr = Instant::now();
+        let base = records.len();
+        let bytes = usize::try_from(n).ok().and_then(|n| n.checked_mul(rl)).ok_or_else(|| Error::Usage(format!("a piece of {n} points does not fit in memory")))?;
+        records.resize(base + bytes, 0);
+        {
+            let mut slices = Vec::with_capacity(next - first);
+            let mut rest = &mut records[base..];
+            for p in &pieces[first..next] {
+                let (head, tail) = rest.split_at_mut(p.piece.points as usize * rl);
+                slices.push((p, head));
+                rest = tail;
+            }
+            slices.into_par_iter().try_for_each(|(p, out)| {
+                crate::sort::check_interrupted()?;
+                ds.read_piece_into(p, out)?;
+                let st = crate::sort::PieceStats::of(out, &ds.layout);
+                if st.count > 0 && (0..3).any(|a| st.min[a] < header.0[a] || st.max[a] > header.1[a]) {
+                    let g = &ds.grid;
+                    let w = |v: [i32; 3]| [0, 1, 2].map(|a| g.world(a, v[a] as i64));
+                    return Err(Error::input(
+                        ds.inputs[p.input].path(),
+                        format!(
+                            "points reach {:?} .. {:?}, outside the bounds the header declares ({:?} .. {:?}); rewrite the file with `mortar sort` to fix its header",
+                            w(st.min),
+                            w(st.max),
+                            w(header.0),
+                            w(header.1)
+                        ),
+                    ));
+                }
+                Ok(())
+            })?;
+        }
+        let recs = &records[base..];
+        let st = recs.par_chunks(rl * 65_536).map(|c| crate::sort::PieceStats::of(c, &ds.layout)).reduce(crate::sort::PieceStats::default, |mut a, b| {
             a.merge(&b);
             a
         });
-    let s = stats.summary();
-    let color = match ds.layout.attribute("rgb") {
-        Some(a) if s.max_rgb > 0 => ColorSource::Rgb { offset: a.offset, depth: RgbDepth::detect(s.max_rgb) },
-        _ => ColorSource::Intensity { max_intensity: s.max_intensity },
-    };
-    let mut report = BuildReport { read_seconds, ..Default::default() };
-    let mut builder = Builder::for_bounds(s.min, s.max, opts.config).map_err(|e| Error::Usage(format!("octree: {e}")))?;
-    let record = |i: u64| -> &[u8] { &arena[i as usize * rl..(i as usize + 1) * rl] };
-    let mut last_commit = Instant::now();
-    let mut points: Vec<Point> = Vec::new();
-    let n = total as usize;
-    let mut start = 0usize;
-    while start < n {
-        crate::sort::check_interrupted()?;
-        let end = (start + opts.batch_points.max(1)).min(n);
-        points.clear();
-        points.par_extend((start..end).into_par_iter().map(|i| {
-            let r = record(i as u64);
-            Point { pos: read_xyz(r), color: color.rgba(r), record: i as u64 }
-        }));
-        let tb = Instant::now();
-        builder.add_batch(&points).map_err(|e| Error::Usage(format!("octree: {e}")))?;
-        report.batch_seconds.push(tb.elapsed().as_secs_f64());
-        start = end;
-        if start < n && last_commit.elapsed().as_secs_f64() >= opts.commit_every {
-            let tc = Instant::now();
-            writer.commit(&builder.snapshot(), (s.min, s.max), &record)?;
-            report.commit_seconds += tc.elapsed().as_secs_f64();
-            last_commit = Instant::now();
+        report.read_seconds += tr.elapsed().as_secs_f64();
+        if st.count > 0 {
+            for a in 0..3 {
+                lo[a] = lo[a].min(st.min[a]);
+                hi[a] = hi[a].max(st.max[a]);
+            }
         }
-        progress(&BuildProgress { points: start as u64, total, nodes: builder.node_count(), commits: writer.commits() });
+        // The colour source is chosen once, from the first batch (as batch files choose it from
+        // the whole input).
+        let color = *color.get_or_insert_with(|| match ds.layout.attribute("rgb") {
+            Some(a) if st.max_rgb > 0 => ColorSource::Rgb { offset: a.offset, depth: RgbDepth::detect(st.max_rgb) },
+            _ => ColorSource::Intensity { max_intensity: st.max_intensity },
+        });
+        // Updates of about `batch` points each; a commit may come between two of them.
+        let mut cursor = base;
+        while cursor < records.len() {
+            crate::sort::check_interrupted()?;
+            let end = (cursor + batch * rl).min(records.len());
+            let first_index = (cursor / rl) as u64;
+            points.clear();
+            points.par_extend(records[cursor..end].par_chunks_exact(rl).enumerate().map(|(i, r)| Point { pos: read_xyz(r), color: color.rgba(r), record: first_index + i as u64 }));
+            debug_assert!(points.iter().all(|p| root.contains(p.pos)));
+            let tb = Instant::now();
+            let paged_in = std::sync::atomic::AtomicU64::new(0);
+            {
+                let w = &*writer;
+                let page_in = |id: NodeId| -> std::result::Result<Vec<Point>, String> {
+                    paged_in.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                    w.page_in(id.index(), None, &paged).map_err(|e| e.to_string())
+                };
+                builder.add_batch_paged(&points, &page_in).map_err(|e| match e {
+                    OctreeError::PageIn(m) => Error::input(&w.dir, format!("reading a leaf back for a split: {m}")),
+                    e => Error::Usage(format!("octree: {e}")),
+                })?;
+            }
+            report.paged_in_leaves += paged_in.into_inner();
+            report.batch_seconds.push(tb.elapsed().as_secs_f64());
+            done += points.len() as u64;
+            cursor = end;
+            let held = records.len() as u64 + paged.lock().map_or(0, |p| p.len() as u64) + builder.resident_points() * 24;
+            report.peak_interval_bytes = report.peak_interval_bytes.max(held);
+            let due = last_commit.elapsed().as_secs_f64() >= opts.commit_every || builder.resident_points() >= interval_points;
+            let last = next == pieces.len() && cursor == records.len();
+            if due && !last {
+                commit_and_page_out(writer, &mut builder, (lo, hi), &mut records, cursor, &paged, rl, &mut report)?;
+                cursor = 0;
+                last_commit = Instant::now();
+            }
+            progress(&BuildProgress { points: done, total, nodes: builder.node_count(), commits: writer.commits() });
+        }
     }
-    let tc = Instant::now();
+    if done == 0 {
+        (lo, hi) = ([0; 3], [0; 3]);
+    }
+    let all = records.len();
+    commit_and_page_out(writer, &mut builder, (lo, hi), &mut records, all, &paged, rl, &mut report)?;
     let snap = builder.snapshot();
-    writer.commit(&snap, (s.min, s.max), &record)?;
-    report.commit_seconds += tc.elapsed().as_secs_f64();
-    report.points = snap.point_count();
+    report.points = snap.total_points();
     report.nodes = snap.node_count() as u64;
     report.leaves = snap.leaves().count() as u64;
     report.voxels = snap.voxel_count();
@@ -517,6 +747,35 @@ fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOptions, progr
     report.nodes_bytes = writer.nodes_len;
     report.seconds = t0.elapsed().as_secs_f64();
     Ok(report)
+}
+
+/// Commits, then pages out every leaf's points and drops the records they needed: the first
+/// `added` bytes of `records` (the rest, not added yet, moves to the front).
+#[allow(clippy::too_many_arguments)]
+fn commit_and_page_out(writer: &mut StoreWriter, builder: &mut Builder, bounds: ([i32; 3], [i32; 3]), records: &mut Vec<u8>, added: usize, paged: &std::sync::Mutex<Vec<u8>>, rl: usize, report: &mut BuildReport) -> Result<()> {
+    let tc = Instant::now();
+    {
+        let paged = paged.lock().map_err(|_| Error::Usage("a page-in thread panicked".into()))?;
+        let recs: &[u8] = records;
+        let pg: &[u8] = &paged;
+        let record = |h: u64| -> &[u8] {
+            if h & PAGED != 0 {
+                let i = (h & !PAGED) as usize;
+                &pg[i * rl..(i + 1) * rl]
+            } else {
+                &recs[h as usize * rl..(h as usize + 1) * rl]
+            }
+        };
+        writer.commit(&builder.snapshot(), bounds, &record)?;
+    }
+    builder.page_out();
+    records.drain(..added);
+    if let Ok(mut p) = paged.lock() {
+        p.clear();
+        p.shrink_to_fit();
+    }
+    report.commit_seconds += tc.elapsed().as_secs_f64();
+    Ok(())
 }
 
 /// Whether `path` is a store directory.

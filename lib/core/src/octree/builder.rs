@@ -20,6 +20,9 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+/// The page-in callback of [`Builder::add_batch_paged`]: the paged-out points of a leaf.
+pub type PageIn<'a> = dyn Fn(NodeId) -> Result<Vec<Point>, String> + Sync + 'a;
+
 /// `first_child` of a leaf. The root (id 0) is never a child, so 0 is free.
 const NO_CHILD: u32 = 0;
 /// Points per parallel work item when counting.
@@ -44,6 +47,9 @@ struct NodeData {
     points: Chunks<Point>,
     /// An inner node's voxels.
     voxels: Option<Box<VoxelState>>,
+    /// Points of the leaf paged out to the caller ([`Builder::page_out`]); they precede
+    /// `points` in arrival order.
+    paged: u64,
     /// Input points in the node's cube.
     subtree: u64,
     /// Changed since the last publish.
@@ -249,6 +255,14 @@ impl Builder {
     /// publishes the changed nodes. Every point must lie in the root cube; on an error nothing
     /// changes.
     pub fn add_batch(&mut self, points: &[Point]) -> Result<BatchStats, OctreeError> {
+        self.add_batch_paged(points, &|id| Err(format!("leaf {} has paged-out points but no pager was given", id.0)))
+    }
+
+    /// [`add_batch`](Self::add_batch) for a builder whose leaves may hold points paged out with
+    /// [`page_out`](Self::page_out): before a leaf with paged-out points splits, `page_in(id)`
+    /// must return exactly those points, in their order (called in parallel, before anything
+    /// changes; an error is returned as [`OctreeError::PageIn`] and leaves the tree as it was).
+    pub fn add_batch_paged(&mut self, points: &[Point], page_in: &PageIn<'_>) -> Result<BatchStats, OctreeError> {
         let root = self.root;
         if let Some(index) = points.par_iter().position_first(|p| !root.contains(p.pos)) {
             return Err(OctreeError::PointOutsideRoot { index, pos: points[index].pos, min: root.min, size: root.size() });
@@ -259,7 +273,7 @@ impl Builder {
         let mut times = PhaseTimes::default();
 
         let t = Instant::now();
-        let exp = self.expand(points)?;
+        let exp = self.expand(points, page_in)?;
         times.expand = t.elapsed();
         self.revision += 1;
 
@@ -298,7 +312,7 @@ impl Builder {
 
     /// §5.1: counting and splitting until no leaf splits. Fails, before changing anything, if the
     /// update would not fit 32-bit ids.
-    fn expand(&mut self, batch: &[Point]) -> Result<Expansion, OctreeError> {
+    fn expand(&mut self, batch: &[Point], page_in: &PageIn<'_>) -> Result<Expansion, OctreeError> {
         let cap = self.config.leaf_capacity as u64;
 
         // First counting pass: every batch point descends from the root.
@@ -326,7 +340,7 @@ impl Builder {
             if n == 0 {
                 continue;
             }
-            let stored = self.data[i].points.len();
+            let stored = self.data[i].points.len() + self.data[i].paged;
             if stored + n > cap && self.splittable(&self.shapes[i]) {
                 to_split.push(i as u32);
                 spilled += stored;
@@ -334,6 +348,31 @@ impl Builder {
         }
         if batch.len() as u64 + spilled > u32::MAX as u64 {
             return Err(OctreeError::BatchTooLarge { points: batch.len(), spilled });
+        }
+        // Leaves that split need their paged-out points back first.
+        let paged: Vec<u32> = to_split.iter().copied().filter(|&l| self.data[l as usize].paged > 0).collect();
+        if !paged.is_empty() {
+            let loaded: Vec<Vec<Point>> = paged
+                .par_iter()
+                .map(|&l| {
+                    let pts = page_in(NodeId(l)).map_err(OctreeError::PageIn)?;
+                    let want = self.data[l as usize].paged;
+                    if pts.len() as u64 != want {
+                        return Err(OctreeError::PageIn(format!("leaf {l}: {} points paged in, {want} paged out", pts.len())));
+                    }
+                    Ok(pts)
+                })
+                .collect::<Result<_, _>>()?;
+            for (&l, pts) in paged.iter().zip(loaded) {
+                let d = &mut self.data[l as usize];
+                let mut all = Chunks::default();
+                all.append(&pts, POINT_CHUNK_MAX);
+                for c in d.points.chunks() {
+                    all.append(c, POINT_CHUNK_MAX);
+                }
+                d.points = all;
+                d.paged = 0;
+            }
         }
 
         let mut spill = Vec::with_capacity(spilled as usize);
@@ -530,6 +569,39 @@ impl Builder {
             .sum()
     }
 
+    /// Pages out the points of every leaf: the builder drops them (keeping their count), so a
+    /// caller that has written them elsewhere (a store) bounds the builder's memory. Snapshots
+    /// taken afterwards show those leaves with [`NodeView::paged_points`] instead of the points,
+    /// with their revision unchanged (the change was saved, not made). Snapshots taken before
+    /// keep their points. Returns the number of points dropped.
+    ///
+    /// Later updates append to such leaves as usual; a leaf that must split gets its paged-out
+    /// points back from the `page_in` of [`add_batch_paged`](Self::add_batch_paged) first.
+    pub fn page_out(&mut self) -> u64 {
+        let mut dropped = 0;
+        for (i, (shape, d)) in self.shapes.iter().zip(self.data.iter_mut()).enumerate() {
+            if d.voxels.is_some() || d.points.is_empty() {
+                continue;
+            }
+            debug_assert!(!d.changed, "page_out runs between updates, after publish");
+            dropped += d.points.len();
+            d.paged += d.points.len();
+            d.points = Chunks::default();
+            let old = &self.views[i];
+            let first_child = (shape.first_child != NO_CHILD).then_some(NodeId(shape.first_child));
+            self.views[i] = Arc::new(NodeView::new(shape.key, shape.cube, first_child, Payload::Points(Chunks::default()), d.subtree, old.revision(), d.paged));
+        }
+        if dropped > 0 {
+            self.published = self.views.iter().cloned().collect();
+        }
+        dropped
+    }
+
+    /// Points held in memory by the leaves (not paged out).
+    pub fn resident_points(&self) -> u64 {
+        self.data.iter().map(|d| d.points.len()).sum()
+    }
+
     /// Rebuilds the views of changed nodes and the shared node array that snapshots clone.
     fn publish(&mut self) {
         let old = self.views.len();
@@ -542,7 +614,7 @@ impl Builder {
                 None => Payload::Points(d.points.clone()),
             };
             let first_child = (shape.first_child != NO_CHILD).then_some(NodeId(shape.first_child));
-            let view = Arc::new(NodeView::new(shape.key, shape.cube, first_child, payload, d.subtree, self.revision));
+            let view = Arc::new(NodeView::new(shape.key, shape.cube, first_child, payload, d.subtree, self.revision, d.paged));
             if i < old {
                 self.views[i] = view;
             } else {

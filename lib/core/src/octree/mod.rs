@@ -111,7 +111,12 @@
 //!
 //! # Limits (not done here)
 //!
-//! - In-core only, as the paper: all points live in memory.
+//! - In-core by default, as the paper: all points live in memory. A caller that saves the
+//!   leaves' points elsewhere (the store writer) may [`Builder::page_out`] them between updates
+//!   and give them back through [`Builder::add_batch_paged`] when a leaf splits; the monotonicity
+//!   above then holds for total point counts ([`NodeView::total_points`]), and the points of a
+//!   paged-out leaf are read from where the caller saved them. Inner nodes' voxels and sampling
+//!   state always stay in memory.
 //! - No time budget per update (§7.2): an update runs to completion.
 //! - Ids inside one update are `u32`: a batch plus the points it spills must stay below 2^32
 //!   ([`OctreeError::BatchTooLarge`]).
@@ -126,7 +131,7 @@ mod voxels;
 #[cfg(test)]
 mod tests;
 
-pub use builder::{BatchStats, Builder, PhaseTimes};
+pub use builder::{BatchStats, Builder, PageIn, PhaseTimes};
 pub use chunks::Chunks;
 pub use cube::{Cube, NodeKey, MAX_ROOT_SIZE_LOG2};
 pub use lod::{node_batch, select_nodes, LodOptions, LodSelection, LodStats, NodeBatch, NodeBatchError, DEFAULT_THRESHOLD_PX};
@@ -242,6 +247,9 @@ pub enum OctreeError {
         /// Root cube size in grid units.
         size: u64,
     },
+    /// The page-in callback failed or returned another number of points than were paged out.
+    #[error("paging points back in: {0}")]
+    PageIn(String),
     /// The batch plus the points it would spill do not fit the update's 32-bit ids.
     #[error("a batch of {points} points that spills {spilled} stored points exceeds 2^32 - 1 points per update; add smaller batches")]
     BatchTooLarge {

@@ -28,11 +28,12 @@ pub struct NodeView {
     payload: Payload,
     subtree_points: u64,
     revision: u64,
+    paged_points: u64,
 }
 
 impl NodeView {
-    pub(crate) fn new(key: NodeKey, cube: Cube, first_child: Option<NodeId>, payload: Payload, subtree_points: u64, revision: u64) -> NodeView {
-        NodeView { key, cube, first_child, payload, subtree_points, revision }
+    pub(crate) fn new(key: NodeKey, cube: Cube, first_child: Option<NodeId>, payload: Payload, subtree_points: u64, revision: u64, paged_points: u64) -> NodeView {
+        NodeView { key, cube, first_child, payload, subtree_points, revision, paged_points }
     }
 
     /// The node's key (level and cell index).
@@ -87,9 +88,23 @@ impl NodeView {
         }
     }
 
-    /// Points stored in the node (0 for an inner node).
+    /// Points of the leaf held in memory, in [`points`](Self::points) (0 for an inner node).
+    /// Without paging (see [`Builder::page_out`](super::Builder::page_out)) these are all its
+    /// points.
     pub fn point_count(&self) -> u64 {
         self.points().map_or(0, Chunks::len)
+    }
+
+    /// Points of the leaf that the builder paged out to its caller (not in
+    /// [`points`](Self::points); they come before the resident ones in arrival order). 0 unless
+    /// [`Builder::page_out`](super::Builder::page_out) was used.
+    pub fn paged_points(&self) -> u64 {
+        self.paged_points
+    }
+
+    /// All points of the leaf: resident plus paged out.
+    pub fn total_points(&self) -> u64 {
+        self.point_count() + self.paged_points
     }
 
     /// Voxels stored in the node (0 for a leaf).
@@ -202,9 +217,15 @@ impl Snapshot {
         }
     }
 
-    /// Points in all leaves (equals [`input_points`](Self::input_points)).
+    /// Points held in memory in all leaves (equals [`input_points`](Self::input_points) unless
+    /// the builder paged points out).
     pub fn point_count(&self) -> u64 {
         self.nodes.iter().map(|n| n.point_count()).sum()
+    }
+
+    /// Points in all leaves, paged out or not (always [`input_points`](Self::input_points)).
+    pub fn total_points(&self) -> u64 {
+        self.nodes.iter().map(|n| n.total_points()).sum()
     }
 
     /// Voxels in all inner nodes.

@@ -455,6 +455,75 @@ fn batching_does_not_change_the_tree() {
     }
 }
 
+/// Paging leaves out after every batch and back in on splits gives the tree of an in-core
+/// build: the pager keeps each leaf's points as a caller would on disk.
+#[test]
+fn paging_out_and_in_does_not_change_the_tree() {
+    let root = Cube::new([0; 3], 18);
+    let pts = clustered_points(60_000, 41, 1 << 18);
+    for mode in [ColorMode::FirstCome, ColorMode::Averaged] {
+        let cfg = config(500, mode);
+        let want = canon(flatten(build(&pts, root, cfg, 7_777).1.last().unwrap()));
+        let mut b = Builder::new(root, cfg).unwrap();
+        // What the "store" holds: every leaf's full point sequence as of its last page-out.
+        let mut saved: HashMap<u32, Vec<Point>> = HashMap::new();
+        let mut paged_in = 0usize;
+        for c in pts.chunks(7_777) {
+            let calls = std::sync::atomic::AtomicUsize::new(0);
+            let page_in = |id: NodeId| -> Result<Vec<Point>, String> {
+                calls.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                saved.get(&id.0).cloned().ok_or_else(|| format!("nothing saved for {}", id.0))
+            };
+            b.add_batch_paged(c, &page_in).unwrap();
+            paged_in += calls.into_inner();
+            // Save the changed leaves whole (paged part + resident part), then page out.
+            let snap = b.snapshot();
+            for (id, n) in snap.leaves() {
+                let mut all = if n.paged_points() > 0 { saved[&id.0].clone() } else { Vec::new() };
+                assert_eq!(all.len() as u64, n.paged_points());
+                all.extend(n.points().unwrap().iter().copied());
+                saved.insert(id.0, all);
+            }
+            let resident = b.resident_points();
+            assert_eq!(b.page_out(), resident);
+            assert_eq!(b.resident_points(), 0);
+            let after = b.snapshot();
+            assert_eq!(after.point_count(), 0);
+            assert_eq!(after.total_points(), b.input_points());
+            assert_eq!(after.changed_since(snap.revision()).count(), 0, "paging out is not a change");
+            // The snapshot taken before paging out keeps its points.
+            assert_eq!(snap.point_count(), resident);
+            assert_eq!(snap.total_points(), b.input_points());
+        }
+        assert!(paged_in > 0, "some paged-out leaf split");
+        // Rebuild the flat view with the saved points.
+        let snap = b.snapshot();
+        let mut got = flatten(&snap);
+        for (id, n) in snap.leaves() {
+            got.get_mut(&n.key()).unwrap().points = saved.get(&id.0).cloned().unwrap_or_default();
+        }
+        assert!(canon(got) == want, "{mode:?}");
+    }
+}
+
+#[test]
+fn a_failing_page_in_leaves_the_builder_unchanged() {
+    let root = Cube::new([0; 3], 18);
+    let pts = random_points(3_000, 5, [0; 3], 1 << 18);
+    let mut b = Builder::new(root, config(1_000, ColorMode::FirstCome)).unwrap();
+    b.add_batch(&pts[..900]).unwrap();
+    b.page_out();
+    let before = flatten(&b.snapshot());
+    let err = b.add_batch_paged(&pts[900..], &|_| Err("disk gone".into())).unwrap_err();
+    assert_eq!(err, OctreeError::PageIn("disk gone".into()));
+    assert!(flatten(&b.snapshot()) == before);
+    let err = b.add_batch_paged(&pts[900..], &|_| Ok(vec![])).unwrap_err();
+    assert!(matches!(err, OctreeError::PageIn(_)), "{err}");
+    // Plain add_batch refuses to split a paged-out leaf.
+    assert!(matches!(b.add_batch(&pts[900..]), Err(OctreeError::PageIn(_))));
+    assert_eq!(b.input_points(), 900);
+}
+
 #[test]
 fn duplicates_stop_at_the_size_limit() {
     let root = Cube::new([0; 3], 20);
