@@ -659,6 +659,8 @@ fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOptions, progr
             slices.into_par_iter().try_for_each(|(p, out)| {
                 crate::sort::check_interrupted()?;
                 ds.read_piece_into(p, out)?;
+                // Read once: a mapped input's pages leave this process's memory.
+                ds.inputs[p.input].release_piece(&p.piece);
                 let st = crate::sort::PieceStats::of(out, &ds.layout);
                 if st.count > 0 && (0..3).any(|a| st.min[a] < header.0[a] || st.max[a] > header.1[a]) {
                     let g = &ds.grid;
