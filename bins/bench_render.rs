@@ -12,6 +12,12 @@ mod common;
 #[allow(dead_code)]
 #[path = "render.rs"]
 mod render;
+#[allow(dead_code)]
+#[path = "render_lod.rs"]
+mod render_lod;
+#[allow(dead_code)]
+#[path = "progressive.rs"]
+mod progressive;
 
 use anyhow::{bail, Result};
 use clap::Parser;

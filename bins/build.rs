@@ -35,6 +35,8 @@ pub struct Args {
     /// Print a JSON summary on stdout.
     #[arg(long)]
     pub json: bool,
+    #[command(flatten)]
+    pub frames: crate::build_frames::FramesArgs,
 }
 
 pub fn run(a: Args) -> Result<()> {
@@ -53,15 +55,35 @@ pub fn run(a: Args) -> Result<()> {
         commit_every: a.commit_every.max(0.0),
         memory: a.memory,
     };
+    let mut recorder = crate::build_frames::FrameRecorder::new(&a.frames, &ds, &a.output)?;
+    let mut opts = opts;
+    if let Some(r) = &recorder {
+        opts.commit_every = opts.commit_every.min(r.every());
+    }
     let tty = std::io::stderr().is_terminal();
+    let mut frame_error: Option<anyhow::Error> = None;
     let mut progress = |p: &BuildProgress| {
         if tty {
             eprint!("\rmortar build: {} of {} points, {} nodes, {} commits   ", p.points, p.total, p.nodes, p.commits);
+        }
+        if let (Some(rec), None) = (recorder.as_mut(), frame_error.as_ref()) {
+            if let Err(e) = rec.on_commit(p.commits, false) {
+                frame_error = Some(e);
+            }
         }
     };
     let r = build(&ds, &a.output, &opts, &mut progress)?;
     if tty {
         eprintln!();
+    }
+    if let Some(e) = frame_error {
+        return Err(e.context("drawing a frame of the growing store (the store itself was built)"));
+    }
+    let mut frames_json = serde_json::Value::Null;
+    if let Some(rec) = recorder.as_mut() {
+        rec.on_commit(r.commits, true)?;
+        let sheet = rec.finish()?;
+        frames_json = crate::build_frames::frames_json(rec, &sheet);
     }
     if a.json {
         let n = r.batch_seconds.len().max(1) as f64;
@@ -85,6 +107,7 @@ pub fn run(a: Args) -> Result<()> {
             "batch_seconds_max": r.batch_seconds.iter().cloned().fold(0.0, f64::max),
             "peak_rss_bytes": common::peak_rss_bytes(),
             "threads": rayon::current_num_threads(),
+            "frames": frames_json,
         });
         println!("{}", serde_json::to_string_pretty(&j)?);
     }

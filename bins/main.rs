@@ -3,9 +3,12 @@
 
 mod batch;
 mod build;
+mod build_frames;
 mod common;
 mod info;
+mod progressive;
 mod render;
+mod render_lod;
 mod sort;
 
 use clap::{Parser, Subcommand};
@@ -31,7 +34,7 @@ enum Cmd {
     Sort(sort::Args),
     /// Convert to a Morton-sorted, quantized batch file (paper 003).
     Batch(batch::Args),
-    /// Draw a view of a batch file or LAS/LAZ to PNG (CPU or GPU rasterizer, paper 003).
+    /// Draw a view of a batch file, an octree store (LOD) or LAS/LAZ to PNG (CPU or GPU rasterizer).
     Render(render::Args),
     /// Build an octree LOD store (paper 004) from LAS/LAZ or batch files.
     Build(build::Args),

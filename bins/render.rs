@@ -168,8 +168,9 @@ fn parse_color_choice(s: &str) -> std::result::Result<ColorChoice, String> {
 /// Arguments of `mortar render`.
 #[derive(clap::Args)]
 pub struct Args {
-    /// A batch file, or LAS/LAZ files, directories, glob patterns or - (batched on the fly into a
-    /// temporary batch file, as `mortar batch` would).
+    /// A batch file, an octree store (drawn with LOD, see --lod-threshold), or LAS/LAZ files,
+    /// directories, glob patterns or - (batched on the fly into a temporary batch file, as
+    /// `mortar batch` would).
     #[arg(required = true)]
     pub inputs: Vec<String>,
     /// Output PNG (- for stdout).
@@ -219,6 +220,10 @@ pub struct Args {
     pub json: bool,
     #[command(flatten)]
     pub sort: common::SortArgs,
+    #[command(flatten)]
+    pub lod: crate::render_lod::LodArgs,
+    #[command(flatten)]
+    pub progressive: crate::progressive::ProgressiveArgs,
 }
 
 /// Opens the inputs: a single batch file as it is, anything else batched into a temporary file.
@@ -297,7 +302,7 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
     Ok(())
 }
 
-fn camera_json(c: &Camera) -> serde_json::Value {
+pub(crate) fn camera_json(c: &Camera) -> serde_json::Value {
     let projection = match c.projection {
         Projection::Perspective { fov_y } => serde_json::json!({ "perspective": { "fov_degrees": fov_y.to_degrees() } }),
         Projection::Orthographic { height } => serde_json::json!({ "orthographic": { "height": height } }),
@@ -313,6 +318,12 @@ pub fn run(a: Args) -> Result<()> {
     // Checked again by build_camera; here so that a typo fails before LAS input is batched.
     if !(a.camera.fov > 0.0 && a.camera.fov < 180.0) {
         bail!("--fov {}: must be between 0 and 180 degrees", a.camera.fov);
+    }
+    if a.progressive.progressive.is_some() {
+        return crate::progressive::run(&a);
+    }
+    if let Some(store) = crate::render_lod::store_input(&a)? {
+        return crate::render_lod::run(&a, &store);
     }
     let start = Instant::now();
     let source = open_source(&a.inputs, &a.sort)?;

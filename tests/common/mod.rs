@@ -20,11 +20,16 @@ pub fn root() -> PathBuf {
 
 /// `../shared/data` (or `$MORTAR_TEST_DATA`), if present.
 pub fn shared_data() -> Option<PathBuf> {
-    let p = std::env::var_os("MORTAR_TEST_DATA").map(PathBuf::from).unwrap_or_else(|| root().join("../shared/data"));
+    let p = std::env::var_os("MORTAR_TEST_DATA")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| root().join("../shared/data"));
     if p.is_dir() {
         Some(p)
     } else {
-        eprintln!("SKIP: no shared fixtures at {} (set MORTAR_TEST_DATA)", p.display());
+        eprintln!(
+            "SKIP: no shared fixtures at {} (set MORTAR_TEST_DATA)",
+            p.display()
+        );
         None
     }
 }
@@ -92,7 +97,11 @@ pub fn run_limited(mut c: Command, limit: Duration) -> Output {
 
 pub fn run_ok(c: &mut Command) -> Output {
     let o = c.output().expect("spawn");
-    assert!(o.status.success(), "{c:?} failed: {}", String::from_utf8_lossy(&o.stderr));
+    assert!(
+        o.status.success(),
+        "{c:?} failed: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
     o
 }
 
@@ -122,8 +131,10 @@ pub fn tempdir(tag: &str) -> PathBuf {
 
 /// Files left in a directory.
 pub fn entries(d: &Path) -> Vec<String> {
-    let mut v: Vec<String> =
-        std::fs::read_dir(d).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
+    let mut v: Vec<String> = std::fs::read_dir(d)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
     v.sort();
     v
 }

@@ -16,4 +16,6 @@ pub mod crs;
 pub mod info;
 pub mod synth;
 pub mod render_input;
+pub mod progressive;
 pub mod store;
+pub mod store_lod;

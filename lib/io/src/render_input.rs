@@ -248,7 +248,7 @@ impl PointColors {
 }
 
 /// The value at quantile `q` (0-1) of `v` (finite values only; reorders `v`).
-fn quantile(v: &mut [f64], q: f64) -> Option<f64> {
+pub(crate) fn quantile(v: &mut [f64], q: f64) -> Option<f64> {
     if v.is_empty() {
         return None;
     }
@@ -266,6 +266,26 @@ pub fn colors_for_keys(file: &BatchFile, keys: &[u64], choice: ColorChoice, rang
     let mut indices: Vec<u32> = keys.par_iter().filter(|&&k| k != EMPTY_KEY).map(|&k| key_index(k)).collect();
     indices.par_sort_unstable();
     indices.dedup();
+    colors_for_indices(file, indices, choice, source, range)
+}
+
+/// The colour of every point of `file` (index order) in the mode `choice`, for renderers that
+/// resolve on the GPU from per-point colours (`mortar view`). Scalar modes map over `range`, or
+/// when it is `None` over the 1st to 99th percentile of all the points' values (view-independent,
+/// unlike [`colors_for_keys`]). Returns the colours and the range used.
+pub fn point_colors(file: &BatchFile, choice: ColorChoice, range: Option<[f64; 2]>) -> Result<(Vec<u32>, Option<[f64; 2]>)> {
+    let choice = choice.resolved(file);
+    let source = source_of(file, choice)?;
+    if file.header.point_count > 1u64 << 32 {
+        return Err(Error::input(&file.path, format!("{} points: at most 2^32 points can be coloured at once", file.header.point_count)));
+    }
+    let indices: Vec<u32> = (0..file.header.point_count).map(|i| i as u32).collect();
+    let c = colors_for_indices(file, indices, choice, source, range)?;
+    Ok((c.colors, c.range))
+}
+
+/// The colours of the points `indices` (sorted, distinct) of `file`.
+fn colors_for_indices(file: &BatchFile, indices: Vec<u32>, choice: ColorChoice, source: Source, range: Option<[f64; 2]>) -> Result<PointColors> {
     let entries = file.entries();
     let total = file.header.point_count;
     if indices.last().is_some_and(|&i| i as u64 >= total) {

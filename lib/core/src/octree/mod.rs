@@ -134,7 +134,10 @@ mod tests;
 pub use builder::{BatchStats, Builder, PageIn, PhaseTimes};
 pub use chunks::Chunks;
 pub use cube::{Cube, NodeKey, MAX_ROOT_SIZE_LOG2};
-pub use lod::{node_batch, select_nodes, LodOptions, LodSelection, LodStats, NodeBatch, NodeBatchError, DEFAULT_THRESHOLD_PX};
+pub use lod::{
+    node_batch, select_nodes, IndexEntry, LodIndex, LodIndexError, LodOptions, LodSelection, LodStats, LodTree, NodeBatch, NodeBatchError,
+    DEFAULT_THRESHOLD_PX,
+};
 pub use snapshot::{NodeView, Payload, Snapshot};
 pub use voxels::{mean_color, AVERAGED_CHUNK, MAX_AVERAGED_SAMPLES};
 

@@ -94,6 +94,13 @@ impl Framebuffer {
         self.keys.iter().map(|k| k.load(Ordering::Relaxed)).collect()
     }
 
+    /// The keys, row-major, read in place: exclusive access means no draw is running.
+    pub fn keys_slice(&mut self) -> &[u64] {
+        // SAFETY: `AtomicU64` has the same size, alignment and bit validity as `u64` (std
+        // documents this), and `&mut self` rules out any concurrent access while the slice lives.
+        unsafe { std::slice::from_raw_parts(self.keys.as_ptr() as *const u64, self.keys.len()) }
+    }
+
     /// The keys, row-major, without copying.
     pub fn into_keys(self) -> Vec<u64> {
         self.keys.into_iter().map(AtomicU64::into_inner).collect()
@@ -131,6 +138,9 @@ mod tests {
             fb.depth_test(6, k);
         }
         assert_eq!(fb.key(2, 1), pack_key(2.0, 3));
+        assert_eq!(fb.keys_slice()[6], pack_key(2.0, 3));
+        let copy = fb.keys();
+        assert_eq!(fb.keys_slice(), &copy[..]);
         assert!(!fb.depth_test(6, pack_key(2.5, 0)));
         assert_eq!(fb.key(0, 0), EMPTY_KEY);
         fb.clear();

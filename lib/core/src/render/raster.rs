@@ -147,6 +147,16 @@ pub enum RasterError {
         /// Its point count.
         count: usize,
     },
+    /// A gathered batch has another number of point indices than points.
+    #[error("gathered batch {batch}: {points} points but {indices} point indices")]
+    IndexCount {
+        /// Position of the batch in the slice.
+        batch: usize,
+        /// Its number of points (word count).
+        points: usize,
+        /// Its number of indices.
+        indices: usize,
+    },
 }
 
 /// Viewport and depth range as the per-point loop (and the GPU shader) reads them.
@@ -303,6 +313,101 @@ fn draw_batch(fb: &Framebuffer, b: &BatchRef<'_>, planner: &Planner, uniforms: &
     stats
 }
 
+/// Points gathered from anywhere into one quantization frame, each with its own global index:
+/// the Reproject buffer of paper 000 §3.4, which "also stores the shuffle point index" of each
+/// visible point so that the reprojected point writes the same index into the framebuffer. The
+/// per-point arithmetic is that of [`BatchRef`]s (the same [`Planner`] decisions, the same
+/// loop), so a point drawn from a `GatheredRef` leaves the same key as when it is drawn from a
+/// `BatchRef` with the same frame, bounds and index.
+#[derive(Clone, Copy, Debug)]
+pub struct GatheredRef<'a> {
+    /// The quantization frame the words are relative to.
+    pub grid: BatchGrid,
+    /// Smallest world coordinate of the frame's points (as in [`BatchRef::bounds_min`]).
+    pub bounds_min: [f64; 3],
+    /// Largest world coordinate of the frame's points.
+    pub bounds_max: [f64; 3],
+    /// Coarse, medium and fine words, one per point each.
+    pub words: [&'a [u32]; 3],
+    /// The global index of each point (written to the framebuffer).
+    pub indices: &'a [u32],
+}
+
+impl GatheredRef<'_> {
+    /// Number of points.
+    pub fn len(&self) -> usize {
+        self.words[0].len()
+    }
+
+    /// Whether there are no points.
+    pub fn is_empty(&self) -> bool {
+        self.words[0].is_empty()
+    }
+
+    /// The world bounds as a box.
+    pub fn bounds(&self) -> Aabb {
+        Aabb::new(self.bounds_min, self.bounds_max)
+    }
+}
+
+/// [`rasterize`] for gathered points with explicit indices (see [`GatheredRef`]); `fb` is not
+/// cleared.
+pub fn rasterize_gathered(
+    fb: &Framebuffer,
+    batches: &[GatheredRef<'_>],
+    grid: &Grid,
+    camera: &Camera,
+    options: &RasterOptions,
+) -> Result<RasterStats, RasterError> {
+    camera.validate()?;
+    if fb.width() != camera.width || fb.height() != camera.height {
+        return Err(RasterError::Viewport {
+            fb_width: fb.width(),
+            fb_height: fb.height(),
+            width: camera.width,
+            height: camera.height,
+        });
+    }
+    for (i, b) in batches.iter().enumerate() {
+        let lengths = b.words.map(<[u32]>::len);
+        if lengths[1] != lengths[0] || lengths[2] != lengths[0] {
+            return Err(RasterError::WordCounts { batch: i, lengths });
+        }
+        if b.indices.len() != lengths[0] {
+            return Err(RasterError::IndexCount { batch: i, points: lengths[0], indices: b.indices.len() });
+        }
+    }
+    let planner = Planner::new(camera, grid, options)?;
+    let uniforms = RasterUniforms::new(camera);
+    let stats = batches
+        .par_iter()
+        .map(|b| draw_gathered_batch(fb, b, &planner, &uniforms))
+        .reduce(RasterStats::default, RasterStats::merge);
+    Ok(stats)
+}
+
+/// [`draw_batch`] for a [`GatheredRef`].
+fn draw_gathered_batch(fb: &Framebuffer, b: &GatheredRef<'_>, planner: &Planner, uniforms: &RasterUniforms) -> RasterStats {
+    let mut stats = RasterStats { batches: 1, ..RasterStats::default() };
+    let (precision, bp) = match planner.plan(&b.grid, &b.bounds(), b.len()) {
+        BatchPlan::Empty => return stats,
+        BatchPlan::Culled => {
+            stats.batches_culled = 1;
+            return stats;
+        }
+        BatchPlan::Draw { precision, projection } => (precision, projection),
+    };
+    stats.batches_drawn = 1;
+    stats.points_by_precision[precision.words() - 1] = b.len() as u64;
+    let perspective = planner.camera.is_perspective();
+    stats.points_drawn = match precision {
+        Precision::Bits10 => draw_listed::<1>(fb, &bp, b, uniforms, perspective),
+        Precision::Bits20 => draw_listed::<2>(fb, &bp, b, uniforms, perspective),
+        Precision::Bits30 => draw_listed::<3>(fb, &bp, b, uniforms, perspective),
+    };
+    stats
+}
+
 /// Points per block of the two-phase per-point loop.
 const BLOCK: usize = 64;
 
@@ -417,22 +522,55 @@ fn project_block<const WORDS: usize, const PERSPECTIVE: bool>(
 /// [`BatchProjection::local`] and [`BatchProjection::transform`] and flooring `(X / W, Y / W)`.
 #[inline(always)]
 fn draw_points_impl<const WORDS: usize, const PERSPECTIVE: bool>(fb: &Framebuffer, k: &Kernel, b: &BatchRef<'_>) -> u64 {
-    let n = b.len();
+    draw_loop::<WORDS, PERSPECTIVE, _>(fb, k, b.words, Consecutive(b.first_index))
+}
+
+/// Where the per-point loop takes each point's global index from.
+trait PointIndices: Copy {
+    /// The index of point `i` of the batch.
+    fn at(self, i: usize) -> u32;
+}
+
+/// `first + i` (a [`BatchRef`]).
+#[derive(Clone, Copy)]
+struct Consecutive(u32);
+
+impl PointIndices for Consecutive {
+    #[inline(always)]
+    fn at(self, i: usize) -> u32 {
+        self.0.wrapping_add(i as u32)
+    }
+}
+
+/// One index per point (a [`GatheredRef`]; the length is checked before drawing).
+#[derive(Clone, Copy)]
+struct Listed<'a>(&'a [u32]);
+
+impl PointIndices for Listed<'_> {
+    #[inline(always)]
+    fn at(self, i: usize) -> u32 {
+        self.0[i]
+    }
+}
+
+/// The body of [`draw_points_impl`], for either source of point indices.
+#[inline(always)]
+fn draw_loop<const WORDS: usize, const PERSPECTIVE: bool, I: PointIndices>(fb: &Framebuffer, k: &Kernel, words: [&[u32]; 3], idx: I) -> u64 {
+    let n = words[0].len();
     let mut pixels = [0u32; BLOCK];
     let mut depths = [0u32; BLOCK];
     let mut drawn = 0u64;
     let mut start = 0;
     while start < n {
         let end = (start + BLOCK).min(n);
-        let medium = if WORDS >= 2 { &b.words[1][start..end] } else { &[][..] };
-        let fine = if WORDS >= 3 { &b.words[2][start..end] } else { &[][..] };
-        project_block::<WORDS, PERSPECTIVE>(k, &b.words[0][start..end], medium, fine, &mut pixels, &mut depths);
-        let first = b.first_index.wrapping_add(start as u32);
+        let medium = if WORDS >= 2 { &words[1][start..end] } else { &[][..] };
+        let fine = if WORDS >= 3 { &words[2][start..end] } else { &[][..] };
+        project_block::<WORDS, PERSPECTIVE>(k, &words[0][start..end], medium, fine, &mut pixels, &mut depths);
         for i in 0..end - start {
             let p = pixels[i];
             if p != SKIP {
                 drawn += 1;
-                fb.depth_test(p as usize, ((depths[i] as u64) << 32) | first.wrapping_add(i as u32) as u64);
+                fb.depth_test(p as usize, ((depths[i] as u64) << 32) | idx.at(start + i) as u64);
             }
         }
         start = end;
@@ -449,6 +587,13 @@ unsafe fn draw_points_avx2<const WORDS: usize, const PERSPECTIVE: bool>(fb: &Fra
     draw_points_impl::<WORDS, PERSPECTIVE>(fb, k, b)
 }
 
+/// [`draw_loop`] over a [`GatheredRef`], compiled for AVX2 (see [`draw_points_avx2`]).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn draw_listed_avx2<const WORDS: usize, const PERSPECTIVE: bool>(fb: &Framebuffer, k: &Kernel, b: &GatheredRef<'_>) -> u64 {
+    draw_loop::<WORDS, PERSPECTIVE, _>(fb, k, b.words, Listed(b.indices))
+}
+
 /// Whether the AVX2 build of the per-point loop can run here (checked once).
 fn use_avx2() -> bool {
     #[cfg(target_arch = "x86_64")]
@@ -459,6 +604,28 @@ fn use_avx2() -> bool {
     #[cfg(not(target_arch = "x86_64"))]
     {
         false
+    }
+}
+
+/// [`draw_points`] for a [`GatheredRef`].
+#[inline(never)]
+fn draw_listed<const WORDS: usize>(fb: &Framebuffer, bp: &BatchProjection, b: &GatheredRef<'_>, u: &RasterUniforms, perspective: bool) -> u64 {
+    let k = Kernel::new(bp, u);
+    #[cfg(target_arch = "x86_64")]
+    if use_avx2() {
+        // SAFETY: the CPU supports AVX2 (checked at run time by use_avx2).
+        return unsafe {
+            if perspective {
+                draw_listed_avx2::<WORDS, true>(fb, &k, b)
+            } else {
+                draw_listed_avx2::<WORDS, false>(fb, &k, b)
+            }
+        };
+    }
+    if perspective {
+        draw_loop::<WORDS, true, _>(fb, &k, b.words, Listed(b.indices))
+    } else {
+        draw_loop::<WORDS, false, _>(fb, &k, b.words, Listed(b.indices))
     }
 }
 

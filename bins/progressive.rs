@@ -1,0 +1,555 @@
+//! `mortar render <las|laz> --progressive N`: the progressive renderer of paper 000 on the CPU,
+//! headless. The inputs are decoded in parallel on loader threads while frames are drawn; every
+//! frame takes the points decoded so far into the shuffled buffer (incremental shuffle, eq. 1-2),
+//! then runs Reproject, Fill (`--budget` slots, or the adaptive budget of §3.4.1 with
+//! `--budget auto`) and Prepare with a still camera. The last frame is resolved like `mortar
+//! render`'s images (same colour rules, hole filling, eye-dome lighting) and written as PNG;
+//! `--json` prints every frame's statistics and when the image converged.
+//!
+//! The GPU version of the progressive renderer and the interactive window are pending.
+
+use crate::common;
+use crate::render::{build_camera, camera_json, encode_png, write_atomic, Args, Backend};
+use anyhow::{anyhow, bail, Result};
+use mortar_core::render::progressive::{
+    AdaptiveBudget, FillBudget, FrameStats, ProgressiveRenderer,
+};
+use mortar_core::render::resolve::{resolve, ColorMode, EyeDome, HoleFill, ResolveOptions};
+use mortar_core::render::RasterOptions;
+use mortar_io::dataset::Dataset;
+use mortar_io::progressive::{
+    header_frame, load_pieces, payload_colors, payload_for, resolve_choice, ColorStats, LoadedPiece,
+};
+use mortar_io::render_input::ColorChoice;
+use std::sync::atomic::AtomicBool;
+use std::sync::mpsc::{sync_channel, Receiver, TryRecvError};
+use std::time::Instant;
+
+/// Default fill budget (the paper's basic fixed budget).
+const DEFAULT_BUDGET: u64 = 1_000_000;
+
+/// The progressive options of `mortar render` (raw LAS/LAZ only).
+#[derive(clap::Args, Clone, Debug, Default)]
+pub struct ProgressiveArgs {
+    /// LAS/LAZ: draw progressively (paper 000) while the points load: N frames with a still
+    /// camera, writing the last; `converge` draws until the image is final (every point loaded
+    /// and drawn), which is the brute-force image.
+    #[arg(long, value_name = "N|converge")]
+    pub progressive: Option<String>,
+    /// With --progressive: slots of the shuffled buffer the Fill pass draws per frame (default
+    /// 1000000), or `auto` for the adaptive budget of paper 000 §3.4.1 (see --target-ms).
+    #[arg(long, value_name = "POINTS|auto", requires = "progressive")]
+    pub budget: Option<String>,
+    /// With --budget auto: the frame time to stay within; with --pace: the frame period, in ms
+    /// (default 16.6).
+    #[arg(long, value_name = "MS", requires = "progressive")]
+    pub target_ms: Option<f64>,
+    /// With --progressive: wait out each frame to --target-ms, as a display at that rate would,
+    /// so that the loader threads get the cores in between (frames are otherwise drawn back to
+    /// back, which on a CPU renderer takes cores from decoding).
+    #[arg(long, requires = "progressive")]
+    pub pace: bool,
+    /// With --budget auto: points filled first to measure the fill rate (default 100000).
+    #[arg(long, value_name = "POINTS", requires = "progressive")]
+    pub probe: Option<u64>,
+    /// With --progressive: read every point before the first frame, so that frame k draws
+    /// exactly the k-th budget of the shuffled buffer (reproducible frames for tests).
+    #[arg(long, requires = "progressive")]
+    pub preload: bool,
+    /// With --progressive: threads decoding the input (default: one per core).
+    #[arg(long, value_name = "N", requires = "progressive")]
+    pub load_threads: Option<usize>,
+}
+
+/// How many frames to draw.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Frames {
+    Count(u64),
+    Converge,
+}
+
+fn parse_frames(s: &str) -> Result<Frames> {
+    if s == "converge" {
+        return Ok(Frames::Converge);
+    }
+    match s.parse::<u64>() {
+        Ok(0) => bail!("--progressive 0: draw at least one frame (or --progressive converge)"),
+        Ok(n) => Ok(Frames::Count(n)),
+        Err(_) => bail!("--progressive '{s}': expected a number of frames or 'converge'"),
+    }
+}
+
+fn parse_budget(p: &ProgressiveArgs) -> Result<FillBudget> {
+    let auto = p.budget.as_deref() == Some("auto");
+    if !auto && p.probe.is_some() {
+        bail!("--probe applies to --budget auto");
+    }
+    if !auto && !p.pace && p.target_ms.is_some() {
+        bail!("--target-ms applies to --budget auto and --pace");
+    }
+    if let Some(t) = p.target_ms {
+        if !(t.is_finite() && t > 0.0) {
+            bail!("--target-ms {t}: must be a positive number of milliseconds");
+        }
+    }
+    if auto {
+        let mut a = AdaptiveBudget::default();
+        if let Some(t) = p.target_ms {
+            a.target_ms = t;
+        }
+        if let Some(n) = p.probe {
+            if n == 0 {
+                bail!("--probe 0: the adaptive budget needs at least one point to time");
+            }
+            a.probe_points = n;
+        }
+        return Ok(FillBudget::Adaptive(a));
+    }
+    match p.budget.as_deref().map(str::parse::<u64>) {
+        None => Ok(FillBudget::Fixed(DEFAULT_BUDGET)),
+        Some(Ok(0)) => bail!("--budget 0: the Fill pass must draw at least one point per frame, or the image never converges"),
+        Some(Ok(n)) => Ok(FillBudget::Fixed(n)),
+        Some(Err(_)) => bail!("--budget '{}': expected a number of points or 'auto'", p.budget.as_deref().unwrap_or_default()),
+    }
+}
+
+/// The frame period of `--pace`, ms.
+fn frame_period(p: &ProgressiveArgs) -> Option<f64> {
+    p.pace
+        .then(|| p.target_ms.unwrap_or(AdaptiveBudget::default().target_ms))
+}
+
+/// Milliseconds since `t`.
+fn ms(t: Instant) -> f64 {
+    t.elapsed().as_secs_f64() * 1e3
+}
+
+/// Median of `v` (0 for none).
+fn median(mut v: Vec<f64>) -> f64 {
+    if v.is_empty() {
+        return 0.0;
+    }
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+/// One frame with what happened before it.
+struct FrameRecord {
+    stats: FrameStats,
+    /// Time taking the decoded pieces into the shuffled buffer, ms.
+    distribute_ms: f64,
+    /// End of the frame, ms since the start.
+    at_ms: f64,
+}
+
+/// What the render loop produced.
+struct Outcome {
+    frames: Vec<FrameRecord>,
+    colors: ColorStats,
+    /// When every point was in the buffer, ms since the start.
+    loaded_ms: Option<f64>,
+    /// When the first frame began, ms since the start.
+    first_frame_ms: f64,
+    decode_seconds: f64,
+}
+
+/// Draws frames until `frames` says stop, taking pieces from `rx` as they arrive.
+#[allow(clippy::too_many_arguments)]
+fn render_loop(
+    r: &mut ProgressiveRenderer,
+    rx: Receiver<mortar_io::Result<LoadedPiece>>,
+    frames: Frames,
+    preload: bool,
+    pace: Option<f64>,
+    camera: &mortar_core::render::Camera,
+    options: &RasterOptions,
+    budget: &FillBudget,
+    start: Instant,
+    label: &str,
+) -> Result<Outcome> {
+    let mut out = Outcome {
+        frames: Vec::new(),
+        colors: ColorStats::default(),
+        loaded_ms: None,
+        first_frame_ms: 0.0,
+        decode_seconds: 0.0,
+    };
+    let mut open = true;
+    let take = |r: &mut ProgressiveRenderer,
+                piece: mortar_io::Result<LoadedPiece>,
+                out: &mut Outcome|
+     -> Result<()> {
+        let piece = piece?;
+        out.colors.add(&piece);
+        out.decode_seconds += piece.seconds;
+        r.insert(piece.first, &piece.xyz, &piece.payload).map_err(|e| {
+            anyhow!("{label}: {e} (the progressive renderer frames the points with the header's bounds, which must hold every point)")
+        })
+    };
+    if preload {
+        for piece in rx.iter() {
+            take(r, piece, &mut out)?;
+        }
+        open = false;
+    }
+    loop {
+        let t = Instant::now();
+        // The first frame waits for the first points, so that it shows something.
+        if r.loaded() == 0 && open {
+            match rx.recv() {
+                Ok(piece) => take(r, piece, &mut out)?,
+                Err(_) => open = false,
+            }
+        }
+        while open {
+            match rx.try_recv() {
+                Ok(piece) => take(r, piece, &mut out)?,
+                Err(TryRecvError::Empty) => break,
+                Err(TryRecvError::Disconnected) => open = false,
+            }
+        }
+        if !open && r.loaded() < r.capacity() {
+            bail!(
+                "{label}: only {} of {} points could be read",
+                r.loaded(),
+                r.capacity()
+            );
+        }
+        let distribute_ms = ms(t);
+        if out.loaded_ms.is_none() && r.loaded() == r.capacity() {
+            out.loaded_ms = Some(ms(start));
+        }
+        if out.frames.is_empty() {
+            out.first_frame_ms = ms(start);
+        }
+        let stats = r
+            .frame(camera, options, budget)
+            .map_err(|e| anyhow!("{label}: {e}"))?;
+        out.frames.push(FrameRecord {
+            stats,
+            distribute_ms,
+            at_ms: ms(start),
+        });
+        let done = match frames {
+            Frames::Count(n) => stats.frame >= n,
+            Frames::Converge => stats.converged,
+        };
+        if done {
+            return Ok(out);
+        }
+        if let Some(period) = pace {
+            let left = period - ms(t);
+            if left > 0.0 {
+                std::thread::sleep(std::time::Duration::from_secs_f64(left * 1e-3));
+            }
+        }
+    }
+}
+
+/// `mortar render --progressive`: checks the options and inputs, loads and draws, writes the PNG
+/// and (with `--json`) the statistics.
+pub fn run(a: &Args) -> Result<()> {
+    let p = &a.progressive;
+    let frames = parse_frames(p.progressive.as_deref().unwrap_or_default())?;
+    let budget = parse_budget(p)?;
+    if a.backend == Backend::Gpu {
+        bail!("--progressive: the progressive renderer runs on the CPU (its GPU version is pending); leave out --backend gpu");
+    }
+    if p.load_threads == Some(0) {
+        bail!("--load-threads 0: at least one thread must decode the input");
+    }
+    let paths = mortar_io::source::expand_inputs(&a.inputs)?;
+    for path in &paths {
+        if path.as_os_str() == "-" {
+            continue;
+        }
+        let what = if mortar_io::store::is_store(path) {
+            "an octree store"
+        } else if path.is_file() && mortar_io::batchfile::is_batch_file(path) {
+            "a batch file"
+        } else {
+            continue;
+        };
+        bail!("{}: --progressive draws raw LAS/LAZ (paper 000), and this is {what}; draw it without --progressive", path.display());
+    }
+    let ds = Dataset::open(&paths)?;
+    common::print_warnings(&ds.warnings);
+    let label = paths
+        .iter()
+        .map(|p| p.display().to_string())
+        .collect::<Vec<_>>()
+        .join(" ");
+    let frame = header_frame(&ds)?;
+    if frame.points == 0 {
+        bail!("{label}: no points to draw");
+    }
+    let first_path = ds.inputs[0].path().to_path_buf();
+    let payload = payload_for(&ds.layout, a.color, &first_path)?;
+    let camera = build_camera(&a.camera, &frame.bounds, a.width, a.height)
+        .map_err(|e| anyhow!("{label}: {e:#}"))?;
+    let options = RasterOptions {
+        precision: a.precision.mode(),
+        cull: !a.no_cull,
+    };
+    let mut renderer = ProgressiveRenderer::new(ds.grid, frame.min, frame.max, frame.points)
+        .map_err(|e| anyhow!("{label}: {e}"))?;
+    let threads = p.load_threads.unwrap_or_else(|| {
+        std::thread::available_parallelism()
+            .map(|n| n.get())
+            .unwrap_or(1)
+    });
+
+    let start = Instant::now();
+    let cancel = AtomicBool::new(false);
+    let (tx, rx) = sync_channel::<mortar_io::Result<LoadedPiece>>(4 * threads);
+    let outcome = std::thread::scope(|s| -> Result<Outcome> {
+        let ds = &ds;
+        let cancel = &cancel;
+        let loader = s.spawn(move || {
+            load_pieces(ds, payload, threads, cancel, move |piece| {
+                tx.send(piece).is_ok()
+            })
+        });
+        let result = render_loop(
+            &mut renderer,
+            rx,
+            frames,
+            p.preload,
+            frame_period(p),
+            &camera,
+            &options,
+            &budget,
+            start,
+            &label,
+        );
+        // The receiver is gone: the loader's next delivery fails and it stops.
+        cancel.store(true, std::sync::atomic::Ordering::Relaxed);
+        let loaded = loader
+            .join()
+            .map_err(|_| anyhow!("{label}: a loader thread panicked"))?;
+        let out = result?;
+        loaded?;
+        Ok(out)
+    })?;
+
+    // Resolve the last frame: colours of the visible points only, as `mortar render` does.
+    let t = Instant::now();
+    let loaded_all = renderer.loaded() == renderer.capacity();
+    if loaded_all && a.color == ColorChoice::Mode(ColorMode::Rgb) && outcome.colors.max_rgb == 0 {
+        bail!("{}: --color rgb: the points have no colour (every RGB value is zero, point format {}); try --color intensity", first_path.display(), ds.layout.format);
+    }
+    let keys = renderer.keys();
+    let mut slots: Vec<u32> = renderer.visible();
+    slots.sort_unstable();
+    let payloads: Vec<u64> = slots
+        .iter()
+        .map(|&s| renderer.payload(s).expect("visible points are loaded"))
+        .collect();
+    let (colors, color_range) = payload_colors(
+        &payloads,
+        a.color,
+        payload,
+        &outcome.colors,
+        &ds.grid,
+        a.range,
+    );
+    let resolve_options = ResolveOptions {
+        background: a.background,
+        hole_fill: a.hole_fill.map(|n| HoleFill { min_neighbors: n }),
+        eye_dome: a.edl.map(|strength| EyeDome {
+            strength,
+            ..EyeDome::default()
+        }),
+    };
+    let bg = a.background;
+    let color_of = |i: u32| slots.binary_search(&i).map(|k| colors[k]).unwrap_or(bg);
+    let rgba = resolve(
+        &keys,
+        camera.width,
+        camera.height,
+        color_of,
+        &resolve_options,
+    );
+    let resolve_seconds = t.elapsed().as_secs_f64();
+    let t = Instant::now();
+    let png = encode_png(camera.width, camera.height, &rgba)?;
+    write_atomic(&a.output, &png)?;
+    let png_seconds = t.elapsed().as_secs_f64();
+
+    let last = outcome.frames.last().map(|f| f.stats).unwrap_or_default();
+    if !a.json {
+        if !last.converged {
+            common::warn(&format!(
+                "{label}: the image is not final after {} frames ({} of {} points loaded); --progressive converge draws until it is",
+                last.frame,
+                renderer.loaded(),
+                renderer.capacity()
+            ));
+        }
+        return Ok(());
+    }
+    let converged_at = outcome.frames.iter().find(|f| f.stats.converged);
+    let budget_json = match budget {
+        FillBudget::Fixed(b) => {
+            serde_json::json!({ "fixed": b, "frames_to_converge": renderer.capacity().div_ceil(b) })
+        }
+        FillBudget::Adaptive(a) => {
+            serde_json::json!({ "auto": { "target_ms": a.target_ms, "probe": a.probe_points, "usable": a.usable } })
+        }
+    };
+    let filled: Vec<f64> = outcome
+        .frames
+        .iter()
+        .map(|f| f.stats.filled as f64)
+        .collect();
+    let loaded_frames: Vec<&FrameRecord> = outcome
+        .frames
+        .iter()
+        .filter(|f| f.stats.loaded == renderer.capacity())
+        .collect();
+    let frame_json: Vec<serde_json::Value> = outcome
+        .frames
+        .iter()
+        .map(|f| {
+            let s = &f.stats;
+            serde_json::json!({
+                "frame": s.frame,
+                "loaded": s.loaded,
+                "reprojected": s.reprojected,
+                "filled": s.filled,
+                "fill_points": s.fill_points,
+                "probe": s.probe,
+                "visible": s.visible,
+                "points_drawn": s.raster.points_drawn,
+                "distribute_ms": f.distribute_ms,
+                "reproject_ms": s.reproject_ms,
+                "fill_ms": s.fill_ms,
+                "prepare_ms": s.prepare_ms,
+                "frame_ms": s.total_ms,
+                "at_ms": f.at_ms,
+                "converged": s.converged,
+            })
+        })
+        .collect();
+    let j = serde_json::json!({
+        "input": label,
+        "output": a.output,
+        "width": camera.width,
+        "height": camera.height,
+        "backend": "cpu",
+        "renderer": "progressive",
+        "precision": a.precision.name(),
+        "cull": !a.no_cull,
+        "color": resolve_choice(a.color, payload, &outcome.colors).name(),
+        "color_range": color_range,
+        "camera": camera_json(&camera),
+        "points": renderer.capacity(),
+        "loaded": renderer.loaded(),
+        "shuffle": { "prime": renderer.shuffle().prime(), "unshuffled": renderer.shuffle().unshuffled() },
+        "load_threads": threads,
+        "preload": p.preload,
+        "pace_ms": frame_period(p),
+        "budget": budget_json,
+        "frames_drawn": outcome.frames.len(),
+        "converged": last.converged,
+        "convergence_frame": converged_at.map(|f| f.stats.frame),
+        "convergence_seconds": converged_at.map(|f| f.at_ms * 1e-3),
+        "convergence_render_seconds": converged_at.map(|f| (f.at_ms - outcome.first_frame_ms) * 1e-3),
+        "load_seconds": outcome.loaded_ms.map(|v| v * 1e-3),
+        "decode_cpu_seconds": outcome.decode_seconds,
+        "first_frame_seconds": outcome.first_frame_ms * 1e-3,
+        "filled_median": median(filled.clone()),
+        "filled_max": filled.iter().copied().fold(0.0, f64::max),
+        "frame_ms_median": median(outcome.frames.iter().map(|f| f.stats.total_ms).collect()),
+        "frame_ms_max": outcome.frames.iter().map(|f| f.stats.total_ms).fold(0.0, f64::max),
+        "loaded_frames": {
+            "count": loaded_frames.len(),
+            "filled_median": median(loaded_frames.iter().map(|f| f.stats.filled as f64).collect()),
+            "frame_ms_median": median(loaded_frames.iter().map(|f| f.stats.total_ms).collect()),
+            "reproject_ms_median": median(loaded_frames.iter().map(|f| f.stats.reproject_ms).collect()),
+            "fill_ms_median": median(loaded_frames.iter().map(|f| f.stats.fill_ms).collect()),
+            "prepare_ms_median": median(loaded_frames.iter().map(|f| f.stats.prepare_ms).collect()),
+        },
+        "pixels_covered": last.visible,
+        "resolve_seconds": resolve_seconds,
+        "png_seconds": png_seconds,
+        "frames": frame_json,
+    });
+    let text = serde_json::to_string_pretty(&j)?;
+    if a.output.as_os_str() == "-" {
+        eprintln!("{text}");
+    } else {
+        println!("{text}");
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn frames_and_budgets_parse() {
+        assert_eq!(parse_frames("12").unwrap(), Frames::Count(12));
+        assert_eq!(parse_frames("converge").unwrap(), Frames::Converge);
+        assert!(
+            parse_frames("0").is_err() && parse_frames("-3").is_err() && parse_frames("x").is_err()
+        );
+        let args = |b: Option<&str>| ProgressiveArgs {
+            budget: b.map(String::from),
+            ..ProgressiveArgs::default()
+        };
+        assert_eq!(
+            parse_budget(&args(None)).unwrap(),
+            FillBudget::Fixed(DEFAULT_BUDGET)
+        );
+        assert_eq!(
+            parse_budget(&args(Some("5000"))).unwrap(),
+            FillBudget::Fixed(5000)
+        );
+        assert!(parse_budget(&args(Some("0")))
+            .unwrap_err()
+            .to_string()
+            .contains("at least one point"));
+        assert!(parse_budget(&args(Some("lots"))).is_err());
+        let auto = ProgressiveArgs {
+            target_ms: Some(8.0),
+            probe: Some(1000),
+            ..args(Some("auto"))
+        };
+        assert_eq!(
+            parse_budget(&auto).unwrap(),
+            FillBudget::Adaptive(AdaptiveBudget {
+                target_ms: 8.0,
+                probe_points: 1000,
+                ..AdaptiveBudget::default()
+            })
+        );
+        assert!(parse_budget(&ProgressiveArgs {
+            target_ms: Some(-1.0),
+            ..auto.clone()
+        })
+        .is_err());
+        assert!(parse_budget(&ProgressiveArgs {
+            target_ms: Some(8.0),
+            ..args(Some("10"))
+        })
+        .is_err());
+        // --pace takes --target-ms as its frame period, with any budget.
+        let paced = ProgressiveArgs {
+            target_ms: Some(40.0),
+            pace: true,
+            ..args(Some("10"))
+        };
+        assert_eq!(parse_budget(&paced).unwrap(), FillBudget::Fixed(10));
+        assert_eq!(frame_period(&paced), Some(40.0));
+        assert_eq!(frame_period(&args(None)), None);
+        assert_eq!(
+            frame_period(&ProgressiveArgs {
+                pace: true,
+                ..args(None)
+            }),
+            Some(16.6)
+        );
+    }
+}

@@ -1,0 +1,207 @@
+//! `mortar render store/`: LOD rendering of an octree store (paper 004 §6). The nodes to draw are
+//! selected for the view from the store's hierarchy (culled by the frustum, refined while wider
+//! than `--lod-threshold` pixels on screen, within `--point-budget`), then drawn straight from the
+//! memory-mapped payloads by the CPU or the GPU rasterizer and resolved on the host with the
+//! stored colours (or elevation), hole filling and eye-dome lighting. `--no-lod` draws every
+//! point through a temporary batch file instead (the path of LAS/LAZ inputs; every colour mode).
+
+use crate::render::{build_camera, camera_json, encode_png, write_atomic, Args, AtomicsArg, Backend};
+use anyhow::{anyhow, bail, Result};
+use mortar_core::octree::{LodOptions, LodSelection, DEFAULT_THRESHOLD_PX};
+use mortar_core::render::resolve::{EyeDome, HoleFill, ResolveOptions};
+use mortar_core::render::{Camera, RasterOptions};
+use mortar_io::render_input::{RenderSettings, Rendered};
+use mortar_io::store_lod::{self, LodBatches, LodColor, StoreLod};
+use mortar_render::{AtomicPath, GpuContext, GpuError, GpuOptions, GpuRasterizer, GpuScene, SceneOptions};
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// The LOD options of `mortar render` (stores only).
+#[derive(clap::Args, Clone, Debug, Default)]
+pub struct LodArgs {
+    /// Stores: an inner node is replaced by its children while its cube is wider than PX pixels
+    /// on screen (paper 004 §6; default 128, the voxel grid's edge). 0 draws every visible leaf:
+    /// full detail.
+    #[arg(long, value_name = "PX", allow_hyphen_values = true)]
+    pub lod_threshold: Option<f64>,
+    /// Stores: most points and voxels to draw; the nodes largest on screen are refined first.
+    #[arg(long, value_name = "N")]
+    pub point_budget: Option<u64>,
+    /// Stores: draw every point through a temporary batch file instead of LOD nodes (allows the
+    /// attribute colour modes: intensity, classification, return number, GPS time).
+    #[arg(long, conflicts_with_all = ["lod_threshold", "point_budget"])]
+    pub no_lod: bool,
+}
+
+impl LodArgs {
+    /// The selection options (culling as the rasterizer's).
+    pub fn options(&self, cull: bool) -> Result<LodOptions> {
+        let threshold_px = self.lod_threshold.unwrap_or(DEFAULT_THRESHOLD_PX);
+        if threshold_px.is_nan() || threshold_px < 0.0 {
+            bail!("--lod-threshold {threshold_px}: must be 0 or more pixels");
+        }
+        Ok(LodOptions { threshold_px, point_budget: self.point_budget, cull })
+    }
+}
+
+/// The store to draw with LOD: the input when it is a single store directory and `--no-lod` is
+/// not given. LOD options given for any other input are an error.
+pub fn store_input(a: &Args) -> Result<Option<PathBuf>> {
+    let store = match &a.inputs[..] {
+        [one] if one != "-" && mortar_io::store::is_store(Path::new(one)) => Some(PathBuf::from(one)),
+        _ => None,
+    };
+    if store.is_none() && (a.lod.lod_threshold.is_some() || a.lod.point_budget.is_some() || a.lod.no_lod) {
+        bail!("--lod-threshold, --point-budget and --no-lod apply to a single octree store (made by mortar build), not to {}", a.inputs.join(" "));
+    }
+    Ok(if a.lod.no_lod { None } else { store })
+}
+
+/// Draws the view of the store `dir` with LOD, writes the PNG and (with `--json`) the statistics.
+pub fn run(a: &Args, dir: &Path) -> Result<()> {
+    let start = Instant::now();
+    let lod = StoreLod::open(dir)?;
+    let open_seconds = start.elapsed().as_secs_f64();
+    let label = dir.display().to_string();
+    if lod.point_count() == 0 {
+        bail!("{label}: no points to draw");
+    }
+    let color = LodColor::of(lod.store(), a.color)?;
+    let options = a.lod.options(!a.no_cull)?;
+    let camera = build_camera(&a.camera, &lod.bounds(), a.width, a.height).map_err(|e| anyhow!("{label}: {e:#}"))?;
+    let t = Instant::now();
+    let selection = lod.select(&camera, &options)?;
+    let selection_seconds = t.elapsed().as_secs_f64();
+    let t = Instant::now();
+    let batches = lod.batches(&selection.nodes)?;
+    let prepare_seconds = t.elapsed().as_secs_f64();
+    let settings = RenderSettings {
+        raster: RasterOptions { precision: a.precision.mode(), cull: !a.no_cull },
+        color: a.color,
+        range: a.range,
+        resolve: ResolveOptions {
+            background: a.background,
+            hole_fill: a.hole_fill.map(|n| HoleFill { min_neighbors: n }),
+            eye_dome: a.edl.map(|strength| EyeDome { strength, ..EyeDome::default() }),
+        },
+    };
+    let atomics = match a.atomics {
+        AtomicsArg::Auto => None,
+        AtomicsArg::U64 => Some(AtomicPath::U64),
+        AtomicsArg::U32 => Some(AtomicPath::TwoPass32),
+    };
+    let gpu = match a.backend {
+        Backend::Cpu => None,
+        Backend::Gpu => {
+            Some(GpuContext::new(&GpuOptions { atomics, allow_software: true, ..Default::default() }).map_err(|e| anyhow!("--backend gpu: {e}"))?)
+        }
+        Backend::Auto => GpuContext::new(&GpuOptions { atomics, allow_software: false, ..Default::default() }).ok(),
+    };
+    let (r, gpu_json) = match &gpu {
+        None => (store_lod::render(&lod, &batches, &camera, &settings)?, serde_json::Value::Null),
+        Some(ctx) => {
+            let (r, j) = render_gpu(ctx, &lod, &batches, &camera, &settings).map_err(|e| anyhow!("{label}: GPU: {e}"))?;
+            (r?, j)
+        }
+    };
+    let t = Instant::now();
+    let png = encode_png(r.width, r.height, &r.rgba)?;
+    write_atomic(&a.output, &png)?;
+    let png_seconds = t.elapsed().as_secs_f64();
+    if a.json {
+        let s = &r.stats;
+        let j = serde_json::json!({
+            "input": label,
+            "output": a.output,
+            "width": r.width,
+            "height": r.height,
+            "backend": if gpu.is_some() { "gpu" } else { "cpu" },
+            "gpu": gpu_json,
+            "precision": a.precision.name(),
+            "cull": !a.no_cull,
+            "color": color.name(),
+            "color_range": r.color_range,
+            "camera": camera_json(&camera),
+            "points": lod.point_count(),
+            "lod": lod_json(&selection, &options, selection_seconds, prepare_seconds),
+            "batches": s.batches,
+            "batches_culled": s.batches_culled,
+            "batches_drawn": s.batches_drawn,
+            "points_projected": s.points_projected(),
+            "points_by_precision": { "10": s.points_by_precision[0], "20": s.points_by_precision[1], "30": s.points_by_precision[2] },
+            "points_drawn": s.points_drawn,
+            "pixels_covered": r.covered,
+            "open_seconds": open_seconds,
+            "raster_seconds": r.raster_seconds,
+            "resolve_seconds": r.resolve_seconds,
+            "png_seconds": png_seconds,
+            "points_per_second": s.points_projected() as f64 / r.raster_seconds.max(1e-9),
+        });
+        let text = serde_json::to_string_pretty(&j)?;
+        if a.output.as_os_str() == "-" {
+            eprintln!("{text}");
+        } else {
+            println!("{text}");
+        }
+    }
+    Ok(())
+}
+
+/// The selection's statistics as JSON.
+pub fn lod_json(sel: &LodSelection, options: &LodOptions, selection_seconds: f64, prepare_seconds: f64) -> serde_json::Value {
+    let s = &sel.stats;
+    serde_json::json!({
+        "threshold_px": options.threshold_px,
+        "point_budget": options.point_budget,
+        "nodes_selected": s.selected,
+        "points": s.points,
+        "voxels": s.voxels,
+        "samples": s.samples(),
+        "budget_reached": s.budget_reached,
+        "nodes_visited": s.visited,
+        "nodes_culled": s.culled,
+        "nodes_empty": s.empty,
+        "nodes_refined": s.refined,
+        "selection_seconds": selection_seconds,
+        "prepare_seconds": prepare_seconds,
+    })
+}
+
+/// Draws the selected nodes with the GPU rasterizer: uploads them (in index order, so the
+/// framebuffer's index is the batches' sample index), draws one frame, reads the keys back and
+/// resolves them on the host as the CPU path does. The outer error is the GPU's, the inner one
+/// the store's.
+fn render_gpu(
+    ctx: &GpuContext,
+    lod: &StoreLod,
+    batches: &LodBatches<'_>,
+    camera: &Camera,
+    settings: &RenderSettings,
+) -> std::result::Result<(mortar_io::Result<Rendered>, serde_json::Value), GpuError> {
+    let t = Instant::now();
+    let mut scene = GpuScene::new(ctx, lod.grid(), batches.samples, SceneOptions::default())?;
+    for b in &batches.refs {
+        scene.push(ctx, b, None)?;
+    }
+    scene.flush(ctx)?;
+    ctx.wait()?;
+    let upload_seconds = t.elapsed().as_secs_f64();
+    let mut raster = GpuRasterizer::new(ctx, camera.width, camera.height)?;
+    let frame = raster.draw(ctx, &mut scene, camera, &settings.raster, None)?;
+    let keys = raster.read_keys(ctx)?;
+    let a = ctx.adapter();
+    let j = serde_json::json!({
+        "adapter": a.name,
+        "api": a.backend,
+        "device_type": a.device_type,
+        "driver": a.driver,
+        "atomics": ctx.atomic_path().name(),
+        "chunks": scene.chunk_count(),
+        "gpu_bytes": scene.gpu_bytes(),
+        "upload_seconds": upload_seconds,
+        "plan_seconds": frame.plan_seconds,
+        "frame_seconds": frame.frame_seconds,
+        "draw_ms": frame.timings.map(|t| t.draw_ms),
+    });
+    Ok((store_lod::resolve_keys(lod, batches, keys, frame.stats, frame.frame_seconds, camera, settings), j))
+}

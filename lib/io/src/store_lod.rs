@@ -1,0 +1,351 @@
+//! LOD rendering of an octree store on disk (paper 004 §6): the view-dependent node selection of
+//! [`mortar_core::octree::lod`] run on a store's hierarchy, and the selected nodes drawn straight
+//! from the memory-mapped `nodes.bin` by either rasterizer (paper 003 §3.5: "a node is a
+//! variable-size batch").
+//!
+//! - [`StoreLod::new`] rebuilds the tree's structure from the hierarchy's keys
+//!   ([`LodIndex`]: children found by key, subtree point counts summed from the leaves, every
+//!   structural claim checked), so [`select_nodes`] walks a store exactly as it walks an in-memory
+//!   [`Snapshot`](mortar_core::octree::Snapshot). No payload is read to select.
+//! - [`StoreLod::batches`] turns the selected nodes into the rasterizer's [`BatchRef`]s without
+//!   copying: a payload's coarse, medium and fine words are already the batch layout, and they
+//!   are borrowed from the map (payloads start at multiples of 8 in a page-aligned map, so the
+//!   `u32` arrays are aligned; [`Store::open`] checks the offsets). Point indices run consecutively
+//!   over the selected nodes in selection order (ascending node id), as a batch file's do, so
+//!   the GPU scene takes the batches as they come and one index names one sample of one node.
+//! - A node's batch needs the world bounds of its samples. The payload records the frame's
+//!   minimum (the samples' integer minimum) but not their maximum: it is taken from the coarse
+//!   words on first use (exact for frames of up to 10 bits, otherwise at most `2^(bits - 10)`
+//!   units above the true maximum: conservative, so culling stays correct) and cached.
+//! - [`resolve_keys`] colours the visible samples: the payload's stored colour (the source's RGB,
+//!   or grey from intensity, chosen when the store was built; voxels carry the first-come or
+//!   averaged colour of their points), or elevation from the exact decoded height. Modes that
+//!   need record attributes (intensity ramps, classification, return number, GPS time) are
+//!   refused: voxels have no records ([`LodColor::of`] says so and names the store). Hole filling
+//!   and eye-dome lighting work as for batch files: they read only the keys.
+
+use crate::error::{Error, Result};
+use crate::render_input::{ColorChoice, RenderSettings, Rendered};
+use crate::store::{NodeData, Store, LEAF};
+use mortar_core::grid::Grid;
+use mortar_core::octree::{select_nodes, Cube, IndexEntry, LodIndex, LodOptions, LodSelection, LodTree, NodeId, NodeKey};
+use mortar_core::render::framebuffer::{key_index, EMPTY_KEY};
+use mortar_core::render::resolve::{elevation_color, resolve, ColorMode};
+use mortar_core::render::{rasterize, Aabb, BatchRef, Camera, Framebuffer, RasterStats};
+use rayon::prelude::*;
+use std::path::Path;
+use std::sync::OnceLock;
+use std::time::Instant;
+
+/// A store opened for LOD rendering: the store, its tree structure and the cached sample maxima.
+pub struct StoreLod {
+    store: Store,
+    index: LodIndex,
+    grid: Grid,
+    /// Per node: the integer maximum of its samples (see the module docs), on first use.
+    maxima: Vec<OnceLock<[i32; 3]>>,
+}
+
+impl std::fmt::Debug for StoreLod {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("StoreLod").field("path", &self.store.path).field("nodes", &self.store.entries.len()).finish()
+    }
+}
+
+impl StoreLod {
+    /// Opens the last commit of the store `dir` for LOD rendering.
+    pub fn open(dir: &Path) -> Result<StoreLod> {
+        StoreLod::new(Store::open(dir)?)
+    }
+
+    /// Rebuilds the tree of `store` from its hierarchy; an error naming the store where the
+    /// entries do not form one octree.
+    pub fn new(store: Store) -> Result<StoreLod> {
+        let bad = |m: String| Error::input(&store.path, m);
+        let root_log2 = store.header.root_size_log2;
+        let root = store.root_cube();
+        if root_log2 > 32 {
+            return Err(bad(format!("hierarchy.bin: root cube of 2^{root_log2} grid units; at most 2^32 is supported")));
+        }
+        let mut entries = Vec::with_capacity(store.entries.len());
+        for (i, e) in store.entries.iter().enumerate() {
+            let level = u8::try_from(e.level).map_err(|_| bad(format!("hierarchy.bin: node {i} has level {}", e.level)))?;
+            entries.push(IndexEntry { key: NodeKey { level, index: e.index }, leaf: e.kind == LEAF, samples: e.count });
+        }
+        let index = LodIndex::new(root, &entries).map_err(|e| bad(format!("hierarchy.bin: {e}")))?;
+        let h = &store.meta.header;
+        let grid = Grid { scale: h.scale, offset: h.offset };
+        let maxima = (0..entries.len()).map(|_| OnceLock::new()).collect();
+        Ok(StoreLod { store, index, grid, maxima })
+    }
+
+    /// The store.
+    pub fn store(&self) -> &Store {
+        &self.store
+    }
+
+    /// The store's directory.
+    pub fn path(&self) -> &Path {
+        &self.store.path
+    }
+
+    /// The tree's structure.
+    pub fn index(&self) -> &LodIndex {
+        &self.index
+    }
+
+    /// The world grid of the store's integer coordinates.
+    pub fn grid(&self) -> Grid {
+        self.grid
+    }
+
+    /// Points in the leaves.
+    pub fn point_count(&self) -> u64 {
+        self.store.header.points
+    }
+
+    /// World bounds of every point (empty bounds at the origin for a store without points).
+    pub fn bounds(&self) -> Aabb {
+        let h = &self.store.header;
+        let (lo, hi) = if h.points == 0 { ([0; 3], [0; 3]) } else { (h.min, h.max) };
+        world_box(&self.grid, lo, hi)
+    }
+
+    /// The nodes to draw for `camera` ([`select_nodes`] on the store's tree).
+    pub fn select(&self, camera: &Camera, options: &LodOptions) -> Result<LodSelection> {
+        select_nodes(self, &self.grid, camera, options).map_err(|e| Error::input(&self.store.path, e.to_string()))
+    }
+
+    /// The payload of node `id`.
+    pub fn node(&self, id: NodeId) -> NodeData<'_> {
+        self.store.node(id.index())
+    }
+
+    /// The integer maximum of node `id`'s samples (see the module docs), computed on first use.
+    fn sample_max(&self, id: NodeId) -> [i32; 3] {
+        *self.maxima[id.index()].get_or_init(|| {
+            let d = self.node(id);
+            let g = d.grid();
+            let mut top = [0u32; 3];
+            for &w in d.words[0] {
+                for (a, t) in top.iter_mut().enumerate() {
+                    *t = (*t).max(w >> (10 * a) & 0x3ff);
+                }
+            }
+            [0, 1, 2].map(|a| {
+                let bits = g.bits[a] as u32;
+                let span = (1u64 << bits) - 1;
+                // The largest q30 with this coarse field, back in grid units.
+                let q30 = ((top[a] as u64 + 1) << 20) - 1;
+                let units = (q30 >> (30 - bits)).min(span);
+                (g.min[a] as i64 + units as i64).min(i32::MAX as i64) as i32
+            })
+        })
+    }
+
+    /// The batches of `nodes` (a selection's nodes, in the order given), numbered consecutively
+    /// from 0. Fails where they hold more than 2^32 samples (point indices are 32-bit).
+    pub fn batches(&self, nodes: &[NodeId]) -> Result<LodBatches<'_>> {
+        if let Some(&id) = nodes.iter().find(|id| id.index() >= self.store.entries.len()) {
+            return Err(Error::input(&self.store.path, format!("node {} is not in the store", id.0)));
+        }
+        let samples: u64 = nodes.iter().map(|&id| self.store.entries[id.index()].count).sum();
+        if samples > 1u64 << 32 {
+            return Err(Error::input(
+                &self.store.path,
+                format!("{samples} samples selected: at most 2^32 can be drawn at once (point indices are 32-bit); set a --point-budget"),
+            ));
+        }
+        let maxima: Vec<[i32; 3]> = nodes.par_iter().map(|&id| self.sample_max(id)).collect();
+        let mut refs = Vec::with_capacity(nodes.len());
+        let mut colors = Vec::with_capacity(nodes.len());
+        let mut first = Vec::with_capacity(nodes.len());
+        let mut next = 0u64;
+        for (&id, max) in nodes.iter().zip(maxima) {
+            let d = self.node(id);
+            let g = d.grid();
+            let b = world_box(&self.grid, g.min, max);
+            refs.push(BatchRef { grid: g, bounds_min: b.min, bounds_max: b.max, words: d.words, first_index: next as u32 });
+            colors.push(d.colors);
+            first.push(next as u32);
+            next += d.header.count as u64;
+        }
+        Ok(LodBatches { refs, colors, first, nodes: nodes.to_vec(), samples })
+    }
+}
+
+/// World box of the integer bounds `lo..=hi` on `grid` (ordered for negative scales).
+fn world_box(grid: &Grid, lo: [i32; 3], hi: [i32; 3]) -> Aabb {
+    let mut min = [0.0; 3];
+    let mut max = [0.0; 3];
+    for a in 0..3 {
+        let (x, y) = (grid.world(a, lo[a] as i64), grid.world(a, hi[a] as i64));
+        min[a] = x.min(y);
+        max[a] = x.max(y);
+    }
+    Aabb::new(min, max)
+}
+
+impl LodTree for StoreLod {
+    fn node_count(&self) -> usize {
+        self.index.node_count()
+    }
+    fn cube(&self, id: NodeId) -> Cube {
+        self.index.cube(id)
+    }
+    fn subtree_points(&self, id: NodeId) -> u64 {
+        self.index.subtree_points(id)
+    }
+    fn children(&self, id: NodeId) -> Option<[NodeId; 8]> {
+        self.index.children(id)
+    }
+    fn samples(&self, id: NodeId) -> u64 {
+        self.index.samples(id)
+    }
+    fn is_leaf(&self, id: NodeId) -> bool {
+        self.index.is_leaf(id)
+    }
+}
+
+/// Selected nodes as the rasterizers take them, borrowed from the store's map.
+#[derive(Clone, Debug)]
+pub struct LodBatches<'a> {
+    /// One batch per node, `first_index` consecutive from 0.
+    pub refs: Vec<BatchRef<'a>>,
+    /// The nodes' RGBA8 colours, one per sample.
+    pub colors: Vec<&'a [u32]>,
+    /// The nodes, in batch order.
+    pub nodes: Vec<NodeId>,
+    /// Samples in all (points and voxels).
+    pub samples: u64,
+    first: Vec<u32>,
+}
+
+impl LodBatches<'_> {
+    /// The batch (position in [`refs`](Self::refs)) and sample in it of point index `index`.
+    #[inline]
+    pub fn locate(&self, index: u32) -> Option<(usize, usize)> {
+        if index as u64 >= self.samples {
+            return None;
+        }
+        let b = self.first.partition_point(|&f| f <= index) - 1;
+        Some((b, (index - self.first[b]) as usize))
+    }
+
+    /// The stored colour of point index `index`.
+    #[inline]
+    pub fn color(&self, index: u32) -> Option<u32> {
+        self.locate(index).map(|(b, i)| self.colors[b][i])
+    }
+
+    /// The exact integer position of point index `index` (a leaf point's own coordinates, a
+    /// voxel's cell centre).
+    pub fn position(&self, index: u32) -> Option<[i32; 3]> {
+        self.locate(index).map(|(b, i)| {
+            let r = &self.refs[b];
+            r.grid.decode_exact([r.words[0][i], r.words[1][i], r.words[2][i]])
+        })
+    }
+}
+
+/// What an LOD render colours samples by.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum LodColor {
+    /// The payload's RGBA8 colour.
+    Stored,
+    /// Height, from the exact decoded position.
+    Elevation,
+}
+
+impl LodColor {
+    /// The colour source of `choice` for `store`, or an error naming the store for modes that
+    /// need record attributes. `auto` is the stored colour (RGB where the source has it, else
+    /// intensity grey: the voxels' colours).
+    pub fn of(store: &Store, choice: ColorChoice) -> Result<LodColor> {
+        match choice {
+            ColorChoice::Auto | ColorChoice::Stored => Ok(LodColor::Stored),
+            ColorChoice::Mode(ColorMode::Elevation) => Ok(LodColor::Elevation),
+            ColorChoice::Mode(ColorMode::Rgb) if store.layout.has_rgb() => Ok(LodColor::Stored),
+            ColorChoice::Mode(ColorMode::Rgb) => Err(Error::input(
+                &store.path,
+                format!("--color rgb: point format {} has no RGB; the store's colours are intensity grey (--color stored)", store.layout.format),
+            )),
+            ColorChoice::Mode(m) => Err(Error::input(
+                &store.path,
+                format!(
+                    "--color {}: LOD rendering draws voxels, which keep only the stored colour; use --color stored or elevation, or --no-lod to draw every point with its attributes",
+                    m.name()
+                ),
+            )),
+        }
+    }
+
+    /// The name reported for it.
+    pub fn name(self) -> &'static str {
+        match self {
+            LodColor::Stored => "stored",
+            LodColor::Elevation => "elevation",
+        }
+    }
+}
+
+/// The value at quantile `q` (0-1) of `v` (reorders `v`).
+fn quantile(v: &mut [f64], q: f64) -> Option<f64> {
+    if v.is_empty() {
+        return None;
+    }
+    let k = ((v.len() - 1) as f64 * q).round() as usize;
+    Some(*v.select_nth_unstable_by(k, f64::total_cmp).1)
+}
+
+/// Rasterizes `batches` (from [`StoreLod::batches`]) with the CPU rasterizer for `camera` and
+/// resolves the image ([`resolve_keys`]).
+pub fn render(lod: &StoreLod, batches: &LodBatches<'_>, camera: &Camera, settings: &RenderSettings) -> Result<Rendered> {
+    LodColor::of(&lod.store, settings.color)?;
+    let fb = Framebuffer::new(camera.width, camera.height);
+    let t0 = Instant::now();
+    let stats = rasterize(&fb, &batches.refs, &lod.grid, camera, &settings.raster).map_err(|e| Error::input(&lod.store.path, e.to_string()))?;
+    let raster_seconds = t0.elapsed().as_secs_f64();
+    resolve_keys(lod, batches, fb.into_keys(), stats, raster_seconds, camera, settings)
+}
+
+/// Resolves a visibility buffer of `batches`' samples (drawn by either rasterizer with `stats`
+/// in `raster_seconds`) into the image: stored colours or elevation (over `settings.range`, or
+/// the 1st to 99th percentile of the visible samples' heights), then hole filling and eye-dome
+/// lighting as asked.
+pub fn resolve_keys(
+    lod: &StoreLod,
+    batches: &LodBatches<'_>,
+    keys: Vec<u64>,
+    stats: RasterStats,
+    raster_seconds: f64,
+    camera: &Camera,
+    settings: &RenderSettings,
+) -> Result<Rendered> {
+    let color = LodColor::of(&lod.store, settings.color)?;
+    let t1 = Instant::now();
+    if keys.par_iter().any(|&k| k != EMPTY_KEY && key_index(k) as u64 >= batches.samples) {
+        return Err(Error::input(&lod.store.path, "framebuffer holds a point index beyond the selected samples"));
+    }
+    let bg = settings.resolve.background;
+    let (rgba, color_range) = match color {
+        LodColor::Stored => (resolve(&keys, camera.width, camera.height, |i| batches.color(i).unwrap_or(bg), &settings.resolve), None),
+        LodColor::Elevation => {
+            let height = |i: u32| batches.position(i).map(|p| lod.grid.world(2, p[2] as i64));
+            let range = settings.range.unwrap_or_else(|| {
+                let mut idx: Vec<u32> = keys.iter().filter(|&&k| k != EMPTY_KEY).map(|&k| key_index(k)).collect();
+                idx.par_sort_unstable();
+                idx.dedup();
+                let mut v: Vec<f64> = idx.iter().filter_map(|&i| height(i)).collect();
+                let lo = quantile(&mut v, 0.01).unwrap_or(0.0);
+                let hi = quantile(&mut v, 0.99).unwrap_or(1.0);
+                [lo, hi]
+            });
+            let rgba = resolve(&keys, camera.width, camera.height, |i| height(i).map_or(bg, |z| elevation_color(z, range)), &settings.resolve);
+            (rgba, Some(range))
+        }
+    };
+    let resolve_seconds = t1.elapsed().as_secs_f64();
+    let covered = keys.iter().filter(|&&k| k != EMPTY_KEY).count() as u64;
+    Ok(Rendered { width: camera.width, height: camera.height, keys, rgba, stats, covered, raster_seconds, resolve_seconds, color_range })
+}
