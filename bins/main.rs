@@ -10,6 +10,7 @@ mod progressive;
 mod render;
 mod render_lod;
 mod sort;
+mod view;
 
 use clap::{Parser, Subcommand};
 
@@ -38,6 +39,8 @@ enum Cmd {
     Render(render::Args),
     /// Build an octree LOD store (paper 004) from LAS/LAZ or batch files.
     Build(build::Args),
+    /// Show a batch file, LAS/LAZ or a store in a window (GPU rasterizer; orbit, pan, zoom).
+    View(view::Args),
 }
 
 fn main() {
@@ -61,6 +64,7 @@ fn main() {
         Cmd::Batch(a) => batch::run(a),
         Cmd::Render(a) => render::run(a),
         Cmd::Build(a) => build::run(a),
+        Cmd::View(a) => view::run(a),
     };
     if let Err(e) = r {
         mortar_io::cleanup::remove_all();

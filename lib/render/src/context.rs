@@ -1,4 +1,5 @@
-//! Device setup: picks an adapter without any window or display, asks for its real limits and for
+//! Device setup: picks an adapter without any window or display ([`GpuContext::new`]), or one that
+//! can also present to a window ([`GpuContext::for_window`]), asks for its real limits and for
 //! 64-bit atomics (SHADER_INT64 + SHADER_INT64_ATOMIC_MIN_MAX) and GPU timestamps where present,
 //! and chooses the atomic path at run time: 64-bit keys where the features exist, the 32-bit
 //! two-pass path where they do not (GL backend, older GPUs) or where the caller asks for it.
@@ -83,6 +84,18 @@ pub enum GpuError {
     /// Colours given for some batches but not others, or of the wrong length.
     #[error("colours: {0}")]
     Colors(String),
+    /// The window's surface cannot be created or presented to.
+    #[error("window surface: {0}")]
+    Surface(String),
+}
+
+/// Mesa's device-select layer probes for a Wayland display and prints an error without one;
+/// mortar enumerates and ranks the adapters itself, so the layer is switched off (unless the user
+/// set NODEVICE_SELECT). Called before any GPU thread exists.
+fn quiet_device_select() {
+    if std::env::var_os("NODEVICE_SELECT").is_none() {
+        std::env::set_var("NODEVICE_SELECT", "1");
+    }
 }
 
 /// A description of the adapter in use, for reports.
@@ -104,6 +117,7 @@ pub struct GpuContext {
     pub device: wgpu::Device,
     /// Its queue.
     pub queue: wgpu::Queue,
+    adapter: wgpu::Adapter,
     summary: AdapterSummary,
     path: AtomicPath,
     timestamps: bool,
@@ -138,12 +152,7 @@ impl GpuContext {
     pub fn new(options: &GpuOptions) -> Result<GpuContext, GpuError> {
         // Vulkan, Metal and DX12 first; the GL backend (EGL probing, noisy on headless machines)
         // only when none of them has an adapter. WGPU_BACKEND overrides both.
-        // Mesa's device-select layer probes for a Wayland display and prints an error without one;
-        // mortar enumerates and ranks the adapters itself, so the layer is switched off (unless
-        // the user set NODEVICE_SELECT). This runs before any GPU thread exists.
-        if std::env::var_os("NODEVICE_SELECT").is_none() {
-            std::env::set_var("NODEVICE_SELECT", "1");
-        }
+        quiet_device_select();
         let from_env = wgpu::Backends::from_env();
         let mut adapters = Vec::new();
         for backends in [from_env.unwrap_or(wgpu::Backends::PRIMARY), wgpu::Backends::GL] {
@@ -153,12 +162,58 @@ impl GpuContext {
                 break;
             }
         }
+        GpuContext::open(adapters, options, None)
+    }
+
+    /// Opens the best adapter that can also present to `window` (ranked as [`GpuContext::new`]
+    /// does), and the window's surface on it. The surface is not configured yet (see
+    /// [`crate::present::WindowSurface`]). Vulkan, Metal and DX12 are tried first, GL only when
+    /// none of their adapters can present; `WGPU_BACKEND` restricts the backends.
+    pub fn for_window<W>(options: &GpuOptions, window: W) -> Result<(GpuContext, wgpu::Surface<'static>), GpuError>
+    where
+        W: wgpu::WindowHandle + wgpu::rwh::HasDisplayHandle + std::fmt::Debug + Clone + Send + Sync + 'static,
+    {
+        quiet_device_select();
+        let from_env = wgpu::Backends::from_env();
+        let attempts: &[wgpu::Backends] = match from_env {
+            Some(b) => &[b][..],
+            None => &[wgpu::Backends::PRIMARY, wgpu::Backends::GL][..],
+        };
+        let mut last = GpuError::NoAdapter(String::new());
+        for &backends in attempts {
+            // The display handle matters to GL (EGL) only; Vulkan, Metal and DX12 ignore it.
+            let instance = wgpu::Instance::new(wgpu::InstanceDescriptor {
+                backends,
+                display: Some(Box::new(window.clone())),
+                ..wgpu::InstanceDescriptor::new_without_display_handle()
+            });
+            let surface = match instance.create_surface(window.clone()) {
+                Ok(s) => s,
+                Err(e) => {
+                    last = GpuError::Surface(e.to_string());
+                    continue;
+                }
+            };
+            let adapters = pollster::block_on(instance.enumerate_adapters(backends));
+            match GpuContext::open(adapters, options, Some(&surface)) {
+                Ok(ctx) => return Ok((ctx, surface)),
+                Err(e @ GpuError::NoAdapter(_)) => last = e,
+                Err(e) => return Err(e),
+            }
+        }
+        Err(last)
+    }
+
+    /// Ranks `adapters`, keeps those that can present to `surface` (when given), and opens the
+    /// best one.
+    fn open(adapters: Vec<wgpu::Adapter>, options: &GpuOptions, surface: Option<&wgpu::Surface<'_>>) -> Result<GpuContext, GpuError> {
         let mut seen = Vec::new();
         let mut best: Option<(u32, bool, wgpu::Adapter)> = None;
         for a in adapters {
             let info = a.get_info();
-            seen.push(format!("{} ({:?}, {:?})", info.name, info.backend, info.device_type));
-            if !a.get_downlevel_capabilities().flags.contains(wgpu::DownlevelFlags::COMPUTE_SHADERS) {
+            let presents = surface.is_none_or(|s| a.is_surface_supported(s));
+            seen.push(format!("{} ({:?}, {:?}{})", info.name, info.backend, info.device_type, if presents { "" } else { ", cannot present to the window" }));
+            if !presents || !a.get_downlevel_capabilities().flags.contains(wgpu::DownlevelFlags::COMPUTE_SHADERS) {
                 continue;
             }
             if info.device_type == wgpu::DeviceType::Cpu && !options.allow_software {
@@ -216,12 +271,17 @@ impl GpuContext {
             driver: format!("{} {}", info.driver, info.driver_info).trim().to_string(),
         };
         let dispatch_x = options.max_workgroups_per_dimension.unwrap_or(u32::MAX).min(limits.max_compute_workgroups_per_dimension).max(1);
-        Ok(GpuContext { device, queue, summary, path, timestamps, software, limits, dispatch_x, errors })
+        Ok(GpuContext { device, queue, adapter, summary, path, timestamps, software, limits, dispatch_x, errors })
     }
 
     /// The adapter in use.
     pub fn adapter(&self) -> &AdapterSummary {
         &self.summary
+    }
+
+    /// The wgpu adapter itself (surface capabilities need it).
+    pub fn wgpu_adapter(&self) -> &wgpu::Adapter {
+        &self.adapter
     }
 
     /// The atomic path of the draw pass.

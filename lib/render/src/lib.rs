@@ -11,16 +11,24 @@
 //! - [`shaders`]: the WGSL modules of `shaders/`, assembled from `shaders/common/` and one file
 //!   per pass.
 //!
+//! - [`present`]: the window's surface (`mortar view`): the resolved image drawn into the surface
+//!   texture by one render pass, without leaving the GPU. The surface comes from
+//!   [`GpuContext::for_window`]; this crate knows no window library.
+//!
 //! This crate opens no files: callers hand it in-memory batches ([`mortar_core::render::BatchRef`]).
-//! The preview window (winit surface) arrives with the live-preview issue.
 
 pub mod context;
+pub mod present;
 pub mod raster;
 pub mod scene;
 pub mod shaders;
 #[doc(hidden)]
 pub mod testing;
 
+/// The wgpu this crate is built on (its surface type is part of [`GpuContext::for_window`]).
+pub use wgpu;
+
 pub use context::{AdapterSummary, AtomicPath, GpuContext, GpuError, GpuOptions};
+pub use present::{Overlay, Presented, ReadBack, WindowSurface};
 pub use raster::{GpuFrame, GpuRasterizer, GpuTimings};
 pub use scene::{GpuBatch, GpuScene, SceneOptions};

@@ -153,6 +153,38 @@ impl GpuRasterizer {
         self.path
     }
 
+    /// The viewport size `(width, height)` in pixels.
+    pub fn size(&self) -> (u32, u32) {
+        (self.width, self.height)
+    }
+
+    /// Changes the viewport size: the framebuffer (and the resolved image) are made anew, the
+    /// pipelines kept. A frame must be drawn before the next read.
+    pub fn resize(&mut self, ctx: &GpuContext, width: u32, height: u32) -> Result<(), GpuError> {
+        if (width, height) == (self.width, self.height) {
+            return Ok(());
+        }
+        let pixels = width as u64 * height as u64;
+        let key_bytes = pixels * if self.path == AtomicPath::U64 { 8 } else { 4 };
+        if key_bytes > ctx.max_binding() || pixels == 0 {
+            return Err(GpuError::TooLarge { what: "the framebuffer", needed: key_bytes, limit: ctx.max_binding() });
+        }
+        let copy = wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST;
+        self.keys = storage(ctx, "keys", key_bytes, copy);
+        self.indices = (self.path == AtomicPath::TwoPass32).then(|| storage(ctx, "indices", pixels * 4, copy));
+        self.image = None;
+        self.width = width;
+        self.height = height;
+        ctx.check()
+    }
+
+    /// The resolved image of the last frame drawn with `resolve` (RGBA8 packed
+    /// `r | g << 8 | b << 16 | a << 24`, row-major, `width * height` words; a storage buffer), for
+    /// passes that use it on the GPU (the window's present pass).
+    pub fn image_buffer(&self) -> Option<&wgpu::Buffer> {
+        self.image.as_ref()
+    }
+
     fn timestamps(&self, begin: u32) -> Option<wgpu::ComputePassTimestampWrites<'_>> {
         self.queries.as_ref().map(|(set, _)| wgpu::ComputePassTimestampWrites {
             query_set: set,

@@ -198,6 +198,27 @@ impl GpuScene {
         Ok(())
     }
 
+    /// Replaces the colours of every point added so far (`colors[i]` is point `i`'s RGBA8) without
+    /// touching the coordinate words: a colour-mode switch costs 4 bytes per point. Staged points
+    /// are written first.
+    pub fn set_colors(&mut self, ctx: &GpuContext, colors: &[u32]) -> Result<(), GpuError> {
+        if !self.options.colors {
+            return Err(GpuError::Colors("the scene was made without colours".into()));
+        }
+        if colors.len() as u64 != self.points {
+            return Err(GpuError::Colors(format!("{} colours for a scene of {} points", colors.len(), self.points)));
+        }
+        self.flush(ctx)?;
+        for c in &self.chunks {
+            let first = c.first_index as usize;
+            if let Some(buf) = &c.colors {
+                ctx.queue.write_buffer(buf, 0, bytemuck::cast_slice(&colors[first..first + c.len as usize]));
+            }
+        }
+        ctx.queue.submit([]);
+        ctx.check()
+    }
+
     /// Writes the staged points to the GPU.
     pub fn flush(&mut self, ctx: &GpuContext) -> Result<(), GpuError> {
         let Some(c) = self.chunks.last_mut() else { return Ok(()) };

@@ -11,6 +11,10 @@ const BATCHES: &str = include_str!("../../../shaders/common/batches.wgsl");
 /// The drawn-point counter (draw passes that count).
 const COUNTERS: &str = include_str!("../../../shaders/common/counters.wgsl");
 
+/// The window's present pass (`shaders/present.wgsl`: a vertex and a fragment entry point, no
+/// shared files), used by [`crate::present::WindowSurface`].
+pub const PRESENT: &str = include_str!("../../../shaders/present.wgsl");
+
 /// A compute pass of the rasterizer; one WGSL file each.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub enum Pass {

@@ -1,0 +1,737 @@
+//! `mortar view`: a window showing a batch file (or LAS/LAZ or an octree store, batched on the fly
+//! into a temporary batch file as `mortar render` does). Each frame is drawn by the GPU rasterizer
+//! (paper 003 §3.2-3.3: clear, draw, resolve in compute shaders) and put on the window's surface
+//! by one render pass, without the image leaving the GPU; where no hardware GPU can present to
+//! the window (or with `--backend cpu`) the CPU reference rasterizer draws and the image is
+//! uploaded to the window as a plain pixel buffer (softbuffer), which needs no GPU at all.
+//!
+//! Frames are drawn on input only (orbit, pan, zoom, keys, resizes). `--screenshot out.png
+//! --frames N` draws N frames in the real window, writes what the last one put on the surface
+//! and exits (tests run it under Xvfb).
+
+use crate::common;
+use crate::render::{build_camera, encode_png, parse_color, write_atomic, AtomicsArg, CameraArgs, PrecisionArg};
+use anyhow::{anyhow, bail, Context as _, Result};
+use mortar_core::render::resolve::{resolve, ColorMode, ResolveOptions};
+use mortar_core::render::{rasterize, Aabb, BatchRef, Camera, Framebuffer, Projection, RasterOptions};
+use mortar_io::batchfile::BatchFile;
+use mortar_io::render_input::{self, ColorChoice};
+use mortar_render::{AtomicPath, GpuContext, GpuError, GpuOptions, GpuRasterizer, GpuScene, Overlay, Presented, SceneOptions, WindowSurface};
+use std::num::NonZeroU32;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::Instant;
+use winit::application::ApplicationHandler;
+use winit::dpi::PhysicalSize;
+use winit::event::{ElementState, KeyEvent, MouseButton, MouseScrollDelta, WindowEvent};
+use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop};
+use winit::keyboard::{Key, NamedKey};
+use winit::window::{Window, WindowId};
+
+/// Which rasterizer draws the window's frames.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ViewBackend {
+    /// The GPU rasterizer on a hardware GPU that can present to the window, else the CPU one.
+    Auto,
+    /// The GPU rasterizer on any adapter that can present to the window, software ones included.
+    Gpu,
+    /// The CPU rasterizer; frames are uploaded to the window as pixels (no GPU needed).
+    Cpu,
+}
+
+fn parse_color_choice(s: &str) -> std::result::Result<ColorChoice, String> {
+    ColorChoice::from_name(s).ok_or_else(|| format!("'{s}' is not a colour mode (one of {})", ColorChoice::names().join(", ")))
+}
+
+fn parse_range(s: &str) -> std::result::Result<[f64; 2], String> {
+    let v: Vec<f64> = s.split(',').map(|t| t.trim().parse::<f64>()).collect::<std::result::Result<_, _>>().map_err(|_| format!("'{s}' is not lo,hi"))?;
+    match v[..] {
+        [lo, hi] if lo.is_finite() && hi.is_finite() && lo < hi => Ok([lo, hi]),
+        _ => Err(format!("'{s}' is not lo,hi with lo < hi")),
+    }
+}
+
+/// Arguments of `mortar view`.
+#[derive(clap::Args)]
+pub struct Args {
+    /// A batch file, an octree store (every point, no LOD yet), or LAS/LAZ files, directories,
+    /// glob patterns or - (batched on the fly into a temporary batch file, as `mortar batch`
+    /// would).
+    #[arg(required = true)]
+    pub inputs: Vec<String>,
+    /// Initial window width in pixels.
+    #[arg(long, default_value_t = 1280)]
+    pub width: u32,
+    /// Initial window height in pixels.
+    #[arg(long, default_value_t = 720)]
+    pub height: u32,
+    #[command(flatten)]
+    pub camera: CameraArgs,
+    /// Initial colour mode (C cycles through the modes the file has): auto, stored, rgb,
+    /// intensity, classification, elevation, return-number, gps-time.
+    #[arg(long, default_value = "auto", value_parser = parse_color_choice)]
+    pub color: ColorChoice,
+    /// Range lo,hi of intensity, elevation and gps-time colours (default: 1st to 99th percentile
+    /// of all the points).
+    #[arg(long, value_parser = parse_range, allow_hyphen_values = true)]
+    pub range: Option<[f64; 2]>,
+    /// Coordinate precision: adaptive (paper 003's 500 px rule) or 10, 20, 30 bits for every batch.
+    #[arg(long, value_enum, default_value = "adaptive")]
+    pub precision: PrecisionArg,
+    /// Rasterizer: auto (a hardware GPU if one can present to the window, else cpu), gpu (any
+    /// adapter, software included) or cpu.
+    #[arg(long, value_enum, default_value = "auto")]
+    pub backend: ViewBackend,
+    /// Atomics of the GPU rasterizer: auto, 64 or 32 (the two-pass fallback).
+    #[arg(long, value_enum, default_value = "auto")]
+    pub atomics: AtomicsArg,
+    /// Background colour: black, white, grey, #rrggbb.
+    #[arg(long, default_value = "black", value_parser = parse_color)]
+    pub background: u32,
+    /// Write what the window shows after --frames frames to this PNG and exit.
+    #[arg(long, value_name = "PNG")]
+    pub screenshot: Option<PathBuf>,
+    /// Frames to draw before the screenshot (each a full draw, resolve and present).
+    #[arg(long, value_name = "N", requires = "screenshot", default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=10_000))]
+    pub frames: u32,
+    /// With --screenshot: print statistics (backend, adapter, frame times) as JSON on stdout.
+    #[arg(long, requires = "screenshot")]
+    pub json: bool,
+    /// No status line in the window (the title still shows it).
+    #[arg(long)]
+    pub no_status: bool,
+    #[command(flatten)]
+    pub sort: common::SortArgs,
+}
+
+/// Opens the input and the window, then runs the event loop until the window is closed (or the
+/// screenshot is written).
+pub fn run(a: Args) -> Result<()> {
+    if a.width == 0 || a.height == 0 || a.width > 16384 || a.height > 16384 {
+        bail!("--width {} --height {}: each side must be 1 to 16384 pixels", a.width, a.height);
+    }
+    if !(a.camera.fov > 0.0 && a.camera.fov < 180.0) {
+        bail!("--fov {}: must be between 0 and 180 degrees", a.camera.fov);
+    }
+    // The display first: no point in batching a large LAZ file for a window that cannot open.
+    let event_loop = EventLoop::new().map_err(|e| anyhow!("cannot open a window: {e} (no display? set DISPLAY or WAYLAND_DISPLAY, or use `mortar render`)"))?;
+    event_loop.set_control_flow(ControlFlow::Wait);
+    let source = crate::render::open_source(&a.inputs, &a.sort)?;
+    let file = &source.file;
+    let own = |e| source.own_error(e);
+    let label = source.name.display().to_string();
+    if file.header.point_count == 0 {
+        bail!("{label}: no points to draw");
+    }
+    let initial = a.color.resolved(file);
+    render_input::check_color(file, initial).map_err(own)?;
+    let mut modes: Vec<ColorChoice> = ColorMode::ALL.iter().map(|&m| ColorChoice::Mode(m)).filter(|&c| render_input::check_color(file, c).is_ok()).collect();
+    if !modes.contains(&initial) {
+        modes.insert(0, initial);
+    }
+    let mode = modes.iter().position(|&m| m == initial).unwrap_or(0);
+    let bounds = render_input::file_bounds(file);
+    let camera = build_camera(&a.camera, &bounds, a.width, a.height).map_err(|e| anyhow!("{label}: {e:#}"))?;
+    let views = render_input::load_words(file).map_err(own)?;
+    let refs = render_input::batch_refs(file, &views).map_err(own)?;
+    let mut app = App {
+        args: &a,
+        file,
+        refs: &refs,
+        label: label.clone(),
+        bounds,
+        orbit: Orbit::from_camera(&camera),
+        modes,
+        mode,
+        colors: Vec::new(),
+        window: None,
+        renderer: None,
+        drag: Drag::default(),
+        frames: Vec::new(),
+        error: None,
+        done: false,
+    };
+    app.colors = vec![None; app.modes.len()];
+    event_loop.run_app(&mut app).map_err(|e| anyhow!("{label}: window: {e}"))?;
+    if let Some(e) = app.error.take() {
+        return Err(e);
+    }
+    if a.screenshot.is_some() && !app.done {
+        bail!("{label}: the window closed before {} frames were drawn", a.frames);
+    }
+    if a.json {
+        let backend = app.renderer.as_ref().map(Renderer::describe).unwrap_or(serde_json::Value::Null);
+        let j = serde_json::json!({
+            "input": label,
+            "screenshot": a.screenshot,
+            "points": file.header.point_count,
+            "color": app.modes[app.mode].name(),
+            "width": app.frames.last().map(|f| f.width),
+            "height": app.frames.last().map(|f| f.height),
+            "renderer": backend,
+            "frames": app.frames.iter().map(FrameStats::json).collect::<Vec<_>>(),
+        });
+        println!("{}", serde_json::to_string_pretty(&j)?);
+    }
+    Ok(())
+}
+
+/// The camera as the mouse moves it: a target, a distance, and the direction from the target to
+/// the eye as azimuth (`yaw`, from +x towards +y) and elevation (`pitch`), with z up.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Orbit {
+    target: [f64; 3],
+    distance: f64,
+    yaw: f64,
+    pitch: f64,
+}
+
+/// The elevation stops short of the poles, where the view direction would be parallel to up.
+const MAX_PITCH: f64 = 89.5 * std::f64::consts::PI / 180.0;
+
+impl Orbit {
+    fn from_camera(c: &Camera) -> Orbit {
+        let d = [0, 1, 2].map(|i| c.eye[i] - c.target[i]);
+        let distance = d.iter().map(|v| v * v).sum::<f64>().sqrt().max(1e-12);
+        let dir = d.map(|v| v / distance);
+        // Straight down (or up): the azimuth from the camera's up vector, so a top view keeps north
+        // up.
+        let yaw = if dir[2].abs() > 0.9999 { (-c.up[1]).atan2(-c.up[0]) } else { dir[1].atan2(dir[0]) };
+        Orbit { target: c.target, distance, yaw, pitch: dir[2].clamp(-1.0, 1.0).asin().clamp(-MAX_PITCH, MAX_PITCH) }
+    }
+
+    fn eye(&self) -> [f64; 3] {
+        let (sy, cy) = self.yaw.sin_cos();
+        let (sp, cp) = self.pitch.sin_cos();
+        let d = [cp * cy, cp * sy, sp];
+        [0, 1, 2].map(|i| self.target[i] + self.distance * d[i])
+    }
+
+    fn camera(&self, fov_y: f64, ortho: bool, bounds: &Aabb, width: u32, height: u32) -> Result<Camera> {
+        let projection = if ortho {
+            Projection::Orthographic { height: 2.0 * self.distance * (0.5 * fov_y).tan() }
+        } else {
+            Projection::Perspective { fov_y }
+        };
+        Ok(Camera::look_at(self.eye(), self.target, [0.0, 0.0, 1.0], projection, bounds, width, height)?)
+    }
+
+    /// Looks at the centre of `bounds` from the current direction, from the distance at which every
+    /// corner of the bounds is in view with a small margin (as `Camera::frame_perspective` does
+    /// for its preset directions).
+    fn fit(&mut self, bounds: &Aabb, fov_y: f64, width: u32, height: u32) {
+        let (sy, cy) = self.yaw.sin_cos();
+        let (sp, cp) = self.pitch.sin_cos();
+        let forward = [-cp * cy, -cp * sy, -sp];
+        // right = forward x z (the pitch stops short of the poles, so it is not zero), up = right x forward.
+        let n = (forward[0] * forward[0] + forward[1] * forward[1]).sqrt().max(1e-12);
+        let right = [forward[1] / n, -forward[0] / n, 0.0];
+        let up = [right[1] * forward[2], -right[0] * forward[2], right[0] * forward[1] - right[1] * forward[0]];
+        let dot = |a: [f64; 3], b: [f64; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
+        let ty = (0.5 * fov_y).tan() / 1.05;
+        let tx = ty * width.max(1) as f64 / height.max(1) as f64;
+        let c = bounds.center();
+        let extent = bounds.diagonal().max(1e-9);
+        let (mut dist, mut min_f) = (0.0f64, f64::INFINITY);
+        for k in bounds.corners() {
+            let d = [k[0] - c[0], k[1] - c[1], k[2] - c[2]];
+            let (x, y, f) = (dot(right, d), dot(up, d), dot(forward, d));
+            dist = dist.max(x.abs() / tx - f).max(y.abs() / ty - f);
+            min_f = min_f.min(f);
+        }
+        self.target = c;
+        self.distance = dist.max(-min_f + 0.05 * extent).max(0.5 * extent);
+    }
+}
+
+/// Mouse state.
+#[derive(Clone, Copy, Debug, Default)]
+struct Drag {
+    left: bool,
+    right: bool,
+    shift: bool,
+    cursor: Option<(f64, f64)>,
+}
+
+/// Times and counts of one frame.
+#[derive(Clone, Copy, Debug, Default)]
+struct FrameStats {
+    width: u32,
+    height: u32,
+    /// Draw, resolve and present, in milliseconds (host clock).
+    frame_ms: f64,
+    /// Drawing and resolving: for the GPU until it finished (host clock).
+    raster_ms: f64,
+    /// Putting the image on the window (for the GPU the present pass, submitted, not awaited).
+    present_ms: f64,
+    /// The GPU's draw pass (timestamp queries), where available.
+    gpu_draw_ms: Option<f64>,
+    /// The GPU's resolve pass.
+    gpu_resolve_ms: Option<f64>,
+    points_drawn: u64,
+}
+
+impl FrameStats {
+    fn json(&self) -> serde_json::Value {
+        serde_json::json!({
+            "frame_ms": self.frame_ms,
+            "raster_ms": self.raster_ms,
+            "present_ms": self.present_ms,
+            "gpu_draw_ms": self.gpu_draw_ms,
+            "gpu_resolve_ms": self.gpu_resolve_ms,
+            "points_drawn": self.points_drawn,
+        })
+    }
+}
+
+/// The GPU renderer's parts.
+struct Gpu {
+    ctx: GpuContext,
+    surface: WindowSurface,
+    raster: GpuRasterizer,
+    scene: GpuScene,
+    /// The colour mode whose colours the scene holds.
+    uploaded: usize,
+}
+
+/// What draws the frames.
+enum Renderer {
+    Gpu(Box<Gpu>),
+    Cpu {
+        // Dropped after `surface` (declaration order).
+        surface: softbuffer::Surface<Arc<Window>, Arc<Window>>,
+        _context: softbuffer::Context<Arc<Window>>,
+        fb: Framebuffer,
+        /// Why the CPU draws (for the status line and --json).
+        why: &'static str,
+    },
+}
+
+impl Renderer {
+    fn short(&self) -> String {
+        match self {
+            Renderer::Gpu(g) => format!("gpu: {}", g.ctx.adapter().name),
+            Renderer::Cpu { .. } => "cpu".to_string(),
+        }
+    }
+
+    fn describe(&self) -> serde_json::Value {
+        match self {
+            Renderer::Gpu(g) => {
+                let (ctx, surface) = (&g.ctx, &g.surface);
+                let a = ctx.adapter();
+                serde_json::json!({
+                    "backend": "gpu",
+                    "adapter": a.name,
+                    "api": a.backend,
+                    "device_type": a.device_type,
+                    "atomics": ctx.atomic_path().name(),
+                    "surface_format": format!("{:?}", surface.format()),
+                    "read_back": match surface.read_back() {
+                        mortar_render::ReadBack::SurfaceTexture => "surface texture",
+                        mortar_render::ReadBack::ResolvedImage => "resolved image",
+                    },
+                })
+            }
+            Renderer::Cpu { why, .. } => serde_json::json!({ "backend": "cpu", "why": why, "read_back": "window pixel buffer" }),
+        }
+    }
+}
+
+struct App<'a> {
+    args: &'a Args,
+    file: &'a BatchFile,
+    refs: &'a [BatchRef<'a>],
+    label: String,
+    bounds: Aabb,
+    orbit: Orbit,
+    modes: Vec<ColorChoice>,
+    mode: usize,
+    /// Per mode, every point's colour once computed.
+    colors: Vec<Option<Vec<u32>>>,
+    window: Option<Arc<Window>>,
+    renderer: Option<Renderer>,
+    drag: Drag,
+    frames: Vec<FrameStats>,
+    error: Option<anyhow::Error>,
+    /// The screenshot was written.
+    done: bool,
+}
+
+impl App<'_> {
+    fn fov(&self) -> f64 {
+        self.args.camera.fov.to_radians()
+    }
+
+    /// Every point's colour in the current mode.
+    fn colors(&mut self) -> Result<&[u32]> {
+        if self.colors[self.mode].is_none() {
+            let (c, _range) = render_input::point_colors(self.file, self.modes[self.mode], self.args.range).map_err(|e| anyhow!("{}: {e}", self.label))?;
+            self.colors[self.mode] = Some(c);
+        }
+        Ok(self.colors[self.mode].as_deref().expect("computed above"))
+    }
+
+    /// Opens the window and what draws into it.
+    fn open(&mut self, event_loop: &ActiveEventLoop) -> Result<()> {
+        let attrs = Window::default_attributes().with_title(format!("mortar view: {}", self.label)).with_inner_size(PhysicalSize::new(self.args.width, self.args.height));
+        let window = Arc::new(event_loop.create_window(attrs).context("cannot open a window")?);
+        self.window = Some(window.clone());
+        let size = window.inner_size();
+        let (w, h) = (size.width.max(1), size.height.max(1));
+        let atomics = match self.args.atomics {
+            AtomicsArg::Auto => None,
+            AtomicsArg::U64 => Some(AtomicPath::U64),
+            AtomicsArg::U32 => Some(AtomicPath::TwoPass32),
+        };
+        let gpu = match self.args.backend {
+            ViewBackend::Cpu => Err("--backend cpu"),
+            ViewBackend::Gpu => Ok(GpuContext::for_window(&GpuOptions { atomics, allow_software: true, ..Default::default() }, window.clone()).map_err(|e| anyhow!("--backend gpu: {e}"))?),
+            ViewBackend::Auto => GpuContext::for_window(&GpuOptions { atomics, allow_software: false, ..Default::default() }, window.clone()).map_err(|_| "no hardware GPU can present to the window"),
+        };
+        let renderer = match gpu {
+            Ok((ctx, surface)) => self.open_gpu(ctx, surface, w, h).map_err(|e| anyhow!("{}: GPU: {e}", self.label))?,
+            Err(why) => {
+                let context = softbuffer::Context::new(window.clone()).map_err(|e| anyhow!("cannot draw into the window: {e}"))?;
+                let surface = softbuffer::Surface::new(&context, window.clone()).map_err(|e| anyhow!("cannot draw into the window: {e}"))?;
+                Renderer::Cpu { surface, _context: context, fb: Framebuffer::new(w, h), why }
+            }
+        };
+        self.renderer = Some(renderer);
+        window.request_redraw();
+        Ok(())
+    }
+
+    fn open_gpu(&mut self, ctx: GpuContext, surface: mortar_render::wgpu::Surface<'static>, w: u32, h: u32) -> std::result::Result<Renderer, GpuError> {
+        let surface = WindowSurface::new(&ctx, surface, w, h)?;
+        let raster = GpuRasterizer::new(&ctx, w, h)?;
+        let mut scene = GpuScene::new(&ctx, self.file.grid(), self.file.header.point_count, SceneOptions { colors: true, ..Default::default() })?;
+        let colors = match self.colors() {
+            Ok(c) => c.to_vec(),
+            Err(e) => return Err(GpuError::Colors(format!("{e:#}"))),
+        };
+        for b in self.refs {
+            let first = b.first_index as usize;
+            scene.push(&ctx, b, Some(&colors[first..first + b.len()]))?;
+        }
+        scene.flush(&ctx)?;
+        ctx.wait()?;
+        Ok(Renderer::Gpu(Box::new(Gpu { ctx, surface, raster, scene, uploaded: self.mode })))
+    }
+
+    /// The status line: points, the last frame's time and rate, colour mode, renderer.
+    fn status(&self) -> String {
+        let points = group_digits(self.file.header.point_count);
+        let renderer = self.renderer.as_ref().map(Renderer::short).unwrap_or_default();
+        let mode = self.modes[self.mode].name();
+        match self.frames.last() {
+            Some(f) => format!("{points} points | {:.1} ms ({:.0} fps) | {mode} | {renderer}", f.frame_ms, 1000.0 / f.frame_ms.max(1e-3)),
+            None => format!("{points} points | {mode} | {renderer}"),
+        }
+    }
+
+    /// Draws one frame into the window; with `read_back`, returns the pixels put on it.
+    fn draw(&mut self, read_back: bool) -> Result<Option<(u32, u32, Vec<u32>)>> {
+        let Some(window) = self.window.clone() else { return Ok(None) };
+        let size = window.inner_size();
+        let (w, h) = (size.width, size.height);
+        if w == 0 || h == 0 {
+            return Ok(None);
+        }
+        let camera = self.orbit.camera(self.fov(), self.args.camera.ortho, &self.bounds, w, h).map_err(|e| anyhow!("{}: {e:#}", self.label))?;
+        let options = RasterOptions { precision: self.args.precision.mode(), cull: true };
+        let status = self.status();
+        let overlay = (!self.args.no_status).then(|| status_overlay(&status, w));
+        let background = self.args.background;
+        let mode = self.mode;
+        // Colours of the current mode (computed once per mode).
+        self.colors()?;
+        let colors = self.colors[mode].as_deref().expect("computed above");
+        let label = self.label.clone();
+        let start = Instant::now();
+        let renderer = self.renderer.as_mut().ok_or_else(|| anyhow!("no renderer"))?;
+        let mut stats = FrameStats { width: w, height: h, ..Default::default() };
+        let pixels = match renderer {
+            Renderer::Gpu(g) => {
+                let Gpu { ctx, surface, raster, scene, uploaded } = &mut **g;
+                let gpu = |e: GpuError| anyhow!("{label}: GPU: {e}");
+                if *uploaded != mode {
+                    scene.set_colors(ctx, colors).map_err(gpu)?;
+                    *uploaded = mode;
+                }
+                surface.resize(ctx, w, h).map_err(gpu)?;
+                raster.resize(ctx, w, h).map_err(gpu)?;
+                let frame = raster.draw(ctx, scene, &camera, &options, Some(background)).map_err(gpu)?;
+                stats.raster_ms = start.elapsed().as_secs_f64() * 1e3;
+                let o = overlay.as_ref().map(|(ow, oh, px)| Overlay { width: *ow, height: *oh, rgba: px });
+                let shown = surface.present(ctx, raster, o, read_back).map_err(gpu)?;
+                stats.points_drawn = frame.stats.points_drawn;
+                stats.gpu_draw_ms = frame.timings.map(|t| t.draw_ms);
+                stats.gpu_resolve_ms = frame.timings.and_then(|t| t.resolve_ms);
+                match shown {
+                    Presented::Shown(p) => p,
+                    Presented::Skipped(_) => {
+                        window.request_redraw();
+                        return Ok(None);
+                    }
+                }
+            }
+            Renderer::Cpu { surface, fb, .. } => {
+                if (fb.width(), fb.height()) != (w, h) {
+                    *fb = Framebuffer::new(w, h);
+                } else {
+                    fb.clear();
+                }
+                let s = rasterize(fb, self.refs, &self.file.grid(), &camera, &options).map_err(|e| anyhow!("{label}: {e}"))?;
+                stats.points_drawn = s.points_drawn;
+                let bg = background;
+                let mut rgba = resolve(fb.keys_slice(), w, h, |i| colors.get(i as usize).copied().unwrap_or(bg), &ResolveOptions { background: bg, ..Default::default() });
+                stats.raster_ms = start.elapsed().as_secs_f64() * 1e3;
+                if let Some((ow, oh, px)) = &overlay {
+                    mortar_render::present::blend_overlay(&mut rgba, w, &Overlay { width: *ow, height: *oh, rgba: px });
+                }
+                let (nw, nh) = (NonZeroU32::new(w).expect("w > 0"), NonZeroU32::new(h).expect("h > 0"));
+                surface.resize(nw, nh).map_err(|e| anyhow!("window: {e}"))?;
+                let mut buf = surface.buffer_mut().map_err(|e| anyhow!("window: {e}"))?;
+                for (d, c) in buf.iter_mut().zip(&rgba) {
+                    let [r, g, b, _] = c.to_le_bytes();
+                    *d = (r as u32) << 16 | (g as u32) << 8 | b as u32;
+                }
+                buf.present().map_err(|e| anyhow!("window: {e}"))?;
+                read_back.then(|| rgba.iter().map(|c| c | 0xff00_0000).collect())
+            }
+        };
+        stats.frame_ms = start.elapsed().as_secs_f64() * 1e3;
+        stats.present_ms = stats.frame_ms - stats.raster_ms;
+        self.frames.push(stats);
+        window.set_title(&format!("mortar view: {} | {}", self.label, self.status()));
+        Ok(pixels.map(|p| (w, h, p)))
+    }
+
+    fn redraw(&self) {
+        if let Some(w) = &self.window {
+            w.request_redraw();
+        }
+    }
+
+    fn fail(&mut self, event_loop: &ActiveEventLoop, e: anyhow::Error) {
+        self.error.get_or_insert(e);
+        event_loop.exit();
+    }
+
+    fn on_key(&mut self, event_loop: &ActiveEventLoop, event: &KeyEvent) {
+        if event.state != ElementState::Pressed {
+            return;
+        }
+        match &event.logical_key {
+            Key::Named(NamedKey::Escape) => event_loop.exit(),
+            Key::Character(c) => match c.to_ascii_lowercase().as_str() {
+                "q" => event_loop.exit(),
+                "f" => {
+                    let (w, h) = self.window.as_ref().map(|w| (w.inner_size().width, w.inner_size().height)).unwrap_or((1, 1));
+                    let fov = self.fov();
+                    self.orbit.fit(&self.bounds, fov, w, h);
+                    self.redraw();
+                }
+                "c" => {
+                    self.mode = (self.mode + 1) % self.modes.len();
+                    self.redraw();
+                }
+                _ => {}
+            },
+            _ => {}
+        }
+    }
+
+    fn on_cursor(&mut self, x: f64, y: f64) {
+        let Some((px, py)) = self.drag.cursor.replace((x, y)) else { return };
+        let (dx, dy) = (x - px, y - py);
+        let pan = self.drag.right || (self.drag.left && self.drag.shift);
+        if pan {
+            let Some(window) = &self.window else { return };
+            let (w, h) = (window.inner_size().width.max(1), window.inner_size().height.max(1));
+            let Ok(cam) = self.orbit.camera(self.fov(), self.args.camera.ortho, &self.bounds, w, h) else { return };
+            let Some(axes) = cam.axes() else { return };
+            // World units per pixel at the target's distance.
+            let per_px = 2.0 * self.orbit.distance * (0.5 * self.fov()).tan() / h as f64;
+            for i in 0..3 {
+                self.orbit.target[i] += (-dx * axes.right[i] + dy * axes.up[i]) * per_px;
+            }
+            self.redraw();
+        } else if self.drag.left {
+            self.orbit.yaw -= dx * 0.005;
+            self.orbit.pitch = (self.orbit.pitch + dy * 0.005).clamp(-MAX_PITCH, MAX_PITCH);
+            self.redraw();
+        }
+    }
+
+    fn on_wheel(&mut self, delta: MouseScrollDelta) {
+        let lines = match delta {
+            MouseScrollDelta::LineDelta(_, y) => y as f64,
+            MouseScrollDelta::PixelDelta(p) => p.y / 40.0,
+        };
+        let extent = self.bounds.diagonal().max(1e-9);
+        self.orbit.distance = (self.orbit.distance * 0.85f64.powf(lines)).clamp(extent * 1e-6, extent * 100.0);
+        self.redraw();
+    }
+}
+
+impl ApplicationHandler for App<'_> {
+    fn resumed(&mut self, event_loop: &ActiveEventLoop) {
+        if self.window.is_some() {
+            return;
+        }
+        if let Err(e) = self.open(event_loop) {
+            self.fail(event_loop, e);
+        }
+    }
+
+    fn window_event(&mut self, event_loop: &ActiveEventLoop, _id: WindowId, event: WindowEvent) {
+        match event {
+            WindowEvent::CloseRequested => event_loop.exit(),
+            WindowEvent::Resized(_) => self.redraw(),
+            WindowEvent::KeyboardInput { event, .. } => self.on_key(event_loop, &event),
+            WindowEvent::ModifiersChanged(m) => self.drag.shift = m.state().shift_key(),
+            WindowEvent::MouseInput { state, button, .. } => {
+                let down = state == ElementState::Pressed;
+                match button {
+                    MouseButton::Left => self.drag.left = down,
+                    MouseButton::Right => self.drag.right = down,
+                    _ => {}
+                }
+            }
+            WindowEvent::CursorMoved { position, .. } => self.on_cursor(position.x, position.y),
+            WindowEvent::CursorLeft { .. } => self.drag.cursor = None,
+            WindowEvent::MouseWheel { delta, .. } => self.on_wheel(delta),
+            WindowEvent::RedrawRequested => {
+                let shooting = self.args.screenshot.is_some();
+                let last = shooting && self.frames.len() + 1 >= self.args.frames as usize;
+                match self.draw(last) {
+                    Err(e) => self.fail(event_loop, e),
+                    Ok(Some((w, h, pixels))) if last => {
+                        let path = self.args.screenshot.clone().expect("shooting");
+                        let r = encode_png(w, h, &pixels).and_then(|png| write_atomic(&path, &png));
+                        match r {
+                            Ok(()) => {
+                                self.done = true;
+                                event_loop.exit();
+                            }
+                            Err(e) => self.fail(event_loop, e),
+                        }
+                    }
+                    Ok(_) if shooting => self.redraw(),
+                    Ok(_) => {}
+                }
+            }
+            _ => {}
+        }
+    }
+}
+
+/// `1234567` as `1,234,567`.
+fn group_digits(n: u64) -> String {
+    let s = n.to_string();
+    let mut groups = Vec::new();
+    let mut end = s.len();
+    while end > 3 {
+        groups.push(&s[end - 3..end]);
+        end -= 3;
+    }
+    groups.push(&s[..end]);
+    groups.reverse();
+    groups.join(",")
+}
+
+/// The status line as an RGBA8 overlay (white 8x8 glyphs, doubled on wide windows, on a
+/// translucent black bar) at most `max_width` pixels wide: `(width, height, pixels)`.
+fn status_overlay(text: &str, max_width: u32) -> (u32, u32, Vec<u32>) {
+    use font8x8::UnicodeFonts;
+    let scale: u32 = if max_width >= 1600 { 2 } else { 1 };
+    let pad = 3 * scale;
+    let glyph = 8 * scale;
+    let chars: Vec<char> = text.chars().collect();
+    let width = (chars.len() as u32 * glyph + 2 * pad).min(max_width.max(1));
+    let height = glyph + 2 * pad;
+    let bar = 0xb000_0000u32;
+    let mut px = vec![bar; width as usize * height as usize];
+    for (k, ch) in chars.iter().enumerate() {
+        let rows = font8x8::BASIC_FONTS.get(*ch).unwrap_or([0; 8]);
+        for (gy, row) in rows.iter().enumerate() {
+            for gx in 0..8u32 {
+                if row & (1 << gx) == 0 {
+                    continue;
+                }
+                for sy in 0..scale {
+                    for sx in 0..scale {
+                        let x = pad + k as u32 * glyph + gx * scale + sx;
+                        let y = pad + gy as u32 * scale + sy;
+                        if x < width {
+                            px[(y * width + x) as usize] = 0xffff_ffff;
+                        }
+                    }
+                }
+            }
+        }
+    }
+    (width, height, px)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn digits_are_grouped() {
+        assert_eq!(group_digits(0), "0");
+        assert_eq!(group_digits(999), "999");
+        assert_eq!(group_digits(1000), "1,000");
+        assert_eq!(group_digits(110_000), "110,000");
+        assert_eq!(group_digits(1_234_567), "1,234,567");
+    }
+
+    #[test]
+    fn orbit_round_trips_a_camera() {
+        let bounds = Aabb::new([0.0, 0.0, 0.0], [100.0, 50.0, 20.0]);
+        let cam = Camera::frame_perspective(&bounds, mortar_core::render::ViewPreset::Iso, 0.8, 640, 480).unwrap();
+        let o = Orbit::from_camera(&cam);
+        let back = o.camera(0.8, false, &bounds, 640, 480).unwrap();
+        for i in 0..3 {
+            assert!((back.eye[i] - cam.eye[i]).abs() < 1e-6 * o.distance, "{:?} vs {:?}", back.eye, cam.eye);
+        }
+        // A top view keeps north up: the eye is displaced south of the target.
+        let top = Camera::frame_perspective(&bounds, mortar_core::render::ViewPreset::Top, 0.8, 640, 480).unwrap();
+        let o = Orbit::from_camera(&top);
+        assert!(o.eye()[1] < o.target[1] && (o.eye()[0] - o.target[0]).abs() < 1e-6 * o.distance);
+        assert!(o.camera(0.8, false, &bounds, 640, 480).is_ok());
+    }
+
+    #[test]
+    fn fit_shows_every_corner() {
+        let bounds = Aabb::new([1000.0, 2000.0, 0.0], [1100.0, 2300.0, 40.0]);
+        for (w, h) in [(640, 480), (300, 900)] {
+            let mut o = Orbit { target: [0.0; 3], distance: 1.0, yaw: 0.7, pitch: 0.4 };
+            o.fit(&bounds, 0.9, w, h);
+            let cam = o.camera(0.9, false, &bounds, w, h).unwrap();
+            let (mut lo, mut hi) = ([f64::MAX; 2], [f64::MIN; 2]);
+            for k in bounds.corners() {
+                let p = cam.project(k).expect("in front of the eye");
+                assert!(p.x >= 0.0 && p.x <= w as f64 && p.y >= 0.0 && p.y <= h as f64, "{k:?} at {p:?} outside {w}x{h}");
+                lo = [lo[0].min(p.x), lo[1].min(p.y)];
+                hi = [hi[0].max(p.x), hi[1].max(p.y)];
+            }
+            // Tight: the box spans most of the window in one direction.
+            assert!((hi[0] - lo[0]) / w as f64 > 0.8 || (hi[1] - lo[1]) / h as f64 > 0.8, "{lo:?}..{hi:?} in {w}x{h}");
+        }
+    }
+
+    #[test]
+    fn status_overlay_draws_text_within_the_width() {
+        let (w, h, px) = status_overlay("110,000 points | 1.0 ms", 120);
+        assert_eq!((w, h), (120, 14));
+        assert_eq!(px.len(), (w * h) as usize);
+        let lit = px.iter().filter(|&&c| c == 0xffff_ffff).count();
+        assert!(lit > 50, "{lit} text pixels");
+        let (w2, _, _) = status_overlay("ab", 1000);
+        assert_eq!(w2, 2 * 8 + 6);
+    }
+}

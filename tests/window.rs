@@ -1,0 +1,193 @@
+//! `mortar view` in a real window (issue 6): under Xvfb the viewer opens its window, draws a few
+//! frames with the GPU rasterizer (resolved on the GPU and put on the window's surface by the
+//! present pass) and writes what the surface shows; the CPU fallback (frames uploaded to the
+//! window as pixels) shows the same picture.
+//!
+//! Needs `Xvfb` (Debian package `xvfb`) and, for the GPU half, a Vulkan adapter (lavapipe in CI).
+//! Without Xvfb the window tests skip with a printed reason, unless `MORTAR_REQUIRE_GPU` is set
+//! (CI), where they fail instead.
+
+mod common;
+
+use common::*;
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::Duration;
+
+/// Rows of the status line's bar at widths below 1600 px (8 px glyphs and 3 px padding).
+const STATUS_ROWS: usize = 14;
+
+fn sample() -> PathBuf {
+    root().join("data-samples/autzen_trim.laz")
+}
+
+fn required() -> bool {
+    std::env::var_os("MORTAR_REQUIRE_GPU").is_some()
+}
+
+fn find_in_path(name: &str) -> Option<PathBuf> {
+    let path = std::env::var_os("PATH")?;
+    std::env::split_paths(&path).map(|d| d.join(name)).find(|p| p.is_file())
+}
+
+/// An Xvfb server on a display number it chose itself (`-displayfd`), stopped when dropped.
+struct Xvfb {
+    child: Child,
+    display: String,
+}
+
+impl Xvfb {
+    /// Starts Xvfb, or says why not: `Err` with a reason when it is not installed (a skip, or a
+    /// failure under `MORTAR_REQUIRE_GPU`).
+    fn start() -> Result<Xvfb, String> {
+        let Some(bin) = find_in_path("Xvfb") else {
+            return Err("no Xvfb in PATH (install the Debian package xvfb)".into());
+        };
+        let mut child = Command::new(bin)
+            .args(["-displayfd", "1", "-screen", "0", "1024x768x24", "-nolisten", "tcp"])
+            .stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::null())
+            .spawn()
+            .map_err(|e| format!("cannot start Xvfb: {e}"))?;
+        // Xvfb writes the display number it took once it accepts connections.
+        let stdout = child.stdout.take().expect("piped");
+        let (tx, rx) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            let mut line = String::new();
+            let _ = BufReader::new(stdout).read_line(&mut line);
+            let _ = tx.send(line);
+        });
+        match rx.recv_timeout(Duration::from_secs(30)) {
+            Ok(line) if line.trim().parse::<u32>().is_ok() => Ok(Xvfb { child, display: format!(":{}", line.trim()) }),
+            other => {
+                let _ = child.kill();
+                let _ = child.wait();
+                panic!("Xvfb did not report a display: {other:?}");
+            }
+        }
+    }
+}
+
+impl Drop for Xvfb {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// Xvfb, or `None` after printing why the test skips (a panic under `MORTAR_REQUIRE_GPU`).
+fn xvfb_or_skip() -> Option<Xvfb> {
+    match Xvfb::start() {
+        Ok(x) => Some(x),
+        Err(why) if !required() => {
+            eprintln!("SKIPPED: {why}");
+            None
+        }
+        Err(why) => panic!("MORTAR_REQUIRE_GPU is set but the window test cannot run: {why}"),
+    }
+}
+
+fn view(display: &str, args: &[&str]) -> std::process::Output {
+    let mut c = mortar();
+    c.arg("view").args(args).env("DISPLAY", display).env_remove("WAYLAND_DISPLAY");
+    run_limited(c, Duration::from_secs(300))
+}
+
+/// An RGBA8 PNG as `(width, height, pixels)`.
+fn read_png(p: &Path) -> (u32, u32, Vec<[u8; 4]>) {
+    let dec = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(p).unwrap()));
+    let mut r = dec.read_info().unwrap();
+    let mut buf = vec![0; r.output_buffer_size()];
+    let info = r.next_frame(&mut buf).unwrap();
+    assert_eq!((info.color_type, info.bit_depth), (png::ColorType::Rgba, png::BitDepth::Eight));
+    let px = buf[..info.buffer_size()].chunks_exact(4).map(|c| [c[0], c[1], c[2], c[3]]).collect();
+    (info.width, info.height, px)
+}
+
+/// Pixels below the status line whose colour is not the background (black).
+fn drawn_below_status(w: u32, px: &[[u8; 4]]) -> usize {
+    px[STATUS_ROWS * w as usize..].iter().filter(|p| p[..3] != [0, 0, 0]).count()
+}
+
+fn shoot(display: &str, dir: &Path, name: &str, extra: &[&str]) -> (serde_json::Value, (u32, u32, Vec<[u8; 4]>)) {
+    let png = dir.join(name);
+    let input = sample();
+    let mut args = vec![input.to_str().unwrap(), "--width", "320", "--height", "240", "--screenshot", png.to_str().unwrap(), "--frames", "3", "--json"];
+    args.extend_from_slice(extra);
+    let o = view(display, &args);
+    assert!(o.status.success(), "mortar view {args:?}: {}", String::from_utf8_lossy(&o.stderr));
+    let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap_or_else(|e| panic!("{e}: {}", String::from_utf8_lossy(&o.stdout)));
+    assert_eq!(j["frames"].as_array().map(Vec::len), Some(3), "{j}");
+    assert_eq!(j["points"], 110_000);
+    (j, read_png(&png))
+}
+
+#[test]
+fn view_draws_the_sample_in_a_window_on_the_gpu_and_the_cpu() {
+    let Some(x) = xvfb_or_skip() else { return };
+    let dir = tempdir("window");
+    // The CPU fallback needs no GPU: softbuffer puts its frames on the X window.
+    let (cj, (w, h, cpu)) = shoot(&x.display, &dir, "cpu.png", &["--backend", "cpu"]);
+    assert_eq!((w, h), (320, 240));
+    assert_eq!(cj["renderer"]["backend"], "cpu");
+    let drawn = drawn_below_status(w, &cpu);
+    // The iso view of the 110,000 point sample covers about 14 % of a 320x240 window.
+    assert!(drawn > 5_000 && drawn < 30_000, "{drawn} pixels drawn by the CPU");
+    // The status line: a dark bar with white text over the top-left corner.
+    let white = cpu[..STATUS_ROWS * w as usize].iter().filter(|p| **p == [255, 255, 255, 255]).count();
+    assert!(white > 100, "{white} white pixels in the status line");
+
+    if mortar_render::testing::context_or_skip(mortar_render::AtomicPath::TwoPass32, None).is_none() {
+        return;
+    }
+    let (gj, (gw, gh, gpu)) = shoot(&x.display, &dir, "gpu.png", &["--backend", "gpu"]);
+    assert_eq!((gw, gh), (320, 240));
+    let r = &gj["renderer"];
+    assert_eq!(r["backend"], "gpu", "{gj}");
+    assert!(r["read_back"] == "surface texture" || r["read_back"] == "resolved image", "{gj}");
+    eprintln!("gpu: {} on {}, surface {}, read back from the {}", r["atomics"], r["adapter"], r["surface_format"], r["read_back"]);
+    let drawn_gpu = drawn_below_status(gw, &gpu);
+    assert!(drawn_gpu > 5_000 && drawn_gpu < 30_000, "{drawn_gpu} pixels drawn by the GPU");
+    // Same view, same colours: the GPU's keys equal the CPU's (tests/gpu.rs), so the pictures
+    // agree below the status line (whose frame times differ).
+    let start = STATUS_ROWS * w as usize;
+    let differ = cpu[start..].iter().zip(&gpu[start..]).filter(|(a, b)| a != b).count();
+    assert_eq!(differ, 0, "{differ} pixels differ between the CPU and the GPU window");
+
+    // Another colour mode and the 32-bit path, through the same present pass.
+    let (_, (_, _, elev)) = shoot(&x.display, &dir, "elevation.png", &["--backend", "gpu", "--atomics", "32", "--color", "elevation", "--no-status"]);
+    let drawn_elev = elev.iter().filter(|p| p[..3] != [0, 0, 0]).count();
+    assert!(drawn_elev > 5_000, "{drawn_elev} pixels drawn in elevation colours");
+    let recoloured = elev[start..].iter().zip(&gpu[start..]).filter(|(a, b)| a[..3] != [0, 0, 0] && a != b).count();
+    assert!(recoloured > drawn_elev / 2, "elevation colours look like RGB: {recoloured} of {drawn_elev} differ");
+}
+
+#[test]
+fn view_fails_clearly_on_bad_input_under_a_display() {
+    let Some(x) = xvfb_or_skip() else { return };
+    let dir = tempdir("window-bad");
+    let missing = dir.join("missing.mbat");
+    let o = view(&x.display, &[missing.to_str().unwrap(), "--screenshot", dir.join("x.png").to_str().unwrap()]);
+    assert_eq!(o.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("missing.mbat"), "{err}");
+    let bad = dir.join("bad.laz");
+    std::fs::write(&bad, b"LASF not really").unwrap();
+    let o = view(&x.display, &[bad.to_str().unwrap(), "--screenshot", dir.join("y.png").to_str().unwrap()]);
+    assert_eq!(o.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("bad.laz") && !err.contains("panicked"), "{err}");
+    assert!(!dir.join("y.png").exists() && !dir.join("x.png").exists());
+}
+
+#[test]
+fn view_without_a_display_is_a_clear_error() {
+    let mut c = mortar();
+    c.arg("view").arg(sample()).env_remove("DISPLAY").env_remove("WAYLAND_DISPLAY");
+    let o = run_limited(c, Duration::from_secs(60));
+    assert_eq!(o.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("cannot open a window") && !err.contains("panicked"), "{err}");
+}
