@@ -6,7 +6,8 @@
 //! render`'s images (same colour rules, hole filling, eye-dome lighting) and written as PNG;
 //! `--json` prints every frame's statistics and when the image converged.
 //!
-//! The GPU version of the progressive renderer and the interactive window are pending.
+//! The GPU version of the progressive renderer and progressive drawing in the interactive window
+//! (`mortar view`) are pending.
 
 use crate::common;
 use crate::render::{build_camera, camera_json, encode_png, write_atomic, Args, Backend};

@@ -31,8 +31,9 @@
 //! that is the case (a bitmap of the slots drawn since the view last changed).
 //!
 //! Not done here (pending): the GPU version of the progressive renderer (the same passes as
-//! compute shaders on `lib/render`, with GPU timestamps feeding [`AdaptiveBudget`]) and the
-//! interactive window; MSAA (paper §3.4: it acts as supersampling) is not implemented.
+//! compute shaders on `lib/render`, with GPU timestamps feeding [`AdaptiveBudget`]) and
+//! progressive drawing in the interactive window (`mortar view`); MSAA (paper §3.4: it acts as
+//! supersampling) is not implemented.
 
 use super::camera::Camera;
 use super::framebuffer::{key_index, Framebuffer, EMPTY_KEY};
@@ -705,7 +706,10 @@ impl ProgressiveRenderer {
                     .step_by(CHUNK)
                     .map(|a| {
                         let b = (a + CHUNK).min(e);
-                        let mut g = Gathered::default();
+                        let mut g = Gathered {
+                            words: [0; 3].map(|_| Vec::with_capacity(b - a)),
+                            indices: Vec::with_capacity(b - a),
+                        };
                         for (i, &c) in coarse[a..b].iter().enumerate() {
                             if c != UNLOADED {
                                 g.push(&self.words, a + i);
