@@ -293,8 +293,18 @@ pub fn rasterize(
 
 /// Culls, chooses the precision and draws one batch.
 fn draw_batch(fb: &Framebuffer, b: &BatchRef<'_>, planner: &Planner, uniforms: &RasterUniforms) -> RasterStats {
+    plan_and_draw(planner, &b.grid, &b.bounds(), b.len(), |precision, bp, perspective| match precision {
+        Precision::Bits10 => draw_points::<1>(fb, bp, b, uniforms, perspective),
+        Precision::Bits20 => draw_points::<2>(fb, bp, b, uniforms, perspective),
+        Precision::Bits30 => draw_points::<3>(fb, bp, b, uniforms, perspective),
+    })
+}
+
+/// The per-batch statistics around one planned draw: `draw(precision, projection, perspective)`
+/// runs only for a batch that is neither empty nor culled and returns the points it drew.
+fn plan_and_draw(planner: &Planner, grid: &BatchGrid, bounds: &Aabb, len: usize, draw: impl FnOnce(Precision, &BatchProjection, bool) -> u64) -> RasterStats {
     let mut stats = RasterStats { batches: 1, ..RasterStats::default() };
-    let (precision, bp) = match planner.plan(&b.grid, &b.bounds(), b.len()) {
+    let (precision, bp) = match planner.plan(grid, bounds, len) {
         BatchPlan::Empty => return stats,
         BatchPlan::Culled => {
             stats.batches_culled = 1;
@@ -303,13 +313,8 @@ fn draw_batch(fb: &Framebuffer, b: &BatchRef<'_>, planner: &Planner, uniforms: &
         BatchPlan::Draw { precision, projection } => (precision, projection),
     };
     stats.batches_drawn = 1;
-    stats.points_by_precision[precision.words() - 1] = b.len() as u64;
-    let perspective = planner.camera.is_perspective();
-    stats.points_drawn = match precision {
-        Precision::Bits10 => draw_points::<1>(fb, &bp, b, uniforms, perspective),
-        Precision::Bits20 => draw_points::<2>(fb, &bp, b, uniforms, perspective),
-        Precision::Bits30 => draw_points::<3>(fb, &bp, b, uniforms, perspective),
-    };
+    stats.points_by_precision[precision.words() - 1] = len as u64;
+    stats.points_drawn = draw(precision, &bp, planner.camera.is_perspective());
     stats
 }
 
@@ -388,24 +393,11 @@ pub fn rasterize_gathered(
 
 /// [`draw_batch`] for a [`GatheredRef`].
 fn draw_gathered_batch(fb: &Framebuffer, b: &GatheredRef<'_>, planner: &Planner, uniforms: &RasterUniforms) -> RasterStats {
-    let mut stats = RasterStats { batches: 1, ..RasterStats::default() };
-    let (precision, bp) = match planner.plan(&b.grid, &b.bounds(), b.len()) {
-        BatchPlan::Empty => return stats,
-        BatchPlan::Culled => {
-            stats.batches_culled = 1;
-            return stats;
-        }
-        BatchPlan::Draw { precision, projection } => (precision, projection),
-    };
-    stats.batches_drawn = 1;
-    stats.points_by_precision[precision.words() - 1] = b.len() as u64;
-    let perspective = planner.camera.is_perspective();
-    stats.points_drawn = match precision {
-        Precision::Bits10 => draw_listed::<1>(fb, &bp, b, uniforms, perspective),
-        Precision::Bits20 => draw_listed::<2>(fb, &bp, b, uniforms, perspective),
-        Precision::Bits30 => draw_listed::<3>(fb, &bp, b, uniforms, perspective),
-    };
-    stats
+    plan_and_draw(planner, &b.grid, &b.bounds(), b.len(), |precision, bp, perspective| match precision {
+        Precision::Bits10 => draw_listed::<1>(fb, bp, b, uniforms, perspective),
+        Precision::Bits20 => draw_listed::<2>(fb, bp, b, uniforms, perspective),
+        Precision::Bits30 => draw_listed::<3>(fb, bp, b, uniforms, perspective),
+    })
 }
 
 /// Points per block of the two-phase per-point loop.
