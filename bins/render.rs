@@ -302,6 +302,35 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
     Ok(())
 }
 
+/// The raster and resolve choices of the arguments.
+pub(crate) fn render_settings(a: &Args) -> RenderSettings {
+    RenderSettings {
+        raster: RasterOptions { precision: a.precision.mode(), cull: !a.no_cull },
+        color: a.color,
+        range: a.range,
+        resolve: ResolveOptions {
+            background: a.background,
+            hole_fill: a.hole_fill.map(|n| HoleFill { min_neighbors: n }),
+            eye_dome: a.edl.map(|strength| EyeDome { strength, ..EyeDome::default() }),
+        },
+    }
+}
+
+/// The GPU `--backend` asks for: none for cpu, any adapter (an error if none) for gpu, a
+/// hardware GPU if there is one for auto.
+pub(crate) fn gpu_context(a: &Args) -> Result<Option<GpuContext>> {
+    let atomics = match a.atomics {
+        AtomicsArg::Auto => None,
+        AtomicsArg::U64 => Some(AtomicPath::U64),
+        AtomicsArg::U32 => Some(AtomicPath::TwoPass32),
+    };
+    Ok(match a.backend {
+        Backend::Cpu => None,
+        Backend::Gpu => Some(GpuContext::new(&GpuOptions { atomics, allow_software: true, ..Default::default() }).map_err(|e| anyhow!("--backend gpu: {e}"))?),
+        Backend::Auto => GpuContext::new(&GpuOptions { atomics, allow_software: false, ..Default::default() }).ok(),
+    })
+}
+
 pub(crate) fn camera_json(c: &Camera) -> serde_json::Value {
     let projection = match c.projection {
         Projection::Perspective { fov_y } => serde_json::json!({ "perspective": { "fov_degrees": fov_y.to_degrees() } }),
@@ -339,26 +368,8 @@ pub fn run(a: Args) -> Result<()> {
     let camera = build_camera(&a.camera, &bounds, a.width, a.height).map_err(|e| anyhow!("{label}: {e:#}"))?;
     let views = render_input::load_words(file).map_err(own)?;
     let refs = render_input::batch_refs(file, &views).map_err(own)?;
-    let settings = RenderSettings {
-        raster: RasterOptions { precision: a.precision.mode(), cull: !a.no_cull },
-        color: a.color,
-        range: a.range,
-        resolve: ResolveOptions {
-            background: a.background,
-            hole_fill: a.hole_fill.map(|n| HoleFill { min_neighbors: n }),
-            eye_dome: a.edl.map(|strength| EyeDome { strength, ..EyeDome::default() }),
-        },
-    };
-    let atomics = match a.atomics {
-        AtomicsArg::Auto => None,
-        AtomicsArg::U64 => Some(AtomicPath::U64),
-        AtomicsArg::U32 => Some(AtomicPath::TwoPass32),
-    };
-    let gpu = match a.backend {
-        Backend::Cpu => None,
-        Backend::Gpu => Some(GpuContext::new(&GpuOptions { atomics, allow_software: true, ..Default::default() }).map_err(|e| anyhow!("--backend gpu: {e}"))?),
-        Backend::Auto => GpuContext::new(&GpuOptions { atomics, allow_software: false, ..Default::default() }).ok(),
-    };
+    let settings = render_settings(&a);
+    let gpu = gpu_context(&a)?;
     let (r, gpu_json) = match &gpu {
         None => (render_input::render(file, &refs, &camera, &settings).map_err(own)?, serde_json::Value::Null),
         Some(ctx) => {

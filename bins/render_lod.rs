@@ -5,14 +5,13 @@
 //! stored colours (or elevation), hole filling and eye-dome lighting. `--no-lod` draws every
 //! point through a temporary batch file instead (the path of LAS/LAZ inputs; every colour mode).
 
-use crate::render::{build_camera, camera_json, encode_png, write_atomic, Args, AtomicsArg, Backend};
+use crate::render::{build_camera, camera_json, encode_png, write_atomic, Args};
 use anyhow::{anyhow, bail, Result};
 use mortar_core::octree::{LodOptions, LodSelection, DEFAULT_THRESHOLD_PX};
-use mortar_core::render::resolve::{EyeDome, HoleFill, ResolveOptions};
-use mortar_core::render::{Camera, RasterOptions};
+use mortar_core::render::Camera;
 use mortar_io::render_input::{RenderSettings, Rendered};
 use mortar_io::store_lod::{self, LodBatches, LodColor, StoreLod};
-use mortar_render::{AtomicPath, GpuContext, GpuError, GpuOptions, GpuRasterizer, GpuScene, SceneOptions};
+use mortar_render::{GpuContext, GpuError, GpuRasterizer, GpuScene, SceneOptions};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -75,28 +74,8 @@ pub fn run(a: &Args, dir: &Path) -> Result<()> {
     let t = Instant::now();
     let batches = lod.batches(&selection.nodes)?;
     let prepare_seconds = t.elapsed().as_secs_f64();
-    let settings = RenderSettings {
-        raster: RasterOptions { precision: a.precision.mode(), cull: !a.no_cull },
-        color: a.color,
-        range: a.range,
-        resolve: ResolveOptions {
-            background: a.background,
-            hole_fill: a.hole_fill.map(|n| HoleFill { min_neighbors: n }),
-            eye_dome: a.edl.map(|strength| EyeDome { strength, ..EyeDome::default() }),
-        },
-    };
-    let atomics = match a.atomics {
-        AtomicsArg::Auto => None,
-        AtomicsArg::U64 => Some(AtomicPath::U64),
-        AtomicsArg::U32 => Some(AtomicPath::TwoPass32),
-    };
-    let gpu = match a.backend {
-        Backend::Cpu => None,
-        Backend::Gpu => {
-            Some(GpuContext::new(&GpuOptions { atomics, allow_software: true, ..Default::default() }).map_err(|e| anyhow!("--backend gpu: {e}"))?)
-        }
-        Backend::Auto => GpuContext::new(&GpuOptions { atomics, allow_software: false, ..Default::default() }).ok(),
-    };
+    let settings = crate::render::render_settings(a);
+    let gpu = crate::render::gpu_context(a)?;
     let (r, gpu_json) = match &gpu {
         None => (store_lod::render(&lod, &batches, &camera, &settings)?, serde_json::Value::Null),
         Some(ctx) => {

@@ -272,15 +272,7 @@ pub fn rasterize(
     camera: &Camera,
     options: &RasterOptions,
 ) -> Result<RasterStats, RasterError> {
-    camera.validate()?;
-    if fb.width() != camera.width || fb.height() != camera.height {
-        return Err(RasterError::Viewport {
-            fb_width: fb.width(),
-            fb_height: fb.height(),
-            width: camera.width,
-            height: camera.height,
-        });
-    }
+    check_view(fb, camera)?;
     validate_batches(batches)?;
     let planner = Planner::new(camera, grid, options)?;
     let uniforms = RasterUniforms::new(camera);
@@ -289,6 +281,15 @@ pub fn rasterize(
         .map(|b| draw_batch(fb, b, &planner, &uniforms))
         .reduce(RasterStats::default, RasterStats::merge);
     Ok(stats)
+}
+
+/// The camera is usable and matches the framebuffer's size.
+fn check_view(fb: &Framebuffer, camera: &Camera) -> Result<(), RasterError> {
+    camera.validate()?;
+    if fb.width() != camera.width || fb.height() != camera.height {
+        return Err(RasterError::Viewport { fb_width: fb.width(), fb_height: fb.height(), width: camera.width, height: camera.height });
+    }
+    Ok(())
 }
 
 /// Culls, chooses the precision and draws one batch.
@@ -364,15 +365,7 @@ pub fn rasterize_gathered(
     camera: &Camera,
     options: &RasterOptions,
 ) -> Result<RasterStats, RasterError> {
-    camera.validate()?;
-    if fb.width() != camera.width || fb.height() != camera.height {
-        return Err(RasterError::Viewport {
-            fb_width: fb.width(),
-            fb_height: fb.height(),
-            width: camera.width,
-            height: camera.height,
-        });
-    }
+    check_view(fb, camera)?;
     for (i, b) in batches.iter().enumerate() {
         let lengths = b.words.map(<[u32]>::len);
         if lengths[1] != lengths[0] || lengths[2] != lengths[0] {
