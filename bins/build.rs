@@ -37,7 +37,12 @@ pub struct Args {
     pub json: bool,
     #[command(flatten)]
     pub frames: crate::build_frames::FramesArgs,
+    #[command(flatten)]
+    pub preview: crate::view::PreviewArgs,
 }
+
+/// Seconds between commits while a preview window shows the store.
+const PREVIEW_COMMIT_EVERY: f64 = 1.0;
 
 pub fn run(a: Args) -> Result<()> {
     if a.leaf_capacity == 0 {
@@ -60,6 +65,9 @@ pub fn run(a: Args) -> Result<()> {
     if let Some(r) = &recorder {
         opts.commit_every = opts.commit_every.min(r.every());
     }
+    if a.preview.preview {
+        opts.commit_every = opts.commit_every.min(PREVIEW_COMMIT_EVERY);
+    }
     let tty = std::io::stderr().is_terminal();
     let mut frame_error: Option<anyhow::Error> = None;
     let mut progress = |p: &BuildProgress| {
@@ -72,7 +80,20 @@ pub fn run(a: Args) -> Result<()> {
             }
         }
     };
-    let r = build(&ds, &a.output, &opts, &mut progress)?;
+    let (r, preview_json) = if a.preview.preview {
+        let view = a.preview.view_args(&a.output, &a.frames.camera);
+        let bounds = crate::build_frames::header_bounds(&ds);
+        let (ds, output, opts) = (&ds, &a.output, &opts);
+        crate::view::run_preview(&view, output, bounds, move |report| {
+            build(ds, output, opts, &mut |p| {
+                progress(p);
+                report(p);
+            })
+            .map_err(anyhow::Error::from)
+        })?
+    } else {
+        (build(&ds, &a.output, &opts, &mut progress)?, serde_json::Value::Null)
+    };
     if tty {
         eprintln!();
     }
@@ -108,6 +129,7 @@ pub fn run(a: Args) -> Result<()> {
             "peak_rss_bytes": common::peak_rss_bytes(),
             "threads": rayon::current_num_threads(),
             "frames": frames_json,
+            "preview": preview_json,
         });
         println!("{}", serde_json::to_string_pretty(&j)?);
     }

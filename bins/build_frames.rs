@@ -76,7 +76,7 @@ pub struct FrameRecorder {
 }
 
 /// World bounds of the points as the headers declare them.
-fn header_bounds(ds: &Dataset) -> Aabb {
+pub(crate) fn header_bounds(ds: &Dataset) -> Aabb {
     let (mut lo, mut hi) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
     for s in ds.inputs.iter().filter(|s| s.point_count() > 0) {
         let h = s.header();

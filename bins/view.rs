@@ -11,6 +11,7 @@
 
 use crate::common;
 use crate::render::{build_camera, encode_png, parse_color, write_atomic, AtomicsArg, CameraArgs, PrecisionArg};
+use crate::view_store::{StoreGpu, StoreView};
 use anyhow::{anyhow, bail, Context as _, Result};
 use mortar_core::render::resolve::{resolve, ColorMode, ResolveOptions};
 use mortar_core::render::{rasterize, Aabb, BatchRef, Camera, Framebuffer, Projection, RasterOptions};
@@ -20,11 +21,13 @@ use mortar_render::{AtomicPath, GpuContext, GpuError, GpuOptions, GpuRasterizer,
 use std::num::NonZeroU32;
 use std::path::PathBuf;
 use std::sync::Arc;
+use std::sync::mpsc::{Receiver, TryRecvError};
 use std::time::Instant;
+use mortar_io::store::{BuildProgress, BuildReport};
 use winit::application::ApplicationHandler;
 use winit::dpi::PhysicalSize;
 use winit::event::{ElementState, KeyEvent, MouseButton, MouseScrollDelta, WindowEvent};
-use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop};
+use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop, EventLoopProxy};
 use winit::keyboard::{Key, NamedKey};
 use winit::window::{Window, WindowId};
 
@@ -102,20 +105,106 @@ pub struct Args {
     pub no_status: bool,
     #[command(flatten)]
     pub sort: common::SortArgs,
+    #[command(flatten)]
+    pub lod: crate::render_lod::LodArgs,
 }
 
-/// Opens the input and the window, then runs the event loop until the window is closed (or the
-/// screenshot is written).
-pub fn run(a: Args) -> Result<()> {
+/// The preview options of `mortar build`.
+#[derive(clap::Args, Clone, Debug)]
+pub struct PreviewArgs {
+    /// Show the store in a window while it is built (orbit/pan/zoom with the mouse, F fits, C
+    /// cycles colours; the status line shows the build's progress). The store is committed at
+    /// least every second for it; the build never waits for the window.
+    #[arg(long)]
+    pub preview: bool,
+    /// The preview's rasterizer: auto, gpu or cpu (as `mortar view --backend`).
+    #[arg(long, value_enum, default_value = "auto", requires = "preview")]
+    pub preview_backend: ViewBackend,
+    /// Preview window width and height in pixels.
+    #[arg(long, value_name = "WxH", default_value = "1280x720", value_parser = parse_size_wxh, requires = "preview")]
+    pub preview_size: (u32, u32),
+    /// With --preview: once the build is done and its last commit shown, write what the window
+    /// shows to this PNG and close the window (for tests and scripted runs).
+    #[arg(long, value_name = "PNG", requires = "preview")]
+    pub preview_screenshot: Option<PathBuf>,
+}
+
+fn parse_size_wxh(s: &str) -> std::result::Result<(u32, u32), String> {
+    let bad = || format!("'{s}' is not WIDTHxHEIGHT");
+    let (w, h) = s.split_once(['x', 'X']).ok_or_else(bad)?;
+    Ok((w.trim().parse().map_err(|_| bad())?, h.trim().parse().map_err(|_| bad())?))
+}
+
+impl PreviewArgs {
+    /// The window's options for a preview of `store` seen from `camera`.
+    pub fn view_args(&self, store: &std::path::Path, camera: &CameraArgs) -> Args {
+        Args {
+            inputs: vec![store.display().to_string()],
+            width: self.preview_size.0,
+            height: self.preview_size.1,
+            camera: camera.clone(),
+            color: ColorChoice::Auto,
+            range: None,
+            precision: PrecisionArg::Adaptive,
+            backend: self.preview_backend,
+            atomics: AtomicsArg::Auto,
+            background: 0xff00_0000,
+            screenshot: self.preview_screenshot.clone(),
+            frames: 1,
+            json: false,
+            no_status: false,
+            sort: common::SortArgs::default(),
+            lod: crate::render_lod::LodArgs::default(),
+        }
+    }
+}
+
+/// Checks the window options shared by `mortar view` and `mortar build --preview`.
+fn check_window(a: &Args) -> Result<()> {
     if a.width == 0 || a.height == 0 || a.width > 16384 || a.height > 16384 {
         bail!("--width {} --height {}: each side must be 1 to 16384 pixels", a.width, a.height);
     }
     if !(a.camera.fov > 0.0 && a.camera.fov < 180.0) {
         bail!("--fov {}: must be between 0 and 180 degrees", a.camera.fov);
     }
-    // The display first: no point in batching a large LAZ file for a window that cannot open.
-    let event_loop = EventLoop::new().map_err(|e| anyhow!("cannot open a window: {e} (no display? set DISPLAY or WAYLAND_DISPLAY, or use `mortar render`)"))?;
+    Ok(())
+}
+
+/// What wakes the event loop from another thread (the preview's build).
+#[derive(Clone, Copy, Debug)]
+pub enum Wake {
+    /// The build reported progress (maybe a commit).
+    Progress,
+    /// The build ended.
+    Done,
+}
+
+/// The event loop, or an error that says there is no display.
+fn event_loop() -> Result<EventLoop<Wake>> {
+    let event_loop = EventLoop::<Wake>::with_user_event().build().map_err(|e| anyhow!("cannot open a window: {e} (no display? set DISPLAY or WAYLAND_DISPLAY, or use `mortar render`)"))?;
     event_loop.set_control_flow(ControlFlow::Wait);
+    Ok(event_loop)
+}
+
+/// Opens the input and the window, then runs the event loop until the window is closed (or the
+/// screenshot is written).
+pub fn run(a: Args) -> Result<()> {
+    check_window(&a)?;
+    // The display first: no point in batching a large LAZ file for a window that cannot open.
+    let event_loop = event_loop()?;
+    let store = match &a.inputs[..] {
+        [one] if one != "-" && !a.lod.no_lod && mortar_io::store::is_store(std::path::Path::new(one)) => Some(PathBuf::from(one)),
+        _ => None,
+    };
+    if store.is_none() && (a.lod.lod_threshold.is_some() || a.lod.point_budget.is_some()) {
+        bail!("--lod-threshold and --point-budget apply to a single octree store (made by mortar build), not to {}", a.inputs.join(" "));
+    }
+    if let Some(dir) = store {
+        let view = StoreView::open(&dir, a.lod.options(true)?, a.range)?;
+        let mode = view.mode_of(a.color)?;
+        let label = dir.display().to_string();
+        return show(&a, event_loop, Content::Store(Box::new(view)), crate::view_store::MODES.to_vec(), mode, label, None).map(drop);
+    }
     let source = crate::render::open_source(&a.inputs, &a.sort)?;
     let file = &source.file;
     let own = |e| source.own_error(e);
@@ -130,28 +219,92 @@ pub fn run(a: Args) -> Result<()> {
         modes.insert(0, initial);
     }
     let mode = modes.iter().position(|&m| m == initial).unwrap_or(0);
-    let bounds = render_input::file_bounds(file);
-    let camera = build_camera(&a.camera, &bounds, a.width, a.height).map_err(|e| anyhow!("{label}: {e:#}"))?;
     let views = render_input::load_words(file).map_err(own)?;
     let refs = render_input::batch_refs(file, &views).map_err(own)?;
+    let colors = vec![None; modes.len()];
+    show(&a, event_loop, Content::Batches { file, refs: &refs, colors }, modes, mode, label, None).map(drop)
+}
+
+
+/// `mortar build --preview`: shows the store `dir` as `build` grows it. `build` runs on its own
+/// thread and reports progress through the callback it is given, which never blocks (an
+/// unbounded channel and a wake-up event): the builder never waits for the window. The window
+/// reloads the store at each new commit and draws it with LOD, uploading only new nodes. If the
+/// window is closed first, the build goes on without it and this waits for it; with
+/// `--screenshot` the window closes itself once the last commit was shown. Returns the build's
+/// report and the frames' statistics.
+pub fn run_preview<F>(a: &Args, dir: &std::path::Path, bounds: Aabb, build: F) -> Result<(BuildReport, serde_json::Value)>
+where
+    F: FnOnce(&mut dyn FnMut(&BuildProgress)) -> Result<BuildReport> + Send,
+{
+    check_window(a)?;
+    let event_loop = event_loop()?;
+    let proxy: EventLoopProxy<Wake> = event_loop.create_proxy();
+    let view = StoreView::waiting(dir, bounds, a.lod.options(true)?, a.range);
+    let mode = view.mode_of(a.color)?;
+    let label = dir.display().to_string();
+    let (ptx, prx) = std::sync::mpsc::channel();
+    let (rtx, rrx) = std::sync::mpsc::channel();
+    std::thread::scope(|scope| {
+        let wake = proxy.clone();
+        scope.spawn(move || {
+            let mut report = |p: &BuildProgress| {
+                let _ = ptx.send(*p);
+                let _ = wake.send_event(Wake::Progress);
+            };
+            let r = build(&mut report);
+            drop(ptx);
+            let _ = rtx.send(r);
+            let _ = proxy.send_event(Wake::Done);
+        });
+        let frames = match show(a, event_loop, Content::Store(Box::new(view)), crate::view_store::MODES.to_vec(), mode, label, Some(BuildState::new(prx))) {
+            Ok(Shown { frames, build_done }) => {
+                if !build_done {
+                    eprintln!("mortar build: the preview was closed; the build goes on");
+                }
+                frames
+            }
+            Err(e) => {
+                // The builder never waits for the window, so a failed window does not stop it.
+                eprintln!("mortar build: preview: {e:#}; the build goes on without it");
+                serde_json::Value::Null
+            }
+        };
+        let result = rrx.recv().map_err(|_| anyhow!("the build's thread ended without a result"))?;
+        result.map(|r| (r, frames))
+    })
+}
+
+/// What a window saw.
+struct Shown {
+    /// Statistics of the frames drawn.
+    frames: serde_json::Value,
+    /// For a preview: whether the build ended while the window was open.
+    build_done: bool,
+}
+
+/// Runs the window on `content` until it closes.
+#[allow(clippy::too_many_arguments)]
+fn show(a: &Args, event_loop: EventLoop<Wake>, content: Content<'_>, modes: Vec<ColorChoice>, mode: usize, label: String, build: Option<BuildState>) -> Result<Shown> {
+    let bounds = content.bounds();
+    let camera = build_camera(&a.camera, &bounds, a.width, a.height).map_err(|e| anyhow!("{label}: {e:#}"))?;
     let mut app = App {
-        args: &a,
-        file,
-        refs: &refs,
+        args: a,
+        content,
         label: label.clone(),
         bounds,
         orbit: Orbit::from_camera(&camera),
         modes,
         mode,
-        colors: Vec::new(),
         window: None,
         renderer: None,
         drag: Drag::default(),
         frames: Vec::new(),
         error: None,
         done: false,
+        last_frame: None,
+        build,
     };
-    app.colors = vec![None; app.modes.len()];
     event_loop.run_app(&mut app).map_err(|e| anyhow!("{label}: window: {e}"))?;
     if let Some(e) = app.error.take() {
         return Err(e);
@@ -159,21 +312,21 @@ pub fn run(a: Args) -> Result<()> {
     if a.screenshot.is_some() && !app.done {
         bail!("{label}: the window closed before {} frames were drawn", a.frames);
     }
+    let backend = app.renderer.as_ref().map(Renderer::describe).unwrap_or(serde_json::Value::Null);
+    let j = serde_json::json!({
+        "input": label,
+        "screenshot": a.screenshot,
+        "points": app.content.points(),
+        "color": app.modes[app.mode].name(),
+        "width": app.frames.last().map(|f| f.width),
+        "height": app.frames.last().map(|f| f.height),
+        "renderer": backend,
+        "frames": app.frames.iter().map(FrameStats::json).collect::<Vec<_>>(),
+    });
     if a.json {
-        let backend = app.renderer.as_ref().map(Renderer::describe).unwrap_or(serde_json::Value::Null);
-        let j = serde_json::json!({
-            "input": label,
-            "screenshot": a.screenshot,
-            "points": file.header.point_count,
-            "color": app.modes[app.mode].name(),
-            "width": app.frames.last().map(|f| f.width),
-            "height": app.frames.last().map(|f| f.height),
-            "renderer": backend,
-            "frames": app.frames.iter().map(FrameStats::json).collect::<Vec<_>>(),
-        });
         println!("{}", serde_json::to_string_pretty(&j)?);
     }
-    Ok(())
+    Ok(Shown { frames: j, build_done: app.build.is_none_or(|b| b.done) })
 }
 
 /// The camera as the mouse moves it: a target, a distance, and the direction from the target to
@@ -284,14 +437,111 @@ impl FrameStats {
     }
 }
 
+/// What the window shows.
+enum Content<'a> {
+    /// A batch file (or LAS/LAZ batched into one): every point, by the batch rasterizer.
+    Batches {
+        file: &'a BatchFile,
+        refs: &'a [BatchRef<'a>],
+        /// Per mode, every point's colour once computed.
+        colors: Vec<Option<Vec<u32>>>,
+    },
+    /// An octree store (maybe growing): the LOD selection of each frame.
+    Store(Box<StoreView>),
+}
+
+impl Content<'_> {
+    fn bounds(&self) -> Aabb {
+        match self {
+            Content::Batches { file, .. } => render_input::file_bounds(file),
+            Content::Store(v) => v.bounds(),
+        }
+    }
+
+    fn points(&self) -> u64 {
+        match self {
+            Content::Batches { file, .. } => file.header.point_count,
+            Content::Store(v) => v.points(),
+        }
+    }
+}
+
+/// The GPU data of the content.
+enum GpuData {
+    Batches {
+        scene: GpuScene,
+        /// The colour mode whose colours the scene holds.
+        uploaded: usize,
+    },
+    Store(StoreGpu),
+}
+
 /// The GPU renderer's parts.
 struct Gpu {
     ctx: GpuContext,
     surface: WindowSurface,
     raster: GpuRasterizer,
-    scene: GpuScene,
-    /// The colour mode whose colours the scene holds.
-    uploaded: usize,
+    data: GpuData,
+}
+
+/// The preview's build, as the window sees it.
+struct BuildState {
+    progress: Receiver<BuildProgress>,
+    latest: BuildProgress,
+    start: Instant,
+    /// Points and time of an earlier report, for the rate.
+    rate_from: (u64, Instant),
+    rate: f64,
+    done: bool,
+    /// Seconds the build took, once done.
+    seconds: Option<f64>,
+    /// The store's last commit was loaded after the build ended.
+    final_loaded: bool,
+}
+
+impl BuildState {
+    fn new(progress: Receiver<BuildProgress>) -> BuildState {
+        let now = Instant::now();
+        BuildState { progress, latest: BuildProgress::default(), start: now, rate_from: (0, now), rate: 0.0, done: false, seconds: None, final_loaded: false }
+    }
+
+    /// Takes every report that arrived (keeping the newest); whether the commit count changed.
+    fn poll(&mut self) -> bool {
+        let commits = self.latest.commits;
+        loop {
+            match self.progress.try_recv() {
+                Ok(p) => self.latest = p,
+                Err(TryRecvError::Empty) => break,
+                Err(TryRecvError::Disconnected) => {
+                    if !self.done {
+                        self.done = true;
+                        self.seconds = Some(self.start.elapsed().as_secs_f64());
+                    }
+                    break;
+                }
+            }
+        }
+        let dt = self.rate_from.1.elapsed().as_secs_f64();
+        if dt >= 1.0 {
+            self.rate = (self.latest.points - self.rate_from.0) as f64 / dt;
+            self.rate_from = (self.latest.points, Instant::now());
+        }
+        self.latest.commits != commits
+    }
+
+    fn status(&self) -> String {
+        let p = &self.latest;
+        match self.seconds {
+            Some(s) => format!("built {} points in {s:.1} s", group_digits(p.points)),
+            None => format!(
+                "building {} of {} ({:.0}%) {:.1} M pts/s",
+                group_digits(p.points),
+                group_digits(p.total),
+                100.0 * p.points as f64 / p.total.max(1) as f64,
+                self.rate / 1e6
+            ),
+        }
+    }
 }
 
 /// What draws the frames.
@@ -340,15 +590,14 @@ impl Renderer {
 
 struct App<'a> {
     args: &'a Args,
-    file: &'a BatchFile,
-    refs: &'a [BatchRef<'a>],
+    content: Content<'a>,
     label: String,
     bounds: Aabb,
     orbit: Orbit,
     modes: Vec<ColorChoice>,
     mode: usize,
-    /// Per mode, every point's colour once computed.
-    colors: Vec<Option<Vec<u32>>>,
+    /// The build of `mortar build --preview`.
+    build: Option<BuildState>,
     window: Option<Arc<Window>>,
     renderer: Option<Renderer>,
     drag: Drag,
@@ -356,6 +605,8 @@ struct App<'a> {
     error: Option<anyhow::Error>,
     /// The screenshot was written.
     done: bool,
+    /// When the last frame was drawn.
+    last_frame: Option<Instant>,
 }
 
 impl App<'_> {
@@ -363,13 +614,15 @@ impl App<'_> {
         self.args.camera.fov.to_radians()
     }
 
-    /// Every point's colour in the current mode.
-    fn colors(&mut self) -> Result<&[u32]> {
-        if self.colors[self.mode].is_none() {
-            let (c, _range) = render_input::point_colors(self.file, self.modes[self.mode], self.args.range).map_err(|e| anyhow!("{}: {e}", self.label))?;
-            self.colors[self.mode] = Some(c);
+    /// A batch file's every point's colour in the current mode (computed once per mode).
+    fn batch_colors(&mut self) -> Result<()> {
+        if let Content::Batches { file, colors, .. } = &mut self.content {
+            if colors[self.mode].is_none() {
+                let (c, _range) = render_input::point_colors(file, self.modes[self.mode], self.args.range).map_err(|e| anyhow!("{}: {e}", self.label))?;
+                colors[self.mode] = Some(c);
+            }
         }
-        Ok(self.colors[self.mode].as_deref().expect("computed above"))
+        Ok(())
     }
 
     /// Opens the window and what draws into it.
@@ -405,29 +658,46 @@ impl App<'_> {
     fn open_gpu(&mut self, ctx: GpuContext, surface: mortar_render::wgpu::Surface<'static>, w: u32, h: u32) -> std::result::Result<Renderer, GpuError> {
         let surface = WindowSurface::new(&ctx, surface, w, h)?;
         let raster = GpuRasterizer::new(&ctx, w, h)?;
-        let mut scene = GpuScene::new(&ctx, self.file.grid(), self.file.header.point_count, SceneOptions { colors: true, ..Default::default() })?;
-        let colors = match self.colors() {
-            Ok(c) => c.to_vec(),
-            Err(e) => return Err(GpuError::Colors(format!("{e:#}"))),
-        };
-        for b in self.refs {
-            let first = b.first_index as usize;
-            scene.push(&ctx, b, Some(&colors[first..first + b.len()]))?;
+        if let Err(e) = self.batch_colors() {
+            return Err(GpuError::Colors(format!("{e:#}")));
         }
-        scene.flush(&ctx)?;
-        ctx.wait()?;
-        Ok(Renderer::Gpu(Box::new(Gpu { ctx, surface, raster, scene, uploaded: self.mode })))
+        let data = match &self.content {
+            Content::Batches { file, refs, colors } => {
+                let mut scene = GpuScene::new(&ctx, file.grid(), file.header.point_count, SceneOptions { colors: true, ..Default::default() })?;
+                let colors = colors[self.mode].as_deref().expect("computed above");
+                for b in refs.iter() {
+                    let first = b.first_index as usize;
+                    scene.push(&ctx, b, Some(&colors[first..first + b.len()]))?;
+                }
+                scene.flush(&ctx)?;
+                ctx.wait()?;
+                GpuData::Batches { scene, uploaded: self.mode }
+            }
+            // Nodes are uploaded as frames select them.
+            Content::Store(v) => GpuData::Store(v.gpu(&ctx, self.mode)?),
+        };
+        Ok(Renderer::Gpu(Box::new(Gpu { ctx, surface, raster, data })))
     }
 
     /// The status line: points, the last frame's time and rate, colour mode, renderer.
     fn status(&self) -> String {
-        let points = group_digits(self.file.header.point_count);
-        let renderer = self.renderer.as_ref().map(Renderer::short).unwrap_or_default();
-        let mode = self.modes[self.mode].name();
-        match self.frames.last() {
-            Some(f) => format!("{points} points | {:.1} ms ({:.0} fps) | {mode} | {renderer}", f.frame_ms, 1000.0 / f.frame_ms.max(1e-3)),
-            None => format!("{points} points | {mode} | {renderer}"),
+        let mut parts = Vec::new();
+        if let Some(b) = &self.build {
+            parts.push(b.status());
         }
+        match &self.content {
+            Content::Batches { file, .. } => parts.push(format!("{} points", group_digits(file.header.point_count))),
+            Content::Store(v) => {
+                parts.push(format!("{} points, {} nodes, commit {}", group_digits(v.points()), group_digits(v.nodes()), v.commit()));
+                parts.push(format!("drawn {} nodes, {} samples", group_digits(v.selected.nodes), group_digits(v.selected.samples)));
+            }
+        }
+        if let Some(f) = self.frames.last() {
+            parts.push(format!("{:.1} ms ({:.0} fps)", f.frame_ms, 1000.0 / f.frame_ms.max(1e-3)));
+        }
+        parts.push(self.modes[self.mode].name().to_string());
+        parts.push(self.renderer.as_ref().map(Renderer::short).unwrap_or_default());
+        parts.join(" | ")
     }
 
     /// Draws one frame into the window; with `read_back`, returns the pixels put on it.
@@ -445,23 +715,28 @@ impl App<'_> {
         let background = self.args.background;
         let mode = self.mode;
         // Colours of the current mode (computed once per mode).
-        self.colors()?;
-        let colors = self.colors[mode].as_deref().expect("computed above");
+        self.batch_colors()?;
         let label = self.label.clone();
         let start = Instant::now();
         let renderer = self.renderer.as_mut().ok_or_else(|| anyhow!("no renderer"))?;
         let mut stats = FrameStats { width: w, height: h, ..Default::default() };
         let pixels = match renderer {
             Renderer::Gpu(g) => {
-                let Gpu { ctx, surface, raster, scene, uploaded } = &mut **g;
+                let Gpu { ctx, surface, raster, data } = &mut **g;
                 let gpu = |e: GpuError| anyhow!("{label}: GPU: {e}");
-                if *uploaded != mode {
-                    scene.set_colors(ctx, colors).map_err(gpu)?;
-                    *uploaded = mode;
-                }
                 surface.resize(ctx, w, h).map_err(gpu)?;
                 raster.resize(ctx, w, h).map_err(gpu)?;
-                let frame = raster.draw(ctx, scene, &camera, &options, Some(background)).map_err(gpu)?;
+                let frame = match (&mut self.content, data) {
+                    (Content::Batches { colors, .. }, GpuData::Batches { scene, uploaded }) => {
+                        if *uploaded != mode {
+                            scene.set_colors(ctx, colors[mode].as_deref().expect("computed above")).map_err(gpu)?;
+                            *uploaded = mode;
+                        }
+                        raster.draw(ctx, scene, &camera, &options, Some(background)).map_err(gpu)?
+                    }
+                    (Content::Store(v), GpuData::Store(sg)) => v.draw_gpu(ctx, sg, raster, &camera, &options, background, mode)?,
+                    _ => bail!("{label}: the GPU holds data of another kind"),
+                };
                 stats.raster_ms = start.elapsed().as_secs_f64() * 1e3;
                 let o = overlay.as_ref().map(|(ow, oh, px)| Overlay { width: *ow, height: *oh, rgba: px });
                 let shown = surface.present(ctx, raster, o, read_back).map_err(gpu)?;
@@ -477,15 +752,25 @@ impl App<'_> {
                 }
             }
             Renderer::Cpu { surface, fb, .. } => {
-                if (fb.width(), fb.height()) != (w, h) {
-                    *fb = Framebuffer::new(w, h);
-                } else {
-                    fb.clear();
-                }
-                let s = rasterize(fb, self.refs, &self.file.grid(), &camera, &options).map_err(|e| anyhow!("{label}: {e}"))?;
-                stats.points_drawn = s.points_drawn;
                 let bg = background;
-                let mut rgba = resolve(fb.keys_slice(), w, h, |i| colors.get(i as usize).copied().unwrap_or(bg), &ResolveOptions { background: bg, ..Default::default() });
+                let mut rgba = match &mut self.content {
+                    Content::Batches { file, refs, colors } => {
+                        if (fb.width(), fb.height()) != (w, h) {
+                            *fb = Framebuffer::new(w, h);
+                        } else {
+                            fb.clear();
+                        }
+                        let s = rasterize(fb, refs, &file.grid(), &camera, &options).map_err(|e| anyhow!("{label}: {e}"))?;
+                        stats.points_drawn = s.points_drawn;
+                        let colors = colors[mode].as_deref().expect("computed above");
+                        resolve(fb.keys_slice(), w, h, |i| colors.get(i as usize).copied().unwrap_or(bg), &ResolveOptions { background: bg, ..Default::default() })
+                    }
+                    Content::Store(v) => {
+                        let rgba = v.draw_cpu(&camera, &options, bg, mode)?;
+                        stats.points_drawn = v.selected.samples;
+                        rgba
+                    }
+                };
                 stats.raster_ms = start.elapsed().as_secs_f64() * 1e3;
                 if let Some((ow, oh, px)) = &overlay {
                     mortar_render::present::blend_overlay(&mut rgba, w, &Overlay { width: *ow, height: *oh, rgba: px });
@@ -504,6 +789,7 @@ impl App<'_> {
         stats.frame_ms = start.elapsed().as_secs_f64() * 1e3;
         stats.present_ms = stats.frame_ms - stats.raster_ms;
         self.frames.push(stats);
+        self.last_frame = Some(Instant::now());
         window.set_title(&format!("mortar view: {} | {}", self.label, self.status()));
         Ok(pixels.map(|p| (w, h, p)))
     }
@@ -576,7 +862,50 @@ impl App<'_> {
     }
 }
 
-impl ApplicationHandler for App<'_> {
+impl App<'_> {
+    /// A preview's build reported: reloads the store at a new commit (and once more when the
+    /// build ended) and redraws; otherwise redraws for the status line at most twice a second.
+    fn on_build(&mut self, event: Wake) -> Result<()> {
+        let Some(b) = self.build.as_mut() else { return Ok(()) };
+        let committed = b.poll();
+        if let Wake::Done = event {
+            if !b.done {
+                b.done = true;
+                b.seconds = Some(b.start.elapsed().as_secs_f64());
+            }
+        }
+        let reload = committed || (b.done && !b.final_loaded);
+        if b.done {
+            b.final_loaded = true;
+        }
+        let mut changed = false;
+        if reload {
+            if let Content::Store(v) = &mut self.content {
+                let gpu = match self.renderer.as_mut() {
+                    Some(Renderer::Gpu(g)) => match &mut g.data {
+                        GpuData::Store(sg) => Some(sg),
+                        GpuData::Batches { .. } => None,
+                    },
+                    _ => None,
+                };
+                changed = v.reload(gpu)?;
+            }
+        }
+        let stale = self.frames.last().is_none_or(|_| self.last_frame.is_none_or(|t| t.elapsed().as_secs_f64() >= 0.5));
+        if changed || reload || stale {
+            self.redraw();
+        }
+        Ok(())
+    }
+}
+
+impl ApplicationHandler<Wake> for App<'_> {
+    fn user_event(&mut self, event_loop: &ActiveEventLoop, event: Wake) {
+        if let Err(e) = self.on_build(event) {
+            self.fail(event_loop, e);
+        }
+    }
+
     fn resumed(&mut self, event_loop: &ActiveEventLoop) {
         if self.window.is_some() {
             return;
@@ -605,7 +934,12 @@ impl ApplicationHandler for App<'_> {
             WindowEvent::MouseWheel { delta, .. } => self.on_wheel(delta),
             WindowEvent::RedrawRequested => {
                 let shooting = self.args.screenshot.is_some();
-                let last = shooting && self.frames.len() + 1 >= self.args.frames as usize;
+                let last = shooting
+                    && match &self.build {
+                        // A preview's screenshot shows the finished store.
+                        Some(b) => b.final_loaded,
+                        None => self.frames.len() + 1 >= self.args.frames as usize,
+                    };
                 match self.draw(last) {
                     Err(e) => self.fail(event_loop, e),
                     Ok(Some((w, h, pixels))) if last => {
@@ -619,7 +953,7 @@ impl ApplicationHandler for App<'_> {
                             Err(e) => self.fail(event_loop, e),
                         }
                     }
-                    Ok(_) if shooting => self.redraw(),
+                    Ok(_) if shooting && self.build.is_none() => self.redraw(),
                     Ok(_) => {}
                 }
             }

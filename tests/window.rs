@@ -191,3 +191,105 @@ fn view_without_a_display_is_a_clear_error() {
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("cannot open a window") && !err.contains("panicked"), "{err}");
 }
+
+/// Builds the sample into a store `dir/name`.
+fn build_store(dir: &Path, name: &str) -> PathBuf {
+    let store = dir.join(name);
+    run_ok(mortar().arg("build").arg(sample()).arg("-o").arg(&store));
+    store
+}
+
+/// Pixels differing below the status line.
+fn differ_below_status(w: u32, a: &[[u8; 4]], b: &[[u8; 4]]) -> usize {
+    let start = STATUS_ROWS * w as usize;
+    a[start..].iter().zip(&b[start..]).filter(|(x, y)| x != y).count()
+}
+
+#[test]
+fn view_draws_a_store_with_lod_on_the_cpu_and_the_gpu() {
+    let Some(x) = xvfb_or_skip() else { return };
+    let dir = tempdir("window-store");
+    let store = build_store(&dir, "store");
+    let shot = |name: &str, extra: &[&str]| {
+        let png = dir.join(name);
+        let mut args = vec![store.to_str().unwrap(), "--width", "320", "--height", "240", "--screenshot", png.to_str().unwrap(), "--frames", "2", "--json"];
+        args.extend_from_slice(extra);
+        let o = view(&x.display, &args);
+        assert!(o.status.success(), "mortar view {args:?}: {}", String::from_utf8_lossy(&o.stderr));
+        let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+        assert_eq!(j["points"], 110_000, "{j}");
+        (j, read_png(&png))
+    };
+    let (cj, (w, h, cpu)) = shot("cpu.png", &["--backend", "cpu"]);
+    assert_eq!((w, h), (320, 240));
+    assert_eq!(cj["color"], "stored");
+    let drawn = drawn_below_status(w, &cpu);
+    assert!(drawn > 5_000 && drawn < 30_000, "{drawn} pixels drawn by the CPU");
+    // A coarse LOD threshold draws fewer samples than full detail.
+    let (full, _) = shot("full.png", &["--backend", "cpu", "--lod-threshold", "0"]);
+    let (coarse, _) = shot("coarse.png", &["--backend", "cpu", "--lod-threshold", "2000"]);
+    let samples = |j: &serde_json::Value| j["frames"][1]["points_drawn"].as_u64().unwrap();
+    assert!(samples(&coarse) < samples(&full), "coarse {} vs full {}", samples(&coarse), samples(&full));
+    // Attribute colours are refused for a store's LOD view, naming the store.
+    let o = view(&x.display, &[store.to_str().unwrap(), "--color", "classification", "--screenshot", dir.join("no.png").to_str().unwrap()]);
+    assert_eq!(o.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("store") && err.contains("classification") && !err.contains("panicked"), "{err}");
+
+    if mortar_render::testing::context_or_skip(mortar_render::AtomicPath::TwoPass32, None).is_none() {
+        return;
+    }
+    // The GPU uploads the selected nodes and draws them from one scene: the same picture.
+    let (gj, (_, _, gpu)) = shot("gpu.png", &["--backend", "gpu"]);
+    assert_eq!(gj["renderer"]["backend"], "gpu", "{gj}");
+    assert_eq!(differ_below_status(w, &cpu, &gpu), 0, "CPU and GPU store views differ");
+    let (_, (_, _, ce)) = shot("cpu-elev.png", &["--backend", "cpu", "--color", "elevation", "--no-status"]);
+    let (_, (_, _, ge)) = shot("gpu-elev.png", &["--backend", "gpu", "--color", "elevation", "--no-status"]);
+    assert_eq!(differ_below_status(w, &ce, &ge), 0, "CPU and GPU elevation store views differ");
+    assert!(differ_below_status(w, &ce, &cpu) > drawn / 2, "elevation looks like the stored colours");
+}
+
+#[test]
+fn build_preview_shows_the_store_while_it_grows() {
+    let Some(x) = xvfb_or_skip() else { return };
+    let dir = tempdir("window-preview");
+    let reference = build_store(&dir, "reference");
+    let mut backends = vec!["cpu"];
+    if mortar_render::testing::context_or_skip(mortar_render::AtomicPath::TwoPass32, None).is_some() {
+        backends.push("gpu");
+    }
+    let view_png = dir.join("view.png");
+    let o = view(&x.display, &[reference.to_str().unwrap(), "--width", "320", "--height", "240", "--backend", "cpu", "--no-status", "--screenshot", view_png.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let (_, _, expected) = read_png(&view_png);
+    for backend in backends {
+        let store = dir.join(format!("store-{backend}"));
+        let png = dir.join(format!("preview-{backend}.png"));
+        let mut c = mortar();
+        c.arg("build").arg(sample()).arg("-o").arg(&store);
+        c.args(["--preview", "--preview-backend", backend, "--preview-size", "320x240", "--preview-screenshot"]).arg(&png);
+        // A commit after every 5,000-point update: the window sees the store grow.
+        c.args(["--commit-every", "0", "--batch-points", "5000", "--json"]);
+        c.env("DISPLAY", &x.display).env_remove("WAYLAND_DISPLAY");
+        let o = run_limited(c, Duration::from_secs(300));
+        assert!(o.status.success(), "build --preview {backend}: {}", String::from_utf8_lossy(&o.stderr));
+        let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+        assert_eq!(j["points"], 110_000);
+        assert!(j["commits"].as_u64().unwrap() >= 20, "{}", j["commits"]);
+        let p = &j["preview"];
+        assert_eq!(p["renderer"]["backend"], backend, "{p}");
+        let frames = p["frames"].as_array().unwrap();
+        // Frames were drawn while the store grew, not only at the end.
+        assert!(frames.len() >= 3, "{} preview frames", frames.len());
+        let drawn: Vec<u64> = frames.iter().map(|f| f["points_drawn"].as_u64().unwrap()).collect();
+        assert!(drawn.iter().any(|&d| d > 0 && d < *drawn.last().unwrap()), "no partial store was shown: {drawn:?}");
+        // The last frame shows the finished store as `mortar view` shows it.
+        let (w, h, shown) = read_png(&png);
+        assert_eq!((w, h), (320, 240));
+        assert_eq!(differ_below_status(w, &shown, &expected), 0, "{backend}: the preview's last frame is not the finished store");
+        // The store itself is the same as one built without a window.
+        let a = std::fs::read(store.join("hierarchy.bin")).unwrap();
+        let b = std::fs::read(reference.join("hierarchy.bin")).unwrap();
+        assert_eq!(a.len(), b.len());
+    }
+}

@@ -156,21 +156,37 @@ impl StoreLod {
                 format!("{samples} samples selected: at most 2^32 can be drawn at once (point indices are 32-bit); set a --point-budget"),
             ));
         }
-        let maxima: Vec<[i32; 3]> = nodes.par_iter().map(|&id| self.sample_max(id)).collect();
+        nodes.par_iter().for_each(|&id| {
+            self.sample_max(id);
+        });
         let mut refs = Vec::with_capacity(nodes.len());
         let mut colors = Vec::with_capacity(nodes.len());
         let mut first = Vec::with_capacity(nodes.len());
         let mut next = 0u64;
-        for (&id, max) in nodes.iter().zip(maxima) {
+        for &id in nodes {
             let d = self.node(id);
-            let g = d.grid();
-            let b = world_box(&self.grid, g.min, max);
-            refs.push(BatchRef { grid: g, bounds_min: b.min, bounds_max: b.max, words: d.words, first_index: next as u32 });
+            refs.push(self.node_batch(id, next as u32));
             colors.push(d.colors);
             first.push(next as u32);
             next += d.header.count as u64;
         }
         Ok(LodBatches { refs, colors, first, nodes: nodes.to_vec(), samples })
+    }
+
+    /// Node `id` as one batch whose samples are numbered from `first_index` (the node must be in
+    /// the store: ids from [`select`](Self::select) or below [`LodTree::node_count`]).
+    pub fn node_batch(&self, id: NodeId, first_index: u32) -> BatchRef<'_> {
+        let d = self.node(id);
+        let g = d.grid();
+        let b = world_box(&self.grid, g.min, self.sample_max(id));
+        BatchRef { grid: g, bounds_min: b.min, bounds_max: b.max, words: d.words, first_index }
+    }
+
+    /// Where node `id`'s payload lies in `nodes.bin` (byte offset). `nodes.bin` only grows and
+    /// a payload is never rewritten in place, so across commits of one store an equal offset
+    /// means the same node contents: what a viewer of a growing store keys its uploads by.
+    pub fn payload_offset(&self, id: NodeId) -> u64 {
+        self.store.entries[id.index()].offset
     }
 }
 

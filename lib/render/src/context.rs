@@ -84,6 +84,9 @@ pub enum GpuError {
     /// Colours given for some batches but not others, or of the wrong length.
     #[error("colours: {0}")]
     Colors(String),
+    /// A selection names batches the scene does not hold.
+    #[error("selection: {0}")]
+    Selection(String),
     /// The window's surface cannot be created or presented to.
     #[error("window surface: {0}")]
     Surface(String),

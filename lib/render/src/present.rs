@@ -188,13 +188,21 @@ impl WindowSurface {
     /// the next surface texture and presents it. With `read_back`, also returns the pixels drawn
     /// (see [`read_back`](Self::read_back) for where they come from).
     pub fn present(&mut self, ctx: &GpuContext, raster: &GpuRasterizer, overlay: Option<Overlay<'_>>, read_back: bool) -> Result<Presented, GpuError> {
-        let (width, height) = self.size();
-        if raster.size() != (width, height) {
-            return Err(GpuError::Surface(format!("image of {:?} pixels for a surface of {width}x{height}", raster.size())));
-        }
         let Some(image) = raster.image_buffer() else {
             return Err(GpuError::Surface("no resolved image to present (draw with a background colour first)".into()));
         };
+        self.present_image(ctx, image, raster.size(), overlay, read_back)
+    }
+
+    /// Draws `image` (a storage buffer of `size` row-major RGBA8 pixels from the top-left, as the
+    /// resolve pass writes them; `size` must be the surface's) and `overlay` into the next
+    /// surface texture and presents it. [`present`](Self::present) for any renderer that resolves
+    /// its own image (the progressive renderer does).
+    pub fn present_image(&mut self, ctx: &GpuContext, image: &wgpu::Buffer, size: (u32, u32), overlay: Option<Overlay<'_>>, read_back: bool) -> Result<Presented, GpuError> {
+        let (width, height) = self.size();
+        if size != (width, height) || image.size() < width as u64 * height as u64 * 4 {
+            return Err(GpuError::Surface(format!("image of {size:?} pixels for a surface of {width}x{height}")));
+        }
         let overlay = overlay.filter(|o| o.width > 0 && o.height > 0 && o.rgba.len() == o.width as usize * o.height as usize);
         let (ow, oh) = overlay.map_or((0, 0), |o| (o.width, o.height));
         if let Some(o) = overlay {
@@ -290,7 +298,7 @@ impl WindowSurface {
                 out
             }
             _ => {
-                let mut img = raster.read_image(ctx)?;
+                let mut img = crate::raster::read_image_buffer(ctx, image, width, height)?;
                 if let Some(o) = overlay {
                     blend_overlay(&mut img, width, &o);
                 }

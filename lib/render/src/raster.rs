@@ -65,7 +65,7 @@ pub struct GpuRasterizer {
     queries: Option<(wgpu::QuerySet, wgpu::Buffer)>,
 }
 
-fn pipeline(ctx: &GpuContext, pass: Pass) -> wgpu::ComputePipeline {
+pub(crate) fn pipeline(ctx: &GpuContext, pass: Pass) -> wgpu::ComputePipeline {
     let module = ctx.device.create_shader_module(wgpu::ShaderModuleDescriptor {
         label: Some(pass.file()),
         source: wgpu::ShaderSource::Wgsl(pass.source().into()),
@@ -81,7 +81,7 @@ fn pipeline(ctx: &GpuContext, pass: Pass) -> wgpu::ComputePipeline {
     })
 }
 
-fn storage(ctx: &GpuContext, label: &str, size: u64, extra: wgpu::BufferUsages) -> wgpu::Buffer {
+pub(crate) fn storage(ctx: &GpuContext, label: &str, size: u64, extra: wgpu::BufferUsages) -> wgpu::Buffer {
     ctx.device.create_buffer(&wgpu::BufferDescriptor {
         label: Some(label),
         size: size.max(4),
@@ -90,7 +90,7 @@ fn storage(ctx: &GpuContext, label: &str, size: u64, extra: wgpu::BufferUsages) 
     })
 }
 
-fn entry(binding: u32, resource: wgpu::BindingResource<'_>) -> wgpu::BindGroupEntry<'_> {
+pub(crate) fn entry(binding: u32, resource: wgpu::BindingResource<'_>) -> wgpu::BindGroupEntry<'_> {
     wgpu::BindGroupEntry { binding, resource }
 }
 
@@ -196,6 +196,14 @@ impl GpuRasterizer {
     /// Draws the scene for `camera` into a cleared framebuffer; with `resolve` (a background
     /// colour) also resolves the image from the scene's colours. Waits for the GPU.
     pub fn draw(&mut self, ctx: &GpuContext, scene: &mut GpuScene, camera: &Camera, options: &RasterOptions, resolve: Option<u32>) -> Result<GpuFrame, GpuError> {
+        self.draw_selected(ctx, scene, None, camera, options, resolve)
+    }
+
+    /// [`draw`](Self::draw) of only the scene's batches listed in `selected` (positions in
+    /// [`GpuScene::batches`], any order, each at most once; `None`: every batch). The framebuffer
+    /// holds the scene's point indices as usual, so the resolve needs no change: this is how a
+    /// level-of-detail selection is drawn from a scene holding every node once.
+    pub fn draw_selected(&mut self, ctx: &GpuContext, scene: &mut GpuScene, selected: Option<&[u32]>, camera: &Camera, options: &RasterOptions, resolve: Option<u32>) -> Result<GpuFrame, GpuError> {
         let start = Instant::now();
         if camera.width != self.width || camera.height != self.height {
             return Err(RasterError::Viewport { fb_width: self.width, fb_height: self.height, width: camera.width, height: camera.height }.into());
@@ -208,12 +216,28 @@ impl GpuRasterizer {
 
         // Plan every batch (in parallel), then lay the drawn ones out per chunk, each chunk's
         // records starting at a storage-offset boundary (padding records have no points).
-        let plans: Vec<BatchPlan> = scene.batches.par_iter().map(|b| planner.plan(&b.grid, &b.bounds, b.count as usize)).collect();
+        // The batches to draw, in scene order (so that each chunk's records are contiguous).
+        let order: Vec<u32> = match selected {
+            None => (0..scene.batches.len() as u32).collect(),
+            Some(ids) => {
+                let mut v = ids.to_vec();
+                v.sort_unstable();
+                v.dedup();
+                if let Some(&bad) = v.iter().find(|&&i| i as usize >= scene.batches.len()) {
+                    return Err(GpuError::Selection(format!("batch {bad} selected, but the scene holds {}", scene.batches.len())));
+                }
+                v
+            }
+        };
+        let plans: Vec<BatchPlan> = order.par_iter().map(|&i| {
+            let b = &scene.batches[i as usize];
+            planner.plan(&b.grid, &b.bounds, b.count as usize)
+        }).collect();
         let mut stats = RasterStats { batches: plans.len() as u64, ..Default::default() };
         let align = ctx.limits().min_storage_buffer_offset_alignment.max(1) as usize;
         let mut records: Vec<DrawRecord> = Vec::new();
         let mut ranges: Vec<(usize, usize, usize)> = Vec::new(); // (chunk, first record, count)
-        for (b, plan) in scene.batches.iter().zip(&plans) {
+        for (b, plan) in order.iter().map(|&i| &scene.batches[i as usize]).zip(&plans) {
             match plan {
                 BatchPlan::Empty => {}
                 BatchPlan::Culled => stats.batches_culled += 1,
@@ -423,16 +447,21 @@ impl GpuRasterizer {
     /// frame drawn with `resolve`.
     pub fn read_image(&self, ctx: &GpuContext) -> Result<Vec<u32>, GpuError> {
         let Some(image) = &self.image else { return Err(GpuError::Colors("no frame was resolved yet".into())) };
-        let mut enc = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("read image") });
-        let buf = readback(ctx, &mut enc, image, image.size());
-        ctx.queue.submit([enc.finish()]);
-        let bytes = map_read(ctx, &buf)?;
-        Ok(bytemuck::pod_collect_to_vec::<u8, u32>(&bytes)[..self.width as usize * self.height as usize].to_vec())
+        read_image_buffer(ctx, image, self.width, self.height)
     }
 }
 
+/// The first `width * height` RGBA8 pixels of an image buffer (a resolve pass's output).
+pub(crate) fn read_image_buffer(ctx: &GpuContext, image: &wgpu::Buffer, width: u32, height: u32) -> Result<Vec<u32>, GpuError> {
+    let mut enc = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("read image") });
+    let buf = readback(ctx, &mut enc, image, image.size());
+    ctx.queue.submit([enc.finish()]);
+    let bytes = map_read(ctx, &buf)?;
+    Ok(bytemuck::pod_collect_to_vec::<u8, u32>(&bytes)[..width as usize * height as usize].to_vec())
+}
+
 /// A mappable copy of `size` bytes of `src`, recorded in `enc`.
-fn readback(ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, src: &wgpu::Buffer, size: u64) -> wgpu::Buffer {
+pub(crate) fn readback(ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, src: &wgpu::Buffer, size: u64) -> wgpu::Buffer {
     let dst = ctx.device.create_buffer(&wgpu::BufferDescriptor {
         label: Some("readback"),
         size,
@@ -444,7 +473,7 @@ fn readback(ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, src: &wgpu::Buffer
 }
 
 /// Maps a readback buffer (after its copy was submitted) and returns its bytes.
-fn map_read(ctx: &GpuContext, buf: &wgpu::Buffer) -> Result<Vec<u8>, GpuError> {
+pub(crate) fn map_read(ctx: &GpuContext, buf: &wgpu::Buffer) -> Result<Vec<u8>, GpuError> {
     let (tx, rx) = mpsc::channel();
     buf.map_async(wgpu::MapMode::Read, .., move |r| {
         let _ = tx.send(r);

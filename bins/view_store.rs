@@ -1,0 +1,222 @@
+//! An octree store in `mortar view` and `mortar build --preview`: each frame draws the LOD
+//! selection of paper 004 §6 for the window's camera, straight from the mapped `nodes.bin`.
+//!
+//! - CPU: the selection's nodes are borrowed from the map and drawn by the CPU rasterizer
+//!   ([`store_lod::render`]), as `mortar render store/` does.
+//! - GPU: a node is uploaded the first time a selection needs it and stays on the GPU; every frame
+//!   draws the selected nodes' batches out of the one scene ([`GpuRasterizer::draw_selected`]).
+//!   Uploads are keyed by the payload's offset in `nodes.bin`: the file only grows and a payload
+//!   is never rewritten, so when a growing store commits again (the preview), only the nodes
+//!   whose payload is new are uploaded; the replaced ones become garbage on the GPU, and the
+//!   scene is rebuilt from what is selected when the garbage outweighs the live samples.
+//! - Colours: the stored colour (RGB or intensity grey, voxels their first-come or averaged
+//!   colour) or elevation over a range fixed when the view opens (`--range`, else the store's
+//!   height bounds), so that both rasterizers colour a sample alike and a growing store's colours
+//!   do not shift from frame to frame.
+
+use anyhow::{anyhow, Result};
+use mortar_core::grid::Grid;
+use mortar_core::octree::{LodOptions, LodTree};
+use mortar_core::render::resolve::{elevation_color, ColorMode, ResolveOptions};
+use mortar_core::render::{Aabb, Camera, RasterOptions};
+use mortar_io::render_input::{ColorChoice, RenderSettings};
+use mortar_io::store_lod::{self, LodColor, StoreLod};
+use mortar_render::{GpuContext, GpuError, GpuFrame, GpuRasterizer, GpuScene, SceneOptions};
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+
+/// The colour modes of a store view.
+pub const MODES: [ColorChoice; 2] = [ColorChoice::Stored, ColorChoice::Mode(ColorMode::Elevation)];
+
+/// What the last frame selected.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Selected {
+    pub nodes: u64,
+    pub samples: u64,
+    /// Nodes uploaded to the GPU for this frame.
+    pub uploaded_nodes: u64,
+}
+
+/// The GPU side of a store view: the scene and which payloads it holds.
+pub struct StoreGpu {
+    scene: GpuScene,
+    /// Scene batch of each uploaded payload (by offset in `nodes.bin`), with its samples.
+    batches: HashMap<u64, (u32, u64)>,
+    /// Colour mode of the uploaded colours.
+    mode: usize,
+    /// Samples in the scene that no node of the current commit uses.
+    garbage: u64,
+}
+
+/// An octree store shown in a window.
+pub struct StoreView {
+    path: PathBuf,
+    /// The last commit, or `None` while a build has not committed yet.
+    lod: Option<StoreLod>,
+    commit: u64,
+    options: LodOptions,
+    /// Elevation colour range.
+    range: [f64; 2],
+    bounds: Aabb,
+    pub selected: Selected,
+}
+
+impl StoreView {
+    /// Opens the store `dir` (its last commit).
+    pub fn open(dir: &Path, options: LodOptions, range: Option<[f64; 2]>) -> Result<StoreView> {
+        let lod = StoreLod::open(dir)?;
+        if lod.point_count() == 0 {
+            anyhow::bail!("{}: no points to draw", dir.display());
+        }
+        let bounds = lod.bounds();
+        let mut v = StoreView::waiting(dir, bounds, options, range);
+        v.commit = lod.store().header.commit;
+        v.lod = Some(lod);
+        Ok(v)
+    }
+
+    /// A view of the store a build is writing into `dir`, shown from its first commit on; until
+    /// then frames are empty. `bounds`: the points' bounds as the inputs' headers declare them.
+    pub fn waiting(dir: &Path, bounds: Aabb, options: LodOptions, range: Option<[f64; 2]>) -> StoreView {
+        let range = range.unwrap_or([bounds.min[2], bounds.max[2].max(bounds.min[2] + 1e-9)]);
+        StoreView { path: dir.to_path_buf(), lod: None, commit: 0, options, range, bounds, selected: Selected::default() }
+    }
+
+    /// The position in [`MODES`] of colour mode `choice`, or an error naming the store for
+    /// modes a store cannot show ([`LodColor::of`]).
+    pub fn mode_of(&self, choice: ColorChoice) -> Result<usize> {
+        let color = match &self.lod {
+            Some(lod) => LodColor::of(lod.store(), choice)?,
+            None => match choice {
+                ColorChoice::Mode(ColorMode::Elevation) => LodColor::Elevation,
+                ColorChoice::Auto | ColorChoice::Stored | ColorChoice::Mode(ColorMode::Rgb) => LodColor::Stored,
+                ColorChoice::Mode(m) => anyhow::bail!("{}: --color {}: a store's LOD view draws voxels, which keep only the stored colour; use --color stored or elevation", self.path.display(), m.name()),
+            },
+        };
+        Ok(match color {
+            LodColor::Stored => 0,
+            LodColor::Elevation => 1,
+        })
+    }
+
+    /// The bounds framed by the camera.
+    pub fn bounds(&self) -> Aabb {
+        self.bounds
+    }
+
+    /// Points in the last commit.
+    pub fn points(&self) -> u64 {
+        self.lod.as_ref().map_or(0, StoreLod::point_count)
+    }
+
+    /// Nodes in the last commit.
+    pub fn nodes(&self) -> u64 {
+        self.lod.as_ref().map_or(0, |l| l.node_count() as u64)
+    }
+
+    /// The commit shown (0: none yet).
+    pub fn commit(&self) -> u64 {
+        self.commit
+    }
+
+    /// Opens the store's last commit if it is newer than the one shown; whether it was.
+    pub fn reload(&mut self, gpu: Option<&mut StoreGpu>) -> Result<bool> {
+        let lod = match StoreLod::open(&self.path) {
+            Ok(l) => l,
+            // No commit yet.
+            Err(_) if self.lod.is_none() => return Ok(false),
+            Err(e) => return Err(e.into()),
+        };
+        if lod.store().header.commit == self.commit {
+            return Ok(false);
+        }
+        self.commit = lod.store().header.commit;
+        if let Some(g) = gpu {
+            let live: std::collections::HashSet<u64> = (0..lod.node_count()).map(|i| lod.payload_offset(mortar_core::octree::NodeId(i as u32))).collect();
+            let before = g.batches.len();
+            let mut dropped = 0;
+            g.batches.retain(|off, (_, n)| {
+                let keep = live.contains(off);
+                if !keep {
+                    dropped += *n;
+                }
+                keep
+            });
+            g.garbage += dropped;
+            debug_assert!(g.batches.len() <= before);
+        }
+        self.lod = Some(lod);
+        Ok(true)
+    }
+
+    fn settings(&self, mode: usize, options: &RasterOptions, background: u32) -> RenderSettings {
+        RenderSettings { raster: *options, color: MODES[mode], range: Some(self.range), resolve: ResolveOptions { background, ..Default::default() } }
+    }
+
+    /// Draws the view with the CPU rasterizer: the RGBA8 image.
+    pub fn draw_cpu(&mut self, camera: &Camera, options: &RasterOptions, background: u32, mode: usize) -> Result<Vec<u32>> {
+        let Some(lod) = &self.lod else {
+            return Ok(vec![background; camera.width as usize * camera.height as usize]);
+        };
+        let sel = lod.select(camera, &self.options)?;
+        let batches = lod.batches(&sel.nodes)?;
+        let img = store_lod::render(lod, &batches, camera, &self.settings(mode, options, background))?;
+        self.selected = Selected { nodes: sel.nodes.len() as u64, samples: batches.samples, uploaded_nodes: 0 };
+        Ok(img.rgba)
+    }
+
+    /// A GPU side for this view.
+    pub fn gpu(&self, ctx: &GpuContext, mode: usize) -> Result<StoreGpu, GpuError> {
+        let grid = self.lod.as_ref().map_or(Grid { scale: [1.0; 3], offset: [0.0; 3] }, StoreLod::grid);
+        Ok(StoreGpu { scene: GpuScene::new(ctx, grid, 1 << 20, SceneOptions { colors: true, ..Default::default() })?, batches: HashMap::new(), mode, garbage: 0 })
+    }
+
+    /// Draws the view with the GPU rasterizer into `raster` (resolved, ready to present),
+    /// uploading the selected nodes the GPU does not hold yet.
+    pub fn draw_gpu(&mut self, ctx: &GpuContext, g: &mut StoreGpu, raster: &mut GpuRasterizer, camera: &Camera, options: &RasterOptions, background: u32, mode: usize) -> Result<GpuFrame> {
+        let gpu = |e: GpuError| anyhow!("{}: GPU: {e}", self.path.display());
+        let Some(lod) = &self.lod else {
+            return raster.draw_selected(ctx, &mut g.scene, Some(&[]), camera, options, Some(background)).map_err(gpu);
+        };
+        let sel = lod.select(camera, &self.options)?;
+        let samples: u64 = sel.nodes.iter().map(|&id| lod.index().samples(id)).sum();
+        // A new colour mode, a new grid (the first commit) or more garbage than live samples:
+        // start a new scene with what this frame needs.
+        let live = g.scene.points() - g.garbage;
+        if g.mode != mode || *g.scene.grid() != lod.grid() || (g.garbage > live && g.garbage > 1 << 20) || g.scene.points() + samples >= 1 << 32 {
+            *g = StoreGpu { scene: GpuScene::new(ctx, lod.grid(), samples.max(1 << 20), SceneOptions { colors: true, ..Default::default() }).map_err(gpu)?, batches: HashMap::new(), mode, garbage: 0 };
+        }
+        let mut ids = Vec::with_capacity(sel.nodes.len());
+        let mut uploaded = 0;
+        let mut colors = Vec::new();
+        for &id in &sel.nodes {
+            let off = lod.payload_offset(id);
+            if let Some(&(b, _)) = g.batches.get(&off) {
+                ids.push(b);
+                continue;
+            }
+            let first = g.scene.points();
+            let batch = lod.node_batch(id, first as u32);
+            let d = lod.node(id);
+            let c: &[u32] = match MODES[mode] {
+                ColorChoice::Mode(ColorMode::Elevation) => {
+                    let grid = lod.grid();
+                    colors.clear();
+                    colors.extend((0..batch.len()).map(|i| {
+                        let p = batch.grid.decode_exact([batch.words[0][i], batch.words[1][i], batch.words[2][i]]);
+                        elevation_color(grid.world(2, p[2] as i64), self.range)
+                    }));
+                    &colors
+                }
+                _ => d.colors,
+            };
+            let b = g.scene.batches().len() as u32;
+            g.scene.push(ctx, &batch, Some(c)).map_err(gpu)?;
+            g.batches.insert(off, (b, batch.len() as u64));
+            ids.push(b);
+            uploaded += 1;
+        }
+        self.selected = Selected { nodes: sel.nodes.len() as u64, samples, uploaded_nodes: uploaded };
+        raster.draw_selected(ctx, &mut g.scene, Some(&ids), camera, options, Some(background)).map_err(gpu)
+    }
+}
