@@ -84,13 +84,18 @@ pub fn run(a: Args) -> Result<()> {
         let view = a.preview.view_args(&a.output, &a.frames.camera);
         let bounds = crate::build_frames::header_bounds(&ds);
         let (ds, output, opts) = (&ds, &a.output, &opts);
-        crate::view::run_preview(&view, output, bounds, move |report| {
+        let job = move |report: &mut dyn FnMut(&BuildProgress)| {
             build(ds, output, opts, &mut |p| {
                 progress(p);
                 report(p);
             })
             .map_err(anyhow::Error::from)
-        })?
+        };
+        if a.preview.preview_offscreen {
+            crate::view::run_preview_offscreen(&view, output, bounds, job)?
+        } else {
+            crate::view::run_preview(&view, output, bounds, job)?
+        }
     } else {
         (build(&ds, &a.output, &opts, &mut progress)?, serde_json::Value::Null)
     };

@@ -11,6 +11,7 @@ mod render;
 mod render_lod;
 mod sort;
 mod view;
+mod view_progressive;
 mod view_store;
 
 use clap::{Parser, Subcommand};

@@ -11,6 +11,7 @@
 
 use crate::common;
 use crate::render::{build_camera, encode_png, parse_color, write_atomic, AtomicsArg, CameraArgs, PrecisionArg};
+use crate::view_progressive::ProgressiveView;
 use crate::view_store::{StoreGpu, StoreView};
 use anyhow::{anyhow, bail, Context as _, Result};
 use mortar_core::render::resolve::{resolve, ColorMode, ResolveOptions};
@@ -30,6 +31,9 @@ use winit::event::{ElementState, KeyEvent, MouseButton, MouseScrollDelta, Window
 use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop, EventLoopProxy};
 use winit::keyboard::{Key, NamedKey};
 use winit::window::{Window, WindowId};
+
+/// Whether the progressive view can draw on the GPU.
+const GPU_PROGRESSIVE: bool = false;
 
 /// Which rasterizer draws the window's frames.
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
@@ -107,6 +111,10 @@ pub struct Args {
     pub sort: common::SortArgs,
     #[command(flatten)]
     pub lod: crate::render_lod::LodArgs,
+    /// Raw LAS/LAZ: batch the points into a temporary batch file first and draw every point each
+    /// frame, instead of the progressive renderer (paper 000) that shows them as they load.
+    #[arg(long)]
+    pub no_progressive: bool,
 }
 
 /// The preview options of `mortar build`.
@@ -127,6 +135,11 @@ pub struct PreviewArgs {
     /// shows to this PNG and close the window (for tests and scripted runs).
     #[arg(long, value_name = "PNG", requires = "preview")]
     pub preview_screenshot: Option<PathBuf>,
+    /// With --preview: draw the preview off screen, without a window, at most 60 frames per
+    /// second from the fixed camera, and report the frames in --json (for benchmarks, and for
+    /// servers with a GPU but no display).
+    #[arg(long, requires = "preview", conflicts_with = "preview_screenshot")]
+    pub preview_offscreen: bool,
 }
 
 fn parse_size_wxh(s: &str) -> std::result::Result<(u32, u32), String> {
@@ -155,6 +168,7 @@ impl PreviewArgs {
             no_status: false,
             sort: common::SortArgs::default(),
             lod: crate::render_lod::LodArgs::default(),
+            no_progressive: false,
         }
     }
 }
@@ -204,6 +218,18 @@ pub fn run(a: Args) -> Result<()> {
         let mode = view.mode_of(a.color)?;
         let label = dir.display().to_string();
         return show(&a, event_loop, Content::Store(Box::new(view)), crate::view_store::MODES.to_vec(), mode, label, None).map(drop);
+    }
+    if !a.no_progressive {
+        let paths = mortar_io::source::expand_inputs(&a.inputs)?;
+        let raw = !paths.is_empty()
+            && paths.iter().all(|p| p.as_os_str() != "-" && !mortar_io::store::is_store(p) && !(p.is_file() && mortar_io::batchfile::is_batch_file(p)));
+        if raw {
+            let threads = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
+            let view = ProgressiveView::open(&paths, a.color, a.range, threads)?;
+            let label = paths.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(" ");
+            let modes = view.modes.clone();
+            return show(&a, event_loop, Content::Progressive(Box::new(view)), modes, 0, label, None).map(drop);
+        }
     }
     let source = crate::render::open_source(&a.inputs, &a.sort)?;
     let file = &source.file;
@@ -273,6 +299,107 @@ where
         let result = rrx.recv().map_err(|_| anyhow!("the build's thread ended without a result"))?;
         result.map(|r| (r, frames))
     })
+}
+
+/// The frame period of the off-screen preview (60 frames per second).
+const OFFSCREEN_PERIOD_MS: f64 = 1000.0 / 60.0;
+
+/// `mortar build --preview --preview-offscreen`: the preview's frames drawn without a window,
+/// paced to 60 per second, by the same store view as the window (GPU or CPU), from the fixed
+/// camera of the options. Returns the build's report and the frames' statistics.
+pub fn run_preview_offscreen<F>(a: &Args, dir: &std::path::Path, bounds: Aabb, build: F) -> Result<(BuildReport, serde_json::Value)>
+where
+    F: FnOnce(&mut dyn FnMut(&BuildProgress)) -> Result<BuildReport> + Send,
+{
+    check_window(a)?;
+    let mut view = StoreView::waiting(dir, bounds, a.lod.options(true)?, a.range);
+    let mode = view.mode_of(a.color)?;
+    let camera = build_camera(&a.camera, &bounds, a.width, a.height)?;
+    let options = RasterOptions { precision: a.precision.mode(), cull: true };
+    let atomics = match a.atomics {
+        AtomicsArg::Auto => None,
+        AtomicsArg::U64 => Some(AtomicPath::U64),
+        AtomicsArg::U32 => Some(AtomicPath::TwoPass32),
+    };
+    let ctx = match a.backend {
+        ViewBackend::Cpu => None,
+        ViewBackend::Gpu => Some(GpuContext::new(&GpuOptions { atomics, allow_software: true, ..Default::default() }).map_err(|e| anyhow!("--preview-backend gpu: {e}"))?),
+        ViewBackend::Auto => GpuContext::new(&GpuOptions { atomics, allow_software: false, ..Default::default() }).ok(),
+    };
+    let mut gpu = match &ctx {
+        Some(ctx) => Some((view.gpu(ctx, mode)?, GpuRasterizer::new(ctx, a.width, a.height)?)),
+        None => None,
+    };
+    let (ptx, prx) = std::sync::mpsc::channel();
+    let (rtx, rrx) = std::sync::mpsc::channel();
+    let start = Instant::now();
+    let (frames, result) = std::thread::scope(|scope| -> Result<_> {
+        scope.spawn(move || {
+            let r = build(&mut |p: &BuildProgress| {
+                let _ = ptx.send(*p);
+            });
+            drop(ptx);
+            let _ = rtx.send(r);
+        });
+        let mut state = BuildState::new(prx);
+        let mut frames = Vec::new();
+        loop {
+            let t = Instant::now();
+            let committed = state.poll();
+            let last = state.done;
+            if committed || last {
+                view.reload(gpu.as_mut().map(|g| &mut g.0))?;
+            }
+            let (drawn, gpu_ms) = match (&ctx, &mut gpu) {
+                (Some(ctx), Some((sg, raster))) => {
+                    let f = view.draw_gpu(ctx, sg, raster, &camera, &options, a.background, mode)?;
+                    (f.stats.points_drawn, f.timings.map(|t| t.draw_ms + t.resolve_ms.unwrap_or(0.0)))
+                }
+                _ => {
+                    view.draw_cpu(&camera, &options, a.background, mode)?;
+                    (view.selected.samples, None)
+                }
+            };
+            let frame_ms = t.elapsed().as_secs_f64() * 1e3;
+            frames.push(serde_json::json!({
+                "at_seconds": start.elapsed().as_secs_f64(),
+                "frame_ms": frame_ms,
+                "gpu_ms": gpu_ms,
+                "points_drawn": drawn,
+                "nodes_drawn": view.selected.nodes,
+                "nodes_uploaded": view.selected.uploaded_nodes,
+                "commit": view.commit(),
+            }));
+            if last {
+                break;
+            }
+            let left = OFFSCREEN_PERIOD_MS - t.elapsed().as_secs_f64() * 1e3;
+            if left > 0.0 {
+                std::thread::sleep(std::time::Duration::from_secs_f64(left * 1e-3));
+            }
+        }
+        let result = rrx.recv().map_err(|_| anyhow!("the build's thread ended without a result"))?;
+        Ok((frames, result))
+    })?;
+    let report = result?;
+    let mut ms: Vec<f64> = frames.iter().filter_map(|f| f["frame_ms"].as_f64()).collect();
+    ms.sort_by(f64::total_cmp);
+    let pick = |q: f64| ms.get(((ms.len() - 1) as f64 * q).round() as usize).copied();
+    let seconds = report.seconds.max(1e-9);
+    let during = frames.iter().filter(|f| f["at_seconds"].as_f64().is_some_and(|t| t <= seconds)).count();
+    let j = serde_json::json!({
+        "offscreen": true,
+        "renderer": match &ctx { Some(c) => serde_json::json!({ "backend": "gpu", "adapter": c.adapter().name }), None => serde_json::json!({ "backend": "cpu" }) },
+        "width": a.width,
+        "height": a.height,
+        "frame_count": frames.len(),
+        "frames_per_second_during_build": during as f64 / seconds,
+        "frame_ms_median": pick(0.5),
+        "frame_ms_p95": pick(0.95),
+        "frame_ms_max": pick(1.0),
+        "frames": frames,
+    });
+    Ok((report, j))
 }
 
 /// What a window saw.
@@ -448,6 +575,8 @@ enum Content<'a> {
     },
     /// An octree store (maybe growing): the LOD selection of each frame.
     Store(Box<StoreView>),
+    /// Raw LAS/LAZ: the progressive renderer, loading while it draws.
+    Progressive(Box<ProgressiveView>),
 }
 
 impl Content<'_> {
@@ -455,6 +584,7 @@ impl Content<'_> {
         match self {
             Content::Batches { file, .. } => render_input::file_bounds(file),
             Content::Store(v) => v.bounds(),
+            Content::Progressive(v) => v.bounds(),
         }
     }
 
@@ -462,6 +592,7 @@ impl Content<'_> {
         match self {
             Content::Batches { file, .. } => file.header.point_count,
             Content::Store(v) => v.points(),
+            Content::Progressive(v) => v.capacity(),
         }
     }
 }
@@ -637,8 +768,10 @@ impl App<'_> {
             AtomicsArg::U64 => Some(AtomicPath::U64),
             AtomicsArg::U32 => Some(AtomicPath::TwoPass32),
         };
+        let progressive = matches!(self.content, Content::Progressive(_));
         let gpu = match self.args.backend {
             ViewBackend::Cpu => Err("--backend cpu"),
+            _ if progressive && !GPU_PROGRESSIVE => Err("the progressive view draws on the CPU"),
             ViewBackend::Gpu => Ok(GpuContext::for_window(&GpuOptions { atomics, allow_software: true, ..Default::default() }, window.clone()).map_err(|e| anyhow!("--backend gpu: {e}"))?),
             ViewBackend::Auto => GpuContext::for_window(&GpuOptions { atomics, allow_software: false, ..Default::default() }, window.clone()).map_err(|_| "no hardware GPU can present to the window"),
         };
@@ -675,6 +808,7 @@ impl App<'_> {
             }
             // Nodes are uploaded as frames select them.
             Content::Store(v) => GpuData::Store(v.gpu(&ctx, self.mode)?),
+            Content::Progressive(_) => return Err(GpuError::Surface("the progressive view draws on the CPU".into())),
         };
         Ok(Renderer::Gpu(Box::new(Gpu { ctx, surface, raster, data })))
     }
@@ -690,6 +824,10 @@ impl App<'_> {
             Content::Store(v) => {
                 parts.push(format!("{} points, {} nodes, commit {}", group_digits(v.points()), group_digits(v.nodes()), v.commit()));
                 parts.push(format!("drawn {} nodes, {} samples", group_digits(v.selected.nodes), group_digits(v.selected.samples)));
+            }
+            Content::Progressive(v) => {
+                parts.push(format!("{} of {} points", group_digits(v.loaded()), group_digits(v.capacity())));
+                parts.push(v.status());
             }
         }
         if let Some(f) = self.frames.last() {
@@ -770,6 +908,11 @@ impl App<'_> {
                         stats.points_drawn = v.selected.samples;
                         rgba
                     }
+                    Content::Progressive(v) => {
+                        let rgba = v.draw_cpu(&camera, &options, bg)?;
+                        stats.points_drawn = v.last.raster.points_drawn;
+                        rgba
+                    }
                 };
                 stats.raster_ms = start.elapsed().as_secs_f64() * 1e3;
                 if let Some((ow, oh, px)) = &overlay {
@@ -820,7 +963,17 @@ impl App<'_> {
                     self.redraw();
                 }
                 "c" => {
-                    self.mode = (self.mode + 1) % self.modes.len();
+                    let next = (self.mode + 1) % self.modes.len();
+                    match &mut self.content {
+                        // A switch that needs another attribute is streamed (§3.5); not while
+                        // the points or another switch are still loading.
+                        Content::Progressive(v) => {
+                            if v.set_mode(next) {
+                                self.mode = next;
+                            }
+                        }
+                        _ => self.mode = next,
+                    }
                     self.redraw();
                 }
                 _ => {}
@@ -863,6 +1016,14 @@ impl App<'_> {
 }
 
 impl App<'_> {
+    /// Whether the content needs more frames to show its final image.
+    fn busy(&self) -> bool {
+        match &self.content {
+            Content::Progressive(v) => v.busy(),
+            _ => false,
+        }
+    }
+
     /// A preview's build reported: reloads the store at a new commit (and once more when the
     /// build ended) and redraws; otherwise redraws for the status line at most twice a second.
     fn on_build(&mut self, event: Wake) -> Result<()> {
@@ -938,7 +1099,8 @@ impl ApplicationHandler<Wake> for App<'_> {
                     && match &self.build {
                         // A preview's screenshot shows the finished store.
                         Some(b) => b.final_loaded,
-                        None => self.frames.len() + 1 >= self.args.frames as usize,
+                        // A progressive view's screenshot shows its final image.
+                        None => self.frames.len() + 1 >= self.args.frames as usize && !self.busy(),
                     };
                 match self.draw(last) {
                     Err(e) => self.fail(event_loop, e),
@@ -954,6 +1116,8 @@ impl ApplicationHandler<Wake> for App<'_> {
                         }
                     }
                     Ok(_) if shooting && self.build.is_none() => self.redraw(),
+                    // Progressive frames go on until the image is final.
+                    Ok(_) if self.busy() => self.redraw(),
                     Ok(_) => {}
                 }
             }
@@ -963,7 +1127,7 @@ impl ApplicationHandler<Wake> for App<'_> {
 }
 
 /// `1234567` as `1,234,567`.
-fn group_digits(n: u64) -> String {
+pub fn group_digits(n: u64) -> String {
     let s = n.to_string();
     let mut groups = Vec::new();
     let mut end = s.len();

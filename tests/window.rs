@@ -114,7 +114,7 @@ fn drawn_below_status(w: u32, px: &[[u8; 4]]) -> usize {
 fn shoot(display: &str, dir: &Path, name: &str, extra: &[&str]) -> (serde_json::Value, (u32, u32, Vec<[u8; 4]>)) {
     let png = dir.join(name);
     let input = sample();
-    let mut args = vec![input.to_str().unwrap(), "--width", "320", "--height", "240", "--screenshot", png.to_str().unwrap(), "--frames", "3", "--json"];
+    let mut args = vec![input.to_str().unwrap(), "--no-progressive", "--width", "320", "--height", "240", "--screenshot", png.to_str().unwrap(), "--frames", "3", "--json"];
     args.extend_from_slice(extra);
     let o = view(display, &args);
     assert!(o.status.success(), "mortar view {args:?}: {}", String::from_utf8_lossy(&o.stderr));
@@ -292,4 +292,43 @@ fn build_preview_shows_the_store_while_it_grows() {
         let b = std::fs::read(reference.join("hierarchy.bin")).unwrap();
         assert_eq!(a.len(), b.len());
     }
+}
+
+#[test]
+fn view_draws_raw_las_progressively_until_the_image_is_final() {
+    let Some(x) = xvfb_or_skip() else { return };
+    let dir = tempdir("window-progressive");
+    let input = sample();
+    let shot = |name: &str, extra: &[&str]| {
+        let png = dir.join(name);
+        let mut args = vec![input.to_str().unwrap(), "--width", "320", "--height", "240", "--no-status", "--screenshot", png.to_str().unwrap(), "--json"];
+        args.extend_from_slice(extra);
+        let o = view(&x.display, &args);
+        assert!(o.status.success(), "mortar view {args:?}: {}", String::from_utf8_lossy(&o.stderr));
+        let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+        (j, read_png(&png))
+    };
+    // Progressive (the default for raw LAS/LAZ): the screenshot waits for the final image.
+    let (pj, (w, h, progressive)) = shot("progressive.png", &["--backend", "cpu"]);
+    assert_eq!((w, h), (320, 240));
+    assert_eq!(pj["points"], 110_000);
+    let frames = pj["frames"].as_array().unwrap();
+    assert!(!frames.is_empty());
+    // The final image is the headless progressive render's once converged (which
+    // tests/progressive.rs checks against the brute-force render), pixel for pixel.
+    let png = dir.join("render.png");
+    run_ok(mortar().arg("render").arg(&input).args(["--progressive", "converge", "--width", "320", "--height", "240", "-o"]).arg(&png));
+    let (_, _, rendered) = read_png(&png);
+    let differ = progressive.iter().zip(&rendered).filter(|(a, b)| a != b).count();
+    let drawn = rendered.iter().filter(|p| p[..3] != [0, 0, 0]).count();
+    assert!(drawn > 5_000, "{drawn}");
+    assert_eq!(differ, 0, "{differ} of {drawn} pixels differ between the window and mortar render --progressive converge");
+    // The first frames show part of the points, the last all of them.
+    let drawn: Vec<u64> = frames.iter().map(|f| f["points_drawn"].as_u64().unwrap()).collect();
+    assert!(drawn.len() >= 2 && drawn[0] < *drawn.iter().max().unwrap(), "{drawn:?}");
+    // Another colour mode that needs another attribute: streamed in, then final again.
+    let (cj, (_, _, class)) = shot("class.png", &["--backend", "cpu", "--color", "classification"]);
+    assert_eq!(cj["color"], "classification");
+    let recoloured = class.iter().zip(&progressive).filter(|(a, b)| a != b).count();
+    assert!(recoloured > 1000, "{recoloured} pixels changed colour");
 }

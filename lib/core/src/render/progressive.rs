@@ -30,10 +30,12 @@
 //! ([`ProgressiveRenderer::all_points`] gives that reference). [`FrameStats::converged`] says when
 //! that is the case (a bitmap of the slots drawn since the view last changed).
 //!
-//! Not done here (pending): the GPU version of the progressive renderer (the same passes as
-//! compute shaders on `lib/render`, with GPU timestamps feeding [`AdaptiveBudget`]) and
-//! progressive drawing in the interactive window (`mortar view`); MSAA (paper §3.4: it acts as
-//! supersampling) is not implemented.
+//! The GPU twin is `mortar_render::progressive::GpuProgressive` (the same passes as compute
+//! shaders, the same [`Shuffle`] and [`UNLOADED`] sentinel, one plan for all slots, GPU timestamps
+//! feeding [`AdaptiveBudget`]); its keys equal this renderer's frame by frame for the same budgets.
+//!
+//! Not done here (pending): progressive drawing in the interactive window (`mortar view`); MSAA
+//! (paper §3.4: it acts as supersampling) is not implemented.
 
 use super::camera::Camera;
 use super::framebuffer::{key_index, Framebuffer, EMPTY_KEY};
@@ -259,8 +261,10 @@ pub enum FillBudget {
 // ---------------------------------------------------------------------------------------------
 
 /// The coarse word of a slot whose point has not arrived: bit 31, which no real coarse word uses
-/// (three 10-bit fields).
-const UNLOADED: u32 = 1 << 31;
+/// (three 10-bit fields). The GPU progressive renderer (mortar-render) uses the same sentinel;
+/// its WGSL mirror is `UNLOADED` in `shaders/progressive_fill.wgsl` and
+/// `shaders/progressive_unload.wgsl` (checked against this one by mortar-render's shader test).
+pub const UNLOADED: u32 = 1 << 31;
 
 /// Points per [`BatchRef`] / [`GatheredRef`] handed to the rasterizer (its unit of parallelism).
 const CHUNK: usize = 1 << 15;
@@ -304,6 +308,9 @@ pub enum ProgressiveError {
     /// A point was inserted twice.
     #[error("point {0} was inserted twice")]
     Duplicate(u64),
+    /// A payload was replaced for a point not inserted yet.
+    #[error("point {0} has no payload to replace: it was not inserted")]
+    NotLoaded(u64),
     /// Coordinates and payloads of different lengths.
     #[error("{points} points but {payloads} payloads")]
     PayloadCount {
@@ -580,6 +587,26 @@ impl ProgressiveRenderer {
                 unsafe { out.write(targets[k] as usize, frame.encode(xyz[k]), payload[k]) };
             });
         self.loaded += xyz.len() as u64;
+        Ok(())
+    }
+
+    /// Replaces the payloads of points `first..first + payload.len()` of the input (already
+    /// inserted) with new ones, leaving their positions and the frame's state alone: attribute
+    /// switching streamed batch by batch (§3.5), as a loader delivers the new attribute. Checks
+    /// everything before changing anything.
+    pub fn replace_payloads(&mut self, first: u64, payload: &[u64]) -> Result<(), ProgressiveError> {
+        let end = first.saturating_add(payload.len() as u64);
+        if end > self.capacity() {
+            return Err(ProgressiveError::IndexRange { first, end, capacity: self.capacity() });
+        }
+        let shuffle = self.shuffle;
+        let targets: Vec<u32> = (0..payload.len()).into_par_iter().with_min_len(4096).map(|k| shuffle.target((first + k as u64) as u32)).collect();
+        if let Some(k) = targets.iter().position(|&t| self.words[0][t as usize] == UNLOADED) {
+            return Err(ProgressiveError::NotLoaded(first + k as u64));
+        }
+        for (&t, &v) in targets.iter().zip(payload) {
+            self.payload[t as usize] = v;
+        }
         Ok(())
     }
 
@@ -1569,6 +1596,16 @@ mod tests {
         assert_eq!(r.loaded(), 2);
         assert_eq!(r.payload(r.shuffle().target(4)), Some(8));
         assert_eq!(r.position(r.shuffle().target(3)), Some([1, 2, 3]));
+        // Attribute switching (§3.5): payloads replaced in place, positions kept; points not
+        // inserted or past the end are refused without changes.
+        assert_eq!(r.replace_payloads(3, &[70, 80, 90]), Err(ProgressiveError::NotLoaded(5)));
+        assert!(matches!(r.replace_payloads(9, &[1, 2]), Err(ProgressiveError::IndexRange { .. })));
+        assert_eq!(r.payload(r.shuffle().target(3)), Some(7));
+        r.replace_payloads(3, &[70, 80]).unwrap();
+        assert_eq!(r.payload(r.shuffle().target(3)), Some(70));
+        assert_eq!(r.payload(r.shuffle().target(4)), Some(80));
+        assert_eq!(r.position(r.shuffle().target(4)), Some([4, 5, 6]));
+        assert_eq!(r.loaded(), 2);
         assert!(r.all_points().is_none() && !r.converged());
         let mut cam =
             Camera::frame_orthographic(&Aabb::new([0.0; 3], [1.0; 3]), ViewPreset::Top, 16, 16)

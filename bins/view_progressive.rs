@@ -1,0 +1,340 @@
+//! Raw LAS/LAZ in `mortar view`: the progressive renderer of paper 000, no preprocessing.
+//!
+//! The window opens at once; loader threads decode the files in parallel and hand over pieces as
+//! they are ready (§3.2); every frame takes the pieces that arrived into the shuffled buffer
+//! (the incremental shuffle of eq. 1-2), then draws Reproject, Fill with the adaptive budget of
+//! §3.4.1 and Prepare ([`ProgressiveRenderer::frame`]). Frames are drawn back to back while the
+//! image is not final (points still loading, or fewer frames than slots over budget since the
+//! camera last moved), and on input only once it is.
+//!
+//! Colours: each point carries one 64-bit payload, the raw attribute its colour mode needs
+//! ([`Payload`]), turned into colours for the visible points only. Switching to a mode that
+//! needs another attribute is streamed batch by batch (§3.5): new loaders read the attribute
+//! again and replace the payloads piece by piece while frames go on, the points already switched
+//! drawn in the new mode and the others in the old one until every piece has arrived.
+
+use anyhow::{anyhow, bail, Result};
+use mortar_core::render::progressive::{AdaptiveBudget, FillBudget, FrameStats, ProgressiveRenderer};
+use mortar_core::render::resolve::{resolve, ColorMode, ResolveOptions};
+use mortar_core::render::{Aabb, Camera, RasterOptions};
+use mortar_io::dataset::Dataset;
+use mortar_io::progressive::{header_frame, load_pieces, payload_colors, payload_for, ColorStats, LoadedPiece, Payload};
+use mortar_io::render_input::ColorChoice;
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::mpsc::{sync_channel, Receiver, TryRecvError};
+use std::sync::Arc;
+use std::thread::JoinHandle;
+
+/// Loader threads delivering pieces of the dataset with one kind of payload.
+struct Loader {
+    rx: Receiver<mortar_io::Result<LoadedPiece>>,
+    cancel: Arc<AtomicBool>,
+    thread: Option<JoinHandle<mortar_io::Result<()>>>,
+    /// All pieces were delivered (the channel closed).
+    finished: bool,
+}
+
+impl Loader {
+    fn start(ds: &Arc<Dataset>, payload: Payload, threads: usize) -> Loader {
+        let (tx, rx) = sync_channel(4 * threads.max(1));
+        let cancel = Arc::new(AtomicBool::new(false));
+        let (ds, c) = (ds.clone(), cancel.clone());
+        let thread = std::thread::Builder::new()
+            .name("mortar-view-load".into())
+            .spawn(move || load_pieces(&ds, payload, threads, &c, move |piece| tx.send(piece).is_ok()))
+            .ok();
+        Loader { rx, cancel, thread, finished: false }
+    }
+
+    /// The pieces that arrived, without waiting.
+    fn arrived(&mut self) -> Result<Vec<LoadedPiece>> {
+        let mut out = Vec::new();
+        while !self.finished {
+            match self.rx.try_recv() {
+                Ok(p) => out.push(p?),
+                Err(TryRecvError::Empty) => break,
+                Err(TryRecvError::Disconnected) => {
+                    self.finished = true;
+                    if let Some(t) = self.thread.take() {
+                        t.join().map_err(|_| anyhow!("a loader thread panicked"))??;
+                    }
+                }
+            }
+        }
+        Ok(out)
+    }
+}
+
+impl Drop for Loader {
+    fn drop(&mut self) {
+        self.cancel.store(true, Ordering::Relaxed);
+        // Unblock a loader waiting to send, then let it stop.
+        while self.rx.try_recv().is_ok() {}
+        if let Some(t) = self.thread.take() {
+            drop(std::mem::replace(&mut self.rx, sync_channel(1).1));
+            let _ = t.join();
+        }
+    }
+}
+
+/// A colour mode switch in progress (§3.5).
+struct Switch {
+    loader: Loader,
+    to: usize,
+    payload: Payload,
+    /// Per slot, whether its payload is the new one.
+    done: Vec<u64>,
+    points: u64,
+}
+
+/// A raw LAS/LAZ shown progressively.
+pub struct ProgressiveView {
+    label: String,
+    first_path: PathBuf,
+    ds: Arc<Dataset>,
+    renderer: ProgressiveRenderer,
+    bounds: Aabb,
+    threads: usize,
+    loader: Option<Loader>,
+    /// Colour modes offered (C cycles them) and the payload each needs.
+    pub modes: Vec<ColorChoice>,
+    payloads: Vec<Payload>,
+    /// The mode of the payloads held (of the points not yet switched, during a switch).
+    mode: usize,
+    switch: Option<Switch>,
+    stats: ColorStats,
+    range: Option<[f64; 2]>,
+    budget: FillBudget,
+    /// The last frame's statistics.
+    pub last: FrameStats,
+}
+
+impl ProgressiveView {
+    /// Opens `paths` (raw LAS/LAZ) and starts loading them; `color` is the first colour mode.
+    pub fn open(paths: &[PathBuf], color: ColorChoice, range: Option<[f64; 2]>, threads: usize) -> Result<ProgressiveView> {
+        let ds = Dataset::open(paths)?;
+        crate::common::print_warnings(&ds.warnings);
+        let label = paths.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(" ");
+        let frame = header_frame(&ds)?;
+        if frame.points == 0 {
+            bail!("{label}: no points to draw");
+        }
+        let first_path = ds.inputs[0].path().to_path_buf();
+        let first = payload_for(&ds.layout, color, &first_path)?;
+        let mut modes = vec![color];
+        let mut payloads = vec![first];
+        for m in ColorMode::ALL {
+            let c = ColorChoice::Mode(m);
+            if c == color {
+                continue;
+            }
+            if let Ok(p) = payload_for(&ds.layout, c, &first_path) {
+                modes.push(c);
+                payloads.push(p);
+            }
+        }
+        let renderer = ProgressiveRenderer::new(ds.grid, frame.min, frame.max, frame.points).map_err(|e| anyhow!("{label}: {e}"))?;
+        let ds = Arc::new(ds);
+        let loader = Some(Loader::start(&ds, first, threads));
+        Ok(ProgressiveView {
+            label,
+            first_path,
+            ds,
+            renderer,
+            bounds: frame.bounds,
+            threads,
+            loader,
+            modes,
+            payloads,
+            mode: 0,
+            switch: None,
+            stats: ColorStats::default(),
+            range,
+            budget: FillBudget::Adaptive(AdaptiveBudget::default()),
+            last: FrameStats::default(),
+        })
+    }
+
+    pub fn bounds(&self) -> Aabb {
+        self.bounds
+    }
+
+    pub fn capacity(&self) -> u64 {
+        self.renderer.capacity()
+    }
+
+    pub fn loaded(&self) -> u64 {
+        self.renderer.loaded()
+    }
+
+    /// The colour mode shown (the one being switched to, during a switch).
+    pub fn mode(&self) -> usize {
+        self.switch.as_ref().map_or(self.mode, |s| s.to)
+    }
+
+    /// Whether more frames would change the image: points are loading, a colour switch is
+    /// streaming, or the image has not converged.
+    pub fn busy(&self) -> bool {
+        self.loader.is_some() || self.switch.is_some() || !self.renderer.converged()
+    }
+
+    /// What the status line says of the loading and switching.
+    pub fn status(&self) -> String {
+        let mut s = if self.loaded() < self.capacity() {
+            format!("loading {:.0}%", 100.0 * self.loaded() as f64 / self.capacity().max(1) as f64)
+        } else if self.renderer.converged() {
+            "final".to_string()
+        } else {
+            "refining".to_string()
+        };
+        if let Some(w) = &self.switch {
+            s += &format!(", switching colours {:.0}%", 100.0 * w.points as f64 / self.capacity().max(1) as f64);
+        }
+        s += &format!(", budget {}", crate::view::group_digits(self.last.filled));
+        s
+    }
+
+    /// Asks for colour mode `to`: at once where the payloads held serve it, else streamed
+    /// (§3.5) once loading is done; `false` when it cannot start now (loading or switching).
+    pub fn set_mode(&mut self, to: usize) -> bool {
+        if to == self.mode() {
+            return true;
+        }
+        if self.switch.is_some() {
+            return false;
+        }
+        if self.payloads[to] == self.payloads[self.mode] {
+            self.mode = to;
+            return true;
+        }
+        if self.loader.is_some() {
+            return false;
+        }
+        let n = self.capacity() as usize;
+        self.switch = Some(Switch { loader: Loader::start(&self.ds, self.payloads[to], self.threads), to, payload: self.payloads[to], done: vec![0; n.div_ceil(64)], points: 0 });
+        true
+    }
+
+    /// Takes what the loaders delivered since the last call.
+    fn take_arrived(&mut self) -> Result<()> {
+        if let Some(l) = &mut self.loader {
+            for piece in l.arrived().map_err(|e| anyhow!("{}: {e:#}", self.label))? {
+                self.stats.add(&piece);
+                self.renderer.insert(piece.first, &piece.xyz, &piece.payload).map_err(|e| {
+                    anyhow!("{}: {e} (the progressive renderer frames the points with the header's bounds, which must hold every point)", self.label)
+                })?;
+            }
+            if l.finished {
+                self.loader = None;
+                if self.loaded() < self.capacity() {
+                    bail!("{}: only {} of {} points could be read", self.label, self.loaded(), self.capacity());
+                }
+            }
+        }
+        let capacity = self.capacity();
+        if let Some(w) = &mut self.switch {
+            for piece in w.loader.arrived().map_err(|e| anyhow!("{}: {e:#}", self.label))? {
+                self.stats.add(&piece);
+                self.renderer.replace_payloads(piece.first, &piece.payload).map_err(|e| anyhow!("{}: {e}", self.label))?;
+                let shuffle = *self.renderer.shuffle();
+                for i in 0..piece.payload.len() as u64 {
+                    let s = shuffle.target((piece.first + i) as u32) as usize;
+                    w.done[s / 64] |= 1 << (s % 64);
+                }
+                w.points += piece.payload.len() as u64;
+            }
+            if w.loader.finished {
+                if w.points < capacity {
+                    bail!("{}: only {} of {capacity} points could be read again for the new colours", self.label, w.points);
+                }
+                self.mode = w.to;
+                self.switch = None;
+            }
+        }
+        Ok(())
+    }
+
+    /// Draws one progressive frame with the CPU renderer and resolves it: the RGBA8 image.
+    pub fn draw_cpu(&mut self, camera: &Camera, options: &RasterOptions, background: u32) -> Result<Vec<u32>> {
+        self.take_arrived()?;
+        self.last = self.renderer.frame(camera, options, &self.budget).map_err(|e| anyhow!("{}: {e}", self.label))?;
+        let keys = self.renderer.keys();
+        let mut slots = self.renderer.visible();
+        slots.sort_unstable();
+        let colors = self.colors(&slots);
+        if self.mode == 0 && matches!(self.modes[0], ColorChoice::Mode(ColorMode::Rgb)) && self.loader.is_none() && self.stats.max_rgb == 0 {
+            bail!("{}: --color rgb: the points have no colour (every RGB value is zero); try --color intensity", self.first_path.display());
+        }
+        let color_of = |i: u32| slots.binary_search(&i).map(|k| colors[k]).unwrap_or(background);
+        Ok(resolve(&keys, camera.width, camera.height, color_of, &ResolveOptions { background, ..Default::default() }))
+    }
+
+    /// The colours of the visible `slots` (sorted): each in the mode its payload holds.
+    fn colors(&self, slots: &[u32]) -> Vec<u32> {
+        let payload_of = |s: u32| self.renderer.payload(s).expect("visible points are loaded");
+        let grid = self.ds.grid;
+        let Some(w) = &self.switch else {
+            let payloads: Vec<u64> = slots.iter().map(|&s| payload_of(s)).collect();
+            return payload_colors(&payloads, self.modes[self.mode], self.payloads[self.mode], &self.stats, &grid, self.range).0;
+        };
+        let switched = |s: u32| w.done[s as usize / 64] >> (s % 64) & 1 == 1;
+        let (new, old): (Vec<usize>, Vec<usize>) = (0..slots.len()).partition(|&k| switched(slots[k]));
+        let mut out = vec![0u32; slots.len()];
+        for (ks, mode, payload) in [(&new, w.to, w.payload), (&old, self.mode, self.payloads[self.mode])] {
+            let payloads: Vec<u64> = ks.iter().map(|&k| payload_of(slots[k])).collect();
+            let c = payload_colors(&payloads, self.modes[mode], payload, &self.stats, &grid, self.range).0;
+            for (&k, c) in ks.iter().zip(c) {
+                out[k] = c;
+            }
+        }
+        out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use mortar_core::render::Projection;
+
+    fn sample() -> PathBuf {
+        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("data-samples/autzen_trim.laz")
+    }
+
+    /// Frames until the image is final; the last image.
+    fn settle(v: &mut ProgressiveView, camera: &Camera) -> Vec<u32> {
+        for _ in 0..10_000 {
+            let img = v.draw_cpu(camera, &RasterOptions::default(), 0xff00_0000).unwrap();
+            if !v.busy() {
+                return img;
+            }
+            std::thread::sleep(std::time::Duration::from_millis(1));
+        }
+        panic!("the progressive view never settled");
+    }
+
+    #[test]
+    fn a_colour_switch_streams_in_and_ends_as_a_fresh_view_in_that_mode() {
+        let mut v = ProgressiveView::open(&[sample()], ColorChoice::Auto, None, 2).unwrap();
+        let b = v.bounds();
+        let c = b.center();
+        let d = b.diagonal();
+        let camera = Camera::look_at([c[0] + d, c[1] - d, c[2] + d], c, [0.0, 0.0, 1.0], Projection::Perspective { fov_y: 0.8 }, &b, 200, 150).unwrap();
+        let rgb = settle(&mut v, &camera);
+        let k = v.modes.iter().position(|&m| m == ColorChoice::Mode(ColorMode::Classification)).expect("the sample has classes");
+        assert!(v.set_mode(k));
+        assert_eq!(v.mode(), k);
+        assert!(v.switch.is_some(), "classification needs another attribute: streamed");
+        // No second switch while one streams.
+        assert!(!v.set_mode(0));
+        let switched = settle(&mut v, &camera);
+        assert!(v.switch.is_none() && v.mode == k);
+        let mut fresh = ProgressiveView::open(&[sample()], ColorChoice::Mode(ColorMode::Classification), None, 2).unwrap();
+        let expected = settle(&mut fresh, &camera);
+        assert_eq!(switched, expected);
+        assert!(switched.iter().zip(&rgb).filter(|(a, b)| a != b).count() > 1000);
+        // Back to the first mode: its payload is not held any more, so it streams again.
+        assert!(v.set_mode(0));
+        assert_eq!(settle(&mut v, &camera), rgb);
+    }
+}
