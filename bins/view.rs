@@ -32,6 +32,9 @@ use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop, EventLoopProxy}
 use winit::keyboard::{Key, NamedKey};
 use winit::window::{Window, WindowId};
 
+/// Seconds of uploading per frame while a batch file streams onto the GPU.
+const UPLOAD_SLICE_SECONDS: f64 = 0.1;
+
 /// Whether the progressive view can draw on the GPU.
 const GPU_PROGRESSIVE: bool = false;
 
@@ -430,6 +433,7 @@ fn show(a: &Args, event_loop: EventLoop<Wake>, content: Content<'_>, modes: Vec<
         error: None,
         done: false,
         last_frame: None,
+        uploading: false,
         build,
     };
     event_loop.run_app(&mut app).map_err(|e| anyhow!("{label}: window: {e}"))?;
@@ -603,6 +607,8 @@ enum GpuData {
         scene: GpuScene,
         /// The colour mode whose colours the scene holds.
         uploaded: usize,
+        /// Batches uploaded so far (frames draw those while the rest streams in).
+        next: usize,
     },
     Store(StoreGpu),
 }
@@ -738,6 +744,8 @@ struct App<'a> {
     done: bool,
     /// When the last frame was drawn.
     last_frame: Option<Instant>,
+    /// A batch file is still being uploaded to the GPU.
+    uploading: bool,
 }
 
 impl App<'_> {
@@ -795,16 +803,11 @@ impl App<'_> {
             return Err(GpuError::Colors(format!("{e:#}")));
         }
         let data = match &self.content {
-            Content::Batches { file, refs, colors } => {
-                let mut scene = GpuScene::new(&ctx, file.grid(), file.header.point_count, SceneOptions { colors: true, ..Default::default() })?;
-                let colors = colors[self.mode].as_deref().expect("computed above");
-                for b in refs.iter() {
-                    let first = b.first_index as usize;
-                    scene.push(&ctx, b, Some(&colors[first..first + b.len()]))?;
-                }
-                scene.flush(&ctx)?;
-                ctx.wait()?;
-                GpuData::Batches { scene, uploaded: self.mode }
+            // Batches are uploaded by the frames, a time slice each, so that the first frame
+            // comes at once whatever the file's size.
+            Content::Batches { file, .. } => {
+                let scene = GpuScene::new(&ctx, file.grid(), file.header.point_count, SceneOptions { colors: true, ..Default::default() })?;
+                GpuData::Batches { scene, uploaded: self.mode, next: 0 }
             }
             // Nodes are uploaded as frames select them.
             Content::Store(v) => GpuData::Store(v.gpu(&ctx, self.mode)?),
@@ -865,12 +868,26 @@ impl App<'_> {
                 surface.resize(ctx, w, h).map_err(gpu)?;
                 raster.resize(ctx, w, h).map_err(gpu)?;
                 let frame = match (&mut self.content, data) {
-                    (Content::Batches { colors, .. }, GpuData::Batches { scene, uploaded }) => {
+                    (Content::Batches { colors, refs, .. }, GpuData::Batches { scene, uploaded, next }) => {
+                        let colors = colors[mode].as_deref().expect("computed above");
                         if *uploaded != mode {
-                            scene.set_colors(ctx, colors[mode].as_deref().expect("computed above")).map_err(gpu)?;
+                            scene.set_colors(ctx, &colors[..scene.points() as usize]).map_err(gpu)?;
                             *uploaded = mode;
                         }
-                        raster.draw(ctx, scene, &camera, &options, Some(background)).map_err(gpu)?
+                        let t = Instant::now();
+                        while *next < refs.len() && t.elapsed().as_secs_f64() < UPLOAD_SLICE_SECONDS {
+                            let b = &refs[*next];
+                            let first = b.first_index as usize;
+                            scene.push(ctx, b, Some(&colors[first..first + b.len()])).map_err(gpu)?;
+                            *next += 1;
+                        }
+                        self.uploading = *next < refs.len();
+                        if self.uploading {
+                            let ids: Vec<u32> = (0..*next as u32).collect();
+                            raster.draw_selected(ctx, scene, Some(&ids), &camera, &options, Some(background)).map_err(gpu)?
+                        } else {
+                            raster.draw(ctx, scene, &camera, &options, Some(background)).map_err(gpu)?
+                        }
                     }
                     (Content::Store(v), GpuData::Store(sg)) => v.draw_gpu(ctx, sg, raster, &camera, &options, background, mode)?,
                     _ => bail!("{label}: the GPU holds data of another kind"),
@@ -1020,7 +1037,7 @@ impl App<'_> {
     fn busy(&self) -> bool {
         match &self.content {
             Content::Progressive(v) => v.busy(),
-            _ => false,
+            _ => self.uploading,
         }
     }
 
