@@ -87,3 +87,9 @@ impl SortArgs {
         mortar_io::sort::SortOptions::with_memory(self.memory.unwrap_or_else(mortar_io::sort::default_memory), self.tmp_dir())
     }
 }
+
+/// Milliseconds since the process started (the first call, made first thing in `main`).
+pub fn since_start_ms() -> f64 {
+    static START: std::sync::OnceLock<std::time::Instant> = std::sync::OnceLock::new();
+    START.get_or_init(std::time::Instant::now).elapsed().as_secs_f64() * 1e3
+}

@@ -41,11 +41,12 @@ enum Cmd {
     Render(render::Args),
     /// Build an octree LOD store (paper 004) from LAS/LAZ or batch files.
     Build(build::Args),
-    /// Show a batch file, LAS/LAZ or a store in a window (GPU rasterizer; orbit, pan, zoom).
+    /// Show a batch file, a store (LOD) or raw LAS/LAZ (progressive) in a window (orbit, pan, zoom).
     View(view::Args),
 }
 
 fn main() {
+    common::since_start_ms();
     let cli = Cli::parse();
     if let Some(t) = cli.threads {
         if let Err(e) = rayon::ThreadPoolBuilder::new().num_threads(t.max(1)).build_global() {

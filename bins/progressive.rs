@@ -1,19 +1,23 @@
-//! `mortar render <las|laz> --progressive N`: the progressive renderer of paper 000 on the CPU,
-//! headless. The inputs are decoded in parallel on loader threads while frames are drawn; every
-//! frame takes the points decoded so far into the shuffled buffer (incremental shuffle, eq. 1-2),
-//! then runs Reproject, Fill (`--budget` slots, or the adaptive budget of §3.4.1 with
-//! `--budget auto`) and Prepare with a still camera. The last frame is resolved like `mortar
-//! render`'s images (same colour rules, hole filling, eye-dome lighting) and written as PNG;
-//! `--json` prints every frame's statistics and when the image converged.
+//! `mortar render <las|laz> --progressive N`: the progressive renderer of paper 000, headless, on
+//! the CPU (`mortar_core::render::progressive`) or the GPU (`mortar_render::progressive`;
+//! `--backend gpu`, or `auto` on a hardware GPU with 64-bit atomics). The inputs are decoded in
+//! parallel on loader threads while frames are drawn; every frame takes the points decoded so far
+//! into the shuffled buffer (incremental shuffle, eq. 1-2), then runs Reproject, Fill (`--budget`
+//! slots, or the adaptive budget of §3.4.1 with `--budget auto`, timed by GPU timestamps where the
+//! GPU has them) and Prepare with a still camera. The last frame's keys are resolved on the host
+//! like `mortar render`'s images (same colour rules, hole filling, eye-dome lighting; both
+//! backends leave the same keys) and written as PNG; `--json` prints every frame's statistics and
+//! when the image converged.
 //!
-//! The GPU version of the progressive renderer and progressive drawing in the interactive window
-//! (`mortar view`) are pending.
+//! Progressive drawing in the interactive window (`mortar view`) is pending.
 
 use crate::common;
-use crate::render::{build_camera, camera_json, encode_png, write_atomic, Args, Backend};
+use crate::render::{
+    build_camera, camera_json, encode_png, gpu_context, write_atomic, Args, Backend,
+};
 use anyhow::{anyhow, bail, Result};
 use mortar_core::render::progressive::{
-    AdaptiveBudget, FillBudget, FrameStats, ProgressiveRenderer,
+    AdaptiveBudget, FillBudget, FrameStats, ProgressiveRenderer, Shuffle,
 };
 use mortar_core::render::resolve::{resolve, ColorMode, EyeDome, HoleFill, ResolveOptions};
 use mortar_core::render::RasterOptions;
@@ -22,6 +26,9 @@ use mortar_io::progressive::{
     header_frame, load_pieces, payload_colors, payload_for, resolve_choice, ColorStats, LoadedPiece,
 };
 use mortar_io::render_input::ColorChoice;
+use mortar_render::{
+    AtomicPath, GpuContext, GpuProgressive, GpuProgressiveFrame, ProgressiveOptions,
+};
 use std::sync::atomic::AtomicBool;
 use std::sync::mpsc::{sync_channel, Receiver, TryRecvError};
 use std::time::Instant;
@@ -120,6 +127,15 @@ fn frame_period(p: &ProgressiveArgs) -> Option<f64> {
         .then(|| p.target_ms.unwrap_or(AdaptiveBudget::default().target_ms))
 }
 
+/// The `--backend` value, for messages.
+fn backend_name(b: Backend) -> &'static str {
+    match b {
+        Backend::Cpu => "cpu",
+        Backend::Gpu => "gpu",
+        Backend::Auto => "auto",
+    }
+}
+
 /// Milliseconds since `t`.
 fn ms(t: Instant) -> f64 {
     t.elapsed().as_secs_f64() * 1e3
@@ -134,9 +150,91 @@ fn median(mut v: Vec<f64>) -> f64 {
     v[v.len() / 2]
 }
 
+/// The renderer the loop drives: the CPU one, or the GPU one on its context.
+enum Engine<'a> {
+    Cpu(Box<ProgressiveRenderer>),
+    Gpu {
+        ctx: &'a GpuContext,
+        r: Box<GpuProgressive>,
+    },
+}
+
+impl Engine<'_> {
+    fn loaded(&self) -> u64 {
+        match self {
+            Engine::Cpu(r) => r.loaded(),
+            Engine::Gpu { r, .. } => r.loaded(),
+        }
+    }
+
+    fn capacity(&self) -> u64 {
+        match self {
+            Engine::Cpu(r) => r.capacity(),
+            Engine::Gpu { r, .. } => r.capacity(),
+        }
+    }
+
+    fn shuffle(&self) -> &Shuffle {
+        match self {
+            Engine::Cpu(r) => r.shuffle(),
+            Engine::Gpu { r, .. } => r.shuffle(),
+        }
+    }
+
+    fn insert(&mut self, piece: &LoadedPiece) -> std::result::Result<(), String> {
+        match self {
+            Engine::Cpu(r) => r
+                .insert(piece.first, &piece.xyz, &piece.payload)
+                .map_err(|e| e.to_string()),
+            Engine::Gpu { ctx, r } => r
+                .insert(ctx, piece.first, &piece.xyz, None, Some(&piece.payload))
+                .map_err(|e| e.to_string()),
+        }
+    }
+
+    fn frame(
+        &mut self,
+        camera: &mortar_core::render::Camera,
+        options: &RasterOptions,
+        budget: &FillBudget,
+    ) -> std::result::Result<(FrameStats, Option<GpuProgressiveFrame>), String> {
+        match self {
+            Engine::Cpu(r) => r
+                .frame(camera, options, budget)
+                .map(|s| (s, None))
+                .map_err(|e| e.to_string()),
+            Engine::Gpu { ctx, r } => r
+                .frame(ctx, camera, options, budget, None)
+                .map(|f| (f.stats, Some(f)))
+                .map_err(|e| format!("GPU: {e}")),
+        }
+    }
+
+    /// The last frame's keys and its visible slots (sorted).
+    fn keys_and_visible(&self) -> Result<(Vec<u64>, Vec<u32>)> {
+        Ok(match self {
+            Engine::Cpu(r) => {
+                let mut v = r.visible();
+                v.sort_unstable();
+                (r.keys(), v)
+            }
+            Engine::Gpu { ctx, r } => (r.read_keys(ctx)?, r.read_visible(ctx)?),
+        })
+    }
+
+    fn payload(&self, slot: u32) -> Option<u64> {
+        match self {
+            Engine::Cpu(r) => r.payload(slot),
+            Engine::Gpu { r, .. } => r.payload(slot),
+        }
+    }
+}
+
 /// One frame with what happened before it.
 struct FrameRecord {
     stats: FrameStats,
+    /// The GPU renderer's account of the frame (timing source, GPU pass times).
+    gpu: Option<GpuProgressiveFrame>,
     /// Time taking the decoded pieces into the shuffled buffer, ms.
     distribute_ms: f64,
     /// End of the frame, ms since the start.
@@ -157,7 +255,7 @@ struct Outcome {
 /// Draws frames until `frames` says stop, taking pieces from `rx` as they arrive.
 #[allow(clippy::too_many_arguments)]
 fn render_loop(
-    r: &mut ProgressiveRenderer,
+    r: &mut Engine<'_>,
     rx: Receiver<mortar_io::Result<LoadedPiece>>,
     frames: Frames,
     preload: bool,
@@ -176,14 +274,14 @@ fn render_loop(
         decode_seconds: 0.0,
     };
     let mut open = true;
-    let take = |r: &mut ProgressiveRenderer,
+    let take = |r: &mut Engine<'_>,
                 piece: mortar_io::Result<LoadedPiece>,
                 out: &mut Outcome|
      -> Result<()> {
         let piece = piece?;
         out.colors.add(&piece);
         out.decode_seconds += piece.seconds;
-        r.insert(piece.first, &piece.xyz, &piece.payload).map_err(|e| {
+        r.insert(&piece).map_err(|e| {
             anyhow!("{label}: {e} (the progressive renderer frames the points with the header's bounds, which must hold every point)")
         })
     };
@@ -223,11 +321,12 @@ fn render_loop(
         if out.frames.is_empty() {
             out.first_frame_ms = ms(start);
         }
-        let stats = r
+        let (stats, gpu) = r
             .frame(camera, options, budget)
             .map_err(|e| anyhow!("{label}: {e}"))?;
         out.frames.push(FrameRecord {
             stats,
+            gpu,
             distribute_ms,
             at_ms: ms(start),
         });
@@ -253,9 +352,6 @@ pub fn run(a: &Args) -> Result<()> {
     let p = &a.progressive;
     let frames = parse_frames(p.progressive.as_deref().unwrap_or_default())?;
     let budget = parse_budget(p)?;
-    if a.backend == Backend::Gpu {
-        bail!("--progressive: the progressive renderer runs on the CPU (its GPU version is pending); leave out --backend gpu");
-    }
     if p.load_threads == Some(0) {
         bail!("--load-threads 0: at least one thread must decode the input");
     }
@@ -292,8 +388,29 @@ pub fn run(a: &Args) -> Result<()> {
         precision: a.precision.mode(),
         cull: !a.no_cull,
     };
-    let mut renderer = ProgressiveRenderer::new(ds.grid, frame.min, frame.max, frame.points)
-        .map_err(|e| anyhow!("{label}: {e}"))?;
+    // `auto` takes a hardware GPU only if it has the 64-bit atomics the GPU renderer needs.
+    let gpu = match gpu_context(a)? {
+        Some(ctx) if a.backend == Backend::Auto && ctx.atomic_path() != AtomicPath::U64 => None,
+        ctx => ctx,
+    };
+    let mut renderer = match &gpu {
+        None => Engine::Cpu(Box::new(
+            ProgressiveRenderer::new(ds.grid, frame.min, frame.max, frame.points)
+                .map_err(|e| anyhow!("{label}: {e}"))?,
+        )),
+        Some(ctx) => {
+            let options = ProgressiveOptions {
+                payloads: true,
+                ..ProgressiveOptions::default()
+            };
+            let r = GpuProgressive::new(ctx, ds.grid, frame.min, frame.max, frame.points, options)
+                .map_err(|e| anyhow!("{label}: --backend {}: {e}", backend_name(a.backend)))?;
+            Engine::Gpu {
+                ctx,
+                r: Box::new(r),
+            }
+        }
+    };
     let threads = p.load_threads.unwrap_or_else(|| {
         std::thread::available_parallelism()
             .map(|n| n.get())
@@ -339,9 +456,9 @@ pub fn run(a: &Args) -> Result<()> {
     if loaded_all && a.color == ColorChoice::Mode(ColorMode::Rgb) && outcome.colors.max_rgb == 0 {
         bail!("{}: --color rgb: the points have no colour (every RGB value is zero, point format {}); try --color intensity", first_path.display(), ds.layout.format);
     }
-    let keys = renderer.keys();
-    let mut slots: Vec<u32> = renderer.visible();
-    slots.sort_unstable();
+    let (keys, slots) = renderer
+        .keys_and_visible()
+        .map_err(|e| anyhow!("{label}: GPU: {e}"))?;
     let payloads: Vec<u64> = slots
         .iter()
         .map(|&s| renderer.payload(s).expect("visible points are loaded"))
@@ -390,6 +507,24 @@ pub fn run(a: &Args) -> Result<()> {
         return Ok(());
     }
     let converged_at = outcome.frames.iter().find(|f| f.stats.converged);
+    let gpu_json = match (&gpu, &renderer) {
+        (Some(ctx), Engine::Gpu { r, .. }) => {
+            let ad = ctx.adapter();
+            serde_json::json!({
+                "adapter": ad.name,
+                "api": ad.backend,
+                "device_type": ad.device_type,
+                "driver": ad.driver,
+                "atomics": ctx.atomic_path().name(),
+                "chunks": r.chunk_count(),
+                "gpu_bytes": r.gpu_bytes(),
+                // How pass times and the adaptive budget were measured: "gpu-timestamps" or "host-clock".
+                "timing": r.timing().name(),
+                "timestamps": r.timing() == mortar_render::BudgetTiming::GpuTimestamps,
+            })
+        }
+        _ => serde_json::Value::Null,
+    };
     let budget_json = match budget {
         FillBudget::Fixed(b) => {
             serde_json::json!({ "fixed": b, "frames_to_converge": renderer.capacity().div_ceil(b) })
@@ -427,6 +562,7 @@ pub fn run(a: &Args) -> Result<()> {
                 "fill_ms": s.fill_ms,
                 "prepare_ms": s.prepare_ms,
                 "frame_ms": s.total_ms,
+                "gpu_frame_ms": f.gpu.and_then(|g| g.gpu).map(|g| g.frame_ms),
                 "at_ms": f.at_ms,
                 "converged": s.converged,
             })
@@ -437,7 +573,8 @@ pub fn run(a: &Args) -> Result<()> {
         "output": a.output,
         "width": camera.width,
         "height": camera.height,
-        "backend": "cpu",
+        "backend": if gpu.is_some() { "gpu" } else { "cpu" },
+        "gpu": gpu_json,
         "renderer": "progressive",
         "precision": a.precision.name(),
         "cull": !a.no_cull,

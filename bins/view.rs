@@ -553,11 +553,14 @@ struct FrameStats {
     /// The GPU's resolve pass.
     gpu_resolve_ms: Option<f64>,
     points_drawn: u64,
+    /// End of the frame, ms since the command started.
+    at_ms: f64,
 }
 
 impl FrameStats {
     fn json(&self) -> serde_json::Value {
         serde_json::json!({
+            "at_ms": self.at_ms,
             "frame_ms": self.frame_ms,
             "raster_ms": self.raster_ms,
             "present_ms": self.present_ms,
@@ -948,6 +951,7 @@ impl App<'_> {
         };
         stats.frame_ms = start.elapsed().as_secs_f64() * 1e3;
         stats.present_ms = stats.frame_ms - stats.raster_ms;
+        stats.at_ms = crate::common::since_start_ms();
         self.frames.push(stats);
         self.last_frame = Some(Instant::now());
         window.set_title(&format!("mortar view: {} | {}", self.label, self.status()));

@@ -427,12 +427,6 @@ fn bad_input_fails_clearly() {
     fails(
         &s,
         &out,
-        &["--progressive", "3", "--backend", "gpu"],
-        &["CPU", "pending"],
-    );
-    fails(
-        &s,
-        &out,
         &["--progressive", "3", "--load-threads", "0"],
         &["--load-threads 0"],
     );

@@ -8,6 +8,8 @@
 //! - [`raster`]: per frame, the shared [`mortar_core::render::Planner`] decides culling, precision
 //!   and projection per batch; the GPU clears, draws (one workgroup of 128 threads per batch,
 //!   dispatches split past 65,535 workgroups) and resolves.
+//! - [`progressive`]: the progressive renderer of paper 000 (shuffled buffer, Reproject, Fill,
+//!   Prepare, adaptive fill budget from GPU timestamps), the twin of mortar-core's CPU one.
 //! - [`shaders`]: the WGSL modules of `shaders/`, assembled from `shaders/common/` and one file
 //!   per pass.
 //!
@@ -19,6 +21,7 @@
 
 pub mod context;
 pub mod present;
+pub mod progressive;
 pub mod raster;
 pub mod scene;
 pub mod shaders;
@@ -30,5 +33,6 @@ pub use wgpu;
 
 pub use context::{AdapterSummary, AtomicPath, GpuContext, GpuError, GpuOptions};
 pub use present::{Overlay, Presented, ReadBack, WindowSurface};
+pub use progressive::{BudgetTiming, GpuProgressive, GpuProgressiveFrame, ProgressiveGpuError, ProgressiveGpuTimings, ProgressiveOptions};
 pub use raster::{GpuFrame, GpuRasterizer, GpuTimings};
 pub use scene::{GpuBatch, GpuScene, SceneOptions};

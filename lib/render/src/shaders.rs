@@ -1,6 +1,7 @@
-//! The WGSL passes of the GPU rasterizer, assembled from `shaders/` exactly as the pipelines and
-//! the validation test use them: WGSL has no `#include`, so each pass is the shared files of
-//! `shaders/common/` followed by the pass's own file.
+//! The WGSL passes of the GPU rasterizer and of the GPU progressive renderer, assembled from
+//! `shaders/` exactly as the pipelines and the validation test use them: WGSL has no `#include`,
+//! so each pass is the shared files of `shaders/common/` (and, for the progressive passes,
+//! `shaders/progressive_types.wgsl`) followed by the pass's own file.
 
 /// The shared types and the split-dispatch helper (every pass).
 const TYPES: &str = include_str!("../../../shaders/common/types.wgsl");
@@ -10,6 +11,8 @@ const DECODE: &str = include_str!("../../../shaders/common/decode.wgsl");
 const BATCHES: &str = include_str!("../../../shaders/common/batches.wgsl");
 /// The drawn-point counter (draw passes that count).
 const COUNTERS: &str = include_str!("../../../shaders/common/counters.wgsl");
+/// The progressive renderer's constants and uniform structs (its passes, after `TYPES`).
+const PROGRESSIVE: &str = include_str!("../../../shaders/progressive_types.wgsl");
 
 /// The window's present pass (`shaders/present.wgsl`: a vertex and a fragment entry point, no
 /// shared files), used by [`crate::present::WindowSurface`].
@@ -28,11 +31,36 @@ pub enum Pass {
     DrawIndex32,
     /// Point index to colour (`shaders/resolve.wgsl`).
     Resolve,
+    /// Progressive renderer: marks a chunk's slots unloaded (`shaders/progressive_unload.wgsl`).
+    ProgressiveUnload,
+    /// Progressive renderer: staged points into their shuffled slots
+    /// (`shaders/progressive_scatter.wgsl`).
+    ProgressiveScatter,
+    /// Progressive renderer: draws the last frame's visible slots
+    /// (`shaders/progressive_reproject.wgsl`).
+    ProgressiveReproject,
+    /// Progressive renderer: draws a run of slots, skipping unloaded ones
+    /// (`shaders/progressive_fill.wgsl`).
+    ProgressiveFill,
+    /// Progressive renderer: the visible slots into the next Reproject lists
+    /// (`shaders/progressive_prepare.wgsl`).
+    ProgressivePrepare,
 }
 
 impl Pass {
     /// Every pass.
-    pub const ALL: [Pass; 5] = [Pass::Clear, Pass::Draw64, Pass::DrawDepth32, Pass::DrawIndex32, Pass::Resolve];
+    pub const ALL: [Pass; 10] = [
+        Pass::Clear,
+        Pass::Draw64,
+        Pass::DrawDepth32,
+        Pass::DrawIndex32,
+        Pass::Resolve,
+        Pass::ProgressiveUnload,
+        Pass::ProgressiveScatter,
+        Pass::ProgressiveReproject,
+        Pass::ProgressiveFill,
+        Pass::ProgressivePrepare,
+    ];
 
     /// The pass's file under `shaders/`.
     pub fn file(self) -> &'static str {
@@ -42,6 +70,11 @@ impl Pass {
             Pass::DrawDepth32 => "draw_depth.wgsl",
             Pass::DrawIndex32 => "draw_index.wgsl",
             Pass::Resolve => "resolve.wgsl",
+            Pass::ProgressiveUnload => "progressive_unload.wgsl",
+            Pass::ProgressiveScatter => "progressive_scatter.wgsl",
+            Pass::ProgressiveReproject => "progressive_reproject.wgsl",
+            Pass::ProgressiveFill => "progressive_fill.wgsl",
+            Pass::ProgressivePrepare => "progressive_prepare.wgsl",
         }
     }
 
@@ -52,13 +85,18 @@ impl Pass {
             Pass::DrawDepth32 => include_str!("../../../shaders/draw_depth.wgsl"),
             Pass::DrawIndex32 => include_str!("../../../shaders/draw_index.wgsl"),
             Pass::Resolve => include_str!("../../../shaders/resolve.wgsl"),
+            Pass::ProgressiveUnload => include_str!("../../../shaders/progressive_unload.wgsl"),
+            Pass::ProgressiveScatter => include_str!("../../../shaders/progressive_scatter.wgsl"),
+            Pass::ProgressiveReproject => include_str!("../../../shaders/progressive_reproject.wgsl"),
+            Pass::ProgressiveFill => include_str!("../../../shaders/progressive_fill.wgsl"),
+            Pass::ProgressivePrepare => include_str!("../../../shaders/progressive_prepare.wgsl"),
         }
     }
 
     /// Whether the pass uses 64-bit integers and atomics (SHADER_INT64 +
     /// SHADER_INT64_ATOMIC_MIN_MAX).
     pub fn needs_int64(self) -> bool {
-        self == Pass::Draw64
+        matches!(self, Pass::Draw64 | Pass::ProgressiveReproject | Pass::ProgressiveFill)
     }
 
     /// The complete WGSL module of the pass, as the pipeline compiles it.
@@ -68,6 +106,8 @@ impl Pass {
             Pass::Clear | Pass::Resolve => {}
             Pass::Draw64 | Pass::DrawIndex32 => parts.extend([DECODE, BATCHES, COUNTERS]),
             Pass::DrawDepth32 => parts.extend([DECODE, BATCHES]),
+            Pass::ProgressiveUnload | Pass::ProgressiveScatter | Pass::ProgressivePrepare => parts.push(PROGRESSIVE),
+            Pass::ProgressiveReproject | Pass::ProgressiveFill => parts.extend([PROGRESSIVE, DECODE, BATCHES, COUNTERS]),
         }
         parts.push(self.own_source());
         parts.join("\n")

@@ -4,6 +4,8 @@
 
 use mortar_core::render::gpu::{DrawRecord, FrameUniforms, ResolveUniforms};
 use mortar_core::render::BatchProjection;
+use mortar_core::render::progressive::UNLOADED;
+use mortar_render::progressive::{PrepareUniforms, ScatterUniforms, SLOTS_PER_THREAD};
 use mortar_render::shaders::Pass;
 use naga::valid::{Capabilities, ValidationFlags, Validator};
 use std::mem::{offset_of, size_of};
@@ -54,6 +56,8 @@ fn shared_structs_have_the_rust_layout() {
     // draw.wgsl and resolve.wgsl together contain every shared struct (types.wgsl is in both).
     let draw = parse(Pass::Draw64);
     let resolve = parse(Pass::Resolve);
+    let scatter = parse(Pass::ProgressiveScatter);
+    let prepare = parse(Pass::ProgressivePrepare);
     let cases: Vec<(&str, &naga::Module, usize, Vec<(&str, usize)>)> = vec![
         (
             "BatchProjection",
@@ -111,6 +115,28 @@ fn shared_structs_have_the_rust_layout() {
                 ("write_background", offset_of!(ResolveUniforms, write_background)),
             ],
         ),
+        (
+            "ScatterUniforms",
+            &scatter,
+            size_of::<ScatterUniforms>(),
+            vec![
+                ("colors", offset_of!(ScatterUniforms, colors)),
+                ("_pad0", offset_of!(ScatterUniforms, _pad0)),
+                ("_pad1", offset_of!(ScatterUniforms, _pad1)),
+                ("_pad2", offset_of!(ScatterUniforms, _pad2)),
+            ],
+        ),
+        (
+            "PrepareUniforms",
+            &prepare,
+            size_of::<PrepareUniforms>(),
+            vec![
+                ("pixels", offset_of!(PrepareUniforms, pixels)),
+                ("chunk_slots", offset_of!(PrepareUniforms, chunk_slots)),
+                ("list_stride", offset_of!(PrepareUniforms, list_stride)),
+                ("chunks", offset_of!(PrepareUniforms, chunks)),
+            ],
+        ),
     ];
     for (name, module, rust_size, rust_members) in cases {
         let (size, members) = wgsl_layout(module, name);
@@ -122,4 +148,23 @@ fn shared_structs_have_the_rust_layout() {
             assert_eq!(*off as usize, *rust_off, "{name}.{n}: WGSL offset {off}, Rust {rust_off}");
         }
     }
+}
+
+/// The value of the WGSL `u32` constant `name` of `module`.
+fn wgsl_u32_constant(module: &naga::Module, name: &str) -> u32 {
+    let c = module.constants.iter().find(|(_, c)| c.name.as_deref() == Some(name)).unwrap_or_else(|| panic!("constant {name} not found in the WGSL")).1;
+    match module.global_expressions[c.init] {
+        naga::Expression::Literal(naga::Literal::U32(v)) => v,
+        ref e => panic!("constant {name}: {e:?} is not a u32 literal"),
+    }
+}
+
+#[test]
+fn progressive_constants_have_the_rust_values() {
+    // The progressive passes share progressive_types.wgsl; Fill uses both constants.
+    let fill = parse(Pass::ProgressiveFill);
+    assert_eq!(wgsl_u32_constant(&fill, "UNLOADED"), UNLOADED, "UNLOADED: WGSL and mortar_core differ");
+    assert_eq!(wgsl_u32_constant(&fill, "SLOTS_PER_THREAD"), SLOTS_PER_THREAD, "SLOTS_PER_THREAD: WGSL and Rust differ");
+    let unload = parse(Pass::ProgressiveUnload);
+    assert_eq!(wgsl_u32_constant(&unload, "UNLOADED"), UNLOADED);
 }

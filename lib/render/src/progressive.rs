@@ -1,0 +1,1103 @@
+//! The progressive renderer of paper 000 (Schütz et al., "Progressive Real-Time Rendering of One
+//! Billion Points Without Hierarchical Acceleration Structures") on the GPU: the twin of
+//! [`mortar_core::render::progressive::ProgressiveRenderer`], with the same keys frame by frame.
+//!
+//! - **The shuffled buffer** (§3.2-3.3): three 10-bit coordinate words per slot (coarse, medium,
+//!   fine) in ONE quantization frame over the whole data set, as the CPU renderer holds them, plus
+//!   (optionally) one RGBA8 colour per slot for the GPU resolve. It is split by slot range into
+//!   chunks that fit the device's largest storage binding (at most
+//!   [`MAX_CHUNK_POINTS`] slots, 1 GiB per word buffer: a billion
+//!   points are four chunks on an H100). Every slot starts with the coarse word
+//!   [`UNLOADED`](mortar_core::render::progressive::UNLOADED) (pass `progressive_unload.wgsl`), and Fill skips such slots, as the paper
+//!   discards default-initialized vertices.
+//! - **Insertion** ([`GpuProgressive::insert`], the Distribute step): the host computes each
+//!   point's slot with core's [`Shuffle::target`] (eq. 1-2) and its words, stages one record per
+//!   point (slot, words, colour) and the pass `progressive_scatter.wgsl` writes them into their
+//!   slots. The slots are computed on the host, not in a shader, because the host needs them
+//!   anyway: it keeps a bit per slot of what arrived (duplicates are refused, Fill's point count and
+//!   the convergence test need it, as in the CPU renderer) and, on request, each point's 64-bit
+//!   payload by slot (colour rules that need the visible points' values, as `mortar render` has).
+//!   One definition of the shuffle also stays in core; the cost is 4 more bytes per point uploaded.
+//! - **Per frame** (§3.4; [`GpuProgressive::frame`]): clear the 64-bit visibility buffer
+//!   (`clear.wgsl`); **Reproject** (`progressive_reproject.wgsl`): draw the slots the last Prepare
+//!   listed, reading their words from the shuffled buffer by slot; **Fill**
+//!   (`progressive_fill.wgsl`): draw slots `[cursor, cursor + budget)`, wrapping around;
+//!   **Prepare** (`progressive_prepare.wgsl`): append each pixel's winning slot to the visible
+//!   list of its chunk with an atomic counter; then, with colours, **resolve** (`resolve.wgsl`,
+//!   one dispatch per chunk, as the batch rasterizer resolves) into an RGBA8 image buffer that
+//!   [`WindowSurface::present_image`](crate::present::WindowSurface::present_image) can show.
+//!   The key is `depth_bits << 32 | slot`.
+//! - **Exactness**: every slot shares one frame and one set of bounds, so core's
+//!   [`Planner`] makes one plan (culling, precision, projection) for all of them, computed on the
+//!   host in f64 exactly as the CPU renderer's `rasterize` calls make it; with the projection and
+//!   decode of `common/decode.wgsl` the GPU keys are the CPU progressive renderer's keys, frame by
+//!   frame for the same budgets (tested on lavapipe).
+//! - **Adaptive fill budget** (§3.4.1): with [`FillBudget::Adaptive`] the frame is submitted in two
+//!   parts: clear + Reproject + the probe Fill with timestamp queries; the host reads the
+//!   timestamps back, feeds [`ProbeTimings`] (GPU times: probe pass, time since the clear began,
+//!   the last frame's Prepare and resolve) to [`AdaptiveBudget::extra_points`], and submits the
+//!   extra Fill, Prepare and resolve. Without TIMESTAMP_QUERY every pass is submitted on its own and
+//!   timed with the host's clock ([`BudgetTiming`] says which). The paper computes the budget on the
+//!   GPU and draws with an indirect call to avoid the round trip; here the host does it (one
+//!   read-back per frame, which the statistics need anyway), and the `usable` share of the frame
+//!   time covers the round trip.
+//! - **Convergence** as in the CPU renderer: a bit per slot drawn since the view (camera and
+//!   options) last changed; converged once every slot is loaded and drawn.
+//!
+//! Only the 64-bit atomic path is implemented: on a context whose
+//! [`atomic_path`](GpuContext::atomic_path) is the 32-bit two-pass path,
+//! [`GpuProgressive::new`] fails with [`ProgressiveGpuError::Needs64BitAtomics`] (the two-pass path
+//! would need a second Reproject and Fill per frame; the CPU renderer serves such machines).
+//! Deviations from the paper: no MSAA; 12 bytes of words per point (16 with colours) instead of
+//! 16 bytes of floats and attributes; [`RasterStats`] counts one "batch" per dispatch.
+
+use crate::context::{AtomicPath, GpuContext, GpuError};
+use crate::raster::{entry, map_read, pipeline, read_image_buffer, readback, storage};
+use crate::scene::MAX_CHUNK_POINTS;
+use crate::shaders::Pass;
+use mortar_core::grid::Grid;
+use mortar_core::quantize::BatchGrid;
+use mortar_core::render::gpu::{DrawRecord, FrameUniforms, ResolveUniforms};
+use mortar_core::render::progressive::{AdaptiveBudget, FillBudget, FrameStats, ProbeTimings, ProgressiveError, Shuffle};
+use mortar_core::render::{Aabb, BatchPlan, BatchProjection, Camera, Planner, RasterError, RasterOptions, RasterStats};
+use rayon::prelude::*;
+use std::num::NonZeroU64;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::Instant;
+
+/// Slots (Fill) or list entries (Reproject) per thread of the draw passes; WGSL mirror
+/// `SLOTS_PER_THREAD` in `shaders/progressive_types.wgsl`.
+pub const SLOTS_PER_THREAD: u32 = 8;
+
+/// Slots per workgroup of the draw passes (128 threads).
+const SLOTS_PER_GROUP: u64 = 128 * SLOTS_PER_THREAD as u64;
+
+/// Points per scatter upload.
+const STAGING_POINTS: usize = 4 << 20;
+
+/// Constants of the scatter pass. 16 bytes; WGSL `ScatterUniforms` in
+/// `shaders/progressive_types.wgsl` (keep in sync; checked by the shader test).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct ScatterUniforms {
+    /// 1 when the staged records carry a colour (5 words per point), 0 when not (4 words).
+    pub colors: u32,
+    /// Padding.
+    pub _pad0: u32,
+    /// Padding.
+    pub _pad1: u32,
+    /// Padding.
+    pub _pad2: u32,
+}
+
+const _: () = assert!(std::mem::size_of::<ScatterUniforms>() == 16);
+
+/// Constants of the Prepare pass. 16 bytes; WGSL `PrepareUniforms` in
+/// `shaders/progressive_types.wgsl` (keep in sync; checked by the shader test).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct PrepareUniforms {
+    /// Pixels of the framebuffer.
+    pub pixels: u32,
+    /// Slots per chunk (a slot's list is `slot / chunk_slots`).
+    pub chunk_slots: u32,
+    /// Entries between the starts of two chunks' visible lists.
+    pub list_stride: u32,
+    /// Number of chunks.
+    pub chunks: u32,
+}
+
+const _: () = assert!(std::mem::size_of::<PrepareUniforms>() == 16);
+
+/// Why the GPU progressive renderer refused something or failed.
+#[derive(Debug, thiserror::Error)]
+pub enum ProgressiveGpuError {
+    /// The context runs the 32-bit two-pass path.
+    #[error("{adapter}: the GPU progressive renderer needs 64-bit atomics (SHADER_INT64 + SHADER_INT64_ATOMIC_MIN_MAX) and this context uses the 32-bit two-pass path; use the CPU progressive renderer")]
+    Needs64BitAtomics {
+        /// The adapter's name.
+        adapter: String,
+    },
+    /// Bad points, frame or view (the CPU renderer's errors; nothing was changed).
+    #[error(transparent)]
+    Progressive(#[from] ProgressiveError),
+    /// The device failed or something does not fit it.
+    #[error(transparent)]
+    Gpu(#[from] GpuError),
+}
+
+impl From<RasterError> for ProgressiveGpuError {
+    fn from(e: RasterError) -> Self {
+        ProgressiveGpuError::Progressive(ProgressiveError::Raster(e))
+    }
+}
+
+/// Choices of a [`GpuProgressive`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub struct ProgressiveOptions {
+    /// Slots per chunk (`None`: as many as the device's largest binding holds, at most
+    /// [`MAX_CHUNK_POINTS`]). Small values exercise the chunking
+    /// in tests.
+    pub chunk_slots: Option<u32>,
+    /// Whether points come with RGBA8 colours (for the GPU resolve and [`GpuProgressive::image_buffer`]).
+    pub colors: bool,
+    /// Whether points come with a 64-bit payload kept on the host by slot
+    /// ([`GpuProgressive::payload`], as the CPU renderer keeps it), for colour rules resolved on
+    /// the host.
+    pub payloads: bool,
+    /// Time the passes with the host's clock ([`BudgetTiming::HostClock`]) even where the device
+    /// has timestamps (what a device without them does; tests use it).
+    pub host_clock: bool,
+}
+
+/// How the adaptive budget's timings were measured.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum BudgetTiming {
+    /// GPU timestamp queries (TIMESTAMP_QUERY).
+    GpuTimestamps,
+    /// The host's clock around passes submitted one at a time (no timestamps on this device).
+    HostClock,
+}
+
+impl BudgetTiming {
+    /// A short name: "gpu-timestamps" or "host-clock".
+    pub fn name(self) -> &'static str {
+        match self {
+            BudgetTiming::GpuTimestamps => "gpu-timestamps",
+            BudgetTiming::HostClock => "host-clock",
+        }
+    }
+}
+
+/// GPU pass times of one frame from timestamp queries, ms.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct ProgressiveGpuTimings {
+    /// Clear and Reproject.
+    pub reproject_ms: f64,
+    /// The first Fill step (the probe with the adaptive budget, all of Fill with a fixed one).
+    pub probe_ms: f64,
+    /// The second Fill step (adaptive budget; 0 otherwise).
+    pub extra_fill_ms: f64,
+    /// Prepare.
+    pub prepare_ms: f64,
+    /// Resolve, when run.
+    pub resolve_ms: Option<f64>,
+    /// From the start of the clear to the end of the last pass (gaps between submissions
+    /// included).
+    pub frame_ms: f64,
+}
+
+/// What one frame did.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct GpuProgressiveFrame {
+    /// The statistics of the CPU renderer's frames (pass times from timestamps where the device
+    /// has them, else from the host's clock; `total_ms` is the host's wall time of the frame).
+    pub stats: FrameStats,
+    /// How the pass times (and the adaptive budget's timings) were measured.
+    pub timing: BudgetTiming,
+    /// GPU pass times, where the device has timestamps.
+    pub gpu: Option<ProgressiveGpuTimings>,
+}
+
+/// One chunk of the shuffled buffer: slots `[first, first + len)`.
+struct SlotChunk {
+    words: [wgpu::Buffer; 3],
+    colors: Option<wgpu::Buffer>,
+    first: u32,
+    len: u32,
+}
+
+struct Pipelines {
+    clear: wgpu::ComputePipeline,
+    unload: wgpu::ComputePipeline,
+    scatter: wgpu::ComputePipeline,
+    reproject: wgpu::ComputePipeline,
+    fill: wgpu::ComputePipeline,
+    prepare: wgpu::ComputePipeline,
+    resolve: wgpu::ComputePipeline,
+}
+
+/// The framebuffer and visible lists of one viewport size.
+struct Target {
+    width: u32,
+    height: u32,
+    keys: wgpu::Buffer,
+    image: Option<wgpu::Buffer>,
+}
+
+/// One draw dispatch: a record and the chunk it reads.
+#[derive(Clone, Copy)]
+struct Dispatch {
+    chunk: usize,
+    record: DrawRecord,
+}
+
+/// Timestamp slots: clear begin, Reproject end, probe Fill begin/end, extra Fill begin/end,
+/// Prepare begin/end, resolve begin/end.
+const QUERIES: u32 = 10;
+
+/// The progressive renderer of paper 000 on the GPU (see the module documentation).
+pub struct GpuProgressive {
+    grid: Grid,
+    frame: BatchGrid,
+    frame_max: [i32; 3],
+    bounds: Aabb,
+    shuffle: Shuffle,
+    options: ProgressiveOptions,
+    chunk_slots: u32,
+    chunks: Vec<SlotChunk>,
+    pipelines: Pipelines,
+    /// A bit per slot: its point arrived.
+    loaded_bits: Vec<AtomicU64>,
+    loaded: u64,
+    payload: Option<Vec<AtomicU64>>,
+    /// A bit per slot: drawn since the view last changed, and how many.
+    done: Vec<u64>,
+    done_count: u64,
+    cursor: u64,
+    frames: u64,
+    view: Option<(Camera, RasterOptions)>,
+    target: Option<Target>,
+    /// The visible lists, one region of `list_stride` entries per chunk.
+    lists: Option<wgpu::Buffer>,
+    list_stride: u32,
+    /// Entries of each chunk's list after the last Prepare.
+    list_counts: Vec<u32>,
+    list_counts_buf: wgpu::Buffer,
+    counters: wgpu::Buffer,
+    frame_uniforms: wgpu::Buffer,
+    prepare_uniforms: wgpu::Buffer,
+    scatter_uniforms: wgpu::Buffer,
+    resolve_uniforms: Vec<wgpu::Buffer>,
+    records: wgpu::Buffer,
+    record_stride: u64,
+    staging: Option<wgpu::Buffer>,
+    /// A 4-byte buffer bound where a pass needs a buffer that is not there (no colours).
+    dummy: wgpu::Buffer,
+    queries: Option<(wgpu::QuerySet, wgpu::Buffer)>,
+    /// Time of the last frame's Prepare and resolve, ms (the adaptive budget's `after_fill_ms`).
+    last_after_fill_ms: f64,
+    /// Bytes uploaded since the last wait for the GPU.
+    unwaited: u64,
+}
+
+fn round_up(v: u64, to: u64) -> u64 {
+    v.div_ceil(to) * to
+}
+
+impl GpuProgressive {
+    /// A renderer for `capacity` points whose integer coordinates (on `grid`) lie in `[min, max]`
+    /// (the quantization frame and the planner's bounds, as
+    /// [`ProgressiveRenderer::new`](mortar_core::render::progressive::ProgressiveRenderer::new)
+    /// takes them). Allocates the whole shuffled buffer on the GPU and marks every slot unloaded.
+    pub fn new(ctx: &GpuContext, grid: Grid, min: [i32; 3], max: [i32; 3], capacity: u64, options: ProgressiveOptions) -> Result<GpuProgressive, ProgressiveGpuError> {
+        if ctx.atomic_path() != AtomicPath::U64 {
+            return Err(ProgressiveGpuError::Needs64BitAtomics { adapter: ctx.adapter().name.clone() });
+        }
+        let len = u32::try_from(capacity).map_err(|_| ProgressiveError::TooManyPoints(capacity))?;
+        if (0..3).any(|a| min[a] > max[a]) {
+            return Err(ProgressiveError::Frame { min, max }.into());
+        }
+        let frame = BatchGrid::for_bounds(min, max).ok_or(ProgressiveError::Frame { min, max })?;
+        // The bounds exactly as the CPU renderer computes them (the planner sees these).
+        let mut bounds = Aabb::EMPTY;
+        for a in 0..3 {
+            let (lo, hi) = (grid.world(a, min[a] as i64), grid.world(a, max[a] as i64));
+            bounds.min[a] = lo.min(hi);
+            bounds.max[a] = lo.max(hi);
+        }
+        let by_device = ((ctx.max_binding() / 4).min(MAX_CHUNK_POINTS as u64) as u32 & !255).max(256);
+        let chunk_slots = options.chunk_slots.unwrap_or(by_device).clamp(1, by_device);
+        let pipelines = Pipelines {
+            clear: pipeline(ctx, Pass::Clear),
+            unload: pipeline(ctx, Pass::ProgressiveUnload),
+            scatter: pipeline(ctx, Pass::ProgressiveScatter),
+            reproject: pipeline(ctx, Pass::ProgressiveReproject),
+            fill: pipeline(ctx, Pass::ProgressiveFill),
+            prepare: pipeline(ctx, Pass::ProgressivePrepare),
+            resolve: pipeline(ctx, Pass::Resolve),
+        };
+        let dev = &ctx.device;
+        let mut chunks = Vec::new();
+        let mut first = 0u64;
+        while first < len as u64 {
+            let n = (len as u64 - first).min(chunk_slots as u64) as u32;
+            let make = |label: &str| storage(ctx, label, n as u64 * 4, wgpu::BufferUsages::COPY_DST);
+            let words = [make("shuffled coarse words"), make("shuffled medium words"), make("shuffled fine words")];
+            let colors = options.colors.then(|| make("shuffled colours"));
+            chunks.push(SlotChunk { words, colors, first: first as u32, len: n });
+            first += n as u64;
+        }
+        ctx.check()?;
+        // Every slot unloaded.
+        let mut enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("unload") });
+        {
+            let layout = pipelines.unload.get_bind_group_layout(0);
+            let groups: Vec<(wgpu::BindGroup, u32)> = chunks
+                .iter()
+                .map(|c| (dev.create_bind_group(&wgpu::BindGroupDescriptor { label: None, layout: &layout, entries: &[entry(0, c.words[0].as_entire_binding())] }), c.len.div_ceil(256)))
+                .collect();
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("unload"), timestamp_writes: None });
+            pass.set_pipeline(&pipelines.unload);
+            for (bg, n) in &groups {
+                let (x, y) = ctx.split_dispatch(*n);
+                pass.set_bind_group(0, bg, &[]);
+                pass.dispatch_workgroups(x, y, 1);
+            }
+        }
+        ctx.queue.submit([enc.finish()]);
+        let copy = wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST;
+        let uniform = |label: &str, size: u64| {
+            dev.create_buffer(&wgpu::BufferDescriptor { label: Some(label), size, usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST, mapped_at_creation: false })
+        };
+        let frame_uniforms = uniform("frame uniforms", std::mem::size_of::<FrameUniforms>() as u64);
+        let prepare_uniforms = uniform("prepare uniforms", std::mem::size_of::<PrepareUniforms>() as u64);
+        let scatter_uniforms = uniform("scatter uniforms", std::mem::size_of::<ScatterUniforms>() as u64);
+        ctx.queue.write_buffer(&scatter_uniforms, 0, bytemuck::bytes_of(&ScatterUniforms { colors: options.colors as u32, _pad0: 0, _pad1: 0, _pad2: 0 }));
+        let align = ctx.limits().min_storage_buffer_offset_alignment.max(4) as u64;
+        let record_size = std::mem::size_of::<DrawRecord>() as u64;
+        let record_stride = round_up(record_size, align);
+        // Reproject: one record per chunk; each Fill step: at most one per chunk plus one for the
+        // run that wraps around inside a chunk.
+        let max_records = 3 * chunks.len().max(1) as u64 + 2;
+        let records = storage(ctx, "progressive draw records", max_records * record_stride, wgpu::BufferUsages::COPY_DST);
+        let queries = (ctx.has_timestamps() && !options.host_clock).then(|| {
+            let set = dev.create_query_set(&wgpu::QuerySetDescriptor { label: Some("progressive pass times"), ty: wgpu::QueryType::Timestamp, count: QUERIES });
+            let buf = dev.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("progressive pass times"),
+                size: QUERIES as u64 * 8,
+                usage: wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
+                mapped_at_creation: false,
+            });
+            (set, buf)
+        });
+        let n = len as usize;
+        let words64 = n.div_ceil(64);
+        let r = GpuProgressive {
+            grid,
+            frame,
+            frame_max: max,
+            bounds,
+            shuffle: Shuffle::new(len),
+            options,
+            chunk_slots,
+            list_counts: vec![0; chunks.len()],
+            list_counts_buf: storage(ctx, "visible list counts", chunks.len().max(1) as u64 * 4, copy),
+            chunks,
+            pipelines,
+            loaded_bits: (0..words64).map(|_| AtomicU64::new(0)).collect(),
+            loaded: 0,
+            payload: options.payloads.then(|| (0..n).map(|_| AtomicU64::new(0)).collect()),
+            done: vec![0; words64],
+            done_count: 0,
+            cursor: 0,
+            frames: 0,
+            view: None,
+            target: None,
+            lists: None,
+            list_stride: 0,
+            counters: storage(ctx, "progressive counters", 8, copy),
+            frame_uniforms,
+            prepare_uniforms,
+            scatter_uniforms,
+            resolve_uniforms: Vec::new(),
+            records,
+            record_stride,
+            staging: None,
+            dummy: storage(ctx, "unused", 4, wgpu::BufferUsages::empty()),
+            queries,
+            last_after_fill_ms: 0.0,
+            unwaited: 0,
+        };
+        ctx.wait()?;
+        Ok(r)
+    }
+
+    /// Number of points the renderer holds once everything arrived.
+    pub fn capacity(&self) -> u64 {
+        self.shuffle.len() as u64
+    }
+
+    /// Points inserted so far.
+    pub fn loaded(&self) -> u64 {
+        self.loaded
+    }
+
+    /// The shuffle placing input index `i` at slot `shuffle().target(i)`.
+    pub fn shuffle(&self) -> &Shuffle {
+        &self.shuffle
+    }
+
+    /// The quantization frame of the words.
+    pub fn quantization(&self) -> &BatchGrid {
+        &self.frame
+    }
+
+    /// World bounds of the frame.
+    pub fn bounds(&self) -> &Aabb {
+        &self.bounds
+    }
+
+    /// Frames drawn so far.
+    pub fn frames(&self) -> u64 {
+        self.frames
+    }
+
+    /// Chunks of the shuffled buffer.
+    pub fn chunk_count(&self) -> usize {
+        self.chunks.len()
+    }
+
+    /// Slots per full chunk.
+    pub fn chunk_slots(&self) -> u32 {
+        self.chunk_slots
+    }
+
+    /// Bytes of GPU memory of the shuffled buffer.
+    pub fn gpu_bytes(&self) -> u64 {
+        self.chunks.iter().map(|c| c.len as u64 * 4 * (3 + c.colors.is_some() as u64)).sum()
+    }
+
+    /// How the adaptive budget's timings are measured on this device.
+    pub fn timing(&self) -> BudgetTiming {
+        if self.queries.is_some() {
+            BudgetTiming::GpuTimestamps
+        } else {
+            BudgetTiming::HostClock
+        }
+    }
+
+    /// Whether slot `slot` holds a point.
+    pub fn is_loaded(&self, slot: u32) -> bool {
+        self.loaded_bits.get(slot as usize / 64).is_some_and(|w| w.load(Ordering::Relaxed) >> (slot % 64) & 1 == 1)
+    }
+
+    /// The payload of the point in slot `slot`, if loaded and the renderer keeps payloads.
+    pub fn payload(&self, slot: u32) -> Option<u64> {
+        let p = self.payload.as_ref()?;
+        self.is_loaded(slot).then(|| p[slot as usize].load(Ordering::Relaxed))
+    }
+
+    /// Whether the last frame's image is final (see [`FrameStats::converged`]).
+    pub fn converged(&self) -> bool {
+        self.loaded == self.capacity() && self.done_count == self.capacity()
+    }
+
+    /// The viewport size `(width, height)` of the last frame (`(0, 0)` before the first).
+    pub fn size(&self) -> (u32, u32) {
+        self.target.as_ref().map_or((0, 0), |t| (t.width, t.height))
+    }
+
+    /// The resolved image of the last frame drawn with `resolve` (RGBA8 packed
+    /// `r | g << 8 | b << 16 | a << 24`, row-major, `width * height` words; a storage buffer), for
+    /// [`WindowSurface::present_image`](crate::present::WindowSurface::present_image).
+    pub fn image_buffer(&self) -> Option<&wgpu::Buffer> {
+        self.target.as_ref().and_then(|t| t.image.as_ref())
+    }
+
+    /// Inserts points `first..first + xyz.len()` of the input (integer coordinates on the grid)
+    /// at their shuffled slots, with one RGBA8 colour each when the renderer has colours and one
+    /// payload each when it keeps payloads. Checks everything before changing anything (the CPU
+    /// renderer's errors). The points are on the GPU when this returns (submitted).
+    pub fn insert(&mut self, ctx: &GpuContext, first: u64, xyz: &[[i32; 3]], colors: Option<&[u32]>, payload: Option<&[u64]>) -> Result<(), ProgressiveGpuError> {
+        let n = xyz.len();
+        match (self.options.colors, colors) {
+            (true, Some(c)) if c.len() == n => {}
+            (true, Some(c)) => return Err(GpuError::Colors(format!("{} colours for {n} points", c.len())).into()),
+            (true, None) => return Err(GpuError::Colors("the renderer has colours but points came without".into()).into()),
+            (false, Some(_)) => return Err(GpuError::Colors("the renderer was made without colours".into()).into()),
+            (false, None) => {}
+        }
+        match (self.options.payloads, payload) {
+            (true, Some(p)) if p.len() != n => return Err(ProgressiveError::PayloadCount { points: n, payloads: p.len() }.into()),
+            (true, None) => return Err(ProgressiveError::PayloadCount { points: n, payloads: 0 }.into()),
+            (false, Some(p)) => return Err(ProgressiveError::PayloadCount { points: n, payloads: p.len() }.into()),
+            _ => {}
+        }
+        let end = first.saturating_add(n as u64);
+        if end > self.capacity() {
+            return Err(ProgressiveError::IndexRange { first, end, capacity: self.capacity() }.into());
+        }
+        let (min, max) = (self.frame.min, self.frame_max);
+        if let Some(k) = xyz.par_iter().position_first(|p| (0..3).any(|a| p[a] < min[a] || p[a] > max[a])) {
+            return Err(ProgressiveError::OutsideFrame { index: first + k as u64, point: xyz[k], min, max }.into());
+        }
+        let shuffle = self.shuffle;
+        let targets: Vec<u32> = (0..n).into_par_iter().with_min_len(4096).map(|k| shuffle.target((first + k as u64) as u32)).collect();
+        let bits = &self.loaded_bits;
+        let is_set = |t: u32| bits[t as usize / 64].load(Ordering::Relaxed) >> (t % 64) & 1 == 1;
+        if let Some(k) = targets.par_iter().position_first(|&t| is_set(t)) {
+            return Err(ProgressiveError::Duplicate(first + k as u64).into());
+        }
+        // Host bookkeeping: the loaded bits and the payloads.
+        targets.par_iter().with_min_len(4096).for_each(|&t| {
+            bits[t as usize / 64].fetch_or(1 << (t % 64), Ordering::Relaxed);
+        });
+        if let (Some(store), Some(p)) = (&self.payload, payload) {
+            targets.par_iter().zip(p).with_min_len(4096).for_each(|(&t, &v)| store[t as usize].store(v, Ordering::Relaxed));
+        }
+        self.loaded += n as u64;
+        // The GPU: staged records, scattered per chunk.
+        let mut s = 0;
+        while s < n {
+            let e = (s + STAGING_POINTS).min(n);
+            self.scatter(ctx, &targets[s..e], &xyz[s..e], colors.map(|c| &c[s..e]))?;
+            s = e;
+        }
+        Ok(())
+    }
+
+    /// Stages records of `targets` / `xyz` / `colors` per chunk and scatters them.
+    fn scatter(&mut self, ctx: &GpuContext, targets: &[u32], xyz: &[[i32; 3]], colors: Option<&[u32]>) -> Result<(), GpuError> {
+        if targets.is_empty() {
+            return Ok(());
+        }
+        let stride = 4 + colors.is_some() as usize;
+        let cs = self.chunk_slots;
+        let frame = self.frame;
+        let align = ctx.limits().min_storage_buffer_offset_alignment.max(4) as u64;
+        // Per chunk its records (slot in the chunk, coarse, medium, fine[, colour]).
+        let mut parts: Vec<(usize, Vec<u32>)> = Vec::new();
+        for (c, chunk) in self.chunks.iter().enumerate() {
+            let recs: Vec<u32> = (0..targets.len())
+                .into_par_iter()
+                .with_min_len(4096)
+                .filter(|&k| targets[k] / cs == c as u32)
+                .flat_map_iter(|k| {
+                    let w = frame.encode(xyz[k]);
+                    let col = colors.map_or(0, |cl| cl[k]);
+                    [targets[k] - chunk.first, w[0], w[1], w[2], col].into_iter().take(stride)
+                })
+                .collect();
+            if !recs.is_empty() {
+                parts.push((c, recs));
+            }
+        }
+        let total: u64 = parts.iter().map(|(_, r)| round_up(r.len() as u64 * 4, align)).sum();
+        if self.staging.as_ref().is_none_or(|b| b.size() < total) {
+            let size = (STAGING_POINTS as u64 * 20 + self.chunks.len() as u64 * align).max(total);
+            if size > ctx.limits().max_buffer_size {
+                return Err(GpuError::TooLarge { what: "the scatter staging buffer", needed: size, limit: ctx.limits().max_buffer_size });
+            }
+            self.staging = Some(storage(ctx, "scatter staging", size, wgpu::BufferUsages::COPY_DST));
+        }
+        let staging = self.staging.as_ref().expect("made above");
+        let dev = &ctx.device;
+        let layout = self.pipelines.scatter.get_bind_group_layout(0);
+        let mut groups = Vec::new();
+        let mut offset = 0u64;
+        for (c, recs) in &parts {
+            let bytes = recs.len() as u64 * 4;
+            ctx.queue.write_buffer(staging, offset, bytemuck::cast_slice(recs));
+            let chunk = &self.chunks[*c];
+            let bg = dev.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: None,
+                layout: &layout,
+                entries: &[
+                    entry(0, self.scatter_uniforms.as_entire_binding()),
+                    entry(1, wgpu::BindingResource::Buffer(wgpu::BufferBinding { buffer: staging, offset, size: NonZeroU64::new(bytes) })),
+                    entry(2, chunk.words[0].as_entire_binding()),
+                    entry(3, chunk.words[1].as_entire_binding()),
+                    entry(4, chunk.words[2].as_entire_binding()),
+                    entry(5, chunk.colors.as_ref().unwrap_or(&self.dummy).as_entire_binding()),
+                ],
+            });
+            groups.push((bg, (recs.len() / stride).div_ceil(256) as u32));
+            offset += round_up(bytes, align);
+        }
+        let mut enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("scatter") });
+        {
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("scatter"), timestamp_writes: None });
+            pass.set_pipeline(&self.pipelines.scatter);
+            for (bg, n) in &groups {
+                let (x, y) = ctx.split_dispatch(*n);
+                pass.set_bind_group(0, bg, &[]);
+                pass.dispatch_workgroups(x, y, 1);
+            }
+        }
+        ctx.queue.submit([enc.finish()]);
+        // wgpu keeps a staging copy of every write until the GPU has done it: wait now and then.
+        self.unwaited += offset;
+        if self.unwaited > 1 << 30 {
+            self.unwaited = 0;
+            return ctx.wait();
+        }
+        ctx.check()
+    }
+
+    /// Makes the framebuffer (and grows the visible lists) for `width x height`.
+    fn ensure_target(&mut self, ctx: &GpuContext, width: u32, height: u32) -> Result<(), GpuError> {
+        let pixels = width as u64 * height as u64;
+        if pixels == 0 || pixels * 8 > ctx.max_binding() {
+            return Err(GpuError::TooLarge { what: "the framebuffer", needed: pixels * 8, limit: ctx.max_binding() });
+        }
+        if self.target.as_ref().is_none_or(|t| (t.width, t.height) != (width, height)) {
+            let copy = wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST;
+            self.target = Some(Target { width, height, keys: storage(ctx, "progressive keys", pixels * 8, copy), image: None });
+        }
+        let align = ctx.limits().min_storage_buffer_offset_alignment.max(4) as u64;
+        let stride = round_up(pixels, align / 4);
+        if (self.list_stride as u64) < stride {
+            let chunks = self.chunks.len().max(1) as u64;
+            let size = chunks * stride * 4;
+            if size > ctx.max_binding() || stride > u32::MAX as u64 {
+                return Err(GpuError::TooLarge { what: "the visible lists", needed: size, limit: ctx.max_binding() });
+            }
+            let lists = storage(ctx, "visible lists", size, wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST);
+            // The last Prepare's lists move along: the next Reproject draws them in the new view.
+            if let Some(old) = &self.lists {
+                let mut enc = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("grow visible lists") });
+                for (c, &count) in self.list_counts.iter().enumerate() {
+                    if count > 0 {
+                        enc.copy_buffer_to_buffer(old, c as u64 * self.list_stride as u64 * 4, &lists, c as u64 * stride * 4, count as u64 * 4);
+                    }
+                }
+                ctx.queue.submit([enc.finish()]);
+            }
+            self.lists = Some(lists);
+            self.list_stride = stride as u32;
+        }
+        ctx.check()
+    }
+
+    /// The runs of Fill for `count` slots from the cursor (wrapping around), split at chunk
+    /// boundaries, as `(chunk, offset in chunk, slots)`; advances the cursor and marks the loaded
+    /// slots drawn. Returns the runs and the points (loaded slots) among them.
+    fn sweep(&mut self, count: u64) -> (Vec<(usize, u32, u32)>, u64) {
+        let n = self.capacity();
+        let mut left = count.min(n);
+        let mut runs = Vec::new();
+        let mut points = 0;
+        while left > 0 {
+            let s = self.cursor;
+            let c = (s / self.chunk_slots as u64) as usize;
+            let chunk = &self.chunks[c];
+            let chunk_end = chunk.first as u64 + chunk.len as u64;
+            let e = (s + left).min(chunk_end);
+            runs.push((c, (s - chunk.first as u64) as u32, (e - s) as u32));
+            points += self.mark(s as usize, e as usize);
+            left -= e - s;
+            self.cursor = if e == n { 0 } else { e };
+        }
+        (runs, points)
+    }
+
+    /// Marks the loaded slots of `[s, e)` drawn since the view changed; returns how many there are.
+    fn mark(&mut self, s: usize, e: usize) -> u64 {
+        let all = self.loaded == self.capacity();
+        let (ws, we) = (s / 64, e.div_ceil(64));
+        let bits = &self.loaded_bits[ws..we];
+        let (points, new): (u64, u64) = self.done[ws..we]
+            .par_iter_mut()
+            .zip(bits)
+            .enumerate()
+            .with_min_len(1024)
+            .map(|(k, (d, l))| {
+                let w = ws + k;
+                let lo = s.max(w * 64) - w * 64;
+                let hi = e.min(w * 64 + 64) - w * 64;
+                let range = if hi - lo == 64 { u64::MAX } else { ((1u64 << (hi - lo)) - 1) << lo };
+                let mask = if all { range } else { range & l.load(Ordering::Relaxed) };
+                let new = (mask & !*d).count_ones() as u64;
+                *d |= mask;
+                (mask.count_ones() as u64, new)
+            })
+            .reduce(|| (0, 0), |a, b| (a.0 + b.0, a.1 + b.1));
+        self.done_count += new;
+        points
+    }
+
+    fn timestamps(&self, begin: Option<u32>, end: Option<u32>) -> Option<wgpu::ComputePassTimestampWrites<'_>> {
+        self.queries.as_ref().map(|(set, _)| wgpu::ComputePassTimestampWrites { query_set: set, beginning_of_pass_write_index: begin, end_of_pass_write_index: end })
+    }
+
+    /// Writes `dispatches` as records from slot `first_record` and returns their bind groups
+    /// (group 1, and for Reproject group 0 with the chunk's list) with workgroup counts.
+    fn draw_groups(&self, ctx: &GpuContext, pipe: &wgpu::ComputePipeline, dispatches: &[Dispatch], first_record: usize, reproject: bool) -> Vec<(Option<wgpu::BindGroup>, wgpu::BindGroup, u32)> {
+        let dev = &ctx.device;
+        let layout0 = pipe.get_bind_group_layout(0);
+        let layout1 = pipe.get_bind_group_layout(1);
+        let t = self.target.as_ref().expect("target made before drawing");
+        let record_size = std::mem::size_of::<DrawRecord>() as u64;
+        dispatches
+            .iter()
+            .enumerate()
+            .map(|(k, d)| {
+                let offset = (first_record + k) as u64 * self.record_stride;
+                ctx.queue.write_buffer(&self.records, offset, bytemuck::bytes_of(&d.record));
+                let chunk = &self.chunks[d.chunk];
+                let g1 = dev.create_bind_group(&wgpu::BindGroupDescriptor {
+                    label: None,
+                    layout: &layout1,
+                    entries: &[
+                        entry(0, wgpu::BindingResource::Buffer(wgpu::BufferBinding { buffer: &self.records, offset, size: NonZeroU64::new(record_size) })),
+                        entry(1, chunk.words[0].as_entire_binding()),
+                        entry(2, chunk.words[1].as_entire_binding()),
+                        entry(3, chunk.words[2].as_entire_binding()),
+                    ],
+                });
+                let g0 = reproject.then(|| {
+                    let lists = self.lists.as_ref().expect("lists made with the target");
+                    let list = wgpu::BufferBinding { buffer: lists, offset: d.chunk as u64 * self.list_stride as u64 * 4, size: NonZeroU64::new(d.record.count as u64 * 4) };
+                    dev.create_bind_group(&wgpu::BindGroupDescriptor {
+                        label: None,
+                        layout: &layout0,
+                        entries: &[
+                            entry(0, self.frame_uniforms.as_entire_binding()),
+                            entry(1, t.keys.as_entire_binding()),
+                            entry(2, self.counters.as_entire_binding()),
+                            entry(3, wgpu::BindingResource::Buffer(list)),
+                        ],
+                    })
+                });
+                (g0, g1, (d.record.count as u64).div_ceil(SLOTS_PER_GROUP) as u32)
+            })
+            .collect()
+    }
+
+    /// Records one draw pass (Reproject or Fill) of `dispatches` into `enc`.
+    #[allow(clippy::too_many_arguments)]
+    fn encode_draw(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, label: &str, dispatches: &[Dispatch], first_record: usize, reproject: bool, ts: (Option<u32>, Option<u32>)) {
+        let pipe = if reproject { &self.pipelines.reproject } else { &self.pipelines.fill };
+        let groups = self.draw_groups(ctx, pipe, dispatches, first_record, reproject);
+        let t = self.target.as_ref().expect("target made before drawing");
+        let fill_g0 = (!reproject && !groups.is_empty()).then(|| {
+            ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: None,
+                layout: &pipe.get_bind_group_layout(0),
+                entries: &[entry(0, self.frame_uniforms.as_entire_binding()), entry(1, t.keys.as_entire_binding()), entry(2, self.counters.as_entire_binding())],
+            })
+        });
+        let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some(label), timestamp_writes: self.timestamps(ts.0, ts.1) });
+        pass.set_pipeline(pipe);
+        for (g0, g1, n) in &groups {
+            if *n == 0 {
+                continue;
+            }
+            pass.set_bind_group(0, g0.as_ref().or(fill_g0.as_ref()).expect("group 0 made above"), &[]);
+            pass.set_bind_group(1, g1, &[]);
+            let (x, y) = ctx.split_dispatch(*n);
+            pass.dispatch_workgroups(x, y, 1);
+        }
+    }
+
+    /// Records the clear of the framebuffer.
+    fn encode_clear(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, ts: (Option<u32>, Option<u32>)) {
+        let t = self.target.as_ref().expect("target made before drawing");
+        let bg = ctx.device.create_bind_group(&wgpu::BindGroupDescriptor { label: None, layout: &self.pipelines.clear.get_bind_group_layout(0), entries: &[entry(0, t.keys.as_entire_binding())] });
+        let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("clear"), timestamp_writes: self.timestamps(ts.0, ts.1) });
+        pass.set_pipeline(&self.pipelines.clear);
+        pass.set_bind_group(0, &bg, &[]);
+        let (x, y) = ctx.split_dispatch((t.keys.size() / 4).div_ceil(256) as u32);
+        pass.dispatch_workgroups(x, y, 1);
+    }
+
+    /// Records Prepare (the list counts zeroed first).
+    fn encode_prepare(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, ts: (Option<u32>, Option<u32>)) {
+        let t = self.target.as_ref().expect("target made before drawing");
+        let pixels = t.width * t.height;
+        let u = PrepareUniforms { pixels, chunk_slots: self.chunk_slots, list_stride: self.list_stride, chunks: self.chunks.len() as u32 };
+        ctx.queue.write_buffer(&self.prepare_uniforms, 0, bytemuck::bytes_of(&u));
+        enc.clear_buffer(&self.list_counts_buf, 0, None);
+        let bg = ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: None,
+            layout: &self.pipelines.prepare.get_bind_group_layout(0),
+            entries: &[
+                entry(0, self.prepare_uniforms.as_entire_binding()),
+                entry(1, t.keys.as_entire_binding()),
+                entry(2, self.list_counts_buf.as_entire_binding()),
+                entry(3, self.lists.as_ref().expect("lists made with the target").as_entire_binding()),
+            ],
+        });
+        let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("prepare"), timestamp_writes: self.timestamps(ts.0, ts.1) });
+        pass.set_pipeline(&self.pipelines.prepare);
+        pass.set_bind_group(0, &bg, &[]);
+        let (x, y) = ctx.split_dispatch(pixels.div_ceil(256));
+        pass.dispatch_workgroups(x, y, 1);
+    }
+
+    /// Records the resolve into the image (made on first use), one dispatch per chunk.
+    fn encode_resolve(&mut self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, background: u32, ts: (Option<u32>, Option<u32>)) {
+        let dev = &ctx.device;
+        let (width, height) = self.size();
+        let pixels = width as u64 * height as u64;
+        let t = self.target.as_mut().expect("target made before drawing");
+        if t.image.is_none() {
+            t.image = Some(storage(ctx, "progressive image", pixels * 4, wgpu::BufferUsages::COPY_SRC));
+        }
+        while self.resolve_uniforms.len() < self.chunks.len().max(1) {
+            self.resolve_uniforms.push(dev.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("resolve uniforms"),
+                size: std::mem::size_of::<ResolveUniforms>() as u64,
+                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            }));
+        }
+        let t = self.target.as_ref().expect("made above");
+        let image = t.image.as_ref().expect("made above");
+        let chunk_list: Vec<(u32, u32, &wgpu::Buffer)> = if self.chunks.is_empty() {
+            vec![(0, 0, &self.dummy)]
+        } else {
+            self.chunks.iter().map(|c| (c.first, c.len, c.colors.as_ref().expect("resolve needs colours"))).collect()
+        };
+        let layout = self.pipelines.resolve.get_bind_group_layout(0);
+        let groups: Vec<wgpu::BindGroup> = chunk_list
+            .into_iter()
+            .enumerate()
+            .map(|(i, (first_index, count, colors))| {
+                // The 64-bit keys read as words: index at 2p, depth bits at 2p + 1.
+                let u = ResolveUniforms { width, height, key_stride: 2, depth_offset: 1, first_index, count, background, write_background: (i == 0) as u32 };
+                ctx.queue.write_buffer(&self.resolve_uniforms[i], 0, bytemuck::bytes_of(&u));
+                dev.create_bind_group(&wgpu::BindGroupDescriptor {
+                    label: None,
+                    layout: &layout,
+                    entries: &[
+                        entry(0, self.resolve_uniforms[i].as_entire_binding()),
+                        entry(1, t.keys.as_entire_binding()),
+                        entry(2, t.keys.as_entire_binding()),
+                        entry(3, colors.as_entire_binding()),
+                        entry(4, image.as_entire_binding()),
+                    ],
+                })
+            })
+            .collect();
+        let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("resolve"), timestamp_writes: self.timestamps(ts.0, ts.1) });
+        pass.set_pipeline(&self.pipelines.resolve);
+        let (x, y) = ctx.split_dispatch(pixels.div_ceil(256) as u32);
+        for bg in &groups {
+            pass.set_bind_group(0, bg, &[]);
+            pass.dispatch_workgroups(x, y, 1);
+        }
+    }
+
+    /// The draw dispatches of Fill runs.
+    fn fill_dispatches(&self, runs: &[(usize, u32, u32)], projection: &BatchProjection) -> Vec<Dispatch> {
+        runs.iter()
+            .map(|&(c, offset, count)| Dispatch { chunk: c, record: DrawRecord { projection: *projection, offset, count, first_index: self.chunks[c].first + offset, _pad: 0 } })
+            .collect()
+    }
+
+    /// Reads `count` timestamps from slot 0 (resolved into the query buffer by `enc`).
+    fn resolve_queries(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, count: u32) -> Option<wgpu::Buffer> {
+        self.queries.as_ref().map(|(set, buf)| {
+            enc.resolve_query_set(set, 0..count, buf, 0);
+            readback(ctx, enc, buf, count as u64 * 8)
+        })
+    }
+
+    fn read_queries(ctx: &GpuContext, buf: &wgpu::Buffer) -> Result<Vec<f64>, GpuError> {
+        let t = map_read(ctx, buf)?;
+        let period = ctx.queue.get_timestamp_period() as f64 * 1e-6;
+        let raw: Vec<u64> = bytemuck::pod_collect_to_vec(&t);
+        Ok(raw.iter().map(|&v| v.wrapping_sub(raw[0]) as f64 * period).collect())
+    }
+
+    /// Draws one frame for `camera`: clear, Reproject, Fill with `budget`, Prepare and, with
+    /// `resolve` (a background colour; the renderer must have colours), the resolve into
+    /// [`image_buffer`](Self::image_buffer). Waits for the GPU. A change of camera or options
+    /// keeps the visible lists (that is what they are for) but starts convergence over.
+    pub fn frame(&mut self, ctx: &GpuContext, camera: &Camera, options: &RasterOptions, budget: &FillBudget, resolve: Option<u32>) -> Result<GpuProgressiveFrame, ProgressiveGpuError> {
+        let start = Instant::now();
+        camera.validate().map_err(RasterError::from)?;
+        if resolve.is_some() && !self.options.colors {
+            return Err(GpuError::Colors("resolve asked for but the renderer has no colours".into()).into());
+        }
+        let planner = Planner::new(camera, &self.grid, options)?;
+        self.ensure_target(ctx, camera.width, camera.height)?;
+        if self.view != Some((*camera, *options)) {
+            self.view = Some((*camera, *options));
+            self.done.par_iter_mut().with_min_len(1 << 14).for_each(|w| *w = 0);
+            self.done_count = 0;
+        }
+        let n = self.capacity();
+        self.frames += 1;
+        let mut st = FrameStats { frame: self.frames, loaded: self.loaded, ..FrameStats::default() };
+        // One plan for every slot: one frame, one set of bounds.
+        let plan = planner.plan(&self.frame, &self.bounds, n as usize);
+        let projection = match plan {
+            BatchPlan::Draw { precision, projection } => Some((precision, projection)),
+            _ => None,
+        };
+        let mut raster = RasterStats::default();
+        let count_batches = |raster: &mut RasterStats, dispatches: usize, points: u64| {
+            raster.batches += dispatches as u64;
+            match &projection {
+                Some((precision, _)) => {
+                    raster.batches_drawn += dispatches as u64;
+                    raster.points_by_precision[precision.words() - 1] += points;
+                }
+                None if plan == BatchPlan::Culled => raster.batches_culled += dispatches as u64,
+                None => {}
+            }
+        };
+        ctx.queue.write_buffer(&self.frame_uniforms, 0, bytemuck::bytes_of(&FrameUniforms::new(camera, ctx.division())));
+        ctx.queue.write_buffer(&self.counters, 0, &[0u8; 8]);
+
+        // Reproject: each chunk's list of the last Prepare.
+        let reproject: Vec<Dispatch> = match &projection {
+            Some((_, p)) => self
+                .list_counts
+                .iter()
+                .enumerate()
+                .filter(|(_, &count)| count > 0)
+                .map(|(c, &count)| Dispatch { chunk: c, record: DrawRecord { projection: *p, offset: 0, count, first_index: self.chunks[c].first, _pad: 0 } })
+                .collect(),
+            None => Vec::new(),
+        };
+        st.reprojected = self.list_counts.iter().map(|&c| c as u64).sum();
+        count_batches(&mut raster, self.list_counts.iter().filter(|&&c| c > 0).count(), st.reprojected);
+
+        // Fill, first step: the fixed budget or the probe.
+        let (first, adaptive): (u64, Option<AdaptiveBudget>) = match budget {
+            FillBudget::Fixed(b) => (*b, None),
+            FillBudget::Adaptive(a) => (a.probe_points.min(n), Some(*a)),
+        };
+        let (runs, points) = self.sweep(first);
+        st.filled = first.min(n);
+        st.fill_points = points;
+        count_batches(&mut raster, runs.len(), points);
+        let probe: Vec<Dispatch> = projection.as_ref().map(|(_, p)| self.fill_dispatches(&runs, p)).unwrap_or_default();
+        let timed = self.queries.is_some();
+        let host_ms = |t: Instant| t.elapsed().as_secs_f64() * 1e3;
+
+        let dev = &ctx.device;
+        let mut enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("progressive frame") });
+        self.encode_clear(ctx, &mut enc, (Some(0), None));
+        self.encode_draw(ctx, &mut enc, "reproject", &reproject, 0, true, (None, Some(1)));
+        let mut host_times = [0.0f64; 4]; // reproject, fill, prepare, resolve (host clock)
+        if !timed {
+            let t = Instant::now();
+            ctx.queue.submit([enc.finish()]);
+            ctx.wait()?;
+            host_times[0] = host_ms(t);
+            enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("progressive frame") });
+        }
+        let t_fill = Instant::now();
+        self.encode_draw(ctx, &mut enc, "fill", &probe, reproject.len(), false, (Some(2), Some(3)));
+        let mut extra_dispatches = Vec::new();
+        if let Some(a) = adaptive {
+            st.probe = st.filled;
+            // Read the probe's timings back, then plan the rest of the fill.
+            let timings = if timed {
+                let q = self.resolve_queries(ctx, &mut enc, 4).expect("timed");
+                ctx.queue.submit([enc.finish()]);
+                let t = Self::read_queries(ctx, &q)?;
+                enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("progressive frame") });
+                ProbeTimings { probe_points: st.probe, probe_ms: t[3] - t[2], elapsed_ms: t[3], after_fill_ms: self.last_after_fill_ms }
+            } else {
+                ctx.queue.submit([enc.finish()]);
+                ctx.wait()?;
+                enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("progressive frame") });
+                ProbeTimings { probe_points: st.probe, probe_ms: host_ms(t_fill), elapsed_ms: host_ms(start), after_fill_ms: self.last_after_fill_ms }
+            };
+            let more = a.extra_points(&timings).min(n - st.filled);
+            let (runs, points) = self.sweep(more);
+            st.filled += more;
+            st.fill_points += points;
+            count_batches(&mut raster, runs.len(), points);
+            if let Some((_, p)) = &projection {
+                extra_dispatches = self.fill_dispatches(&runs, p);
+            }
+        }
+        // The second Fill step (empty without the adaptive budget, timed all the same).
+        self.encode_draw(ctx, &mut enc, "fill more", &extra_dispatches, reproject.len() + probe.len(), false, (Some(4), Some(5)));
+        if !timed {
+            ctx.queue.submit([enc.finish()]);
+            ctx.wait()?;
+            host_times[1] = host_ms(t_fill);
+            enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("progressive frame") });
+        }
+        let t_prepare = Instant::now();
+        self.encode_prepare(ctx, &mut enc, (Some(6), Some(7)));
+        if !timed {
+            ctx.queue.submit([enc.finish()]);
+            ctx.wait()?;
+            host_times[2] = host_ms(t_prepare);
+            enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("progressive frame") });
+        }
+        let t_resolve = Instant::now();
+        if let Some(background) = resolve {
+            self.encode_resolve(ctx, &mut enc, background, (Some(8), Some(9)));
+        }
+        let queries = self.resolve_queries(ctx, &mut enc, if resolve.is_some() { 10 } else { 8 });
+        let counters_read = readback(ctx, &mut enc, &self.counters, 8);
+        let counts_read = readback(ctx, &mut enc, &self.list_counts_buf, self.list_counts_buf.size());
+        ctx.queue.submit([enc.finish()]);
+        let c: Vec<u32> = bytemuck::pod_collect_to_vec(&map_read(ctx, &counters_read)?);
+        raster.points_drawn = c[0] as u64 | (c[1] as u64) << 32;
+        let counts: Vec<u32> = bytemuck::pod_collect_to_vec(&map_read(ctx, &counts_read)?);
+        self.list_counts.copy_from_slice(&counts[..self.chunks.len()]);
+        st.visible = self.list_counts.iter().map(|&c| c as u64).sum();
+        host_times[3] = host_ms(t_resolve);
+        let gpu = match queries {
+            Some(q) => {
+                let t = Self::read_queries(ctx, &q)?;
+                let resolve_ms = resolve.map(|_| t[9] - t[8]);
+                Some(ProgressiveGpuTimings {
+                    reproject_ms: t[1],
+                    probe_ms: t[3] - t[2],
+                    extra_fill_ms: t[5] - t[4],
+                    prepare_ms: t[7] - t[6],
+                    resolve_ms,
+                    frame_ms: *t.last().expect("8 or 10 stamps"),
+                })
+            }
+            None => None,
+        };
+        match &gpu {
+            Some(g) => {
+                st.reproject_ms = g.reproject_ms;
+                st.fill_ms = g.probe_ms + g.extra_fill_ms;
+                st.prepare_ms = g.prepare_ms;
+                self.last_after_fill_ms = g.prepare_ms + g.resolve_ms.unwrap_or(0.0);
+            }
+            None => {
+                st.reproject_ms = host_times[0];
+                st.fill_ms = host_times[1];
+                st.prepare_ms = host_times[2];
+                self.last_after_fill_ms = host_times[2] + host_times[3];
+            }
+        }
+        st.raster = raster;
+        st.total_ms = host_ms(start);
+        st.converged = self.converged();
+        ctx.check()?;
+        Ok(GpuProgressiveFrame { stats: st, timing: self.timing(), gpu })
+    }
+
+    /// The visibility buffer of the last frame (row-major depth|index keys; indices are slots, as
+    /// in the CPU renderer), empty before the first frame.
+    pub fn read_keys(&self, ctx: &GpuContext) -> Result<Vec<u64>, GpuError> {
+        let Some(t) = &self.target else { return Ok(Vec::new()) };
+        let mut enc = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("read keys") });
+        let buf = readback(ctx, &mut enc, &t.keys, t.keys.size());
+        ctx.queue.submit([enc.finish()]);
+        let bytes = map_read(ctx, &buf)?;
+        Ok(bytemuck::pod_collect_to_vec::<u8, u64>(&bytes)[..t.width as usize * t.height as usize].to_vec())
+    }
+
+    /// The resolved image of the last frame drawn with `resolve` (RGBA8 packed, row-major).
+    pub fn read_image(&self, ctx: &GpuContext) -> Result<Vec<u32>, GpuError> {
+        match (&self.target, self.image_buffer()) {
+            (Some(t), Some(image)) => read_image_buffer(ctx, image, t.width, t.height),
+            _ => Err(GpuError::Colors("no frame was resolved yet".into())),
+        }
+    }
+
+    /// The slots of the points visible at the end of the last frame (the next Reproject's input),
+    /// in increasing order.
+    pub fn read_visible(&self, ctx: &GpuContext) -> Result<Vec<u32>, GpuError> {
+        let Some(lists) = &self.lists else { return Ok(Vec::new()) };
+        let mut enc = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("read visible") });
+        let buf = readback(ctx, &mut enc, lists, lists.size());
+        ctx.queue.submit([enc.finish()]);
+        let all: Vec<u32> = bytemuck::pod_collect_to_vec(&map_read(ctx, &buf)?);
+        let mut out = Vec::with_capacity(self.list_counts.iter().map(|&c| c as usize).sum());
+        for (c, &count) in self.list_counts.iter().enumerate() {
+            let s = c * self.list_stride as usize;
+            out.extend_from_slice(&all[s..s + count as usize]);
+        }
+        out.par_sort_unstable();
+        Ok(out)
+    }
+}

@@ -1,0 +1,37 @@
+// Shared by the passes of the GPU progressive renderer (paper 000 §3.3-3.4;
+// lib/render/src/progressive.rs), after common/types.wgsl.
+//
+// KEEP IN SYNC with their Rust twins (mortar-render's shader test compares the offsets, sizes and
+// values naga computes here with the Rust ones):
+//   UNLOADED           mortar_core::render::progressive::UNLOADED
+//   SLOTS_PER_THREAD   mortar_render::progressive::SLOTS_PER_THREAD
+//   ScatterUniforms    mortar_render::progressive::ScatterUniforms  (16 bytes)
+//   PrepareUniforms    mortar_render::progressive::PrepareUniforms  (16 bytes)
+
+// The coarse word of a slot whose point has not arrived (bit 31: no real coarse word has it).
+const UNLOADED: u32 = 0x80000000u;
+
+// Slots (Fill) or visible-list entries (Reproject) per thread; a workgroup of 128 threads covers
+// 128 * SLOTS_PER_THREAD of them, thread `lid` taking every 128th from the group's first.
+const SLOTS_PER_THREAD: u32 = 8u;
+
+// The constants of the scatter pass (the same for every dispatch of a renderer).
+struct ScatterUniforms {
+    // 1 when the staged records carry an RGBA8 colour (5 words per point), 0 when not (4 words).
+    colors: u32,
+    _pad0: u32,
+    _pad1: u32,
+    _pad2: u32,
+}
+
+// The constants of the Prepare pass.
+struct PrepareUniforms {
+    // Pixels of the framebuffer.
+    pixels: u32,
+    // Slots per chunk of the shuffled buffer: a slot's visible list is slot / chunk_slots.
+    chunk_slots: u32,
+    // Entries between the starts of two chunks' visible lists.
+    list_stride: u32,
+    // Number of chunks.
+    chunks: u32,
+}
