@@ -18,12 +18,15 @@ use anyhow::{anyhow, Result};
 use mortar_core::grid::Grid;
 use mortar_core::octree::{LodOptions, LodTree};
 use mortar_core::render::resolve::{elevation_color, ColorMode, ResolveOptions};
-use mortar_core::render::{Aabb, Camera, RasterOptions};
+use mortar_core::render::{Aabb, BatchRef, Camera, RasterOptions};
 use mortar_io::render_input::{ColorChoice, RenderSettings};
 use mortar_io::store_lod::{self, LodColor, StoreLod};
 use mortar_render::{GpuContext, GpuError, GpuFrame, GpuRasterizer, GpuScene, SceneOptions};
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
+
+/// Most samples per GPU batch (a node is uploaded in slices of this size).
+const SLICE: usize = 1 << 14;
 
 /// The colour modes of a store view.
 pub const MODES: [ColorChoice; 2] = [ColorChoice::Stored, ColorChoice::Mode(ColorMode::Elevation)];
@@ -40,8 +43,9 @@ pub struct Selected {
 /// The GPU side of a store view: the scene and which payloads it holds.
 pub struct StoreGpu {
     scene: GpuScene,
-    /// Scene batch of each uploaded payload (by offset in `nodes.bin`), with its samples.
-    batches: HashMap<u64, (u32, u64)>,
+    /// Scene batches of each uploaded payload (by offset in `nodes.bin`: the first batch and how
+    /// many), with its samples.
+    batches: HashMap<u64, (u32, u32, u64)>,
     /// Colour mode of the uploaded colours.
     mode: usize,
     /// Samples in the scene that no node of the current commit uses.
@@ -135,7 +139,7 @@ impl StoreView {
             let live: std::collections::HashSet<u64> = (0..lod.node_count()).map(|i| lod.payload_offset(mortar_core::octree::NodeId(i as u32))).collect();
             let before = g.batches.len();
             let mut dropped = 0;
-            g.batches.retain(|off, (_, n)| {
+            g.batches.retain(|off, (_, _, n)| {
                 let keep = live.contains(off);
                 if !keep {
                     dropped += *n;
@@ -191,8 +195,8 @@ impl StoreView {
         let mut colors = Vec::new();
         for &id in &sel.nodes {
             let off = lod.payload_offset(id);
-            if let Some(&(b, _)) = g.batches.get(&off) {
-                ids.push(b);
+            if let Some(&(b, k, _)) = g.batches.get(&off) {
+                ids.extend(b..b + k);
                 continue;
             }
             let first = g.scene.points();
@@ -210,10 +214,20 @@ impl StoreView {
                 }
                 _ => d.colors,
             };
+            // A node can hold millions of samples, and the rasterizer gives one workgroup to a
+            // batch: nodes go to the GPU in slices of at most SLICE samples (same frame and
+            // bounds, consecutive indices), so that a large node keeps the whole GPU busy.
             let b = g.scene.batches().len() as u32;
-            g.scene.push(ctx, &batch, Some(c)).map_err(gpu)?;
-            g.batches.insert(off, (b, batch.len() as u64));
-            ids.push(b);
+            let n = batch.len();
+            let mut k = 0u32;
+            for s in (0..n.max(1)).step_by(SLICE) {
+                let e = (s + SLICE).min(n);
+                let part = BatchRef { words: [0, 1, 2].map(|w| &batch.words[w][s..e]), first_index: batch.first_index + s as u32, ..batch };
+                g.scene.push(ctx, &part, Some(&c[s..e])).map_err(gpu)?;
+                k += 1;
+            }
+            g.batches.insert(off, (b, k, n as u64));
+            ids.extend(b..b + k);
             uploaded += 1;
         }
         self.selected = Selected { nodes: sel.nodes.len() as u64, samples, uploaded_nodes: uploaded };
