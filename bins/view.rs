@@ -35,9 +35,6 @@ use winit::window::{Window, WindowId};
 /// Seconds of uploading per frame while a batch file streams onto the GPU.
 const UPLOAD_SLICE_SECONDS: f64 = 0.1;
 
-/// Whether the progressive view can draw on the GPU.
-const GPU_PROGRESSIVE: bool = false;
-
 /// Which rasterizer draws the window's frames.
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
 pub enum ViewBackend {
@@ -614,6 +611,8 @@ enum GpuData {
         next: usize,
     },
     Store(StoreGpu),
+    /// The progressive renderer's GPU buffers live in the view.
+    Progressive,
 }
 
 /// The GPU renderer's parts.
@@ -782,9 +781,13 @@ impl App<'_> {
         let progressive = matches!(self.content, Content::Progressive(_));
         let gpu = match self.args.backend {
             ViewBackend::Cpu => Err("--backend cpu"),
-            _ if progressive && !GPU_PROGRESSIVE => Err("the progressive view draws on the CPU"),
             ViewBackend::Gpu => Ok(GpuContext::for_window(&GpuOptions { atomics, allow_software: true, ..Default::default() }, window.clone()).map_err(|e| anyhow!("--backend gpu: {e}"))?),
             ViewBackend::Auto => GpuContext::for_window(&GpuOptions { atomics, allow_software: false, ..Default::default() }, window.clone()).map_err(|_| "no hardware GPU can present to the window"),
+        };
+        // The GPU progressive renderer needs 64-bit atomics; the CPU one draws otherwise.
+        let gpu = match gpu {
+            Ok((ctx, _)) if progressive && ctx.atomic_path() != AtomicPath::U64 => Err("the GPU progressive renderer needs 64-bit atomics"),
+            g => g,
         };
         let renderer = match gpu {
             Ok((ctx, surface)) => self.open_gpu(ctx, surface, w, h).map_err(|e| anyhow!("{}: GPU: {e}", self.label))?,
@@ -805,7 +808,7 @@ impl App<'_> {
         if let Err(e) = self.batch_colors() {
             return Err(GpuError::Colors(format!("{e:#}")));
         }
-        let data = match &self.content {
+        let data = match &mut self.content {
             // Batches are uploaded by the frames, a time slice each, so that the first frame
             // comes at once whatever the file's size.
             Content::Batches { file, .. } => {
@@ -814,7 +817,10 @@ impl App<'_> {
             }
             // Nodes are uploaded as frames select them.
             Content::Store(v) => GpuData::Store(v.gpu(&ctx, self.mode)?),
-            Content::Progressive(_) => return Err(GpuError::Surface("the progressive view draws on the CPU".into())),
+            Content::Progressive(v) => {
+                v.use_gpu(&ctx).map_err(|e| GpuError::Device(format!("{e:#}")))?;
+                GpuData::Progressive
+            }
         };
         Ok(Renderer::Gpu(Box::new(Gpu { ctx, surface, raster, data })))
     }
@@ -885,22 +891,38 @@ impl App<'_> {
                             *next += 1;
                         }
                         self.uploading = *next < refs.len();
-                        if self.uploading {
+                        Some(if self.uploading {
                             let ids: Vec<u32> = (0..*next as u32).collect();
                             raster.draw_selected(ctx, scene, Some(&ids), &camera, &options, Some(background)).map_err(gpu)?
                         } else {
                             raster.draw(ctx, scene, &camera, &options, Some(background)).map_err(gpu)?
-                        }
+                        })
                     }
-                    (Content::Store(v), GpuData::Store(sg)) => v.draw_gpu(ctx, sg, raster, &camera, &options, background, mode)?,
+                    (Content::Store(v), GpuData::Store(sg)) => Some(v.draw_gpu(ctx, sg, raster, &camera, &options, background, mode)?),
+                    (Content::Progressive(v), GpuData::Progressive) => {
+                        // The progressive renderer resolves into its own image buffer.
+                        let f = v.draw_gpu(ctx, &camera, &options, background)?;
+                        stats.points_drawn = f.stats.raster.points_drawn;
+                        stats.gpu_draw_ms = f.gpu.map(|t| t.reproject_ms + t.probe_ms + t.extra_fill_ms + t.prepare_ms);
+                        stats.gpu_resolve_ms = f.gpu.and_then(|t| t.resolve_ms);
+                        None
+                    }
                     _ => bail!("{label}: the GPU holds data of another kind"),
                 };
                 stats.raster_ms = start.elapsed().as_secs_f64() * 1e3;
                 let o = overlay.as_ref().map(|(ow, oh, px)| Overlay { width: *ow, height: *oh, rgba: px });
-                let shown = surface.present(ctx, raster, o, read_back).map_err(gpu)?;
-                stats.points_drawn = frame.stats.points_drawn;
-                stats.gpu_draw_ms = frame.timings.map(|t| t.draw_ms);
-                stats.gpu_resolve_ms = frame.timings.and_then(|t| t.resolve_ms);
+                let shown = match (&frame, &self.content) {
+                    (None, Content::Progressive(v)) => {
+                        let image = v.image_buffer().ok_or_else(|| anyhow!("{label}: GPU: no image resolved"))?;
+                        surface.present_image(ctx, image, (w, h), o, read_back).map_err(gpu)?
+                    }
+                    _ => surface.present(ctx, raster, o, read_back).map_err(gpu)?,
+                };
+                if let Some(frame) = &frame {
+                    stats.points_drawn = frame.stats.points_drawn;
+                    stats.gpu_draw_ms = frame.timings.map(|t| t.draw_ms);
+                    stats.gpu_resolve_ms = frame.timings.and_then(|t| t.resolve_ms);
+                }
                 match shown {
                     Presented::Shown(p) => p,
                     Presented::Skipped(_) => {
@@ -989,8 +1011,14 @@ impl App<'_> {
                         // A switch that needs another attribute is streamed (§3.5); not while
                         // the points or another switch are still loading.
                         Content::Progressive(v) => {
-                            if v.set_mode(next) {
-                                self.mode = next;
+                            let ctx = match &self.renderer {
+                                Some(Renderer::Gpu(g)) => Some(&g.ctx),
+                                _ => None,
+                            };
+                            match v.set_mode(next, ctx) {
+                                Ok(true) => self.mode = next,
+                                Ok(false) => {}
+                                Err(e) => return self.fail(event_loop, e),
                             }
                         }
                         _ => self.mode = next,
@@ -1066,7 +1094,7 @@ impl App<'_> {
                 let gpu = match self.renderer.as_mut() {
                     Some(Renderer::Gpu(g)) => match &mut g.data {
                         GpuData::Store(sg) => Some(sg),
-                        GpuData::Batches { .. } => None,
+                        GpuData::Batches { .. } | GpuData::Progressive => None,
                     },
                     _ => None,
                 };

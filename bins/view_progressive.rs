@@ -12,9 +12,19 @@
 //! needs another attribute is streamed batch by batch (§3.5): new loaders read the attribute
 //! again and replace the payloads piece by piece while frames go on, the points already switched
 //! drawn in the new mode and the others in the old one until every piece has arrived.
+//!
+//! On the GPU ([`GpuProgressive`], the window's GPU path) the points are inserted with their
+//! colour (computed from the payload when the piece arrives) and the image is resolved on the
+//! GPU and presented without a read-back. The colour rules are then fixed by the first piece
+//! that arrives: the 8/16-bit RGB decision and the scalar modes' range (`--range`, else the 1st
+//! to 99th percentile of that piece's values) instead of the visible points' of each frame. A
+//! colour switch on the GPU starts the view over: the points are loaded again with the new
+//! attribute and appear progressively (the streamed switch that keeps the positions is the CPU
+//! path's; on the GPU it would need a colour-only scatter pass, not written yet).
 
 use anyhow::{anyhow, bail, Result};
 use mortar_core::render::progressive::{AdaptiveBudget, FillBudget, FrameStats, ProgressiveRenderer};
+use mortar_render::{GpuContext, GpuProgressive, ProgressiveOptions};
 use mortar_core::render::resolve::{resolve, ColorMode, ResolveOptions};
 use mortar_core::render::{Aabb, Camera, RasterOptions};
 use mortar_io::dataset::Dataset;
@@ -88,12 +98,23 @@ struct Switch {
     points: u64,
 }
 
+/// The GPU renderer and its fixed colour rules.
+pub struct GpuState {
+    renderer: GpuProgressive,
+    /// The colour decisions, fixed by the first piece.
+    rules: Option<(ColorStats, Option<[f64; 2]>)>,
+    loaded: u64,
+}
+
 /// A raw LAS/LAZ shown progressively.
 pub struct ProgressiveView {
     label: String,
     first_path: PathBuf,
     ds: Arc<Dataset>,
     renderer: ProgressiveRenderer,
+    /// The GPU renderer, which replaces `renderer` once [`use_gpu`](Self::use_gpu) is called.
+    gpu: Option<GpuState>,
+    frame: mortar_io::progressive::HeaderFrame,
     bounds: Aabb,
     threads: usize,
     loader: Option<Loader>,
@@ -142,6 +163,8 @@ impl ProgressiveView {
             first_path,
             ds,
             renderer,
+            gpu: None,
+            frame,
             bounds: frame.bounds,
             threads,
             loader,
@@ -165,8 +188,30 @@ impl ProgressiveView {
     }
 
     pub fn loaded(&self) -> u64 {
-        self.renderer.loaded()
+        match &self.gpu {
+            Some(g) => g.loaded,
+            None => self.renderer.loaded(),
+        }
     }
+
+    fn converged(&self) -> bool {
+        match &self.gpu {
+            Some(g) => g.renderer.converged(),
+            None => self.renderer.converged(),
+        }
+    }
+
+    /// Draws with the GPU progressive renderer from now on (before the first frame). Fails
+    /// (and the view stays on the CPU) where the context cannot run it (32-bit atomics).
+    pub fn use_gpu(&mut self, ctx: &GpuContext) -> Result<()> {
+        let f = &self.frame;
+        let renderer = GpuProgressive::new(ctx, self.ds.grid, f.min, f.max, f.points, ProgressiveOptions { colors: true, ..Default::default() }).map_err(|e| anyhow!("{}: {e}", self.label))?;
+        self.gpu = Some(GpuState { renderer, rules: None, loaded: 0 });
+        // The CPU renderer's buffers are not needed any more.
+        self.renderer = ProgressiveRenderer::new(self.ds.grid, f.min, f.max, 0).map_err(|e| anyhow!("{}: {e}", self.label))?;
+        Ok(())
+    }
+
 
     /// The colour mode shown (the one being switched to, during a switch).
     pub fn mode(&self) -> usize {
@@ -176,14 +221,14 @@ impl ProgressiveView {
     /// Whether more frames would change the image: points are loading, a colour switch is
     /// streaming, or the image has not converged.
     pub fn busy(&self) -> bool {
-        self.loader.is_some() || self.switch.is_some() || !self.renderer.converged()
+        self.loader.is_some() || self.switch.is_some() || !self.converged()
     }
 
     /// What the status line says of the loading and switching.
     pub fn status(&self) -> String {
         let mut s = if self.loaded() < self.capacity() {
             format!("loading {:.0}%", 100.0 * self.loaded() as f64 / self.capacity().max(1) as f64)
-        } else if self.renderer.converged() {
+        } else if self.converged() {
             "final".to_string()
         } else {
             "refining".to_string()
@@ -197,13 +242,29 @@ impl ProgressiveView {
 
     /// Asks for colour mode `to`: at once where the payloads held serve it, else streamed
     /// (§3.5) once loading is done; `false` when it cannot start now (loading or switching).
-    pub fn set_mode(&mut self, to: usize) -> bool {
+    /// On the GPU path (`ctx`), a switch starts the view over with the new mode's attribute.
+    pub fn set_mode(&mut self, to: usize, ctx: Option<&GpuContext>) -> Result<bool> {
         if to == self.mode() {
-            return true;
+            return Ok(true);
         }
         if self.switch.is_some() {
-            return false;
+            return Ok(false);
         }
+        if let (Some(_), Some(ctx)) = (&self.gpu, ctx) {
+            // The colours are in the GPU's shuffled buffer: start over with the new mode (the
+            // old buffer is freed first).
+            self.loader = None;
+            self.gpu = None;
+            self.use_gpu(ctx)?;
+            self.stats = ColorStats::default();
+            self.mode = to;
+            self.loader = Some(Loader::start(&self.ds, self.payloads[to], self.threads));
+            return Ok(true);
+        }
+        Ok(self.switch_cpu(to))
+    }
+
+    fn switch_cpu(&mut self, to: usize) -> bool {
         if self.payloads[to] == self.payloads[self.mode] {
             self.mode = to;
             return true;
@@ -214,6 +275,47 @@ impl ProgressiveView {
         let n = self.capacity() as usize;
         self.switch = Some(Switch { loader: Loader::start(&self.ds, self.payloads[to], self.threads), to, payload: self.payloads[to], done: vec![0; n.div_ceil(64)], points: 0 });
         true
+    }
+
+    /// Takes what the loader delivered since the last call into the GPU renderer, each point
+    /// with its colour by the rules fixed at the first piece.
+    fn take_arrived_gpu(&mut self, ctx: &GpuContext) -> Result<()> {
+        let (Some(l), Some(g)) = (&mut self.loader, &mut self.gpu) else { return Ok(()) };
+        let (choice, payload) = (self.modes[self.mode], self.payloads[self.mode]);
+        for piece in l.arrived().map_err(|e| anyhow!("{}: {e:#}", self.label))? {
+            self.stats.add(&piece);
+            let (stats, range) = *g.rules.get_or_insert_with(|| {
+                let (_, r) = payload_colors(&piece.payload, choice, payload, &self.stats, &self.ds.grid, self.range);
+                (self.stats, r)
+            });
+            let (colors, _) = payload_colors(&piece.payload, choice, payload, &stats, &self.ds.grid, range);
+            g.renderer.insert(ctx, piece.first, &piece.xyz, Some(&colors), None).map_err(|e| {
+                anyhow!("{}: {e} (the progressive renderer frames the points with the header's bounds, which must hold every point)", self.label)
+            })?;
+            g.loaded += piece.xyz.len() as u64;
+        }
+        if l.finished {
+            self.loader = None;
+            if g.loaded < self.frame.points {
+                bail!("{}: only {} of {} points could be read", self.label, g.loaded, self.frame.points);
+            }
+        }
+        Ok(())
+    }
+
+    /// Draws one progressive frame with the GPU renderer, resolved on the GPU into its image
+    /// buffer (for the window's present pass): the image buffer and the frame's statistics.
+    pub fn draw_gpu(&mut self, ctx: &GpuContext, camera: &Camera, options: &RasterOptions, background: u32) -> Result<mortar_render::GpuProgressiveFrame> {
+        self.take_arrived_gpu(ctx)?;
+        let g = self.gpu.as_mut().ok_or_else(|| anyhow!("the view is not on the GPU"))?;
+        let f = g.renderer.frame(ctx, camera, options, &self.budget, Some(background)).map_err(|e| anyhow!("{}: GPU: {e}", self.label))?;
+        self.last = f.stats;
+        Ok(f)
+    }
+
+    /// The GPU renderer's resolved image (after [`draw_gpu`](Self::draw_gpu)).
+    pub fn image_buffer(&self) -> Option<&mortar_render::wgpu::Buffer> {
+        self.gpu.as_ref().and_then(|g| g.renderer.image_buffer())
     }
 
     /// Takes what the loaders delivered since the last call.
@@ -322,11 +424,11 @@ mod tests {
         let camera = Camera::look_at([c[0] + d, c[1] - d, c[2] + d], c, [0.0, 0.0, 1.0], Projection::Perspective { fov_y: 0.8 }, &b, 200, 150).unwrap();
         let rgb = settle(&mut v, &camera);
         let k = v.modes.iter().position(|&m| m == ColorChoice::Mode(ColorMode::Classification)).expect("the sample has classes");
-        assert!(v.set_mode(k));
+        assert!(v.set_mode(k, None).unwrap());
         assert_eq!(v.mode(), k);
         assert!(v.switch.is_some(), "classification needs another attribute: streamed");
         // No second switch while one streams.
-        assert!(!v.set_mode(0));
+        assert!(!v.set_mode(0, None).unwrap());
         let switched = settle(&mut v, &camera);
         assert!(v.switch.is_none() && v.mode == k);
         let mut fresh = ProgressiveView::open(&[sample()], ColorChoice::Mode(ColorMode::Classification), None, 2).unwrap();
@@ -334,7 +436,7 @@ mod tests {
         assert_eq!(switched, expected);
         assert!(switched.iter().zip(&rgb).filter(|(a, b)| a != b).count() > 1000);
         // Back to the first mode: its payload is not held any more, so it streams again.
-        assert!(v.set_mode(0));
+        assert!(v.set_mode(0, None).unwrap());
         assert_eq!(settle(&mut v, &camera), rgb);
     }
 }

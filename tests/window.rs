@@ -326,6 +326,17 @@ fn view_draws_raw_las_progressively_until_the_image_is_final() {
     // The first frames show part of the points, the last all of them.
     let drawn: Vec<u64> = frames.iter().map(|f| f["points_drawn"].as_u64().unwrap()).collect();
     assert!(drawn.len() >= 2 && drawn[0] < *drawn.iter().max().unwrap(), "{drawn:?}");
+    // The GPU progressive renderer (64-bit atomics) in the window: same keys, and for RGB the
+    // same colours, so the same final picture.
+    if mortar_render::testing::context_or_skip(mortar_render::AtomicPath::U64, None).is_some() {
+        let (gj, (_, _, gpu)) = shot("progressive-gpu.png", &["--backend", "gpu"]);
+        assert_eq!(gj["renderer"]["backend"], "gpu", "{gj}");
+        let differ = gpu.iter().zip(&progressive).filter(|(a, b)| a != b).count();
+        assert_eq!(differ, 0, "{differ} pixels differ between the GPU and the CPU progressive window");
+        // With 32-bit atomics the progressive view falls back to the CPU renderer.
+        let (cj, _) = shot("progressive-32.png", &["--backend", "gpu", "--atomics", "32"]);
+        assert_eq!(cj["renderer"]["backend"], "cpu", "{cj}");
+    }
     // Another colour mode that needs another attribute: streamed in, then final again.
     let (cj, (_, _, class)) = shot("class.png", &["--backend", "cpu", "--color", "classification"]);
     assert_eq!(cj["color"], "classification");
