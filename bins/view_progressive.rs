@@ -184,7 +184,7 @@ impl ProgressiveView {
     }
 
     pub fn capacity(&self) -> u64 {
-        self.renderer.capacity()
+        self.frame.points
     }
 
     pub fn loaded(&self) -> u64 {
