@@ -40,6 +40,10 @@ pub struct FramesArgs {
     /// LOD threshold of the frames in pixels (paper 004 §6; 0 draws every leaf).
     #[arg(long, default_value_t = mortar_core::octree::DEFAULT_THRESHOLD_PX, requires = "frames")]
     pub frame_lod_threshold: f64,
+    /// Rasterizer of the frames: cpu (the default), gpu (any adapter, a CPU Vulkan included) or
+    /// auto (a hardware GPU if there is one, else cpu). The images are the same.
+    #[arg(long, value_enum, default_value = "cpu", requires = "frames")]
+    pub frame_backend: crate::render::Backend,
     #[command(flatten)]
     pub camera: CameraArgs,
 }
@@ -71,6 +75,8 @@ pub struct FrameRecorder {
     start: Instant,
     last: Option<Instant>,
     last_commit: u64,
+    /// The GPU drawing the frames (`None`: the CPU rasterizer).
+    gpu: Option<mortar_render::GpuContext>,
     pub frames: Vec<FrameInfo>,
     thumbs: Vec<(u32, u32, Vec<u32>)>,
 }
@@ -106,6 +112,11 @@ impl FrameRecorder {
         }
         std::fs::create_dir_all(dir).with_context(|| format!("{}: cannot create the frames directory", dir.display()))?;
         let camera = build_camera(&a.camera, &header_bounds(ds), a.frame_width, a.frame_height)?;
+        let gpu = match a.frame_backend {
+            crate::render::Backend::Cpu => None,
+            crate::render::Backend::Gpu => Some(mortar_render::GpuContext::new(&mortar_render::GpuOptions { allow_software: true, ..Default::default() }).map_err(|e| anyhow::anyhow!("--frame-backend gpu: {e}"))?),
+            crate::render::Backend::Auto => mortar_render::GpuContext::new(&mortar_render::GpuOptions::default()).ok(),
+        };
         Ok(Some(FrameRecorder {
             dir: dir.clone(),
             store: store.to_path_buf(),
@@ -116,6 +127,7 @@ impl FrameRecorder {
             start: Instant::now(),
             last: None,
             last_commit: 0,
+            gpu,
             frames: Vec::new(),
             thumbs: Vec::new(),
         }))
@@ -155,7 +167,11 @@ impl FrameRecorder {
         let camera = self.camera(self.frames.len())?;
         let sel = lod.select(&camera, &self.lod)?;
         let batches = lod.batches(&sel.nodes)?;
-        let img = store_lod::render(&lod, &batches, &camera, &RenderSettings::default())?;
+        let settings = RenderSettings::default();
+        let img = match &self.gpu {
+            Some(ctx) => crate::render_lod::render_gpu(ctx, &lod, &batches, &camera, &settings).map_err(|e| anyhow::anyhow!("{}: GPU: {e}", self.store.display()))?.0?,
+            None => store_lod::render(&lod, &batches, &camera, &settings)?,
+        };
         let file = self.dir.join(format!("frame-{:04}.png", self.frames.len() + 1));
         write_atomic(&file, &encode_png(img.width, img.height, &img.rgba)?)?;
         self.thumbs.push((img.width, img.height, img.rgba));

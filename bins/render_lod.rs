@@ -150,7 +150,7 @@ pub fn lod_json(sel: &LodSelection, options: &LodOptions, selection_seconds: f64
 /// framebuffer's index is the batches' sample index), draws one frame, reads the keys back and
 /// resolves them on the host as the CPU path does. The outer error is the GPU's, the inner one
 /// the store's.
-fn render_gpu(
+pub(crate) fn render_gpu(
     ctx: &GpuContext,
     lod: &StoreLod,
     batches: &LodBatches<'_>,

@@ -89,3 +89,68 @@ fn bad_frame_options_are_clear_errors() {
     assert_ne!(o.status.code(), Some(0));
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn frames_on_the_gpu_equal_the_cpu_frames_and_the_offscreen_preview_reports_its_frames() {
+    if mortar_render::testing::context_or_skip(mortar_render::AtomicPath::TwoPass32, None).is_none() {
+        return;
+    }
+    let dir = tempdir("frames-gpu");
+    let input = root().join("data-samples/autzen_trim.laz");
+    let mut outs = Vec::new();
+    for backend in ["cpu", "gpu"] {
+        let frames = dir.join(format!("frames-{backend}"));
+        let store = dir.join(format!("s-{backend}"));
+        let o = run_ok(
+            mortar().arg("build").arg(&input).arg("-o").arg(&store).args(["--batch-points", "20000", "--frames"]).arg(&frames).args([
+                "--every",
+                "0",
+                "--frame-width",
+                "240",
+                "--frame-height",
+                "160",
+                "--frame-backend",
+                backend,
+                "--json",
+            ]),
+        );
+        let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+        outs.push((frames, j["frames"]["count"].as_u64().unwrap()));
+    }
+    assert_eq!(outs[0].1, outs[1].1);
+    assert!(outs[0].1 >= 5);
+    for k in 1..=outs[0].1 {
+        let name = format!("frame-{k:04}.png");
+        let (a, b) = (read_png(&outs[0].0.join(&name)), read_png(&outs[1].0.join(&name)));
+        assert!(a == b, "{name}: the GPU frame differs from the CPU frame");
+    }
+
+    // The preview off screen (no display needed): frames while the store grows, on the GPU.
+    let store = dir.join("s-preview");
+    let o = run_ok(
+        mortar().arg("build").arg(&input).arg("-o").arg(&store).args([
+            "--batch-points",
+            "5000",
+            "--commit-every",
+            "0",
+            "--preview",
+            "--preview-offscreen",
+            "--preview-backend",
+            "gpu",
+            "--preview-size",
+            "320x240",
+            "--json",
+        ]),
+    );
+    let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(j["points"], 110_000);
+    let p = &j["preview"];
+    assert_eq!(p["renderer"]["backend"], "gpu", "{p}");
+    let frames = p["frames"].as_array().unwrap();
+    assert_eq!(p["frame_count"].as_u64().unwrap() as usize, frames.len());
+    let last = frames.last().unwrap();
+    assert!(last["points_drawn"].as_u64().unwrap() > 0, "{last}");
+    assert_eq!(last["commit"], j["commits"], "the last preview frame shows the last commit");
+    let uploaded: u64 = frames.iter().map(|f| f["nodes_uploaded"].as_u64().unwrap()).sum();
+    assert!(uploaded > 0);
+}
