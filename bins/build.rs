@@ -43,6 +43,9 @@ pub struct Args {
 
 /// Seconds between commits while a preview window shows the store.
 const PREVIEW_COMMIT_EVERY: f64 = 1.0;
+/// Seconds to the first commit while a preview window shows the store (so that points appear
+/// early).
+const PREVIEW_FIRST_COMMIT: f64 = 0.25;
 
 pub fn run(a: Args) -> Result<()> {
     if a.leaf_capacity == 0 {
@@ -57,6 +60,7 @@ pub fn run(a: Args) -> Result<()> {
             ..BuilderConfig::default()
         },
         batch_points: a.batch_points.max(1),
+        first_commit_after: None,
         commit_every: a.commit_every.max(0.0),
         memory: a.memory,
     };
@@ -67,6 +71,7 @@ pub fn run(a: Args) -> Result<()> {
     }
     if a.preview.preview {
         opts.commit_every = opts.commit_every.min(PREVIEW_COMMIT_EVERY);
+        opts.first_commit_after = Some(PREVIEW_FIRST_COMMIT);
     }
     let tty = std::io::stderr().is_terminal();
     let mut frame_error: Option<anyhow::Error> = None;

@@ -76,6 +76,7 @@ fn store_is_readable_at_every_commit_while_it_grows() {
     let opts = BuildOptions {
         config: BuilderConfig { leaf_capacity: 2000, color_mode: ColorMode::FirstCome, ..BuilderConfig::default() },
         batch_points: 10_000,
+        first_commit_after: None,
         commit_every: 0.0,
         memory: 1 << 30,
     };

@@ -519,6 +519,9 @@ pub struct BuildOptions {
     pub batch_points: usize,
     /// Seconds between commits (the last one is always made).
     pub commit_every: f64,
+    /// Seconds after the start at which the first commit is made, when sooner than
+    /// `commit_every` (a preview shows the store from its first commit on).
+    pub first_commit_after: Option<f64>,
     /// Memory budget in bytes: a commit (after which the builder pages out every leaf's points)
     /// is also made when the points and records held since the last one exceed a third of it.
     pub memory: u64,
@@ -725,7 +728,9 @@ fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOptions, progr
             cursor = end;
             let held = records.len() as u64 + paged.lock().map_or(0, |p| p.len() as u64) + builder.resident_points() * 24;
             report.peak_interval_bytes = report.peak_interval_bytes.max(held);
-            let due = last_commit.elapsed().as_secs_f64() >= opts.commit_every || builder.resident_points() >= interval_points;
+            let since = last_commit.elapsed().as_secs_f64();
+            let first_due = writer.commits() == 0 && opts.first_commit_after.is_some_and(|f| since >= f);
+            let due = since >= opts.commit_every || first_due || builder.resident_points() >= interval_points;
             let last = next == pieces.len() && cursor == records.len();
             if due && !last {
                 commit_and_page_out(writer, &mut builder, (lo, hi), &mut records, cursor, &paged, rl, &mut report)?;
