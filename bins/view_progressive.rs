@@ -18,9 +18,10 @@
 //! GPU and presented without a read-back. The colour rules are then fixed by the first piece
 //! that arrives: the 8/16-bit RGB decision and the scalar modes' range (`--range`, else the 1st
 //! to 99th percentile of that piece's values) instead of the visible points' of each frame. A
-//! colour switch on the GPU starts the view over: the points are loaded again with the new
-//! attribute and appear progressively (the streamed switch that keeps the positions is the CPU
-//! path's; on the GPU it would need a colour-only scatter pass, not written yet).
+//! colour switch is streamed there too: loaders read the new mode's attribute again and each
+//! piece's new colours are written into the shuffled buffer by slot
+//! ([`GpuProgressive::recolor`], the scatter pass writing colours only); points not switched yet
+//! keep their colour.
 
 use anyhow::{anyhow, bail, Result};
 use mortar_core::render::progressive::{AdaptiveBudget, FillBudget, FrameStats, ProgressiveRenderer};
@@ -93,9 +94,11 @@ struct Switch {
     loader: Loader,
     to: usize,
     payload: Payload,
-    /// Per slot, whether its payload is the new one.
+    /// Per slot, whether its payload is the new one (CPU path).
     done: Vec<u64>,
     points: u64,
+    /// GPU path: the new mode's colour rules, fixed by the switch's first piece.
+    rules: Option<(ColorStats, Option<[f64; 2]>)>,
 }
 
 /// The GPU renderer and its fixed colour rules.
@@ -250,15 +253,13 @@ impl ProgressiveView {
         if self.switch.is_some() {
             return Ok(false);
         }
-        if let (Some(_), Some(ctx)) = (&self.gpu, ctx) {
-            // The colours are in the GPU's shuffled buffer: start over with the new mode (the
-            // old buffer is freed first).
-            self.loader = None;
-            self.gpu = None;
-            self.use_gpu(ctx)?;
-            self.stats = ColorStats::default();
-            self.mode = to;
-            self.loader = Some(Loader::start(&self.ds, self.payloads[to], self.threads));
+        if self.gpu.is_some() && ctx.is_some() {
+            // The colours are in the GPU's shuffled buffer: stream the new ones in (the loaders
+            // read the new mode's attribute again; `GpuProgressive::recolor` writes colours only).
+            if self.loader.is_some() {
+                return Ok(false);
+            }
+            self.switch = Some(Switch { loader: Loader::start(&self.ds, self.payloads[to], self.threads), to, payload: self.payloads[to], done: Vec::new(), points: 0, rules: None });
             return Ok(true);
         }
         Ok(self.switch_cpu(to))
@@ -273,13 +274,35 @@ impl ProgressiveView {
             return false;
         }
         let n = self.capacity() as usize;
-        self.switch = Some(Switch { loader: Loader::start(&self.ds, self.payloads[to], self.threads), to, payload: self.payloads[to], done: vec![0; n.div_ceil(64)], points: 0 });
+        self.switch = Some(Switch { loader: Loader::start(&self.ds, self.payloads[to], self.threads), to, payload: self.payloads[to], done: vec![0; n.div_ceil(64)], points: 0, rules: None });
         true
     }
 
     /// Takes what the loader delivered since the last call into the GPU renderer, each point
     /// with its colour by the rules fixed at the first piece.
     fn take_arrived_gpu(&mut self, ctx: &GpuContext) -> Result<()> {
+        if let (Some(w), Some(g)) = (&mut self.switch, &mut self.gpu) {
+            let (choice, payload) = (self.modes[w.to], w.payload);
+            for piece in w.loader.arrived().map_err(|e| anyhow!("{}: {e:#}", self.label))? {
+                let (stats, range) = *w.rules.get_or_insert_with(|| {
+                    let mut st = ColorStats::default();
+                    st.add(&piece);
+                    let (_, r) = payload_colors(&piece.payload, choice, payload, &st, &self.ds.grid, self.range);
+                    (st, r)
+                });
+                let (colors, _) = payload_colors(&piece.payload, choice, payload, &stats, &self.ds.grid, range);
+                g.renderer.recolor(ctx, piece.first, &colors).map_err(|e| anyhow!("{}: GPU: {e}", self.label))?;
+                w.points += piece.payload.len() as u64;
+            }
+            if w.loader.finished {
+                if w.points < self.frame.points {
+                    bail!("{}: only {} of {} points could be read again for the new colours", self.label, w.points, self.frame.points);
+                }
+                self.mode = w.to;
+                g.rules = w.rules;
+                self.switch = None;
+            }
+        }
         let (Some(l), Some(g)) = (&mut self.loader, &mut self.gpu) else { return Ok(()) };
         let (choice, payload) = (self.modes[self.mode], self.payloads[self.mode]);
         for piece in l.arrived().map_err(|e| anyhow!("{}: {e:#}", self.label))? {
@@ -438,5 +461,40 @@ mod tests {
         // Back to the first mode: its payload is not held any more, so it streams again.
         assert!(v.set_mode(0, None).unwrap());
         assert_eq!(settle(&mut v, &camera), rgb);
+    }
+
+    /// GPU frames until the image is final; the last image.
+    fn settle_gpu(v: &mut ProgressiveView, ctx: &GpuContext, camera: &Camera) -> Vec<u32> {
+        for _ in 0..10_000 {
+            v.draw_gpu(ctx, camera, &RasterOptions::default(), 0xff00_0000).unwrap();
+            if !v.busy() {
+                return v.gpu.as_ref().unwrap().renderer.read_image(ctx).unwrap();
+            }
+            std::thread::sleep(std::time::Duration::from_millis(1));
+        }
+        panic!("the progressive view never settled on the GPU");
+    }
+
+    #[test]
+    fn on_the_gpu_a_colour_switch_is_streamed_into_the_shuffled_buffer() {
+        let Some(ctx) = mortar_render::testing::context_or_skip(mortar_render::AtomicPath::U64, None) else { return };
+        let open = |c: ColorChoice| {
+            let mut v = ProgressiveView::open(&[sample()], c, None, 2).unwrap();
+            v.use_gpu(&ctx).unwrap();
+            v
+        };
+        let mut v = open(ColorChoice::Auto);
+        let b = v.bounds();
+        let (c, d) = (b.center(), b.diagonal());
+        let camera = Camera::look_at([c[0] - d, c[1] - d, c[2] + d], c, [0.0, 0.0, 1.0], Projection::Perspective { fov_y: 0.8 }, &b, 200, 150).unwrap();
+        let first = settle_gpu(&mut v, &ctx, &camera);
+        let k = v.modes.iter().position(|&m| m == ColorChoice::Mode(ColorMode::Classification)).unwrap();
+        assert!(v.set_mode(k, Some(&ctx)).unwrap());
+        assert!(v.switch.is_some() && v.loaded() == v.capacity(), "a switch streams colours, it does not reload the points");
+        let switched = settle_gpu(&mut v, &ctx, &camera);
+        assert!(v.switch.is_none() && v.mode == k);
+        let mut fresh = open(ColorChoice::Mode(ColorMode::Classification));
+        assert_eq!(switched, settle_gpu(&mut fresh, &ctx, &camera));
+        assert!(switched.iter().zip(&first).filter(|(a, b)| a != b).count() > 1000);
     }
 }

@@ -2,7 +2,8 @@
 // that arrived into their shuffled slots of one chunk. The host computed each point's slot with
 // mortar_core's Shuffle::target and staged one record per point: the slot relative to the chunk,
 // the coarse, medium and fine words and, with colours, the RGBA8 colour. Slots are distinct, so
-// threads need no synchronisation.
+// threads need no synchronisation. With `colors_only` the records are (slot, colour) and only the
+// colours are written: a colour-mode switch streamed in piece by piece (§3.5).
 
 @group(0) @binding(0) var<uniform> params: ScatterUniforms;
 @group(0) @binding(1) var<storage, read> staged: array<u32>;
@@ -13,8 +14,15 @@
 
 @compute @workgroup_size(256)
 fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
-    let stride = 4u + params.colors;
     let i = workgroup_linear(wg, groups) * 256u + lid;
+    if params.colors_only != 0u {
+        if i >= arrayLength(&staged) / 2u {
+            return;
+        }
+        colors_out[staged[2u * i]] = staged[2u * i + 1u];
+        return;
+    }
+    let stride = 4u + params.colors;
     if i >= arrayLength(&staged) / stride {
         return;
     }

@@ -19,7 +19,9 @@ const SLOTS_PER_THREAD: u32 = 8u;
 struct ScatterUniforms {
     // 1 when the staged records carry an RGBA8 colour (5 words per point), 0 when not (4 words).
     colors: u32,
-    _pad0: u32,
+    // 1: the records are (slot, colour) only and only the colours are written (a colour switch
+    // streamed in, paper 000 §3.5).
+    colors_only: u32,
     _pad1: u32,
     _pad2: u32,
 }

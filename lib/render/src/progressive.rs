@@ -82,8 +82,8 @@ const STAGING_POINTS: usize = 4 << 20;
 pub struct ScatterUniforms {
     /// 1 when the staged records carry a colour (5 words per point), 0 when not (4 words).
     pub colors: u32,
-    /// Padding.
-    pub _pad0: u32,
+    /// 1 when the records are (slot, colour) and only colours are written ([`GpuProgressive::recolor`]).
+    pub colors_only: u32,
     /// Padding.
     pub _pad1: u32,
     /// Padding.
@@ -268,6 +268,7 @@ pub struct GpuProgressive {
     frame_uniforms: wgpu::Buffer,
     prepare_uniforms: wgpu::Buffer,
     scatter_uniforms: wgpu::Buffer,
+    recolor_uniforms: wgpu::Buffer,
     resolve_uniforms: Vec<wgpu::Buffer>,
     records: wgpu::Buffer,
     record_stride: u64,
@@ -353,7 +354,9 @@ impl GpuProgressive {
         let frame_uniforms = uniform("frame uniforms", std::mem::size_of::<FrameUniforms>() as u64);
         let prepare_uniforms = uniform("prepare uniforms", std::mem::size_of::<PrepareUniforms>() as u64);
         let scatter_uniforms = uniform("scatter uniforms", std::mem::size_of::<ScatterUniforms>() as u64);
-        ctx.queue.write_buffer(&scatter_uniforms, 0, bytemuck::bytes_of(&ScatterUniforms { colors: options.colors as u32, _pad0: 0, _pad1: 0, _pad2: 0 }));
+        ctx.queue.write_buffer(&scatter_uniforms, 0, bytemuck::bytes_of(&ScatterUniforms { colors: options.colors as u32, colors_only: 0, _pad1: 0, _pad2: 0 }));
+        let recolor_uniforms = uniform("recolour uniforms", std::mem::size_of::<ScatterUniforms>() as u64);
+        ctx.queue.write_buffer(&recolor_uniforms, 0, bytemuck::bytes_of(&ScatterUniforms { colors: 1, colors_only: 1, _pad1: 0, _pad2: 0 }));
         let align = ctx.limits().min_storage_buffer_offset_alignment.max(4) as u64;
         let record_size = std::mem::size_of::<DrawRecord>() as u64;
         let record_stride = round_up(record_size, align);
@@ -400,6 +403,7 @@ impl GpuProgressive {
             frame_uniforms,
             prepare_uniforms,
             scatter_uniforms,
+            recolor_uniforms,
             resolve_uniforms: Vec::new(),
             records,
             record_stride,
@@ -555,7 +559,6 @@ impl GpuProgressive {
         let stride = 4 + colors.is_some() as usize;
         let cs = self.chunk_slots;
         let frame = self.frame;
-        let align = ctx.limits().min_storage_buffer_offset_alignment.max(4) as u64;
         // Per chunk its records (slot in the chunk, coarse, medium, fine[, colour]).
         let mut parts: Vec<(usize, Vec<u32>)> = Vec::new();
         for (c, chunk) in self.chunks.iter().enumerate() {
@@ -573,6 +576,50 @@ impl GpuProgressive {
                 parts.push((c, recs));
             }
         }
+        self.submit_scatter(ctx, parts, stride, false)
+    }
+
+    /// Replaces the colours of points `first..first + colors.len()` of the input (already
+    /// inserted), leaving their positions alone: a colour-mode switch streamed in piece by piece
+    /// (§3.5) while frames go on. The points not replaced yet keep their colour. Checks everything
+    /// before changing anything.
+    pub fn recolor(&mut self, ctx: &GpuContext, first: u64, colors: &[u32]) -> Result<(), ProgressiveGpuError> {
+        if !self.options.colors {
+            return Err(GpuError::Colors("the renderer was made without colours".into()).into());
+        }
+        let n = colors.len();
+        let end = first.saturating_add(n as u64);
+        if end > self.capacity() {
+            return Err(ProgressiveError::IndexRange { first, end, capacity: self.capacity() }.into());
+        }
+        let shuffle = self.shuffle;
+        let targets: Vec<u32> = (0..n).into_par_iter().with_min_len(4096).map(|k| shuffle.target((first + k as u64) as u32)).collect();
+        let bits = &self.loaded_bits;
+        if let Some(k) = targets.par_iter().position_first(|&t| bits[t as usize / 64].load(Ordering::Relaxed) >> (t % 64) & 1 == 0) {
+            return Err(ProgressiveError::NotLoaded(first + k as u64).into());
+        }
+        let cs = self.chunk_slots;
+        for s in (0..n).step_by(STAGING_POINTS) {
+            let e = (s + STAGING_POINTS).min(n);
+            let parts: Vec<(usize, Vec<u32>)> = self
+                .chunks
+                .iter()
+                .enumerate()
+                .map(|(c, chunk)| {
+                    let recs: Vec<u32> = (s..e).filter(|&k| targets[k] / cs == c as u32).flat_map(|k| [targets[k] - chunk.first, colors[k]]).collect();
+                    (c, recs)
+                })
+                .filter(|(_, r)| !r.is_empty())
+                .collect();
+            self.submit_scatter(ctx, parts, 2, true)?;
+        }
+        Ok(())
+    }
+
+    /// Uploads per-chunk scatter records (`stride` words each) and dispatches the scatter pass
+    /// over them; `colors_only`: (slot, colour) records that only recolour.
+    fn submit_scatter(&mut self, ctx: &GpuContext, parts: Vec<(usize, Vec<u32>)>, stride: usize, colors_only: bool) -> Result<(), GpuError> {
+        let align = ctx.limits().min_storage_buffer_offset_alignment.max(4) as u64;
         let total: u64 = parts.iter().map(|(_, r)| round_up(r.len() as u64 * 4, align)).sum();
         if self.staging.as_ref().is_none_or(|b| b.size() < total) {
             let size = (STAGING_POINTS as u64 * 20 + self.chunks.len() as u64 * align).max(total);
@@ -594,7 +641,7 @@ impl GpuProgressive {
                 label: None,
                 layout: &layout,
                 entries: &[
-                    entry(0, self.scatter_uniforms.as_entire_binding()),
+                    entry(0, if colors_only { &self.recolor_uniforms } else { &self.scatter_uniforms }.as_entire_binding()),
                     entry(1, wgpu::BindingResource::Buffer(wgpu::BufferBinding { buffer: staging, offset, size: NonZeroU64::new(bytes) })),
                     entry(2, chunk.words[0].as_entire_binding()),
                     entry(3, chunk.words[1].as_entire_binding()),

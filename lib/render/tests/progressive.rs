@@ -299,3 +299,36 @@ fn bad_input_is_refused_without_changes() {
     assert!(e.read_keys(&ctx).unwrap().iter().all(|&k| k == EMPTY_KEY));
     assert!(e.read_image(&ctx).unwrap().iter().all(|&c| c == 0xff11_2233));
 }
+
+#[test]
+fn recolor_streams_new_colours_in_and_keeps_the_positions() {
+    // Three chunks; the new colours arrive in two pieces, in input order, as a loader delivers them.
+    let Some(ctx) = context(None) else { return };
+    let scene = terrain(60_000, 21);
+    let (mut gpu, mut cpu) = pair(&ctx, &scene, Some(25_000));
+    insert(&ctx, &mut gpu, &mut cpu, &scene, 0, scene.points.len());
+    let cam = Camera::frame_perspective(&scene.bounds, ViewPreset::Iso, 0.8, 200, 150).unwrap();
+    frame_both(&ctx, &mut gpu, &mut cpu, &cam, 60_000, "before");
+    let keys = gpu.read_keys(&ctx).unwrap();
+    let opts = ResolveOptions { background: 0xff00_0000, ..Default::default() };
+    let new_colors: Vec<u32> = scene.colors.iter().map(|c| !c | 0xff00_0000).collect();
+    // First half: pixels of the first half's points take their new colour, the others keep theirs.
+    gpu.recolor(&ctx, 0, &new_colors[..30_000]).unwrap();
+    frame_both(&ctx, &mut gpu, &mut cpu, &cam, 60_000, "half");
+    assert_eq!(gpu.read_keys(&ctx).unwrap(), keys, "recolouring moved points");
+    let mut by_slot = slot_colors(&gpu, &scene);
+    for i in 0..30_000u32 {
+        by_slot[gpu.shuffle().target(i) as usize] = new_colors[i as usize];
+    }
+    assert_eq!(gpu.read_image(&ctx).unwrap(), resolve_with_colors(&keys, cam.width, cam.height, &by_slot, &opts));
+    gpu.recolor(&ctx, 30_000, &new_colors[30_000..]).unwrap();
+    frame_both(&ctx, &mut gpu, &mut cpu, &cam, 60_000, "all");
+    for i in 30_000..60_000u32 {
+        by_slot[gpu.shuffle().target(i) as usize] = new_colors[i as usize];
+    }
+    assert_eq!(gpu.read_image(&ctx).unwrap(), resolve_with_colors(&keys, cam.width, cam.height, &by_slot, &opts));
+    // Points not inserted and ranges past the end are refused.
+    let (mut fresh, _) = pair(&ctx, &scene, None);
+    assert!(fresh.recolor(&ctx, 0, &new_colors[..10]).is_err());
+    assert!(gpu.recolor(&ctx, 59_990, &new_colors[..20]).is_err());
+}

@@ -121,7 +121,7 @@ fn shared_structs_have_the_rust_layout() {
             size_of::<ScatterUniforms>(),
             vec![
                 ("colors", offset_of!(ScatterUniforms, colors)),
-                ("_pad0", offset_of!(ScatterUniforms, _pad0)),
+                ("colors_only", offset_of!(ScatterUniforms, colors_only)),
                 ("_pad1", offset_of!(ScatterUniforms, _pad1)),
                 ("_pad2", offset_of!(ScatterUniforms, _pad2)),
             ],
