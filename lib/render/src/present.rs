@@ -7,8 +7,7 @@
 //! [`GpuContext::for_window`] from any window that has raw window and display handles.
 
 use crate::context::{GpuContext, GpuError};
-use crate::raster::GpuRasterizer;
-use std::sync::mpsc;
+use crate::raster::{map_read, GpuRasterizer};
 
 /// Constants of the present pass. 32 bytes; WGSL `PresentUniforms` in `shaders/present.wgsl`.
 #[repr(C)]
@@ -333,23 +332,6 @@ fn overlay_buffer(ctx: &GpuContext, bytes: u64) -> wgpu::Buffer {
         usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
         mapped_at_creation: false,
     })
-}
-
-/// Maps a read-back buffer (after its copy was submitted) and returns its bytes.
-fn map_read(ctx: &GpuContext, buf: &wgpu::Buffer) -> Result<Vec<u8>, GpuError> {
-    let (tx, rx) = mpsc::channel();
-    buf.map_async(wgpu::MapMode::Read, .., move |r| {
-        let _ = tx.send(r);
-    });
-    ctx.wait()?;
-    match rx.recv() {
-        Ok(Ok(())) => {}
-        Ok(Err(e)) => return Err(GpuError::Device(format!("cannot read the surface back: {e}"))),
-        Err(_) => return Err(GpuError::Device("surface read-back never completed".into())),
-    }
-    let bytes = buf.get_mapped_range(..).map_err(|e| GpuError::Device(format!("cannot read the surface back: {e}")))?.to_vec();
-    buf.unmap();
-    Ok(bytes)
 }
 
 #[cfg(test)]
