@@ -189,8 +189,8 @@ fn check_window(a: &Args) -> Result<()> {
 pub enum Wake {
     /// The build reported progress (maybe a commit).
     Progress,
-    /// The build ended.
-    Done,
+    /// The build ended: whether it succeeded.
+    Done(bool),
 }
 
 /// The event loop, or an error that says there is no display.
@@ -280,8 +280,9 @@ where
             };
             let r = build(&mut report);
             drop(ptx);
+            let ok = r.is_ok();
             let _ = rtx.send(r);
-            let _ = proxy.send_event(Wake::Done);
+            let _ = proxy.send_event(Wake::Done(ok));
         });
         let frames = match show(a, event_loop, Content::Store(Box::new(view)), crate::view_store::MODES.to_vec(), mode, label, Some(BuildState::new(prx))) {
             Ok(Shown { frames, build_done }) => {
@@ -343,10 +344,18 @@ where
         });
         let mut state = BuildState::new(prx);
         let mut frames = Vec::new();
+        let mut result = None;
         loop {
             let t = Instant::now();
+            match rrx.try_recv() {
+                // A failed build leaves no store to draw: its error is the command's.
+                Ok(r) if r.is_err() => return Ok((frames, r)),
+                Ok(r) => result = Some(r),
+                Err(TryRecvError::Empty) => {}
+                Err(TryRecvError::Disconnected) => return Err(anyhow!("the build's thread ended without a result")),
+            }
             let committed = state.poll();
-            let last = state.done;
+            let last = result.is_some();
             if committed || last {
                 view.reload(gpu.as_mut().map(|g| &mut g.0))?;
             }
@@ -378,8 +387,7 @@ where
                 std::thread::sleep(std::time::Duration::from_secs_f64(left * 1e-3));
             }
         }
-        let result = rrx.recv().map_err(|_| anyhow!("the build's thread ended without a result"))?;
-        Ok((frames, result))
+        Ok((frames, result.expect("the loop ends once the build's result arrived")))
     })?;
     let report = result?;
     let mut ms: Vec<f64> = frames.iter().filter_map(|f| f["frame_ms"].as_f64()).collect();
@@ -454,7 +462,7 @@ fn show(a: &Args, event_loop: EventLoop<Wake>, content: Content<'_>, modes: Vec<
     if a.json {
         println!("{}", serde_json::to_string_pretty(&j)?);
     }
-    Ok(Shown { frames: j, build_done: app.build.is_none_or(|b| b.done) })
+    Ok(Shown { frames: j, build_done: app.build.is_none_or(|b| b.done || b.failed) })
 }
 
 /// The camera as the mouse moves it: a target, a distance, and the direction from the target to
@@ -636,12 +644,14 @@ struct BuildState {
     seconds: Option<f64>,
     /// The store's last commit was loaded after the build ended.
     final_loaded: bool,
+    /// The build failed.
+    failed: bool,
 }
 
 impl BuildState {
     fn new(progress: Receiver<BuildProgress>) -> BuildState {
         let now = Instant::now();
-        BuildState { progress, latest: BuildProgress::default(), start: now, rate_from: (0, now), rate: 0.0, done: false, seconds: None, final_loaded: false }
+        BuildState { progress, latest: BuildProgress::default(), start: now, rate_from: (0, now), rate: 0.0, done: false, seconds: None, final_loaded: false, failed: false }
     }
 
     /// Takes every report that arrived (keeping the newest); whether the commit count changed.
@@ -651,13 +661,8 @@ impl BuildState {
             match self.progress.try_recv() {
                 Ok(p) => self.latest = p,
                 Err(TryRecvError::Empty) => break,
-                Err(TryRecvError::Disconnected) => {
-                    if !self.done {
-                        self.done = true;
-                        self.seconds = Some(self.start.elapsed().as_secs_f64());
-                    }
-                    break;
-                }
+                // The build's end (and whether it succeeded) comes as `Wake::Done`.
+                Err(TryRecvError::Disconnected) => break,
             }
         }
         let dt = self.rate_from.1.elapsed().as_secs_f64();
@@ -1078,7 +1083,13 @@ impl App<'_> {
     fn on_build(&mut self, event: Wake) -> Result<()> {
         let Some(b) = self.build.as_mut() else { return Ok(()) };
         let committed = b.poll();
-        if let Wake::Done = event {
+        if let Wake::Done(ok) = event {
+            // A failed build leaves no store to look at: the window closes and the command
+            // reports the build's error.
+            if !ok {
+                b.failed = true;
+                return Ok(());
+            }
             if !b.done {
                 b.done = true;
                 b.seconds = Some(b.start.elapsed().as_secs_f64());
@@ -1113,6 +1124,9 @@ impl ApplicationHandler<Wake> for App<'_> {
     fn user_event(&mut self, event_loop: &ActiveEventLoop, event: Wake) {
         if let Err(e) = self.on_build(event) {
             self.fail(event_loop, e);
+        }
+        if self.build.as_ref().is_some_and(|b| b.failed) {
+            event_loop.exit();
         }
     }
 

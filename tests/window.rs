@@ -343,3 +343,27 @@ fn view_draws_raw_las_progressively_until_the_image_is_final() {
     let recoloured = class.iter().zip(&progressive).filter(|(a, b)| a != b).count();
     assert!(recoloured > 1000, "{recoloured} pixels changed colour");
 }
+
+#[test]
+fn a_failing_build_closes_its_preview_and_reports_the_error() {
+    let Some(x) = xvfb_or_skip() else { return };
+    let dir = tempdir("window-preview-bad");
+    // Points outside the bounds the header declares: the build fails after it started.
+    let las = dir.join("bad.las");
+    run_ok(mortar().arg("sort").arg(sample()).arg("-o").arg(&las));
+    let mut b = std::fs::read(&las).unwrap();
+    let min_x = f64::from_le_bytes(b[187..195].try_into().unwrap());
+    b[179..187].copy_from_slice(&(min_x + 1.0).to_le_bytes());
+    std::fs::write(&las, &b).unwrap();
+    for extra in [&["--preview-backend", "cpu"][..], &["--preview-backend", "cpu", "--preview-offscreen"][..]] {
+        let store = dir.join("s");
+        let mut c = mortar();
+        c.arg("build").arg(&las).arg("-o").arg(&store).arg("--preview").args(extra);
+        c.env("DISPLAY", &x.display).env_remove("WAYLAND_DISPLAY");
+        let o = run_limited(c, Duration::from_secs(120));
+        assert_eq!(o.status.code(), Some(1), "{extra:?}");
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(err.contains("bad.las") && err.contains("outside the bounds the header declares") && !err.contains("panicked"), "{extra:?}: {err}");
+        assert!(!store.exists(), "no half-written store");
+    }
+}
