@@ -613,12 +613,7 @@ pub fn run(a: &Args) -> Result<()> {
         "png_seconds": png_seconds,
         "frames": frame_json,
     });
-    let text = serde_json::to_string_pretty(&j)?;
-    if a.output.as_os_str() == "-" {
-        eprintln!("{text}");
-    } else {
-        println!("{text}");
-    }
+    crate::render::print_json(a, &j)?;
     Ok(())
 }
 

@@ -133,7 +133,7 @@ pub fn parse_vec3(s: &str) -> std::result::Result<[f64; 3], String> {
 }
 
 /// `lo,hi` as two numbers.
-fn parse_range(s: &str) -> std::result::Result<[f64; 2], String> {
+pub(crate) fn parse_range(s: &str) -> std::result::Result<[f64; 2], String> {
     let v: Vec<f64> = s.split(',').map(|t| t.trim().parse::<f64>()).collect::<std::result::Result<_, _>>().map_err(|_| format!("'{s}' is not lo,hi"))?;
     match v[..] {
         [lo, hi] if lo.is_finite() && hi.is_finite() && lo < hi => Ok([lo, hi]),
@@ -161,8 +161,19 @@ pub fn parse_color(s: &str) -> std::result::Result<u32, String> {
     Ok(rgba(byte(0)?, byte(1)?, byte(2)?, a))
 }
 
-fn parse_color_choice(s: &str) -> std::result::Result<ColorChoice, String> {
+pub(crate) fn parse_color_choice(s: &str) -> std::result::Result<ColorChoice, String> {
     ColorChoice::from_name(s).ok_or_else(|| format!("'{s}' is not a colour mode (one of {})", ColorChoice::names().join(", ")))
+}
+
+/// Prints a render's `--json` statistics: on stdout, or on stderr where the PNG goes to stdout.
+pub(crate) fn print_json(a: &Args, j: &serde_json::Value) -> Result<()> {
+    let text = serde_json::to_string_pretty(j)?;
+    if a.output.as_os_str() == "-" {
+        eprintln!("{text}");
+    } else {
+        println!("{text}");
+    }
+    Ok(())
 }
 
 /// Arguments of `mortar render`.
@@ -410,12 +421,7 @@ pub fn run(a: Args) -> Result<()> {
             "points_per_second": s.points_projected() as f64 / r.raster_seconds.max(1e-9),
             "gpu_points_per_second": gpu_json.get("draw_ms").and_then(|v| v.as_f64()).map(|ms| s.points_projected() as f64 / (ms * 1e-3).max(1e-12)),
         });
-        let text = serde_json::to_string_pretty(&j)?;
-        if a.output.as_os_str() == "-" {
-            eprintln!("{text}");
-        } else {
-            println!("{text}");
-        }
+        print_json(&a, &j)?;
     }
     Ok(())
 }

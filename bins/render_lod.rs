@@ -116,12 +116,7 @@ pub fn run(a: &Args, dir: &Path) -> Result<()> {
             "png_seconds": png_seconds,
             "points_per_second": s.points_projected() as f64 / r.raster_seconds.max(1e-9),
         });
-        let text = serde_json::to_string_pretty(&j)?;
-        if a.output.as_os_str() == "-" {
-            eprintln!("{text}");
-        } else {
-            println!("{text}");
-        }
+        crate::render::print_json(a, &j)?;
     }
     Ok(())
 }

@@ -10,7 +10,7 @@
 //! and exits (tests run it under Xvfb).
 
 use crate::common;
-use crate::render::{build_camera, encode_png, parse_color, write_atomic, AtomicsArg, CameraArgs, PrecisionArg};
+use crate::render::{build_camera, encode_png, parse_color, parse_color_choice, parse_range, write_atomic, AtomicsArg, CameraArgs, PrecisionArg};
 use crate::view_progressive::ProgressiveView;
 use crate::view_store::{StoreGpu, StoreView};
 use anyhow::{anyhow, bail, Context as _, Result};
@@ -44,18 +44,6 @@ pub enum ViewBackend {
     Gpu,
     /// The CPU rasterizer; frames are uploaded to the window as pixels (no GPU needed).
     Cpu,
-}
-
-fn parse_color_choice(s: &str) -> std::result::Result<ColorChoice, String> {
-    ColorChoice::from_name(s).ok_or_else(|| format!("'{s}' is not a colour mode (one of {})", ColorChoice::names().join(", ")))
-}
-
-fn parse_range(s: &str) -> std::result::Result<[f64; 2], String> {
-    let v: Vec<f64> = s.split(',').map(|t| t.trim().parse::<f64>()).collect::<std::result::Result<_, _>>().map_err(|_| format!("'{s}' is not lo,hi"))?;
-    match v[..] {
-        [lo, hi] if lo.is_finite() && hi.is_finite() && lo < hi => Ok([lo, hi]),
-        _ => Err(format!("'{s}' is not lo,hi with lo < hi")),
-    }
 }
 
 /// Arguments of `mortar view`.
