@@ -97,9 +97,9 @@ pub fn run(a: Args) -> Result<()> {
             .map_err(anyhow::Error::from)
         };
         if a.preview.preview_offscreen {
-            crate::view::run_preview_offscreen(&view, output, bounds, job)?
+            crate::view::run_preview_offscreen(&view, output, bounds, &ds.layout, job)?
         } else {
-            crate::view::run_preview(&view, output, bounds, job)?
+            crate::view::run_preview(&view, output, bounds, &ds.layout, job)?
         }
     } else {
         (build(&ds, &a.output, &opts, &mut progress)?, serde_json::Value::Null)
@@ -107,6 +107,7 @@ pub fn run(a: Args) -> Result<()> {
     if tty {
         eprintln!();
     }
+    common::print_warnings(&r.warnings);
     if let Some(e) = frame_error {
         return Err(e.context("drawing a frame of the growing store (the store itself was built)"));
     }
@@ -131,6 +132,8 @@ pub fn run(a: Args) -> Result<()> {
             "build_seconds": r.batch_seconds.iter().sum::<f64>(),
             "commit_seconds": r.commit_seconds,
             "paged_in_leaves": r.paged_in_leaves,
+            "root_growths": r.root_growths,
+            "warnings": r.warnings,
             "peak_interval_bytes": r.peak_interval_bytes,
             "points_per_second": r.points as f64 / r.seconds.max(1e-9),
             "batches": r.batch_seconds.len(),

@@ -282,7 +282,7 @@ fn render_loop(
         out.colors.add(&piece);
         out.decode_seconds += piece.seconds;
         r.insert(&piece).map_err(|e| {
-            anyhow!("{label}: {e} (the progressive renderer frames the points with the header's bounds, which must hold every point)")
+            anyhow!("{label}: {e} (the progressive renderer frames the points with the header's bounds and a margin of their extent on every side; rewrite the file with `mortar sort` for true bounds)")
         })
     };
     if preload {

@@ -13,6 +13,7 @@ use crate::common;
 use crate::render::{build_camera, encode_png, parse_color, parse_color_choice, parse_range, write_atomic, AtomicsArg, CameraArgs, PrecisionArg};
 use crate::view_progressive::ProgressiveView;
 use crate::view_store::{StoreGpu, StoreView};
+use mortar_core::layout::RecordLayout;
 use anyhow::{anyhow, bail, Context as _, Result};
 use mortar_core::render::resolve::{resolve, ColorMode, ResolveOptions};
 use mortar_core::render::{rasterize, Aabb, BatchRef, Camera, Framebuffer, Projection, RasterOptions};
@@ -205,7 +206,8 @@ pub fn run(a: Args) -> Result<()> {
         let view = StoreView::open(&dir, a.lod.options(true)?, a.range)?;
         let mode = view.mode_of(a.color)?;
         let label = dir.display().to_string();
-        return show(&a, event_loop, Content::Store(Box::new(view)), crate::view_store::MODES.to_vec(), mode, label, None).map(drop);
+        let modes = view.modes().to_vec();
+        return show(&a, event_loop, Content::Store(Box::new(view)), modes, mode, label, None).map(drop);
     }
     if !a.no_progressive {
         let paths = mortar_io::source::expand_inputs(&a.inputs)?;
@@ -247,15 +249,16 @@ pub fn run(a: Args) -> Result<()> {
 /// window is closed first, the build goes on without it and this waits for it; with
 /// `--screenshot` the window closes itself once the last commit was shown. Returns the build's
 /// report and the frames' statistics.
-pub fn run_preview<F>(a: &Args, dir: &std::path::Path, bounds: Aabb, build: F) -> Result<(BuildReport, serde_json::Value)>
+pub fn run_preview<F>(a: &Args, dir: &std::path::Path, bounds: Aabb, layout: &RecordLayout, build: F) -> Result<(BuildReport, serde_json::Value)>
 where
     F: FnOnce(&mut dyn FnMut(&BuildProgress)) -> Result<BuildReport> + Send,
 {
     check_window(a)?;
     let event_loop = event_loop()?;
     let proxy: EventLoopProxy<Wake> = event_loop.create_proxy();
-    let view = StoreView::waiting(dir, bounds, a.lod.options(true)?, a.range);
+    let view = StoreView::waiting(dir, bounds, layout, a.lod.options(true)?, a.range);
     let mode = view.mode_of(a.color)?;
+    let modes = view.modes().to_vec();
     let label = dir.display().to_string();
     let (ptx, prx) = std::sync::mpsc::channel();
     let (rtx, rrx) = std::sync::mpsc::channel();
@@ -272,7 +275,7 @@ where
             let _ = rtx.send(r);
             let _ = proxy.send_event(Wake::Done(ok));
         });
-        let frames = match show(a, event_loop, Content::Store(Box::new(view)), crate::view_store::MODES.to_vec(), mode, label, Some(BuildState::new(prx))) {
+        let frames = match show(a, event_loop, Content::Store(Box::new(view)), modes, mode, label, Some(BuildState::new(prx))) {
             Ok(Shown { frames, build_done }) => {
                 if !build_done {
                     eprintln!("mortar build: the preview was closed; the build goes on");
@@ -296,12 +299,12 @@ const OFFSCREEN_PERIOD_MS: f64 = 1000.0 / 60.0;
 /// `mortar build --preview --preview-offscreen`: the preview's frames drawn without a window,
 /// paced to 60 per second, by the same store view as the window (GPU or CPU), from the fixed
 /// camera of the options. Returns the build's report and the frames' statistics.
-pub fn run_preview_offscreen<F>(a: &Args, dir: &std::path::Path, bounds: Aabb, build: F) -> Result<(BuildReport, serde_json::Value)>
+pub fn run_preview_offscreen<F>(a: &Args, dir: &std::path::Path, bounds: Aabb, layout: &RecordLayout, build: F) -> Result<(BuildReport, serde_json::Value)>
 where
     F: FnOnce(&mut dyn FnMut(&BuildProgress)) -> Result<BuildReport> + Send,
 {
     check_window(a)?;
-    let mut view = StoreView::waiting(dir, bounds, a.lod.options(true)?, a.range);
+    let mut view = StoreView::waiting(dir, bounds, layout, a.lod.options(true)?, a.range);
     let mode = view.mode_of(a.color)?;
     let camera = build_camera(&a.camera, &bounds, a.width, a.height)?;
     let options = RasterOptions { precision: a.precision.mode(), cull: true };

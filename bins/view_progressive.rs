@@ -313,7 +313,7 @@ impl ProgressiveView {
             });
             let (colors, _) = payload_colors(&piece.payload, choice, payload, &stats, &self.ds.grid, range);
             g.renderer.insert(ctx, piece.first, &piece.xyz, Some(&colors), None).map_err(|e| {
-                anyhow!("{}: {e} (the progressive renderer frames the points with the header's bounds, which must hold every point)", self.label)
+                anyhow!("{}: {e} (the progressive renderer frames the points with the header's bounds and a margin of their extent on every side; rewrite the file with `mortar sort` for true bounds)", self.label)
             })?;
             g.loaded += piece.xyz.len() as u64;
         }
@@ -347,7 +347,7 @@ impl ProgressiveView {
             for piece in l.arrived().map_err(|e| anyhow!("{}: {e:#}", self.label))? {
                 self.stats.add(&piece);
                 self.renderer.insert(piece.first, &piece.xyz, &piece.payload).map_err(|e| {
-                    anyhow!("{}: {e} (the progressive renderer frames the points with the header's bounds, which must hold every point)", self.label)
+                    anyhow!("{}: {e} (the progressive renderer frames the points with the header's bounds and a margin of their extent on every side; rewrite the file with `mortar sort` for true bounds)", self.label)
                 })?;
             }
             if l.finished {

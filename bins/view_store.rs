@@ -9,15 +9,19 @@
 //!   is never rewritten, so when a growing store commits again (the preview), only the nodes
 //!   whose payload is new are uploaded; the replaced ones become garbage on the GPU, and the
 //!   scene is rebuilt from what is selected when the garbage outweighs the live samples.
-//! - Colours: the stored colour (RGB or intensity grey, voxels their first-come or averaged
-//!   colour) or elevation over a range fixed when the view opens (`--range`, else the store's
-//!   height bounds), so that both rasterizers colour a sample alike and a growing store's colours
-//!   do not shift from frame to frame.
+//! - Colours: every sample is a real source point with its record, so a store view has every
+//!   colour mode its point format has (C cycles them): `auto` (RGB where the source has it, else
+//!   intensity), elevation, intensity, classification, return number, GPS time. Scalar modes map
+//!   over a range fixed when the store's first commit is opened (`--range`, else the store's
+//!   height bounds for elevation and the 1st to 99th percentile of the top levels' samples for
+//!   intensity and GPS time, [`StoreLod::color_range`]), so that both rasterizers colour a sample
+//!   alike and a growing store's colours do not shift from frame to frame.
 
 use anyhow::{anyhow, Result};
 use mortar_core::grid::Grid;
 use mortar_core::octree::{LodOptions, LodTree};
-use mortar_core::render::resolve::{elevation_color, ColorMode, ResolveOptions};
+use mortar_core::layout::RecordLayout;
+use mortar_core::render::resolve::{ColorMode, ResolveOptions};
 use mortar_core::render::{Aabb, BatchRef, Camera, RasterOptions};
 use mortar_io::render_input::{ColorChoice, RenderSettings};
 use mortar_io::store_lod::{self, LodColor, StoreLod};
@@ -28,8 +32,17 @@ use std::path::{Path, PathBuf};
 /// Most samples per GPU batch (a node is uploaded in slices of this size).
 const SLICE: usize = 1 << 14;
 
-/// The colour modes of a store view.
-pub const MODES: [ColorChoice; 2] = [ColorChoice::Stored, ColorChoice::Mode(ColorMode::Elevation)];
+/// The colour modes of a store view of points in `layout`: `auto`, elevation, then the
+/// attribute modes the format has.
+pub fn modes_of(layout: &RecordLayout) -> Vec<ColorChoice> {
+    let mut m = vec![ColorChoice::Auto, ColorChoice::Mode(ColorMode::Elevation)];
+    for c in [ColorMode::Intensity, ColorMode::Classification, ColorMode::ReturnNumber, ColorMode::GpsTime] {
+        if layout.attribute(c.attribute()).is_some() {
+            m.push(ColorChoice::Mode(c));
+        }
+    }
+    m
+}
 
 /// What the last frame selected.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -59,8 +72,14 @@ pub struct StoreView {
     lod: Option<StoreLod>,
     commit: u64,
     options: LodOptions,
-    /// Elevation colour range.
+    /// The colour modes (see [`modes_of`]).
+    modes: Vec<ColorChoice>,
+    /// The range given with `--range`.
+    given: Option<[f64; 2]>,
+    /// Elevation colour range (given, else the height bounds).
     range: [f64; 2],
+    /// Per mode, the range of scalar modes, fixed at the first commit (see the module docs).
+    ranges: Vec<Option<[f64; 2]>>,
     bounds: Aabb,
     pub selected: Selected,
 }
@@ -73,34 +92,51 @@ impl StoreView {
             anyhow::bail!("{}: no points to draw", dir.display());
         }
         let bounds = lod.bounds();
-        let mut v = StoreView::waiting(dir, bounds, options, range);
+        let layout = lod.store().layout.clone();
+        let mut v = StoreView::waiting(dir, bounds, &layout, options, range);
         v.commit = lod.store().header.commit;
+        v.set_ranges(&lod);
         v.lod = Some(lod);
         Ok(v)
     }
 
-    /// A view of the store a build is writing into `dir`, shown from its first commit on; until
-    /// then frames are empty. `bounds`: the points' bounds as the inputs' headers declare them.
-    pub fn waiting(dir: &Path, bounds: Aabb, options: LodOptions, range: Option<[f64; 2]>) -> StoreView {
-        let range = range.unwrap_or([bounds.min[2], bounds.max[2].max(bounds.min[2] + 1e-9)]);
-        StoreView { path: dir.to_path_buf(), lod: None, commit: 0, options, range, bounds, selected: Selected::default() }
+    /// A view of the store a build is writing into `dir` (points in `layout`), shown from its
+    /// first commit on; until then frames are empty. `bounds`: the points' bounds as the inputs'
+    /// headers declare them.
+    pub fn waiting(dir: &Path, bounds: Aabb, layout: &RecordLayout, options: LodOptions, given: Option<[f64; 2]>) -> StoreView {
+        let range = given.unwrap_or([bounds.min[2], bounds.max[2].max(bounds.min[2] + 1e-9)]);
+        let modes = modes_of(layout);
+        let ranges = vec![None; modes.len()];
+        StoreView { path: dir.to_path_buf(), lod: None, commit: 0, options, modes, given, range, ranges, bounds, selected: Selected::default() }
     }
 
-    /// The position in [`MODES`] of colour mode `choice`, or an error naming the store for
-    /// modes a store cannot show ([`LodColor::of`]).
+    /// The colour modes, in the order C cycles them.
+    pub fn modes(&self) -> &[ColorChoice] {
+        &self.modes
+    }
+
+    /// Fixes the scalar modes' ranges from `lod` (the first commit seen).
+    fn set_ranges(&mut self, lod: &StoreLod) {
+        for (m, r) in self.modes.iter().zip(self.ranges.iter_mut()) {
+            *r = match LodColor::of(lod.store(), *m) {
+                Ok(LodColor::Elevation) => Some(self.range),
+                Ok(c) if c.uses_range() => self.given.or_else(|| lod.color_range(c)),
+                _ => None,
+            };
+        }
+    }
+
+    /// The position in [`modes`](Self::modes) of colour mode `choice` (`stored` and `rgb` are
+    /// `auto` here), or an error naming the store for modes it cannot show.
     pub fn mode_of(&self, choice: ColorChoice) -> Result<usize> {
-        let color = match &self.lod {
-            Some(lod) => LodColor::of(lod.store(), choice)?,
-            None => match choice {
-                ColorChoice::Mode(ColorMode::Elevation) => LodColor::Elevation,
-                ColorChoice::Auto | ColorChoice::Stored | ColorChoice::Mode(ColorMode::Rgb) => LodColor::Stored,
-                ColorChoice::Mode(m) => anyhow::bail!("{}: --color {}: a store's LOD view draws voxels, which keep only the stored colour; use --color stored or elevation", self.path.display(), m.name()),
-            },
+        if let Some(lod) = &self.lod {
+            LodColor::of(lod.store(), choice)?;
+        }
+        let want = match choice {
+            ColorChoice::Stored | ColorChoice::Mode(ColorMode::Rgb) => ColorChoice::Auto,
+            c => c,
         };
-        Ok(match color {
-            LodColor::Stored => 0,
-            LodColor::Elevation => 1,
-        })
+        self.modes.iter().position(|&m| m == want).ok_or_else(|| anyhow!("{}: --color {}: the store's point format has no such attribute", self.path.display(), choice.name()))
     }
 
     /// The bounds framed by the camera.
@@ -135,6 +171,9 @@ impl StoreView {
             return Ok(false);
         }
         self.commit = lod.store().header.commit;
+        if self.lod.is_none() {
+            self.set_ranges(&lod);
+        }
         if let Some(g) = gpu {
             let live: std::collections::HashSet<u64> = (0..lod.node_count()).map(|i| lod.payload_offset(mortar_core::octree::NodeId(i as u32))).collect();
             let before = g.batches.len();
@@ -154,7 +193,7 @@ impl StoreView {
     }
 
     fn settings(&self, mode: usize, options: &RasterOptions, background: u32) -> RenderSettings {
-        RenderSettings { raster: *options, color: MODES[mode], range: Some(self.range), resolve: ResolveOptions { background, ..Default::default() } }
+        RenderSettings { raster: *options, color: self.modes[mode], range: self.ranges[mode], resolve: ResolveOptions { background, ..Default::default() } }
     }
 
     /// Draws the view with the CPU rasterizer: the RGBA8 image.
@@ -190,9 +229,10 @@ impl StoreView {
         if g.mode != mode || *g.scene.grid() != lod.grid() || (g.garbage > live && g.garbage > 1 << 20) || g.scene.points() + samples >= 1 << 32 {
             *g = StoreGpu { scene: GpuScene::new(ctx, lod.grid(), samples.max(1 << 20), SceneOptions { colors: true, ..Default::default() }).map_err(gpu)?, batches: HashMap::new(), mode, garbage: 0 };
         }
+        let color = LodColor::of(lod.store(), self.modes[mode])?;
+        let range = self.ranges[mode];
         let mut ids = Vec::with_capacity(sel.nodes.len());
         let mut uploaded = 0;
-        let mut colors = Vec::new();
         for &id in &sel.nodes {
             let off = lod.payload_offset(id);
             if let Some(&(b, k, _)) = g.batches.get(&off) {
@@ -201,19 +241,7 @@ impl StoreView {
             }
             let first = g.scene.points();
             let batch = lod.node_batch(id, first as u32);
-            let d = lod.node(id);
-            let c: &[u32] = match MODES[mode] {
-                ColorChoice::Mode(ColorMode::Elevation) => {
-                    let grid = lod.grid();
-                    colors.clear();
-                    colors.extend((0..batch.len()).map(|i| {
-                        let p = batch.grid.decode_exact([batch.words[0][i], batch.words[1][i], batch.words[2][i]]);
-                        elevation_color(grid.world(2, p[2] as i64), self.range)
-                    }));
-                    &colors
-                }
-                _ => d.colors,
-            };
+            let c = lod.node_colors(id, color, range)?;
             // A node can hold millions of samples, and the rasterizer gives one workgroup to a
             // batch: nodes go to the GPU in slices of at most SLICE samples (same frame and
             // bounds, consecutive indices), so that a large node keeps the whole GPU busy.

@@ -455,13 +455,31 @@ fn bad_input_fails_clearly() {
         &["--progressive", "3"],
         &["store", "octree store", "without --progressive"],
     );
-    // A header whose bounds do not hold the points (max x lowered to min x + 10 m): the frame is
-    // made from the header before any point is read, so the first point outside is refused.
+    // Headers that lie: the frame reaches past the header's box by its extent on every side, so
+    // a z range 3 m short and an x range 10 % short are drawn in full (every point loaded)...
     let las = dir.join("x.las");
     run_ok(mortar().arg("sort").arg(&s).arg("-o").arg(&las));
-    let mut bytes = std::fs::read(&las).unwrap();
-    let min_x = f64::from_le_bytes(bytes[187..195].try_into().unwrap());
-    bytes[179..187].copy_from_slice(&(min_x + 10.0).to_le_bytes());
+    let good = std::fs::read(&las).unwrap();
+    let f = |b: &[u8], at: usize| f64::from_le_bytes(b[at..at + 8].try_into().unwrap());
+    let mut bytes = good.clone();
+    let (max_x, min_x, max_z) = (f(&good, 179), f(&good, 187), f(&good, 211));
+    bytes[179..187].copy_from_slice(&(max_x - 0.1 * (max_x - min_x)).to_le_bytes());
+    bytes[211..219].copy_from_slice(&(max_z - 3.0).to_le_bytes());
+    let lying = dir.join("lying.las");
+    std::fs::write(&lying, &bytes).unwrap();
+    let o = render(&lying, &out, &["--progressive", "converge", "--json"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(j["loaded"], 110_000, "{j}");
+    assert_eq!(j["converged"], true, "{j}");
+    std::fs::remove_file(&out).unwrap();
+    // ...while a header that shrinks the box to a metre cannot frame them: refused, naming the
+    // file.
+    let mut bytes = good.clone();
+    for (hi, lo) in [(179, 187), (195, 203), (211, 219)] {
+        let v = f(&good, lo) + 1.0;
+        bytes[hi..hi + 8].copy_from_slice(&v.to_le_bytes());
+    }
     let bad = dir.join("xbad.las");
     std::fs::write(&bad, &bytes).unwrap();
     fails(

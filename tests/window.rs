@@ -222,7 +222,7 @@ fn view_draws_a_store_with_lod_on_the_cpu_and_the_gpu() {
     };
     let (cj, (w, h, cpu)) = shot("cpu.png", &["--backend", "cpu"]);
     assert_eq!((w, h), (320, 240));
-    assert_eq!(cj["color"], "stored");
+    assert_eq!(cj["color"], "auto");
     let drawn = drawn_below_status(w, &cpu);
     assert!(drawn > 5_000 && drawn < 30_000, "{drawn} pixels drawn by the CPU");
     // A coarse LOD threshold draws fewer samples than full detail.
@@ -230,11 +230,12 @@ fn view_draws_a_store_with_lod_on_the_cpu_and_the_gpu() {
     let (coarse, _) = shot("coarse.png", &["--backend", "cpu", "--lod-threshold", "2000"]);
     let samples = |j: &serde_json::Value| j["frames"][1]["points_drawn"].as_u64().unwrap();
     assert!(samples(&coarse) < samples(&full), "coarse {} vs full {}", samples(&coarse), samples(&full));
-    // Attribute colours are refused for a store's LOD view, naming the store.
-    let o = view(&x.display, &[store.to_str().unwrap(), "--color", "classification", "--screenshot", dir.join("no.png").to_str().unwrap()]);
-    assert_eq!(o.status.code(), Some(1));
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert!(err.contains("store") && err.contains("classification") && !err.contains("panicked"), "{err}");
+    // Attribute colours work under LOD: every sample is a real point with its record.
+    let (kj, (_, _, cclass)) = shot("cpu-class.png", &["--backend", "cpu", "--color", "classification", "--no-status"]);
+    assert_eq!(kj["color"], "classification");
+    // A mode the format lacks is refused, naming the store.
+    let o = view(&x.display, &[store.to_str().unwrap(), "--color", "no-such-mode", "--screenshot", dir.join("no.png").to_str().unwrap()]);
+    assert_ne!(o.status.code(), Some(0));
 
     if mortar_render::testing::context_or_skip(mortar_render::AtomicPath::TwoPass32, None).is_none() {
         return;
@@ -247,6 +248,13 @@ fn view_draws_a_store_with_lod_on_the_cpu_and_the_gpu() {
     let (_, (_, _, ge)) = shot("gpu-elev.png", &["--backend", "gpu", "--color", "elevation", "--no-status"]);
     assert_eq!(differ_below_status(w, &ce, &ge), 0, "CPU and GPU elevation store views differ");
     assert!(differ_below_status(w, &ce, &cpu) > drawn / 2, "elevation looks like the stored colours");
+    let (_, (_, _, gclass)) = shot("gpu-class.png", &["--backend", "gpu", "--color", "classification", "--no-status"]);
+    assert_eq!(differ_below_status(w, &cclass, &gclass), 0, "CPU and GPU classification store views differ");
+    for mode in ["intensity", "gps-time", "return-number"] {
+        let (_, (_, _, c)) = shot(&format!("cpu-{mode}.png"), &["--backend", "cpu", "--color", mode, "--no-status"]);
+        let (_, (_, _, g)) = shot(&format!("gpu-{mode}.png"), &["--backend", "gpu", "--color", mode, "--no-status"]);
+        assert_eq!(differ_below_status(w, &c, &g), 0, "CPU and GPU {mode} store views differ");
+    }
 }
 
 #[test]
@@ -348,22 +356,24 @@ fn view_draws_raw_las_progressively_until_the_image_is_final() {
 fn a_failing_build_closes_its_preview_and_reports_the_error() {
     let Some(x) = xvfb_or_skip() else { return };
     let dir = tempdir("window-preview-bad");
-    // Points outside the bounds the header declares: the build fails after it started.
-    let las = dir.join("bad.las");
-    run_ok(mortar().arg("sort").arg(sample()).arg("-o").arg(&las));
-    let mut b = std::fs::read(&las).unwrap();
-    let min_x = f64::from_le_bytes(b[187..195].try_into().unwrap());
-    b[179..187].copy_from_slice(&(min_x + 1.0).to_le_bytes());
+    // A LAZ file whose second chunk is damaged: the build fails after it started (its first
+    // batch, the first chunk, went in).
+    let las = dir.join("bad.laz");
+    let mut b = std::fs::read(sample()).unwrap();
+    let at = b.len() * 6 / 10;
+    for x in &mut b[at..at + 2000] {
+        *x = x.wrapping_mul(7).wrapping_add(13);
+    }
     std::fs::write(&las, &b).unwrap();
     for extra in [&["--preview-backend", "cpu"][..], &["--preview-backend", "cpu", "--preview-offscreen"][..]] {
         let store = dir.join("s");
         let mut c = mortar();
-        c.arg("build").arg(&las).arg("-o").arg(&store).arg("--preview").args(extra);
+        c.arg("build").arg(&las).arg("-o").arg(&store).args(["--batch-points", "50000"]).arg("--preview").args(extra);
         c.env("DISPLAY", &x.display).env_remove("WAYLAND_DISPLAY");
         let o = run_limited(c, Duration::from_secs(120));
         assert_eq!(o.status.code(), Some(1), "{extra:?}");
         let err = String::from_utf8_lossy(&o.stderr);
-        assert!(err.contains("bad.las") && err.contains("outside the bounds the header declares") && !err.contains("panicked"), "{extra:?}: {err}");
+        assert!(err.contains("bad.laz") && err.contains("corrupt") && !err.contains("panicked"), "{extra:?}: {err}");
         assert!(!store.exists(), "no half-written store");
     }
 }

@@ -14,7 +14,7 @@
 use crate::cleanup::TempPath;
 use crate::dataset::Dataset;
 use crate::error::{Error, Result};
-use crate::sort::{declared_grid, check_interrupted, emit, in_memory_need, make_keys, sort_keys, OrderedSink, PieceStats, SortOptions, SortReport};
+use crate::sort::{declared_grid, check_interrupted, emit, in_memory_need, make_keys, refine_ties, sort_keys, OrderedSink, PieceStats, SortOptions, SortReport};
 use mortar_core::layout::read_xyz;
 use mortar_core::morton::MortonGrid;
 use rayon::prelude::*;
@@ -168,7 +168,8 @@ fn drain(
                 .map(|r| read_segment(r, b, rl, 0, r.segments[b].1))
                 .collect::<Result<Vec<_>>>()?;
             let refs: Vec<&[u8]> = slabs.iter().map(|s| s.as_slice()).collect();
-            let keys = sort_keys(make_keys(&refs, rl, morton)?);
+            let mut keys = sort_keys(make_keys(&refs, rl, morton)?);
+            refine_ties(&mut keys, &refs, rl, morton);
             emit(&refs, &keys, rl, opts.chunk_points, sink)?;
             *buckets_done += 1;
         } else {

@@ -27,11 +27,16 @@ use std::time::Instant;
 
 /// The integer frame of all points and the world bounds the camera frames, from the headers
 /// (the paper allocates its buffers from the header too: points arrive later).
+///
+/// Headers lie (older files often declare a z range a few metres short), so the frame reaches
+/// past the headers' box by [`FRAME_MARGIN`] times its largest extent on every side (less where
+/// the frame would need more than 30 bits on an axis): points there are drawn exactly like the
+/// others. Only a point beyond that margin is refused.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct HeaderFrame {
-    /// Smallest integer coordinate on the merged grid (one step of slack below the header's).
+    /// Smallest integer coordinate on the merged grid (the header's, less the margin).
     pub min: [i32; 3],
-    /// Largest integer coordinate (one step of slack above the header's).
+    /// Largest integer coordinate (the header's, plus the margin).
     pub max: [i32; 3],
     /// World bounds from the headers, snapped to the grid (as `mortar render` frames the points).
     pub bounds: Aabb,
@@ -81,13 +86,22 @@ pub fn header_frame(ds: &Dataset) -> Result<HeaderFrame> {
         bounds.min[a] = x.min(y);
         bounds.max[a] = x.max(y);
     }
+    // The margin: FRAME_MARGIN extents, while the frame needs at most 30 bits on every axis.
+    let extent = (0..3).map(|a| hi[a] - lo[a]).max().unwrap_or(0).max(0);
+    let widest = extent + 2;
+    let room = ((1i64 << 30) - 1 - widest).max(0) / 2;
+    let margin = (extent.saturating_mul(FRAME_MARGIN) + 1).min(room);
     Ok(HeaderFrame {
-        min: lo.map(|v| clamp(v - 1)),
-        max: hi.map(|v| clamp(v + 1)),
+        min: lo.map(|v| clamp(v - 1 - margin)),
+        max: hi.map(|v| clamp(v + 1 + margin)),
         bounds,
         points,
     })
 }
+
+/// How far (in extents of the headers' box) the progressive renderer's frame reaches past the
+/// box on every side (see [`HeaderFrame`]).
+pub const FRAME_MARGIN: i64 = 1;
 
 /// What each point's payload holds.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

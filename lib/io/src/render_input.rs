@@ -345,23 +345,7 @@ fn colors_for_indices(file: &BatchFile, indices: Vec<u32>, choice: ColorChoice, 
                 let bytes = view.attribute(index);
                 let width = file.meta.attributes[index].width;
                 for (d, k) in dst.iter_mut().zip(local) {
-                    let v = &bytes[k * width..(k + 1) * width];
-                    *d = match mode {
-                        ColorMode::Intensity => (u16::from_le_bytes([v[0], v[1]]) as f64).to_bits(),
-                        ColorMode::GpsTime => f64::from_le_bytes(v[..8].try_into().expect("8 bytes")).to_bits(),
-                        ColorMode::Classification => {
-                            let code = if family == Family::Legacy { v[0] & 0x1f } else { v[0] };
-                            classification_color(code) as u64
-                        }
-                        ColorMode::ReturnNumber => {
-                            let (r, n) = match family {
-                                Family::Legacy => (v[0] & 0x07, (v[0] >> 3) & 0x07),
-                                Family::Extended => (v[0] & 0x0f, v[0] >> 4),
-                            };
-                            return_number_color(r, n) as u64
-                        }
-                        ColorMode::Rgb | ColorMode::Elevation => unreachable!("not read from an attribute"),
-                    };
+                    *d = attribute_value(mode, family, &bytes[k * width..(k + 1) * width]);
                 }
             }
             (Source::Attribute { .. }, None) => unreachable!("stored colours have no attribute"),
@@ -371,19 +355,52 @@ fn colors_for_indices(file: &BatchFile, indices: Vec<u32>, choice: ColorChoice, 
     if !scalar {
         return Ok(PointColors { indices, colors: out.into_iter().map(|c| c as u32).collect(), range: None });
     }
-    let range = range.unwrap_or_else(|| {
-        let mut v: Vec<f64> = out.iter().map(|&b| f64::from_bits(b)).filter(|x| x.is_finite()).collect();
-        let lo = quantile(&mut v, 0.01).unwrap_or(0.0);
-        let hi = quantile(&mut v, 0.99).unwrap_or(1.0);
-        [lo, hi]
-    });
+    let (colors, range) = scalar_colors(mode.expect("scalar modes are attribute or elevation modes"), &out, range);
+    Ok(PointColors { indices, colors, range: Some(range) })
+}
+
+/// The value of attribute colour mode `mode` from the bytes `v` of its field (as
+/// [`ColorMode::attribute`] names it) in a record of `family`: the colour for classification and
+/// return number, the `f64` bits of the value for intensity and GPS time.
+#[inline]
+pub(crate) fn attribute_value(mode: ColorMode, family: Family, v: &[u8]) -> u64 {
+    match mode {
+        ColorMode::Intensity => (u16::from_le_bytes([v[0], v[1]]) as f64).to_bits(),
+        ColorMode::GpsTime => f64::from_le_bytes(v[..8].try_into().expect("8 bytes")).to_bits(),
+        ColorMode::Classification => {
+            let code = if family == Family::Legacy { v[0] & 0x1f } else { v[0] };
+            classification_color(code) as u64
+        }
+        ColorMode::ReturnNumber => {
+            let (r, n) = match family {
+                Family::Legacy => (v[0] & 0x07, (v[0] >> 3) & 0x07),
+                Family::Extended => (v[0] & 0x0f, v[0] >> 4),
+            };
+            return_number_color(r, n) as u64
+        }
+        ColorMode::Rgb | ColorMode::Elevation => unreachable!("not read from an attribute"),
+    }
+}
+
+/// The range a scalar colour mode maps over when none is given: the 1st to 99th percentile of
+/// the finite `values` (`f64` bits), robust against outliers.
+pub(crate) fn percentile_range(values: &[u64]) -> [f64; 2] {
+    let mut v: Vec<f64> = values.iter().map(|&b| f64::from_bits(b)).filter(|x| x.is_finite()).collect();
+    let lo = quantile(&mut v, 0.01).unwrap_or(0.0);
+    let hi = quantile(&mut v, 0.99).unwrap_or(1.0);
+    [lo, hi]
+}
+
+/// Colours of scalar values (`f64` bits) in `mode` (intensity, elevation, GPS time) over
+/// `range`, or when it is `None` over [`percentile_range`]; and the range used.
+pub(crate) fn scalar_colors(mode: ColorMode, values: &[u64], range: Option<[f64; 2]>) -> (Vec<u32>, [f64; 2]) {
+    let range = range.unwrap_or_else(|| percentile_range(values));
     let color = |v: f64| match mode {
-        Some(ColorMode::Intensity) => intensity_color(v as u16, range),
-        Some(ColorMode::Elevation) => elevation_color(v, range),
+        ColorMode::Intensity => intensity_color(v as u16, range),
+        ColorMode::Elevation => elevation_color(v, range),
         _ => gps_time_color(v, range),
     };
-    let colors = out.par_iter().map(|&b| color(f64::from_bits(b))).collect();
-    Ok(PointColors { indices, colors, range: Some(range) })
+    (values.par_iter().map(|&b| color(f64::from_bits(b))).collect(), range)
 }
 
 /// How a view is drawn and coloured.

@@ -37,7 +37,8 @@ pub fn trace(phase: &str, t0: std::time::Instant) {
     }
 }
 
-/// Sort key of one point. Ordering: code, then input order.
+/// Sort key of one point. Ordering: code, then input order (ties of a shifted code are refined
+/// by [`refine_ties`] after sorting).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, PartialOrd, Ord, bytemuck::Zeroable, bytemuck::Pod)]
 #[repr(C)]
 pub struct Key {
@@ -288,7 +289,8 @@ pub fn sort(ds: &Dataset, opts: &SortOptions, sink: &mut dyn OrderedSink) -> Res
         keys = make_keys(&records, rl, &summary.morton)?;
         trace("keys again (header bounds differ from the points)", t0);
     }
-    let keys = sort_keys(keys);
+    let mut keys = sort_keys(keys);
+    refine_ties(&mut keys, &records, rl, &summary.morton);
     trace("sort", t0);
     sink.begin(&summary)?;
     emit(&records, &keys, ds.layout.record_len, opts.chunk_points, sink)?;
@@ -373,6 +375,69 @@ fn key_buffer(n: usize) -> Vec<Key> {
 struct SendPtr(*mut Key);
 unsafe impl Send for SendPtr {}
 unsafe impl Sync for SendPtr {}
+
+/// Orders the runs of keys that share a Morton code by the bits the code's shift dropped (the
+/// full-resolution Morton order of their integer coordinates), then by input order.
+///
+/// With a shift of `s`, points up to `2^s - 1` grid units apart share a code. Input order alone
+/// would break those ties, and an octree store cannot give input order back across leaves (two
+/// such points may end in different leaves). With this refinement the order depends only on the
+/// coordinates, except between points at the same position, which always share a leaf, where the
+/// leaf's arrival order is the input order: so `sort store/` gives the bytes of `sort input`.
+/// Without a shift, equal codes mean equal coordinates and nothing is done.
+pub fn refine_ties(keys: &mut [Key], slabs: &[&[u8]], record_len: usize, morton: &MortonGrid) {
+    if morton.shift == 0 || keys.len() < 2 {
+        return;
+    }
+    let mask = (1i64 << morton.shift) - 1;
+    let residual = |k: &Key| -> u64 {
+        let r = &slabs[k.slab as usize][k.idx as usize * record_len..];
+        let q = read_xyz(r);
+        let low = |a: usize| ((q[a] as i64 - morton.origin[a]) & mask) as u32;
+        mortar_core::morton::encode(low(0), low(1), low(2))
+    };
+    // Parts that never cut a run of equal codes, sorted in parallel.
+    let parts = rayon::current_num_threads() * 8;
+    let step = keys.len().div_ceil(parts).max(1);
+    let mut cuts = vec![0usize];
+    let mut at = step;
+    while at < keys.len() {
+        while at < keys.len() && keys[at].code == keys[at - 1].code {
+            at += 1;
+        }
+        if at < keys.len() {
+            cuts.push(at);
+        }
+        at += step;
+    }
+    cuts.push(keys.len());
+    let mut pieces = Vec::with_capacity(cuts.len());
+    let mut rest = keys;
+    for w in cuts.windows(2) {
+        let (a, r) = rest.split_at_mut(w[1] - w[0]);
+        pieces.push(a);
+        rest = r;
+    }
+    pieces.into_par_iter().for_each_init(Vec::new, |scratch: &mut Vec<(u64, Key)>, part| {
+        let mut s = 0;
+        while s < part.len() {
+            let mut e = s + 1;
+            while e < part.len() && part[e].code == part[s].code {
+                e += 1;
+            }
+            if e - s > 1 {
+                scratch.clear();
+                scratch.extend(part[s..e].iter().map(|k| (residual(k), *k)));
+                // Keys of one run are in input order; (slab, idx) keeps it among equal residuals.
+                scratch.sort_unstable_by_key(|&(r, k)| (r, k.slab, k.idx));
+                for (d, (_, k)) in part[s..e].iter_mut().zip(scratch.iter()) {
+                    *d = *k;
+                }
+            }
+            s = e;
+        }
+    });
+}
 
 /// Sorts keys: a parallel radix partition on the top 16 used bits of the code, then each bucket
 /// sorted on its own (in cache).

@@ -51,7 +51,9 @@ pub const HIERARCHY_FILE: &str = "hierarchy.bin";
 
 const NODE_MAGIC: [u8; 8] = *b"MORTNODE";
 const HIERARCHY_MAGIC: [u8; 8] = *b"MORTHIER";
-const VERSION: u32 = 1;
+/// Version 2: inner nodes' voxels are real source points with their records (version 1 stored
+/// cell centres and colours only).
+const VERSION: u32 = 2;
 
 /// Node kinds.
 pub const LEAF: u32 = 0;
@@ -250,7 +252,7 @@ impl StoreWriter {
             let mut bytes = 0u64;
             while end < changed.len() && (end == start || bytes < COMMIT_GROUP_BYTES) {
                 let n = changed[end].1;
-                bytes += if n.is_leaf() { payload_len(n.total_points(), attr_len) } else { payload_len(n.voxel_count(), 0) };
+                bytes += payload_len(n.total_points() + n.voxel_count(), attr_len);
                 end += 1;
             }
             self.write_group(&changed[start..end], record, &mut stats)?;
@@ -259,6 +261,15 @@ impl StoreWriter {
         let np = self.dir.join(NODES_FILE);
         self.nodes.sync_data().map_err(|e| Error::io(&np, e))?;
         self.commit += 1;
+        // Keys move when the root grows (a new root above the old one): the entries of nodes not
+        // written again take their current keys (the payload keeps the key it was written with).
+        for (id, n) in snap.iter() {
+            if let Some(Some(e)) = self.entries.get_mut(id.index()) {
+                let k = n.key();
+                e.level = k.level as u32;
+                e.index = k.index;
+            }
+        }
         let root = snap.root_cube();
         let entries: Vec<NodeEntry> = self.entries.iter().flatten().copied().collect();
         let header = HierarchyHeader {
@@ -308,7 +319,8 @@ impl StoreWriter {
         let payloads: Vec<(usize, NodeEntry, Vec<u8>)> = nodes
             .par_iter()
             .map(|&(id, n)| {
-                let old = if n.paged_points() > 0 { Some(this.read_payload(id, Some(n.paged_points()))?) } else { None };
+                let kept = n.paged_points() + n.saved_voxels();
+                let old = if kept > 0 { Some(this.read_payload(id, Some(kept))?) } else { None };
                 encode_node(n, old.as_deref(), record_len, record).map(|(e, b)| (id, e, b)).map_err(|m| Error::input(&this.dir, m))
             })
             .collect::<Result<_>>()?;
@@ -329,13 +341,13 @@ impl StoreWriter {
         Ok(())
     }
 
-    /// The last written payload of leaf `id`, which must hold `count` points.
+    /// The last written payload of node `id`, which must hold `count` points or voxels.
     fn read_payload(&self, id: usize, count: Option<u64>) -> Result<Vec<u8>> {
         use std::os::unix::fs::FileExt;
         let np = self.dir.join(NODES_FILE);
-        let e = self.entries.get(id).copied().flatten().ok_or_else(|| Error::input(&np, format!("leaf {id} has paged-out points but no payload")))?;
-        if e.kind != LEAF || count.is_some_and(|c| c != e.count) {
-            return Err(Error::input(&np, format!("leaf {id}: the last payload holds {} points, {count:?} were paged out", e.count)));
+        let e = self.entries.get(id).copied().flatten().ok_or_else(|| Error::input(&np, format!("node {id} has saved points but no payload")))?;
+        if count.is_some_and(|c| c != e.count) {
+            return Err(Error::input(&np, format!("node {id}: the last payload holds {} points, {count:?} were saved", e.count)));
         }
         let mut buf = vec![0u8; e.length as usize];
         self.reader.read_exact_at(&mut buf, e.offset).map_err(|err| Error::io(&np, err))?;
@@ -343,11 +355,12 @@ impl StoreWriter {
     }
 
     /// The paged-out points of leaf `id` (`count` of them, if given), read back from its last
-    /// payload for a split: their full records are appended to `records` and each point's
-    /// [`Point::record`] is `PAGED | index` of its record there.
+    /// payload for a split, or the saved voxels of inner node `id` (for a root that grows): their
+    /// full records are appended to `records` and each point's [`Point::record`] is
+    /// `PAGED | index` of its record there.
     pub fn page_in(&self, id: usize, count: Option<u64>, records: &std::sync::Mutex<Vec<u8>>) -> Result<Vec<Point>> {
         let buf = self.read_payload(id, count)?;
-        let leaf = DecodedLeaf::parse(&buf).map_err(|m| Error::input(&self.dir.join(NODES_FILE), format!("leaf {id}: {m}")))?;
+        let leaf = DecodedLeaf::parse(&buf).map_err(|m| Error::input(&self.dir.join(NODES_FILE), format!("node {id}: {m}")))?;
         let rl = self.record_len;
         let mut recs = vec![0u8; leaf.count * rl];
         for (i, r) in recs.chunks_exact_mut(rl).enumerate() {
@@ -373,7 +386,7 @@ pub const PAGED: u64 = 1 << 63;
 /// Most bytes of payloads one commit encodes at once.
 pub const COMMIT_GROUP_BYTES: u64 = 128 << 20;
 
-/// A leaf payload read back from `nodes.bin`.
+/// A node payload read back from `nodes.bin` (leaf points or an inner node's voxel points).
 struct DecodedLeaf<'a> {
     count: usize,
     grid: BatchGrid,
@@ -390,7 +403,7 @@ impl<'a> DecodedLeaf<'a> {
         }
         let h: NodeHeader = bytemuck::pod_read_unaligned(&b[..64]);
         let (n, al) = (h.count as usize, h.attr_len as usize);
-        if h.magic != NODE_MAGIC || h.kind != LEAF || (b.len() as u64) < payload_len(n as u64, al as u64) || h.bits[..3].iter().any(|&x| x > 30) {
+        if h.magic != NODE_MAGIC || h.kind > INNER || (b.len() as u64) < payload_len(n as u64, al as u64) || h.bits[..3].iter().any(|&x| x > 30) {
             return Err("damaged payload".into());
         }
         let w = |k: usize| &b[64 + 4 * n * k..64 + 4 * n * (k + 1)];
@@ -422,39 +435,44 @@ impl<'a> DecodedLeaf<'a> {
 }
 
 /// Encodes one node's payload (entry offset left 0). `old` is the node's last payload when it is
-/// a leaf with paged-out points: those come first.
+/// a leaf with paged-out points (those come first) or an inner node with saved voxels (their
+/// attributes are taken from it; positions and colours from the voxels in memory).
 fn encode_node<'r>(n: &NodeView, old: Option<&[u8]>, record_len: usize, record: &(dyn Fn(u64) -> &'r [u8] + Sync)) -> std::result::Result<(NodeEntry, Vec<u8>), String> {
     let key = n.key();
     let attr_len = record_len - 12;
-    let old = old.map(DecodedLeaf::parse).transpose().map_err(|m| format!("leaf {}: {m}", key.name()))?;
-    if old.as_ref().is_some_and(|o| o.attr_len != attr_len || o.count as u64 != n.paged_points()) {
-        return Err(format!("leaf {}: its last payload does not match the points paged out", key.name()));
+    let old = old.map(DecodedLeaf::parse).transpose().map_err(|m| format!("node {}: {m}", key.name()))?;
+    let kept = if n.is_leaf() { n.paged_points() } else { n.saved_voxels() };
+    if old.as_ref().is_some_and(|o| o.attr_len != attr_len || o.count as u64 != kept) {
+        return Err(format!("node {}: its last payload does not match the points saved", key.name()));
     }
+    let k = old.as_ref().map_or(0, |o| o.count);
+    let mut attrs: Vec<u8> = Vec::new();
     let (kind, positions, colors): (u32, Vec<[i32; 3]>, Vec<u32>) = match n.payload() {
         Payload::Points(p) => {
-            let k = old.as_ref().map_or(0, |o| o.count);
             let mut pos = Vec::with_capacity(k + p.len() as usize);
             let mut col = Vec::with_capacity(k + p.len() as usize);
             if let Some(o) = &old {
                 pos.extend((0..k).map(|i| o.position(i)));
                 col.extend((0..k).map(|i| o.color(i)));
+                attrs.extend_from_slice(o.attributes);
             }
             pos.extend(p.iter().map(|q| q.pos));
             col.extend(p.iter().map(|q| q.color));
+            for q in p.iter() {
+                attrs.extend_from_slice(&record(q.record)[12..]);
+            }
             (LEAF, pos, col)
         }
         Payload::Voxels(v) => {
-            let cube = n.cube();
-            let half = cube.voxel_size_log2().map_or(0i64, |s| if s == 0 { 0 } else { 1i64 << (s - 1) });
-            let vox = v.to_vec();
-            let pos = vox
-                .iter()
-                .map(|x| cube.voxel_min(x.coord).map(|m| (m + half).clamp(i32::MIN as i64, i32::MAX as i64) as i32))
-                .collect();
-            (INNER, pos, vox.iter().map(|x| x.color).collect())
+            if let Some(o) = &old {
+                attrs.extend_from_slice(o.attributes);
+            }
+            for x in v.iter().skip(k) {
+                attrs.extend_from_slice(&record(x.record)[12..]);
+            }
+            (INNER, v.iter().map(|x| x.pos).collect(), v.iter().map(|x| x.color).collect())
         }
     };
-    let attr_len = if kind == LEAF { attr_len } else { 0 };
     let count = positions.len();
     if count > u32::MAX as usize {
         return Err(format!("node {} holds {count} points, more than a payload can (2^32 - 1)", key.name()));
@@ -494,17 +512,8 @@ fn encode_node<'r>(n: &NodeView, old: Option<&[u8]>, record_len: usize, record: 
     for c in &colors {
         out.extend_from_slice(&c.to_le_bytes());
     }
-    if kind == LEAF {
-        if let Some(o) = &old {
-            out.extend_from_slice(o.attributes);
-        }
-        if let Payload::Points(p) = n.payload() {
-            for q in p.iter() {
-                let r = record(q.record);
-                out.extend_from_slice(&r[12..]);
-            }
-        }
-    }
+    debug_assert_eq!(attrs.len(), count * attr_len);
+    out.extend_from_slice(&attrs);
     out.resize(len, 0);
     let entry = NodeEntry { level: key.level as u32, kind, index: key.index, _pad: 0, count: count as u64, offset: 0, length: len as u64 };
     Ok((entry, out))
@@ -567,45 +576,90 @@ pub struct BuildReport {
     pub peak_interval_bytes: u64,
     /// Seconds in all.
     pub seconds: f64,
+    /// Times the octree's root grew for points outside it.
+    pub root_growths: u64,
+    /// Problems that did not stop the build (headers that lie about the bounds).
+    pub warnings: Vec<String>,
 }
 
-/// The root cube's integer bounds from the inputs' headers (one unit of margin), on the merged
-/// grid.
-fn header_bounds(ds: &Dataset) -> Result<([i32; 3], [i32; 3])> {
+/// The integer bounds the inputs' headers declare (one unit of margin), on the merged grid, with
+/// a warning for each input whose header bounds are not usable; `None` when no header is.
+fn header_bounds(ds: &Dataset, warnings: &mut Vec<String>) -> Option<([i32; 3], [i32; 3])> {
     let (mut lo, mut hi) = ([i64::MAX; 3], [i64::MIN; 3]);
     for src in &ds.inputs {
         let h = src.header();
         if src.point_count() == 0 {
             continue;
         }
+        if src.point_count() > 1 && (0..3).all(|a| h.min[a] == 0.0 && h.max[a] == 0.0) {
+            warnings.push(format!("{}: the header's bounds are all zero (not set by the writer); the octree is placed from the points", src.path().display()));
+            continue;
+        }
+        if let Some(a) = (0..3).find(|&a| !(h.min[a].is_finite() && h.max[a].is_finite()) || h.min[a] > h.max[a]) {
+            warnings.push(format!(
+                "{}: the header's bounds on axis {} are not usable ({} .. {}); the octree is placed from the points",
+                src.path().display(),
+                ['x', 'y', 'z'][a],
+                h.min[a],
+                h.max[a]
+            ));
+            continue;
+        }
         for a in 0..3 {
-            if !(h.min[a].is_finite() && h.max[a].is_finite()) || h.min[a] > h.max[a] {
-                return Err(Error::input(src.path(), format!("the header's bounds on axis {a} are not usable ({} .. {}); the builder places the octree from them", h.min[a], h.max[a])));
-            }
             lo[a] = lo[a].min(ds.grid.to_int(a, h.min[a]).saturating_sub(1));
             hi[a] = hi[a].max(ds.grid.to_int(a, h.max[a]).saturating_add(1));
         }
     }
     if lo[0] > hi[0] {
-        return Ok(([0; 3], [0; 3]));
+        return None;
     }
     let c = |v: i64| v.clamp(i32::MIN as i64, i32::MAX as i64) as i32;
-    Ok((lo.map(c), hi.map(c)))
+    Some((lo.map(c), hi.map(c)))
+}
+
+/// A warning when the points of `src` (`st`, on the merged grid) reach outside the bounds its
+/// header declares, with both ranges in world coordinates on the file's grid.
+fn bounds_warning(ds: &Dataset, src: &dyn RecordSource, st: &crate::sort::PieceStats) -> Option<String> {
+    let h = src.header();
+    if st.count == 0 || (0..3).any(|a| !(h.min[a].is_finite() && h.max[a].is_finite()) || h.min[a] > h.max[a]) {
+        return None;
+    }
+    let g = &ds.grid;
+    let outside = (0..3).any(|a| (st.min[a] as i64) < g.to_int(a, h.min[a]) - 1 || (st.max[a] as i64) > g.to_int(a, h.max[a]) + 1);
+    if !outside {
+        return None;
+    }
+    let digits = |a: usize| (-h.scale[a].log10()).ceil().clamp(0.0, 12.0) as usize;
+    let range = |a: usize, lo: f64, hi: f64| format!("{} [{:.*}, {:.*}]", ['x', 'y', 'z'][a], digits(a), lo, digits(a), hi);
+    let real: Vec<String> = (0..3).map(|a| range(a, g.world(a, st.min[a] as i64), g.world(a, st.max[a] as i64))).collect();
+    let declared: Vec<String> = (0..3).map(|a| range(a, h.min[a], h.max[a])).collect();
+    Some(format!(
+        "{}: its points reach {}, outside the bounds its header declares ({}); the octree's root grew to hold them (`mortar sort` writes the file with true bounds)",
+        src.path().display(),
+        real.join(", "),
+        declared.join(", ")
+    ))
 }
 
 /// Builds the store `dir` from `ds`: reads the input piece by piece (pieces of a batch in
 /// parallel) and adds the points to the octree in batches of about `batch_points` in input order,
 /// committing every `commit_every` seconds, whenever the points held since the last commit exceed
 /// a third of the memory budget, and at the end; after each commit the leaves' points are paged
-/// out (see the module docs). The octree's root cube comes from the headers' bounds: a point
-/// outside them is an error naming the file. On an error the directory is removed; on Ctrl-C the
-/// last commit stays readable.
+/// out (see the module docs). The octree's root cube comes from the headers' bounds and the first
+/// points; where points fall outside it (headers lie), the root grows (a new root above the old
+/// one) and the report warns about each such file with its points' real range. On an error the
+/// directory is removed; on Ctrl-C the last commit stays readable.
 pub fn build(ds: &Dataset, dir: &Path, opts: &BuildOptions, progress: &mut dyn FnMut(&BuildProgress)) -> Result<BuildReport> {
     let t0 = Instant::now();
     let meta = ds.source_meta();
-    let bounds = header_bounds(ds)?;
+    let mut warnings = Vec::new();
+    let bounds = header_bounds(ds, &mut warnings);
     let mut writer = StoreWriter::create(dir, &meta)?;
-    let result = build_into(ds, &mut writer, opts, progress, bounds, t0);
+    let result = build_into(ds, &mut writer, opts, progress, bounds, t0).map(|mut r| {
+        warnings.append(&mut r.warnings);
+        r.warnings = warnings;
+        r
+    });
     match result {
         Ok(r) => Ok(r),
         Err(Error::Interrupted) => Err(Error::Interrupted),
@@ -617,7 +671,7 @@ pub fn build(ds: &Dataset, dir: &Path, opts: &BuildOptions, progress: &mut dyn F
     }
 }
 
-fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOptions, progress: &mut dyn FnMut(&BuildProgress), header: ([i32; 3], [i32; 3]), t0: Instant) -> Result<BuildReport> {
+fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOptions, progress: &mut dyn FnMut(&BuildProgress), header: Option<([i32; 3], [i32; 3])>, t0: Instant) -> Result<BuildReport> {
     let rl = ds.layout.record_len;
     let pieces = ds.pieces();
     let total: u64 = pieces.iter().map(|p| p.piece.points).sum();
@@ -626,8 +680,10 @@ fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOptions, progr
     let per_point = rl as u64 + 24 + 48;
     let interval_points = ((opts.memory / 3) / per_point).max(batch as u64);
     let mut report = BuildReport::default();
-    let mut builder = Builder::for_bounds(header.0, header.1, opts.config).map_err(|e| Error::Usage(format!("octree: {e}")))?;
-    let root = builder.root();
+    // Made with the first points: its root covers the headers' bounds and those points.
+    let mut builder: Option<Builder> = None;
+    // The real bounds of each input's points, for the warnings about headers that lie.
+    let mut real: Vec<crate::sort::PieceStats> = vec![crate::sort::PieceStats::default(); ds.inputs.len()];
     // Records of the points added since the last commit (index = Point::record) and of points
     // paged back in (PAGED | index).
     let mut records: Vec<u8> = Vec::with_capacity((interval_points.min(total) as usize + batch).saturating_mul(rl).min(1 << 30));
@@ -659,28 +715,19 @@ fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOptions, progr
                 slices.push((p, head));
                 rest = tail;
             }
-            slices.into_par_iter().try_for_each(|(p, out)| {
-                crate::sort::check_interrupted()?;
-                ds.read_piece_into(p, out)?;
-                // Read once: a mapped input's pages leave this process's memory.
-                ds.inputs[p.input].release_piece(&p.piece);
-                let st = crate::sort::PieceStats::of(out, &ds.layout);
-                if st.count > 0 && (0..3).any(|a| st.min[a] < header.0[a] || st.max[a] > header.1[a]) {
-                    let g = &ds.grid;
-                    let w = |v: [i32; 3]| [0, 1, 2].map(|a| g.world(a, v[a] as i64));
-                    return Err(Error::input(
-                        ds.inputs[p.input].path(),
-                        format!(
-                            "points reach {:?} .. {:?}, outside the bounds the header declares ({:?} .. {:?}); rewrite the file with `mortar sort` to fix its header",
-                            w(st.min),
-                            w(st.max),
-                            w(header.0),
-                            w(header.1)
-                        ),
-                    ));
-                }
-                Ok(())
-            })?;
+            let stats: Vec<(usize, crate::sort::PieceStats)> = slices
+                .into_par_iter()
+                .map(|(p, out)| {
+                    crate::sort::check_interrupted()?;
+                    ds.read_piece_into(p, out)?;
+                    // Read once: a mapped input's pages leave this process's memory.
+                    ds.inputs[p.input].release_piece(&p.piece);
+                    Ok((p.input, crate::sort::PieceStats::of(out, &ds.layout)))
+                })
+                .collect::<Result<_>>()?;
+            for (i, st) in stats {
+                real[i].merge(&st);
+            }
         }
         let recs = &records[base..];
         let st = recs.par_chunks(rl * 65_536).map(|c| crate::sort::PieceStats::of(c, &ds.layout)).reduce(crate::sort::PieceStats::default, |mut a, b| {
@@ -688,6 +735,16 @@ fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOptions, progr
             a
         });
         report.read_seconds += tr.elapsed().as_secs_f64();
+        if builder.is_none() && st.count > 0 {
+            // The headers' box when it holds the first points; otherwise the headers lie, and
+            // the root starts from the first points alone (it grows for the rest).
+            let (l, h) = match header {
+                Some((l, h)) if (0..3).all(|a| l[a] <= st.min[a] && st.max[a] <= h[a]) => (l, h),
+                _ => (st.min, st.max),
+            };
+            builder = Some(Builder::for_bounds(l, h, opts.config).map_err(|e| Error::Usage(format!("octree: {e}")))?);
+        }
+        let Some(builder) = builder.as_mut() else { continue };
         if st.count > 0 {
             for a in 0..3 {
                 lo[a] = lo[a].min(st.min[a]);
@@ -708,7 +765,6 @@ fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOptions, progr
             let first_index = (cursor / rl) as u64;
             points.clear();
             points.par_extend(records[cursor..end].par_chunks_exact(rl).enumerate().map(|(i, r)| Point { pos: read_xyz(r), color: color.rgba(r), record: first_index + i as u64 }));
-            debug_assert!(points.iter().all(|p| root.contains(p.pos)));
             let tb = Instant::now();
             let paged_in = std::sync::atomic::AtomicU64::new(0);
             {
@@ -717,10 +773,11 @@ fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOptions, progr
                     paged_in.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
                     w.page_in(id.index(), None, &paged).map_err(|e| e.to_string())
                 };
-                builder.add_batch_paged(&points, &page_in).map_err(|e| match e {
-                    OctreeError::PageIn(m) => Error::input(&w.dir, format!("reading a leaf back for a split: {m}")),
+                let st = builder.add_batch_paged(&points, &page_in).map_err(|e| match e {
+                    OctreeError::PageIn(m) => Error::input(&w.dir, format!("reading a node back: {m}")),
                     e => Error::Usage(format!("octree: {e}")),
                 })?;
+                report.root_growths += st.growths as u64;
             }
             report.paged_in_leaves += paged_in.into_inner();
             report.batch_seconds.push(tb.elapsed().as_secs_f64());
@@ -733,7 +790,7 @@ fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOptions, progr
             let due = since >= opts.commit_every || first_due || builder.resident_points() >= interval_points;
             let last = next == pieces.len() && cursor == records.len();
             if due && !last {
-                commit_and_page_out(writer, &mut builder, (lo, hi), &mut records, cursor, &paged, rl, &mut report)?;
+                commit_and_page_out(writer, builder, (lo, hi), &mut records, cursor, &paged, rl, &mut report)?;
                 cursor = 0;
                 last_commit = Instant::now();
             }
@@ -743,8 +800,18 @@ fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOptions, progr
     if done == 0 {
         (lo, hi) = ([0; 3], [0; 3]);
     }
+    let builder = match builder.as_mut() {
+        Some(b) => b,
+        None => builder.insert(Builder::for_bounds([0; 3], [0; 3], opts.config).map_err(|e| Error::Usage(format!("octree: {e}")))?),
+    };
     let all = records.len();
-    commit_and_page_out(writer, &mut builder, (lo, hi), &mut records, all, &paged, rl, &mut report)?;
+    commit_and_page_out(writer, builder, (lo, hi), &mut records, all, &paged, rl, &mut report)?;
+    // Headers that lie: the points' real range, per file.
+    for (src, st) in ds.inputs.iter().zip(&real) {
+        if let Some(w) = bounds_warning(ds, src.as_ref(), st) {
+            report.warnings.push(w);
+        }
+    }
     let snap = builder.snapshot();
     report.points = snap.total_points();
     report.nodes = snap.node_count() as u64;
@@ -863,7 +930,7 @@ impl Store {
         let mut leaves = Vec::new();
         let mut points = 0u64;
         for (i, e) in entries.iter().enumerate() {
-            let al = if e.kind == LEAF { attr_len } else { 0 };
+            let al = attr_len;
             if e.kind > INNER || e.offset % 8 != 0 || e.count > u32::MAX as u64 || e.length != payload_len(e.count, al) || e.offset.checked_add(e.length).is_none_or(|end| end > header.nodes_len) {
                 return Err(bad(format!("node entry {i} is damaged (kind {}, {} points, {} bytes at {})", e.kind, e.count, e.length, e.offset)));
             }

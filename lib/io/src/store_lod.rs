@@ -17,20 +17,22 @@
 //!   minimum (the samples' integer minimum) but not their maximum: it is taken from the coarse
 //!   words on first use (exact for frames of up to 10 bits, otherwise at most `2^(bits - 10)`
 //!   units above the true maximum: conservative, so culling stays correct) and cached.
-//! - [`resolve_keys`] colours the visible samples: the payload's stored colour (the source's RGB,
-//!   or grey from intensity, chosen when the store was built; voxels carry the first-come or
-//!   averaged colour of their points), or elevation from the exact decoded height. Modes that
-//!   need record attributes (intensity ramps, classification, return number, GPS time) are
-//!   refused: voxels have no records ([`LodColor::of`] says so and names the store). Hole filling
-//!   and eye-dome lighting work as for batch files: they read only the keys.
+//! - [`resolve_keys`] colours the visible samples at draw time: every sample is a real source
+//!   point with its record (leaf points, and the point each voxel stands for), so every colour
+//!   mode works under LOD: the source's RGB (the payload's colour), elevation from the exact
+//!   decoded height, and intensity, classification, return number and GPS time from the
+//!   record's attributes, with scalar modes mapped over the 1st to 99th percentile of the
+//!   visible samples (or a given range) exactly as raw and batch renders map them. `auto` is RGB
+//!   where the source has colours, else intensity. Hole filling and eye-dome lighting work as
+//!   for batch files: they read only the keys.
 
 use crate::error::{Error, Result};
-use crate::render_input::{ColorChoice, RenderSettings, Rendered};
+use crate::render_input::{attribute_value, percentile_range, scalar_colors, ColorChoice, RenderSettings, Rendered};
 use crate::store::{NodeData, Store, LEAF};
 use mortar_core::grid::Grid;
 use mortar_core::octree::{select_nodes, Cube, IndexEntry, LodIndex, LodOptions, LodSelection, LodTree, NodeId, NodeKey};
 use mortar_core::render::framebuffer::{key_index, EMPTY_KEY};
-use mortar_core::render::resolve::{elevation_color, resolve, ColorMode};
+use mortar_core::render::resolve::{resolve, ColorMode};
 use mortar_core::render::{rasterize, Aabb, BatchRef, Camera, Framebuffer, RasterStats};
 use rayon::prelude::*;
 use std::path::Path;
@@ -161,16 +163,19 @@ impl StoreLod {
         });
         let mut refs = Vec::with_capacity(nodes.len());
         let mut colors = Vec::with_capacity(nodes.len());
+        let mut attributes = Vec::with_capacity(nodes.len());
         let mut first = Vec::with_capacity(nodes.len());
         let mut next = 0u64;
         for &id in nodes {
             let d = self.node(id);
             refs.push(self.node_batch(id, next as u32));
             colors.push(d.colors);
+            attributes.push(d.attributes);
             first.push(next as u32);
             next += d.header.count as u64;
         }
-        Ok(LodBatches { refs, colors, first, nodes: nodes.to_vec(), samples })
+        let attr_len = self.store.layout.record_len - 12;
+        Ok(LodBatches { refs, colors, attributes, attr_len, first, nodes: nodes.to_vec(), samples })
     }
 
     /// Node `id` as one batch whose samples are numbered from `first_index` (the node must be in
@@ -230,6 +235,10 @@ pub struct LodBatches<'a> {
     pub refs: Vec<BatchRef<'a>>,
     /// The nodes' RGBA8 colours, one per sample.
     pub colors: Vec<&'a [u32]>,
+    /// The nodes' record attributes (every byte of a record after X, Y, Z), one per sample.
+    pub attributes: Vec<&'a [u8]>,
+    /// Bytes of attributes per sample.
+    pub attr_len: usize,
     /// The nodes, in batch order.
     pub nodes: Vec<NodeId>,
     /// Samples in all (points and voxels).
@@ -254,8 +263,14 @@ impl LodBatches<'_> {
         self.locate(index).map(|(b, i)| self.colors[b][i])
     }
 
-    /// The exact integer position of point index `index` (a leaf point's own coordinates, a
-    /// voxel's cell centre).
+    /// The record attributes (after X, Y, Z) of point index `index`.
+    #[inline]
+    pub fn attributes(&self, index: u32) -> Option<&[u8]> {
+        self.locate(index).map(|(b, i)| &self.attributes[b][i * self.attr_len..(i + 1) * self.attr_len])
+    }
+
+    /// The exact integer position of point index `index` (a leaf point's or a voxel's point's
+    /// own coordinates).
     pub fn position(&self, index: u32) -> Option<[i32; 3]> {
         self.locate(index).map(|(b, i)| {
             let r = &self.refs[b];
@@ -267,31 +282,47 @@ impl LodBatches<'_> {
 /// What an LOD render colours samples by.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum LodColor {
-    /// The payload's RGBA8 colour.
+    /// The payload's RGBA8 colour: the source's RGB (or, without RGB, the intensity grey baked
+    /// at build time).
     Stored,
     /// Height, from the exact decoded position.
     Elevation,
+    /// An attribute mode (intensity, classification, return number, GPS time) from the samples'
+    /// records.
+    Attribute(ColorMode),
+}
+
+/// Whether the store's payload colours are the source's RGB: its format has RGB and the root's
+/// samples (real points spread over the whole cloud) are not all black.
+fn rgb_in_use(store: &Store) -> bool {
+    let Some(rgb) = store.layout.attribute("rgb") else { return false };
+    if store.entries.is_empty() || store.entries[0].count == 0 {
+        return true;
+    }
+    let d = store.node(0);
+    let al = d.header.attr_len as usize;
+    let off = rgb.offset - 12;
+    (0..d.header.count as usize).any(|i| d.attributes[i * al + off..i * al + off + 6].iter().any(|&b| b != 0))
 }
 
 impl LodColor {
-    /// The colour source of `choice` for `store`, or an error naming the store for modes that
-    /// need record attributes. `auto` is the stored colour (RGB where the source has it, else
-    /// intensity grey: the voxels' colours).
+    /// The colour source of `choice` for `store`, or an error naming the store for modes its
+    /// point format cannot show. `auto` is RGB where the source has colours, else intensity.
     pub fn of(store: &Store, choice: ColorChoice) -> Result<LodColor> {
         match choice {
+            ColorChoice::Auto if rgb_in_use(store) => Ok(LodColor::Stored),
+            ColorChoice::Auto if store.layout.attribute("intensity").is_some() => Ok(LodColor::Attribute(ColorMode::Intensity)),
             ColorChoice::Auto | ColorChoice::Stored => Ok(LodColor::Stored),
             ColorChoice::Mode(ColorMode::Elevation) => Ok(LodColor::Elevation),
-            ColorChoice::Mode(ColorMode::Rgb) if store.layout.has_rgb() => Ok(LodColor::Stored),
-            ColorChoice::Mode(ColorMode::Rgb) => Err(Error::input(
-                &store.path,
-                format!("--color rgb: point format {} has no RGB; the store's colours are intensity grey (--color stored)", store.layout.format),
-            )),
+            ColorChoice::Mode(ColorMode::Rgb) if rgb_in_use(store) => Ok(LodColor::Stored),
+            ColorChoice::Mode(ColorMode::Rgb) => {
+                let why = if store.layout.has_rgb() { "every RGB value is zero" } else { "the point format has no RGB" };
+                Err(Error::input(&store.path, format!("--color rgb: the points have no colour ({why}, point format {}); try --color intensity", store.layout.format)))
+            }
+            ColorChoice::Mode(m) if store.layout.attribute(m.attribute()).is_some() => Ok(LodColor::Attribute(m)),
             ColorChoice::Mode(m) => Err(Error::input(
                 &store.path,
-                format!(
-                    "--color {}: LOD rendering draws voxels, which keep only the stored colour; use --color stored or elevation, or --no-lod to draw every point with its attributes",
-                    m.name()
-                ),
+                format!("--color {}: needs the attribute '{}', but point format {} has no such field", m.name(), m.attribute(), store.layout.format),
             )),
         }
     }
@@ -301,17 +332,68 @@ impl LodColor {
         match self {
             LodColor::Stored => "stored",
             LodColor::Elevation => "elevation",
+            LodColor::Attribute(m) => m.name(),
+        }
+    }
+
+    /// Whether it maps a scalar over a range (elevation, intensity, GPS time).
+    pub fn uses_range(self) -> bool {
+        matches!(self, LodColor::Elevation | LodColor::Attribute(ColorMode::Intensity | ColorMode::GpsTime))
+    }
+}
+
+/// The value of sample `index` of `batches` in `color`: a colour, or for scalar modes the
+/// value's `f64` bits (`None` outside the selection).
+fn sample_value(store: &Store, grid: &Grid, batches: &LodBatches<'_>, color: LodColor, index: u32) -> Option<u64> {
+    match color {
+        LodColor::Stored => batches.color(index).map(u64::from),
+        LodColor::Elevation => batches.position(index).map(|p| grid.world(2, p[2] as i64).to_bits()),
+        LodColor::Attribute(m) => {
+            let f = store.layout.attribute(m.attribute()).expect("checked by LodColor::of");
+            let at = f.offset - 12;
+            batches.attributes(index).map(|a| attribute_value(m, store.layout.family(), &a[at..at + f.width]))
         }
     }
 }
 
-/// The value at quantile `q` (0-1) of `v` (reorders `v`).
-fn quantile(v: &mut [f64], q: f64) -> Option<f64> {
-    if v.is_empty() {
-        return None;
+impl StoreLod {
+    /// The colours of node `id`'s samples in `color`, scalar modes over `range` (or the 1st to
+    /// 99th percentile of the node's own values): what a viewer uploads with the node.
+    pub fn node_colors(&self, id: NodeId, color: LodColor, range: Option<[f64; 2]>) -> Result<Vec<u32>> {
+        let b = self.batches(&[id])?;
+        let v: Vec<u64> = (0..b.samples as u32).map(|i| sample_value(&self.store, &self.grid, &b, color, i).unwrap_or(0)).collect();
+        Ok(match color {
+            LodColor::Stored | LodColor::Attribute(ColorMode::Classification | ColorMode::ReturnNumber) => v.into_iter().map(|c| c as u32).collect(),
+            LodColor::Elevation => scalar_colors(ColorMode::Elevation, &v, range).0,
+            LodColor::Attribute(m) => scalar_colors(m, &v, range).0,
+        })
     }
-    let k = ((v.len() - 1) as f64 * q).round() as usize;
-    Some(*v.select_nth_unstable_by(k, f64::total_cmp).1)
+
+    /// A view-independent range for scalar colour mode `color`: the 1st to 99th percentile of
+    /// the values of the samples in the top levels of the tree (the root and the levels below it
+    /// down to about 100,000 samples: voxels are real points spread over the whole cloud).
+    /// `None` for the other modes.
+    pub fn color_range(&self, color: LodColor) -> Option<[f64; 2]> {
+        if !color.uses_range() || self.store.entries.is_empty() {
+            return None;
+        }
+        let root = NodeId(0);
+        let mut nodes = vec![root];
+        let mut level = vec![root];
+        let mut total = self.index.samples(root);
+        while total < 100_000 {
+            let next: Vec<NodeId> = level.iter().filter_map(|&id| self.index.children(id)).flatten().collect();
+            if next.is_empty() {
+                break;
+            }
+            total += next.iter().map(|&id| self.index.samples(id)).sum::<u64>();
+            nodes.extend_from_slice(&next);
+            level = next;
+        }
+        let b = self.batches(&nodes).ok()?;
+        let v: Vec<u64> = (0..b.samples as u32).filter_map(|i| sample_value(&self.store, &self.grid, &b, color, i)).collect();
+        Some(percentile_range(&v))
+    }
 }
 
 /// Rasterizes `batches` (from [`StoreLod::batches`]) with the CPU rasterizer for `camera` and
@@ -344,23 +426,24 @@ pub fn resolve_keys(
         return Err(Error::input(&lod.store.path, "framebuffer holds a point index beyond the selected samples"));
     }
     let bg = settings.resolve.background;
-    let (rgba, color_range) = match color {
-        LodColor::Stored => (resolve(&keys, camera.width, camera.height, |i| batches.color(i).unwrap_or(bg), &settings.resolve), None),
+    // The visible samples, their values, then their colours.
+    let mut idx: Vec<u32> = keys.par_iter().filter(|&&k| k != EMPTY_KEY).map(|&k| key_index(k)).collect();
+    idx.par_sort_unstable();
+    idx.dedup();
+    let values: Vec<u64> = idx.par_iter().map(|&i| sample_value(&lod.store, &lod.grid, batches, color, i).unwrap_or(0)).collect();
+    let (colors, color_range) = match color {
+        LodColor::Stored | LodColor::Attribute(ColorMode::Classification | ColorMode::ReturnNumber) => (values.iter().map(|&c| c as u32).collect::<Vec<u32>>(), None),
         LodColor::Elevation => {
-            let height = |i: u32| batches.position(i).map(|p| lod.grid.world(2, p[2] as i64));
-            let range = settings.range.unwrap_or_else(|| {
-                let mut idx: Vec<u32> = keys.iter().filter(|&&k| k != EMPTY_KEY).map(|&k| key_index(k)).collect();
-                idx.par_sort_unstable();
-                idx.dedup();
-                let mut v: Vec<f64> = idx.iter().filter_map(|&i| height(i)).collect();
-                let lo = quantile(&mut v, 0.01).unwrap_or(0.0);
-                let hi = quantile(&mut v, 0.99).unwrap_or(1.0);
-                [lo, hi]
-            });
-            let rgba = resolve(&keys, camera.width, camera.height, |i| height(i).map_or(bg, |z| elevation_color(z, range)), &settings.resolve);
-            (rgba, Some(range))
+            let (c, r) = scalar_colors(ColorMode::Elevation, &values, settings.range);
+            (c, Some(r))
+        }
+        LodColor::Attribute(m) => {
+            let (c, r) = scalar_colors(m, &values, settings.range);
+            (c, Some(r))
         }
     };
+    let color_of = |i: u32| idx.binary_search(&i).map_or(bg, |k| colors[k]);
+    let rgba = resolve(&keys, camera.width, camera.height, color_of, &settings.resolve);
     let resolve_seconds = t1.elapsed().as_secs_f64();
     let covered = keys.iter().filter(|&&k| k != EMPTY_KEY).count() as u64;
     Ok(Rendered { width: camera.width, height: camera.height, keys, rgba, stats, covered, raster_seconds, resolve_seconds, color_range })

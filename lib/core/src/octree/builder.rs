@@ -13,7 +13,7 @@ use super::chunks::Chunks;
 use super::cube::{Cube, NodeKey, MAX_ROOT_SIZE_LOG2};
 use super::snapshot::{NodeView, Payload, Snapshot};
 use super::voxels::{Sample, Sampler, VoxelState};
-use super::{BuilderConfig, NodeId, OctreeError, Point, GRID_LOG2, MIN_INNER_SIZE_LOG2, POINT_CHUNK_MAX};
+use super::{BuilderConfig, NodeId, OctreeError, Point, Voxel, GRID_LOG2, MIN_INNER_SIZE_LOG2, POINT_CHUNK_MAX};
 use bytemuck::Zeroable;
 use rayon::prelude::*;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -47,8 +47,9 @@ struct NodeData {
     points: Chunks<Point>,
     /// An inner node's voxels.
     voxels: Option<Box<VoxelState>>,
-    /// Points of the leaf paged out to the caller ([`Builder::page_out`]); they precede
-    /// `points` in arrival order.
+    /// Leaves: points paged out to the caller ([`Builder::page_out`]); they precede `points`
+    /// in arrival order. Inner nodes: voxels whose records the caller saved at the last
+    /// `page_out` ([`NodeView::saved_voxels`]).
     paged: u64,
     /// Input points in the node's cube.
     subtree: u64,
@@ -59,6 +60,8 @@ struct NodeData {
 /// Wall time of each phase of one [`Builder::add_batch`].
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct PhaseTimes {
+    /// Growing the root for points outside it.
+    pub grow: Duration,
     /// Counting and splitting (§5.1).
     pub expand: Duration,
     /// Voxel sampling (§5.2).
@@ -74,6 +77,8 @@ pub struct PhaseTimes {
 /// What one [`Builder::add_batch`] did.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct BatchStats {
+    /// Times the root grew (a new root above the old one) for points outside it.
+    pub growths: u32,
     /// Points in the batch.
     pub points: usize,
     /// Stored points moved out of split leaves and inserted again.
@@ -263,14 +268,14 @@ impl Builder {
     /// must return exactly those points, in their order (called in parallel, before anything
     /// changes; an error is returned as [`OctreeError::PageIn`] and leaves the tree as it was).
     pub fn add_batch_paged(&mut self, points: &[Point], page_in: &PageIn<'_>) -> Result<BatchStats, OctreeError> {
-        let root = self.root;
-        if let Some(index) = points.par_iter().position_first(|p| !root.contains(p.pos)) {
-            return Err(OctreeError::PointOutsideRoot { index, pos: points[index].pos, min: root.min, size: root.size() });
-        }
         if points.is_empty() {
             return Ok(BatchStats { nodes: self.shapes.len(), ..BatchStats::default() });
         }
         let mut times = PhaseTimes::default();
+
+        let t = Instant::now();
+        let growths = self.grow(points, page_in)?;
+        times.grow = t.elapsed();
 
         let t = Instant::now();
         let exp = self.expand(points, page_in)?;
@@ -286,7 +291,7 @@ impl Builder {
         times.insert_points = t.elapsed();
 
         let t = Instant::now();
-        let new_voxels = self.insert_voxels();
+        let new_voxels = self.insert_voxels(&exp, points);
         times.insert_voxels = t.elapsed();
 
         let t = Instant::now();
@@ -295,6 +300,7 @@ impl Builder {
 
         self.input_points += points.len() as u64;
         Ok(BatchStats {
+            growths,
             points: points.len(),
             spilled: exp.spill.len(),
             splits: exp.splits,
@@ -303,6 +309,116 @@ impl Builder {
             nodes: self.shapes.len(),
             times,
         })
+    }
+
+    /// Grows the root until it holds every point of `batch` ("Growing the root" in the module
+    /// docs); returns the number of growths. Fails before changing anything if the root would
+    /// exceed [`MAX_ROOT_SIZE_LOG2`], or if the saved voxel records of an inner root cannot be
+    /// paged in.
+    fn grow(&mut self, batch: &[Point], page_in: &PageIn<'_>) -> Result<u32, OctreeError> {
+        let root = self.root;
+        if batch.par_iter().all(|p| root.contains(p.pos)) {
+            return Ok(0);
+        }
+        let (lo, hi) = batch
+            .par_iter()
+            .fold(|| ([i64::MAX; 3], [i64::MIN; 3]), |(mut lo, mut hi), p| {
+                for a in 0..3 {
+                    lo[a] = lo[a].min(p.pos[a] as i64);
+                    hi[a] = hi[a].max(p.pos[a] as i64);
+                }
+                (lo, hi)
+            })
+            .reduce(|| ([i64::MAX; 3], [i64::MIN; 3]), |a, b| (std::array::from_fn(|i| a.0[i].min(b.0[i])), std::array::from_fn(|i| a.1[i].max(b.1[i]))));
+        // The cubes the root will pass through, checked before anything changes.
+        let mut steps = Vec::new();
+        let mut cube = root;
+        while !(cube.contains_i64(lo) && cube.contains_i64(hi)) {
+            if cube.size_log2 >= MAX_ROOT_SIZE_LOG2 {
+                let index = batch.iter().position(|p| !cube.contains(p.pos)).unwrap_or(0);
+                return Err(OctreeError::PointOutsideRoot { index, pos: batch[index].pos, min: cube.min, size: cube.size() });
+            }
+            // The old root is the upper half on axes where points lie below it.
+            let octant: usize = (0..3).map(|a| usize::from(lo[a] < cube.min[a]) << a).sum();
+            let size = cube.size() as i64;
+            let min = std::array::from_fn(|a| cube.min[a] - if octant >> a & 1 == 1 { size } else { 0 });
+            cube = Cube { min, size_log2: cube.size_log2 + 1 };
+            steps.push((cube, octant));
+        }
+        // An inner root's saved voxels get records of this interval back (their copies sample
+        // the new root, and the moved old root is written again).
+        let mut resolved: Option<Vec<Point>> = None;
+        if self.shapes[0].first_child != NO_CHILD && self.data[0].paged > 0 {
+            let pts = page_in(NodeId(0)).map_err(OctreeError::PageIn)?;
+            if pts.len() as u64 != self.data[0].paged {
+                return Err(OctreeError::PageIn(format!("root: {} voxels paged in, {} saved", pts.len(), self.data[0].paged)));
+            }
+            resolved = Some(pts);
+        }
+        if let Some(pts) = resolved {
+            let v = self.data[0].voxels.as_mut().expect("an inner root has voxels");
+            v.set_records(&pts);
+            self.data[0].paged = 0;
+        }
+        self.revision += 1;
+        let mode = self.config.color_mode;
+        for &(cube, octant) in &steps {
+            if self.shapes[0].first_child == NO_CHILD {
+                // A leaf root only gets a larger cube; its points stay.
+                self.shapes[0].cube = cube;
+                self.data[0].changed = true;
+                self.root = cube;
+                continue;
+            }
+            let first = u32::try_from(self.shapes.len()).expect("an octree has fewer than 2^32 nodes");
+            // Every key moves one level down, below the new root's octant.
+            for sh in self.shapes.iter_mut().skip(1) {
+                let l = sh.key.level as u32;
+                sh.key = NodeKey { level: sh.key.level + 1, index: std::array::from_fn(|a| sh.key.index[a] + ((((octant >> a) & 1) as u32) << l)) };
+            }
+            // The new root samples its grid from the old root's voxels, in their order.
+            let old = self.data[0].voxels.as_ref().expect("an inner root has voxels");
+            let reps: Vec<Voxel> = old.chunks.to_vec();
+            let mut state = VoxelState::new(mode);
+            state.seed(&cube, &reps);
+            let subtree = self.data[0].subtree;
+            for o in 0..8 {
+                let key = NodeKey::ROOT.child(o);
+                self.shapes.push(Shape { key, cube: cube.child(o), first_child: NO_CHILD });
+                self.data.push(NodeData { changed: true, ..NodeData::default() });
+            }
+            let moved = first as usize + octant;
+            let old_root = self.shapes[0];
+            self.shapes[moved] = Shape { key: NodeKey::ROOT.child(octant), cube: old_root.cube, first_child: old_root.first_child };
+            self.data.swap(0, moved);
+            self.data[moved].changed = true;
+            self.shapes[0] = Shape { key: NodeKey::ROOT, cube, first_child: first };
+            self.data[0] = NodeData { voxels: Some(Box::new(state)), subtree, changed: true, ..NodeData::default() };
+            self.root = cube;
+        }
+        // Every view again: keys changed; unchanged nodes keep their revision.
+        let old_views = std::mem::take(&mut self.views);
+        let rev = self.revision;
+        self.views = self
+            .shapes
+            .iter()
+            .zip(&self.data)
+            .enumerate()
+            .map(|(i, (shape, d))| {
+                let payload = match &d.voxels {
+                    Some(v) => Payload::Voxels(v.chunks.clone()),
+                    None => Payload::Points(d.points.clone()),
+                };
+                let revision = if d.changed { rev } else { old_views.get(i).map_or(rev, |v| v.revision()) };
+                let first_child = (shape.first_child != NO_CHILD).then_some(NodeId(shape.first_child));
+                Arc::new(NodeView::new(shape.key, shape.cube, first_child, payload, d.subtree, revision, d.paged))
+            })
+            .collect();
+        for d in &mut self.data {
+            d.changed = false;
+        }
+        self.published = self.views.iter().cloned().collect();
+        Ok(steps.len() as u32)
     }
 
     /// Whether a leaf may become an inner node (see "Depth bound" in the module docs).
@@ -450,16 +566,19 @@ impl Builder {
         if root.first_child == NO_CHILD {
             return;
         }
-        // Records: spilled points first (they arrived earlier), then the batch in input order.
-        let rec = |p: &Point, tag: u32| Rec { off: root.cube.offset(p.pos), color: p.color, tag };
+        // Records: spilled points first (they arrived earlier), then the batch in input order;
+        // `seq` is the place in that sequence.
+        let rec = |p: &Point, tag: u32, seq: usize| Rec { off: root.cube.offset(p.pos), color: p.color, tag, seq: seq as u32 };
         let total = exp.spill.len() + batch.len();
+        let ns = exp.spill.len();
         self.work.clear();
         self.work.par_extend(
             exp.spill
                 .par_iter()
-                .zip(&exp.spill_origin)
-                .map(|(p, &o)| rec(p, o as u32 + 1))
-                .chain(batch.par_iter().map(|p| rec(p, 0))),
+                .zip(exp.spill_origin.par_iter())
+                .enumerate()
+                .map(|(i, (p, &o))| rec(p, o as u32 + 1, i))
+                .chain(batch.par_iter().enumerate().map(|(i, p)| rec(p, 0, ns + i))),
         );
         self.scratch.clear();
         self.scratch.resize(total, Rec::default());
@@ -554,12 +673,21 @@ impl Builder {
 
     /// §5.4: appends each inner node's new voxels (the backlog) to its chunks; in averaged mode
     /// also rebuilds the chunks whose colours changed. Returns the number of new voxels.
-    fn insert_voxels(&mut self) -> u64 {
+    fn insert_voxels(&mut self, exp: &Expansion, batch: &[Point]) -> u64 {
+        let ns = exp.spill.len();
+        let point = |seq: u32| -> Point {
+            let i = seq as usize;
+            if i < ns {
+                exp.spill[i]
+            } else {
+                batch[i - ns]
+            }
+        };
         self.data
             .par_iter_mut()
             .map(|d| match &mut d.voxels {
                 Some(v) => {
-                    let (new, sampled, through) = v.publish();
+                    let (new, sampled, through) = v.publish(&point);
                     d.subtree += through;
                     d.changed |= sampled > 0;
                     new
@@ -579,8 +707,20 @@ impl Builder {
     /// points back from the `page_in` of [`add_batch_paged`](Self::add_batch_paged) first.
     pub fn page_out(&mut self) -> u64 {
         let mut dropped = 0;
+        let mut republish = false;
         for (i, (shape, d)) in self.shapes.iter().zip(self.data.iter_mut()).enumerate() {
-            if d.voxels.is_some() || d.points.is_empty() {
+            if let Some(v) = &d.voxels {
+                // The caller saved these voxels' records with the node.
+                if v.chunks.len() != d.paged {
+                    d.paged = v.chunks.len();
+                    let old = &self.views[i];
+                    let first_child = (shape.first_child != NO_CHILD).then_some(NodeId(shape.first_child));
+                    self.views[i] = Arc::new(NodeView::new(shape.key, shape.cube, first_child, Payload::Voxels(v.chunks.clone()), d.subtree, old.revision(), d.paged));
+                    republish = true;
+                }
+                continue;
+            }
+            if d.points.is_empty() {
                 continue;
             }
             debug_assert!(!d.changed, "page_out runs between updates, after publish");
@@ -591,7 +731,7 @@ impl Builder {
             let first_child = (shape.first_child != NO_CHILD).then_some(NodeId(shape.first_child));
             self.views[i] = Arc::new(NodeView::new(shape.key, shape.cube, first_child, Payload::Points(Chunks::default()), d.subtree, old.revision(), d.paged));
         }
-        if dropped > 0 {
+        if dropped > 0 || republish {
             self.published = self.views.iter().cloned().collect();
         }
         dropped
@@ -626,13 +766,15 @@ impl Builder {
     }
 }
 
-/// A point as the sampling partition moves it: offset from the root's minimum, colour, and
-/// `tag`: 0 for a batch point, `level + 1` of the node that spilled it for a spilled point.
+/// A point as the sampling partition moves it: offset from the root's minimum, colour, `tag`
+/// (0 for a batch point, `level + 1` of the node that spilled it for a spilled point) and `seq`,
+/// its place in the update's sequence (spill, then batch), by which a new voxel finds its point.
 #[derive(Clone, Copy, Debug, Default)]
 struct Rec {
     off: [u32; 3],
     color: u32,
     tag: u32,
+    seq: u32,
 }
 
 /// Shared state of the sampling recursion.
@@ -732,7 +874,7 @@ fn sample_recs<S: Sample>(shape: &Shape, base: [u32; 3], recs: &[Rec], s: &mut S
         child_counts[((cell[0] >> 5) & 1 | ((cell[1] >> 5) & 1) << 1 | ((cell[2] >> 5) & 1) << 2) as usize] += 1;
         // batch points (tag 0) and points spilled at this level or above sample here
         if r.tag <= level + 1 {
-            s.sample(cell, r.color);
+            s.sample(cell, r.color, r.seq);
             sampled += 1;
             // new in this cube unless spilled by this very node
             through += u64::from(r.tag != level + 1);

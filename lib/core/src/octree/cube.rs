@@ -46,7 +46,13 @@ impl Cube {
     /// Whether the integer coordinate `p` lies in the cube.
     #[inline]
     pub fn contains(&self, p: [i32; 3]) -> bool {
-        (0..3).all(|a| ((p[a] as i64).wrapping_sub(self.min[a]) as u64) < self.size())
+        self.contains_i64(p.map(|v| v as i64))
+    }
+
+    /// [`contains`](Self::contains) for a coordinate given as `i64`.
+    #[inline]
+    pub fn contains_i64(&self, p: [i64; 3]) -> bool {
+        (0..3).all(|a| (p[a].wrapping_sub(self.min[a]) as u64) < self.size())
     }
 
     /// Offset of `p` from `min` (which must be inside the cube).

@@ -9,17 +9,14 @@
 //! - a leaf's points keep their exact integer coordinates: the batch's frame
 //!   ([`BatchGrid`]) is the tight integer bounds of the points, so [`BatchGrid::decode_exact`] of
 //!   the words gives every point back bit for bit (paper 003 §3.3 in mortar's integer-grid form);
-//! - an inner node's voxels become points at their cell centres, in integer grid units:
-//!   `cube.min + coord * cell + cell / 2` with `cell = 2^voxel_size_log2`, i.e.
-//!   `cube.min + (coord + 0.5) * cell` rounded down (for a cell one unit wide, its only
-//!   coordinate). Where a cell reaches past `i32::MAX` (the root cube is a power of two from the
-//!   data's minimum and may overhang the `i32` range) the centre is clamped to `i32::MAX`, which is
-//!   still inside the cell because an occupied cell holds a point, and points are `i32`.
+//! - an inner node's voxels are real source points (the first point that claimed each cell,
+//!   [`Voxel`](super::Voxel)), drawn at their exact integer coordinates in the same way.
 //!
 //! The batch's samples are in the node's payload order (points in arrival order, voxels in the
 //! order their cells were first hit), so index `i` of the batch is element `i` of
-//! [`NodeView::points`] or [`NodeView::voxels`]: a resolve pass finds a leaf point's record
-//! through [`Point::record`](super::Point::record).
+//! [`NodeView::points`] or [`NodeView::voxels`]: a resolve pass finds the record of a leaf point
+//! or of a voxel's point through [`Point::record`](super::Point::record) /
+//! [`Voxel::record`](super::Voxel::record).
 //!
 //! **Wide nodes.** A batch stores at most 30 bits per axis ([`MAX_BITS`]). A node whose samples
 //! span `2^30` grid units or more on an axis is refused with [`NodeBatchError::TooWide`], never
@@ -73,7 +70,7 @@
 
 use super::cube::{Cube, NodeKey, MAX_ROOT_SIZE_LOG2};
 use super::snapshot::{NodeView, Payload, Snapshot};
-use super::{NodeId, GRID_LOG2};
+use super::NodeId;
 use crate::grid::Grid;
 use crate::quantize::{bits_for_extent, BatchGrid, MAX_BITS};
 use crate::render::frustum::{Containment, Frustum};
@@ -153,21 +150,6 @@ pub enum NodeBatchError {
     },
 }
 
-/// The integer position a voxel is drawn at: the centre of its cell rounded down (see the module
-/// docs), clamped into `i32`.
-#[inline]
-fn voxel_position(cube: &Cube, voxel_log2: u32, coord: [u8; 3]) -> [i32; 3] {
-    let half = (1i64 << voxel_log2) >> 1;
-    [0, 1, 2].map(|a| (cube.min[a] + ((coord[a] as i64) << voxel_log2) + half).clamp(i32::MIN as i64, i32::MAX as i64) as i32)
-}
-
-/// `log2` of the voxel edge of an inner node's cube (0 for a cube narrower than the grid, which
-/// the builder never makes an inner node).
-#[inline]
-fn voxel_log2(cube: &Cube) -> u32 {
-    cube.size_log2.saturating_sub(GRID_LOG2) as u32
-}
-
 /// Grows `(lo, hi)` by the integer position `p`.
 #[inline]
 fn grow(lo: &mut [i32; 3], hi: &mut [i32; 3], p: [i32; 3]) {
@@ -177,12 +159,11 @@ fn grow(lo: &mut [i32; 3], hi: &mut [i32; 3], p: [i32; 3]) {
     }
 }
 
-/// The node's payload as a quantized batch on the world grid `grid`: leaf points exactly,
-/// inner-node voxels at their cell centres (see the module docs). Fails for a node whose samples
+/// The node's payload as a quantized batch on the world grid `grid`: leaf points and the points
+/// that inner-node voxels stand for, exactly. Fails for a node whose samples
 /// span `2^30` grid units or more on an axis.
 pub fn node_batch(node: &NodeView, grid: &Grid) -> Result<NodeBatch, NodeBatchError> {
     let cube = node.cube();
-    let vlog2 = voxel_log2(&cube);
     let mut lo = [i32::MAX; 3];
     let mut hi = [i32::MIN; 3];
     let len = match node.payload() {
@@ -194,7 +175,7 @@ pub fn node_batch(node: &NodeView, grid: &Grid) -> Result<NodeBatch, NodeBatchEr
         }
         Payload::Voxels(v) => {
             for vx in v.iter() {
-                grow(&mut lo, &mut hi, voxel_position(&cube, vlog2, vx.coord));
+                grow(&mut lo, &mut hi, vx.pos);
             }
             v.len() as usize
         }
@@ -235,7 +216,7 @@ pub fn node_batch(node: &NodeView, grid: &Grid) -> Result<NodeBatch, NodeBatchEr
         Payload::Voxels(v) => {
             for c in v.chunks() {
                 for vx in c.iter() {
-                    push(voxel_position(&cube, vlog2, vx.coord), vx.color);
+                    push(vx.pos, vx.color);
                 }
             }
         }
@@ -861,14 +842,9 @@ mod tests {
                 }
                 Payload::Voxels(vx) => {
                     let cube = n.cube();
-                    let cell = 1i64 << cube.voxel_size_log2().unwrap();
                     for ((v, p), c) in vx.iter().zip(&decoded).zip(&b.colors) {
                         assert!(cube.contains(*p), "{id:?} {p:?}");
-                        let lo = cube.voxel_min(v.coord);
-                        for a in 0..3 {
-                            assert_eq!(p[a] as i64, lo[a] + cell / 2, "{id:?} the centre, rounded down");
-                            assert!(lo[a] <= p[a] as i64 && (p[a] as i64) < lo[a] + cell);
-                        }
+                        assert_eq!(v.pos, *p, "{id:?}: the representative point, exactly");
                         assert_eq!(v.color, *c);
                     }
                 }
@@ -902,7 +878,7 @@ mod tests {
             node_batch(n, &GRID).unwrap_or_else(|e| panic!("{id:?}: {e}"));
         }
 
-        // A root cube overhanging i32::MAX: the top cell's centre is clamped, still in its cell.
+        // A root cube overhanging i32::MAX: voxels are real points inside their cells.
         let lo = i32::MAX - 1000;
         let mut pts: Vec<Point> = (0..600).map(|i| Point { pos: [lo + (i * 7919) % 1001; 3], color: i as u32, record: i as u64 }).collect();
         pts.push(Point { pos: [lo; 3], color: 1, record: 600 });
@@ -913,17 +889,14 @@ mod tests {
         let root = snap.node(NodeId::ROOT);
         assert!(root.cube().end()[0] > i32::MAX as i64 && !root.is_leaf());
         let nb = node_batch(root, &GRID).unwrap();
-        let mut clamped = 0;
+        let mut top = 0;
         for (v, i) in root.voxels().unwrap().iter().zip(0..) {
             let p = nb.grid.decode_exact([nb.words[0][i], nb.words[1][i], nb.words[2][i]]);
-            let cmin = root.cube().voxel_min(v.coord);
-            let cell = 1i64 << root.cube().voxel_size_log2().unwrap();
-            for a in 0..3 {
-                assert!(cmin[a] <= p[a] as i64 && (p[a] as i64) < cmin[a] + cell);
-            }
-            clamped += (p == [i32::MAX; 3]) as usize;
+            assert_eq!(p, v.pos);
+            assert!(pts.iter().any(|q| q.pos == p && q.record == v.record), "a voxel is a source point");
+            top += (p == [i32::MAX; 3]) as usize;
         }
-        assert_eq!(clamped, 1);
+        assert_eq!(top, 1);
     }
 
     /// The entries a store's hierarchy records for `snap`'s nodes, in id order.

@@ -21,9 +21,12 @@
 //!    spill list and are counted again like batch points); leaves that do not split are final for
 //!    this update. It ends when no leaf splits. Spilled points descend from the node that spilled
 //!    them rather than from the root (the result is the same, the walk shorter).
+//! 0. `grow` (not in the paper, whose root is fixed): while a point of the batch lies outside
+//!    the root cube, a new root of twice the size goes above the old one (see "Growing the
+//!    root" below).
 //! 2. `sample_voxels` (§5.2): every point walks down through the inner nodes on its path and, in
-//!    each, marks its cell of the 128³ grid; a cell that was empty becomes a new voxel, kept in a
-//!    per-node backlog. Spilled points sample only from the node that spilled them downward: the
+//!    each, marks its cell of the 128³ grid; a cell that was empty becomes a new voxel (the point
+//!    itself: position, colour, record), kept in a per-node backlog. Spilled points sample only from the node that spilled them downward: the
 //!    ancestors above saw them when they were first inserted.
 //! 3. `insert_points` (§5.3-5.4): the paper's chunk allocation and insertion in one: each leaf
 //!    that receives points gets one new chunk of exactly that size, the points (spilled first,
@@ -41,7 +44,7 @@
 //!   voxel) and 64 bytes of bits per occupied brick, in the spirit of the hash maps of Wand et al.
 //!   that §3.1 mentions. A surface node of ~16 k voxels needs ~25 KiB; a full grid 264 KiB.
 //! - Sampling is deterministic instead of racing on atomics: the points of the update are
-//!   partitioned top-down, stably, by octant (as 20-byte records, so every level reads them
+//!   partitioned top-down, stably, by octant (as 24-byte records, so every level reads them
 //!   sequentially), and octant `o` of a node's grid is sampled by the task of its child `o`, in
 //!   arrival order. Cells of different octants never meet, so the 8 octants of every grid, the
 //!   root's included, are sampled in parallel without locks contending.
@@ -69,6 +72,21 @@
 //! [`BuilderConfig::max_level`]. Other leaves keep every point they receive and may exceed the
 //! capacity: many duplicate points, or points denser than the grid, end in a leaf 64 (or fewer)
 //! grid units wide. The depth is therefore at most `root.size_log2 - 6 <= 26`, whatever the input.
+//!
+//! # Growing the root
+//!
+//! Headers lie, so the root cube given to [`Builder::new`] is a guess. When a batch has points
+//! outside it, the root grows before `expand`: a new root cube of twice the size, with the old
+//! root as its octant `o` (the upper half on the axes where points lie below the old root), as
+//! often as needed up to [`MAX_ROOT_SIZE_LOG2`](cube::MAX_ROOT_SIZE_LOG2). A leaf root only gets
+//! the larger cube. An inner root moves to a new id (children are consecutive), every key moves
+//! one level down (`level + 1`, `index + o << level`), the other 7 children are new empty
+//! leaves, and the new root's grid is sampled from the old root's voxels in their order (real
+//! points; in averaged mode each counts once). The saved voxel records of a paged builder are
+//! asked back from the caller first (`page_in` of the root). The tree is then the one a builder
+//! over the grown root would have built, but for which points represent the grown roots' cells.
+//! A growth changes keys, so snapshots before and after it are not related by the monotonicity
+//! below except through points and voxels (keys and ids of old nodes change).
 //!
 //! # Snapshots and what is monotone
 //!
@@ -106,7 +124,7 @@
 //! # Costs
 //!
 //! Per update, besides the payloads: 4 bytes per batch point (its leaf) in `expand`, and two
-//! buffers of 20 bytes per point (batch plus spill) for the sampling partition, kept by the
+//! buffers of 24 bytes per point (batch plus spill) for the sampling partition, kept by the
 //! builder for the next update. Points in leaves cost 24 bytes each.
 //!
 //! # Limits (not done here)
@@ -172,16 +190,37 @@ pub struct Point {
 
 const _: () = assert!(std::mem::size_of::<Point>() == 24);
 
-/// One voxel of an inner node: a cell of its 128³ grid and a colour.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+/// One voxel of an inner node: an occupied cell of its 128³ grid, represented by a real source
+/// point, the first that claimed the cell in arrival order (its position and record), so that a
+/// level of detail can be coloured by any attribute of the source and exported as real points.
+/// Its colour is that point's ([`ColorMode::FirstCome`]) or the mean of the cell's points
+/// ([`ColorMode::Averaged`]).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, bytemuck::Pod, bytemuck::Zeroable)]
 pub struct Voxel {
-    /// Cell coordinates, each in `0..128`; see [`Cube::voxel_min`] for its position.
-    pub coord: [u8; 3],
+    /// Integer coordinates of the representative point (inside the node's cube and the cell).
+    pub pos: [i32; 3],
     /// RGBA8 colour, `r | g << 8 | b << 16 | a << 24`.
     pub color: u32,
+    /// The caller's index of the representative point's record ([`Point::record`]).
+    pub record: u64,
 }
 
-const _: () = assert!(std::mem::size_of::<Voxel>() == 8);
+const _: () = assert!(std::mem::size_of::<Voxel>() == 24);
+
+impl Voxel {
+    /// The voxel of point `p` with colour `color`.
+    #[inline]
+    pub fn of(p: &Point, color: u32) -> Voxel {
+        Voxel { pos: p.pos, color, record: p.record }
+    }
+
+    /// The representative as a point (position, the voxel's colour, record).
+    #[inline]
+    pub fn point(&self) -> Point {
+        Point { pos: self.pos, color: self.color, record: self.record }
+    }
+}
 
 /// How inner-node voxels get their colour.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]

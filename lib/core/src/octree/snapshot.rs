@@ -28,6 +28,7 @@ pub struct NodeView {
     payload: Payload,
     subtree_points: u64,
     revision: u64,
+    /// Leaves: points paged out; inner nodes: voxels saved ([`saved_voxels`](Self::saved_voxels)).
     paged_points: u64,
 }
 
@@ -97,14 +98,30 @@ impl NodeView {
 
     /// Points of the leaf that the builder paged out to its caller (not in
     /// [`points`](Self::points); they come before the resident ones in arrival order). 0 unless
-    /// [`Builder::page_out`](super::Builder::page_out) was used.
+    /// [`Builder::page_out`](super::Builder::page_out) was used, and 0 for an inner node.
     pub fn paged_points(&self) -> u64 {
-        self.paged_points
+        if self.is_leaf() {
+            self.paged_points
+        } else {
+            0
+        }
     }
 
     /// All points of the leaf: resident plus paged out.
     pub fn total_points(&self) -> u64 {
-        self.point_count() + self.paged_points
+        self.point_count() + self.paged_points()
+    }
+
+    /// The first voxels of an inner node whose records the caller saved before the last
+    /// [`Builder::page_out`](super::Builder::page_out): their [`Voxel::record`]s are no longer
+    /// the caller's to look up (a store has them in the node's last payload); the voxels after
+    /// them carry records of the current commit interval. 0 for a leaf, and without paging.
+    pub fn saved_voxels(&self) -> u64 {
+        if self.is_leaf() {
+            0
+        } else {
+            self.paged_points
+        }
     }
 
     /// Voxels stored in the node (0 for a leaf).
@@ -117,7 +134,8 @@ impl NodeView {
         self.subtree_points
     }
 
-    /// The builder revision (number of batches added) at which this view was last changed.
+    /// The builder revision (number of changes: batches added and root growths) at which this
+    /// view was last changed.
     pub fn revision(&self) -> u64 {
         self.revision
     }

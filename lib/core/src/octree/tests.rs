@@ -1,6 +1,6 @@
 //! Tests of the octree builder against its invariants and against a naive reference builder.
 
-use super::voxels::{cell_key, key_coord};
+use super::voxels::cell_key;
 use super::*;
 use proptest::prelude::*;
 use std::collections::{BTreeMap, HashMap, HashSet};
@@ -101,7 +101,7 @@ fn flatten(s: &Snapshot) -> BTreeMap<NodeKey, Flat> {
 /// so it depends on where batches begin; the voxel set and colours do not.
 fn canon(mut f: BTreeMap<NodeKey, Flat>) -> BTreeMap<NodeKey, Flat> {
     for n in f.values_mut() {
-        n.voxels.sort_by_key(|v| (v.coord[2], v.coord[1], v.coord[0]));
+        n.voxels.sort_by_key(|v| (v.pos[2], v.pos[1], v.pos[0]));
     }
     f
 }
@@ -112,12 +112,12 @@ fn reference(points: &[Point], root: Cube, cfg: BuilderConfig) -> BTreeMap<NodeK
         let splittable = cube.size_log2 >= MIN_INNER_SIZE_LOG2 && key.level < cfg.max_level;
         if pts.len() as u64 > cfg.leaf_capacity as u64 && splittable {
             let mut order: Vec<u32> = Vec::new();
-            let mut first: HashMap<u32, u32> = HashMap::new();
+            let mut first: HashMap<u32, Point> = HashMap::new();
             let mut sums: HashMap<u32, ([u32; 4], u32)> = HashMap::new();
             for p in &pts {
                 let k = cell_key(cube.voxel_of(p.pos).map(|c| c as u32));
                 if let std::collections::hash_map::Entry::Vacant(e) = first.entry(k) {
-                    e.insert(p.color);
+                    e.insert(*p);
                     order.push(k);
                 }
                 let e = sums.entry(k).or_insert(([0; 4], 0));
@@ -130,10 +130,10 @@ fn reference(points: &[Point], root: Cube, cfg: BuilderConfig) -> BTreeMap<NodeK
                 .iter()
                 .map(|k| {
                     let color = match cfg.color_mode {
-                        ColorMode::FirstCome => first[k],
+                        ColorMode::FirstCome => first[k].color,
                         ColorMode::Averaged => mean_color(sums[k].0, sums[k].1),
                     };
-                    Voxel { coord: key_coord(*k), color }
+                    Voxel::of(&first[k], color)
                 })
                 .collect();
             let n = pts.len() as u64;
@@ -223,8 +223,10 @@ fn check_invariants(s: &Snapshot, input: &[Point]) {
                 assert!(vox.len() <= (GRID_SIZE as u64).pow(3));
                 let mut seen = HashSet::new();
                 for v in vox.iter() {
-                    assert!(v.coord.iter().all(|&c| (c as u32) < GRID_SIZE));
-                    assert!(seen.insert(v.coord), "voxel {:?} twice in {}", v.coord, n.key().name());
+                    assert!(n.cube().contains(v.pos), "voxel {:?} outside {}", v.pos, n.key().name());
+                    let cell = n.cube().voxel_of(v.pos);
+                    assert!(cell.iter().all(|&c| (c as u32) < GRID_SIZE));
+                    assert!(seen.insert(cell), "voxel {:?} twice in {}", cell, n.key().name());
                 }
                 assert_eq!(seen, cells[id.index()], "voxels of {} are not the cells of its points", n.key().name());
             }
@@ -266,7 +268,7 @@ fn check_monotone(a: &Snapshot, b: &Snapshot) {
                     assert_eq!(&vb[..va.len()], &va[..], "voxels of {} changed", na.key().name());
                 } else {
                     for (x, y) in va.iter().zip(&vb) {
-                        assert_eq!(x.coord, y.coord, "voxel cells of {} changed", na.key().name());
+                        assert_eq!((x.pos, x.record), (y.pos, y.record), "voxel points of {} changed", na.key().name());
                     }
                 }
             }
@@ -362,12 +364,12 @@ fn first_come_and_averaged_colours_by_hand() {
     let s = b.snapshot();
     let r = s.node(NodeId::ROOT);
     assert!(!r.is_leaf());
-    assert_eq!(r.voxels().unwrap().to_vec(), vec![Voxel { coord: [0, 0, 0], color: red }, Voxel { coord: [100, 0, 0], color: blue }]);
+    assert_eq!(r.voxels().unwrap().to_vec(), vec![Voxel::of(&pts[0], red), Voxel::of(&pts[2], blue)]);
     // child 0 (128 units, 1-unit voxels) holds 3 points: it splits too
     let c0 = s.node(r.child(0).unwrap());
     assert_eq!(
         c0.voxels().unwrap().to_vec(),
-        vec![Voxel { coord: [0, 0, 0], color: red }, Voxel { coord: [1, 1, 1], color: green }, Voxel { coord: [1, 0, 1], color: blue }]
+        vec![Voxel::of(&pts[0], red), Voxel::of(&pts[1], green), Voxel::of(&pts[3], blue)]
     );
     // its children are 64 wide: leaves, whatever they hold
     assert_eq!(s.node(c0.child(0).unwrap()).point_count(), 3);
@@ -380,7 +382,7 @@ fn first_come_and_averaged_colours_by_hand() {
     // (255 + 0 + 0) / 3 = 85, (0 + 255 + 0) / 3 = 85, (0 + 0 + 255) / 3 = 85, alpha 255
     assert_eq!(
         r.voxels().unwrap().to_vec(),
-        vec![Voxel { coord: [0, 0, 0], color: 0xff55_5555 }, Voxel { coord: [100, 0, 0], color: blue }]
+        vec![Voxel::of(&pts[0], 0xff55_5555), Voxel::of(&pts[2], blue)]
     );
 }
 
@@ -404,7 +406,7 @@ fn spilled_points_keep_first_come_and_are_averaged_once() {
             ColorMode::FirstCome => 0xff00_0010,
             ColorMode::Averaged => 0xff00_0040, // (0x10 + 0x20 + 0x90) / 3
         };
-        assert_eq!(v, vec![Voxel { coord: [0, 0, 0], color: want }]);
+        assert_eq!(v, vec![Voxel::of(&a, want)]);
         check_invariants(&s, &[a, b, c]);
         // the leaf keeps arrival order: spilled points first
         let leaf = s.node(s.leaf_at([0, 0, 0]).unwrap());
@@ -576,7 +578,7 @@ fn a_full_voxel_grid() {
     assert_eq!(s.node_count(), 9);
     assert_eq!(s.point_count(), pts.len() as u64);
     // first come: the grid points came first, so each voxel has its grid point's colour
-    assert!(r.voxels().unwrap().iter().all(|v| v.color == (v.coord[0] ^ v.coord[1] ^ v.coord[2]) as u32));
+    assert!(r.voxels().unwrap().iter().all(|v| v.color == (v.pos[0] ^ v.pos[1] ^ v.pos[2]) as u32));
     // per octant: 512 bricks of 64 bytes plus a 1 KiB table
     assert_eq!(b.sampling_bytes(), 8 * (512 * 64 + 1024));
 }
@@ -628,13 +630,16 @@ fn errors_leave_the_builder_unchanged() {
         Builder::new(Cube::new([0; 3], 33), BuilderConfig::default()).unwrap_err(),
         OctreeError::RootTooLarge { size_log2: 33 }
     );
-    let mut b = Builder::for_bounds([0; 3], [100, 50, 10], config(4, ColorMode::FirstCome)).unwrap();
+    let b = Builder::for_bounds([0; 3], [100, 50, 10], config(4, ColorMode::FirstCome)).unwrap();
     assert_eq!(b.root(), Cube::new([0; 3], 7));
+    // A root of 2^31 units from -5 grows once, downwards for i32::MIN; then the 2^32 cube ends
+    // before i32::MAX, and the root cannot grow further.
+    let mut b = Builder::new(Cube::new([-5; 3], 31), config(4, ColorMode::FirstCome)).unwrap();
     b.add_batch(&random_points(100, 81, [0; 3], 100)).unwrap();
     let before = flatten(&b.snapshot());
-    let bad = [point([1, 1, 1], 0, 0), point([128, 0, 0], 0, 1)];
+    let bad = [point([1, 1, 1], 0, 0), point([i32::MIN, 0, 0], 0, 1), point([i32::MAX, 0, 0], 0, 2)];
     let err = b.add_batch(&bad).unwrap_err();
-    assert_eq!(err, OctreeError::PointOutsideRoot { index: 1, pos: [128, 0, 0], min: [0; 3], size: 128 });
+    assert_eq!(err, OctreeError::PointOutsideRoot { index: 2, pos: [i32::MAX, 0, 0], min: [-5 - (1 << 31), -5, -5], size: 1 << 32 });
     assert!(err.to_string().contains("outside the octree's root cube"));
     assert!(flatten(&b.snapshot()) == before);
     assert_eq!(b.revision(), 1);
@@ -683,6 +688,84 @@ fn snapshots_cross_threads() {
 
 proptest! {
     #![proptest_config(ProptestConfig { cases: 64, failure_persistence: None, ..ProptestConfig::default() })]
+
+    #[test]
+    /// A root far too small for the points grows (a new root above the old one, as often as
+    /// needed, in any direction): the leaves, their points in arrival order, the subtree counts
+    /// and the occupied voxel cells are those of a tree built over the grown root from the
+    /// start; only the representatives of the grown roots' cells may be other points of the
+    /// same cells.
+    #[test]
+    fn a_growing_root_matches_the_reference(
+        raw in prop::collection::vec((prop::array::uniform3(0u32..4096), any::<u32>()), 1..500),
+        start in prop::array::uniform3(0u32..4096),
+        cap in 1u32..30,
+        cuts in prop::collection::vec(1usize..150, 1..5),
+        averaged in any::<bool>(),
+        paged in any::<bool>(),
+    ) {
+        let pts: Vec<Point> = raw.iter().enumerate().map(|(i, (p, c))| point(p.map(|v| v as i32 - 2000), *c, i as u64)).collect();
+        let mode = if averaged { ColorMode::Averaged } else { ColorMode::FirstCome };
+        let cfg = config(cap, mode);
+        let s0 = start.map(|v| v as i32 - 2000);
+        let mut b = Builder::for_bounds(s0, s0, cfg).unwrap();
+        // Paged: every leaf and voxel record saved after each batch, as a store does.
+        let saved = std::sync::Mutex::new(std::collections::HashMap::<u32, Vec<Point>>::new());
+        let mut at = 0;
+        let mut grew = 0;
+        for k in 0.. {
+            if at >= pts.len() { break; }
+            let end = (at + cuts[k % cuts.len()]).min(pts.len());
+            let page_in = |id: NodeId| -> Result<Vec<Point>, String> { saved.lock().unwrap().get(&id.0).cloned().ok_or_else(|| format!("nothing saved for {}", id.0)) };
+            grew += b.add_batch_paged(&pts[at..end], &page_in).unwrap().growths;
+            if paged {
+                // Save what a store would, then page out: a leaf's points (those saved before
+                // and the resident ones), an inner node's voxels.
+                let snap = b.snapshot();
+                let mut sv = saved.lock().unwrap();
+                for (id, n) in snap.iter() {
+                    let mut all: Vec<Point> = Vec::new();
+                    match n.voxels() {
+                        Some(v) => all.extend(v.iter().map(|v| v.point())),
+                        None => {
+                            if n.paged_points() > 0 {
+                                all.extend_from_slice(&sv[&id.0][..n.paged_points() as usize]);
+                            }
+                            all.extend(n.points().unwrap().iter().copied());
+                        }
+                    }
+                    sv.insert(id.0, all);
+                }
+                drop(sv);
+                b.page_out();
+            }
+            at = end;
+        }
+        let root = b.root();
+        prop_assert!(pts.iter().all(|p| root.contains(p.pos)));
+        if pts.iter().any(|p| p.pos != s0) { prop_assert!(grew > 0); }
+        if !paged {
+            check_invariants(&b.snapshot(), &pts);
+        }
+        let want = reference(&pts, root, cfg);
+        let got = canon(flatten(&b.snapshot()));
+        prop_assert_eq!(got.keys().collect::<Vec<_>>(), want.keys().collect::<Vec<_>>());
+        for (k, w) in &want {
+            let g = &got[k];
+            prop_assert_eq!(g.leaf, w.leaf);
+            prop_assert_eq!(g.cube, w.cube);
+            prop_assert_eq!(g.subtree, w.subtree, "subtree of {}", k.name());
+            if !paged {
+                prop_assert_eq!(&g.points, &w.points, "points of {}", k.name());
+            }
+            let cells = |v: &[Voxel]| v.iter().map(|x| w.cube.voxel_of(x.pos)).collect::<HashSet<_>>();
+            prop_assert_eq!(cells(&g.voxels), cells(&w.voxels), "voxel cells of {}", k.name());
+            // Every representative is a source point of its cell.
+            for v in &g.voxels {
+                prop_assert!(pts.iter().any(|p| p.pos == v.pos && p.record == v.record));
+            }
+        }
+    }
 
     #[test]
     fn matches_reference(

@@ -10,7 +10,7 @@
 //! nearby points in one cache line or a few.
 
 use super::chunks::Chunks;
-use super::{ColorMode, Voxel, GRID_LOG2, VOXEL_CHUNK_MAX};
+use super::{ColorMode, Point, Voxel, GRID_LOG2, VOXEL_CHUNK_MAX};
 use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
 
 /// Averaged voxels are published in fixed chunks of this many voxels: chunk `k` holds voxels
@@ -21,12 +21,14 @@ pub const AVERAGED_CHUNK: usize = 1 << 12;
 pub const MAX_AVERAGED_SAMPLES: u32 = 1 << 24;
 
 /// The key `x | y << 7 | z << 14` of a cell.
+#[cfg(test)]
 #[inline]
 pub(crate) fn cell_key(c: [u32; 3]) -> u32 {
     c[0] | c[1] << GRID_LOG2 | c[2] << (2 * GRID_LOG2)
 }
 
 /// Inverse of [`cell_key`].
+#[cfg(test)]
 #[inline]
 pub(crate) fn key_coord(k: u32) -> [u8; 3] {
     [(k & 127) as u8, (k >> GRID_LOG2 & 127) as u8, (k >> (2 * GRID_LOG2) & 127) as u8]
@@ -139,8 +141,17 @@ impl SparseIndex {
 
 /// Marks one point's cell in a node's grid.
 pub(crate) trait Sample {
-    /// Samples a point of colour `color` in cell `cell` (each coordinate `< 128`).
-    fn sample(&mut self, cell: [u32; 3], color: u32);
+    /// Samples a point of colour `color` in cell `cell` (each coordinate `< 128`); `seq` is the
+    /// point's place in the update's sequence, by which [`VoxelState::publish`] finds the point
+    /// that a new voxel stands for.
+    fn sample(&mut self, cell: [u32; 3], color: u32, seq: u32);
+}
+
+/// A voxel created in the current update, before its point is looked up.
+#[derive(Clone, Copy, Debug, Default)]
+struct Pending {
+    seq: u32,
+    color: u32,
 }
 
 /// First-come sampling of one octant: occupancy bits and the voxels created in the current
@@ -148,14 +159,14 @@ pub(crate) trait Sample {
 #[derive(Debug, Default)]
 pub(crate) struct FirstCome {
     occupied: SparseBits,
-    backlog: Vec<Voxel>,
+    backlog: Vec<Pending>,
 }
 
 impl Sample for FirstCome {
     #[inline]
-    fn sample(&mut self, cell: [u32; 3], color: u32) {
+    fn sample(&mut self, cell: [u32; 3], color: u32, seq: u32) {
         if self.occupied.insert(cell) {
-            self.backlog.push(Voxel { coord: cell.map(|c| c as u8), color });
+            self.backlog.push(Pending { seq, color });
         }
     }
 }
@@ -166,17 +177,19 @@ const UNPUBLISHED: u32 = u32::MAX;
 /// Running sums of one averaged voxel.
 #[derive(Clone, Copy, Debug)]
 struct Accum {
-    key: u32,
     count: u32,
     sum: [u32; 4],
     /// Index in the node's voxel list, [`UNPUBLISHED`] until published.
     global: u32,
+    /// The representative (the cell's first point); until published, `record` holds its
+    /// `seq` in the update.
+    first: Point,
 }
 
 impl Accum {
     #[inline]
     fn voxel(&self) -> Voxel {
-        Voxel { coord: key_coord(self.key), color: mean_color(self.sum, self.count) }
+        Voxel::of(&self.first, mean_color(self.sum, self.count))
     }
 }
 
@@ -202,11 +215,12 @@ fn mark(dirty: &mut Vec<u64>, voxel: usize) {
 
 impl Sample for Averaged {
     #[inline]
-    fn sample(&mut self, cell: [u32; 3], color: u32) {
+    fn sample(&mut self, cell: [u32; 3], color: u32, seq: u32) {
         let (i, inserted) = self.index.get_or_insert(cell, self.acc.len() as u32);
         let ch = color.to_le_bytes().map(|c| c as u32);
         if inserted {
-            self.acc.push(Accum { key: cell_key(cell), count: 1, sum: ch, global: UNPUBLISHED });
+            let first = Point { pos: [0; 3], color, record: seq as u64 };
+            self.acc.push(Accum { count: 1, sum: ch, global: UNPUBLISHED, first });
             return;
         }
         let a = &mut self.acc[i as usize];
@@ -278,9 +292,10 @@ impl VoxelState {
     }
 
     /// Moves what was sampled since the last call into the published chunks (§5.4, voxels from
-    /// the backlog into their node). Returns the number of new voxels, and the points sampled
-    /// and new in the cube since the last call.
-    pub(crate) fn publish(&mut self) -> (u64, u64, u64) {
+    /// the backlog into their node); `point(seq)` is the point of the update's sequence that a
+    /// new voxel stands for. Returns the number of new voxels, and the points sampled and new in
+    /// the cube since the last call.
+    pub(crate) fn publish(&mut self, point: &(dyn Fn(u32) -> Point + Sync)) -> (u64, u64, u64) {
         let before = self.chunks.len();
         let mut octs = self.octants.each_mut().map(|m| m.get_mut().unwrap_or_else(PoisonError::into_inner));
         let sampled = octs.iter().map(|o| o.sampled).sum();
@@ -296,12 +311,8 @@ impl VoxelState {
         for (o, oct) in octs.iter_mut().enumerate() {
             match &mut oct.sampler {
                 Sampler::FirstCome(s) => {
-                    if new_firstcome.is_empty() {
-                        new_firstcome = std::mem::take(&mut s.backlog);
-                    } else {
-                        new_firstcome.extend_from_slice(&s.backlog);
-                        s.backlog = Vec::new();
-                    }
+                    new_firstcome.extend(s.backlog.iter().map(|v| Voxel::of(&point(v.seq), v.color)));
+                    s.backlog = Vec::new();
                 }
                 Sampler::Averaged(s) => {
                     for (w, bits) in s.dirty.iter_mut().enumerate() {
@@ -313,6 +324,8 @@ impl VoxelState {
                         }
                     }
                     for (l, a) in s.acc.iter_mut().enumerate().skip(s.fresh) {
+                        let p = point(a.first.record as u32);
+                        a.first = Point { pos: p.pos, color: a.first.color, record: p.record };
                         a.global = self.order.len() as u32;
                         mark(&mut self.dirty, self.order.len());
                         self.order.push((o as u32) << LOCAL_BITS | l as u32);
@@ -347,11 +360,56 @@ impl VoxelState {
         (self.chunks.len() - before, sampled, through)
     }
 
+    /// Samples the grid of `cube` (a new root) from `reps`, the voxels of the old root, in
+    /// their order, and publishes the result: each new voxel is the first of `reps` in its cell
+    /// (in averaged mode with the mean of their colours, each counted once: the old root's sums
+    /// are not kept, so a coarse voxel averages the finer voxels, not their points).
+    pub(crate) fn seed(&mut self, cube: &super::Cube, reps: &[Voxel]) {
+        let shift = (cube.size_log2 - GRID_LOG2) as u32;
+        for (i, v) in reps.iter().enumerate() {
+            let off = cube.offset(v.pos);
+            let cell = off.map(|o| o >> shift);
+            let o = (cell[0] >> 6 | (cell[1] >> 6) << 1 | (cell[2] >> 6) << 2) as usize;
+            let oct = self.octants[o].get_mut().unwrap_or_else(PoisonError::into_inner);
+            match &mut oct.sampler {
+                Sampler::FirstCome(s) => s.sample(cell, v.color, i as u32),
+                Sampler::Averaged(s) => s.sample(cell, v.color, i as u32),
+            }
+            oct.sampled += 1;
+        }
+        self.publish(&|i| reps[i as usize].point());
+    }
+
+    /// Replaces the records of the first `points.len()` voxels (saved ones paged back in,
+    /// in voxel order) with those of `points`.
+    pub(crate) fn set_records(&mut self, points: &[Point]) {
+        // Chunk by chunk, so the chunking (fixed in averaged mode) stays.
+        let mut at = 0usize;
+        for k in 0..self.chunks.chunks().len() {
+            let old = &self.chunks.chunks()[k];
+            if at >= points.len() {
+                break;
+            }
+            let chunk: Arc<[Voxel]> = old.iter().enumerate().map(|(i, v)| Voxel { record: points.get(at + i).map_or(v.record, |p| p.record), ..*v }).collect();
+            at += chunk.len();
+            self.chunks.put_chunk(k, chunk);
+        }
+        for o in self.octants.iter_mut() {
+            if let Sampler::Averaged(s) = &mut o.get_mut().unwrap_or_else(PoisonError::into_inner).sampler {
+                for a in &mut s.acc {
+                    if a.global != UNPUBLISHED && (a.global as usize) < points.len() {
+                        a.first.record = points[a.global as usize].record;
+                    }
+                }
+            }
+        }
+    }
+
     /// Heap bytes of the sampling state (not of the published chunks).
     pub(crate) fn sampler_bytes(&self) -> usize {
         let octs: usize = (0..8)
             .map(|o| match &self.octant(o).sampler {
-                Sampler::FirstCome(s) => s.occupied.heap_bytes() + s.backlog.capacity() * 8,
+                Sampler::FirstCome(s) => s.occupied.heap_bytes() + s.backlog.capacity() * std::mem::size_of::<Pending>(),
                 Sampler::Averaged(s) => {
                     s.index.heap_bytes() + s.acc.capacity() * std::mem::size_of::<Accum>() + s.dirty.capacity() * 8
                 }
@@ -401,15 +459,24 @@ mod tests {
         assert_eq!(s.heap_bytes(), 1024 + 512 * 64);
     }
 
-    /// Samples one point as the sampling pass does.
+    /// Samples one point as the sampling pass does; its `seq` is its cell's key, and [`at`]
+    /// gives it back as the point at that cell (a node of 128 units at the origin).
     fn sample_at(v: &VoxelState, cell: [u32; 3], color: u32) {
         let mut o = v.octant((cell[0] >> 6 | (cell[1] >> 6) << 1 | (cell[2] >> 6) << 2) as usize);
         match &mut o.sampler {
-            Sampler::FirstCome(s) => s.sample(cell, color),
-            Sampler::Averaged(s) => s.sample(cell, color),
+            Sampler::FirstCome(s) => s.sample(cell, color, cell_key(cell)),
+            Sampler::Averaged(s) => s.sample(cell, color, cell_key(cell)),
         }
         o.sampled += 1;
         o.through += 1;
+    }
+
+    fn at(seq: u32) -> Point {
+        Point { pos: key_coord(seq).map(|c| c as i32), color: 0, record: seq as u64 }
+    }
+
+    fn cell(v: &Voxel) -> [u8; 3] {
+        v.pos.map(|c| c as u8)
     }
 
     #[test]
@@ -419,10 +486,10 @@ mod tests {
         sample_at(&v, [1, 0, 0], 2);
         sample_at(&v, [100, 0, 0], 3);
         sample_at(&v, [0, 0, 0], 4);
-        assert_eq!(v.publish(), (3, 4, 4));
-        let got: Vec<([u8; 3], u32)> = v.chunks.iter().map(|x| (x.coord, x.color)).collect();
+        assert_eq!(v.publish(&at), (3, 4, 4));
+        let got: Vec<([u8; 3], u32)> = v.chunks.iter().map(|x| (cell(&x), x.color)).collect();
         assert_eq!(got, vec![([1, 0, 0], 2), ([0, 0, 0], 4), ([100, 0, 0], 1)]);
-        assert_eq!(v.publish(), (0, 0, 0));
+        assert_eq!(v.publish(&at), (0, 0, 0));
     }
 
     #[test]
@@ -433,14 +500,14 @@ mod tests {
         for &c in &cells {
             sample_at(&v, c, 0xff00_0000);
         }
-        assert_eq!(v.publish().0, cells.len() as u64);
+        assert_eq!(v.publish(&at).0, cells.len() as u64);
         assert_eq!(v.chunks.chunks().len(), 2);
         let first = v.chunks.chunks()[0].clone();
         let second = v.chunks.chunks()[1].clone();
         let last = *second.last().unwrap();
-        let cell = last.coord.map(|c| c as u32);
-        sample_at(&v, cell, 0xff00_00ff);
-        assert_eq!(v.publish().0, 0);
+        let c = cell(&last).map(|c| c as u32);
+        sample_at(&v, c, 0xff00_00ff);
+        assert_eq!(v.publish(&at).0, 0);
         // only the second chunk was rebuilt
         assert!(Arc::ptr_eq(&first, &v.chunks.chunks()[0]));
         assert!(!Arc::ptr_eq(&second, &v.chunks.chunks()[1]));
@@ -448,11 +515,11 @@ mod tests {
         assert_eq!(second.last().unwrap().color, 0xff00_0000);
         assert_eq!(v.chunks.len(), cells.len() as u64);
         // every cell once
-        let set: HashSet<[u8; 3]> = v.chunks.iter().map(|x| x.coord).collect();
+        let set: HashSet<[u8; 3]> = v.chunks.iter().map(|x| cell(&x)).collect();
         assert_eq!(set.len(), cells.len());
         // a new voxel in a new chunk
         sample_at(&v, [127, 127, 127], 0xff00_0000);
-        assert_eq!(v.publish().0, 1);
+        assert_eq!(v.publish(&at).0, 1);
         assert!(Arc::ptr_eq(&first, &v.chunks.chunks()[0]));
     }
 
