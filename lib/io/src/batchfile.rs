@@ -505,7 +505,12 @@ pub fn is_batch_file(path: &Path) -> bool {
 
 impl BatchFile {
     pub fn open(path: &Path) -> Result<BatchFile> {
-        let bytes = open_bytes(path)?;
+        Self::from_bytes(path, open_bytes(path)?)
+    }
+
+    /// Opens a batch file held in `bytes` (`path` names it in messages); every length is
+    /// checked against the bytes that exist. The fuzz targets' entry point.
+    pub fn from_bytes(path: &Path, bytes: Bytes) -> Result<BatchFile> {
         let err = |m: String| Error::input(path, m);
         let hs = std::mem::size_of::<FileHeader>();
         if bytes.len() < hs || bytes[..8] != MAGIC {
