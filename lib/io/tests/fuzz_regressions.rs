@@ -111,7 +111,6 @@ fn key_name_deep_level() {
 /// Now the sizes are checked against the chunk's bytes first.
 #[test]
 fn laz_layer_size() {
-    use mortar_io::dataset::RecordSource;
     let b = regression("las_input", "laz-layer-size");
     let input = mortar_io::source::LasInput::from_bytes(PathBuf::from("x.laz"), mortar_io::source::Bytes::Owned(b)).unwrap();
     let errors: Vec<String> = input.pieces().iter().filter_map(|p| input.read_piece(p).err()).map(|e| e.to_string()).collect();
