@@ -116,3 +116,21 @@ fn laz_layer_size() {
     let errors: Vec<String> = input.pieces().iter().filter_map(|p| input.read_piece(p).err()).map(|e| e.to_string()).collect();
     assert!(errors.iter().any(|e| e.contains("layers claim")), "{errors:?}");
 }
+
+/// A store whose hierarchy puts the root cube's corner near i64::MAX: the cube's world bounds
+/// overflowed (`min + size`) in the LOD selection. Now refused by `StoreLod::new`.
+#[test]
+fn root_min_overflow() {
+    let b = regression("store", "root-min-overflow");
+    targets::store(&b);
+    let [src, hier, nodes] = targets::split_store(&b);
+    let dir = std::env::temp_dir().join(format!("mortar-root-min-overflow-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    for (name, bytes) in [("source.las", src), ("hierarchy.bin", hier), ("nodes.bin", nodes)] {
+        std::fs::write(dir.join(name), bytes).unwrap();
+    }
+    let r = mortar_io::store::Store::open(&dir).map(mortar_io::store_lod::StoreLod::new);
+    std::fs::remove_dir_all(&dir).unwrap();
+    let e = r.expect("the store opens").unwrap_err();
+    assert!(e.to_string().contains("outside the 32-bit grid"), "{e}");
+}
