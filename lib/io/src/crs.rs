@@ -167,8 +167,12 @@ fn wkt_epsg(w: &str) -> Option<u32> {
             b'[' | b'(' => depth += 1,
             b']' | b')' => depth -= 1,
             _ => {
-                if depth == 1 && (w[i..].starts_with("AUTHORITY[") || w[i..].starts_with("ID[")) {
+                // Bytes, not `&w[i..]`: `i` may fall inside a multi-byte character (fuzz
+                // regression wkt-char-boundary). The object ends at its `]`: looking further
+                // made many AUTHORITY objects quadratic.
+                if depth == 1 && (b[i..].starts_with(b"AUTHORITY[") || b[i..].starts_with(b"ID[")) {
                     let rest = &w[i..];
+                    let rest = &rest[..rest.find(']').unwrap_or(rest.len())];
                     let digits: String = rest
                         .split(',')
                         .nth(1)

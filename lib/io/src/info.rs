@@ -143,7 +143,8 @@ fn vlr_info(v: &Vlr) -> VlrInfo {
     VlrInfo { user_id: v.user_id_str(), record_id: v.record_id, description: v.description_str(), length: v.data.len() }
 }
 
-fn extra_bytes(vlrs: &[Vlr]) -> Vec<ExtraBytesInfo> {
+/// The extra-bytes descriptors (LASF_Spec record 4) among `vlrs`.
+pub fn extra_bytes(vlrs: &[Vlr]) -> Vec<ExtraBytesInfo> {
     const TYPES: [&str; 11] = ["undocumented", "u8", "i8", "u16", "i16", "u32", "i32", "u64", "i64", "f32", "f64"];
     let mut out = Vec::new();
     for v in vlrs.iter().filter(|v| v.user_id_str() == "LASF_Spec" && v.record_id == 4) {

@@ -288,6 +288,9 @@ impl LasInput {
                 let c = &chunks[piece.index];
                 let entry = laz::laszip::ChunkTableEntry { point_count: c.points, byte_count: c.len as u64 };
                 let src = &self.bytes[c.offset..c.offset + c.len];
+                if c.points > 0 {
+                    check_layer_sizes(vlr, src).map_err(|m| Error::input(&self.path, format!("LAZ chunk {} is corrupt: {m}", piece.index)))?;
+                }
                 let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
                     laz::par_decompress(src, out, vlr, std::slice::from_ref(&entry))
                 }));
@@ -362,6 +365,40 @@ fn check_laz_items(vlr: &laz::LazVlr) -> std::result::Result<(), String> {
         if !ok {
             return Err(format!("LASzip item {:?} version {} is not supported", item.item_type(), item.version()));
         }
+    }
+    Ok(())
+}
+
+/// Checks the layer sizes at the start of a layered (LAS 1.4, LASzip v3/v4) chunk against the
+/// chunk's bytes: laz-rs allocates each layer's claimed size before reading it, so a damaged
+/// size of up to 4 GiB per layer was a huge allocation (fuzz regression laz-layer-size). The
+/// chunk starts with the first point raw, the point count (u32), then one u32 size per layer.
+fn check_layer_sizes(vlr: &laz::LazVlr, chunk: &[u8]) -> std::result::Result<(), String> {
+    use laz::LazItemType as T;
+    let mut layers = 0usize;
+    for item in vlr.items() {
+        if !matches!(item.version(), 3 | 4) {
+            continue;
+        }
+        layers += match item.item_type() {
+            T::Point14 => 9,
+            T::RGB14 | T::WavePacket14 => 1,
+            T::RGBNIR14 => 2,
+            T::Byte14(n) => n as usize,
+            _ => 0,
+        };
+    }
+    if layers == 0 {
+        return Ok(());
+    }
+    let sizes_at = vlr.items_size() as usize + 4;
+    let Some(sizes) = chunk.get(sizes_at..sizes_at + 4 * layers) else {
+        return Ok(()); // too short: laz-rs reports the truncation itself
+    };
+    let total: u64 = sizes.chunks_exact(4).map(|b| u32::from_le_bytes(b.try_into().unwrap()) as u64).sum();
+    let room = (chunk.len() - sizes_at - 4 * layers) as u64;
+    if total > room {
+        return Err(format!("its layers claim {total} bytes but {room} follow"));
     }
     Ok(())
 }

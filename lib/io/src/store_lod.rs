@@ -69,6 +69,12 @@ impl StoreLod {
         if root_log2 > 32 {
             return Err(bad(format!("hierarchy.bin: root cube of 2^{root_log2} grid units; at most 2^32 is supported")));
         }
+        // The cube must overlap the i32 grid of the points; a damaged corner overflowed the
+        // cube arithmetic (fuzz regression root-min-overflow).
+        let (lo, hi) = (i32::MIN as i64 - (1i64 << 32), i32::MAX as i64);
+        if root.min.iter().any(|&m| !(lo..=hi).contains(&m)) {
+            return Err(bad(format!("hierarchy.bin: root cube corner {:?} lies outside the 32-bit grid", root.min)));
+        }
         let mut entries = Vec::with_capacity(store.entries.len());
         for (i, e) in store.entries.iter().enumerate() {
             let level = u8::try_from(e.level).map_err(|_| bad(format!("hierarchy.bin: node {i} has level {}", e.level)))?;

@@ -158,7 +158,9 @@ impl NodeKey {
     /// The octants from the root down to this node (`level` of them).
     pub fn path(&self) -> impl Iterator<Item = u8> + '_ {
         (0..self.level).rev().map(move |shift| {
-            (0..3).map(|a| ((self.index[a] >> shift & 1) as u8) << a).sum::<u8>()
+            // checked: a key read from a damaged store may claim 32+ levels (fuzz regression
+            // key-name-deep-level)
+            (0..3).map(|a| ((self.index[a].checked_shr(shift as u32).unwrap_or(0) & 1) as u8) << a).sum::<u8>()
         })
     }
 
