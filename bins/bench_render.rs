@@ -166,7 +166,7 @@ fn budget_groups<'a>(refs: &[BatchRef<'a>], grid: &Grid, cam: &Camera, budget: f
 fn budget_precision(cam: &Camera, grid: &Grid, b: &BatchRef<'_>, budget: f64) -> Precision {
     let enough = sufficient_precision(&b.grid);
     let mut p = precision_for_pixels(cam.projected_size(&quantization_box(grid, &b.grid))).min(enough);
-    while p < enough && decode_error_px(cam, grid, &b.grid, &b.bounds(), p) >= budget {
+    while budget.is_finite() && p < enough && decode_error_px(cam, grid, &b.grid, &b.bounds(), p) >= budget {
         p = if p == Precision::Bits10 { Precision::Bits20 } else { Precision::Bits30 };
     }
     p
