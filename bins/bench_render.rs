@@ -23,7 +23,11 @@ use anyhow::{bail, Result};
 use clap::Parser;
 use mortar_core::render::framebuffer::{key_index, EMPTY_KEY};
 use mortar_core::render::resolve::{resolve, ResolveOptions};
-use mortar_core::render::{rasterize, BatchRef, Camera, Framebuffer, RasterOptions, RasterStats};
+use mortar_core::grid::Grid;
+use mortar_core::quantize::Precision;
+use mortar_core::render::precision::{choose_precision, decode_error_px, quantization_box, sufficient_precision};
+use mortar_core::render::{precision_for_pixels, rasterize, BatchRef, Camera, Framebuffer, PrecisionMode, RasterOptions, RasterStats};
+use rayon::prelude::*;
 use mortar_io::batchfile::BatchFile;
 use mortar_io::render_input::{self, ColorChoice};
 use render::{CameraArgs, PrecisionArg, ViewArg};
@@ -67,12 +71,50 @@ struct Args {
     /// Worker threads (default: all cores).
     #[arg(long)]
     threads: Option<usize>,
+    /// Measure the adaptive rule against the plain 500 px rule (which `adaptive` was before the
+    /// decode-error bound): configurations 30 bits (with and without culling), the 500 px rule and
+    /// adaptive, plus a per-batch report of the N batches that lose most pixels under the 500 px
+    /// rule (projected size, precision, error bound and measured error in pixels against the exact
+    /// positions).
+    #[arg(long, value_name = "N")]
+    rule_report: Option<usize>,
+    /// With --rule-report, also the 500 px rule raised to keep the decode error bound under each of
+    /// these pixel budgets (emulated like the 500 px rule).
+    #[arg(long, value_delimiter = ',')]
+    budgets: Vec<f64>,
+}
+
+/// One configuration: a rasterizer option, or the 500 px rule alone (emulated with fixed
+/// precisions per batch group, which draws the very keys the rule drew).
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Config {
+    Options(PrecisionArg, bool),
+    /// The 500 px rule, then raised while the decode error bound reaches this many pixels
+    /// (infinite: the 500 px rule alone).
+    Budget(f64),
+}
+
+const RULE500: Config = Config::Budget(f64::INFINITY);
+
+impl Config {
+    fn name(self) -> String {
+        match self {
+            Config::Options(p, _) => p.name().to_string(),
+            Config::Budget(b) if b.is_infinite() => "500px rule".to_string(),
+            Config::Budget(b) => format!("error < {b} px"),
+        }
+    }
+    fn cull(self) -> bool {
+        match self {
+            Config::Options(_, c) => c,
+            Config::Budget(_) => true,
+        }
+    }
 }
 
 /// One measured configuration.
 struct Row {
-    precision: PrecisionArg,
-    cull: bool,
+    config: Config,
     /// Median, min and max raster seconds.
     median: f64,
     min: f64,
@@ -108,28 +150,66 @@ type Measured = Vec<(Vec<u64>, RasterStats, Vec<f64>)>;
 /// The brute-force render: keys, image and the colour range it used.
 type Reference = (Vec<u64>, Vec<u32>, Option<[f64; 2]>);
 
+/// The batches of a view grouped by the precision the 500 px rule gives them, raised while the
+/// decode error bound reaches `budget` pixels.
+fn budget_groups<'a>(refs: &[BatchRef<'a>], grid: &Grid, cam: &Camera, budget: f64) -> [(Precision, Vec<BatchRef<'a>>); 3] {
+    let mut g = [(Precision::Bits10, Vec::new()), (Precision::Bits20, Vec::new()), (Precision::Bits30, Vec::new())];
+    for b in refs {
+        let p = budget_precision(cam, grid, b, budget);
+        g[p.words() - 1].1.push(*b);
+    }
+    g
+}
+
+/// The precision of the plain 500 px rule (the adaptive rule before the decode-error bound),
+/// raised while the decode error bound reaches `budget` pixels.
+fn budget_precision(cam: &Camera, grid: &Grid, b: &BatchRef<'_>, budget: f64) -> Precision {
+    let enough = sufficient_precision(&b.grid);
+    let mut p = precision_for_pixels(cam.projected_size(&quantization_box(grid, &b.grid))).min(enough);
+    while budget.is_finite() && p < enough && decode_error_px(cam, grid, &b.grid, &b.bounds(), p) >= budget {
+        p = if p == Precision::Bits10 { Precision::Bits20 } else { Precision::Bits30 };
+    }
+    p
+}
+
+/// Draws one configuration into `fb`.
+fn draw(fb: &Framebuffer, refs: &[BatchRef<'_>], groups: Option<&[(Precision, Vec<BatchRef<'_>>); 3]>, grid: &Grid, cam: &Camera, cfg: Config) -> Result<RasterStats> {
+    Ok(match (cfg, groups) {
+        (Config::Options(p, cull), _) => rasterize(fb, refs, grid, cam, &RasterOptions { precision: p.mode(), cull })?,
+        (Config::Budget(_), None) => unreachable!("budget configurations come with their groups"),
+        (Config::Budget(_), Some(groups)) => {
+            let mut s = RasterStats::default();
+            for (p, g) in groups {
+                s = s.merge(rasterize(fb, g, grid, cam, &RasterOptions { precision: PrecisionMode::Fixed(*p), cull: true })?);
+            }
+            s
+        }
+    })
+}
+
 /// Draws every configuration once untimed, then `runs` rounds in which each configuration draws
 /// once into its cleared framebuffer (interleaved, so that load from other processes on a shared
 /// machine spreads over all configurations alike). Returns per configuration the keys of its last
 /// run, its stats and its times.
-fn measure(
-    refs: &[BatchRef<'_>],
-    file: &BatchFile,
-    cam: &Camera,
-    configs: &[RasterOptions],
-    runs: usize,
-) -> Result<Measured> {
+fn measure(refs: &[BatchRef<'_>], file: &BatchFile, cam: &Camera, configs: &[Config], runs: usize) -> Result<Measured> {
     let grid = file.grid();
+    let groups: Vec<_> = configs
+        .iter()
+        .map(|c| match c {
+            Config::Budget(b) => Some(budget_groups(refs, &grid, cam, *b)),
+            Config::Options(..) => None,
+        })
+        .collect();
     let mut fbs: Vec<Framebuffer> = configs.iter().map(|_| Framebuffer::new(cam.width, cam.height)).collect();
     let mut out: Vec<(RasterStats, Vec<f64>)> = Vec::with_capacity(configs.len());
-    for (fb, opts) in fbs.iter().zip(configs) {
-        out.push((rasterize(fb, refs, &grid, cam, opts)?, Vec::with_capacity(runs)));
+    for ((fb, &cfg), g) in fbs.iter().zip(configs).zip(&groups) {
+        out.push((draw(fb, refs, g.as_ref(), &grid, cam, cfg)?, Vec::with_capacity(runs)));
     }
     for _ in 0..runs.max(1) {
-        for ((fb, opts), (stats, times)) in fbs.iter_mut().zip(configs).zip(out.iter_mut()) {
+        for (((fb, &cfg), (stats, times)), g) in fbs.iter_mut().zip(configs).zip(out.iter_mut()).zip(&groups) {
             fb.clear();
             let t = Instant::now();
-            *stats = rasterize(fb, refs, &grid, cam, opts)?;
+            *stats = draw(fb, refs, g.as_ref(), &grid, cam, cfg)?;
             times.push(t.elapsed().as_secs_f64());
         }
     }
@@ -202,15 +282,21 @@ fn main() -> Result<()> {
         let cam = render::build_camera(&cam_args, &bounds, a.width, a.height)?;
         let view_name = format!("{view:?}").to_lowercase();
         // The reference first: brute force, every batch, all words.
-        let configs: Vec<(PrecisionArg, bool)> = [PrecisionArg::Bits30, PrecisionArg::Bits20, PrecisionArg::Bits10, PrecisionArg::Adaptive]
-            .into_iter()
-            .flat_map(|p| [(p, false), (p, true)])
-            .collect();
-        let options: Vec<RasterOptions> = configs.iter().map(|&(p, cull)| RasterOptions { precision: p.mode(), cull }).collect();
-        let measured = measure(&refs, file, &cam, &options, a.runs)?;
+        let configs: Vec<Config> = if a.rule_report.is_some() {
+            let mut c = vec![Config::Options(PrecisionArg::Bits30, false), Config::Options(PrecisionArg::Bits30, true), RULE500, Config::Options(PrecisionArg::Adaptive, true)];
+            c.extend(a.budgets.iter().map(|&b| Config::Budget(b)));
+            c
+        } else {
+            [PrecisionArg::Bits30, PrecisionArg::Bits20, PrecisionArg::Bits10, PrecisionArg::Adaptive]
+                .into_iter()
+                .flat_map(|p| [Config::Options(p, false), Config::Options(p, true)])
+                .collect()
+        };
+        let measured = measure(&refs, file, &cam, &configs, a.runs)?;
         let mut reference: Option<Reference> = None;
         let mut rows = Vec::new();
-        for ((precision, cull), (keys, stats, mut times)) in configs.into_iter().zip(measured) {
+        let mut keys_of = Vec::new();
+        for (config, (keys, stats, mut times)) in configs.iter().copied().zip(measured) {
             let (min, max) = (times.iter().copied().fold(f64::INFINITY, f64::min), times.iter().copied().fold(0.0, f64::max));
             let med = median(&mut times);
             // Colour with the reference's range, so that only the points differ.
@@ -221,8 +307,7 @@ fn main() -> Result<()> {
             }
             let (rk, rc, _) = reference.as_ref().expect("set above");
             let mut row = Row {
-                precision,
-                cull,
+                config,
                 median: med,
                 min,
                 max,
@@ -249,11 +334,12 @@ fn main() -> Result<()> {
             if a.images {
                 if let Some(dir) = &a.out {
                     std::fs::create_dir_all(dir)?;
-                    let name = format!("{label}-{view_name}-{}-{}.png", precision.name(), if cull { "cull" } else { "nocull" });
+                    let name = format!("{label}-{view_name}-{}-{}.png", config.name().replace(' ', "-"), if config.cull() { "cull" } else { "nocull" });
                     render::write_atomic(&dir.join(name), &render::encode_png(a.width, a.height, &rgba)?)?;
                 }
             }
             rows.push(row);
+            keys_of.push(keys);
         }
         let pct = |v: u64, n: u64| 100.0 * v as f64 / n.max(1) as f64;
         for r in &rows {
@@ -261,8 +347,8 @@ fn main() -> Result<()> {
             writeln!(
                 md,
                 "| {view_name} | {} | {} | {:.1} ({:.1}-{:.1}) | {:.0} | {}/{} | {} ({}/{}/{}) | {} | {:.3} | {:.3} | {:.4} | {:+.4} | {} |",
-                r.precision.name(),
-                if r.cull { "on" } else { "off" },
+                r.config.name(),
+                if r.config.cull() { "on" } else { "off" },
                 r.median * 1e3,
                 r.min * 1e3,
                 r.max * 1e3,
@@ -281,8 +367,12 @@ fn main() -> Result<()> {
                 if r.psnr.is_finite() { format!("{:.1}", r.psnr) } else { "inf".into() },
             )?;
         }
-        let find = |p: PrecisionArg, c: bool| rows.iter().find(|r| r.precision == p && r.cull == c).expect("every configuration ran");
-        let (ad, full, brute) = (find(PrecisionArg::Adaptive, true), find(PrecisionArg::Bits30, true), find(PrecisionArg::Bits30, false));
+        let find = |c: Config| rows.iter().find(|r| r.config == c);
+        let (ad, full, brute) = (
+            find(Config::Options(PrecisionArg::Adaptive, true)).expect("always measured"),
+            find(Config::Options(PrecisionArg::Bits30, true)).expect("always measured"),
+            find(Config::Options(PrecisionArg::Bits30, false)).expect("always measured"),
+        );
         summaries.push(format!(
             "- {view_name}: adaptive + culling {:.1} ms ({:.0} M points/s projected), 30-bit + culling {:.1} ms: adaptive is {:.2}x faster; brute force (30-bit, no culling) {:.1} ms: {:.2}x",
             ad.median * 1e3,
@@ -292,6 +382,24 @@ fn main() -> Result<()> {
             brute.median * 1e3,
             brute.median / ad.median,
         ));
+        if let (Some(n), Some(old)) = (a.rule_report, find(RULE500)) {
+            summaries.push(format!(
+                "- {view_name}: the 500 px rule alone {:.1} ms, PSNR {:.1} dB, colour {:.3} %; adaptive {:.1} ms, PSNR {:.1} dB, colour {:.3} %; 30-bit / 500 px rule {:.2}x, 30-bit / adaptive {:.2}x",
+                old.median * 1e3,
+                old.psnr,
+                pct(old.color_diff, old.covered),
+                ad.median * 1e3,
+                ad.psnr,
+                pct(ad.color_diff, ad.covered),
+                full.median / old.median,
+                full.median / ad.median,
+            ));
+            let at = |c: Config| configs.iter().position(|&x| x == c).expect("measured");
+            let reference = &keys_of[at(Config::Options(PrecisionArg::Bits30, false))];
+            let old_keys = &keys_of[at(RULE500)];
+            let new_keys = &keys_of[at(Config::Options(PrecisionArg::Adaptive, true))];
+            batch_report(&mut md, &view_name, n, &refs, &file.grid(), &cam, reference, old_keys, new_keys)?;
+        }
         if let Some(dir) = &a.out {
             std::fs::create_dir_all(dir)?;
             let title = format!("{label} {view_name} {}x{}: raster time vs error", a.width, a.height);
@@ -311,9 +419,119 @@ fn main() -> Result<()> {
     Ok(())
 }
 
+/// Per batch of a view: the precision of the 500 px rule and of the adaptive rule, the bound of
+/// their decode error on screen and the error measured on the batch's points (f64 projections of
+/// the decoded and the exact positions, points within 2 px of the viewport), and the pixels each
+/// loses (reference pixels whose winner is one of the batch's points and that another point, or
+/// nothing, wins in that render).
+struct BatchLoss {
+    batch: usize,
+    points: usize,
+    px: f64,
+    depth_ratio: f64,
+    old: (Precision, f64, f64, u64),
+    new: (Precision, f64, f64, u64),
+}
+
+/// The largest distance (pixels) between the f64 projections of a batch's points decoded at
+/// `precision` and exactly, over points within 2 px of the viewport.
+fn measured_error_px(b: &BatchRef<'_>, grid: &Grid, cam: &Camera, precision: Precision) -> f64 {
+    if precision == Precision::Bits30 {
+        return 0.0;
+    }
+    let (w, h) = (cam.width as f64, cam.height as f64);
+    let world = |rel: [f64; 3]| [0, 1, 2].map(|a| grid.offset[a] + grid.scale[a] * (b.grid.min[a] as f64 + rel[a]));
+    let mut worst = 0f64;
+    for i in 0..b.len() {
+        let words = [b.words[0][i], b.words[1][i], b.words[2][i]];
+        let (Some(d), Some(e)) = (cam.project(world(b.grid.decode_relative(words, precision))), cam.project(world(b.grid.decode_relative(words, Precision::Bits30)))) else {
+            continue;
+        };
+        let inside = |x: f64, y: f64| x >= -2.0 && x <= w + 2.0 && y >= -2.0 && y <= h + 2.0;
+        if inside(d.x, d.y) || inside(e.x, e.y) {
+            worst = worst.max(((d.x - e.x).powi(2) + (d.y - e.y).powi(2)).sqrt());
+        }
+    }
+    worst
+}
+
+#[allow(clippy::too_many_arguments)]
+fn batch_report(md: &mut String, view: &str, n: usize, refs: &[BatchRef<'_>], grid: &Grid, cam: &Camera, reference: &[u64], old_keys: &[u64], new_keys: &[u64]) -> Result<()> {
+    let starts: Vec<u32> = refs.iter().map(|b| b.first_index).collect();
+    let batch_of = |index: u32| starts.partition_point(|&s| s <= index) - 1;
+    let (mut lost_old, mut lost_new) = (vec![0u64; refs.len()], vec![0u64; refs.len()]);
+    for i in 0..reference.len() {
+        let r = reference[i];
+        if r == EMPTY_KEY {
+            continue;
+        }
+        let b = batch_of(key_index(r));
+        let differs = |k: u64| k == EMPTY_KEY || key_index(k) != key_index(r);
+        if differs(old_keys[i]) {
+            lost_old[b] += 1;
+        }
+        if differs(new_keys[i]) {
+            lost_new[b] += 1;
+        }
+    }
+    let axes = cam.axes().expect("validated camera");
+    let frustum = mortar_core::render::Frustum::new(cam, 1.0);
+    let losses: Vec<BatchLoss> = refs
+        .par_iter()
+        .enumerate()
+        .map(|(i, b)| {
+            let bounds = b.bounds();
+            let px = cam.projected_size(&quantization_box(grid, &b.grid));
+            let depths = bounds.corners().map(|c| (0..3).map(|a| axes.forward[a] * (c[a] - cam.eye[a])).sum::<f64>());
+            let (zmin, zmax) = depths.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &z| (lo.min(z), hi.max(z)));
+            let p_old = budget_precision(cam, grid, b, f64::INFINITY);
+            let (p_new, _) = choose_precision(PrecisionMode::Adaptive, cam, grid, &b.grid, &bounds);
+            let visible = lost_old[i] > 0 || lost_new[i] > 0 || frustum.test_aabb(&bounds) != mortar_core::render::Containment::Outside;
+            let measure = |p: Precision| if visible { measured_error_px(b, grid, cam, p) } else { 0.0 };
+            let m_old = measure(p_old);
+            let m_new = if p_new == p_old { m_old } else { measure(p_new) };
+            BatchLoss {
+                batch: i,
+                points: b.len(),
+                px,
+                depth_ratio: if zmin > 0.0 { zmax / zmin } else { f64::INFINITY },
+                old: (p_old, decode_error_px(cam, grid, &b.grid, &bounds, p_old), m_old, lost_old[i]),
+                new: (p_new, decode_error_px(cam, grid, &b.grid, &bounds, p_new), m_new, lost_new[i]),
+            }
+        })
+        .collect();
+    let count = |f: &dyn Fn(&BatchLoss) -> bool| losses.iter().filter(|l| f(l)).count();
+    let by_precision = |sel: &dyn Fn(&BatchLoss) -> Precision| [Precision::Bits10, Precision::Bits20, Precision::Bits30].map(|p| count(&|l| sel(l) == p));
+    let (bo, bn) = (by_precision(&|l| l.old.0), by_precision(&|l| l.new.0));
+    let worst = |sel: &dyn Fn(&BatchLoss) -> f64| losses.iter().map(sel).fold(0f64, f64::max);
+    let violations = count(&|l| l.old.2 > l.old.1 + 1e-9 || l.new.2 > l.new.1 + 1e-9);
+    writeln!(md, "\n#### {view}: per batch, the 500 px rule against adaptive\n")?;
+    writeln!(
+        md,
+        "Batches at 10/20/30 bits: 500 px rule {}/{}/{}, adaptive {}/{}/{}. Batches whose measured error is at least 1 px: {} / {}; at least 0.5 px: {} / {}. Largest measured error {:.3} / {:.3} px, largest bound {:.3} / {:.3} px; measured above bound: {violations}. Pixels lost (reference winner's batch): {} / {}.\n",
+        bo[0], bo[1], bo[2], bn[0], bn[1], bn[2],
+        count(&|l| l.old.2 >= 1.0), count(&|l| l.new.2 >= 1.0),
+        count(&|l| l.old.2 >= 0.5), count(&|l| l.new.2 >= 0.5),
+        worst(&|l| l.old.2), worst(&|l| l.new.2), worst(&|l| if l.old.0 == Precision::Bits30 { 0.0 } else { l.old.1 }), worst(&|l| if l.new.0 == Precision::Bits30 { 0.0 } else { l.new.1 }),
+        lost_old.iter().sum::<u64>(), lost_new.iter().sum::<u64>(),
+    )?;
+    let mut top: Vec<&BatchLoss> = losses.iter().filter(|l| l.old.3 > 0).collect();
+    top.sort_by(|a, b| b.old.3.cmp(&a.old.3));
+    writeln!(md, "| batch | points | box px | depth far/near | 500 px rule: bits, bound px, measured px, pixels lost | adaptive: bits, bound px, measured px, pixels lost |")?;
+    writeln!(md, "|---|---|---|---|---|---|")?;
+    for l in top.iter().take(n) {
+        writeln!(
+            md,
+            "| {} | {} | {:.0} | {:.2} | {}, {:.3}, {:.3}, {} | {}, {:.3}, {:.3}, {} |",
+            l.batch, l.points, l.px, l.depth_ratio, l.old.0.bits(), l.old.1, l.old.2, l.old.3, l.new.0.bits(), l.new.1, l.new.2, l.new.3
+        )?;
+    }
+    Ok(())
+}
+
 /// The plot: time on x, error on y, one marker per configuration, drawn on an RGBA canvas.
 mod plot {
-    use super::{PrecisionArg, Row};
+    use super::{Config, PrecisionArg, Row};
     use anyhow::Result;
 
     const W: i32 = 900;
@@ -508,7 +726,11 @@ mod plot {
         c.text(8, 26, 2, "pixels differing (%)", BLACK);
         c.text(LEFT, 8, 2, title, BLACK);
         for r in rows {
-            c.marker(sx(r.median * 1e3), sy(err(r)), r.cull, color_of(r.precision));
+            let color = match r.config {
+                Config::Options(p, _) => color_of(p),
+                Config::Budget(_) => 0xff80_0080,
+            };
+            c.marker(sx(r.median * 1e3), sy(err(r)), r.config.cull(), color);
         }
         // Legend.
         let lx = W - RIGHT + 20;

@@ -404,6 +404,81 @@ impl Camera {
         (lo[0] <= hi[0]).then_some((lo, hi))
     }
 
+    /// An upper bound, in pixels (Euclidean), of how far any point of `bounds` moves on screen when
+    /// it is displaced by at most `err[a]` world units along each axis `a`, over the displaced
+    /// points that are drawn (depth at least `near`). The precision rule's guarantee
+    /// ([`crate::render::precision`]): `err` is a decode's error bound, so no point of a batch lands
+    /// farther than this from where its exact position projects.
+    ///
+    /// With view coordinates `(x, y, z)` of the exact point and a displacement `d` whose view
+    /// components obey `|dx| <= Ex = sum |right_a| err_a` (likewise `Ey`, `Ez` with the up and
+    /// forward axes), the perspective pixel moves by
+    /// `sx * (dx - (x / z) dz) / (z + dz)` horizontally (`sx` pixels per unit of `x / z`), so
+    /// `|Δpx| <= sx * (Ex + Tx * Ez) / D` with `Tx` the largest `|x / z|` over the box and `D` the
+    /// smallest depth a drawn displaced point can have: `max(near, zmin - Ez)`. Both come from the
+    /// box's corners (and its edges' crossings of the plane `z = near - Ez`, below which no point
+    /// can reach the near plane): perspective depth across the batch (a near end much closer than
+    /// the far end) and grazing views (a depth error seen far off-axis) are both in it. An
+    /// orthographic pixel moves by `sx * dx` exactly. Infinite when the box reaches the eye's plane.
+    pub fn displacement_bound_px(&self, bounds: &Aabb, err: [f64; 3]) -> f64 {
+        let axes = self.axes_or_panic();
+        let reach = |axis: DVec3| (0..3).map(|a| axis[a].abs() * err[a]).sum::<f64>();
+        let (ex, ey, ez) = (reach(axes.right), reach(axes.up), reach(axes.forward));
+        let [hx, hy] = self.half_extent();
+        let (sx, sy) = (0.5 * self.width as f64 / hx, 0.5 * self.height as f64 / hy);
+        let (bx, by) = match self.projection {
+            Projection::Orthographic { .. } => (sx * ex, sy * ey),
+            Projection::Perspective { .. } => {
+                if bounds.is_empty() {
+                    return 0.0;
+                }
+                // Points nearer than `clip` cannot be displaced onto the near plane; where the
+                // error reaches past the eye's plane, the box must lie wholly in front of it.
+                let corners = bounds.corners().map(|c| self.view_of(&axes, c));
+                let mut clip = self.near - ez;
+                if clip.is_nan() || clip <= 0.0 {
+                    if corners.iter().any(|c| c[2].is_nan() || c[2] <= 0.0) {
+                        return f64::INFINITY;
+                    }
+                    clip = 0.0;
+                }
+                let (mut tx, mut ty, mut zmin) = (0f64, 0f64, f64::INFINITY);
+                let mut any = false;
+                let mut add = |v: DVec3| {
+                    tx = tx.max((v[0] / v[2]).abs());
+                    ty = ty.max((v[1] / v[2]).abs());
+                    zmin = zmin.min(v[2]);
+                    any = true;
+                };
+                for (i, c) in corners.iter().enumerate() {
+                    if c[2] >= clip {
+                        add(*c);
+                    }
+                    for a in 0..3 {
+                        if i >> a & 1 == 0 {
+                            let d = corners[i | 1 << a];
+                            if (c[2] < clip) != (d[2] < clip) {
+                                let t = (clip - c[2]) / (d[2] - c[2]);
+                                add([c[0] + t * (d[0] - c[0]), c[1] + t * (d[1] - c[1]), clip]);
+                            }
+                        }
+                    }
+                }
+                if !any {
+                    return 0.0;
+                }
+                let depth = self.near.max(zmin - ez);
+                (sx * (ex + tx * ez) / depth, sy * (ey + ty * ez) / depth)
+            }
+        };
+        let b = (bx * bx + by * by).sqrt();
+        if b.is_nan() {
+            f64::INFINITY
+        } else {
+            b
+        }
+    }
+
     /// Size in pixels of the box's projection: the larger side of its [`screen_rect`](Self::screen_rect);
     /// 0 when the box lies entirely behind the near plane.
     pub fn projected_size(&self, bounds: &Aabb) -> f64 {

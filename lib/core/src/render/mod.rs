@@ -1,6 +1,6 @@
 //! Rendering logic shared by the CPU reference rasterizer and the GPU one (paper 003 §3.2-3.4):
 //! camera and per-batch f32 projection ([`camera`]), frustum culling ([`frustum`]), adaptive
-//! precision with the 500 px rule ([`precision`]), the 64-bit depth|index visibility buffer
+//! precision with the 500 px rule and a bound on the decode error on screen ([`precision`]), the 64-bit depth|index visibility buffer
 //! ([`framebuffer`]), the records the GPU rasterizer reads ([`gpu`]), the CPU rasterizer ([`raster`]) and the resolve from point indices to colours
 //! with hole filling, eye-dome lighting and attribute colour modes ([`resolve`]); the progressive
 //! renderer of paper 000 on the CPU rasterizer, with its shuffle and adaptive fill budget ([`progressive`]).

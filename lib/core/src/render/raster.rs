@@ -248,7 +248,7 @@ impl Planner {
         }
         let camera = &self.camera;
         let grid = &self.grid;
-        let (precision, _) = choose_precision(self.options.precision, camera, grid, batch);
+        let (precision, _) = choose_precision(self.options.precision, camera, grid, batch, bounds);
         if self.options.cull {
             // Decoded positions may lie up to the error bound outside the points' bounds; f32 depth
             // may be off by a tiny fraction of the distance.
@@ -953,4 +953,101 @@ mod tests {
         bad.far = bad.near;
         assert!(matches!(rasterize(&fb, &scene.refs(), &scene.grid, &bad, &RasterOptions::default()), Err(RasterError::Camera(_))));
     }
+    /// Rods 2 cm thick and 32.8 m long seen along their length from 6 m before their near ends
+    /// (think rails, fences, wires or vine rows at a grazing angle): one batch per rod, noisy colours.
+    fn rods() -> (Scene, Camera, Vec<u32>) {
+        let grid = Grid { scale: [0.001; 3], offset: [500_000.0, 4_000_000.0, 100.0] };
+        let mut rng = crate::render::testutil::Rng(3);
+        let mut groups = Vec::new();
+        for x in -4..=4 {
+            for z in -2..=2 {
+                let rod: Vec<[i32; 3]> = (0..crate::BATCH_SIZE)
+                    .map(|_| [x * 1000 + (rng.unit() * 20.0) as i32, (rng.unit() * 32_767.0) as i32, z * 1000 + (rng.unit() * 20.0) as i32])
+                    .collect();
+                groups.push(rod);
+            }
+        }
+        let scene = Scene::from_groups(grid, groups);
+        let colors = (0..scene.points.len()).map(|_| (rng.next_u64() as u32) | 0xff00_0000).collect();
+        let cam = Camera {
+            eye: scene.world([0.0, -6.0, 0.0]),
+            target: scene.world([0.0, 10.0, 0.0]),
+            up: [0.0, 0.0, 1.0],
+            projection: Projection::Perspective { fov_y: 50f64.to_radians() },
+            near: 0.1,
+            far: 1000.0,
+            width: 1920,
+            height: 1080,
+        };
+        (scene, cam, colors)
+    }
+
+    /// PSNR (dB) of the RGB colours of two key images over the pixels covered in either.
+    fn psnr_covered(a: &[u64], b: &[u64], colors: &[u32]) -> f64 {
+        let rgb = |k: u64| if k == EMPTY_KEY { [0.0; 3] } else { colors[key_index(k) as usize].to_le_bytes()[..3].iter().map(|&c| c as f64).collect::<Vec<_>>().try_into().unwrap() };
+        let (mut se, mut n) = (0f64, 0usize);
+        for (&x, &y) in a.iter().zip(b) {
+            if x == EMPTY_KEY && y == EMPTY_KEY {
+                continue;
+            }
+            let (p, q) = (rgb(x), rgb(y));
+            se += (0..3).map(|c| (p[c] - q[c]).powi(2)).sum::<f64>();
+            n += 3;
+        }
+        10.0 * (255.0 * 255.0 / (se / n.max(1) as f64)).log10()
+    }
+
+    #[test]
+    fn adaptive_precision_bounds_the_decode_error_on_grazing_rods() {
+        use crate::render::precision::{decode_error_px, quantization_box, sufficient_precision, MAX_ERROR_PX};
+        use crate::render::precision_for_pixels;
+        let (scene, cam, colors) = rods();
+        let refs = scene.refs();
+        let (full, _) = render(&scene, &cam, RasterOptions { precision: PrecisionMode::Fixed(Precision::Bits30), cull: true });
+        let (adaptive, stats) = render(&scene, &cam, RasterOptions::default());
+        // The plain 500 px rule, drawn per group of its precision (the keys it drew before).
+        let rule500 = |b: &BatchRef<'_>| precision_for_pixels(cam.projected_size(&quantization_box(&scene.grid, &b.grid))).min(sufficient_precision(&b.grid));
+        let fb = Framebuffer::new(cam.width, cam.height);
+        for p in [Precision::Bits10, Precision::Bits20, Precision::Bits30] {
+            let group: Vec<BatchRef<'_>> = refs.iter().filter(|b| rule500(b) == p).copied().collect();
+            rasterize(&fb, &group, &scene.grid, &cam, &RasterOptions { precision: PrecisionMode::Fixed(p), cull: true }).unwrap();
+        }
+        let old = fb.into_keys();
+        // Per drawn batch: the bound of the chosen precision is under a pixel, and so is every
+        // point's measured displacement (f64 projections of the decoded and the exact position).
+        let planner = Planner::new(&cam, &scene.grid, &RasterOptions::default()).unwrap();
+        let (mut worst_old, mut worst_new, mut raised) = (0f64, 0f64, 0);
+        for (b, bounds) in refs.iter().zip(&scene.batch_bounds) {
+            let BatchPlan::Draw { precision, .. } = planner.plan(&b.grid, bounds, b.len()) else { continue };
+            let bound = decode_error_px(&cam, &scene.grid, &b.grid, bounds, precision);
+            assert!(bound < MAX_ERROR_PX, "batch at {:?}: bound {bound} px at {precision:?}", b.grid.min);
+            if precision != rule500(b) {
+                raised += 1;
+            }
+            let measured = |p: Precision| {
+                let world = |rel: [f64; 3]| [0, 1, 2].map(|a| scene.grid.offset[a] + scene.grid.scale[a] * (b.grid.min[a] as f64 + rel[a]));
+                (0..b.len())
+                    .filter_map(|i| {
+                        let w = [b.words[0][i], b.words[1][i], b.words[2][i]];
+                        let (d, e) = (cam.project(world(b.grid.decode_relative(w, p)))?, cam.project(world(b.grid.decode_relative(w, Precision::Bits30)))?);
+                        Some(((d.x - e.x).powi(2) + (d.y - e.y).powi(2)).sqrt())
+                    })
+                    .fold(0f64, f64::max)
+            };
+            let m = measured(precision);
+            assert!(m <= bound + 1e-9, "batch at {:?}: measured {m} px above the bound {bound}", b.grid.min);
+            worst_new = worst_new.max(m);
+            worst_old = worst_old.max(measured(rule500(b)));
+        }
+        let (p_old, p_new) = (psnr_covered(&old, &full, &colors), psnr_covered(&adaptive, &full, &colors));
+        eprintln!("rods: raised {raised} batches; worst error {worst_old:.3} px -> {worst_new:.3} px; PSNR over covered pixels {p_old:.1} -> {p_new:.1} dB; {stats:?}");
+        assert!(raised >= 8, "{raised}");
+        assert!(worst_old > 1.3, "the 500 px rule alone moved points by {worst_old} px");
+        assert!(worst_new < MAX_ERROR_PX);
+        assert!(stats.points_by_precision[0] > 0, "far or small rods keep 10 bits: {stats:?}");
+        assert!(p_old < PSNR_MIN_DB && p_new > PSNR_MIN_DB, "PSNR {p_old} -> {p_new} dB");
+    }
+
+    /// The adversarial rods' PSNR threshold.
+    const PSNR_MIN_DB: f64 = 30.0;
 }

@@ -56,6 +56,30 @@ impl Scene {
         points.sort_by_key(|p| (mg.code(p.map(|v| v as i64)), *p));
         let mut batches = Vec::new();
         plan_batches(&points, batch_size, 0, &mut batches);
+        Scene::quantized(grid, points, batches, (lo, hi))
+    }
+
+    /// One batch per group of points, in the order given (no sort): scenes whose batches have a
+    /// chosen shape (each group must fit a 30-bit frame).
+    pub fn from_groups(grid: Grid, groups: Vec<Vec<[i32; 3]>>) -> Scene {
+        let mut points = Vec::new();
+        let mut batches = Vec::new();
+        let (mut lo, mut hi) = ([i64::MAX; 3], [i64::MIN; 3]);
+        for g in groups {
+            let (min, max) = crate::batching::int_bounds(&g);
+            for a in 0..3 {
+                lo[a] = lo[a].min(min[a] as i64);
+                hi[a] = hi[a].max(max[a] as i64);
+            }
+            let grid = crate::quantize::BatchGrid::for_bounds(min, max).expect("a group fits 30 bits");
+            batches.push(PlannedBatch { range: points.len()..points.len() + g.len(), grid, max });
+            points.extend(g);
+        }
+        Scene::quantized(grid, points, batches, (lo, hi))
+    }
+
+    /// Words, bounds and colours of points already batched.
+    fn quantized(grid: Grid, points: Vec<[i32; 3]>, batches: Vec<PlannedBatch>, (lo, hi): ([i64; 3], [i64; 3])) -> Scene {
         let mut words = [Vec::new(), Vec::new(), Vec::new()];
         let mut batch_bounds = Vec::new();
         for b in &batches {
@@ -148,7 +172,7 @@ impl Scene {
         let near = cam.near as f32;
         let far = cam.far as f32;
         for (b, bounds) in self.batches.iter().zip(&self.batch_bounds) {
-            let (precision, _) = choose_precision(mode, cam, &self.grid, &b.grid);
+            let (precision, _) = choose_precision(mode, cam, &self.grid, &b.grid, bounds);
             let bp = cam.batch_projection(&self.grid, &b.grid, bounds, precision);
             c.by_precision[precision.words() - 1] += b.range.len();
             for i in b.range.clone() {
