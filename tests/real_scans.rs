@@ -402,7 +402,7 @@ print(json.dumps({
 }
 
 fn has_copc(j: &serde_json::Value) -> bool {
-    j["vlrs"].as_array().unwrap().iter().chain(j["evlrs"].as_array().unwrap()).any(|v| v[0] == "copc" || v[0] == "LAStools")
+    j["vlrs"].as_array().unwrap().iter().chain(j["evlrs"].as_array().unwrap()).any(|v| v[0] == "copc" || (v[0] == "LAStools" && v[1] == 30))
 }
 
 #[test]
@@ -416,6 +416,7 @@ fn sorted_copc_has_no_copc_records_and_laspy_reads_it_in_full() {
     f.vlrs = vec![
         Vlr { user_id: "copc".into(), record_id: 1, description: "copc info".into(), data: vec![7; 160] },
         wkt_vlr("WGS 84 / UTM zone 10N", 32610),
+        Vlr { user_id: "LAStools".into(), record_id: 10, description: "tile without buffer".into(), data: vec![3; 28] },
     ];
     f.evlrs = vec![
         Vlr { user_id: "copc".into(), record_id: 1000, description: "EPT hierarchy".into(), data: vec![9; 32] },
@@ -439,6 +440,7 @@ fn sorted_copc_has_no_copc_records_and_laspy_reads_it_in_full() {
         assert_eq!(got["header_points"], 5000);
         assert_eq!(got["xyz"], input["xyz"], "the same points");
         assert!(got["vlrs"].as_array().unwrap().iter().any(|v| v[0] == "LASF_Projection"), "the CRS stays");
+        assert!(got["vlrs"].as_array().unwrap().iter().any(|v| v[0] == "LAStools" && v[1] == 10), "the tiling VLR stays");
     }
     let mbat = d.join("o.mbat");
     run_ok(mortar().args(["batch", s(&src), "-o", s(&mbat)]));
@@ -447,7 +449,8 @@ fn sorted_copc_has_no_copc_records_and_laspy_reads_it_in_full() {
     for p in [&mbat, &store] {
         let j = info_json(p);
         let ids: Vec<String> = j["vlrs"].as_array().unwrap().iter().chain(j["evlrs"].as_array().unwrap()).map(|v| v["user_id"].as_str().unwrap().to_string()).collect();
-        assert!(!ids.iter().any(|i| i == "copc" || i == "LAStools"), "{}: {ids:?}", p.display());
+        assert!(!ids.iter().any(|i| i == "copc"), "{}: {ids:?}", p.display());
+        assert_eq!(ids.iter().filter(|i| *i == "LAStools").count(), 1, "{}: only the tiling record: {ids:?}", p.display());
     }
     std::fs::remove_dir_all(&d).unwrap();
 }

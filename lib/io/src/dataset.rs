@@ -407,11 +407,12 @@ pub fn is_waveform_data(v: &Vlr) -> bool {
 /// - `copc` (every record id: 1 info, 1000 hierarchy, ...): byte offsets and point counts of
 ///   the COPC chunks; a copy would make the output claim to be COPC with a hierarchy pointing
 ///   into the middle of its point data;
-/// - `LAStools` 30 (the spatial index of a `.lax` file stored in the LAS file) and `LAStools` 10
-///   (LASlayers): point indices and byte offsets into the original point order;
+/// - `LAStools` 30 (the spatial index of a `.lax` file stored in the LAS file): intervals of
+///   point indices in the original point order;
 /// - `laszip encoded` 22204: describes the input's compression (writers add their own).
 ///
-/// Kept: CRS records, extra bytes descriptions, waveform packet descriptors (`LASF_Spec`
+/// Kept: CRS records, extra bytes descriptions, LAStools' tiling (10) and original-header (20)
+/// records (no offsets), waveform packet descriptors (`LASF_Spec`
 /// 100-354: sampling parameters), and the waveform data EVLR (`LASF_Spec` 65535): the points'
 /// waveform offsets are relative to that record, so a byte-for-byte copy stays valid and the
 /// writers point the header at it.
@@ -421,7 +422,6 @@ pub fn offset_dependent(v: &Vlr) -> Option<&'static str> {
         ("copc", 1000) => Some("COPC hierarchy"),
         ("copc", _) => Some("COPC"),
         ("LAStools", 30) => Some("LAStools spatial index"),
-        ("LAStools", 10) => Some("LASlayers"),
         ("laszip encoded", 22204) => Some("LASzip compression of the input"),
         _ => None,
     }
