@@ -324,7 +324,7 @@ fn assign_crs_from_a_file_or_an_epsg_code() {
     assert_eq!(j["crs"]["kind"], "geotiff");
     assert_eq!(j["crs"]["epsg"], 26910);
     assert_eq!(j["crs"]["vertical_epsg"], 5703);
-    assert_eq!(j["crs"]["name"], "EPSG:26910");
+    assert_eq!(j["crs"]["name"], "NAD83 / UTM zone 10N");
     assert!(j["crs"]["problems"].as_array().unwrap().is_empty());
     let (h, _) = points_of(&out);
     assert!(!h.has_wkt_crs());

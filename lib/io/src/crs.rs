@@ -206,8 +206,47 @@ impl CrsRecords {
             return true;
         }
         let (a, b) = (self.describe(), o.describe());
+        if let (Some(x), Some(y)) = (&a.wkt, &b.wkt) {
+            if canonical_wkt(x) == canonical_wkt(y) {
+                return true;
+            }
+        }
         a.epsg.is_some() && a.epsg == b.epsg && a.vertical_epsg == b.vertical_epsg
     }
+}
+
+/// WKT without whitespace and without `AUTHORITY[...]`/`ID[...]` nodes, so that the same CRS
+/// written with and without authority codes compares equal.
+fn canonical_wkt(w: &str) -> String {
+    let mut out = String::with_capacity(w.len());
+    let b = w.as_bytes();
+    let mut i = 0;
+    while i < b.len() {
+        let rest = &w[i..];
+        if rest.starts_with(",AUTHORITY[") || rest.starts_with(",ID[") {
+            let mut depth = 0;
+            while i < b.len() {
+                match b[i] {
+                    b'[' => depth += 1,
+                    b']' => {
+                        depth -= 1;
+                        if depth == 0 {
+                            i += 1;
+                            break;
+                        }
+                    }
+                    _ => {}
+                }
+                i += 1;
+            }
+            continue;
+        }
+        if !b[i].is_ascii_whitespace() {
+            out.push(b[i] as char);
+        }
+        i += 1;
+    }
+    out
 }
 
 /// What `--assign-crs` gives: the CRS records of a LAS/LAZ file, or an EPSG code (with an
@@ -256,13 +295,13 @@ fn epsg_kind(code: u32) -> Result<bool, String> {
 /// no EPSG database, so it cannot write the WKT that LAS 1.4 formats 6-10 ask for.
 pub fn epsg_records(horizontal: u32, vertical: Option<u32>) -> Result<CrsRecords, String> {
     let geographic = epsg_kind(horizontal)?;
-    let citation = format!("EPSG:{horizontal}|");
-    let mut keys: Vec<[u16; 4]> = vec![
-        [1024, 0, 1, if geographic { 2 } else { 1 }],
-        [1025, 0, 1, 1],
-        [1026, 34737, citation.len() as u16, 0],
-        [if geographic { 2048 } else { 3072 }, 0, 1, horizontal as u16],
-    ];
+    // a citation only where mortar knows the name (readers show it; a bare code says nothing new)
+    let citation = epsg_name(horizontal).map(|n| format!("{n}|"));
+    let mut keys: Vec<[u16; 4]> = vec![[1024, 0, 1, if geographic { 2 } else { 1 }], [1025, 0, 1, 1]];
+    if let Some(c) = &citation {
+        keys.push([1026, 34737, c.len() as u16, 0]);
+    }
+    keys.push([if geographic { 2048 } else { 3072 }, 0, 1, horizontal as u16]);
     if let Some(v) = vertical {
         keys.push([4096, 0, 1, v as u16]);
     }
@@ -277,15 +316,13 @@ pub fn epsg_records(horizontal: u32, vertical: Option<u32>) -> Result<CrsRecords
         description[..desc.len()].copy_from_slice(desc.as_bytes());
         Vlr { reserved: 0, user_id, record_id: id, description, data }
     };
-    let mut ascii = citation.into_bytes();
-    ascii.push(0);
-    Ok(CrsRecords {
-        vlrs: vec![
-            rec(34735, words.iter().flat_map(|w| w.to_le_bytes()).collect(), "GeoTIFF GeoKeyDirectoryTag"),
-            rec(34737, ascii, "GeoTIFF GeoAsciiParamsTag"),
-        ],
-        evlrs: Vec::new(),
-    })
+    let mut vlrs = vec![rec(34735, words.iter().flat_map(|w| w.to_le_bytes()).collect(), "GeoTIFF GeoKeyDirectoryTag")];
+    if let Some(c) = citation {
+        let mut ascii = c.into_bytes();
+        ascii.push(0);
+        vlrs.push(rec(34737, ascii, "GeoTIFF GeoAsciiParamsTag"));
+    }
+    Ok(CrsRecords { vlrs, evlrs: Vec::new() })
 }
 
 fn wkt_name(w: &str) -> Option<String> {
@@ -366,6 +403,16 @@ mod tests {
         assert!(epsg_records(4978, None).is_err());
         assert!(r.agrees_with(&r.clone()));
         assert!(!r.agrees_with(&epsg_records(26911, Some(5703)).unwrap()));
+    }
+
+    #[test]
+    fn the_same_wkt_with_and_without_authorities_agrees() {
+        let a = r#"PROJCS["X",GEOGCS["NAD83",SPHEROID["GRS 1980",6378137,298.257222101]],UNIT["metre",1]]"#;
+        let b = r#"PROJCS["X", GEOGCS["NAD83",SPHEROID["GRS 1980",6378137,298.257222101,AUTHORITY["EPSG","7019"]]],UNIT["metre",1,AUTHORITY["EPSG","9001"]]]"#;
+        let c = r#"PROJCS["X",GEOGCS["NAD83",SPHEROID["GRS 1980",6378137,298.3]],UNIT["metre",1]]"#;
+        let r = |w: &str| CrsRecords { vlrs: vec![vlr(2112, w.as_bytes().to_vec())], evlrs: vec![] };
+        assert!(r(a).agrees_with(&r(b)));
+        assert!(!r(a).agrees_with(&r(c)));
     }
 
     #[test]
