@@ -38,7 +38,7 @@ pub fn run(a: Args) -> Result<()> {
     if a.output.as_os_str() == "-" {
         bail!("batch files are written to a file (they are not streamable); give -o FILE.mbat");
     }
-    let ds = common::open_dataset(&a.inputs)?;
+    let ds = common::open_dataset(&a.inputs, &a.sort.crs)?;
     common::print_warnings(&ds.warnings);
     let attributes = AttributeSelection::parse(&a.attributes)
         .resolve(&ds.layout)
@@ -54,6 +54,7 @@ pub fn run(a: Args) -> Result<()> {
     let report = sort(&ds, &opts, &mut sink)?;
     mortar_io::sort::trace("sorted", start);
     let points = sink.finish()?;
+    common::warn_points_by_return(&ds, &report.summary.points_by_return);
     mortar_io::sort::trace("finished", start);
     let secs = start.elapsed().as_secs_f64();
     if a.json {

@@ -36,6 +36,8 @@ pub struct Args {
     #[arg(long)]
     pub json: bool,
     #[command(flatten)]
+    pub crs: common::CrsArgs,
+    #[command(flatten)]
     pub frames: crate::build_frames::FramesArgs,
     #[command(flatten)]
     pub preview: crate::view::PreviewArgs,
@@ -51,7 +53,7 @@ pub fn run(a: Args) -> Result<()> {
     if a.leaf_capacity == 0 {
         anyhow::bail!("--leaf-capacity must be at least 1");
     }
-    let ds = common::open_dataset(&a.inputs)?;
+    let ds = common::open_dataset(&a.inputs, &a.crs)?;
     common::print_warnings(&ds.warnings);
     let opts = BuildOptions {
         config: BuilderConfig {

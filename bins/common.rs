@@ -56,9 +56,37 @@ pub fn print_warnings(ws: &[String]) {
 }
 
 /// Opens the inputs of a command as one dataset.
-pub fn open_dataset(inputs: &[String]) -> anyhow::Result<mortar_io::dataset::Dataset> {
+pub fn open_dataset(inputs: &[String], crs: &CrsArgs) -> anyhow::Result<mortar_io::dataset::Dataset> {
     let paths = mortar_io::source::expand_inputs(inputs)?;
-    Ok(mortar_io::dataset::Dataset::open(&paths)?)
+    Ok(mortar_io::dataset::Dataset::open_with(&paths, &crs.options())?)
+}
+
+/// How merged inputs get their CRS, shared by every command that merges inputs.
+#[derive(clap::Args, Clone, Debug, Default)]
+pub struct CrsArgs {
+    /// The output's CRS, whatever the inputs say: the CRS records of a LAS/LAZ FILE, or
+    /// EPSG:CODE (GeoTIFF keys; EPSG:CODE+VERTICAL adds a vertical CRS). Without it, inputs
+    /// whose CRSs disagree are refused.
+    #[arg(long, value_name = "FILE|EPSG:CODE", value_parser = parse_assign_crs)]
+    pub assign_crs: Option<mortar_io::crs::AssignCrs>,
+}
+
+fn parse_assign_crs(s: &str) -> Result<mortar_io::crs::AssignCrs, String> {
+    mortar_io::crs::AssignCrs::parse(s)
+}
+
+impl CrsArgs {
+    pub fn options(&self) -> mortar_io::dataset::OpenOptions {
+        mortar_io::dataset::OpenOptions { assign_crs: self.assign_crs.clone() }
+    }
+}
+
+/// Warns when the points' return counts differ from what the inputs' headers declare (the
+/// output's header has the counted ones).
+pub fn warn_points_by_return(ds: &mortar_io::dataset::Dataset, counted: &[u64; 15]) {
+    if let Some(w) = ds.points_by_return_disagreement(counted) {
+        warn(&w);
+    }
 }
 
 /// Peak resident memory of this process so far (Linux `VmHWM`), in bytes.
@@ -77,6 +105,8 @@ pub struct SortArgs {
     /// Directory for temporary files (external sort buckets, temporary batch files).
     #[arg(long)]
     pub tmp_dir: Option<std::path::PathBuf>,
+    #[command(flatten)]
+    pub crs: CrsArgs,
 }
 
 impl SortArgs {

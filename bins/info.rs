@@ -68,15 +68,8 @@ fn print_text(o: &mut impl Write, i: &FileInfo) -> std::io::Result<()> {
     }
     writeln!(o, "  scale           {} {} {}", i.scale[0], i.scale[1], i.scale[2])?;
     writeln!(o, "  offset          {} {} {}", i.offset[0], i.offset[1], i.offset[2])?;
-    let b = &i.header_bounds;
-    writeln!(o, "  header bounds   x [{}, {}]  y [{}, {}]  z [{}, {}]", b.min[0], b.max[0], b.min[1], b.max[1], b.min[2], b.max[2])?;
-    let crs = match (&i.crs.name, i.crs.epsg) {
-        (Some(n), Some(e)) => format!("{n} (EPSG:{e}, {})", i.crs.kind),
-        (Some(n), None) => format!("{n} ({})", i.crs.kind),
-        (None, Some(e)) => format!("EPSG:{e} ({})", i.crs.kind),
-        (None, None) => i.crs.kind.clone(),
-    };
-    writeln!(o, "  crs             {crs}")?;
+    writeln!(o, "  header bounds   {}", bounds_text(&i.header_bounds, i.scale))?;
+    writeln!(o, "  crs             {}", i.crs.summary())?;
     writeln!(o, "  software        {} / {}", i.generating_software, i.system_identifier)?;
     let names: Vec<&str> = i.attributes.iter().map(|a| a.name.as_str()).collect();
     writeln!(o, "  attributes      {}", names.join(", "))?;
@@ -103,8 +96,7 @@ fn print_text(o: &mut impl Write, i: &FileInfo) -> std::io::Result<()> {
         writeln!(o, "  store           commit {}, {} bytes of node payloads", s.commit, s.nodes_bytes)?;
     }
     if let Some(s) = &i.stats {
-        let b = &s.bounds;
-        writeln!(o, "  real bounds     x [{}, {}]  y [{}, {}]  z [{}, {}]", b.min[0], b.max[0], b.min[1], b.max[1], b.min[2], b.max[2])?;
+        writeln!(o, "  real bounds     {}", bounds_text(&s.bounds, i.scale))?;
         for (k, r) in &s.ranges {
             writeln!(o, "  {:<15} [{}, {}]", k, r.min, r.max)?;
         }
@@ -114,4 +106,15 @@ fn print_text(o: &mut impl Write, i: &FileInfo) -> std::io::Result<()> {
         writeln!(o, "  returns         {}", r.join(", "))?;
     }
     Ok(())
+}
+
+/// `x [min, max]  y [...]  z [...]` with as many decimals as each axis's scale has.
+fn bounds_text(b: &mortar_io::info::Bounds, scale: [f64; 3]) -> String {
+    (0..3)
+        .map(|a| {
+            let d = mortar_io::info::grid_decimals(scale[a]);
+            format!("{} [{:.d$}, {:.d$}]", ["x", "y", "z"][a], b.min[a], b.max[a])
+        })
+        .collect::<Vec<_>>()
+        .join("  ")
 }

@@ -369,7 +369,7 @@ pub fn run(a: &Args) -> Result<()> {
         };
         bail!("{}: --progressive draws raw LAS/LAZ (paper 000), and this is {what}; draw it without --progressive", path.display());
     }
-    let ds = Dataset::open(&paths)?;
+    let ds = Dataset::open_with(&paths, &a.sort.crs.options())?;
     common::print_warnings(&ds.warnings);
     let label = paths
         .iter()

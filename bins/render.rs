@@ -245,7 +245,7 @@ pub fn open_source(inputs: &[String], sort: &common::SortArgs) -> Result<RenderS
             return Ok(RenderSource::open_batch_file(p)?);
         }
     }
-    let ds = common::open_dataset(inputs)?;
+    let ds = common::open_dataset(inputs, &sort.crs)?;
     common::print_warnings(&ds.warnings);
     Ok(RenderSource::batch_dataset(&ds, &sort.options())?)
 }

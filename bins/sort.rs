@@ -21,7 +21,7 @@ pub struct Args {
 }
 
 pub fn run(a: Args) -> Result<()> {
-    let ds = common::open_dataset(&a.inputs)?;
+    let ds = common::open_dataset(&a.inputs, &a.sort.crs)?;
     common::print_warnings(&ds.warnings);
     let target = Target::parse(&a.output);
     let compressed = a.laz || a.output.to_ascii_lowercase().ends_with(".laz");
@@ -29,7 +29,8 @@ pub fn run(a: Args) -> Result<()> {
     let template = ds.source_meta();
     let mut sink = LasSink::new(target, compressed, template, &tmp)?;
     let opts = a.sort.options();
-    sort(&ds, &opts, &mut sink)?;
+    let report = sort(&ds, &opts, &mut sink)?;
     sink.finish()?;
+    common::warn_points_by_return(&ds, &report.summary.points_by_return);
     Ok(())
 }

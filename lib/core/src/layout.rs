@@ -265,12 +265,17 @@ pub fn gather_records<'a>(record_len: usize, n: usize, src: impl Fn(usize) -> &'
     }
 }
 
-/// How records of one layout become records of another: byte ranges to copy, the rest zero.
+/// How records of one layout become records of another: byte ranges to copy, the rest zero,
+/// and for legacy records (PDRF 0-5) put into a LAS 1.4 format (6-10) the fields whose encoding
+/// differs (`docs/formats.md`).
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct Conversion {
     pub target_len: usize,
     /// (source offset, target offset, length)
     pub copies: Vec<(usize, usize, usize)>,
+    /// Whether the source is a legacy record and the target a LAS 1.4 one: return numbers,
+    /// flags, classification and scan angle are mapped by [`legacy_to_extended`].
+    pub legacy_to_extended: bool,
 }
 
 impl Conversion {
@@ -281,14 +286,43 @@ impl Conversion {
             for &(so, to, n) in &self.copies {
                 d[to..to + n].copy_from_slice(&s[so..so + n]);
             }
+            if self.legacy_to_extended {
+                legacy_to_extended(s, d);
+            }
         }
     }
 }
 
+/// A legacy scan angle rank (whole degrees) in LAS 1.4 units of 0.006 degrees, rounded to the
+/// nearest unit (never a tie: `1000 * rank` is 0, 2 or 4 modulo 6); rounding the result times
+/// 0.006 gives the rank back.
+pub fn scan_angle_rank_to_extended(rank: i8) -> i16 {
+    let v = rank as i32 * 1000;
+    let q = if v >= 0 { (v + 3) / 6 } else { (v - 3) / 6 };
+    q as i16
+}
+
+/// The fields of a legacy record (PDRF 0-5) whose encoding differs in LAS 1.4 (PDRF 6-10),
+/// written into an extended record: return number (3 -> 4 bits) and number of returns, the
+/// synthetic/key-point/withheld bits (classification byte bits 5-7 -> classification flags
+/// bits 0-2), scan direction and edge of flight line (same bits 6 and 7, next byte), the
+/// 5-bit classification (-> a whole byte) and the scan angle rank.
+#[inline]
+pub fn legacy_to_extended(src: &[u8], dst: &mut [u8]) {
+    let returns = src[14];
+    let class = src[15];
+    dst[14] = (returns & 0x07) | (((returns >> 3) & 0x07) << 4);
+    dst[15] = ((class >> 5) & 0x07) | (returns & 0xc0);
+    dst[16] = class & 0x1f;
+    dst[18..20].copy_from_slice(&scan_angle_rank_to_extended(src[16] as i8).to_le_bytes());
+}
+
 /// The smallest layout that holds every field of every input layout, and the conversion of each
-/// input into it (`None` where an input already has it). Formats merge within a family: 0-3
-/// (adding GPS time and RGB as needed) or 6-8 (adding RGB and NIR); waveform formats and
-/// different extra bytes merge only with themselves.
+/// input into it (`None` where an input already has it). Formats of one family merge into that
+/// family: 0-3 (adding GPS time and RGB as needed) or 6-8 (adding RGB and NIR). Legacy and
+/// LAS 1.4 formats together merge into the smallest of 6-8 that holds every field (legacy
+/// records mapped by [`legacy_to_extended`]). Waveform formats merge only with themselves, and
+/// the extra bytes must be the same size everywhere.
 pub fn merge_layouts(layouts: &[RecordLayout]) -> Result<(RecordLayout, Vec<Option<Conversion>>), String> {
     let first = &layouts[0];
     if layouts.iter().all(|l| l == first) {
@@ -298,17 +332,12 @@ pub fn merge_layouts(layouts: &[RecordLayout]) -> Result<(RecordLayout, Vec<Opti
     if layouts.iter().any(|l| matches!(l.format, 4 | 5 | 9 | 10)) {
         return Err("inputs with waveform point formats (4, 5, 9, 10) can only be merged with the same format".into());
     }
-    if layouts.iter().any(|l| l.family() != first.family()) {
-        return Err(format!(
-            "point formats {} cannot be merged: legacy formats (0-5) and LAS 1.4 formats (6-10) differ in layout",
-            layouts.iter().map(|l| l.format.to_string()).collect::<Vec<_>>().join(", ")
-        ));
-    }
     if layouts.iter().any(|l| extra(l) != extra(first)) {
         return Err("inputs have different numbers of extra bytes per point".into());
     }
     let any = |name: &str| layouts.iter().any(|l| l.attribute(name).is_some());
-    let target_format = match first.family() {
+    let family = if layouts.iter().all(|l| l.family() == Family::Legacy) { Family::Legacy } else { Family::Extended };
+    let target_format = match family {
         Family::Legacy => match (any("gps_time"), any("rgb")) {
             (false, false) => 0,
             (true, false) => 1,
@@ -332,12 +361,16 @@ pub fn merge_layouts(layouts: &[RecordLayout]) -> Result<(RecordLayout, Vec<Opti
             if *l == target {
                 return None;
             }
+            let mapped = l.family() == Family::Legacy && target.family() == Family::Extended;
             let mut copies = vec![(0, 0, XYZ_BYTES)];
             for a in &l.attributes {
+                if mapped && matches!(a.name.as_str(), "flags" | "classification" | "scan_angle") {
+                    continue;
+                }
                 let t = target.attribute(&a.name).expect("target holds every field");
                 copies.push((a.offset, t.offset, a.width));
             }
-            Some(Conversion { target_len: target.record_len, copies })
+            Some(Conversion { target_len: target.record_len, copies, legacy_to_extended: mapped })
         })
         .collect();
     Ok((target, convs))
@@ -364,8 +397,59 @@ mod merge_tests {
     }
 
     #[test]
-    fn families_do_not_mix() {
-        assert!(merge_layouts(&[RecordLayout::new(1, 28).unwrap(), RecordLayout::new(6, 30).unwrap()]).is_err());
+    fn legacy_and_extended_merge_into_the_smallest_extended_format() {
+        let l = |f: u8| RecordLayout::new(f, base_len(f).unwrap()).unwrap();
+        assert_eq!(merge_layouts(&[l(1), l(6)]).unwrap().0.format, 6);
+        assert_eq!(merge_layouts(&[l(0), l(6)]).unwrap().0.format, 6);
+        assert_eq!(merge_layouts(&[l(2), l(6)]).unwrap().0.format, 7);
+        assert_eq!(merge_layouts(&[l(3), l(7)]).unwrap().0.format, 7);
+        assert_eq!(merge_layouts(&[l(3), l(8)]).unwrap().0.format, 8);
+        assert!(merge_layouts(&[l(4), l(6)]).is_err());
+        assert!(merge_layouts(&[RecordLayout::new(1, 30).unwrap(), l(6)]).is_err(), "extra bytes differ");
+    }
+
+    #[test]
+    fn legacy_fields_are_mapped() {
+        let (t, c) = merge_layouts(&[RecordLayout::new(3, 34).unwrap(), RecordLayout::new(7, 36).unwrap()]).unwrap();
+        assert_eq!(t.format, 7);
+        let c = c[0].as_ref().unwrap();
+        let mut src = vec![0u8; 34];
+        src[0..12].copy_from_slice(&[1, 0, 0, 0, 2, 0, 0, 0, 3, 0, 0, 0]);
+        src[12..14].copy_from_slice(&500u16.to_le_bytes());
+        src[14] = 0b1101_0011; // return 3 of 2 (sic), scan direction, edge
+        src[15] = 0b1010_1100; // class 12, synthetic, withheld
+        src[16] = (-7i8) as u8;
+        src[17] = 42;
+        src[18..20].copy_from_slice(&777u16.to_le_bytes());
+        src[20..28].copy_from_slice(&1.5f64.to_le_bytes());
+        src[28..34].copy_from_slice(&[1, 2, 3, 4, 5, 6]);
+        let mut dst = vec![0xffu8; 36];
+        c.apply(&src, 34, &mut dst);
+        assert_eq!(&dst[0..14], &src[0..14]);
+        assert_eq!(dst[14], 3 | (2 << 4));
+        assert_eq!(dst[15], 0b1100_0101);
+        assert_eq!(dst[16], 12);
+        assert_eq!(dst[17], 42);
+        assert_eq!(i16::from_le_bytes([dst[18], dst[19]]), -1167);
+        assert_eq!(u16::from_le_bytes([dst[20], dst[21]]), 777);
+        assert_eq!(f64::from_le_bytes(dst[22..30].try_into().unwrap()), 1.5);
+        assert_eq!(&dst[30..36], &[1, 2, 3, 4, 5, 6]);
+    }
+
+    #[test]
+    fn scan_angle_ranks_round_trip() {
+        for r in -128i8..=127 {
+            let e = scan_angle_rank_to_extended(r);
+            assert_eq!((e as f64 * 0.006).round() as i32, r as i32, "rank {r}");
+            assert!((e as f64 * 0.006 - r as f64).abs() <= 0.003 + 1e-12);
+        }
+        assert_eq!(scan_angle_rank_to_extended(90), 15000);
+        assert_eq!(scan_angle_rank_to_extended(1), 167);
+        assert_eq!(scan_angle_rank_to_extended(-1), -167);
+    }
+
+    #[test]
+    fn families_and_extra_bytes() {
         assert!(merge_layouts(&[RecordLayout::new(1, 30).unwrap(), RecordLayout::new(1, 28).unwrap()]).is_err());
         assert_eq!(merge_layouts(&[RecordLayout::new(6, 30).unwrap(), RecordLayout::new(8, 38).unwrap()]).unwrap().0.format, 8);
     }

@@ -150,6 +150,181 @@ pub fn describe(vlrs: &[&Vlr]) -> CrsInfo {
     info
 }
 
+impl CrsInfo {
+    /// One line for people, as `mortar info` prints it: `NAD83 / UTM zone 10N (EPSG:26910, wkt)`.
+    pub fn summary(&self) -> String {
+        let vertical = self.vertical_epsg.map(|v| format!(" + EPSG:{v}")).unwrap_or_default();
+        match (&self.name, self.epsg) {
+            (Some(n), Some(e)) => format!("{n} (EPSG:{e}{vertical}, {})", self.kind),
+            (Some(n), None) => format!("{n} ({})", self.kind),
+            (None, Some(e)) => format!("EPSG:{e}{vertical} ({})", self.kind),
+            (None, None) => self.kind.clone(),
+        }
+    }
+}
+
+/// Whether a VLR or EVLR describes the coordinate reference system (`LASF_Projection`).
+pub fn is_crs_record(v: &Vlr) -> bool {
+    v.user_id_str() == "LASF_Projection"
+}
+
+/// The CRS records of one input (VLRs and EVLRs), as they will be written.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct CrsRecords {
+    pub vlrs: Vec<Vlr>,
+    pub evlrs: Vec<Vlr>,
+}
+
+impl CrsRecords {
+    /// The `LASF_Projection` records among an input's VLRs and EVLRs.
+    pub fn of(vlrs: &[Vlr], evlrs: &[Vlr]) -> CrsRecords {
+        CrsRecords {
+            vlrs: vlrs.iter().filter(|v| is_crs_record(v)).cloned().collect(),
+            evlrs: evlrs.iter().filter(|v| is_crs_record(v)).cloned().collect(),
+        }
+    }
+    pub fn is_empty(&self) -> bool {
+        self.vlrs.is_empty() && self.evlrs.is_empty()
+    }
+    pub fn describe(&self) -> CrsInfo {
+        let all: Vec<&Vlr> = self.vlrs.iter().chain(&self.evlrs).collect();
+        describe(&all)
+    }
+    /// Whether a WKT record (2112) is among them.
+    pub fn has_wkt(&self) -> bool {
+        self.vlrs.iter().chain(&self.evlrs).any(|v| v.record_id == 2112)
+    }
+    /// Whether two inputs' records say the same: the same bytes (record ids and payloads,
+    /// descriptions aside), or the same horizontal and vertical EPSG codes.
+    pub fn agrees_with(&self, o: &CrsRecords) -> bool {
+        let key = |r: &CrsRecords| {
+            let mut k: Vec<(u16, Vec<u8>)> = r.vlrs.iter().chain(&r.evlrs).map(|v| (v.record_id, v.data.clone())).collect();
+            k.sort();
+            k
+        };
+        if key(self) == key(o) {
+            return true;
+        }
+        let (a, b) = (self.describe(), o.describe());
+        if let (Some(x), Some(y)) = (&a.wkt, &b.wkt) {
+            if canonical_wkt(x) == canonical_wkt(y) {
+                return true;
+            }
+        }
+        a.epsg.is_some() && a.epsg == b.epsg && a.vertical_epsg == b.vertical_epsg
+    }
+}
+
+/// WKT without whitespace and without `AUTHORITY[...]`/`ID[...]` nodes, so that the same CRS
+/// written with and without authority codes compares equal.
+fn canonical_wkt(w: &str) -> String {
+    let mut out = String::with_capacity(w.len());
+    let b = w.as_bytes();
+    let mut i = 0;
+    while i < b.len() {
+        let rest = &w[i..];
+        if rest.starts_with(",AUTHORITY[") || rest.starts_with(",ID[") {
+            let mut depth = 0;
+            while i < b.len() {
+                match b[i] {
+                    b'[' => depth += 1,
+                    b']' => {
+                        depth -= 1;
+                        if depth == 0 {
+                            i += 1;
+                            break;
+                        }
+                    }
+                    _ => {}
+                }
+                i += 1;
+            }
+            continue;
+        }
+        if !b[i].is_ascii_whitespace() {
+            out.push(b[i] as char);
+        }
+        i += 1;
+    }
+    out
+}
+
+/// What `--assign-crs` gives: the CRS records of a LAS/LAZ file, or an EPSG code (with an
+/// optional vertical code: `EPSG:26910+5703`).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum AssignCrs {
+    File(std::path::PathBuf),
+    Epsg { horizontal: u32, vertical: Option<u32> },
+}
+
+impl AssignCrs {
+    /// `EPSG:n`, `EPSG:n+v` (any case), or a path.
+    pub fn parse(s: &str) -> Result<AssignCrs, String> {
+        let t = s.trim();
+        if t.len() > 5 && t[..5].eq_ignore_ascii_case("epsg:") {
+            let code = |c: &str| c.trim().parse::<u32>().ok().filter(|&c| c > 0 && c < 32767);
+            let mut parts = t[5..].splitn(2, '+');
+            let h = parts.next().and_then(code).ok_or_else(|| format!("'{s}': not an EPSG code (try EPSG:26910)"))?;
+            let v = match parts.next() {
+                Some(v) => Some(code(v).ok_or_else(|| format!("'{s}': not a vertical EPSG code (try EPSG:26910+5703)"))?),
+                None => None,
+            };
+            return Ok(AssignCrs::Epsg { horizontal: h, vertical: v });
+        }
+        if t.is_empty() {
+            return Err("--assign-crs needs a LAS/LAZ file or EPSG:CODE".into());
+        }
+        Ok(AssignCrs::File(t.into()))
+    }
+}
+
+/// Whether an EPSG code is a geographic 2D/3D CRS (degrees) rather than a projected one, as far
+/// as mortar can tell without the EPSG database: the 4000-4999 block is geographic, except the
+/// geocentric codes in it, which GeoTIFF 1.0 keys cannot express.
+fn epsg_kind(code: u32) -> Result<bool, String> {
+    const GEOCENTRIC: [u32; 6] = [4328, 4330, 4338, 4340, 4936, 4978];
+    if GEOCENTRIC.contains(&code) {
+        return Err(format!("EPSG:{code} is geocentric, which GeoTIFF keys cannot name; give --assign-crs a LAS file that carries it as WKT"));
+    }
+    Ok((4000..5000).contains(&code))
+}
+
+/// GeoTIFF key directory records (LASF_Projection 34735, and 34737 with a citation) for an EPSG
+/// code: GTModelTypeGeoKey (1 projected, 2 geographic), GTRasterTypeGeoKey (1, pixel is area),
+/// ProjectedCSTypeGeoKey or GeographicTypeGeoKey, VerticalCSTypeGeoKey when given. mortar has
+/// no EPSG database, so it cannot write the WKT that LAS 1.4 formats 6-10 ask for.
+pub fn epsg_records(horizontal: u32, vertical: Option<u32>) -> Result<CrsRecords, String> {
+    let geographic = epsg_kind(horizontal)?;
+    // a citation only where mortar knows the name (readers show it; a bare code says nothing new)
+    let citation = epsg_name(horizontal).map(|n| format!("{n}|"));
+    let mut keys: Vec<[u16; 4]> = vec![[1024, 0, 1, if geographic { 2 } else { 1 }], [1025, 0, 1, 1]];
+    if let Some(c) = &citation {
+        keys.push([1026, 34737, c.len() as u16, 0]);
+    }
+    keys.push([if geographic { 2048 } else { 3072 }, 0, 1, horizontal as u16]);
+    if let Some(v) = vertical {
+        keys.push([4096, 0, 1, v as u16]);
+    }
+    let mut words: Vec<u16> = vec![1, 1, 0, keys.len() as u16];
+    for k in &keys {
+        words.extend_from_slice(k);
+    }
+    let rec = |id: u16, data: Vec<u8>, desc: &str| {
+        let mut user_id = [0u8; 16];
+        user_id[..15].copy_from_slice(b"LASF_Projection");
+        let mut description = [0u8; 32];
+        description[..desc.len()].copy_from_slice(desc.as_bytes());
+        Vlr { reserved: 0, user_id, record_id: id, description, data }
+    };
+    let mut vlrs = vec![rec(34735, words.iter().flat_map(|w| w.to_le_bytes()).collect(), "GeoTIFF GeoKeyDirectoryTag")];
+    if let Some(c) = citation {
+        let mut ascii = c.into_bytes();
+        ascii.push(0);
+        vlrs.push(rec(34737, ascii, "GeoTIFF GeoAsciiParamsTag"));
+    }
+    Ok(CrsRecords { vlrs, evlrs: Vec::new() })
+}
+
 fn wkt_name(w: &str) -> Option<String> {
     let s = w.find('"')?;
     let e = w[s + 1..].find('"')?;
@@ -215,6 +390,41 @@ mod tests {
         let i = describe(&[&vlr(2112, w.as_bytes().to_vec())]);
         assert_eq!(i.name.as_deref(), Some("NAD83 / UTM zone 10N"));
         assert_eq!(i.epsg, Some(26910));
+    }
+
+    #[test]
+    fn epsg_records_describe_their_code() {
+        let r = epsg_records(26910, Some(5703)).unwrap();
+        let i = r.describe();
+        assert_eq!(i.kind, "geotiff");
+        assert_eq!(i.epsg, Some(26910));
+        assert_eq!(i.vertical_epsg, Some(5703));
+        assert!(i.problems.is_empty(), "{:?}", i.problems);
+        let g = epsg_records(4326, None).unwrap().describe();
+        assert_eq!(g.epsg, Some(4326));
+        assert!(g.geokeys.iter().any(|k| k.id == 2048 && k.value == "4326"));
+        assert!(g.geokeys.iter().any(|k| k.id == 1024 && k.value == "2"));
+        assert!(epsg_records(4978, None).is_err());
+        assert!(r.agrees_with(&r.clone()));
+        assert!(!r.agrees_with(&epsg_records(26911, Some(5703)).unwrap()));
+    }
+
+    #[test]
+    fn the_same_wkt_with_and_without_authorities_agrees() {
+        let a = r#"PROJCS["X",GEOGCS["NAD83",SPHEROID["GRS 1980",6378137,298.257222101]],UNIT["metre",1]]"#;
+        let b = r#"PROJCS["X", GEOGCS["NAD83",SPHEROID["GRS 1980",6378137,298.257222101,AUTHORITY["EPSG","7019"]]],UNIT["metre",1,AUTHORITY["EPSG","9001"]]]"#;
+        let c = r#"PROJCS["X",GEOGCS["NAD83",SPHEROID["GRS 1980",6378137,298.3]],UNIT["metre",1]]"#;
+        let r = |w: &str| CrsRecords { vlrs: vec![vlr(2112, w.as_bytes().to_vec())], evlrs: vec![] };
+        assert!(r(a).agrees_with(&r(b)));
+        assert!(!r(a).agrees_with(&r(c)));
+    }
+
+    #[test]
+    fn assign_crs_parses() {
+        assert_eq!(AssignCrs::parse("EPSG:26910"), Ok(AssignCrs::Epsg { horizontal: 26910, vertical: None }));
+        assert_eq!(AssignCrs::parse("epsg:26910+5703"), Ok(AssignCrs::Epsg { horizontal: 26910, vertical: Some(5703) }));
+        assert!(AssignCrs::parse("EPSG:x").is_err());
+        assert_eq!(AssignCrs::parse("a.las"), Ok(AssignCrs::File("a.las".into())));
     }
 
     #[test]

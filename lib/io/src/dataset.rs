@@ -4,7 +4,8 @@ use crate::error::{Error, Result};
 use crate::las::{Header, Vlr};
 use crate::source::{LasInput, Piece};
 use mortar_core::grid::{self, Grid, GridInput, GridMap};
-use mortar_core::layout::{merge_layouts, read_xyz, write_xyz, Conversion, RecordLayout};
+use crate::crs::{epsg_records, AssignCrs, CrsRecords};
+use mortar_core::layout::{base_len, merge_layouts, read_xyz, write_xyz, Conversion, RecordLayout};
 use std::borrow::Cow;
 use std::path::{Path, PathBuf};
 
@@ -118,6 +119,11 @@ pub struct Dataset {
 impl Dataset {
     /// Merges opened inputs. Fails before any point is read when they cannot be merged exactly.
     pub fn new(inputs: Vec<Box<dyn RecordSource>>) -> Result<Dataset> {
+        Self::with_options(inputs, &OpenOptions::default())
+    }
+
+    /// [`new`](Self::new) with the user's choices (the CRS to assign).
+    pub fn with_options(inputs: Vec<Box<dyn RecordSource>>, opts: &OpenOptions) -> Result<Dataset> {
         if inputs.is_empty() {
             return Err(Error::Usage("no input given".into()));
         }
@@ -130,7 +136,7 @@ impl Dataset {
         })?;
         if conversions.iter().any(|c| c.is_some()) {
             warnings.push(format!(
-                "inputs have point formats {}; merged into point format {} (missing fields are zero)",
+                "inputs have point formats {}; merged into point format {} (missing fields are zero; legacy fields mapped as docs/formats.md says)",
                 layouts.iter().map(|l| l.format.to_string()).collect::<Vec<_>>().join(", "),
                 layout.format
             ));
@@ -171,23 +177,80 @@ impl Dataset {
                 grid.scale, grid.offset
             ));
         }
-        let template = first.header().clone();
-        let vlrs = first.vlrs().to_vec();
-        let evlrs = first.evlrs().to_vec();
-        for i in &inputs[1..] {
-            if i.vlrs().iter().filter(|v| is_crs(v)).ne(vlrs.iter().filter(|v| is_crs(v))) {
-                warnings.push(format!(
-                    "{}: its CRS records differ from those of {}; the output keeps the first input's",
-                    i.path().display(),
-                    first.path().display()
-                ));
+        // The template header (version, ids, software, non-CRS VLRs): the first input whose
+        // format family the merged layout has, so that a LAS 1.4 result gets a LAS 1.4 header.
+        let t = inputs.iter().position(|i| i.layout().family() == layout.family()).unwrap_or(0);
+        let tin = &inputs[t];
+        let mut template = tin.header().clone();
+        template.point_format = layout.format;
+        template.record_len = layout.record_len as u16;
+        check_extra_bytes(&inputs, layout.record_len - base_len(layout.format).unwrap_or(layout.record_len))?;
+        check_gps_time_kind(&inputs, &layout, &mut warnings);
+        let crs = choose_crs(&inputs, opts, &mut warnings)?;
+        let (mut vlrs, mut evlrs) = (tin.vlrs().to_vec(), tin.evlrs().to_vec());
+        let mut dropped = Vec::new();
+        for i in &inputs {
+            for (v, ext) in i.vlrs().iter().map(|v| (v, false)).chain(i.evlrs().iter().map(|v| (v, true))) {
+                if let Some(why) = offset_dependent(v) {
+                    let d = format!("{}{} {} ({why})", if ext { "EVLR " } else { "VLR " }, v.user_id_str(), v.record_id);
+                    if !dropped.contains(&d) {
+                        dropped.push(d);
+                    }
+                }
             }
+        }
+        // The template input's own CRS records stay where they are; others replace them.
+        let own = crs.as_ref().is_some_and(|c| *c == CrsRecords::of(tin.vlrs(), tin.evlrs()));
+        vlrs.retain(|v| offset_dependent(v).is_none() && (own || !crate::crs::is_crs_record(v)));
+        evlrs.retain(|v| offset_dependent(v).is_none() && (own || !crate::crs::is_crs_record(v)));
+        if !dropped.is_empty() {
+            warnings.push(format!(
+                "dropped records that point into the input's byte layout and would be wrong in the output (docs/formats.md): {}",
+                dropped.join(", ")
+            ));
+        }
+        // The header's waveform pointer is a byte offset: writers set it where they put the
+        // waveform data EVLR; internal waveform data that is not an EVLR (LAS 1.3) is not carried.
+        template.waveform_start = 0;
+        if template.global_encoding & 0x2 != 0 && !evlrs.iter().any(is_waveform_data) {
+            template.global_encoding &= !0x2;
+            warnings.push(format!(
+                "{}: its waveform data is internal but not an EVLR mortar can carry; the output's waveform packets point nowhere",
+                tin.path().display()
+            ));
+        }
+        match &crs {
+            Some(c) if !own => {
+                vlrs.extend(c.vlrs.iter().cloned());
+                if template.version.1 >= 4 {
+                    evlrs.extend(c.evlrs.iter().cloned());
+                } else {
+                    vlrs.extend(c.evlrs.iter().filter(|v| v.data.len() <= u16::MAX as usize).cloned());
+                }
+                if c.has_wkt() {
+                    template.global_encoding |= 0x10;
+                } else {
+                    template.global_encoding &= !0x10;
+                }
+            }
+            _ => {}
+        }
+        let converted = conversions.iter().flatten().any(|c| c.legacy_to_extended);
+        if layout.format >= 6 && crs.as_ref().is_some_and(|c| !c.has_wkt()) && (converted || !own) {
+            warnings.push(
+                "the output's CRS is GeoTIFF keys, but LAS 1.4 point formats 6-10 ask for WKT (readers may ignore the keys; give --assign-crs a LAS file with WKT)".into(),
+            );
         }
         Ok(Dataset { inputs, grid, maps, layout, conversions, template, vlrs, evlrs, warnings })
     }
 
     /// Opens LAS/LAZ files and batch files and merges them; warnings about each file come first.
     pub fn open(paths: &[PathBuf]) -> Result<Dataset> {
+        Self::open_with(paths, &OpenOptions::default())
+    }
+
+    /// [`open`](Self::open) with the user's choices.
+    pub fn open_with(paths: &[PathBuf], opts: &OpenOptions) -> Result<Dataset> {
         let mut warnings = Vec::new();
         let mut inputs: Vec<Box<dyn RecordSource>> = Vec::new();
         for p in paths {
@@ -203,7 +266,7 @@ impl Dataset {
             warnings.extend(i.meta.warnings.iter().map(|w| format!("{}: {w}", p.display())));
             inputs.push(Box::new(i));
         }
-        let mut ds = Dataset::new(inputs)?;
+        let mut ds = Dataset::with_options(inputs, opts)?;
         warnings.append(&mut ds.warnings);
         ds.warnings = warnings;
         Ok(ds)
@@ -218,6 +281,36 @@ impl Dataset {
             layout: self.layout.clone(),
             grid: self.grid,
         }
+    }
+
+    /// A warning when the points' return counts (`counted`, return 1 first) differ from the sum
+    /// of what the inputs' headers declare; `None` when they agree or no header declares any.
+    /// Headers before LAS 1.4 declare returns 1-5 only, so only those are compared then.
+    pub fn points_by_return_disagreement(&self, counted: &[u64; 15]) -> Option<String> {
+        let mut declared = [0u64; 15];
+        for i in &self.inputs {
+            for (d, c) in declared.iter_mut().zip(i.header().points_by_return) {
+                *d += c;
+            }
+        }
+        if declared.iter().all(|&d| d == 0) {
+            return None;
+        }
+        let n = if self.inputs.iter().any(|i| i.header().version.1 < 4) { 5 } else { 15 };
+        if declared[..n] == counted[..n] {
+            return None;
+        }
+        let show = |v: &[u64]| {
+            let last = v.iter().rposition(|&c| c > 0).map_or(1, |p| p + 1);
+            v[..last].iter().map(|c| c.to_string()).collect::<Vec<_>>().join(" ")
+        };
+        Some(format!(
+            "the input header{} declare{} points by return {} but the points have {}; the output's header has the counted ones",
+            if self.inputs.len() > 1 { "s" } else { "" },
+            if self.inputs.len() > 1 { "" } else { "s" },
+            show(&declared[..n]),
+            show(&counted[..n])
+        ))
     }
 
     /// Points the headers declare in total.
@@ -294,5 +387,138 @@ impl Dataset {
 
 /// Whether a VLR describes the coordinate reference system.
 pub fn is_crs(v: &Vlr) -> bool {
-    v.user_id_str() == "LASF_Projection"
+    crate::crs::is_crs_record(v)
+}
+
+/// The user's choices when inputs are merged.
+#[derive(Clone, Debug, Default)]
+pub struct OpenOptions {
+    /// The CRS of the output whatever the inputs say (`--assign-crs`).
+    pub assign_crs: Option<AssignCrs>,
+}
+
+/// Whether a VLR/EVLR is the waveform data packets record (`LASF_Spec` 65535).
+pub fn is_waveform_data(v: &Vlr) -> bool {
+    v.user_id_str() == "LASF_Spec" && v.record_id == 65535
+}
+
+/// Why a VLR/EVLR cannot be copied into an output that mortar writes (its points reordered and
+/// re-encoded, its records at other byte offsets), or `None` if it can (docs/formats.md):
+/// - `copc` (every record id: 1 info, 1000 hierarchy, ...): byte offsets and point counts of
+///   the COPC chunks; a copy would make the output claim to be COPC with a hierarchy pointing
+///   into the middle of its point data;
+/// - `LAStools` 30 (the spatial index of a `.lax` file stored in the LAS file): intervals of
+///   point indices in the original point order;
+/// - `laszip encoded` 22204: describes the input's compression (writers add their own).
+///
+/// Kept: CRS records, extra bytes descriptions, LAStools' tiling (10) and original-header (20)
+/// records (no offsets), waveform packet descriptors (`LASF_Spec`
+/// 100-354: sampling parameters), and the waveform data EVLR (`LASF_Spec` 65535): the points'
+/// waveform offsets are relative to that record, so a byte-for-byte copy stays valid and the
+/// writers point the header at it.
+pub fn offset_dependent(v: &Vlr) -> Option<&'static str> {
+    match (v.user_id_str().as_str(), v.record_id) {
+        ("copc", 1) => Some("COPC info"),
+        ("copc", 1000) => Some("COPC hierarchy"),
+        ("copc", _) => Some("COPC"),
+        ("LAStools", 30) => Some("LAStools spatial index"),
+        ("laszip encoded", 22204) => Some("LASzip compression of the input"),
+        _ => None,
+    }
+}
+
+/// Refuses inputs whose extra bytes are described differently (the merged records keep one
+/// description: the extra bytes VLR `LASF_Spec` 4 of the first input that has one).
+fn check_extra_bytes(inputs: &[Box<dyn RecordSource>], extra: usize) -> Result<()> {
+    if extra == 0 || inputs.len() < 2 {
+        return Ok(());
+    }
+    let desc = |i: &dyn RecordSource| i.vlrs().iter().find(|v| v.user_id_str() == "LASF_Spec" && v.record_id == 4).map(|v| v.data.clone());
+    let first = desc(inputs[0].as_ref());
+    for i in &inputs[1..] {
+        if desc(i.as_ref()) != first {
+            return Err(Error::input(
+                i.path(),
+                format!("its {extra} extra bytes per point are described differently from those of {}; they cannot be merged", inputs[0].path().display()),
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// Warns when inputs with GPS time disagree on its kind (global encoding bit 0: GPS week time
+/// or adjusted standard GPS time): the merged values are then not comparable.
+fn check_gps_time_kind(inputs: &[Box<dyn RecordSource>], layout: &RecordLayout, warnings: &mut Vec<String>) {
+    if !layout.has_gps_time() {
+        return;
+    }
+    let with: Vec<&Box<dyn RecordSource>> = inputs.iter().filter(|i| i.layout().has_gps_time()).collect();
+    if let Some(odd) = with.iter().find(|i| (i.header().global_encoding & 1) != (with[0].header().global_encoding & 1)) {
+        warnings.push(format!(
+            "{} has {} but {} has {}; the merged GPS times mix both",
+            with[0].path().display(),
+            gps_kind(with[0].header().global_encoding),
+            odd.path().display(),
+            gps_kind(odd.header().global_encoding)
+        ));
+    }
+}
+
+fn gps_kind(global_encoding: u16) -> &'static str {
+    if global_encoding & 1 != 0 {
+        "adjusted standard GPS time"
+    } else {
+        "GPS week time"
+    }
+}
+
+/// The CRS records of the output: the assigned one, else the one CRS the inputs agree on.
+/// Inputs whose CRSs disagree are refused (naming two of them); inputs without a CRS beside
+/// inputs with one take that CRS with a warning.
+fn choose_crs(inputs: &[Box<dyn RecordSource>], opts: &OpenOptions, warnings: &mut Vec<String>) -> Result<Option<CrsRecords>> {
+    match &opts.assign_crs {
+        Some(AssignCrs::File(p)) => {
+            let f = LasInput::open(p).map_err(|e| match e {
+                Error::Input { path, problem } => Error::input(path, format!("--assign-crs: {problem}")),
+                e => e,
+            })?;
+            let c = CrsRecords::of(&f.meta.vlrs, &f.meta.evlrs);
+            if c.is_empty() {
+                return Err(Error::input(p, "--assign-crs: this file has no CRS records (LASF_Projection VLRs)"));
+            }
+            return Ok(Some(c));
+        }
+        Some(AssignCrs::Epsg { horizontal, vertical }) => {
+            return epsg_records(*horizontal, *vertical).map(Some).map_err(|e| Error::Usage(format!("--assign-crs: {e}")));
+        }
+        None => {}
+    }
+    let all: Vec<CrsRecords> = inputs.iter().map(|i| CrsRecords::of(i.vlrs(), i.evlrs())).collect();
+    let Some(k) = all.iter().position(|c| !c.is_empty()) else {
+        return Ok(None);
+    };
+    for (j, c) in all.iter().enumerate() {
+        if !c.is_empty() && !c.agrees_with(&all[k]) {
+            return Err(Error::input(
+                inputs[j].path(),
+                format!(
+                    "its CRS, {}, differs from that of {}, {}; refusing to merge them (reproject one, or choose with --assign-crs FILE|EPSG:CODE)",
+                    c.describe().summary(),
+                    inputs[k].path().display(),
+                    all[k].describe().summary()
+                ),
+            ));
+        }
+    }
+    let without: Vec<usize> = (0..inputs.len()).filter(|&j| all[j].is_empty()).collect();
+    if let Some(&j) = without.first() {
+        warnings.push(format!(
+            "{}{} no CRS; the output takes that of {}, {}",
+            inputs[j].path().display(),
+            if without.len() > 1 { format!(" and {} other inputs have", without.len() - 1) } else { " has".into() },
+            inputs[k].path().display(),
+            all[k].describe().summary()
+        ));
+    }
+    Ok(Some(all[k].clone()))
 }

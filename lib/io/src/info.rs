@@ -139,6 +139,34 @@ pub struct FileInfo {
     pub warnings: Vec<String>,
 }
 
+/// Decimals of a coordinate on a grid of step `scale`: the fewest (at most 12) that write every
+/// multiple of it exactly, e.g. 2 for 0.01, 3 for 0.025, 0 for 1.
+pub fn grid_decimals(scale: f64) -> usize {
+    (0..12).find(|&d| {
+        let m = scale * 10f64.powi(d as i32);
+        (m - m.round()).abs() <= 1e-9 * m.abs().max(1.0)
+    })
+    .unwrap_or(12)
+}
+
+/// `v` rounded to `decimals` decimals (the nearest f64, which prints with at most that many).
+pub fn round_to(v: f64, decimals: usize) -> f64 {
+    if !v.is_finite() {
+        return v;
+    }
+    let r: f64 = format!("{v:.decimals$}").parse().unwrap_or(v);
+    r
+}
+
+/// Bounds with each axis rounded to the decimals of its scale.
+fn on_grid(min: [f64; 3], max: [f64; 3], scale: [f64; 3]) -> Bounds {
+    let d = |a: usize| grid_decimals(scale[a]);
+    Bounds {
+        min: [round_to(min[0], d(0)), round_to(min[1], d(1)), round_to(min[2], d(2))],
+        max: [round_to(max[0], d(0)), round_to(max[1], d(1)), round_to(max[2], d(2))],
+    }
+}
+
 fn vlr_info(v: &Vlr) -> VlrInfo {
     VlrInfo { user_id: v.user_id_str(), record_id: v.record_id, description: v.description_str(), length: v.data.len() }
 }
@@ -181,7 +209,7 @@ pub fn describe(src: &dyn RecordSource, kind: &str, stats: bool, batch: Option<&
         points_by_return: h.points_by_return.to_vec(),
         scale: h.scale,
         offset: h.offset,
-        header_bounds: Bounds { min: h.min, max: h.max },
+        header_bounds: on_grid(h.min, h.max, h.scale),
         system_identifier: c_str(&h.system_identifier),
         generating_software: c_str(&h.generating_software),
         creation_day: h.creation_day,
@@ -201,8 +229,9 @@ pub fn describe(src: &dyn RecordSource, kind: &str, stats: bool, batch: Option<&
         let tol = |a: usize| h.scale[a] * 0.5 + 1e-9;
         for a in 0..3 {
             if s.point_count > 0 && ((s.bounds.min[a] - h.min[a]).abs() > tol(a) || (s.bounds.max[a] - h.max[a]).abs() > tol(a)) {
+                let d = grid_decimals(h.scale[a]);
                 info.warnings.push(format!(
-                    "header bounds on {} are [{}, {}] but the points span [{}, {}]",
+                    "header bounds on {} are [{:.d$}, {:.d$}] but the points span [{:.d$}, {:.d$}]",
                     ["x", "y", "z"][a],
                     h.min[a],
                     h.max[a],
@@ -235,6 +264,23 @@ fn batch_info(b: &BatchFile) -> BatchInfo {
         dropped_attributes: b.meta.dropped.clone(),
         color_source: b.meta.color.source.clone(),
         rgb_bits: b.meta.color.rgb_bits,
+    }
+}
+
+#[cfg(test)]
+mod grid_tests {
+    use super::*;
+
+    #[test]
+    fn coordinates_print_on_the_grid() {
+        assert_eq!(grid_decimals(0.01), 2);
+        assert_eq!(grid_decimals(0.001), 3);
+        assert_eq!(grid_decimals(0.025), 3);
+        assert_eq!(grid_decimals(1.0), 0);
+        assert_eq!(grid_decimals(1e-7), 7);
+        assert_eq!(round_to(848935.2000000001, 2), 848935.2);
+        assert_eq!(round_to(848935.2000000001, 2).to_string(), "848935.2");
+        assert_eq!(round_to(-0.004, 2), -0.0);
     }
 }
 
@@ -352,10 +398,11 @@ fn full_stats(src: &dyn RecordSource) -> Result<Stats> {
     let bounds = if acc.n == 0 {
         Bounds { min: [0.0; 3], max: [0.0; 3] }
     } else {
-        Bounds {
-            min: [w(0, acc.min[0]), w(1, acc.min[1]), w(2, acc.min[2])],
-            max: [w(0, acc.max[0]), w(1, acc.max[1]), w(2, acc.max[2])],
-        }
+        on_grid(
+            [w(0, acc.min[0]), w(1, acc.min[1]), w(2, acc.min[2])],
+            [w(0, acc.max[0]), w(1, acc.max[1]), w(2, acc.max[2])],
+            h.scale,
+        )
     };
     Ok(Stats {
         point_count: acc.n,

@@ -88,8 +88,21 @@ impl LasSink {
             vlrs.push(Vlr { reserved: 0, user_id, record_id: 22204, description, data });
         }
         let world = |a: usize, v: i32| g.offset[a] + g.scale[a] * v as f64;
+        // internal waveform data travels as its EVLR: the header points at that record
+        let mut template = self.t.header.clone();
+        template.waveform_start = 0;
+        if evlr_start > 0 && template.global_encoding & 0x2 != 0 {
+            let mut at = evlr_start;
+            for v in &self.t.evlrs {
+                if crate::dataset::is_waveform_data(v) {
+                    template.waveform_start = at;
+                    break;
+                }
+                at += 60 + v.data.len() as u64;
+            }
+        }
         let h = HeaderOut {
-            template: &self.t.header,
+            template: &template,
             point_format: self.t.layout.format,
             compressed: self.compressed,
             record_len: self.t.layout.record_len as u16,

@@ -420,6 +420,11 @@ fn read_chunk_table(
         let tail = i64::from_le_bytes(b[data_end - 8..data_end].try_into().unwrap());
         if tail > start as i64 && (tail as u64) + 8 <= data_end as u64 {
             table_at = tail;
+        } else if table_at > start as i64 && table_at as u64 + 8 > b.len() as u64 && point_count > 0 {
+            return Err(format!(
+                "the LAZ chunk table should be at byte {table_at} but the file ends at byte {}: truncated (the header says {point_count} points)",
+                b.len()
+            ));
         } else {
             return Ok(None);
         }
