@@ -327,6 +327,7 @@ impl LasInput {
             Kind::LazSequential { vlr, start } => {
                 let mut out = Vec::new();
                 let src = std::io::Cursor::new(&self.bytes[*start..]);
+                check_sequential_table(&self.bytes[*start..]).map_err(|m| Error::input(&self.path, m))?;
                 let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| -> std::result::Result<(), String> {
                     let mut d = laz::LasZipDecompressor::new(src, vlr.clone()).map_err(|e| e.to_string())?;
                     // grow as points decode, never by the header's claim alone
@@ -403,6 +404,29 @@ fn check_layer_sizes(vlr: &laz::LazVlr, chunk: &[u8]) -> std::result::Result<(),
     Ok(())
 }
 
+/// Checks what laz's sequential decompressor reads as a chunk table in `data` (the point data
+/// onwards, as its source sees it): it looks for one itself, at the offset in the first 8 bytes
+/// or in the last 8, and allocates the chunk count it finds there before reading the entries. A
+/// count the bytes after it cannot hold is refused (fuzz regression laz-sequential-table: 11 GB
+/// asked for by a 2 KB file).
+fn check_sequential_table(data: &[u8]) -> std::result::Result<(), String> {
+    let at = |i: usize| data.get(i..i + 8).map(|x| i64::from_le_bytes(x.try_into().unwrap()));
+    let Some(mut off) = at(0) else { return Ok(()) };
+    if off <= 0 {
+        match at(data.len().saturating_sub(8)) {
+            Some(t) if t > 0 => off = t,
+            _ => return Ok(()),
+        }
+    }
+    let Some(head) = usize::try_from(off).ok().and_then(|o| data.get(o..o.checked_add(8)?)) else { return Ok(()) };
+    let count = u32::from_le_bytes(head[4..8].try_into().unwrap()) as u64;
+    let room = (data.len() - off as usize - 8) as u64;
+    if count > room.saturating_mul(8).min(1 << 26) {
+        return Err(format!("LAZ chunk table claims {count} chunks in {room} bytes (corrupt chunk table)"));
+    }
+    Ok(())
+}
+
 /// Reads and checks the LAZ chunk table; `Ok(None)` when the file has none.
 fn read_chunk_table(
     b: &[u8],
@@ -455,7 +479,7 @@ fn read_chunk_table(
         if points > MAX_LAZ_CHUNK_POINTS {
             return Err(format!("LAZ chunk {i} claims {points} points, more than mortar accepts per chunk"));
         }
-        if offset + e.byte_count > table_at as u64 {
+        if offset.checked_add(e.byte_count).is_none_or(|end| end > table_at as u64) {
             return Err(format!("LAZ chunk {i} runs past the chunk table (corrupt chunk table)"));
         }
         chunks.push(LazChunk { offset: offset as usize, len: e.byte_count as usize, points });

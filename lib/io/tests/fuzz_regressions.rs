@@ -107,6 +107,23 @@ fn key_name_deep_level() {
     targets::store(&b);
 }
 
+/// A LAZ file without a usable chunk table (read sequentially) whose data ends in an offset to
+/// a "table" claiming 2^28 chunks: laz's sequential decompressor allocated 11 GB for it (16-core
+/// fuzz run, issue 12). Now the count is checked against the bytes first.
+#[test]
+fn laz_sequential_table() {
+    let b = regression("las_input", "laz-sequential-table");
+    targets::las_input(&b);
+}
+
+/// A chunk table entry whose byte count makes the running offset overflow (a panic in debug
+/// builds, a wrapped offset that passed the bounds check in release builds). Now refused.
+#[test]
+fn laz_chunk_offset_overflow() {
+    let b = regression("las_input", "laz-chunk-offset-overflow");
+    targets::las_input(&b);
+}
+
 /// A LAS 1.4 LAZ chunk whose layer sizes claim 2 GiB: laz-rs allocated that before reading.
 /// Now the sizes are checked against the chunk's bytes first.
 #[test]
