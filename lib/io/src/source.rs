@@ -171,12 +171,11 @@ impl LasInput {
                 return Err(err("point format is marked compressed but the file has no LASzip VLR".into()));
             };
             let vlr = laz::LazVlr::from_buffer(&lv.data).map_err(|e| err(format!("LASzip VLR is invalid: {e}")))?;
-            if vlr.items_size() != h.record_len as u64 {
-                return Err(err(format!(
-                    "LASzip VLR describes {}-byte points but the header says {}",
-                    vlr.items_size(),
-                    h.record_len
-                )));
+            // Summed here in u64: laz sums the item sizes in u16 (an overflow panic in debug
+            // builds, a wrapped size in release; fuzz regression laz-item-sizes-overflow).
+            let items_size: u64 = vlr.items().iter().map(|i| u64::from(i.size())).sum();
+            if items_size != h.record_len as u64 {
+                return Err(err(format!("LASzip VLR describes {items_size}-byte points but the header says {}", h.record_len)));
             }
             // Reject unknown items up front (decoding them would fail or panic mid-way).
             if let Err(e) = check_laz_items(&vlr) {

@@ -124,6 +124,13 @@ fn laz_chunk_offset_overflow() {
     targets::las_input(&b);
 }
 
+/// A LASzip VLR whose item sizes sum past 65,535: laz sums them in u16 (overflow).
+#[test]
+fn laz_item_sizes_overflow() {
+    let b = regression("las_input", "laz-item-sizes-overflow");
+    targets::las_input(&b);
+}
+
 /// A LAS 1.4 LAZ chunk whose layer sizes claim 2 GiB: laz-rs allocated that before reading.
 /// Now the sizes are checked against the chunk's bytes first.
 #[test]
