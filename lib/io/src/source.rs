@@ -19,6 +19,11 @@ pub const LAS_PIECE_POINTS: u64 = 1 << 20;
 /// Largest LAZ chunk mortar decodes (points); real files use 50,000.
 pub const MAX_LAZ_CHUNK_POINTS: u64 = 1 << 24;
 
+/// Most points a LAZ chunk may claim per compressed byte: what bounds the buffer a chunk
+/// decodes into (100 points per byte is a compression ratio over 3,000:1 for 34-byte records;
+/// real scans compress 5-15:1).
+pub const MAX_LAZ_POINTS_PER_BYTE: u64 = 100;
+
 /// The bytes of an input: a memory map, or a buffer (stdin).
 pub enum Bytes {
     Map(Mmap),
@@ -196,7 +201,7 @@ impl LasInput {
                         return Err(err("LAZ file uses variable-size chunks but has no chunk table".into()));
                     }
                     if point_count > 0 {
-                        let max = (data_end - start) as u64 * 1000;
+                        let max = (data_end - start) as u64 * MAX_LAZ_POINTS_PER_BYTE;
                         if point_count > max {
                             return Err(err(format!("header claims {point_count} points, implausible for {} bytes of LAZ data", data_end - start)));
                         }
@@ -477,6 +482,11 @@ fn read_chunk_table(
         };
         if points > MAX_LAZ_CHUNK_POINTS {
             return Err(format!("LAZ chunk {i} claims {points} points, more than mortar accepts per chunk"));
+        }
+        // The decoded chunk is allocated from this claim: bound it by the chunk's bytes (fuzz
+        // regression laz-chunk-points).
+        if points > e.byte_count.saturating_mul(MAX_LAZ_POINTS_PER_BYTE).max(1) {
+            return Err(format!("LAZ chunk {i} claims {points} points in {} bytes (corrupt chunk table)", e.byte_count));
         }
         if offset.checked_add(e.byte_count).is_none_or(|end| end > table_at as u64) {
             return Err(format!("LAZ chunk {i} runs past the chunk table (corrupt chunk table)"));
