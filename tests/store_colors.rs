@@ -69,7 +69,8 @@ fn intensity_only_stores_look_like_their_raw_render() {
     let dir = tempdir("store-intensity");
     // Median intensity ~45, one point in 500 at 62,000 (the outliers that darkened the baked
     // colours), and a file of all-zero intensity.
-    let cases: [(&str, Box<dyn Fn(usize) -> u16>); 2] =
+    type Intensity = Box<dyn Fn(usize) -> u16>;
+    let cases: [(&str, Intensity); 2] =
         [("outliers.las", Box::new(|i| if i % 500 == 7 { 62_000 } else { 30 + ((i * 7919) % 31) as u16 })), ("zero.las", Box::new(|_| 0))];
     for (name, f) in cases {
         let las = dir.join(name);

@@ -139,7 +139,8 @@ fn store_round_trip_is_exact_on_merged_real_tiles() {
 fn a_header_narrower_than_its_points_grows_the_root() {
     let dir = tempdir("exact-grow");
     let a = sample_las(&dir);
-    let cases: Vec<(&str, Box<dyn Fn(&mut Vec<u8>)>)> = vec![
+    type Lie = Box<dyn Fn(&mut Vec<u8>)>;
+    let cases: Vec<(&str, Lie)> = vec![
         // max Z (211) lowered by 5 m, min Z (219) raised by 3 m
         ("z-short.las", Box::new(|b: &mut Vec<u8>| {
             let (hi, lo) = (f64_at(b, 211), f64_at(b, 219));

@@ -360,7 +360,7 @@ impl StoreWriter {
     /// `PAGED | index` of its record there.
     pub fn page_in(&self, id: usize, count: Option<u64>, records: &std::sync::Mutex<Vec<u8>>) -> Result<Vec<Point>> {
         let buf = self.read_payload(id, count)?;
-        let leaf = DecodedLeaf::parse(&buf).map_err(|m| Error::input(&self.dir.join(NODES_FILE), format!("node {id}: {m}")))?;
+        let leaf = DecodedLeaf::parse(&buf).map_err(|m| Error::input(self.dir.join(NODES_FILE), format!("node {id}: {m}")))?;
         let rl = self.record_len;
         let mut recs = vec![0u8; leaf.count * rl];
         for (i, r) in recs.chunks_exact_mut(rl).enumerate() {

@@ -487,7 +487,7 @@ mod tests {
         sample_at(&v, [100, 0, 0], 3);
         sample_at(&v, [0, 0, 0], 4);
         assert_eq!(v.publish(&at), (3, 4, 4));
-        let got: Vec<([u8; 3], u32)> = v.chunks.iter().map(|x| (cell(&x), x.color)).collect();
+        let got: Vec<([u8; 3], u32)> = v.chunks.iter().map(|x| (cell(x), x.color)).collect();
         assert_eq!(got, vec![([1, 0, 0], 2), ([0, 0, 0], 4), ([100, 0, 0], 1)]);
         assert_eq!(v.publish(&at), (0, 0, 0));
     }
@@ -515,7 +515,7 @@ mod tests {
         assert_eq!(second.last().unwrap().color, 0xff00_0000);
         assert_eq!(v.chunks.len(), cells.len() as u64);
         // every cell once
-        let set: HashSet<[u8; 3]> = v.chunks.iter().map(|x| cell(&x)).collect();
+        let set: HashSet<[u8; 3]> = v.chunks.iter().map(cell).collect();
         assert_eq!(set.len(), cells.len());
         // a new voxel in a new chunk
         sample_at(&v, [127, 127, 127], 0xff00_0000);
