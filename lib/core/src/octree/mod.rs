@@ -144,6 +144,7 @@ mod chunks;
 mod cube;
 pub mod lod;
 mod snapshot;
+mod sorted;
 mod voxels;
 
 #[cfg(test)]
@@ -157,6 +158,7 @@ pub use lod::{
     DEFAULT_THRESHOLD_PX,
 };
 pub use snapshot::{NodeView, Payload, Snapshot};
+pub use sorted::{build_sorted, SortedContent, SortedNode, SortedTree};
 pub use voxels::{mean_color, AVERAGED_CHUNK, MAX_AVERAGED_SAMPLES};
 
 /// Cells per axis of an inner node's voxel grid (paper 004 §3.3).
@@ -300,4 +302,7 @@ pub enum OctreeError {
         /// Stored points the batch would spill.
         spilled: u64,
     },
+    /// A setting the chosen builder does not implement.
+    #[error("{0}")]
+    Unsupported(String),
 }

@@ -853,3 +853,114 @@ fn time_one_million_random_points() {
         }
     }
 }
+
+/// The points in full-resolution Morton order relative to `root.min` (ties by record).
+fn morton_sorted(points: &[Point], root: Cube) -> Vec<Point> {
+    let mut s = points.to_vec();
+    // The octant of a cube is x | y << 1 | z << 2 of the offset's upper bit: z is the high bit.
+    s.sort_by_key(|p| {
+        let o = [0, 1, 2].map(|a| (p.pos[a] as i64 - root.min[a]) as u64);
+        let mut c = 0u128;
+        for bit in (0..33).rev() {
+            c = c << 3 | (((o[2] >> bit) & 1) << 2 | ((o[1] >> bit) & 1) << 1 | ((o[0] >> bit) & 1)) as u128;
+        }
+        (c, p.record)
+    });
+    s
+}
+
+/// The tree [`build_sorted`] makes, flattened like [`flatten`] (leaf points in record order, voxels canonical).
+fn sorted_flat(points: &[Point], root: Cube, cfg: BuilderConfig) -> BTreeMap<NodeKey, Flat> {
+    let s = morton_sorted(points, root);
+    let pos: Vec<[i32; 3]> = s.iter().map(|p| p.pos).collect();
+    let tree = build_sorted(root, &pos, &|i: usize| s[i].record, cfg).unwrap();
+    // Levels in order, the root first.
+    let levels: Vec<u8> = tree.nodes.iter().map(|n| n.key.level).collect();
+    assert!(levels.windows(2).all(|w| w[0] <= w[1]));
+    assert_eq!(tree.nodes[0].key, NodeKey::ROOT);
+    let mut out = BTreeMap::new();
+    let mut sub: HashMap<NodeKey, u64> = HashMap::new();
+    for n in tree.nodes.iter().rev() {
+        let f = match &n.content {
+            SortedContent::Leaf(r) => {
+                let mut points = s[r.clone()].to_vec();
+                points.sort_by_key(|p| p.record);
+                Flat { leaf: true, cube: n.cube, subtree: points.len() as u64, points, voxels: vec![] }
+            }
+            SortedContent::Inner(v) => {
+                // Voxels are in the Morton order of their cells.
+                let cells: Vec<[u8; 3]> = v.iter().map(|&i| n.cube.voxel_of(s[i as usize].pos)).collect();
+                let mut uniq = cells.clone();
+                uniq.dedup();
+                assert_eq!(uniq.len(), cells.len(), "one voxel per cell in {}", n.key.name());
+                let subtree = (0..8).map(|o| sub[&n.key.child(o)]).sum();
+                Flat { leaf: false, cube: n.cube, points: vec![], voxels: v.iter().map(|&i| Voxel::of(&s[i as usize], s[i as usize].color)).collect(), subtree }
+            }
+        };
+        sub.insert(n.key, f.subtree);
+        out.insert(n.key, f);
+    }
+    let mut r = canon(out);
+    for f in r.values_mut() {
+        f.points.sort_by_key(|p| p.record);
+    }
+    r
+}
+
+fn reference_by_record(points: &[Point], root: Cube, cfg: BuilderConfig) -> BTreeMap<NodeKey, Flat> {
+    let mut r = reference(points, root, cfg);
+    for f in r.values_mut() {
+        f.points.sort_by_key(|p| p.record);
+    }
+    r
+}
+
+#[test]
+fn the_sorted_build_matches_the_reference() {
+    let cfg = config(300, ColorMode::FirstCome);
+    let root = Cube::new([0; 3], 16);
+    for (name, pts) in [
+        ("random", random_points(20_000, 3, [0; 3], 1 << 16)),
+        ("clustered", clustered_points(20_000, 4, 1 << 16)),
+        ("duplicates", duplicate_points(5_000, 5)),
+        ("small", random_points(200, 6, [0; 3], 1 << 16)),
+        ("empty", Vec::new()),
+    ] {
+        assert!(sorted_flat(&pts, root, cfg) == reference_by_record(&pts, root, cfg), "{name}");
+    }
+    // Against the incremental builder too, batched.
+    let pts = clustered_points(30_000, 9, 1 << 16);
+    let (b, _) = build(&pts, root, cfg, 7_000);
+    let mut inc = canon(flatten(&b.snapshot()));
+    for f in inc.values_mut() {
+        f.points.sort_by_key(|p| p.record);
+    }
+    assert!(sorted_flat(&pts, root, cfg) == inc);
+}
+
+#[test]
+fn the_sorted_build_refuses_what_it_cannot_build() {
+    let root = Cube::new([0; 3], 10);
+    let pos = vec![[5, 5, 5], [2000, 0, 0]];
+    assert!(matches!(build_sorted(root, &pos, &|i: usize| i as u64, config(1, ColorMode::FirstCome)), Err(OctreeError::PointOutsideRoot { index: 1, .. })));
+    assert!(matches!(build_sorted(root, &pos[..1], &|i: usize| i as u64, config(1, ColorMode::Averaged)), Err(OctreeError::Unsupported(_))));
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 64, ..ProptestConfig::default() })]
+    #[test]
+    fn the_sorted_build_matches_the_reference_everywhere(
+        raw in prop::collection::vec((prop::array::uniform3(0u32..4096), any::<u32>()), 0..800),
+        extent_log2 in 0u8..12,
+        cap in 1u32..40,
+        max_level in 1u8..8,
+    ) {
+        let extent = 1u32 << extent_log2;
+        let pts: Vec<Point> = raw.iter().enumerate()
+            .map(|(i, (p, c))| point(p.map(|v| (v % extent) as i32 - 50), *c, i as u64))
+            .collect();
+        let root = Cube::new([-50; 3], 12);
+        let cfg = BuilderConfig { max_level, ..config(cap, ColorMode::FirstCome) };
+        prop_assert!(sorted_flat(&pts, root, cfg) == reference_by_record(&pts, root, cfg));
+    }
+}

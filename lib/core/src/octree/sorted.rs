@@ -1,0 +1,212 @@
+//! The octree of paper 004 built in one pass over points in Morton order (the build engine of
+//! `mortar build`; ARCHITECTURE.md, "The build engine").
+//!
+//! The incremental [`Builder`](super::Builder) and this function build the same tree, because
+//! the tree is a function of the points and their arrival order alone:
+//!
+//! - a node is inner exactly when more than [`BuilderConfig::leaf_capacity`] points fall in its
+//!   cube and it may split (at least 2^[`MIN_INNER_SIZE_LOG2`] units wide, above
+//!   [`BuilderConfig::max_level`]); counts only grow, so the order in which points came does not
+//!   matter, and a split creates all 8 children;
+//! - a leaf holds every point of its cube;
+//! - an inner node's voxel for a cell of its 128³ grid is the point that arrived first in that
+//!   cell ([`ColorMode::FirstCome`]), i.e. the one with the smallest arrival number.
+//!
+//! With the points sorted by their Morton code relative to the root's corner (full resolution,
+//! ties in any order), every node's cube and every grid cell is one contiguous range of the
+//! sorted points. So the children of a node are found by binary search, and the voxels are
+//! found bottom-up: a leaf scans its points once and gives its parent, per cell of the parent's
+//! grid, the earliest point; an inner node's voxels are its children's candidates laid end to
+//! end (in Morton order), and it reduces them by eight for its own parent. The work is the
+//! number of points plus the number of voxels; sibling subtrees run in parallel (rayon).
+//!
+//! Only [`ColorMode::FirstCome`] is built here: averaged colours stop accumulating after the
+//! first 2^24 points in arrival order, which would need those points in arrival order.
+//!
+//! This is also the unit of parallel work that the distributed build hands to separate jobs: a
+//! subtree under a Morton prefix depends on the points in its cube alone.
+
+use super::cube::{Cube, NodeKey};
+use super::{BuilderConfig, ColorMode, OctreeError, GRID_LOG2, MIN_INNER_SIZE_LOG2};
+use rayon::prelude::*;
+use std::ops::Range;
+
+/// Subtrees with fewer points than this are built on the current thread.
+const PAR_MIN: usize = 1 << 14;
+
+/// One node of a [`SortedTree`].
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct SortedNode {
+    /// Where the node is.
+    pub key: NodeKey,
+    /// Its cube.
+    pub cube: Cube,
+    /// What it holds.
+    pub content: SortedContent,
+}
+
+/// What a [`SortedNode`] holds, as indices into the sorted points.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum SortedContent {
+    /// A leaf: the points `range` of the sorted order (Morton order).
+    Leaf(Range<usize>),
+    /// An inner node: one point per occupied cell of its grid, the earliest to arrive, in the
+    /// Morton order of the cells.
+    Inner(Vec<u32>),
+}
+
+impl SortedNode {
+    /// Whether the node is a leaf.
+    pub fn is_leaf(&self) -> bool {
+        matches!(self.content, SortedContent::Leaf(_))
+    }
+
+    /// Points (leaf) or voxels (inner node).
+    pub fn count(&self) -> usize {
+        match &self.content {
+            SortedContent::Leaf(r) => r.len(),
+            SortedContent::Inner(v) => v.len(),
+        }
+    }
+}
+
+/// An octree over sorted points: its nodes level by level (the root first), each level in the
+/// Morton order of its nodes.
+#[derive(Clone, Debug, Default)]
+pub struct SortedTree {
+    /// The nodes.
+    pub nodes: Vec<SortedNode>,
+}
+
+impl SortedTree {
+    /// Ranges of [`nodes`](Self::nodes) holding one level each, from the root down.
+    pub fn levels(&self) -> Vec<Range<usize>> {
+        let mut out: Vec<Range<usize>> = Vec::new();
+        for (i, n) in self.nodes.iter().enumerate() {
+            match out.last_mut() {
+                Some(r) if self.nodes[r.start].key.level == n.key.level => r.end = i + 1,
+                _ => out.push(i..i + 1),
+            }
+        }
+        out
+    }
+
+    /// Points in the leaves.
+    pub fn points(&self) -> u64 {
+        self.nodes.iter().filter(|n| n.is_leaf()).map(|n| n.count() as u64).sum()
+    }
+}
+
+/// What the function building a tree needs: the points' positions in Morton order and their
+/// arrival numbers.
+struct Ctx<'a, S> {
+    pos: &'a [[i32; 3]],
+    arrival: &'a S,
+    config: BuilderConfig,
+}
+
+/// Builds the octree over `root` of the points whose positions, sorted by their Morton code
+/// relative to `root.min` at full resolution, are `pos`; `arrival(i)` is the arrival number of
+/// sorted point `i` (unique; smaller arrived earlier). Every point must lie in `root`.
+pub fn build_sorted<S: Fn(usize) -> u64 + Sync>(root: Cube, pos: &[[i32; 3]], arrival: &S, config: BuilderConfig) -> Result<SortedTree, OctreeError> {
+    if config.leaf_capacity == 0 {
+        return Err(OctreeError::ZeroCapacity);
+    }
+    if root.size_log2 > super::MAX_ROOT_SIZE_LOG2 {
+        return Err(OctreeError::RootTooLarge { size_log2: root.size_log2 });
+    }
+    if config.color_mode != ColorMode::FirstCome {
+        return Err(OctreeError::Unsupported("the sorted build makes first-come voxels only".into()));
+    }
+    if pos.len() > u32::MAX as usize {
+        return Err(OctreeError::BatchTooLarge { points: pos.len(), spilled: 0 });
+    }
+    if let Some(index) = pos.par_iter().position_any(|p| !root.contains(*p)) {
+        return Err(OctreeError::PointOutsideRoot { index, pos: pos[index], min: root.min, size: root.size() });
+    }
+    let ctx = Ctx { pos, arrival, config };
+    let mut nodes = Vec::new();
+    subtree(&ctx, NodeKey::ROOT, root, 0..pos.len(), &mut nodes);
+    // Depth-first order within a level is the Morton order of the level's nodes.
+    nodes.sort_by_key(|n| n.key.level);
+    Ok(SortedTree { nodes })
+}
+
+/// Builds the subtree of node `key` (cube `cube`) over the sorted points `range`, appending its
+/// nodes to `out` depth first; returns, for each occupied cell of the parent's grid inside this
+/// cube (cells `2^(cube.size_log2 - 6)` wide), the earliest point, in Morton order. Nothing for
+/// the root.
+fn subtree<S: Fn(usize) -> u64 + Sync>(ctx: &Ctx<'_, S>, key: NodeKey, cube: Cube, range: Range<usize>, out: &mut Vec<SortedNode>) -> Vec<u32> {
+    let splittable = cube.size_log2 >= MIN_INNER_SIZE_LOG2 && key.level < ctx.config.max_level;
+    if range.len() as u64 <= ctx.config.leaf_capacity as u64 || !splittable {
+        let candidates = if key.level == 0 { Vec::new() } else { earliest_per_cell(ctx, cube.min, cube.size_log2 - (GRID_LOG2 - 1), range.clone().map(|i| i as u32)) };
+        out.push(SortedNode { key, cube, content: SortedContent::Leaf(range) });
+        return candidates;
+    }
+    // Children: the octant is monotone over the node's points in Morton order.
+    let mut bounds = [range.start; 9];
+    bounds[8] = range.end;
+    let pts = &ctx.pos[range.clone()];
+    for o in 1..8 {
+        bounds[o] = range.start + pts.partition_point(|p| cube.octant_of(*p) < o);
+    }
+    let child = |o: usize, out: &mut Vec<SortedNode>| subtree(ctx, key.child(o), cube.child(o), bounds[o]..bounds[o + 1], out);
+    let mut kids: Vec<(Vec<SortedNode>, Vec<u32>)> = if range.len() >= PAR_MIN {
+        (0..8)
+            .into_par_iter()
+            .map(|o| {
+                let mut v = Vec::new();
+                let c = child(o, &mut v);
+                (v, c)
+            })
+            .collect()
+    } else {
+        (0..8)
+            .map(|o| {
+                let mut v = Vec::new();
+                let c = child(o, &mut v);
+                (v, c)
+            })
+            .collect()
+    };
+    let voxels: Vec<u32> = kids.iter_mut().flat_map(|(_, c)| std::mem::take(c)).collect();
+    let candidates = if key.level == 0 { Vec::new() } else { earliest_per_cell(ctx, cube.min, cube.size_log2 - (GRID_LOG2 - 1), voxels.iter().copied()) };
+    out.push(SortedNode { key, cube, content: SortedContent::Inner(voxels) });
+    for (v, _) in kids {
+        out.extend(v);
+    }
+    candidates
+}
+
+/// Of the sorted points `items` (in Morton order, all in the cube at `min`), the earliest to
+/// arrive in each cell `2^cell_log2` units wide, in order.
+fn earliest_per_cell<S: Fn(usize) -> u64 + Sync>(ctx: &Ctx<'_, S>, min: [i64; 3], cell_log2: u8, items: impl Iterator<Item = u32>) -> Vec<u32> {
+    let cell = |i: u32| {
+        let p = ctx.pos[i as usize];
+        [0, 1, 2].map(|a| ((p[a] as i64 - min[a]) as u64) >> cell_log2)
+    };
+    let mut out = Vec::new();
+    let mut current: Option<([u64; 3], u32, u64)> = None;
+    for i in items {
+        let c = cell(i);
+        let t = (ctx.arrival)(i as usize);
+        match &mut current {
+            Some((cc, best, bt)) if *cc == c => {
+                if t < *bt {
+                    *best = i;
+                    *bt = t;
+                }
+            }
+            _ => {
+                if let Some((_, b, _)) = current {
+                    out.push(b);
+                }
+                current = Some((c, i, t));
+            }
+        }
+    }
+    if let Some((_, b, _)) = current {
+        out.push(b);
+    }
+    out
+}
