@@ -3,7 +3,7 @@
 use crate::common;
 use anyhow::Result;
 use mortar_core::octree::{BuilderConfig, ColorMode, DEFAULT_LEAF_CAPACITY};
-use mortar_io::store::{build, BuildOptions, BuildProgress};
+use mortar_io::store::{build, BuildOptions, BuildProgress, Engine};
 use std::io::IsTerminal;
 use std::path::PathBuf;
 
@@ -28,10 +28,16 @@ pub struct Args {
     /// Points per octree update.
     #[arg(long, default_value_t = 1_000_000)]
     pub batch_points: usize,
-    /// Memory budget, e.g. 2G (the default): the builder commits and pages the leaves' points
-    /// out to the store whenever the points held since the last commit exceed a third of it.
+    /// Memory budget, e.g. 2G (the default). An input that fits it is sorted in memory and the
+    /// tree made in one pass (the sorted engine); a larger one is built in batches, the builder
+    /// committing and paging the leaves' points out to the store whenever the points held since
+    /// the last commit exceed a third of it (the incremental engine).
     #[arg(long, value_parser = common::parse_size, default_value = "2G")]
     pub memory: u64,
+    /// The build engine: auto (sorted when the input fits --memory, else incremental), sorted
+    /// or incremental. Both build the same tree.
+    #[arg(long, default_value = "auto")]
+    pub engine: String,
     /// Print a JSON summary on stdout.
     #[arg(long)]
     pub json: bool,
@@ -65,6 +71,12 @@ pub fn run(a: Args) -> Result<()> {
         first_commit_after: None,
         commit_every: a.commit_every.max(0.0),
         memory: a.memory,
+        engine: match a.engine.as_str() {
+            "auto" => Engine::Auto,
+            "sorted" => Engine::Sorted,
+            "incremental" => Engine::Incremental,
+            e => anyhow::bail!("--engine {e}: give auto, sorted or incremental"),
+        },
     };
     let mut recorder = crate::build_frames::FrameRecorder::new(&a.frames, &ds, &a.output)?;
     let mut opts = opts;
@@ -133,6 +145,11 @@ pub fn run(a: Args) -> Result<()> {
             "read_seconds": r.read_seconds,
             "build_seconds": r.batch_seconds.iter().sum::<f64>(),
             "commit_seconds": r.commit_seconds,
+            "engine": r.engine,
+            "sort_seconds": r.sort_seconds,
+            "tree_seconds": r.tree_seconds,
+            "write_seconds": r.write_seconds,
+            "encode_seconds": r.encode_seconds,
             "paged_in_leaves": r.paged_in_leaves,
             "root_growths": r.root_growths,
             "warnings": r.warnings,

@@ -79,6 +79,7 @@ fn store_is_readable_at_every_commit_while_it_grows() {
         first_commit_after: None,
         commit_every: 0.0,
         memory: 1 << 30,
+        engine: mortar_io::store::Engine::Incremental,
     };
     let mut seen = Vec::new();
     let mut check = |p: &mortar_io::store::BuildProgress| {

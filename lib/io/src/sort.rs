@@ -225,24 +225,50 @@ pub fn sort(ds: &Dataset, opts: &SortOptions, sink: &mut dyn OrderedSink) -> Res
     if need > opts.memory {
         return crate::external::sort_external(ds, opts, sink);
     }
-    let pieces = ds.pieces();
     let t0 = std::time::Instant::now();
+    let rl = ds.layout.record_len;
+    let guess = declared_grid(ds);
+    let mut arena = Vec::new();
+    let (slabs, mut keys) = read_all(ds, &guess, &mut arena)?;
+    let mut total = PieceStats::default();
+    for (_, s) in &slabs {
+        total.merge(s);
+    }
+    let summary = total.summary();
+    let records: Vec<&[u8]> = slabs.iter().map(|(r, _)| &**r).collect();
+    trace("read", t0);
+    if summary.morton != guess && summary.count > 0 {
+        keys = make_keys(&records, rl, &summary.morton)?;
+        trace("keys again (header bounds differ from the points)", t0);
+    }
+    let mut keys = sort_keys(keys);
+    refine_ties(&mut keys, &records, rl, &summary.morton);
+    trace("sort", t0);
+    sink.begin(&summary)?;
+    emit(&records, &keys, ds.layout.record_len, opts.chunk_points, sink)?;
+    trace("emit", t0);
+    Ok(SortReport { summary, external: false, buckets: 1 })
+}
+
+/// Reads every piece of `ds` in parallel (LAZ decoded into `arena`, mapped LAS borrowed in
+/// place) and makes one key per point on the Morton grid `guess` while the piece is hot in
+/// cache: the pieces' records (in input order) with their statistics, and the keys in input
+/// order (`slab` = piece, `idx` = record in it).
+pub fn read_all<'a>(ds: &'a Dataset, guess: &MortonGrid, arena: &'a mut Vec<u8>) -> Result<(Vec<(Cow<'a, [u8]>, PieceStats)>, Vec<Key>)> {
+    let pieces = ds.pieces();
     ds.inputs.par_iter().for_each(|i| i.prefetch());
     let rl = ds.layout.record_len;
-    // Keys are made while each piece is hot in cache, on the grid the headers declare; if the
-    // points' real bounds give another grid, they are made again.
-    let guess = declared_grid(ds);
     let n: usize = pieces.iter().map(|p| p.piece.points as usize).sum();
     if pieces.len() > u32::MAX as usize || pieces.iter().any(|p| p.piece.points > u32::MAX as u64) {
         return Err(Error::Usage("too many points for one in-memory sort".into()));
     }
     let buffered = |p: &DatasetPiece| ds.needs_buffer(p.input);
     let arena_len: usize = pieces.iter().filter(|p| buffered(p)).map(|p| p.piece.points as usize * rl).sum();
-    let mut arena = zeroed_huge::<u8>(arena_len);
+    *arena = zeroed_huge::<u8>(arena_len);
     let mut keys = zeroed_huge::<Key>(n);
     let mut work = Vec::with_capacity(pieces.len());
     {
-        let mut rest_a: &mut [u8] = &mut arena;
+        let mut rest_a: &mut [u8] = arena;
         let mut rest_k: &mut [Key] = &mut keys;
         for (i, p) in pieces.iter().enumerate() {
             let np = p.piece.points as usize;
@@ -278,24 +304,7 @@ pub fn sort(ds: &Dataset, opts: &SortOptions, sink: &mut dyn OrderedSink) -> Res
             Ok((slab, s))
         })
         .collect::<Result<Vec<_>>>()?;
-    let mut total = PieceStats::default();
-    for (_, s) in &slabs {
-        total.merge(s);
-    }
-    let summary = total.summary();
-    let records: Vec<&[u8]> = slabs.iter().map(|(r, _)| &**r).collect();
-    trace("read", t0);
-    if summary.morton != guess && summary.count > 0 {
-        keys = make_keys(&records, rl, &summary.morton)?;
-        trace("keys again (header bounds differ from the points)", t0);
-    }
-    let mut keys = sort_keys(keys);
-    refine_ties(&mut keys, &records, rl, &summary.morton);
-    trace("sort", t0);
-    sink.begin(&summary)?;
-    emit(&records, &keys, ds.layout.record_len, opts.chunk_points, sink)?;
-    trace("emit", t0);
-    Ok(SortReport { summary, external: false, buckets: 1 })
+    Ok((slabs, keys))
 }
 
 /// The Morton grid from the bounds the headers declare.
@@ -346,7 +355,7 @@ pub fn make_keys(slabs: &[&[u8]], record_len: usize, morton: &MortonGrid) -> Res
 /// A zeroed vector of `n` elements whose pages are backed by transparent huge pages where the
 /// kernel offers them. The zero pages come from the allocator untouched, so the advice applies
 /// before the first write.
-fn zeroed_huge<T: bytemuck::Zeroable + Copy>(n: usize) -> Vec<T> {
+pub(crate) fn zeroed_huge<T: bytemuck::Zeroable + Copy>(n: usize) -> Vec<T> {
     let v: Vec<T> = bytemuck::zeroed_vec(n);
     advise_huge(v.as_ptr() as usize, n * std::mem::size_of::<T>());
     v
@@ -507,7 +516,7 @@ pub fn sort_keys(mut keys: Vec<Key>) -> Vec<Key> {
 /// Sorts one bucket whose keys are in input order and share the code bits from `bits` up: a
 /// stable LSD radix sort on the lower code bits (8 bits per pass, passes where every key has the
 /// same digit skipped), so ties keep input order without comparing it.
-fn sort_bucket(s: &mut [Key], bits: u32, scratch: &mut Vec<Key>) {
+pub(crate) fn sort_bucket(s: &mut [Key], bits: u32, scratch: &mut Vec<Key>) {
     if s.len() <= 32 {
         // insertion sort, stable
         for i in 1..s.len() {

@@ -80,7 +80,7 @@ impl StoreLod {
             let level = u8::try_from(e.level).map_err(|_| bad(format!("hierarchy.bin: node {i} has level {}", e.level)))?;
             entries.push(IndexEntry { key: NodeKey { level, index: e.index }, leaf: e.kind == LEAF, samples: e.count });
         }
-        let index = LodIndex::new(root, &entries).map_err(|e| bad(format!("hierarchy.bin: {e}")))?;
+        let index = LodIndex::new_partial(root, &entries).map_err(|e| bad(format!("hierarchy.bin: {e}")))?;
         let h = &store.meta.header;
         let grid = Grid { scale: h.scale, offset: h.offset };
         let maxima = (0..entries.len()).map(|_| OnceLock::new()).collect();

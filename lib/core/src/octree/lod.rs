@@ -445,6 +445,18 @@ impl LodIndex {
     /// index is `entries[i]`. Fails unless the entries form one octree: unique keys inside the
     /// root cube, every inner node with its 8 children, every node below the root.
     pub fn new(root: Cube, entries: &[IndexEntry]) -> Result<LodIndex, LodIndexError> {
+        Self::build(root, entries, false)
+    }
+
+    /// [`new`](Self::new) for a tree whose build is under way: an inner node none of whose
+    /// children is there yet is a frontier, drawn like a leaf (its voxels); an inner node with
+    /// some children but not all is still an error. The build engine commits the tree top down,
+    /// one level after another (ARCHITECTURE.md, "The build engine").
+    pub fn new_partial(root: Cube, entries: &[IndexEntry]) -> Result<LodIndex, LodIndexError> {
+        Self::build(root, entries, true)
+    }
+
+    fn build(root: Cube, entries: &[IndexEntry], frontier: bool) -> Result<LodIndex, LodIndexError> {
         use std::collections::HashMap;
         if root.size_log2 > MAX_ROOT_SIZE_LOG2 {
             return Err(LodIndexError::RootTooLarge { size_log2: root.size_log2 });
@@ -479,6 +491,10 @@ impl LodIndex {
                 continue;
             }
             let mut kids = [NodeId::ROOT; 8];
+            let child_at = |o: usize| (e.key.level < root.size_log2).then(|| by_key.get(&e.key.child(o))).flatten();
+            if frontier && (0..8).all(|o| child_at(o).is_none()) {
+                continue;
+            }
             for (o, kid) in kids.iter_mut().enumerate() {
                 // A child key exists only below level 255 and inside the root (checked above for
                 // the children themselves).
@@ -991,6 +1007,15 @@ mod tests {
         let tiny = Cube { size_log2: 0, ..root };
         let e = [IndexEntry { key: NodeKey::ROOT, leaf: false, samples: 1 }];
         assert!(matches!(LodIndex::new(tiny, &e), Err(LodIndexError::MissingChild { node: 0, octant: 0, .. })));
+        // While a build is under way, an inner node without any child is a frontier; one with
+        // some children is still damaged.
+        let p = LodIndex::new_partial(tiny, &e).unwrap();
+        assert_eq!(p.point_count(), 1);
+        let mut e = entries.clone();
+        e.remove(child.index());
+        assert!(matches!(LodIndex::new_partial(root, &e), Err(LodIndexError::MissingChild { octant: 5, .. })));
+        let top: Vec<IndexEntry> = entries.iter().filter(|x| x.key.level == 0).copied().collect();
+        assert_eq!(LodIndex::new_partial(root, &top).unwrap().point_count(), top[0].samples);
     }
 
     #[test]

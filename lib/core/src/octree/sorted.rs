@@ -99,16 +99,20 @@ impl SortedTree {
 
 /// What the function building a tree needs: the points' positions in Morton order and their
 /// arrival numbers.
-struct Ctx<'a, S> {
-    pos: &'a [[i32; 3]],
+struct Ctx<'a, P, S> {
+    pos: &'a P,
     arrival: &'a S,
     config: BuilderConfig,
 }
 
-/// Builds the octree over `root` of the points whose positions, sorted by their Morton code
-/// relative to `root.min` at full resolution, are `pos`; `arrival(i)` is the arrival number of
-/// sorted point `i` (unique; smaller arrived earlier). Every point must lie in `root`.
-pub fn build_sorted<S: Fn(usize) -> u64 + Sync>(root: Cube, pos: &[[i32; 3]], arrival: &S, config: BuilderConfig) -> Result<SortedTree, OctreeError> {
+/// Builds the octree over `root` of `n` points sorted by their Morton code relative to
+/// `root.min` at full resolution: `pos(i)` is the position of sorted point `i` and `arrival(i)`
+/// its arrival number (unique; smaller arrived earlier). Every point must lie in `root`.
+pub fn build_sorted<P, S>(root: Cube, n: usize, pos: &P, arrival: &S, config: BuilderConfig) -> Result<SortedTree, OctreeError>
+where
+    P: Fn(usize) -> [i32; 3] + Sync,
+    S: Fn(usize) -> u64 + Sync,
+{
     if config.leaf_capacity == 0 {
         return Err(OctreeError::ZeroCapacity);
     }
@@ -118,15 +122,15 @@ pub fn build_sorted<S: Fn(usize) -> u64 + Sync>(root: Cube, pos: &[[i32; 3]], ar
     if config.color_mode != ColorMode::FirstCome {
         return Err(OctreeError::Unsupported("the sorted build makes first-come voxels only".into()));
     }
-    if pos.len() > u32::MAX as usize {
-        return Err(OctreeError::BatchTooLarge { points: pos.len(), spilled: 0 });
+    if n > u32::MAX as usize {
+        return Err(OctreeError::BatchTooLarge { points: n, spilled: 0 });
     }
-    if let Some(index) = pos.par_iter().position_any(|p| !root.contains(*p)) {
-        return Err(OctreeError::PointOutsideRoot { index, pos: pos[index], min: root.min, size: root.size() });
+    if let Some(index) = (0..n).into_par_iter().position_any(|i| !root.contains(pos(i))) {
+        return Err(OctreeError::PointOutsideRoot { index, pos: pos(index), min: root.min, size: root.size() });
     }
     let ctx = Ctx { pos, arrival, config };
     let mut nodes = Vec::new();
-    subtree(&ctx, NodeKey::ROOT, root, 0..pos.len(), &mut nodes);
+    subtree(&ctx, NodeKey::ROOT, root, 0..n, &mut nodes);
     // Depth-first order within a level is the Morton order of the level's nodes.
     nodes.sort_by_key(|n| n.key.level);
     Ok(SortedTree { nodes })
@@ -136,7 +140,7 @@ pub fn build_sorted<S: Fn(usize) -> u64 + Sync>(root: Cube, pos: &[[i32; 3]], ar
 /// nodes to `out` depth first; returns, for each occupied cell of the parent's grid inside this
 /// cube (cells `2^(cube.size_log2 - 6)` wide), the earliest point, in Morton order. Nothing for
 /// the root.
-fn subtree<S: Fn(usize) -> u64 + Sync>(ctx: &Ctx<'_, S>, key: NodeKey, cube: Cube, range: Range<usize>, out: &mut Vec<SortedNode>) -> Vec<u32> {
+fn subtree<P: Fn(usize) -> [i32; 3] + Sync, S: Fn(usize) -> u64 + Sync>(ctx: &Ctx<'_, P, S>, key: NodeKey, cube: Cube, range: Range<usize>, out: &mut Vec<SortedNode>) -> Vec<u32> {
     let splittable = cube.size_log2 >= MIN_INNER_SIZE_LOG2 && key.level < ctx.config.max_level;
     if range.len() as u64 <= ctx.config.leaf_capacity as u64 || !splittable {
         let candidates = if key.level == 0 { Vec::new() } else { earliest_per_cell(ctx, cube.min, cube.size_log2 - (GRID_LOG2 - 1), range.clone().map(|i| i as u32)) };
@@ -146,9 +150,18 @@ fn subtree<S: Fn(usize) -> u64 + Sync>(ctx: &Ctx<'_, S>, key: NodeKey, cube: Cub
     // Children: the octant is monotone over the node's points in Morton order.
     let mut bounds = [range.start; 9];
     bounds[8] = range.end;
-    let pts = &ctx.pos[range.clone()];
     for o in 1..8 {
-        bounds[o] = range.start + pts.partition_point(|p| cube.octant_of(*p) < o);
+        // The first point of octant o or above (binary search).
+        let (mut a, mut b) = (bounds[o - 1], range.end);
+        while a < b {
+            let m = a + (b - a) / 2;
+            if cube.octant_of((ctx.pos)(m)) < o {
+                a = m + 1;
+            } else {
+                b = m;
+            }
+        }
+        bounds[o] = a;
     }
     let child = |o: usize, out: &mut Vec<SortedNode>| subtree(ctx, key.child(o), cube.child(o), bounds[o]..bounds[o + 1], out);
     let mut kids: Vec<(Vec<SortedNode>, Vec<u32>)> = if range.len() >= PAR_MIN {
@@ -180,9 +193,9 @@ fn subtree<S: Fn(usize) -> u64 + Sync>(ctx: &Ctx<'_, S>, key: NodeKey, cube: Cub
 
 /// Of the sorted points `items` (in Morton order, all in the cube at `min`), the earliest to
 /// arrive in each cell `2^cell_log2` units wide, in order.
-fn earliest_per_cell<S: Fn(usize) -> u64 + Sync>(ctx: &Ctx<'_, S>, min: [i64; 3], cell_log2: u8, items: impl Iterator<Item = u32>) -> Vec<u32> {
+fn earliest_per_cell<P: Fn(usize) -> [i32; 3] + Sync, S: Fn(usize) -> u64 + Sync>(ctx: &Ctx<'_, P, S>, min: [i64; 3], cell_log2: u8, items: impl Iterator<Item = u32>) -> Vec<u32> {
     let cell = |i: u32| {
-        let p = ctx.pos[i as usize];
+        let p = (ctx.pos)(i as usize);
         [0, 1, 2].map(|a| ((p[a] as i64 - min[a]) as u64) >> cell_log2)
     };
     let mut out = Vec::new();

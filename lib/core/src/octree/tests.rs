@@ -873,7 +873,7 @@ fn morton_sorted(points: &[Point], root: Cube) -> Vec<Point> {
 fn sorted_flat(points: &[Point], root: Cube, cfg: BuilderConfig) -> BTreeMap<NodeKey, Flat> {
     let s = morton_sorted(points, root);
     let pos: Vec<[i32; 3]> = s.iter().map(|p| p.pos).collect();
-    let tree = build_sorted(root, &pos, &|i: usize| s[i].record, cfg).unwrap();
+    let tree = build_sorted(root, pos.len(), &|i: usize| pos[i], &|i: usize| s[i].record, cfg).unwrap();
     // Levels in order, the root first.
     let levels: Vec<u8> = tree.nodes.iter().map(|n| n.key.level).collect();
     assert!(levels.windows(2).all(|w| w[0] <= w[1]));
@@ -942,8 +942,8 @@ fn the_sorted_build_matches_the_reference() {
 fn the_sorted_build_refuses_what_it_cannot_build() {
     let root = Cube::new([0; 3], 10);
     let pos = vec![[5, 5, 5], [2000, 0, 0]];
-    assert!(matches!(build_sorted(root, &pos, &|i: usize| i as u64, config(1, ColorMode::FirstCome)), Err(OctreeError::PointOutsideRoot { index: 1, .. })));
-    assert!(matches!(build_sorted(root, &pos[..1], &|i: usize| i as u64, config(1, ColorMode::Averaged)), Err(OctreeError::Unsupported(_))));
+    assert!(matches!(build_sorted(root, 2, &|i: usize| pos[i], &|i: usize| i as u64, config(1, ColorMode::FirstCome)), Err(OctreeError::PointOutsideRoot { index: 1, .. })));
+    assert!(matches!(build_sorted(root, 1, &|i: usize| pos[i], &|i: usize| i as u64, config(1, ColorMode::Averaged)), Err(OctreeError::Unsupported(_))));
 }
 
 proptest! {

@@ -1,0 +1,197 @@
+//! `mortar build`: options, report, and the choice of engine.
+
+use crate::dataset::{Dataset, RecordSource};
+use crate::error::{Error, Result};
+use mortar_core::octree::BuilderConfig;
+use std::path::Path;
+use std::time::Instant;
+
+use super::writer::*;
+use super::incremental::build_into;
+
+/// Choices of `mortar build`.
+/// Which engine builds the store.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Engine {
+    /// The sorted engine when the input fits the memory budget and voxels take the first
+    /// point's colour, else the incremental one.
+    #[default]
+    Auto,
+    /// Sort, then make the tree in one pass (ARCHITECTURE.md, "The build engine").
+    Sorted,
+    /// Paper 004's batch updates with paged leaves (bounded memory for any input).
+    Incremental,
+}
+
+#[derive(Clone, Debug)]
+pub struct BuildOptions {
+    /// The builder's configuration (leaf capacity, colour mode).
+    pub config: BuilderConfig,
+    /// Points per `add_batch`.
+    pub batch_points: usize,
+    /// Seconds between commits (the last one is always made).
+    pub commit_every: f64,
+    /// Seconds after the start at which the first commit is made, when sooner than
+    /// `commit_every` (a preview shows the store from its first commit on).
+    pub first_commit_after: Option<f64>,
+    /// Memory budget in bytes: a commit (after which the builder pages out every leaf's points)
+    /// is also made when the points and records held since the last one exceed a third of it.
+    pub memory: u64,
+    /// The engine.
+    pub engine: Engine,
+}
+
+/// Progress of a build, reported after every batch.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct BuildProgress {
+    /// Points added so far.
+    pub points: u64,
+    /// Points in all (as the headers declare).
+    pub total: u64,
+    /// Nodes so far.
+    pub nodes: usize,
+    /// Commits so far.
+    pub commits: u64,
+}
+
+/// What a build did.
+#[derive(Clone, Debug, Default)]
+pub struct BuildReport {
+    /// Points in the store.
+    pub points: u64,
+    /// Nodes, leaves.
+    pub nodes: u64,
+    /// Leaves.
+    pub leaves: u64,
+    /// Voxels of the inner nodes.
+    pub voxels: u64,
+    /// Commits.
+    pub commits: u64,
+    /// Bytes of `nodes.bin`.
+    pub nodes_bytes: u64,
+    /// Seconds reading (decoding) the input.
+    pub read_seconds: f64,
+    /// Seconds in `add_batch`, per batch.
+    pub batch_seconds: Vec<f64>,
+    /// Seconds committing.
+    pub commit_seconds: f64,
+    /// Leaves paged back in for splits.
+    pub paged_in_leaves: u64,
+    /// Most bytes of points and records held between two commits.
+    pub peak_interval_bytes: u64,
+    /// Seconds in all.
+    pub seconds: f64,
+    /// Times the octree's root grew for points outside it.
+    pub root_growths: u64,
+    /// Problems that did not stop the build (headers that lie about the bounds).
+    pub warnings: Vec<String>,
+    /// The engine that built the store: `sorted` (the input fits `--memory`) or `incremental`.
+    pub engine: &'static str,
+    /// Seconds sorting the keys (sorted engine).
+    pub sort_seconds: f64,
+    /// Seconds gathering positions and colours and making the tree (sorted engine).
+    pub tree_seconds: f64,
+    /// Seconds encoding and appending payloads (sorted engine).
+    pub write_seconds: f64,
+    /// Of those, seconds encoding.
+    pub encode_seconds: f64,
+}
+
+/// The integer bounds the inputs' headers declare (one unit of margin), on the merged grid, with
+/// a warning for each input whose header bounds are not usable; `None` when no header is.
+pub(crate) fn header_bounds(ds: &Dataset, warnings: &mut Vec<String>) -> Option<([i32; 3], [i32; 3])> {
+    let (mut lo, mut hi) = ([i64::MAX; 3], [i64::MIN; 3]);
+    for src in &ds.inputs {
+        let h = src.header();
+        if src.point_count() == 0 {
+            continue;
+        }
+        if src.point_count() > 1 && (0..3).all(|a| h.min[a] == 0.0 && h.max[a] == 0.0) {
+            warnings.push(format!("{}: the header's bounds are all zero (not set by the writer); the octree is placed from the points", src.path().display()));
+            continue;
+        }
+        if let Some(a) = (0..3).find(|&a| !(h.min[a].is_finite() && h.max[a].is_finite()) || h.min[a] > h.max[a]) {
+            warnings.push(format!(
+                "{}: the header's bounds on axis {} are not usable ({} .. {}); the octree is placed from the points",
+                src.path().display(),
+                ['x', 'y', 'z'][a],
+                h.min[a],
+                h.max[a]
+            ));
+            continue;
+        }
+        for a in 0..3 {
+            lo[a] = lo[a].min(ds.grid.to_int(a, h.min[a]).saturating_sub(1));
+            hi[a] = hi[a].max(ds.grid.to_int(a, h.max[a]).saturating_add(1));
+        }
+    }
+    if lo[0] > hi[0] {
+        return None;
+    }
+    let c = |v: i64| v.clamp(i32::MIN as i64, i32::MAX as i64) as i32;
+    Some((lo.map(c), hi.map(c)))
+}
+
+/// A warning when the points of `src` (`st`, on the merged grid) reach outside the bounds its
+/// header declares, with both ranges in world coordinates on the file's grid.
+pub(crate) fn bounds_warning(ds: &Dataset, src: &dyn RecordSource, st: &crate::sort::PieceStats) -> Option<String> {
+    let h = src.header();
+    if st.count == 0 || (0..3).any(|a| !(h.min[a].is_finite() && h.max[a].is_finite()) || h.min[a] > h.max[a]) {
+        return None;
+    }
+    let g = &ds.grid;
+    let outside = (0..3).any(|a| (st.min[a] as i64) < g.to_int(a, h.min[a]) - 1 || (st.max[a] as i64) > g.to_int(a, h.max[a]) + 1);
+    if !outside {
+        return None;
+    }
+    let digits = |a: usize| (-h.scale[a].log10()).ceil().clamp(0.0, 12.0) as usize;
+    let range = |a: usize, lo: f64, hi: f64| format!("{} [{:.*}, {:.*}]", ['x', 'y', 'z'][a], digits(a), lo, digits(a), hi);
+    let real: Vec<String> = (0..3).map(|a| range(a, g.world(a, st.min[a] as i64), g.world(a, st.max[a] as i64))).collect();
+    let declared: Vec<String> = (0..3).map(|a| range(a, h.min[a], h.max[a])).collect();
+    Some(format!(
+        "{}: its points reach {}, outside the bounds its header declares ({}); the octree's root holds them (`mortar sort` writes the file with true bounds)",
+        src.path().display(),
+        real.join(", "),
+        declared.join(", ")
+    ))
+}
+
+/// Builds the store `dir` from `ds`: reads the input piece by piece (pieces of a batch in
+/// parallel) and adds the points to the octree in batches of about `batch_points` in input order,
+/// committing every `commit_every` seconds, whenever the points held since the last commit exceed
+/// a third of the memory budget, and at the end; after each commit the leaves' points are paged
+/// out (see the module docs). The octree's root cube comes from the headers' bounds and the first
+/// points; where points fall outside it (headers lie), the root grows (a new root above the old
+/// one) and the report warns about each such file with its points' real range. On an error the
+/// directory is removed; on Ctrl-C the last commit stays readable.
+pub fn build(ds: &Dataset, dir: &Path, opts: &BuildOptions, progress: &mut dyn FnMut(&BuildProgress)) -> Result<BuildReport> {
+    let t0 = Instant::now();
+    let meta = ds.source_meta();
+    let mut warnings = Vec::new();
+    let bounds = header_bounds(ds, &mut warnings);
+    let mut writer = StoreWriter::create(dir, &meta)?;
+    let sorted = match opts.engine {
+        Engine::Auto => super::engine::applies(ds, opts),
+        Engine::Sorted if opts.config.color_mode != mortar_core::octree::ColorMode::FirstCome => {
+            return Err(Error::Usage("the sorted engine makes first-come voxel colours only; averaged colours need the incremental engine".into()));
+        }
+        Engine::Sorted => true,
+        Engine::Incremental => false,
+    };
+    let engine = if sorted { super::engine::build_into } else { build_into };
+    let result = engine(ds, &mut writer, opts, progress, bounds, t0).map(|mut r| {
+        warnings.append(&mut r.warnings);
+        r.warnings = warnings;
+        r
+    });
+    match result {
+        Ok(r) => Ok(r),
+        Err(Error::Interrupted) => Err(Error::Interrupted),
+        Err(e) => {
+            // Not a store the user asked for: remove what was written (also after commits).
+            let _ = std::fs::remove_dir_all(dir);
+            Err(e)
+        }
+    }
+}
+

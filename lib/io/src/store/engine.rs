@@ -1,0 +1,371 @@
+//! The sorted engine of `mortar build` (ARCHITECTURE.md, "The build engine"): every piece read
+//! once in parallel (LAZ chunks decoded once, mapped LAS read in place) with a Morton key per
+//! point made while the piece is in cache; the keys sorted by the parallel radix sort of
+//! `mortar sort`; the tree made in one pass over the sorted points
+//! ([`mortar_core::octree::build_sorted`], sibling subtrees in parallel); then the nodes encoded in
+//! parallel and written level by level from the root down, with a commit after each level, so a
+//! reader (the preview, `render`, `view`) sees the whole cloud coarse first and finer with each
+//! commit.
+//!
+//! It builds the tree the incremental engine builds (same nodes, same points per leaf, same
+//! voxel points), and writes each node once: `nodes.bin` holds exactly the live payloads.
+//! Used when the input fits the memory budget ([`in_memory_need`]) and voxels take the first
+//! point's colour; otherwise the incremental engine runs.
+
+use super::build::{BuildOptions, BuildProgress, BuildReport};
+use super::format::*;
+use super::writer::*;
+use crate::dataset::Dataset;
+use crate::error::{Error, Result};
+use crate::sort::{self, Key, PieceStats};
+use mortar_core::color::{ColorSource, RgbDepth};
+use mortar_core::layout::read_xyz;
+use mortar_core::morton::MortonGrid;
+use mortar_core::octree::{build_sorted, ColorMode, Cube, SortedContent, SortedNode};
+use rayon::prelude::*;
+use std::time::Instant;
+
+/// Bytes per point the sorted engine holds besides the records: the arrival number (8) and the
+/// per-bucket sorting work (8).
+const PER_POINT: u64 = 16;
+
+/// Bits of the Morton code by which records are scattered into buckets: buckets of about 10 k
+/// points at 20 M points, sorted in cache.
+const BUCKET_BITS: u32 = 11;
+
+/// Memory the sorted engine needs for `ds`: the records sorted (and, for compressed inputs,
+/// decoded: mapped LAS is read in place), 16 bytes per point, and two groups of encoded
+/// payloads.
+pub fn in_memory_need(ds: &Dataset) -> u64 {
+    let rl = ds.layout.record_len as u64;
+    let points = ds.declared_points();
+    let buffered: u64 = ds.inputs.iter().enumerate().filter(|(i, _)| ds.needs_buffer(*i)).map(|(_, s)| s.point_count().saturating_mul(rl)).sum();
+    buffered.saturating_add(points.saturating_mul(rl + PER_POINT)).saturating_add(2 * COMMIT_GROUP_BYTES)
+}
+
+/// Whether the sorted engine builds `ds` with `opts`.
+pub fn applies(ds: &Dataset, opts: &BuildOptions) -> bool {
+    opts.config.color_mode == ColorMode::FirstCome && in_memory_need(ds) <= opts.memory && ds.declared_points() < u32::MAX as u64
+}
+
+/// The Morton grid whose codes order points as the octree over `root` needs: origin at the
+/// root's corner, one shift so that the root fits 21 bits per axis (ties of a shifted code are
+/// ordered by the bits the shift dropped).
+fn grid_of(root: Cube) -> MortonGrid {
+    MortonGrid { origin: root.min, shift: (root.size_log2 as u32).saturating_sub(mortar_core::morton::BITS_PER_AXIS) }
+}
+
+/// The shift that gives a code's bucket.
+fn bucket_shift(root: Cube) -> u32 {
+    let high = 3 * (root.size_log2 as u32).min(mortar_core::morton::BITS_PER_AXIS);
+    high.saturating_sub(BUCKET_BITS)
+}
+
+#[inline]
+fn code_of(r: &[u8], g: &MortonGrid) -> u64 {
+    let q = read_xyz(r);
+    g.code([q[0] as i64, q[1] as i64, q[2] as i64])
+}
+
+/// Points in Morton order: whole records and their arrival numbers (`piece << 32 | index`).
+struct Sorted {
+    records: Vec<u8>,
+    arrival: Vec<u64>,
+    rl: usize,
+}
+
+impl Sorted {
+    #[inline]
+    fn record(&self, i: usize) -> &[u8] {
+        &self.records[i * self.rl..(i + 1) * self.rl]
+    }
+}
+
+/// Sorts the records of `slabs` (pieces in input order) by Morton code on `g`, ties by the bits
+/// the shift dropped, then by arrival: a parallel scatter of whole records into buckets by the
+/// code's top bits (sequential reads, one write stream per bucket), then each bucket sorted in
+/// cache. `hist[p]` is piece `p`'s count per bucket.
+fn sort_records(slabs: &[&[u8]], hist: &[Vec<u32>], rl: usize, g: &MortonGrid, shift: u32) -> Sorted {
+    let nb = 1usize << BUCKET_BITS;
+    let n: usize = slabs.iter().map(|s| s.len() / rl).sum();
+    let mut starts = vec![0usize; nb + 1];
+    for b in 0..nb {
+        starts[b + 1] = starts[b] + hist.iter().map(|h| h[b] as usize).sum::<usize>();
+    }
+    let mut cursors: Vec<Vec<usize>> = Vec::with_capacity(hist.len());
+    let mut running = starts[..nb].to_vec();
+    for h in hist {
+        cursors.push(running.clone());
+        for b in 0..nb {
+            running[b] += h[b] as usize;
+        }
+    }
+    let t = Instant::now();
+    let mut records = sort::zeroed_huge::<u8>(n * rl);
+    let mut arrival = sort::zeroed_huge::<u64>(n);
+    sort::trace("  sort: allocated", t);
+    {
+        let rp = SendPtr(records.as_mut_ptr());
+        let ap = SendPtr(arrival.as_mut_ptr() as *mut u8);
+        slabs.par_iter().zip(cursors.into_par_iter()).enumerate().for_each(|(p, (slab, mut cur))| {
+            let (rp, ap) = (&rp, &ap);
+            for (i, r) in slab.chunks_exact(rl).enumerate() {
+                let b = (code_of(r, g) >> shift) as usize;
+                let at = cur[b];
+                cur[b] += 1;
+                // SAFETY: the cursors of all pieces partition 0..n; each slot is written once.
+                unsafe {
+                    std::ptr::copy_nonoverlapping(r.as_ptr(), rp.0.add(at * rl), rl);
+                    (ap.0 as *mut u64).add(at).write((p as u64) << 32 | i as u64);
+                }
+            }
+        });
+    }
+    sort::trace("  sort: scattered", t);
+    // Each bucket: keys (code, local index) sorted stably by code, then the bucket permuted.
+    let mask = (1i64 << g.shift) - 1;
+    let mut rb: Vec<&mut [u8]> = Vec::with_capacity(nb);
+    let mut ab: Vec<&mut [u64]> = Vec::with_capacity(nb);
+    {
+        let (mut rr, mut ar): (&mut [u8], &mut [u64]) = (&mut records, &mut arrival);
+        for b in 0..nb {
+            let len = starts[b + 1] - starts[b];
+            let (x, y) = rr.split_at_mut(len * rl);
+            let (u, v) = ar.split_at_mut(len);
+            rb.push(x);
+            ab.push(u);
+            rr = y;
+            ar = v;
+        }
+    }
+    rb.into_par_iter().zip(ab.into_par_iter()).for_each_init(
+        || (Vec::<Key>::new(), Vec::<Key>::new(), Vec::<u8>::new(), Vec::<u64>::new()),
+        |(keys, scratch, tmp, tarr), (recs, arr)| {
+            let m = arr.len();
+            if m < 2 {
+                return;
+            }
+            keys.clear();
+            keys.extend(recs.chunks_exact(rl).enumerate().map(|(i, r)| Key { code: code_of(r, g), slab: i as u32, idx: 0 }));
+            sort::sort_bucket(keys, shift, scratch);
+            if g.shift > 0 {
+                // Ties of the shifted code: by the dropped bits, then arrival (local order).
+                let residual = |i: u32| {
+                    let q = read_xyz(&recs[i as usize * rl..]);
+                    let low = |a: usize| ((q[a] as i64 - g.origin[a]) & mask) as u32;
+                    mortar_core::morton::encode(low(0), low(1), low(2))
+                };
+                let mut s = 0;
+                while s < m {
+                    let mut e = s + 1;
+                    while e < m && keys[e].code == keys[s].code {
+                        e += 1;
+                    }
+                    if e - s > 1 {
+                        keys[s..e].sort_by_key(|k| (residual(k.slab), k.slab));
+                    }
+                    s = e;
+                }
+            }
+            tmp.clear();
+            tmp.extend_from_slice(recs);
+            tarr.clear();
+            tarr.extend_from_slice(arr);
+            for (d, k) in keys.iter().enumerate() {
+                let j = k.slab as usize;
+                recs[d * rl..(d + 1) * rl].copy_from_slice(&tmp[j * rl..(j + 1) * rl]);
+                arr[d] = tarr[j];
+            }
+        },
+    );
+    sort::trace("  sort: buckets sorted", t);
+    Sorted { records, arrival, rl }
+}
+
+struct SendPtr(*mut u8);
+// SAFETY: used only for disjoint writes (see sort_records).
+unsafe impl Sync for SendPtr {}
+unsafe impl Send for SendPtr {}
+
+/// Builds the store in `writer` from `ds` with the sorted engine; `header` is the headers' box
+/// (see [`super::build`]).
+pub(crate) fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOptions, progress: &mut dyn FnMut(&BuildProgress), header: Option<([i32; 3], [i32; 3])>, t0: Instant) -> Result<BuildReport> {
+    let rl = ds.layout.record_len;
+    let total = ds.declared_points();
+    let mut report = BuildReport { engine: "sorted", ..BuildReport::default() };
+    // The root the headers promise; checked against the points once they are read.
+    let promised = header.map(|(l, h)| Cube::covering(l, h)).unwrap_or(Cube { min: [0; 3], size_log2: 32 });
+    let tr = Instant::now();
+    let (slabs, mut hist) = read_pieces(ds, promised)?;
+    let pieces = ds.pieces();
+    let mut all = PieceStats::default();
+    let mut real = vec![PieceStats::default(); ds.inputs.len()];
+    for (p, (_, st)) in pieces.iter().zip(&slabs) {
+        all.merge(st);
+        real[p.input].merge(st);
+    }
+    // Headers that lie: the points' real range, per file.
+    for (src, st) in ds.inputs.iter().zip(&real) {
+        if let Some(w) = super::build::bounds_warning(ds, src.as_ref(), st) {
+            report.warnings.push(w);
+        }
+    }
+    report.read_seconds = tr.elapsed().as_secs_f64();
+    sort::trace("read", t0);
+    let records: Vec<&[u8]> = slabs.iter().map(|(r, _)| &**r).collect();
+    // The headers' box when it holds every point; otherwise the headers lie, and the root is the
+    // points' own box (the incremental engine grows its root instead).
+    let (lo, hi) = if all.count == 0 { ([0; 3], [0; 3]) } else { (all.min, all.max) };
+    let root = match header {
+        Some((l, h)) if all.count > 0 && (0..3).all(|a| l[a] <= lo[a] && hi[a] <= h[a]) => Cube::covering(l, h),
+        _ => Cube::covering(lo, hi),
+    };
+    let g = grid_of(root);
+    let shift = bucket_shift(root);
+    if root != promised {
+        hist = records.par_iter().map(|s| histogram(s, rl, &g, shift)).collect();
+        sort::trace("histograms again (header bounds differ from the points)", t0);
+    }
+    let ts = Instant::now();
+    let sorted = sort_records(&records, &hist, rl, &g, shift);
+    drop(records);
+    drop(slabs);
+    report.sort_seconds = ts.elapsed().as_secs_f64();
+    sort::trace("sort", t0);
+    sort::check_interrupted()?;
+    // The colour source from the whole input, as batch files choose it.
+    let color = match ds.layout.attribute("rgb") {
+        Some(a) if all.max_rgb > 0 => ColorSource::Rgb { offset: a.offset, depth: RgbDepth::detect(all.max_rgb) },
+        _ => ColorSource::Intensity { max_intensity: all.max_intensity },
+    };
+    let tt = Instant::now();
+    let n = sorted.arrival.len();
+    let pos = |i: usize| read_xyz(sorted.record(i));
+    let arrival = |i: usize| sorted.arrival[i];
+    let tree = build_sorted(root, n, &pos, &arrival, opts.config).map_err(|e| Error::Usage(format!("octree: {e}")))?;
+    report.tree_seconds = tt.elapsed().as_secs_f64();
+    report.batch_seconds.push(report.tree_seconds);
+    sort::trace("tree", t0);
+    write_tree(writer, &tree, root, opts, &sorted, &color, (lo, hi), &mut report, progress, total, t0)?;
+    sort::trace("written", t0);
+    report.seconds = t0.elapsed().as_secs_f64();
+    Ok(report)
+}
+
+/// Counts per bucket of the records of one piece.
+fn histogram(slab: &[u8], rl: usize, g: &MortonGrid, shift: u32) -> Vec<u32> {
+    let mut h = vec![0u32; 1 << BUCKET_BITS];
+    for r in slab.chunks_exact(rl) {
+        h[(code_of(r, g) >> shift) as usize] += 1;
+    }
+    h
+}
+
+/// Reads every piece in parallel (LAZ decoded once, mapped LAS borrowed in place), with its
+/// statistics and its bucket counts on the grid of `root` made while it is in cache.
+#[allow(clippy::type_complexity)]
+fn read_pieces(ds: &Dataset, root: Cube) -> Result<(Vec<(std::borrow::Cow<'_, [u8]>, PieceStats)>, Vec<Vec<u32>>)> {
+    let rl = ds.layout.record_len;
+    let g = grid_of(root);
+    let shift = bucket_shift(root);
+    ds.inputs.par_iter().for_each(|i| i.prefetch());
+    let pieces = ds.pieces();
+    if pieces.len() > u32::MAX as usize || pieces.iter().any(|p| p.piece.points > u32::MAX as u64) {
+        return Err(Error::Usage("too many points for one in-memory build".into()));
+    }
+    let out: Vec<((std::borrow::Cow<'_, [u8]>, PieceStats), Vec<u32>)> = pieces
+        .par_iter()
+        .map(|p| {
+            sort::check_interrupted()?;
+            let slab = ds.read_piece(p)?;
+            if slab.len() as u64 != p.piece.points * rl as u64 {
+                return Err(Error::input(ds.inputs[p.input].path(), format!("piece {} holds another number of points than declared", p.piece.index)));
+            }
+            let mut h = vec![0u32; 1 << BUCKET_BITS];
+            let st = PieceStats::of_with(&slab, &ds.layout, |_, q| {
+                h[(g.code([q[0] as i64, q[1] as i64, q[2] as i64]) >> shift) as usize] += 1;
+            });
+            Ok(((slab, st), h))
+        })
+        .collect::<Result<_>>()?;
+    Ok(out.into_iter().unzip())
+}
+
+/// Encodes and appends the nodes of `tree` level by level, committing after each level.
+#[allow(clippy::too_many_arguments)]
+fn write_tree(
+    writer: &mut StoreWriter,
+    tree: &mortar_core::octree::SortedTree,
+    root: Cube,
+    opts: &BuildOptions,
+    sorted: &Sorted,
+    color: &ColorSource,
+    bounds: ([i32; 3], [i32; 3]),
+    report: &mut BuildReport,
+    progress: &mut dyn FnMut(&BuildProgress),
+    total: u64,
+    t0: Instant,
+) -> Result<()> {
+    let rl = writer.record_len;
+    let attr_len = rl - 12;
+    let levels = tree.levels();
+    let mut points = 0u64;
+    let dir = writer.dir.clone();
+    let encode = |id: usize, n: &SortedNode| -> Result<(usize, NodeEntry, Vec<u8>)> {
+        let (kind, idx): (u32, Box<dyn Fn(usize) -> usize + Sync>) = match &n.content {
+            SortedContent::Leaf(r) => {
+                let s = r.start;
+                (LEAF, Box::new(move |i| s + i))
+            }
+            SortedContent::Inner(v) => (INNER, Box::new(move |i| v[i] as usize)),
+        };
+        encode_payload(n.key, kind, n.count(), attr_len, |i| read_xyz(sorted.record(idx(i))), |i| color.rgba(sorted.record(idx(i))), |i| &sorted.record(idx(i))[12..])
+            .map(|(e, b)| (id, e, b))
+            .map_err(|m| Error::input(&dir, m))
+    };
+    for (li, level) in levels.iter().enumerate() {
+        let tw = Instant::now();
+        let mut start = level.start;
+        while start < level.end {
+            sort::check_interrupted()?;
+            let mut end = start;
+            let mut bytes = 0u64;
+            while end < level.end && (end == start || bytes < COMMIT_GROUP_BYTES) {
+                bytes += payload_len(tree.nodes[end].count() as u64, attr_len as u64);
+                end += 1;
+            }
+            let lens: Vec<u64> = (start..end).map(|i| payload_len(tree.nodes[i].count() as u64, attr_len as u64)).collect();
+            let offsets = writer.reserve(&lens);
+            let w = &*writer;
+            let entries: Vec<NodeEntry> = (start..end)
+                .into_par_iter()
+                .zip(offsets.into_par_iter())
+                .map(|(i, off)| {
+                    let (_, mut e, b) = encode(i, &tree.nodes[i])?;
+                    w.write_at(off, &b)?;
+                    e.offset = off;
+                    Ok(e)
+                })
+                .collect::<Result<_>>()?;
+            for (i, e) in (start..end).zip(entries) {
+                writer.set_entry(i, e);
+            }
+            start = end;
+        }
+        points += tree.nodes[level.clone()].iter().filter(|n| n.is_leaf()).map(|n| n.count() as u64).sum::<u64>();
+        report.write_seconds += tw.elapsed().as_secs_f64();
+        let tc = Instant::now();
+        writer.write_hierarchy(root, points, opts.config.leaf_capacity, bounds)?;
+        report.commit_seconds += tc.elapsed().as_secs_f64();
+        let _ = li;
+        progress(&BuildProgress { points, total, nodes: level.end, commits: writer.commits() });
+        sort::trace("level committed", t0);
+    }
+    report.points = points;
+    report.nodes = tree.nodes.len() as u64;
+    report.leaves = tree.nodes.iter().filter(|n| n.is_leaf()).count() as u64;
+    report.voxels = tree.nodes.iter().filter(|n| !n.is_leaf()).map(|n| n.count() as u64).sum();
+    report.commits = writer.commits();
+    report.nodes_bytes = writer.nodes_len;
+    Ok(())
+}

@@ -1,0 +1,227 @@
+//! The store's binary layout (STORE_FORMAT.md): file names, headers, entries, payloads.
+
+use mortar_core::octree::NodeKey;
+use mortar_core::quantize::BatchGrid;
+
+
+/// The source's LAS header, VLRs and EVLRs (no points).
+pub const SOURCE_FILE: &str = "source.las";
+/// Node payloads, append-only.
+pub const NODES_FILE: &str = "nodes.bin";
+/// The committed hierarchy.
+pub const HIERARCHY_FILE: &str = "hierarchy.bin";
+
+pub(crate) const NODE_MAGIC: [u8; 8] = *b"MORTNODE";
+pub(crate) const HIERARCHY_MAGIC: [u8; 8] = *b"MORTHIER";
+/// Version 2: inner nodes' voxels are real source points with their records (version 1 stored
+/// cell centres and colours only).
+pub(crate) const VERSION: u32 = 2;
+
+/// Node kinds.
+pub const LEAF: u32 = 0;
+/// An inner node (voxels).
+pub const INNER: u32 = 1;
+
+/// The header of one node payload in `nodes.bin` (64 bytes, little-endian).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct NodeHeader {
+    /// `MORTNODE`.
+    pub magic: [u8; 8],
+    /// Octree level (0: root).
+    pub level: u32,
+    /// [`LEAF`] or [`INNER`].
+    pub kind: u32,
+    /// Position of the node's cube among the cubes of its level.
+    pub index: [u32; 3],
+    /// Points (leaf) or voxels (inner node).
+    pub count: u32,
+    /// Integer minimum of the quantization frame.
+    pub min: [i32; 3],
+    /// Bits per axis of the quantization frame (three used).
+    pub bits: [u8; 4],
+    /// Bytes of attributes per point after the colours (record length - 12 for leaves, 0 for
+    /// inner nodes).
+    pub attr_len: u32,
+    /// Zero.
+    pub _pad: [u32; 3],
+}
+
+const _: () = assert!(std::mem::size_of::<NodeHeader>() == 64);
+
+/// The header of `hierarchy.bin` (80 bytes).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct HierarchyHeader {
+    /// `MORTHIER`.
+    pub magic: [u8; 8],
+    /// Format version (1).
+    pub version: u32,
+    /// Bytes per [`NodeEntry`] (48).
+    pub entry_size: u32,
+    /// Commit number, from 1.
+    pub commit: u64,
+    /// Number of node entries that follow.
+    pub node_count: u64,
+    /// Bytes of `nodes.bin` this commit covers.
+    pub nodes_len: u64,
+    /// Points in the leaves.
+    pub points: u64,
+    /// The root cube's integer minimum.
+    pub root_min: [i64; 3],
+    /// log2 of the root cube's edge.
+    pub root_size_log2: u32,
+    /// Leaf capacity the builder used.
+    pub leaf_capacity: u32,
+    /// Smallest integer coordinate of the points (LAS grid).
+    pub min: [i32; 3],
+    /// Largest integer coordinate of the points.
+    pub max: [i32; 3],
+}
+
+const _: () = assert!(std::mem::size_of::<HierarchyHeader>() == 104);
+
+/// Bytes of the hierarchy header.
+pub(crate) const HIERARCHY_HEADER: usize = std::mem::size_of::<HierarchyHeader>();
+
+/// One node of the hierarchy (48 bytes).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct NodeEntry {
+    /// Octree level.
+    pub level: u32,
+    /// [`LEAF`] or [`INNER`].
+    pub kind: u32,
+    /// Cube index at its level.
+    pub index: [u32; 3],
+    /// Zero.
+    pub _pad: u32,
+    /// Points or voxels.
+    pub count: u64,
+    /// Offset of the payload ([`NodeHeader`] first) in `nodes.bin`.
+    pub offset: u64,
+    /// Bytes of the payload.
+    pub length: u64,
+}
+
+const _: () = assert!(std::mem::size_of::<NodeEntry>() == 48);
+
+pub(crate) fn payload_len(count: u64, attr_len: u64) -> u64 {
+    let raw = 64 + count * (16 + attr_len);
+    raw.next_multiple_of(8)
+}
+
+/// The XYZ of a record (i32 at bytes 0, 4, 8).
+pub(crate) fn read_xyz(r: &[u8]) -> [i32; 3] {
+    [0, 4, 8].map(|o| i32::from_le_bytes([r[o], r[o + 1], r[o + 2], r[o + 3]]))
+}
+
+
+/// A node payload read back from `nodes.bin` (leaf points or an inner node's voxel points).
+pub(crate) struct DecodedLeaf<'a> {
+    pub(crate) count: usize,
+    pub(crate) grid: BatchGrid,
+    pub(crate) words: [&'a [u8]; 3],
+    pub(crate) colors: &'a [u8],
+    pub(crate) attributes: &'a [u8],
+    pub(crate) attr_len: usize,
+}
+
+impl<'a> DecodedLeaf<'a> {
+    pub(crate) fn parse(b: &'a [u8]) -> std::result::Result<DecodedLeaf<'a>, String> {
+        if b.len() < 64 {
+            return Err("payload shorter than its header".into());
+        }
+        let h: NodeHeader = bytemuck::pod_read_unaligned(&b[..64]);
+        let (n, al) = (h.count as usize, h.attr_len as usize);
+        if h.magic != NODE_MAGIC || h.kind > INNER || (b.len() as u64) < payload_len(n as u64, al as u64) || h.bits[..3].iter().any(|&x| x > 30) {
+            return Err("damaged payload".into());
+        }
+        let w = |k: usize| &b[64 + 4 * n * k..64 + 4 * n * (k + 1)];
+        Ok(DecodedLeaf {
+            count: n,
+            grid: BatchGrid { min: h.min, bits: [h.bits[0], h.bits[1], h.bits[2]] },
+            words: [w(0), w(1), w(2)],
+            colors: w(3),
+            attributes: &b[64 + 16 * n..64 + 16 * n + n * al],
+            attr_len: al,
+        })
+    }
+
+    pub(crate) fn u32_at(b: &[u8], i: usize) -> u32 {
+        u32::from_le_bytes([b[4 * i], b[4 * i + 1], b[4 * i + 2], b[4 * i + 3]])
+    }
+
+    pub(crate) fn position(&self, i: usize) -> [i32; 3] {
+        self.grid.decode_exact([0, 1, 2].map(|k| Self::u32_at(self.words[k], i)))
+    }
+
+    pub(crate) fn color(&self, i: usize) -> u32 {
+        Self::u32_at(self.colors, i)
+    }
+
+    pub(crate) fn attributes(&self, i: usize) -> &'a [u8] {
+        &self.attributes[i * self.attr_len..(i + 1) * self.attr_len]
+    }
+}
+
+
+/// Encodes one node's payload (entry offset left 0) from its `count` points: `pos(i)`,
+/// `color(i)` and `attrs(i)` (the record's bytes after X, Y, Z: `attr_len` of them). One pass
+/// for the bounds, one that writes every column in place.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn encode_payload<'r>(
+    key: NodeKey,
+    kind: u32,
+    count: usize,
+    attr_len: usize,
+    pos: impl Fn(usize) -> [i32; 3],
+    color: impl Fn(usize) -> u32,
+    attrs: impl Fn(usize) -> &'r [u8],
+) -> std::result::Result<(NodeEntry, Vec<u8>), String> {
+    if count > u32::MAX as usize {
+        return Err(format!("node {} holds {count} points, more than a payload can (2^32 - 1)", key.name()));
+    }
+    let (mut lo, mut hi) = ([i32::MAX; 3], [i32::MIN; 3]);
+    for i in 0..count {
+        let p = pos(i);
+        for a in 0..3 {
+            lo[a] = lo[a].min(p[a]);
+            hi[a] = hi[a].max(p[a]);
+        }
+    }
+    if count == 0 {
+        (lo, hi) = ([0; 3], [0; 3]);
+    }
+    let grid = BatchGrid::for_bounds(lo, hi).ok_or_else(|| format!("node {} spans more than 2^30 grid units on an axis", key.name()))?;
+    let len = payload_len(count as u64, attr_len as u64) as usize;
+    let mut out = vec![0u8; len];
+    let header = NodeHeader {
+        magic: NODE_MAGIC,
+        level: key.level as u32,
+        kind,
+        index: key.index,
+        count: count as u32,
+        min: grid.min,
+        bits: [grid.bits[0], grid.bits[1], grid.bits[2], 0],
+        attr_len: attr_len as u32,
+        _pad: [0; 3],
+    };
+    out[..64].copy_from_slice(bytemuck::bytes_of(&header));
+    let (head, rest) = out[64..].split_at_mut(16 * count);
+    let (w0, r) = head.split_at_mut(4 * count);
+    let (w1, r) = r.split_at_mut(4 * count);
+    let (w2, cols) = r.split_at_mut(4 * count);
+    for i in 0..count {
+        let w = grid.encode(pos(i));
+        w0[4 * i..4 * i + 4].copy_from_slice(&w[0].to_le_bytes());
+        w1[4 * i..4 * i + 4].copy_from_slice(&w[1].to_le_bytes());
+        w2[4 * i..4 * i + 4].copy_from_slice(&w[2].to_le_bytes());
+        cols[4 * i..4 * i + 4].copy_from_slice(&color(i).to_le_bytes());
+        let a = attrs(i);
+        debug_assert_eq!(a.len(), attr_len);
+        rest[i * attr_len..(i + 1) * attr_len].copy_from_slice(a);
+    }
+    let entry = NodeEntry { level: key.level as u32, kind, index: key.index, _pad: 0, count: count as u64, offset: 0, length: len as u64 };
+    Ok((entry, out))
+}

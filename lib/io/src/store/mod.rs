@@ -1,0 +1,39 @@
+//! The octree LOD store (paper 004 on disk): `mortar build` writes it, `info`, `sort` and `batch`
+//! read it. Layout in `lib/io/STORE_FORMAT.md`.
+//!
+//! A directory that can be read while it grows:
+//!
+//! - `source.las`: the LAS header, VLRs and EVLRs of the source (no points), written once, so the
+//!   points go back to LAS with every field and record;
+//! - `nodes.bin`: node payloads, append-only. A payload is a variable-size batch in the quantized
+//!   layout of the batch file (paper 003 §3.5): coarse, medium and fine words relative to the
+//!   node's integer bounds, RGBA8 colours, and for leaves the rest of every original record
+//!   (all bytes after X, Y, Z), so leaves keep every attribute exactly. A node that changes is
+//!   appended again; the hierarchy points at its newest version;
+//! - `hierarchy.bin`: one entry per node (key, kind, count, payload offset and length) and the
+//!   length of `nodes.bin` it covers, replaced atomically at each commit (payloads written and
+//!   synced first, then a new hierarchy written, synced and renamed over the old one). A reader
+//!   that opens the directory at any moment sees the last commit; a crash or Ctrl-C leaves it.
+//!
+//! Memory: the input is read piece by piece, never whole. After each commit the builder pages
+//! out the points of every leaf (they are in `nodes.bin` now) and the records of the points added
+//! since the last commit are dropped; a leaf that must split later gets its points back from its
+//! last payload. So what is held is the inner nodes' voxels, the hierarchy and the points of one
+//! commit interval: a commit is also made when those exceed a third of `--memory`.
+//!
+//! Not done yet: old versions of changed nodes stay in `nodes.bin` (no compaction): a leaf that
+//! receives points in many commit intervals is rewritten whole each time, so `nodes.bin` grows
+//! with input order as much as with input size (measured in BENCHMARKS.md).
+
+mod build;
+mod engine;
+mod format;
+mod incremental;
+mod reader;
+mod writer;
+
+pub use build::{build, BuildOptions, BuildProgress, BuildReport, Engine};
+pub use engine::in_memory_need;
+pub use format::{HierarchyHeader, NodeEntry, NodeHeader, HIERARCHY_FILE, INNER, LEAF, NODES_FILE, SOURCE_FILE};
+pub use reader::{is_store, NodeData, Store};
+pub use writer::{CommitStats, StoreWriter, COMMIT_GROUP_BYTES, PAGED};

@@ -1,0 +1,209 @@
+//! Reading a store's last commit.
+
+use crate::dataset::RecordSource;
+use crate::error::{Error, Result};
+use crate::las::{self, Header, Vlr};
+use crate::source::{LasInput, Piece};
+use memmap2::Mmap;
+use mortar_core::layout::RecordLayout;
+use mortar_core::octree::Cube;
+use mortar_core::quantize::BatchGrid;
+use std::borrow::Cow;
+use std::fs::File;
+use std::path::{Path, PathBuf};
+
+use super::format::*;
+
+pub fn is_store(path: &Path) -> bool {
+    path.is_dir() && path.join(HIERARCHY_FILE).is_file() && path.join(SOURCE_FILE).is_file()
+}
+
+/// A store opened for reading (the last commit).
+pub struct Store {
+    /// The directory.
+    pub path: PathBuf,
+    /// The source's header (with the store's point count), VLRs and EVLRs.
+    pub meta: las::LasMeta,
+    /// The record layout.
+    pub layout: RecordLayout,
+    /// The hierarchy header.
+    pub header: HierarchyHeader,
+    /// Every node.
+    pub entries: Vec<NodeEntry>,
+    nodes: Option<Mmap>,
+    leaves: Vec<usize>,
+}
+
+/// One node's payload, borrowed from the memory map.
+#[derive(Clone, Copy, Debug)]
+pub struct NodeData<'a> {
+    /// The payload's header.
+    pub header: NodeHeader,
+    /// Coarse, medium, fine words.
+    pub words: [&'a [u32]; 3],
+    /// RGBA8 colours.
+    pub colors: &'a [u32],
+    /// `attr_len` bytes per point (leaves).
+    pub attributes: &'a [u8],
+}
+
+impl NodeData<'_> {
+    /// The quantization frame.
+    pub fn grid(&self) -> BatchGrid {
+        BatchGrid { min: self.header.min, bits: [self.header.bits[0], self.header.bits[1], self.header.bits[2]] }
+    }
+}
+
+impl Store {
+    /// Opens the last commit of the store `dir`, checking every length against the bytes that
+    /// exist.
+    pub fn open(dir: &Path) -> Result<Store> {
+        let bad = |m: String| Error::input(dir, m);
+        let src = LasInput::open(&dir.join(SOURCE_FILE))?;
+        let hp = dir.join(HIERARCHY_FILE);
+        let hb = std::fs::read(&hp).map_err(|e| Error::io(&hp, e))?;
+        if hb.len() < HIERARCHY_HEADER {
+            return Err(bad("hierarchy.bin is truncated".into()));
+        }
+        let header: HierarchyHeader = bytemuck::pod_read_unaligned(&hb[..HIERARCHY_HEADER]);
+        if header.magic != HIERARCHY_MAGIC {
+            return Err(bad("hierarchy.bin is not a mortar store hierarchy".into()));
+        }
+        if header.version != VERSION || header.entry_size != 48 {
+            return Err(bad(format!("store version {} (entry size {}) is not supported", header.version, header.entry_size)));
+        }
+        let avail = (hb.len() - HIERARCHY_HEADER) as u64 / 48;
+        if header.node_count != avail || (hb.len() - HIERARCHY_HEADER) % 48 != 0 {
+            return Err(bad(format!("hierarchy.bin declares {} nodes but holds {avail}", header.node_count)));
+        }
+        let entries: Vec<NodeEntry> = bytemuck::pod_collect_to_vec(&hb[HIERARCHY_HEADER..]);
+        let np = dir.join(NODES_FILE);
+        let f = File::open(&np).map_err(|e| Error::io(&np, e))?;
+        let file_len = f.metadata().map_err(|e| Error::io(&np, e))?.len();
+        if header.nodes_len > file_len {
+            return Err(bad(format!("nodes.bin holds {file_len} bytes, fewer than the {} the hierarchy covers", header.nodes_len)));
+        }
+        // SAFETY: the file is only appended to while it is mapped (by a builder); the part read
+        // (up to nodes_len) never changes after its commit.
+        let nodes = if file_len == 0 { None } else { Some(unsafe { Mmap::map(&f) }.map_err(|e| Error::io(&np, e))?) };
+        let layout = src.layout.clone();
+        let attr_len = layout.record_len as u64 - 12;
+        let mut leaves = Vec::new();
+        let mut points = 0u64;
+        for (i, e) in entries.iter().enumerate() {
+            let al = attr_len;
+            if e.kind > INNER || e.offset % 8 != 0 || e.count > u32::MAX as u64 || e.length != payload_len(e.count, al) || e.offset.checked_add(e.length).is_none_or(|end| end > header.nodes_len) {
+                return Err(bad(format!("node entry {i} is damaged (kind {}, {} points, {} bytes at {})", e.kind, e.count, e.length, e.offset)));
+            }
+            let nb = &nodes.as_ref().expect("non-empty")[e.offset as usize..(e.offset + e.length) as usize];
+            let h: NodeHeader = bytemuck::pod_read_unaligned(&nb[..64]);
+            if h.magic != NODE_MAGIC || h.count as u64 != e.count || h.kind != e.kind || h.attr_len as u64 != al || h.bits[..3].iter().any(|&b| b > 30) {
+                return Err(bad(format!("node payload {i} does not match its hierarchy entry")));
+            }
+            if e.kind == LEAF {
+                leaves.push(i);
+                points += e.count;
+            }
+        }
+        if points != header.points {
+            return Err(bad(format!("the leaves hold {points} points, the hierarchy says {}", header.points)));
+        }
+        let mut meta = src.meta.clone();
+        meta.header.point_count = points;
+        if points > 0 {
+            let h = &mut meta.header;
+            for a in 0..3 {
+                let w = |v: i32| h.offset[a] + h.scale[a] * v as f64;
+                let (x, y) = (w(header.min[a]), w(header.max[a]));
+                h.min[a] = x.min(y);
+                h.max[a] = x.max(y);
+            }
+        }
+        Ok(Store { path: dir.to_path_buf(), meta, layout, header, entries, nodes, leaves })
+    }
+
+    /// Indices of the leaf entries.
+    pub fn leaves(&self) -> &[usize] {
+        &self.leaves
+    }
+
+    /// The root cube.
+    pub fn root_cube(&self) -> Cube {
+        Cube { min: self.header.root_min, size_log2: self.header.root_size_log2 as u8 }
+    }
+
+    /// The payload of node entry `i`.
+    pub fn node(&self, i: usize) -> NodeData<'_> {
+        let e = &self.entries[i];
+        let b = &self.nodes.as_ref().expect("checked at open")[e.offset as usize..(e.offset + e.length) as usize];
+        let header: NodeHeader = bytemuck::pod_read_unaligned(&b[..64]);
+        let n = header.count as usize;
+        // Offsets are multiples of 8 in a page-aligned map: the u32 arrays are aligned.
+        let words_at = |k: usize| -> &[u32] { bytemuck::cast_slice(&b[64 + 4 * n * k..64 + 4 * n * (k + 1)]) };
+        let attributes = &b[64 + 16 * n..64 + 16 * n + n * header.attr_len as usize];
+        NodeData { header, words: [words_at(0), words_at(1), words_at(2)], colors: words_at(3), attributes }
+    }
+}
+
+/// Leaves per piece when a store is read as records (about 1 M points with full leaves).
+pub(crate) const LEAVES_PER_PIECE: usize = 20;
+
+impl RecordSource for Store {
+    fn path(&self) -> &Path {
+        &self.path
+    }
+    fn header(&self) -> &Header {
+        &self.meta.header
+    }
+    fn vlrs(&self) -> &[Vlr] {
+        &self.meta.vlrs
+    }
+    fn evlrs(&self) -> &[Vlr] {
+        &self.meta.evlrs
+    }
+    fn layout(&self) -> &RecordLayout {
+        &self.layout
+    }
+    fn point_count(&self) -> u64 {
+        self.header.points
+    }
+    fn pieces(&self) -> Vec<Piece> {
+        let mut first = 0;
+        self.leaves
+            .chunks(LEAVES_PER_PIECE)
+            .enumerate()
+            .map(|(i, c)| {
+                let points = c.iter().map(|&l| self.entries[l].count).sum();
+                let p = Piece { index: i, first_point: first, points };
+                first += points;
+                p
+            })
+            .collect()
+    }
+    fn read_piece(&self, piece: &Piece) -> Result<Cow<'_, [u8]>> {
+        let rl = self.layout.record_len;
+        let start = piece.index * LEAVES_PER_PIECE;
+        let leaves = self.leaves.get(start..(start + LEAVES_PER_PIECE).min(self.leaves.len())).unwrap_or(&[]);
+        let mut out = Vec::with_capacity(piece.points as usize * rl);
+        for &l in leaves {
+            let d = self.node(l);
+            let g = d.grid();
+            let al = d.header.attr_len as usize;
+            for i in 0..d.header.count as usize {
+                let p = g.decode_exact([d.words[0][i], d.words[1][i], d.words[2][i]]);
+                for v in p {
+                    out.extend_from_slice(&v.to_le_bytes());
+                }
+                out.extend_from_slice(&d.attributes[i * al..(i + 1) * al]);
+            }
+        }
+        if out.len() != piece.points as usize * rl {
+            return Err(Error::input(&self.path, format!("piece {} holds another number of points than its leaves declare", piece.index)));
+        }
+        Ok(Cow::Owned(out))
+    }
+    fn is_compressed(&self) -> bool {
+        false
+    }
+}
+

@@ -1,0 +1,159 @@
+//! Issue 13: the sorted build engine builds the tree the incremental engine builds (same nodes,
+//! same points in every leaf, same voxel points in every inner node) on every real file of
+//! `../shared/data`, alone and merged; its stores are readable at every commit (the tree top
+//! down, one level per commit) and hold each node once.
+
+mod common;
+
+use common::*;
+use mortar_io::store::{Store, LEAF};
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+/// Every node of a store: key -> (leaf, its records sorted), records rebuilt from the payload
+/// (decoded position + the attribute bytes).
+fn nodes_of(dir: &Path) -> (mortar_core::octree::Cube, BTreeMap<(u32, [u32; 3]), (bool, Vec<Vec<u8>>)>) {
+    let s = Store::open(dir).unwrap_or_else(|e| panic!("{}: {e}", dir.display()));
+    let mut out = BTreeMap::new();
+    for (i, e) in s.entries.iter().enumerate() {
+        let d = s.node(i);
+        let g = d.grid();
+        let al = d.header.attr_len as usize;
+        let mut recs: Vec<Vec<u8>> = (0..d.header.count as usize)
+            .map(|k| {
+                let p = g.decode_exact([d.words[0][k], d.words[1][k], d.words[2][k]]);
+                let mut r: Vec<u8> = p.iter().flat_map(|v| v.to_le_bytes()).collect();
+                r.extend_from_slice(&d.attributes[k * al..(k + 1) * al]);
+                r
+            })
+            .collect();
+        recs.sort();
+        let old = out.insert((e.level, e.index), (e.kind == LEAF, recs));
+        assert!(old.is_none(), "{}: node {:?} twice", dir.display(), (e.level, e.index));
+    }
+    (s.root_cube(), out)
+}
+
+fn build(inputs: &[PathBuf], out: &Path, engine: &str, extra: &[&str]) -> Result<serde_json::Value, String> {
+    let mut c = mortar();
+    c.arg("build").args(inputs).arg("-o").arg(out).args(["--engine", engine, "--json", "--leaf-capacity", "3000", "--batch-points", "20000"]).args(extra);
+    let o = c.output().unwrap();
+    if o.status.success() {
+        Ok(serde_json::from_slice(&o.stdout).unwrap())
+    } else {
+        Err(String::from_utf8_lossy(&o.stderr).to_string())
+    }
+}
+
+/// Builds `inputs` with both engines and compares the stores; returns whether the trees were
+/// compared node by node (false when the headers lie: the incremental engine grows its root
+/// from the first batch's, the sorted engine starts from the points' box).
+fn same_tree(inputs: &[PathBuf], tag: &str) -> bool {
+    let dir = tempdir(tag);
+    let (a, b) = (dir.join("sorted"), dir.join("incremental"));
+    let ra = build(inputs, &a, "sorted", &[]);
+    let rb = build(inputs, &b, "incremental", &[]);
+    let name = inputs.iter().map(|p| p.file_name().unwrap().to_string_lossy().to_string()).collect::<Vec<_>>().join(" + ");
+    match (&ra, &rb) {
+        (Err(x), Err(y)) => {
+            // Refused alike (same one-line error).
+            let last = |e: &str, d: &Path| e.lines().last().unwrap_or("").replace(&d.display().to_string(), "STORE");
+            assert_eq!(last(x, &a), last(y, &b), "{name}");
+            let _ = std::fs::remove_dir_all(&dir);
+            return true;
+        }
+        (Ok(_), Ok(_)) => {}
+        _ => panic!("{name}: one engine failed: sorted {ra:?}, incremental {rb:?}"),
+    }
+    let (ja, jb) = (ra.unwrap(), rb.unwrap());
+    assert_eq!(ja["engine"], "sorted");
+    assert_eq!(jb["engine"], "incremental");
+    assert_eq!(ja["points"], jb["points"], "{name}");
+    let (root_a, na) = nodes_of(&a);
+    let (root_b, nb) = nodes_of(&b);
+    let compared = root_a == root_b;
+    if compared {
+        assert_eq!(na.len(), nb.len(), "{name}: node count");
+        for (k, (leaf, recs)) in &na {
+            let (leaf_b, recs_b) = nb.get(k).unwrap_or_else(|| panic!("{name}: node {k:?} only in the sorted store"));
+            assert_eq!(leaf, leaf_b, "{name}: kind of {k:?}");
+            assert!(recs == recs_b, "{name}: points of node {k:?} ({} vs {})", recs.len(), recs_b.len());
+        }
+        // The sorted engine writes every node once.
+        let s = Store::open(&a).unwrap();
+        let live: u64 = s.entries.iter().map(|e| e.length).sum();
+        assert_eq!(live, s.header.nodes_len, "{name}: nodes.bin holds only live payloads");
+    }
+    // Whatever the roots, the points are the same and sort alike.
+    let (sa, sb) = (dir.join("a.las"), dir.join("b.las"));
+    run_ok(mortar().arg("sort").arg(&a).arg("-o").arg(&sa));
+    run_ok(mortar().arg("sort").arg(&b).arg("-o").arg(&sb));
+    assert!(std::fs::read(&sa).unwrap() == std::fs::read(&sb).unwrap(), "{name}: sort of the two stores differs");
+    let _ = std::fs::remove_dir_all(&dir);
+    compared
+}
+
+#[test]
+fn both_engines_build_the_same_tree_on_every_real_file() {
+    let Some(data) = shared_data() else { return };
+    let files = readable_fixtures(&data);
+    assert!(files.len() > 40, "{} fixtures", files.len());
+    let mut compared = 0;
+    for (i, f) in files.iter().enumerate() {
+        if same_tree(std::slice::from_ref(f), &format!("engines-{i}")) {
+            compared += 1;
+        }
+    }
+    // Most files have honest headers.
+    assert!(compared * 10 >= files.len() * 8, "{compared} of {} compared node by node", files.len());
+}
+
+#[test]
+fn both_engines_build_the_same_tree_on_merged_tiles() {
+    let Some(data) = shared_data() else { return };
+    let bcts: Vec<PathBuf> = (1..=4).map(|i| data.join(format!("lasR/inst/extdata/bcts/bcts_{i}.laz"))).filter(|p| p.exists()).collect();
+    assert!(bcts.len() >= 2);
+    assert!(same_tree(&bcts, "engines-bcts"));
+    let ept_dir = data.join("PyForestScan/example_data/ept/ept-data");
+    let mut ept: Vec<PathBuf> = std::fs::read_dir(&ept_dir).unwrap().map(|e| e.unwrap().path()).collect();
+    ept.sort();
+    ept.truncate(60);
+    assert!(same_tree(&ept, "engines-ept"));
+}
+
+#[test]
+fn a_sorted_build_is_readable_at_every_commit_coarse_first() {
+    use mortar_core::octree::{BuilderConfig, ColorMode};
+    use mortar_io::store::{build, BuildOptions, Engine};
+    let dir = tempdir("sorted-commits");
+    let store = dir.join("s");
+    let ds = mortar_io::dataset::Dataset::open(&[root().join("data-samples/autzen_trim.laz")]).unwrap();
+    let opts = BuildOptions {
+        config: BuilderConfig { leaf_capacity: 2000, color_mode: ColorMode::FirstCome, ..BuilderConfig::default() },
+        batch_points: 10_000,
+        first_commit_after: None,
+        commit_every: 0.0,
+        memory: 1 << 30,
+        engine: Engine::Sorted,
+    };
+    let mut seen: Vec<(u64, u64, usize, u8)> = Vec::new();
+    let mut check = |p: &mortar_io::store::BuildProgress| {
+        let s = Store::open(&store).expect("a committed store opens");
+        assert_eq!(s.header.commit, p.commits);
+        let deepest = s.entries.iter().map(|e| e.level as u8).max().unwrap();
+        let nodes = s.entries.len();
+        // Drawable at every commit: the deepest level's inner nodes are a frontier.
+        let lod = mortar_io::store_lod::StoreLod::new(s).expect("every commit is a drawable tree");
+        assert!(lod.index().point_count() > 0);
+        seen.push((p.commits, p.points, nodes, deepest));
+    };
+    let r = build(&ds, &store, &opts, &mut check).unwrap();
+    assert_eq!(r.engine, "sorted");
+    assert_eq!(r.points, 110_000);
+    // One level per commit, from the root down; the points arrive with the levels of leaves.
+    assert!(seen.len() >= 4, "{seen:?}");
+    assert_eq!(seen[0].3, 0, "the first commit holds the root: {seen:?}");
+    assert!(seen.windows(2).all(|w| w[1].3 == w[0].3 + 1 && w[1].2 > w[0].2 && w[1].1 >= w[0].1), "{seen:?}");
+    assert_eq!(seen.last().unwrap().1, 110_000);
+    let _ = std::fs::remove_dir_all(&dir);
+}
