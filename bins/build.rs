@@ -38,6 +38,11 @@ pub struct Args {
     /// or incremental. Both build the same tree.
     #[arg(long, default_value = "auto")]
     pub engine: String,
+    /// Continue the store at --output from its last commit, if a build of the same inputs and
+    /// settings began it and was stopped (kill -9, power loss, full disk); a complete store is
+    /// left as it is.
+    #[arg(long)]
+    pub resume: bool,
     /// Print a JSON summary on stdout.
     #[arg(long)]
     pub json: bool,
@@ -77,6 +82,7 @@ pub fn run(a: Args) -> Result<()> {
             "incremental" => Engine::Incremental,
             e => anyhow::bail!("--engine {e}: give auto, sorted or incremental"),
         },
+        resume: a.resume,
     };
     let mut recorder = crate::build_frames::FrameRecorder::new(&a.frames, &ds, &a.output)?;
     let mut opts = opts;
@@ -146,6 +152,8 @@ pub fn run(a: Args) -> Result<()> {
             "build_seconds": r.batch_seconds.iter().sum::<f64>(),
             "commit_seconds": r.commit_seconds,
             "engine": r.engine,
+            "resumed": r.resumed,
+            "kept_nodes": r.kept_nodes,
             "sort_seconds": r.sort_seconds,
             "tree_seconds": r.tree_seconds,
             "write_seconds": r.write_seconds,

@@ -55,6 +55,12 @@ fn main() {
         }
     }
     common::set_quiet(cli.quiet);
+    // A file that grows past `ulimit -f` raises SIGXFSZ, which kills by default: ignored, the
+    // write fails with EFBIG and mortar reports it (a build keeps its last commit).
+    // SAFETY: setting a signal's disposition to SIG_IGN before any other thread exists.
+    unsafe {
+        libc::signal(libc::SIGXFSZ, libc::SIG_IGN);
+    }
     let _ = ctrlc::set_handler(|| {
         mortar_io::sort::INTERRUPTED.store(true, std::sync::atomic::Ordering::Relaxed);
         mortar_io::cleanup::remove_all();

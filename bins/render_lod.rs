@@ -62,7 +62,7 @@ pub fn run(a: &Args, dir: &Path) -> Result<()> {
     let lod = StoreLod::open(dir)?;
     let open_seconds = start.elapsed().as_secs_f64();
     let label = dir.display().to_string();
-    if lod.point_count() == 0 {
+    if lod.drawable() == 0 {
         bail!("{label}: no points to draw");
     }
     let color = LodColor::of(lod.store(), a.color)?;

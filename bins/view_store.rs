@@ -88,7 +88,7 @@ impl StoreView {
     /// Opens the store `dir` (its last commit).
     pub fn open(dir: &Path, options: LodOptions, range: Option<[f64; 2]>) -> Result<StoreView> {
         let lod = StoreLod::open(dir)?;
-        if lod.point_count() == 0 {
+        if lod.drawable() == 0 {
             anyhow::bail!("{}: no points to draw", dir.display());
         }
         let bounds = lod.bounds();

@@ -80,6 +80,7 @@ fn store_is_readable_at_every_commit_while_it_grows() {
         commit_every: 0.0,
         memory: 1 << 30,
         engine: mortar_io::store::Engine::Incremental,
+        resume: false,
     };
     let mut seen = Vec::new();
     let mut check = |p: &mortar_io::store::BuildProgress| {

@@ -112,10 +112,18 @@ impl StoreLod {
         self.store.header.points
     }
 
+    /// Points a view can draw: those of the leaves, and the voxels of the frontier of a commit
+    /// whose deeper levels are not written yet.
+    pub fn drawable(&self) -> u64 {
+        self.index.point_count()
+    }
+
     /// World bounds of every point (empty bounds at the origin for a store without points).
     pub fn bounds(&self) -> Aabb {
         let h = &self.store.header;
-        let (lo, hi) = if h.points == 0 { ([0; 3], [0; 3]) } else { (h.min, h.max) };
+        // A commit of a build under way may hold inner levels only: their bounds are set.
+        let set = (0..3).all(|a| h.min[a] <= h.max[a]);
+        let (lo, hi) = if (h.points == 0 && self.index.point_count() == 0) || !set { ([0; 3], [0; 3]) } else { (h.min, h.max) };
         world_box(&self.grid, lo, hi)
     }
 

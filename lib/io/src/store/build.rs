@@ -7,6 +7,7 @@ use std::path::Path;
 use std::time::Instant;
 
 use super::writer::*;
+use super::record::BuildRecord;
 use super::incremental::build_into;
 
 /// Choices of `mortar build`.
@@ -39,6 +40,9 @@ pub struct BuildOptions {
     pub memory: u64,
     /// The engine.
     pub engine: Engine,
+    /// Continue the store the output names, if a build of the same inputs and settings began
+    /// it and did not finish (killed, power loss, disk full): from its last commit.
+    pub resume: bool,
 }
 
 /// Progress of a build, reported after every batch.
@@ -95,6 +99,10 @@ pub struct BuildReport {
     pub write_seconds: f64,
     /// Of those, seconds encoding.
     pub encode_seconds: f64,
+    /// Whether the build continued a store begun before (`--resume`).
+    pub resumed: bool,
+    /// Nodes the resumed build found committed and kept.
+    pub kept_nodes: u64,
 }
 
 /// The integer bounds the inputs' headers declare (one unit of margin), on the merged grid, with
@@ -169,7 +177,6 @@ pub fn build(ds: &Dataset, dir: &Path, opts: &BuildOptions, progress: &mut dyn F
     let meta = ds.source_meta();
     let mut warnings = Vec::new();
     let bounds = header_bounds(ds, &mut warnings);
-    let mut writer = StoreWriter::create(dir, &meta)?;
     let sorted = match opts.engine {
         Engine::Auto => super::engine::applies(ds, opts),
         Engine::Sorted if opts.config.color_mode != mortar_core::octree::ColorMode::FirstCome => {
@@ -178,20 +185,101 @@ pub fn build(ds: &Dataset, dir: &Path, opts: &BuildOptions, progress: &mut dyn F
         Engine::Sorted => true,
         Engine::Incremental => false,
     };
+    let mut record = BuildRecord::of(ds, &opts.config, if sorted { "sorted" } else { "incremental" });
+    let mut writer = match if opts.resume { continue_store(dir, &meta, &record, &mut warnings)? } else { Continue::Fresh } {
+        Continue::Writer(w) => w,
+        Continue::Complete(mut r) => {
+            warnings.append(&mut r.warnings);
+            r.warnings = warnings;
+            r.seconds = t0.elapsed().as_secs_f64();
+            return Ok(r);
+        }
+        Continue::Fresh => {
+            let w = StoreWriter::create(dir, &meta)?;
+            record.write(dir)?;
+            w
+        }
+    };
+    let resumed = writer.commits() > 0;
     let engine = if sorted { super::engine::build_into } else { build_into };
     let result = engine(ds, &mut writer, opts, progress, bounds, t0).map(|mut r| {
         warnings.append(&mut r.warnings);
         r.warnings = warnings;
+        r.resumed = resumed;
         r
     });
     match result {
-        Ok(r) => Ok(r),
+        Ok(r) => {
+            record.complete = true;
+            record.write(dir)?;
+            Ok(r)
+        }
         Err(Error::Interrupted) => Err(Error::Interrupted),
+        // Out of disk, or another failure of the file system, after a commit: the store keeps
+        // its last commit, and `--resume` continues from it once there is room.
+        Err(e @ Error::Io { .. }) if writer.commits() > 0 => Err(Error::Usage(format!(
+            "{e}; the store {} keeps its last commit (commit {}), readable; `mortar build --resume` continues it",
+            dir.display(),
+            writer.commits()
+        ))),
+        Err(e) if resumed => Err(e),
         Err(e) => {
             // Not a store the user asked for: remove what was written (also after commits).
             let _ = std::fs::remove_dir_all(dir);
             Err(e)
         }
+    }
+}
+
+/// How a build with `--resume` begins.
+enum Continue {
+    /// From nothing (no store, or nothing committed yet).
+    Fresh,
+    /// From the last commit of the store.
+    Writer(StoreWriter),
+    /// The store is complete.
+    Complete(BuildReport),
+}
+
+/// Checks that the store `dir` was begun by a build of the same inputs and settings (its
+/// [`BuildRecord`]) and reopens it at its last commit.
+fn continue_store(dir: &Path, meta: &crate::dataset::SourceMeta, record: &BuildRecord, warnings: &mut Vec<String>) -> Result<Continue> {
+    let empty = !dir.exists() || (dir.is_dir() && std::fs::read_dir(dir).map_err(|e| Error::io(dir, e))?.next().is_none());
+    if empty {
+        return Ok(Continue::Fresh);
+    }
+    let Some(old) = BuildRecord::read(dir)? else {
+        return Err(Error::input(dir, "has no build record (build.json): not a store that `mortar build` began, or one begun by an older mortar; give a new directory"));
+    };
+    if let Some(m) = record.mismatch(&old) {
+        return Err(Error::input(dir, format!("{m}; give a new directory, or remove it to start over")));
+    }
+    if old.complete {
+        let s = super::reader::Store::open(dir)?;
+        let r = BuildReport {
+            engine: "none",
+            points: s.header.points,
+            nodes: s.entries.len() as u64,
+            leaves: s.leaves().len() as u64,
+            commits: s.header.commit,
+            nodes_bytes: s.header.nodes_len,
+            resumed: true,
+            warnings: vec![format!("{}: the build is complete; nothing to resume", dir.display())],
+            ..BuildReport::default()
+        };
+        return Ok(Continue::Complete(r));
+    }
+    let start_over = |why: String, warnings: &mut Vec<String>| -> Result<Continue> {
+        warnings.push(format!("{}: {why}; building it again from the start", dir.display()));
+        std::fs::remove_dir_all(dir).map_err(|e| Error::io(dir, e))?;
+        Ok(Continue::Fresh)
+    };
+    if old.engine != "sorted" || record.engine != "sorted" {
+        return start_over("the incremental engine keeps its tree in memory and cannot continue a build".into(), warnings);
+    }
+    match StoreWriter::reopen(dir, meta)? {
+        Some((w, _)) => Ok(Continue::Writer(w)),
+        None => start_over("nothing was committed".into(), warnings),
     }
 }
 

@@ -310,6 +310,17 @@ fn write_tree(
     let attr_len = rl - 12;
     let levels = tree.levels();
     let mut points = 0u64;
+    // A resumed build: the committed nodes must be whole levels of this tree, the same nodes.
+    let kept: Vec<NodeEntry> = writer.entries().copied().collect();
+    if !kept.is_empty() {
+        let whole = levels.iter().any(|l| l.end == kept.len());
+        let same = kept.len() <= tree.nodes.len()
+            && kept.iter().zip(&tree.nodes).all(|(e, n)| e.level == n.key.level as u32 && e.index == n.key.index && (e.kind == LEAF) == n.is_leaf() && e.count == n.count() as u64);
+        if !whole || !same {
+            return Err(Error::input(&writer.dir, "its committed nodes are not those the inputs give (the store was changed, or built by another mortar); give a new directory"));
+        }
+        report.kept_nodes = kept.len() as u64;
+    }
     let dir = writer.dir.clone();
     let encode = |id: usize, n: &SortedNode| -> Result<(usize, NodeEntry, Vec<u8>)> {
         let (kind, idx): (u32, Box<dyn Fn(usize) -> usize + Sync>) = match &n.content {
@@ -323,7 +334,11 @@ fn write_tree(
             .map(|(e, b)| (id, e, b))
             .map_err(|m| Error::input(&dir, m))
     };
-    for (li, level) in levels.iter().enumerate() {
+    for level in &levels {
+        if level.end <= kept.len() {
+            points += tree.nodes[level.clone()].iter().filter(|n| n.is_leaf()).map(|n| n.count() as u64).sum::<u64>();
+            continue;
+        }
         let tw = Instant::now();
         let mut start = level.start;
         while start < level.end {
@@ -357,7 +372,6 @@ fn write_tree(
         let tc = Instant::now();
         writer.write_hierarchy(root, points, opts.config.leaf_capacity, bounds)?;
         report.commit_seconds += tc.elapsed().as_secs_f64();
-        let _ = li;
         progress(&BuildProgress { points, total, nodes: level.end, commits: writer.commits() });
         sort::trace("level committed", t0);
     }

@@ -30,10 +30,12 @@ mod engine;
 mod format;
 mod incremental;
 mod reader;
+mod record;
 mod writer;
 
 pub use build::{build, BuildOptions, BuildProgress, BuildReport, Engine};
 pub use engine::in_memory_need;
 pub use format::{HierarchyHeader, NodeEntry, NodeHeader, HIERARCHY_FILE, INNER, LEAF, NODES_FILE, SOURCE_FILE};
 pub use reader::{is_store, NodeData, Store};
+pub use record::{BuildRecord, InputPrint, RECORD_FILE};
 pub use writer::{CommitStats, StoreWriter, COMMIT_GROUP_BYTES, PAGED};

@@ -50,30 +50,7 @@ impl StoreWriter {
             std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
         }
         let guard = TempPath::adopt(dir.to_path_buf());
-        // source.las: header, VLRs, EVLRs, no points.
-        let g = &meta.grid;
-        let h = HeaderOut {
-            template: &meta.header,
-            point_format: meta.layout.format,
-            compressed: false,
-            record_len: meta.layout.record_len as u16,
-            point_count: 0,
-            points_by_return: [0; 15],
-            scale: g.scale,
-            offset: g.offset,
-            min: [0.0; 3],
-            max: [0.0; 3],
-            vlrs: &meta.vlrs,
-            evlr_start: 0,
-            evlr_count: 0,
-        };
-        let mut bytes = las::write_header(&h).map_err(|e| Error::input(dir, e))?;
-        if !meta.evlrs.is_empty() {
-            let start = bytes.len() as u64;
-            let h = HeaderOut { evlr_start: start, evlr_count: meta.evlrs.len() as u32, ..h };
-            bytes = las::write_header(&h).map_err(|e| Error::input(dir, e))?;
-            bytes.extend_from_slice(&las::write_evlrs(&meta.evlrs));
-        }
+        let bytes = source_bytes(dir, meta)?;
         let src = dir.join(SOURCE_FILE);
         std::fs::write(&src, &bytes).map_err(|e| Error::io(&src, e))?;
         let np = dir.join(NODES_FILE);
@@ -90,6 +67,46 @@ impl StoreWriter {
             record_len: meta.layout.record_len,
             guard: Some(guard),
         })
+    }
+
+    /// Reopens the store `dir` that a build left (killed, or out of disk) to continue it: the
+    /// last commit's nodes are kept, anything appended after it is cut off. `None` when there is
+    /// nothing to continue from (no commit yet: the caller starts over). Fails when the store was
+    /// made from another source (its `source.las` differs from what `meta` gives).
+    pub fn reopen(dir: &Path, meta: &SourceMeta) -> Result<Option<(StoreWriter, HierarchyHeader)>> {
+        let src = dir.join(SOURCE_FILE);
+        let hp = dir.join(HIERARCHY_FILE);
+        if !hp.is_file() {
+            return Ok(None);
+        }
+        let want = source_bytes(dir, meta)?;
+        let have = std::fs::read(&src).map_err(|e| Error::io(&src, e))?;
+        if have != want {
+            return Err(Error::input(dir, "was built from other inputs (its source header, VLRs or CRS differ); give a new directory or remove it"));
+        }
+        let store = super::reader::Store::open(dir)?;
+        let np = dir.join(NODES_FILE);
+        let nodes = std::fs::OpenOptions::new().write(true).open(&np).map_err(|e| Error::io(&np, e))?;
+        nodes.set_len(store.header.nodes_len).map_err(|e| Error::io(&np, e))?;
+        let reader = File::open(&np).map_err(|e| Error::io(&np, e))?;
+        let _ = std::fs::remove_file(dir.join(format!("{HIERARCHY_FILE}.tmp")));
+        let w = StoreWriter {
+            dir: dir.to_path_buf(),
+            nodes,
+            reader,
+            nodes_len: store.header.nodes_len,
+            entries: store.entries.iter().copied().map(Some).collect(),
+            commit: store.header.commit,
+            last_revision: None,
+            record_len: meta.layout.record_len,
+            guard: None,
+        };
+        Ok(Some((w, store.header)))
+    }
+
+    /// The entries committed or set so far, in id order.
+    pub fn entries(&self) -> impl Iterator<Item = &NodeEntry> {
+        self.entries.iter().flatten()
     }
 
     /// Commits: appends the payloads of the nodes changed since the last commit, syncs them, then
@@ -370,3 +387,30 @@ pub(crate) fn encode_node<'r>(n: &NodeView, old: Option<&[u8]>, record_len: usiz
     Ok((entry, out))
 }
 
+/// The bytes of `source.las`: the source's LAS header, VLRs and EVLRs, no points.
+pub(crate) fn source_bytes(dir: &Path, meta: &SourceMeta) -> Result<Vec<u8>> {
+    let g = &meta.grid;
+    let h = HeaderOut {
+        template: &meta.header,
+        point_format: meta.layout.format,
+        compressed: false,
+        record_len: meta.layout.record_len as u16,
+        point_count: 0,
+        points_by_return: [0; 15],
+        scale: g.scale,
+        offset: g.offset,
+        min: [0.0; 3],
+        max: [0.0; 3],
+        vlrs: &meta.vlrs,
+        evlr_start: 0,
+        evlr_count: 0,
+    };
+    let mut bytes = las::write_header(&h).map_err(|e| Error::input(dir, e))?;
+    if !meta.evlrs.is_empty() {
+        let start = bytes.len() as u64;
+        let h = HeaderOut { evlr_start: start, evlr_count: meta.evlrs.len() as u32, ..h };
+        bytes = las::write_header(&h).map_err(|e| Error::input(dir, e))?;
+        bytes.extend_from_slice(&las::write_evlrs(&meta.evlrs));
+    }
+    Ok(bytes)
+}

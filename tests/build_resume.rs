@@ -1,0 +1,254 @@
+//! Issue 13, faults: `mortar build --resume` after SIGKILL at 20 moments gives the store an
+//! uninterrupted build gives (same hierarchy, same payloads); after each kill the store opens at
+//! its last commit and renders. A build that runs out of file size (`ulimit -f`) ends with a
+//! clear error and its last commit readable, and resumes. Readers that open the store in a loop
+//! while a build appends never see a torn commit.
+
+mod common;
+
+use common::*;
+use mortar_io::dataset::RecordSource;
+use mortar_io::store::Store;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+fn input(dir: &Path, points: u64) -> PathBuf {
+    let p = dir.join("in.las");
+    run_ok(
+        gen()
+            .args(["--points", &points.to_string(), "--seed", "7", "-o"])
+            .arg(&p),
+    );
+    p
+}
+
+/// The hierarchy (header and entries) and the live payloads of a store.
+fn snapshot(dir: &Path) -> (Vec<u8>, Vec<u8>) {
+    let h = std::fs::read(dir.join("hierarchy.bin")).unwrap();
+    let s = Store::open(dir).unwrap();
+    let nodes = std::fs::read(dir.join("nodes.bin")).unwrap();
+    (h, nodes[..s.header.nodes_len as usize].to_vec())
+}
+
+/// A store that was stopped: empty, or it opens at its last commit and draws.
+fn check_stopped(dir: &Path, render: bool) {
+    if !dir.join("hierarchy.bin").exists() {
+        return;
+    }
+    let s =
+        Store::open(dir).unwrap_or_else(|e| panic!("the store must open at its last commit: {e}"));
+    let pts = s.header.points;
+    let read: u64 = s
+        .pieces()
+        .iter()
+        .map(|p| s.read_piece(p).unwrap().len() as u64 / s.layout.record_len as u64)
+        .sum();
+    assert_eq!(read, pts);
+    let lod = mortar_io::store_lod::StoreLod::new(s).expect("the last commit is a drawable tree");
+    assert!(lod.index().point_count() > 0 || pts == 0);
+    if render {
+        let png = dir.with_extension("png");
+        run_ok(
+            mortar()
+                .arg("render")
+                .arg(dir)
+                .arg("-o")
+                .arg(&png)
+                .args(["--width", "160", "--height", "120"]),
+        );
+        assert!(std::fs::metadata(&png).unwrap().len() > 0);
+    }
+}
+
+#[test]
+fn resume_after_sigkill_at_20_moments_gives_the_uninterrupted_store() {
+    let dir = tempdir("resume-kill");
+    let inp = input(&dir, 3_000_000);
+    let reference = dir.join("ref");
+    let t = Instant::now();
+    run_ok(mortar().arg("build").arg(&inp).arg("-o").arg(&reference));
+    let full = t.elapsed();
+    let want = snapshot(&reference);
+    let mut seed = 0x2545_f491_4f6c_dd1du64;
+    let mut stopped_with_commits = 0;
+    for k in 0..20 {
+        seed ^= seed << 13;
+        seed ^= seed >> 7;
+        seed ^= seed << 17;
+        // Moments spread over the whole build and a little past it.
+        let at = full.mul_f64((seed % 1000) as f64 / 1000.0 * 1.1);
+        let out = dir.join(format!("s{k}"));
+        let mut child = mortar()
+            .arg("build")
+            .arg(&inp)
+            .arg("-o")
+            .arg(&out)
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap();
+        std::thread::sleep(at);
+        let _ = child.kill(); // SIGKILL
+        let _ = child.wait();
+        if out.join("hierarchy.bin").exists() {
+            stopped_with_commits += 1;
+        }
+        check_stopped(&out, k % 5 == 0);
+        let o = run_ok(
+            mortar()
+                .arg("build")
+                .arg("--resume")
+                .arg(&inp)
+                .arg("-o")
+                .arg(&out)
+                .arg("--json"),
+        );
+        let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+        assert_eq!(j["points"], 3_000_000, "kill {k} at {at:?}: {j}");
+        assert!(
+            snapshot(&out) == want,
+            "kill {k} at {at:?}: the resumed store differs from the uninterrupted one ({j})"
+        );
+        let _ = std::fs::remove_dir_all(&out);
+    }
+    assert!(
+        stopped_with_commits >= 5,
+        "only {stopped_with_commits} kills left a commit (build {full:?})"
+    );
+    // Resuming a complete store leaves it as it is; other inputs are refused before anything is written.
+    let o = run_ok(
+        mortar()
+            .arg("build")
+            .arg("--resume")
+            .arg(&inp)
+            .arg("-o")
+            .arg(&reference),
+    );
+    assert!(String::from_utf8_lossy(&o.stderr).contains("complete"));
+    assert!(snapshot(&reference) == want);
+    let other = dir.join("other.las");
+    run_ok(
+        gen()
+            .args(["--points", "1000", "--seed", "8", "-o"])
+            .arg(&other),
+    );
+    let o = mortar()
+        .arg("build")
+        .arg("--resume")
+        .arg(&other)
+        .arg("-o")
+        .arg(&reference)
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(1));
+    assert!(
+        String::from_utf8_lossy(&o.stderr).contains("was built from"),
+        "{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    assert!(snapshot(&reference) == want);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_build_out_of_file_size_keeps_its_last_commit_and_resumes() {
+    let dir = tempdir("resume-full");
+    let inp = input(&dir, 1_500_000);
+    let reference = dir.join("ref");
+    run_ok(mortar().arg("build").arg(&inp).arg("-o").arg(&reference));
+    let want = snapshot(&reference);
+    let total = want.1.len() as u64;
+    let out = dir.join("s");
+    // Files may grow to a little over half the store's payloads (bash counts 1024-byte blocks).
+    let limit = total / 2 / 1024;
+    let o = Command::new("bash")
+        .arg("-c")
+        .arg(format!(
+            "ulimit -f {limit}; exec \"$0\" build \"$1\" -o \"$2\"",
+        ))
+        .arg(env!("CARGO_BIN_EXE_mortar"))
+        .arg(&inp)
+        .arg(&out)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(
+        err.contains("nodes.bin")
+            && err.contains("keeps its last commit")
+            && err.contains("--resume"),
+        "{err}"
+    );
+    assert_eq!(err.trim().lines().count(), 1, "one line: {err}");
+    check_stopped(&out, true);
+    run_ok(
+        mortar()
+            .arg("build")
+            .arg("--resume")
+            .arg(&inp)
+            .arg("-o")
+            .arg(&out),
+    );
+    assert!(snapshot(&out) == want);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn readers_never_see_a_torn_commit() {
+    let dir = tempdir("resume-readers");
+    let inp = input(&dir, 3_000_000);
+    for engine in ["sorted", "incremental"] {
+        let out = dir.join(engine);
+        let mut child = mortar()
+            .arg("build")
+            .arg(&inp)
+            .arg("-o")
+            .arg(&out)
+            .args([
+                "--engine",
+                engine,
+                "--commit-every",
+                "0",
+                "--batch-points",
+                "200000",
+                "--leaf-capacity",
+                "20000",
+            ])
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap();
+        let mut opened = 0;
+        let mut commits = std::collections::BTreeSet::new();
+        let deadline = Instant::now() + Duration::from_secs(120);
+        loop {
+            let done = child.try_wait().unwrap().is_some();
+            if out.join("hierarchy.bin").exists() {
+                let s = Store::open(&out)
+                    .unwrap_or_else(|e| panic!("{engine}: a reader saw a torn commit: {e}"));
+                commits.insert(s.header.commit);
+                let pts = s.header.points;
+                let read: u64 = s
+                    .pieces()
+                    .iter()
+                    .map(|p| s.read_piece(p).unwrap().len() as u64 / s.layout.record_len as u64)
+                    .sum();
+                assert_eq!(read, pts, "{engine}");
+                mortar_io::store_lod::StoreLod::new(s)
+                    .unwrap_or_else(|e| panic!("{engine}: a commit that does not draw: {e}"));
+                opened += 1;
+            }
+            if done {
+                break;
+            }
+            assert!(Instant::now() < deadline, "{engine}: the build did not end");
+        }
+        assert!(child.wait().unwrap().success());
+        assert!(
+            opened >= 2 && commits.len() >= 2,
+            "{engine}: {opened} opens, commits {commits:?}"
+        );
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
