@@ -10,11 +10,16 @@ use std::path::PathBuf;
 #[derive(clap::Args)]
 pub struct Args {
     /// LAS/LAZ files, batch files, stores, directories, glob patterns, or - for stdin.
-    #[arg(required = true)]
+    #[arg(required_unless_present = "compact")]
     pub inputs: Vec<String>,
     /// The store directory to create (must not exist, or be empty).
-    #[arg(short, long)]
-    pub output: PathBuf,
+    #[arg(short, long, required_unless_present = "compact")]
+    pub output: Option<PathBuf>,
+    /// Compact an existing store instead of building one: rewrite it so that `nodes.bin` holds
+    /// only the payloads of its last commit (stores of the incremental engine keep superseded
+    /// node versions). Run it when no build writes the store.
+    #[arg(long, value_name = "STORE", conflicts_with_all = ["inputs", "resume"])]
+    pub compact: Option<PathBuf>,
     /// Most points per leaf.
     #[arg(long, default_value_t = DEFAULT_LEAF_CAPACITY)]
     pub leaf_capacity: u32,
@@ -61,6 +66,16 @@ const PREVIEW_COMMIT_EVERY: f64 = 1.0;
 const PREVIEW_FIRST_COMMIT: f64 = 0.25;
 
 pub fn run(a: Args) -> Result<()> {
+    if let Some(dir) = &a.compact {
+        let r = mortar_io::store::compact(dir)?;
+        if a.json {
+            println!("{}", serde_json::to_string_pretty(&serde_json::json!({"store": dir, "nodes": r.nodes, "bytes_before": r.before, "bytes_after": r.after}))?);
+        } else {
+            eprintln!("mortar: {}: nodes.bin {} -> {} bytes ({} nodes)", dir.display(), r.before, r.after, r.nodes);
+        }
+        return Ok(());
+    }
+    let Some(output) = a.output.clone() else { anyhow::bail!("give the store directory with -o") };
     if a.leaf_capacity == 0 {
         anyhow::bail!("--leaf-capacity must be at least 1");
     }
@@ -84,7 +99,7 @@ pub fn run(a: Args) -> Result<()> {
         },
         resume: a.resume,
     };
-    let mut recorder = crate::build_frames::FrameRecorder::new(&a.frames, &ds, &a.output)?;
+    let mut recorder = crate::build_frames::FrameRecorder::new(&a.frames, &ds, &output)?;
     let mut opts = opts;
     if let Some(r) = &recorder {
         opts.commit_every = opts.commit_every.min(r.every());
@@ -106,9 +121,9 @@ pub fn run(a: Args) -> Result<()> {
         }
     };
     let (r, preview_json) = if a.preview.preview {
-        let view = a.preview.view_args(&a.output, &a.frames.camera);
+        let view = a.preview.view_args(&output, &a.frames.camera);
         let bounds = crate::build_frames::header_bounds(&ds);
-        let (ds, output, opts) = (&ds, &a.output, &opts);
+        let (ds, output, opts) = (&ds, &output, &opts);
         let job = move |report: &mut dyn FnMut(&BuildProgress)| {
             build(ds, output, opts, &mut |p| {
                 progress(p);
@@ -122,7 +137,7 @@ pub fn run(a: Args) -> Result<()> {
             crate::view::run_preview(&view, output, bounds, &ds.layout, job)?
         }
     } else {
-        (build(&ds, &a.output, &opts, &mut progress)?, serde_json::Value::Null)
+        (build(&ds, &output, &opts, &mut progress)?, serde_json::Value::Null)
     };
     if tty {
         eprintln!();
@@ -140,7 +155,7 @@ pub fn run(a: Args) -> Result<()> {
     if a.json {
         let n = r.batch_seconds.len().max(1) as f64;
         let j = serde_json::json!({
-            "output": a.output,
+            "output": output,
             "points": r.points,
             "nodes": r.nodes,
             "leaves": r.leaves,

@@ -34,7 +34,7 @@ fn frames_show_the_store_growing_and_end_in_a_contact_sheet() {
             .arg(root().join("data-samples/autzen_trim.laz"))
             .arg("-o")
             .arg(&store)
-            .args(["--batch-points", "10000", "--frames"])
+            .args(["--engine", "incremental", "--batch-points", "10000", "--frames"])
             .arg(&frames)
             .args(["--every", "0", "--frame-width", "320", "--frame-height", "200", "--view", "top", "--json"]),
     );
@@ -102,7 +102,7 @@ fn frames_on_the_gpu_equal_the_cpu_frames_and_the_offscreen_preview_reports_its_
         let frames = dir.join(format!("frames-{backend}"));
         let store = dir.join(format!("s-{backend}"));
         let o = run_ok(
-            mortar().arg("build").arg(&input).arg("-o").arg(&store).args(["--batch-points", "20000", "--frames"]).arg(&frames).args([
+            mortar().arg("build").arg(&input).arg("-o").arg(&store).args(["--engine", "incremental", "--batch-points", "20000", "--frames"]).arg(&frames).args([
                 "--every",
                 "0",
                 "--frame-width",

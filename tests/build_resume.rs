@@ -252,3 +252,33 @@ fn readers_never_see_a_torn_commit() {
     }
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn compact_keeps_the_store_and_drops_superseded_payloads() {
+    let dir = tempdir("compact");
+    let inp = input(&dir, 400_000);
+    let store = dir.join("s");
+    // Small batches with a commit after each: leaves are rewritten many times.
+    run_ok(mortar().arg("build").arg(&inp).arg("-o").arg(&store).args(["--engine", "incremental", "--batch-points", "20000", "--commit-every", "0"]));
+    let before = Store::open(&store).unwrap();
+    let live: u64 = before.entries.iter().map(|e| e.length).sum();
+    assert!(before.header.nodes_len as f64 > 1.5 * live as f64, "{} of {live}", before.header.nodes_len);
+    let sorted_before = dir.join("a.las");
+    run_ok(mortar().arg("sort").arg(&store).arg("-o").arg(&sorted_before));
+    drop(before);
+    let o = run_ok(mortar().arg("build").arg("--compact").arg(&store).arg("--json"));
+    let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(j["bytes_after"].as_u64(), Some(live));
+    let after = Store::open(&store).unwrap();
+    assert_eq!(after.header.nodes_len, live, "nodes.bin holds exactly the live payloads");
+    assert_eq!(std::fs::metadata(store.join("nodes.bin")).unwrap().len(), live);
+    let sorted_after = dir.join("b.las");
+    run_ok(mortar().arg("sort").arg(&store).arg("-o").arg(&sorted_after));
+    assert!(std::fs::read(&sorted_before).unwrap() == std::fs::read(&sorted_after).unwrap());
+    check_stopped(&store, true);
+    assert!(entries(&dir).iter().all(|e| !e.contains("compacting") && !e.ends_with(".old")), "{:?}", entries(&dir));
+    // Not a store: a clear error.
+    let o = mortar().arg("build").arg("--compact").arg(&inp).output().unwrap();
+    assert_eq!(o.status.code(), Some(1));
+    let _ = std::fs::remove_dir_all(&dir);
+}

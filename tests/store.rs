@@ -40,14 +40,20 @@ fn store_round_trip_is_exact_on_the_sample() {
     let j = round_trip(&sample(), &[], "store-sample");
     assert_eq!(j["points"], 110_000);
     // A small leaf capacity makes a deep tree, and small batches with a commit after each one.
-    let j = round_trip(&sample(), &["--leaf-capacity", "1000", "--batch-points", "7000", "--commit-every", "0"], "store-deep");
+    let j = round_trip(&sample(), &["--engine", "incremental", "--leaf-capacity", "1000", "--batch-points", "7000", "--commit-every", "0"], "store-deep");
     assert_eq!(j["points"], 110_000);
     assert!(j["commits"].as_u64().unwrap() >= 15, "{j}");
     assert!(j["leaves"].as_u64().unwrap() >= 110, "{j}");
     assert!(j["voxels"].as_u64().unwrap() > 0);
     // Every commit pages the leaves out, so splits read leaves back from nodes.bin.
     assert!(j["paged_in_leaves"].as_u64().unwrap() > 0, "{j}");
+    // The sorted engine: the same deep tree, one commit per level, each node written once.
+    let j = round_trip(&sample(), &["--leaf-capacity", "1000"], "store-deep-sorted");
+    assert_eq!(j["engine"], "sorted");
+    assert!(j["commits"].as_u64().unwrap() >= 5, "{j}");
+    assert!(j["leaves"].as_u64().unwrap() >= 110, "{j}");
     let j = round_trip(&sample(), &["--averaged-colors", "--leaf-capacity", "3000"], "store-avg");
+    assert_eq!(j["engine"], "incremental");
     assert_eq!(j["points"], 110_000);
 }
 
@@ -211,7 +217,7 @@ fn ctrl_c_leaves_the_last_commit_readable() {
         .arg(&las)
         .arg("-o")
         .arg(&store)
-        .args(["--batch-points", "50000", "--commit-every", "0", "--leaf-capacity", "20000"])
+        .args(["--engine", "incremental", "--batch-points", "50000", "--commit-every", "0", "--leaf-capacity", "20000"])
         .stderr(std::process::Stdio::piped())
         .spawn()
         .unwrap();

@@ -169,9 +169,13 @@ fn a_header_narrower_than_its_points_grows_the_root() {
         lie(&mut b);
         let p = dir.join(name);
         std::fs::write(&p, &b).unwrap();
-        let (j, err) = assert_exact(&[&p], &["--leaf-capacity", "2000", "--batch-points", "10000", "--commit-every", "0"], &dir);
+        // The sorted engine places the root from the points; the incremental one grows it.
+        let (j, err) = assert_exact(&[&p], &["--leaf-capacity", "2000", "--engine", "sorted"], &dir);
         assert_eq!(j["points"], 110_000, "{name}");
-        assert!(err.contains(name) && err.contains("outside the bounds its header declares") && err.contains("grew"), "{name}: {err}");
+        assert!(err.contains(name) && err.contains("outside the bounds its header declares"), "{name}: {err}");
+        let (j, err) = assert_exact(&[&p], &["--leaf-capacity", "2000", "--batch-points", "10000", "--commit-every", "0", "--engine", "incremental"], &dir);
+        assert_eq!(j["points"], 110_000, "{name}");
+        assert!(err.contains(name) && err.contains("outside the bounds its header declares") && err.contains("root holds them"), "{name}: {err}");
         assert!(j["warnings"].as_array().unwrap().iter().any(|w| w.as_str().unwrap().contains(name)), "{name}: {j}");
         // The warning reports the whole range of the file's points, not a partial one.
         let o = run_ok(mortar().arg("info").arg(&a).arg("--json"));
@@ -188,8 +192,11 @@ fn a_header_narrower_than_its_points_grows_the_root() {
     for lie in ["x-narrow-low.las", "zero.las"] {
         let lie = dir.join(lie);
         for inputs in [[&moved, &lie], [&lie, &moved]] {
-            let (j, _) = assert_exact(&[inputs[0].as_path(), inputs[1].as_path()], &["--leaf-capacity", "3000", "--batch-points", "20000", "--commit-every", "0"], &dir);
+            let (j, _) = assert_exact(&[inputs[0].as_path(), inputs[1].as_path()], &["--leaf-capacity", "3000", "--batch-points", "20000", "--commit-every", "0", "--engine", "incremental"], &dir);
             assert!(j["root_growths"].as_u64().unwrap() > 0, "{inputs:?}: {j}");
+            assert_eq!(j["points"], 220_000);
+            let (j, _) = assert_exact(&[inputs[0].as_path(), inputs[1].as_path()], &["--leaf-capacity", "3000"], &dir);
+            assert_eq!(j["engine"], "sorted");
             assert_eq!(j["points"], 220_000);
         }
     }

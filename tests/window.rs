@@ -277,7 +277,7 @@ fn build_preview_shows_the_store_while_it_grows() {
         c.arg("build").arg(sample()).arg("-o").arg(&store);
         c.args(["--preview", "--preview-backend", backend, "--preview-size", "320x240", "--preview-screenshot"]).arg(&png);
         // A commit after every 5,000-point update: the window sees the store grow.
-        c.args(["--commit-every", "0", "--batch-points", "5000", "--json"]);
+        c.args(["--engine", "incremental", "--commit-every", "0", "--batch-points", "5000", "--json"]);
         c.env("DISPLAY", &x.display).env_remove("WAYLAND_DISPLAY");
         let o = run_limited(c, Duration::from_secs(300));
         assert!(o.status.success(), "build --preview {backend}: {}", String::from_utf8_lossy(&o.stderr));

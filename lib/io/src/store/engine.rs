@@ -110,7 +110,7 @@ fn sort_records(slabs: &[&[u8]], hist: &[Vec<u32>], rl: usize, g: &MortonGrid, s
         slabs.par_iter().zip(cursors.into_par_iter()).enumerate().for_each(|(p, (slab, mut cur))| {
             let (rp, ap) = (&rp, &ap);
             for (i, r) in slab.chunks_exact(rl).enumerate() {
-                let b = (code_of(r, g) >> shift) as usize;
+                let b = ((code_of(r, g) >> shift) as usize).min(nb - 1);
                 let at = cur[b];
                 cur[b] += 1;
                 // SAFETY: the cursors of all pieces partition 0..n; each slot is written once.
@@ -256,7 +256,7 @@ pub(crate) fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOpt
 fn histogram(slab: &[u8], rl: usize, g: &MortonGrid, shift: u32) -> Vec<u32> {
     let mut h = vec![0u32; 1 << BUCKET_BITS];
     for r in slab.chunks_exact(rl) {
-        h[(code_of(r, g) >> shift) as usize] += 1;
+        h[((code_of(r, g) >> shift) as usize).min((1 << BUCKET_BITS) - 1)] += 1;
     }
     h
 }
@@ -283,7 +283,9 @@ fn read_pieces(ds: &Dataset, root: Cube) -> Result<(Vec<(std::borrow::Cow<'_, [u
             }
             let mut h = vec![0u32; 1 << BUCKET_BITS];
             let st = PieceStats::of_with(&slab, &ds.layout, |_, q| {
-                h[(g.code([q[0] as i64, q[1] as i64, q[2] as i64]) >> shift) as usize] += 1;
+                // Points outside the promised root land in the last bucket: the histograms are made again
+                // on the real root when the headers lie.
+                h[((g.code([q[0] as i64, q[1] as i64, q[2] as i64]) >> shift) as usize).min((1 << BUCKET_BITS) - 1)] += 1;
             });
             Ok(((slab, st), h))
         })

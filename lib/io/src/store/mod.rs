@@ -26,6 +26,7 @@
 //! with input order as much as with input size (measured in BENCHMARKS.md).
 
 mod build;
+mod compact;
 mod engine;
 mod format;
 mod incremental;
@@ -34,6 +35,7 @@ mod record;
 mod writer;
 
 pub use build::{build, BuildOptions, BuildProgress, BuildReport, Engine};
+pub use compact::{compact, CompactReport};
 pub use engine::in_memory_need;
 pub use format::{HierarchyHeader, NodeEntry, NodeHeader, HIERARCHY_FILE, INNER, LEAF, NODES_FILE, SOURCE_FILE};
 pub use reader::{is_store, NodeData, Store};

@@ -132,6 +132,12 @@ impl Store {
         Cube { min: self.header.root_min, size_log2: self.header.root_size_log2 as u8 }
     }
 
+    /// The bytes of node entry `i`'s payload (its header first).
+    pub fn node_bytes(&self, i: usize) -> &[u8] {
+        let e = &self.entries[i];
+        &self.nodes.as_ref().expect("checked at open")[e.offset as usize..(e.offset + e.length) as usize]
+    }
+
     /// The payload of node entry `i`.
     pub fn node(&self, i: usize) -> NodeData<'_> {
         let e = &self.entries[i];
