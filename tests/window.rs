@@ -261,7 +261,10 @@ fn view_draws_a_store_with_lod_on_the_cpu_and_the_gpu() {
 fn build_preview_shows_the_store_while_it_grows() {
     let Some(x) = xvfb_or_skip() else { return };
     let dir = tempdir("window-preview");
-    let reference = build_store(&dir, "reference");
+    // The preview below builds with the incremental engine (a commit per update), so the
+    // reference does too: the same hierarchy bytes and the same baked colours.
+    let reference = dir.join("reference");
+    run_ok(mortar().arg("build").arg(sample()).arg("-o").arg(&reference).args(["--engine", "incremental"]));
     let mut backends = vec!["cpu"];
     if mortar_render::testing::context_or_skip(mortar_render::AtomicPath::TwoPass32, None).is_some() {
         backends.push("gpu");
