@@ -250,11 +250,14 @@ pub fn sort(ds: &Dataset, opts: &SortOptions, sink: &mut dyn OrderedSink) -> Res
     Ok(SortReport { summary, external: false, buckets: 1 })
 }
 
+/// The records of every piece, in input order, with their statistics.
+pub type Slabs<'a> = Vec<(Cow<'a, [u8]>, PieceStats)>;
+
 /// Reads every piece of `ds` in parallel (LAZ decoded into `arena`, mapped LAS borrowed in
 /// place) and makes one key per point on the Morton grid `guess` while the piece is hot in
 /// cache: the pieces' records (in input order) with their statistics, and the keys in input
 /// order (`slab` = piece, `idx` = record in it).
-pub fn read_all<'a>(ds: &'a Dataset, guess: &MortonGrid, arena: &'a mut Vec<u8>) -> Result<(Vec<(Cow<'a, [u8]>, PieceStats)>, Vec<Key>)> {
+pub fn read_all<'a>(ds: &'a Dataset, guess: &MortonGrid, arena: &'a mut Vec<u8>) -> Result<(Slabs<'a>, Vec<Key>)> {
     let pieces = ds.pieces();
     ds.inputs.par_iter().for_each(|i| i.prefetch());
     let rl = ds.layout.record_len;
