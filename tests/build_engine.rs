@@ -12,7 +12,10 @@ use std::path::{Path, PathBuf};
 
 /// Every node of a store: key -> (leaf, its records sorted), records rebuilt from the payload
 /// (decoded position + the attribute bytes).
-fn nodes_of(dir: &Path) -> (mortar_core::octree::Cube, BTreeMap<(u32, [u32; 3]), (bool, Vec<Vec<u8>>)>) {
+/// Node key -> (leaf, its records sorted).
+type Nodes = BTreeMap<(u32, [u32; 3]), (bool, Vec<Vec<u8>>)>;
+
+fn nodes_of(dir: &Path) -> (mortar_core::octree::Cube, Nodes) {
     let s = Store::open(dir).unwrap_or_else(|e| panic!("{}: {e}", dir.display()));
     let mut out = BTreeMap::new();
     for (i, e) in s.entries.iter().enumerate() {

@@ -5,7 +5,6 @@ use crate::dataset::SourceMeta;
 use crate::error::{Error, Result};
 use crate::las::{self, HeaderOut};
 use mortar_core::octree::{Cube, NodeView, Payload, Point, Snapshot};
-use mortar_core::quantize::BatchGrid;
 use rayon::prelude::*;
 use std::fs::File;
 use std::io::Write;
@@ -342,49 +341,10 @@ pub(crate) fn encode_node<'r>(n: &NodeView, old: Option<&[u8]>, record_len: usiz
         }
     };
     let count = positions.len();
-    if count > u32::MAX as usize {
-        return Err(format!("node {} holds {count} points, more than a payload can (2^32 - 1)", key.name()));
+    if attrs.len() != count * attr_len {
+        return Err(format!("node {}: {} bytes of attributes for {count} points", key.name(), attrs.len()));
     }
-    let (mut lo, mut hi) = ([i32::MAX; 3], [i32::MIN; 3]);
-    for p in &positions {
-        for a in 0..3 {
-            lo[a] = lo[a].min(p[a]);
-            hi[a] = hi[a].max(p[a]);
-        }
-    }
-    if count == 0 {
-        (lo, hi) = ([0; 3], [0; 3]);
-    }
-    let grid = BatchGrid::for_bounds(lo, hi).ok_or_else(|| format!("node {} spans more than 2^30 grid units on an axis", key.name()))?;
-    let len = payload_len(count as u64, attr_len as u64) as usize;
-    let mut out = Vec::with_capacity(len);
-    let header = NodeHeader {
-        magic: NODE_MAGIC,
-        level: key.level as u32,
-        kind,
-        index: key.index,
-        count: count as u32,
-        min: grid.min,
-        bits: [grid.bits[0], grid.bits[1], grid.bits[2], 0],
-        attr_len: attr_len as u32,
-        _pad: [0; 3],
-    };
-    out.extend_from_slice(bytemuck::bytes_of(&header));
-    let words: Vec<[u32; 3]> = positions.iter().map(|p| grid.encode(*p)).collect();
-    drop(positions);
-    for level in 0..3 {
-        for w in &words {
-            out.extend_from_slice(&w[level].to_le_bytes());
-        }
-    }
-    for c in &colors {
-        out.extend_from_slice(&c.to_le_bytes());
-    }
-    debug_assert_eq!(attrs.len(), count * attr_len);
-    out.extend_from_slice(&attrs);
-    out.resize(len, 0);
-    let entry = NodeEntry { level: key.level as u32, kind, index: key.index, _pad: 0, count: count as u64, offset: 0, length: len as u64 };
-    Ok((entry, out))
+    encode_payload(key, kind, count, attr_len, |i| positions[i], |i| colors[i], |i| &attrs[i * attr_len..(i + 1) * attr_len])
 }
 
 /// The bytes of `source.las`: the source's LAS header, VLRs and EVLRs, no points.
