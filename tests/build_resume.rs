@@ -23,6 +23,13 @@ fn input(dir: &Path, points: u64) -> PathBuf {
     p
 }
 
+/// `mortar build --resume INPUT -o OUT`.
+fn resume(input: &Path, out: &Path) -> Command {
+    let mut c = mortar();
+    c.arg("build").arg("--resume").arg(input).arg("-o").arg(out);
+    c
+}
+
 /// The hierarchy (header and entries) and the live payloads of a store.
 fn snapshot(dir: &Path) -> (Vec<u8>, Vec<u8>) {
     let h = std::fs::read(dir.join("hierarchy.bin")).unwrap();
@@ -95,15 +102,7 @@ fn resume_after_sigkill_at_20_moments_gives_the_uninterrupted_store() {
             stopped_with_commits += 1;
         }
         check_stopped(&out, k % 5 == 0);
-        let o = run_ok(
-            mortar()
-                .arg("build")
-                .arg("--resume")
-                .arg(&inp)
-                .arg("-o")
-                .arg(&out)
-                .arg("--json"),
-        );
+        let o = run_ok(resume(&inp, &out).arg("--json"));
         let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
         assert_eq!(j["points"], 3_000_000, "kill {k} at {at:?}: {j}");
         assert!(
@@ -117,14 +116,7 @@ fn resume_after_sigkill_at_20_moments_gives_the_uninterrupted_store() {
         "only {stopped_with_commits} kills left a commit (build {full:?})"
     );
     // Resuming a complete store leaves it as it is; other inputs are refused before anything is written.
-    let o = run_ok(
-        mortar()
-            .arg("build")
-            .arg("--resume")
-            .arg(&inp)
-            .arg("-o")
-            .arg(&reference),
-    );
+    let o = run_ok(&mut resume(&inp, &reference));
     assert!(String::from_utf8_lossy(&o.stderr).contains("complete"));
     assert!(snapshot(&reference) == want);
     let other = dir.join("other.las");
@@ -133,12 +125,7 @@ fn resume_after_sigkill_at_20_moments_gives_the_uninterrupted_store() {
             .args(["--points", "1000", "--seed", "8", "-o"])
             .arg(&other),
     );
-    let o = mortar()
-        .arg("build")
-        .arg("--resume")
-        .arg(&other)
-        .arg("-o")
-        .arg(&reference)
+    let o = resume(&other, &reference)
         .output()
         .unwrap();
     assert_eq!(o.status.code(), Some(1));
@@ -182,14 +169,7 @@ fn a_build_out_of_file_size_keeps_its_last_commit_and_resumes() {
     );
     assert_eq!(err.trim().lines().count(), 1, "one line: {err}");
     check_stopped(&out, true);
-    run_ok(
-        mortar()
-            .arg("build")
-            .arg("--resume")
-            .arg(&inp)
-            .arg("-o")
-            .arg(&out),
-    );
+    run_ok(&mut resume(&inp, &out));
     assert!(snapshot(&out) == want);
     let _ = std::fs::remove_dir_all(&dir);
 }
