@@ -38,11 +38,17 @@ pub fn run(a: Args) -> Result<()> {
     if a.output.as_os_str() == "-" {
         bail!("batch files are written to a file (they are not streamable); give -o FILE.mbat");
     }
-    let ds = common::open_dataset(&a.inputs, &a.sort.crs)?;
+    let mut ds = common::open_dataset(&a.inputs, &a.sort.crs)?;
     common::print_warnings(&ds.warnings);
-    let attributes = AttributeSelection::parse(&a.attributes)
-        .resolve(&ds.layout)
-        .map_err(|e| anyhow::anyhow!("--attributes: {e}"))?;
+    let selection = AttributeSelection::parse(&a.attributes);
+    let attributes = selection.resolve(&ds.layout).map_err(|e| anyhow::anyhow!("--attributes: {e}"))?;
+    if let AttributeSelection::Only(_) = selection {
+        // The stored colour is RGB, or intensity where RGB is zero: both are read whatever is kept.
+        let mut keep: Vec<&str> = attributes.iter().map(|a| a.name.as_str()).collect();
+        keep.extend(["rgb", "intensity"]);
+        let keep: Vec<String> = keep.into_iter().map(str::to_string).collect();
+        ds.decode_only(&keep.iter().map(String::as_str).collect::<Vec<_>>());
+    }
     let template = ds.source_meta();
     let compression = match a.compress {
         Compress::None => Compression::None,
@@ -51,7 +57,9 @@ pub fn run(a: Args) -> Result<()> {
     let start = std::time::Instant::now();
     let mut sink = BatchSink::new(&a.output, template, attributes, compression);
     let opts = a.sort.options();
+    let bar = common::progress_bar("mortar batch", &ds.progress);
     let report = sort(&ds, &opts, &mut sink)?;
+    drop(bar);
     mortar_io::sort::trace("sorted", start);
     let points = sink.finish()?;
     common::warn_points_by_return(&ds, &report.summary.points_by_return);

@@ -249,7 +249,7 @@ fn main() -> Result<()> {
     let Some(color) = ColorChoice::from_name(&a.color) else {
         bail!("--color {}: not a colour mode (one of {})", a.color, ColorChoice::names().join(", "));
     };
-    let source = render::open_source(&a.inputs, &common::SortArgs::default())?;
+    let source = render::open_source(&a.inputs, &common::SortArgs::default(), None)?;
     let file = &source.file;
     if file.header.point_count == 0 {
         bail!("{}: no points to draw", a.inputs.join(" "));

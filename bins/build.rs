@@ -4,7 +4,6 @@ use crate::common;
 use anyhow::Result;
 use mortar_core::octree::{BuilderConfig, ColorMode, DEFAULT_LEAF_CAPACITY};
 use mortar_io::store::{build, BuildOptions, BuildProgress, Engine};
-use std::io::IsTerminal;
 use std::path::PathBuf;
 
 #[derive(clap::Args)]
@@ -108,12 +107,9 @@ pub fn run(a: Args) -> Result<()> {
         opts.commit_every = opts.commit_every.min(PREVIEW_COMMIT_EVERY);
         opts.first_commit_after = Some(PREVIEW_FIRST_COMMIT);
     }
-    let tty = std::io::stderr().is_terminal();
+    let bar = common::progress_bar("mortar build", &ds.progress);
     let mut frame_error: Option<anyhow::Error> = None;
     let mut progress = |p: &BuildProgress| {
-        if tty {
-            eprint!("\rmortar build: {} of {} points, {} nodes, {} commits   ", p.points, p.total, p.nodes, p.commits);
-        }
         if let (Some(rec), None) = (recorder.as_mut(), frame_error.as_ref()) {
             if let Err(e) = rec.on_commit(p.commits, false) {
                 frame_error = Some(e);
@@ -139,9 +135,7 @@ pub fn run(a: Args) -> Result<()> {
     } else {
         (build(&ds, &output, &opts, &mut progress)?, serde_json::Value::Null)
     };
-    if tty {
-        eprintln!();
-    }
+    drop(bar);
     common::print_warnings(&r.warnings);
     if let Some(e) = frame_error {
         return Err(e.context("drawing a frame of the growing store (the store itself was built)"));

@@ -14,6 +14,82 @@ pub fn warn(msg: &str) {
     }
 }
 
+/// A progress bar on stderr while a job runs: percent, count, rate and time left, drawn from
+/// the job's [`Progress`](mortar_io::progress::Progress) by a thread of its own ten times a
+/// second, one bar per stage. Nothing is drawn when stderr is not a terminal or with `--quiet`.
+/// Dropping it stops the thread and clears the line.
+pub struct ProgressBar {
+    stop: std::sync::Arc<AtomicBool>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+pub fn progress_bar(command: &'static str, progress: &mortar_io::progress::Progress) -> ProgressBar {
+    use std::io::IsTerminal;
+    let stop = std::sync::Arc::new(AtomicBool::new(false));
+    if QUIET.load(Ordering::Relaxed) || !std::io::stderr().is_terminal() {
+        return ProgressBar { stop, thread: None };
+    }
+    let (p, s) = (progress.clone(), stop.clone());
+    let thread = std::thread::Builder::new()
+        .name("mortar-progress".into())
+        .spawn(move || {
+            let rate = |st: &indicatif::ProgressState, w: &mut dyn std::fmt::Write| {
+                let r = st.per_sec();
+                let _ = match r {
+                    r if r >= 1e6 => write!(w, "{:.1} M/s", r / 1e6),
+                    r if r >= 1e3 => write!(w, "{:.1} k/s", r / 1e3),
+                    r => write!(w, "{r:.0}/s"),
+                };
+            };
+            let known = indicatif::ProgressStyle::with_template("{prefix}: {msg} [{bar:30}] {percent:>3}% {human_pos}/{human_len} ({rate}, {eta} left)")
+                .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar())
+                .with_key("rate", rate)
+                .progress_chars("=> ");
+            let unknown = indicatif::ProgressStyle::with_template("{prefix}: {msg} {spinner} {elapsed}").unwrap_or_else(|_| indicatif::ProgressStyle::default_spinner());
+            let mut bar: Option<indicatif::ProgressBar> = None;
+            let mut number = 0;
+            while !s.load(Ordering::Relaxed) {
+                let (stage, done) = p.snapshot();
+                if stage.number != number && stage.number > 0 {
+                    number = stage.number;
+                    if let Some(b) = bar.take() {
+                        b.finish_and_clear();
+                    }
+                    // A bar per stage, made whole before it is first drawn.
+                    let target = indicatif::ProgressDrawTarget::stderr_with_hz(10);
+                    let b = if stage.total > 0 {
+                        indicatif::ProgressBar::with_draw_target(Some(stage.total), target).with_style(known.clone()).with_message(format!("{} ({})", stage.name, stage.unit))
+                    } else {
+                        indicatif::ProgressBar::with_draw_target(None, target).with_style(unknown.clone()).with_message(stage.name)
+                    };
+                    bar = Some(b.with_prefix(command));
+                }
+                if let Some(b) = &bar {
+                    if stage.total > 0 {
+                        b.set_position(done.min(stage.total));
+                    } else {
+                        b.tick();
+                    }
+                }
+                std::thread::sleep(std::time::Duration::from_millis(100));
+            }
+            if let Some(b) = bar {
+                b.finish_and_clear();
+            }
+        })
+        .ok();
+    ProgressBar { stop, thread }
+}
+
+impl Drop for ProgressBar {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::Relaxed);
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
 /// Whether an error is a closed stdout pipe (which ends mortar quietly with status 0).
 pub fn is_broken_pipe(e: &anyhow::Error) -> bool {
     e.chain().any(|c| {

@@ -369,8 +369,10 @@ pub fn run(a: &Args) -> Result<()> {
         };
         bail!("{}: --progressive draws raw LAS/LAZ (paper 000), and this is {what}; draw it without --progressive", path.display());
     }
-    let ds = Dataset::open_with(&paths, &a.sort.crs.options())?;
+    let mut ds = Dataset::open_with(&paths, &a.sort.crs.options())?;
     common::print_warnings(&ds.warnings);
+    let keep = a.color.attributes(&ds.layout);
+    ds.decode_only(&keep);
     let label = paths
         .iter()
         .map(|p| p.display().to_string())

@@ -10,7 +10,7 @@ use mortar_core::render::resolve::{EyeDome, HoleFill, ResolveOptions};
 use mortar_core::render::{Aabb, Camera, PrecisionMode, Projection, RasterOptions, ViewPreset};
 use mortar_io::cleanup::TempPath;
 use mortar_core::render::BatchRef;
-use mortar_io::batchfile::BatchFile;
+use mortar_io::batchfile::{AttributeSelection, BatchFile};
 use mortar_io::render_input::{self, ColorChoice, RenderSettings, RenderSource, Rendered};
 use mortar_render::{AtomicPath, GpuContext, GpuError, GpuOptions, GpuRasterizer, GpuScene, SceneOptions};
 use std::io::Write;
@@ -237,17 +237,27 @@ pub struct Args {
     pub progressive: crate::progressive::ProgressiveArgs,
 }
 
-/// Opens the inputs: a single batch file as it is, anything else batched into a temporary file.
-pub fn open_source(inputs: &[String], sort: &common::SortArgs) -> Result<RenderSource> {
+/// Opens the inputs: a single batch file as it is, anything else batched into a temporary file,
+/// with every attribute, or (`colour` given) only what drawing in that colour reads, so that
+/// layered LAZ skips the rest.
+pub fn open_source(inputs: &[String], sort: &common::SortArgs, colour: Option<ColorChoice>) -> Result<RenderSource> {
     if let [one] = inputs {
         let p = Path::new(one);
         if one != "-" && p.is_file() && mortar_io::batchfile::is_batch_file(p) {
             return Ok(RenderSource::open_batch_file(p)?);
         }
     }
-    let ds = common::open_dataset(inputs, &sort.crs)?;
+    let mut ds = common::open_dataset(inputs, &sort.crs)?;
     common::print_warnings(&ds.warnings);
-    Ok(RenderSource::batch_dataset(&ds, &sort.options())?)
+    let attributes = match colour {
+        Some(c) => {
+            let keep = c.attributes(&ds.layout);
+            ds.decode_only(&keep);
+            AttributeSelection::Only(keep.iter().map(|n| n.to_string()).collect())
+        }
+        None => AttributeSelection::All,
+    };
+    Ok(RenderSource::batch_dataset(&ds, &sort.options(), &attributes)?)
 }
 
 /// The camera the arguments ask for, framing `bounds` where a view is asked for.
@@ -366,7 +376,7 @@ pub fn run(a: Args) -> Result<()> {
         return crate::render_lod::run(&a, &store);
     }
     let start = Instant::now();
-    let source = open_source(&a.inputs, &a.sort)?;
+    let source = open_source(&a.inputs, &a.sort, Some(a.color))?;
     let batch_seconds = start.elapsed().as_secs_f64();
     let file = &source.file;
     let own = |e| source.own_error(e);

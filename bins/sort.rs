@@ -29,7 +29,9 @@ pub fn run(a: Args) -> Result<()> {
     let template = ds.source_meta();
     let mut sink = LasSink::new(target, compressed, template, &tmp)?;
     let opts = a.sort.options();
+    let bar = common::progress_bar("mortar sort", &ds.progress);
     let report = sort(&ds, &opts, &mut sink)?;
+    drop(bar);
     sink.finish()?;
     common::warn_points_by_return(&ds, &report.summary.points_by_return);
     Ok(())

@@ -221,7 +221,7 @@ pub fn run(a: Args) -> Result<()> {
             return show(&a, event_loop, Content::Progressive(Box::new(view)), modes, 0, label, None).map(drop);
         }
     }
-    let source = crate::render::open_source(&a.inputs, &a.sort)?;
+    let source = crate::render::open_source(&a.inputs, &a.sort, None)?;
     let file = &source.file;
     let own = |e| source.own_error(e);
     let label = source.name.display().to_string();

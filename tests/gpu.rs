@@ -162,7 +162,7 @@ fn gpu_keys_equal_cpu_keys_on_real_fixtures_and_a_benchmark_set() {
         let paths: Vec<PathBuf> = files.iter().map(|f| data.join(f)).collect();
         let ds = mortar_io::dataset::Dataset::open(&paths).unwrap();
         let opts = mortar_io::sort::SortOptions::with_memory(1 << 30, tmp.clone());
-        let src = RenderSource::batch_dataset(&ds, &opts).unwrap();
+        let src = RenderSource::batch_dataset(&ds, &opts, &mortar_io::batchfile::AttributeSelection::All).unwrap();
         for ctx in &contexts {
             let ties = compare_keys(name, &src, ctx);
             eprintln!("{name}, {:?} path on {}: identical keys except {ties} exact depth ties", ctx.atomic_path(), ctx.adapter().name);

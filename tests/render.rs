@@ -437,7 +437,7 @@ fn adaptive_precision_against_full_precision_on_benchmark_sets() {
         let path = data.join(set);
         let ds = mortar_io::dataset::Dataset::open(std::slice::from_ref(&path)).unwrap();
         let opts = mortar_io::sort::SortOptions::with_memory(1 << 30, tmp.clone());
-        let src = RenderSource::batch_dataset(&ds, &opts).unwrap();
+        let src = RenderSource::batch_dataset(&ds, &opts, &mortar_io::batchfile::AttributeSelection::All).unwrap();
         let file = &src.file;
         let bounds = render_input::file_bounds(file);
         let fov = 50f64.to_radians();

@@ -6,6 +6,7 @@ use crate::source::{LasInput, Piece};
 use mortar_core::grid::{self, Grid, GridInput, GridMap};
 use crate::crs::{epsg_records, AssignCrs, CrsRecords};
 use mortar_core::layout::{base_len, merge_layouts, read_xyz, write_xyz, Conversion, RecordLayout};
+use crate::progress::Progress;
 use std::borrow::Cow;
 use std::path::{Path, PathBuf};
 
@@ -30,6 +31,9 @@ pub trait RecordSource: Send + Sync {
     /// Prepares to read everything soon (the in-memory sort).
     fn prefetch(&self) {}
     /// Reads a piece into `out`, which holds exactly `piece.points` records.
+    /// Decodes only the named attributes of the source's layout (positions always); the bytes
+    /// of the others read as zero. Sources that cannot skip fields decode everything.
+    fn decode_only(&mut self, _attributes: &[&str]) {}
     fn read_piece_into(&self, piece: &Piece, out: &mut [u8]) -> Result<()> {
         let r = self.read_piece(piece)?;
         if r.len() != out.len() {
@@ -80,6 +84,9 @@ impl RecordSource for LasInput {
     fn read_piece_into(&self, piece: &Piece, out: &mut [u8]) -> Result<()> {
         LasInput::read_piece_into(self, piece, out)
     }
+    fn decode_only(&mut self, attributes: &[&str]) {
+        LasInput::decode_only(self, attributes)
+    }
 }
 
 /// What a writer needs of a dataset besides its points: the header fields to keep, the (E)VLRs,
@@ -114,6 +121,8 @@ pub struct Dataset {
     pub evlrs: Vec<Vlr>,
     /// Things the user should know (printed by the binary).
     pub warnings: Vec<String>,
+    /// Counts the points read (every `read_piece*` adds its piece); jobs name the stages.
+    pub progress: Progress,
 }
 
 impl Dataset {
@@ -241,7 +250,7 @@ impl Dataset {
                 "the output's CRS is GeoTIFF keys, but LAS 1.4 point formats 6-10 ask for WKT (readers may ignore the keys; give --assign-crs a LAS file with WKT)".into(),
             );
         }
-        Ok(Dataset { inputs, grid, maps, layout, conversions, template, vlrs, evlrs, warnings })
+        Ok(Dataset { inputs, grid, maps, layout, conversions, template, vlrs, evlrs, warnings, progress: Progress::new() })
     }
 
     /// Opens LAS/LAZ files and batch files and merges them; warnings about each file come first.
@@ -313,6 +322,18 @@ impl Dataset {
         ))
     }
 
+    /// Decodes only these attributes of the merged layout (names as in
+    /// [`RecordLayout::attributes`]; positions always), for jobs that use only some of them:
+    /// LAS 1.4 layered LAZ (point formats 6 to 10) then skips the other layers, whose bytes read
+    /// as zero. Other inputs still deliver every byte (a mapped LAS file is not copied to clear
+    /// them), so a job that calls this must not look at the other attributes. Call it before
+    /// reading.
+    pub fn decode_only(&mut self, attributes: &[&str]) {
+        for s in &mut self.inputs {
+            s.decode_only(attributes);
+        }
+    }
+
     /// Points the headers declare in total.
     pub fn declared_points(&self) -> u64 {
         self.inputs.iter().map(|i| i.point_count()).sum()
@@ -351,6 +372,7 @@ impl Dataset {
 
     /// Reads a piece into `out` (exactly its size in merged records), on the merged grid.
     pub fn read_piece_into(&self, p: &DatasetPiece, out: &mut [u8]) -> Result<()> {
+        self.progress.add(p.piece.points);
         let src = &self.inputs[p.input];
         match &self.conversions[p.input] {
             None => src.read_piece_into(&p.piece, out)?,
@@ -368,6 +390,7 @@ impl Dataset {
 
     /// The records of a piece, converted to the merged layout and grid.
     pub fn read_piece(&self, p: &DatasetPiece) -> Result<Cow<'_, [u8]>> {
+        self.progress.add(p.piece.points);
         let src = &self.inputs[p.input];
         let records = src.read_piece(&p.piece)?;
         let mut owned = match &self.conversions[p.input] {

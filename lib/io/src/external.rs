@@ -128,6 +128,7 @@ pub fn sort_external(ds: &Dataset, opts: &SortOptions, sink: &mut dyn OrderedSin
     std::fs::create_dir_all(&opts.tmp_dir).map_err(|e| Error::io(&opts.tmp_dir, e))?;
     let tmp = TempPath::dir_in(&opts.tmp_dir, "sort").map_err(|e| Error::io(&opts.tmp_dir, e))?;
     let guess = declared_grid(ds);
+    ds.progress.stage("reading", ds.declared_points(), "points");
     let (mut runs, stats) = pass1(ds, opts, &guess, tmp.path())?;
     let summary = stats.summary();
     if summary.morton != guess && summary.count > 0 {
@@ -135,11 +136,14 @@ pub fn sort_external(ds: &Dataset, opts: &SortOptions, sink: &mut dyn OrderedSin
         for r in &runs {
             let _ = std::fs::remove_file(&r.path);
         }
+        ds.progress.stage("reading again (the headers' bounds are wrong)", ds.declared_points(), "points");
         runs = pass1(ds, opts, &summary.morton, tmp.path())?.0;
     }
+    ds.progress.stage("writing", summary.count, "points");
+    let mut sink = crate::sort::Counted { sink, progress: &ds.progress, record_len: rl };
     sink.begin(&summary)?;
     let mut buckets = 0;
-    drain(&runs, 0, &summary.morton, rl, opts, tmp.path(), sink, &mut buckets)?;
+    drain(&runs, 0, &summary.morton, rl, opts, tmp.path(), &mut sink, &mut buckets)?;
     drop(tmp);
     Ok(SortReport { summary, external: true, buckets })
 }

@@ -17,5 +17,6 @@ pub mod info;
 pub mod synth;
 pub mod render_input;
 pub mod progressive;
+pub mod progress;
 pub mod store;
 pub mod store_lod;

@@ -51,13 +51,13 @@ impl RenderSource {
         Ok(RenderSource { file: BatchFile::open(path)?, name: path.to_path_buf(), temp: None })
     }
 
-    /// Morton-sorts and batches `ds` exactly as `mortar batch` does (every attribute kept, no
+    /// Morton-sorts and batches `ds` exactly as `mortar batch --attributes ...` does (no
     /// compression) into a temporary batch file under `opts.tmp_dir`, and opens it.
-    pub fn batch_dataset(ds: &Dataset, opts: &SortOptions) -> Result<RenderSource> {
+    pub fn batch_dataset(ds: &Dataset, opts: &SortOptions, attributes: &AttributeSelection) -> Result<RenderSource> {
         let names: Vec<String> = ds.inputs.iter().map(|i| i.path().display().to_string()).collect();
         let dir = TempPath::dir_in(&opts.tmp_dir, "render").map_err(|e| Error::io(&opts.tmp_dir, e))?;
         let path = dir.path().join("input.mbat");
-        let attributes = AttributeSelection::parse("all").resolve(&ds.layout).map_err(Error::Usage)?;
+        let attributes = attributes.resolve(&ds.layout).map_err(Error::Usage)?;
         let template = ds.source_meta();
         let mut sink = BatchSink::new(&path, template, attributes, Compression::None);
         sort(ds, opts, &mut sink)?;
@@ -165,6 +165,19 @@ impl ColorChoice {
             ColorChoice::Auto => ColorChoice::Stored,
             c => c,
         }
+    }
+
+    /// The attributes of `layout` that drawing with this choice reads: the mode's attribute, and
+    /// RGB and intensity, from which the stored colour is chosen (positions are always read).
+    /// For [`Dataset::decode_only`] and the attributes of a batch file made only to be drawn.
+    pub fn attributes(self, layout: &mortar_core::layout::RecordLayout) -> Vec<&'static str> {
+        let mut v = vec!["rgb", "intensity"];
+        if let ColorChoice::Mode(m) = self {
+            v.push(m.attribute());
+        }
+        v.retain(|n| layout.attribute(n).is_some());
+        v.dedup();
+        v
     }
 
     /// Whether the choice maps a scalar over a range (intensity, elevation, GPS time).

@@ -10,6 +10,7 @@
 //! The Morton grid is defined by the actual integer bounds of the points, and ties are broken by
 //! input order, so the output is the same on every path and on every run.
 
+use crate::progress::Progress;
 use crate::dataset::{Dataset, DatasetPiece};
 use crate::error::{Error, Result};
 use mortar_core::layout::{read_xyz, RecordLayout};
@@ -228,6 +229,7 @@ pub fn sort(ds: &Dataset, opts: &SortOptions, sink: &mut dyn OrderedSink) -> Res
     let t0 = std::time::Instant::now();
     let rl = ds.layout.record_len;
     let guess = declared_grid(ds);
+    ds.progress.stage("reading", ds.declared_points(), "points");
     let mut arena = Vec::new();
     let (slabs, mut keys) = read_all(ds, &guess, &mut arena)?;
     let mut total = PieceStats::default();
@@ -244,10 +246,38 @@ pub fn sort(ds: &Dataset, opts: &SortOptions, sink: &mut dyn OrderedSink) -> Res
     let mut keys = sort_keys(keys);
     refine_ties(&mut keys, &records, rl, &summary.morton);
     trace("sort", t0);
+    ds.progress.stage("writing", summary.count, "points");
+    let mut sink = Counted { sink, progress: &ds.progress, record_len: rl };
     sink.begin(&summary)?;
-    emit(&records, &keys, ds.layout.record_len, opts.chunk_points, sink)?;
+    emit(&records, &keys, ds.layout.record_len, opts.chunk_points, &mut sink)?;
     trace("emit", t0);
     Ok(SortReport { summary, external: false, buckets: 1 })
+}
+
+/// A sink that counts the records it passes on in a job's [`Progress`].
+pub(crate) struct Counted<'a> {
+    pub sink: &'a mut dyn OrderedSink,
+    pub progress: &'a Progress,
+    pub record_len: usize,
+}
+
+impl OrderedSink for Counted<'_> {
+    fn begin(&mut self, summary: &Summary) -> Result<()> {
+        self.sink.begin(summary)
+    }
+    fn write(&mut self, records: &[u8]) -> Result<()> {
+        self.sink.write(records)?;
+        self.progress.add((records.len() / self.record_len.max(1)) as u64);
+        Ok(())
+    }
+    fn write_keyed(&mut self, slabs: &[&[u8]], keys: &[Key], record_len: usize) -> Result<()> {
+        self.sink.write_keyed(slabs, keys, record_len)?;
+        self.progress.add(keys.len() as u64);
+        Ok(())
+    }
+    fn prefers_keyed(&self) -> bool {
+        self.sink.prefers_keyed()
+    }
 }
 
 /// The records of every piece, in input order, with their statistics.

@@ -146,6 +146,73 @@ pub struct LasInput {
     pub point_count: u64,
     kind: Kind,
     pieces: Vec<Piece>,
+    /// The fields to decode ([`decode_only`](Self::decode_only)); `None`: all of them.
+    skip: Option<Skip>,
+}
+
+/// What a layered LAZ decoder leaves out, and the bytes that then read as zero.
+#[derive(Clone, Debug)]
+struct Skip {
+    selection: laz::DecompressionSelection,
+    /// Byte ranges (offset, width) of skipped attributes in a record.
+    zero: Vec<(usize, usize)>,
+    /// The byte of classification flags, scan direction and edge of flight line, when those are
+    /// skipped (its scanner channel bits are always decoded, with the returns).
+    flags_byte: Option<usize>,
+}
+
+impl Skip {
+    /// The decoder's selection for the kept `attributes` of `layout` (point formats 6 to 10:
+    /// the layered ones; `None` for the others, whose decoders cannot skip).
+    fn of(layout: &RecordLayout, attributes: &[&str]) -> Option<Skip> {
+        use laz::DecompressionSelection as D;
+        if layout.format < 6 {
+            return None;
+        }
+        let mut bits = D::Z;
+        let mut zero = Vec::new();
+        let mut flags_byte = None;
+        for a in &layout.attributes {
+            let bit = match a.name.as_str() {
+                "intensity" => D::INTENSITY,
+                "flags" => D::FLAGS,
+                "classification" => D::CLASSIFICATION,
+                "user_data" => D::USER_DATA,
+                "scan_angle" => D::SCAN_ANGLE,
+                "point_source_id" => D::POINT_SOURCE_ID,
+                "gps_time" => D::GPS_TIME,
+                "rgb" => D::RGB,
+                "nir" => D::NIR,
+                "wave_packet" => D::WAVEPACKET,
+                "extra_bytes" => D::ALL_EXTRA_BYTES,
+                _ => return None,
+            };
+            if attributes.contains(&a.name.as_str()) {
+                bits |= bit;
+            } else if a.name == "flags" {
+                // byte 0: returns (always decoded); byte 1: flags and the scanner channel
+                flags_byte = Some(a.offset + 1);
+            } else {
+                zero.push((a.offset, a.width));
+            }
+        }
+        Some(Skip { selection: D(bits), zero, flags_byte })
+    }
+
+    /// Clears what the decoder skipped (it leaves the chunk's first values there).
+    fn clear(&self, records: &mut [u8], record_len: usize) {
+        if self.zero.is_empty() && self.flags_byte.is_none() {
+            return;
+        }
+        for r in records.chunks_exact_mut(record_len) {
+            for &(o, w) in &self.zero {
+                r[o..o + w].fill(0);
+            }
+            if let Some(b) = self.flags_byte {
+                r[b] &= 0b0011_0000;
+            }
+        }
+    }
 }
 
 impl std::fmt::Debug for LasInput {
@@ -243,7 +310,17 @@ impl LasInput {
             }
             kind = Kind::Las { start };
         }
-        Ok(LasInput { path, bytes, meta, layout, point_count, kind, pieces })
+        Ok(LasInput { path, bytes, meta, layout, point_count, kind, pieces, skip: None })
+    }
+
+    /// Decodes only the named attributes (positions always) from now on: a LAS 1.4 layered
+    /// LAZ file (point formats 6 to 10) skips the other layers, whose bytes then read as zero.
+    /// Other files decode everything as before.
+    pub fn decode_only(&mut self, attributes: &[&str]) {
+        self.skip = match self.kind {
+            Kind::Las { .. } => None,
+            _ => Skip::of(&self.layout, attributes),
+        };
     }
 
     pub fn is_laz(&self) -> bool {
@@ -295,11 +372,17 @@ impl LasInput {
                 if c.points > 0 {
                     check_layer_sizes(vlr, src).map_err(|m| Error::input(&self.path, format!("LAZ chunk {} is corrupt: {m}", piece.index)))?;
                 }
+                let selection = self.skip.as_ref().map_or(laz::DecompressionSelection::all(), |s| s.selection);
                 let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-                    laz::par_decompress(src, out, vlr, std::slice::from_ref(&entry))
+                    laz::par_decompress_selective(src, out, vlr, std::slice::from_ref(&entry), selection)
                 }));
                 match r {
-                    Ok(Ok(())) => Ok(()),
+                    Ok(Ok(())) => {
+                        if let Some(s) = &self.skip {
+                            s.clear(out, rl);
+                        }
+                        Ok(())
+                    }
                     Ok(Err(e)) => Err(Error::input(&self.path, format!("LAZ chunk {} is corrupt: {e}", piece.index))),
                     Err(_) => Err(Error::input(&self.path, format!("LAZ chunk {} is corrupt (the decoder gave up)", piece.index))),
                 }
@@ -333,7 +416,8 @@ impl LasInput {
                 let src = std::io::Cursor::new(&self.bytes[*start..]);
                 check_sequential_table(&self.bytes[*start..]).map_err(|m| Error::input(&self.path, m))?;
                 let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| -> std::result::Result<(), String> {
-                    let mut d = laz::LasZipDecompressor::new(src, vlr.clone()).map_err(|e| e.to_string())?;
+                    let selection = self.skip.as_ref().map_or(laz::DecompressionSelection::all(), |s| s.selection);
+                    let mut d = laz::LasZipDecompressor::selective(src, vlr.clone(), selection).map_err(|e| e.to_string())?;
                     // grow as points decode, never by the header's claim alone
                     let step = 65_536usize;
                     let mut done = 0u64;
@@ -346,6 +430,9 @@ impl LasInput {
                     }
                     Ok(())
                 }));
+                if let (Ok(Ok(())), Some(s)) = (&r, &self.skip) {
+                    s.clear(&mut out, rl);
+                }
                 match r {
                     Ok(Ok(())) => Ok(Cow::Owned(out)),
                     Ok(Err(e)) => Err(Error::input(&self.path, format!("LAZ data is corrupt: {e}"))),

@@ -16,6 +16,7 @@ use super::build::{BuildOptions, BuildProgress, BuildReport};
 use super::format::*;
 use super::writer::*;
 use crate::dataset::Dataset;
+use crate::progress::Progress;
 use crate::error::{Error, Result};
 use crate::sort::{self, Key, PieceStats};
 use mortar_core::color::{ColorSource, RgbDepth};
@@ -85,7 +86,7 @@ impl Sorted {
 /// the shift dropped, then by arrival: a parallel scatter of whole records into buckets by the
 /// code's top bits (sequential reads, one write stream per bucket), then each bucket sorted in
 /// cache. `hist[p]` is piece `p`'s count per bucket.
-fn sort_records(slabs: &[&[u8]], hist: &[Vec<u32>], rl: usize, g: &MortonGrid, shift: u32) -> Sorted {
+fn sort_records(slabs: &[&[u8]], hist: &[Vec<u32>], rl: usize, g: &MortonGrid, shift: u32, prog: &Progress) -> Sorted {
     let nb = 1usize << BUCKET_BITS;
     let n: usize = slabs.iter().map(|s| s.len() / rl).sum();
     let mut starts = vec![0usize; nb + 1];
@@ -109,6 +110,7 @@ fn sort_records(slabs: &[&[u8]], hist: &[Vec<u32>], rl: usize, g: &MortonGrid, s
         let ap = SendPtr(arrival.as_mut_ptr() as *mut u8);
         slabs.par_iter().zip(cursors.into_par_iter()).enumerate().for_each(|(p, (slab, mut cur))| {
             let (rp, ap) = (&rp, &ap);
+            prog.add((slab.len() / rl) as u64);
             for (i, r) in slab.chunks_exact(rl).enumerate() {
                 let b = ((code_of(r, g) >> shift) as usize).min(nb - 1);
                 let at = cur[b];
@@ -142,6 +144,7 @@ fn sort_records(slabs: &[&[u8]], hist: &[Vec<u32>], rl: usize, g: &MortonGrid, s
         || (Vec::<Key>::new(), Vec::<Key>::new(), Vec::<u8>::new(), Vec::<u64>::new()),
         |(keys, scratch, tmp, tarr), (recs, arr)| {
             let m = arr.len();
+            prog.add(m as u64);
             if m < 2 {
                 return;
             }
@@ -196,6 +199,7 @@ pub(crate) fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOpt
     // The root the headers promise; checked against the points once they are read.
     let promised = header.map(|(l, h)| Cube::covering(l, h)).unwrap_or(Cube { min: [0; 3], size_log2: 32 });
     let tr = Instant::now();
+    ds.progress.stage("reading", total, "points");
     let (slabs, mut hist) = read_pieces(ds, promised)?;
     let pieces = ds.pieces();
     let mut all = PieceStats::default();
@@ -227,7 +231,9 @@ pub(crate) fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOpt
         sort::trace("histograms again (header bounds differ from the points)", t0);
     }
     let ts = Instant::now();
-    let sorted = sort_records(&records, &hist, rl, &g, shift);
+    // Counted twice: once scattered into buckets, once sorted in its bucket.
+    ds.progress.stage("sorting", 2 * all.count, "points");
+    let sorted = sort_records(&records, &hist, rl, &g, shift, &ds.progress);
     drop(records);
     drop(slabs);
     report.sort_seconds = ts.elapsed().as_secs_f64();
@@ -239,6 +245,7 @@ pub(crate) fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOpt
         _ => ColorSource::Intensity { max_intensity: all.max_intensity },
     };
     let tt = Instant::now();
+    ds.progress.stage("indexing", 0, "");
     let n = sorted.arrival.len();
     let pos = |i: usize| read_xyz(sorted.record(i));
     let arrival = |i: usize| sorted.arrival[i];
@@ -246,7 +253,8 @@ pub(crate) fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOpt
     report.tree_seconds = tt.elapsed().as_secs_f64();
     report.batch_seconds.push(report.tree_seconds);
     sort::trace("tree", t0);
-    write_tree(writer, &tree, root, opts, &sorted, &color, (lo, hi), &mut report, progress, total, t0)?;
+    ds.progress.stage("writing", tree.nodes.len() as u64, "nodes");
+    write_tree(writer, &tree, root, opts, &sorted, &color, (lo, hi), &mut report, progress, &ds.progress, total, t0)?;
     sort::trace("written", t0);
     report.seconds = t0.elapsed().as_secs_f64();
     Ok(report)
@@ -305,6 +313,7 @@ fn write_tree(
     bounds: ([i32; 3], [i32; 3]),
     report: &mut BuildReport,
     progress: &mut dyn FnMut(&BuildProgress),
+    prog: &Progress,
     total: u64,
     t0: Instant,
 ) -> Result<()> {
@@ -322,6 +331,7 @@ fn write_tree(
             return Err(Error::input(&writer.dir, "its committed nodes are not those the inputs give (the store was changed, or built by another mortar); give a new directory"));
         }
         report.kept_nodes = kept.len() as u64;
+        prog.add(kept.len() as u64);
     }
     let dir = writer.dir.clone();
     let encode = |id: usize, n: &SortedNode| -> Result<(usize, NodeEntry, Vec<u8>)> {
@@ -360,6 +370,7 @@ fn write_tree(
                 .map(|(i, off)| {
                     let (_, mut e, b) = encode(i, &tree.nodes[i])?;
                     w.write_at(off, &b)?;
+                    prog.add(1);
                     e.offset = off;
                     Ok(e)
                 })

@@ -21,6 +21,7 @@ pub(crate) fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOpt
     let per_point = rl as u64 + 24 + 48;
     let interval_points = ((opts.memory / 3) / per_point).max(batch as u64);
     let mut report = BuildReport { engine: "incremental", ..BuildReport::default() };
+    ds.progress.stage("building", total, "points");
     // Made with the first points: its root covers the headers' bounds and those points.
     let mut builder: Option<Builder> = None;
     // The real bounds of each input's points, for the warnings about headers that lie.
