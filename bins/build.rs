@@ -33,13 +33,13 @@ pub struct Args {
     #[arg(long, default_value_t = 1_000_000)]
     pub batch_points: usize,
     /// Memory budget, e.g. 2G (the default). An input that fits it is sorted in memory and the
-    /// tree made in one pass (the sorted engine); a larger one is built in batches, the builder
-    /// committing and paging the leaves' points out to the store whenever the points held since
-    /// the last commit exceed a third of it (the incremental engine).
+    /// tree made in one pass (the sorted engine); a larger one is partitioned by Morton cell into
+    /// run files in the store and built one unit of the budget's size at a time (the partitioned
+    /// engine; the incremental engine where one cell holds more than a unit).
     #[arg(long, value_parser = common::parse_size, default_value = "2G")]
     pub memory: u64,
-    /// The build engine: auto (sorted when the input fits --memory, else incremental), sorted
-    /// or incremental. Both build the same tree.
+    /// The build engine: auto (sorted when the input fits --memory, else partitioned; incremental
+    /// for --averaged-colors), sorted, partitioned or incremental. All build the same tree.
     #[arg(long, default_value = "auto")]
     pub engine: String,
     /// Continue the store at --output from its last commit, if a build of the same inputs and
@@ -93,8 +93,9 @@ pub fn run(a: Args) -> Result<()> {
         engine: match a.engine.as_str() {
             "auto" => Engine::Auto,
             "sorted" => Engine::Sorted,
+            "partitioned" => Engine::Partitioned,
             "incremental" => Engine::Incremental,
-            e => anyhow::bail!("--engine {e}: give auto, sorted or incremental"),
+            e => anyhow::bail!("--engine {e}: give auto, sorted, partitioned or incremental"),
         },
         resume: a.resume,
     };

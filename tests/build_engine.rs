@@ -1,7 +1,10 @@
 //! Issue 13: the sorted build engine builds the tree the incremental engine builds (same nodes,
 //! same points in every leaf, same voxel points in every inner node) on every real file of
 //! `../shared/data`, alone and merged; its stores are readable at every commit (the tree top
-//! down, one level per commit) and hold each node once.
+//! down, one level per commit) and hold each node once. The partitioned engine (inputs larger
+//! than `--memory`) writes the sorted engine's store: the same entries and the same payload
+//! bytes, node for node, on every real file and on merged tiles, with budgets that split the
+//! input into many units.
 
 mod common;
 
@@ -163,5 +166,96 @@ fn a_sorted_build_is_readable_at_every_commit_coarse_first() {
     assert_eq!(seen[0].3, 0, "the first commit holds the root: {seen:?}");
     assert!(seen.windows(2).all(|w| w[1].3 == w[0].3 + 1 && w[1].2 > w[0].2 && w[1].1 >= w[0].1), "{seen:?}");
     assert_eq!(seen.last().unwrap().1, 110_000);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Builds `inputs` with the sorted engine and with the partitioned one under `memory`, and
+/// checks that the stores hold the same entries (all but the payloads' offsets) and the same
+/// payload bytes in the same order; returns the partitioned build's JSON.
+fn partitioned_equals_sorted(inputs: &[PathBuf], memory: &str, tag: &str) -> serde_json::Value {
+    let dir = tempdir(tag);
+    let (a, b) = (dir.join("sorted"), dir.join("partitioned"));
+    let name = inputs.iter().map(|p| p.file_name().unwrap().to_string_lossy().to_string()).collect::<Vec<_>>().join(" + ");
+    let ra = build(inputs, &a, "sorted", &[]);
+    let rb = build(inputs, &b, "partitioned", &["--memory", memory]);
+    let jb = match (&ra, &rb) {
+        (Err(_), Err(_)) => {
+            let _ = std::fs::remove_dir_all(&dir);
+            return serde_json::Value::Null;
+        }
+        (Ok(_), Ok(j)) => j.clone(),
+        _ => panic!("{name}: one engine failed: sorted {ra:?}, partitioned {rb:?}"),
+    };
+    let (sa, sb) = (Store::open(&a).unwrap(), Store::open(&b).unwrap());
+    assert_eq!(sa.header.points, sb.header.points, "{name}");
+    assert_eq!(sa.root_cube(), sb.root_cube(), "{name}: root");
+    assert_eq!(sa.entries.len(), sb.entries.len(), "{name}: node count");
+    if jb["engine"] == "partitioned" {
+        for (i, (x, y)) in sa.entries.iter().zip(&sb.entries).enumerate() {
+            assert_eq!((x.level, x.kind, x.index, x.count, x.length), (y.level, y.kind, y.index, y.count, y.length), "{name}: entry {i}");
+            assert!(sa.node_bytes(i) == sb.node_bytes(i), "{name}: payload of node {i} ({:?})", (x.level, x.index));
+        }
+        let live: u64 = sb.entries.iter().map(|e| e.length).sum();
+        assert_eq!(live, sb.header.nodes_len, "{name}: nodes.bin holds only live payloads");
+        // No run files are left in the store.
+        let left: Vec<String> = std::fs::read_dir(&b).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().to_string()).filter(|n| n.starts_with('.')).collect();
+        assert!(left.is_empty(), "{name}: left in the store: {left:?}");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+    jb
+}
+
+#[test]
+fn the_partitioned_engine_writes_the_sorted_engines_store_on_every_real_file() {
+    let Some(data) = shared_data() else { return };
+    let files = readable_fixtures(&data);
+    let mut partitioned = 0;
+    for (i, f) in files.iter().enumerate() {
+        // 2 MiB: units of about 8,000 points, so the larger files split into many.
+        let j = partitioned_equals_sorted(std::slice::from_ref(f), "2M", &format!("part-{i}"));
+        if j["engine"] == "partitioned" {
+            partitioned += 1;
+        }
+    }
+    assert!(partitioned * 10 >= files.len() * 8, "{partitioned} of {} built by the partitioned engine", files.len());
+}
+
+#[test]
+fn the_partitioned_engine_writes_the_sorted_engines_store_on_merged_tiles() {
+    let Some(data) = shared_data() else { return };
+    let bcts: Vec<PathBuf> = (1..=4).map(|i| data.join(format!("lasR/inst/extdata/bcts/bcts_{i}.laz"))).filter(|p| p.exists()).collect();
+    for memory in ["16M", "64M"] {
+        let j = partitioned_equals_sorted(&bcts, memory, &format!("part-bcts-{memory}"));
+        assert_eq!(j["engine"], "partitioned", "{j}");
+    }
+    let ept_dir = data.join("PyForestScan/example_data/ept/ept-data");
+    let mut ept: Vec<PathBuf> = std::fs::read_dir(&ept_dir).unwrap().map(|e| e.unwrap().path()).collect();
+    ept.sort();
+    ept.truncate(60);
+    let j = partitioned_equals_sorted(&ept, "16M", "part-ept");
+    assert_eq!(j["engine"], "partitioned", "{j}");
+}
+
+#[test]
+fn auto_takes_the_partitioned_engine_above_the_budget_and_the_incremental_one_for_dense_cells() {
+    let dir = tempdir("part-auto");
+    let input = dir.join("g.las");
+    run_ok(gen().args(["--points", "400000", "--seed", "9", "-o"]).arg(&input));
+    let j = partitioned_equals_sorted(std::slice::from_ref(&input), "16M", "part-auto-a");
+    assert_eq!(j["engine"], "partitioned", "{j}");
+    let s = dir.join("auto");
+    let o = run_ok(mortar().arg("build").arg(&input).arg("-o").arg(&s).args(["--json", "--memory", "16M"]));
+    let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(j["engine"], "partitioned", "{j}");
+    // A budget too small for one cell: the incremental engine builds it, and says why.
+    let s2 = dir.join("dense");
+    let o = run_ok(mortar().arg("build").arg(&input).arg("-o").arg(&s2).args(["--json", "--memory", "20K", "--leaf-capacity", "100"]));
+    let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(j["engine"], "incremental", "{j}");
+    assert!(j["warnings"].to_string().contains("partitioned"), "{j}");
+    let (a, b) = (dir.join("a.las"), dir.join("b.las"));
+    run_ok(mortar().arg("sort").arg(&s).arg("-o").arg(&a));
+    run_ok(mortar().arg("sort").arg(&s2).arg("-o").arg(&b));
+    assert!(std::fs::read(&a).unwrap() == std::fs::read(&b).unwrap());
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -117,7 +117,7 @@ fn store_is_readable_at_every_commit_while_it_grows() {
 /// batch), and the store is still exact.
 #[test]
 fn a_small_memory_budget_bounds_what_is_held() {
-    let j = round_trip(&sample(), &["--memory", "3M", "--commit-every", "100000", "--batch-points", "5000", "--leaf-capacity", "2000"], "store-mem");
+    let j = round_trip(&sample(), &["--engine", "incremental", "--memory", "3M", "--commit-every", "100000", "--batch-points", "5000", "--leaf-capacity", "2000"], "store-mem");
     assert_eq!(j["points"], 110_000);
     assert!(j["commits"].as_u64().unwrap() >= 5, "{j}");
     assert!(j["paged_in_leaves"].as_u64().unwrap() > 0, "{j}");

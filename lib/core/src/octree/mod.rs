@@ -158,7 +158,7 @@ pub use lod::{
     DEFAULT_THRESHOLD_PX,
 };
 pub use snapshot::{NodeView, Payload, Snapshot};
-pub use sorted::{build_sorted, SortedContent, SortedNode, SortedTree};
+pub use sorted::{build_sorted, build_subtree, earliest_in_parent_cells, splits, SortedContent, SortedNode, SortedTree, Subtree};
 pub use voxels::{mean_color, AVERAGED_CHUNK, MAX_AVERAGED_SAMPLES};
 
 /// Cells per axis of an inner node's voxel grid (paper 004 §3.3).

@@ -136,14 +136,92 @@ where
     Ok(SortedTree { nodes })
 }
 
+/// A subtree built on its own: the unit of work of the partitioned build (larger than memory)
+/// and of the distributed one. Joined by [`earliest_in_parent_cells`] and [`splits`] into the
+/// tree [`build_sorted`] makes over all the points.
+#[derive(Clone, Debug, Default)]
+pub struct Subtree {
+    /// Its nodes (the subtree's root first), depth first, children in octant order; indices
+    /// are into the subtree's own sorted points.
+    pub nodes: Vec<SortedNode>,
+    /// For each occupied cell of the parent's grid inside the subtree's cube, the earliest point,
+    /// in Morton order: what the subtree gives its parent's voxels (empty for the tree's root).
+    pub candidates: Vec<u32>,
+}
+
+/// Builds the subtree of node `key` (cube `cube`, the cube of `key` in the tree's root) over
+/// the `n` points of that cube, sorted as [`build_sorted`] wants them (Morton order relative to
+/// the tree's root, full resolution): exactly the nodes `build_sorted` makes under `key` over
+/// all the points, since a subtree depends on the points in its cube alone.
+pub fn build_subtree<P, S>(key: NodeKey, cube: Cube, n: usize, pos: &P, arrival: &S, config: BuilderConfig) -> Result<Subtree, OctreeError>
+where
+    P: Fn(usize) -> [i32; 3] + Sync,
+    S: Fn(usize) -> u64 + Sync,
+{
+    if config.leaf_capacity == 0 {
+        return Err(OctreeError::ZeroCapacity);
+    }
+    if config.color_mode != ColorMode::FirstCome {
+        return Err(OctreeError::Unsupported("the sorted build makes first-come voxels only".into()));
+    }
+    if n > u32::MAX as usize {
+        return Err(OctreeError::BatchTooLarge { points: n, spilled: 0 });
+    }
+    if let Some(index) = (0..n).into_par_iter().position_any(|i| !cube.contains(pos(i))) {
+        return Err(OctreeError::PointOutsideRoot { index, pos: pos(index), min: cube.min, size: cube.size() });
+    }
+    let ctx = Ctx { pos, arrival, config };
+    let mut nodes = Vec::new();
+    let candidates = subtree(&ctx, key, cube, 0..n, &mut nodes);
+    Ok(Subtree { nodes, candidates })
+}
+
+/// Whether a node at `key` (cube `cube`) holding `count` points is an inner node: more points
+/// than the leaf capacity, and it may split.
+pub fn splits(count: u64, key: NodeKey, cube: Cube, config: &BuilderConfig) -> bool {
+    count > config.leaf_capacity as u64 && cube.size_log2 >= MIN_INNER_SIZE_LOG2 && key.level < config.max_level
+}
+
+/// Of `items` (in Morton order, all in `cube`), the earliest to arrive in each cell of the
+/// parent's grid (cells `2^(cube.size_log2 - 6)` wide), in order: what a node whose children's
+/// candidates (or whose points) are `items` gives its own parent.
+pub fn earliest_in_parent_cells<T: Copy>(cube: Cube, items: impl IntoIterator<Item = T>, pos: impl Fn(T) -> [i32; 3], arrival: impl Fn(T) -> u64) -> Vec<T> {
+    let cell_log2 = cube.size_log2 - (GRID_LOG2 - 1);
+    let min = cube.min;
+    let cell = |p: [i32; 3]| [0, 1, 2].map(|a| ((p[a] as i64 - min[a]) as u64) >> cell_log2);
+    let mut out = Vec::new();
+    let mut current: Option<([u64; 3], T, u64)> = None;
+    for i in items {
+        let c = cell(pos(i));
+        let t = arrival(i);
+        match &mut current {
+            Some((cc, best, bt)) if *cc == c => {
+                if t < *bt {
+                    *best = i;
+                    *bt = t;
+                }
+            }
+            _ => {
+                if let Some((_, b, _)) = current {
+                    out.push(b);
+                }
+                current = Some((c, i, t));
+            }
+        }
+    }
+    if let Some((_, b, _)) = current {
+        out.push(b);
+    }
+    out
+}
+
 /// Builds the subtree of node `key` (cube `cube`) over the sorted points `range`, appending its
 /// nodes to `out` depth first; returns, for each occupied cell of the parent's grid inside this
 /// cube (cells `2^(cube.size_log2 - 6)` wide), the earliest point, in Morton order. Nothing for
 /// the root.
 fn subtree<P: Fn(usize) -> [i32; 3] + Sync, S: Fn(usize) -> u64 + Sync>(ctx: &Ctx<'_, P, S>, key: NodeKey, cube: Cube, range: Range<usize>, out: &mut Vec<SortedNode>) -> Vec<u32> {
-    let splittable = cube.size_log2 >= MIN_INNER_SIZE_LOG2 && key.level < ctx.config.max_level;
-    if range.len() as u64 <= ctx.config.leaf_capacity as u64 || !splittable {
-        let candidates = if key.level == 0 { Vec::new() } else { earliest_per_cell(ctx, cube.min, cube.size_log2 - (GRID_LOG2 - 1), range.clone().map(|i| i as u32)) };
+    if !splits(range.len() as u64, key, cube, &ctx.config) {
+        let candidates = if key.level == 0 { Vec::new() } else { earliest_per_cell(ctx, cube, range.clone().map(|i| i as u32)) };
         out.push(SortedNode { key, cube, content: SortedContent::Leaf(range) });
         return candidates;
     }
@@ -183,7 +261,7 @@ fn subtree<P: Fn(usize) -> [i32; 3] + Sync, S: Fn(usize) -> u64 + Sync>(ctx: &Ct
             .collect()
     };
     let voxels: Vec<u32> = kids.iter_mut().flat_map(|(_, c)| std::mem::take(c)).collect();
-    let candidates = if key.level == 0 { Vec::new() } else { earliest_per_cell(ctx, cube.min, cube.size_log2 - (GRID_LOG2 - 1), voxels.iter().copied()) };
+    let candidates = if key.level == 0 { Vec::new() } else { earliest_per_cell(ctx, cube, voxels.iter().copied()) };
     out.push(SortedNode { key, cube, content: SortedContent::Inner(voxels) });
     for (v, _) in kids {
         out.extend(v);
@@ -191,35 +269,7 @@ fn subtree<P: Fn(usize) -> [i32; 3] + Sync, S: Fn(usize) -> u64 + Sync>(ctx: &Ct
     candidates
 }
 
-/// Of the sorted points `items` (in Morton order, all in the cube at `min`), the earliest to
-/// arrive in each cell `2^cell_log2` units wide, in order.
-fn earliest_per_cell<P: Fn(usize) -> [i32; 3] + Sync, S: Fn(usize) -> u64 + Sync>(ctx: &Ctx<'_, P, S>, min: [i64; 3], cell_log2: u8, items: impl Iterator<Item = u32>) -> Vec<u32> {
-    let cell = |i: u32| {
-        let p = (ctx.pos)(i as usize);
-        [0, 1, 2].map(|a| ((p[a] as i64 - min[a]) as u64) >> cell_log2)
-    };
-    let mut out = Vec::new();
-    let mut current: Option<([u64; 3], u32, u64)> = None;
-    for i in items {
-        let c = cell(i);
-        let t = (ctx.arrival)(i as usize);
-        match &mut current {
-            Some((cc, best, bt)) if *cc == c => {
-                if t < *bt {
-                    *best = i;
-                    *bt = t;
-                }
-            }
-            _ => {
-                if let Some((_, b, _)) = current {
-                    out.push(b);
-                }
-                current = Some((c, i, t));
-            }
-        }
-    }
-    if let Some((_, b, _)) = current {
-        out.push(b);
-    }
-    out
+/// [`earliest_in_parent_cells`] over sorted point indices.
+fn earliest_per_cell<P: Fn(usize) -> [i32; 3] + Sync, S: Fn(usize) -> u64 + Sync>(ctx: &Ctx<'_, P, S>, cube: Cube, items: impl Iterator<Item = u32>) -> Vec<u32> {
+    earliest_in_parent_cells(cube, items, |i| (ctx.pos)(i as usize), |i| (ctx.arrival)(i as usize))
 }

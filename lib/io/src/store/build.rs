@@ -15,11 +15,15 @@ use super::incremental::build_into;
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum Engine {
     /// The sorted engine when the input fits the memory budget and voxels take the first
-    /// point's colour, else the incremental one.
+    /// point's colour, the partitioned one when it does not, the incremental one for averaged
+    /// colours (and where one cell is denser than the budget allows).
     #[default]
     Auto,
     /// Sort, then make the tree in one pass (ARCHITECTURE.md, "The build engine").
     Sorted,
+    /// The sorted engine over a partition of the input into cells written to run files: for
+    /// inputs larger than the memory budget.
+    Partitioned,
     /// Paper 004's batch updates with paged leaves (bounded memory for any input).
     Incremental,
 }
@@ -177,15 +181,22 @@ pub fn build(ds: &Dataset, dir: &Path, opts: &BuildOptions, progress: &mut dyn F
     let meta = ds.source_meta();
     let mut warnings = Vec::new();
     let bounds = header_bounds(ds, &mut warnings);
-    let sorted = match opts.engine {
-        Engine::Auto => super::engine::applies(ds, opts),
-        Engine::Sorted if opts.config.color_mode != mortar_core::octree::ColorMode::FirstCome => {
-            return Err(Error::Usage("the sorted engine makes first-come voxel colours only; averaged colours need the incremental engine".into()));
+    let first_come = opts.config.color_mode == mortar_core::octree::ColorMode::FirstCome;
+    let engine = match opts.engine {
+        Engine::Auto if super::engine::applies(ds, opts) => Engine::Sorted,
+        Engine::Auto if first_come => Engine::Partitioned,
+        Engine::Auto => Engine::Incremental,
+        Engine::Sorted | Engine::Partitioned if !first_come => {
+            return Err(Error::Usage("the sorted engines make first-come voxel colours only; averaged colours need the incremental engine".into()));
         }
-        Engine::Sorted => true,
-        Engine::Incremental => false,
+        e => e,
     };
-    let mut record = BuildRecord::of(ds, &opts.config, if sorted { "sorted" } else { "incremental" });
+    let name = match engine {
+        Engine::Sorted => "sorted",
+        Engine::Partitioned => "partitioned",
+        _ => "incremental",
+    };
+    let mut record = BuildRecord::of(ds, &opts.config, name);
     let mut writer = match if opts.resume { continue_store(dir, &meta, &record, &mut warnings)? } else { Continue::Fresh } {
         Continue::Writer(w) => w,
         Continue::Complete(mut r) => {
@@ -201,8 +212,20 @@ pub fn build(ds: &Dataset, dir: &Path, opts: &BuildOptions, progress: &mut dyn F
         }
     };
     let resumed = writer.commits() > 0;
-    let engine = if sorted { super::engine::build_into } else { build_into };
-    let result = engine(ds, &mut writer, opts, progress, bounds, t0).map(|mut r| {
+    let run = |writer: &mut StoreWriter, progress: &mut dyn FnMut(&BuildProgress)| -> Result<BuildReport> {
+        match engine {
+            Engine::Sorted => super::engine::build_into(ds, writer, opts, progress, bounds, t0),
+            Engine::Partitioned => match super::partitioned::build_into(ds, writer, opts, progress, bounds, t0)? {
+                Some(r) => Ok(r),
+                None => build_into(ds, writer, opts, progress, bounds, t0).map(|mut r| {
+                    r.warnings.push("a cell of the partitioned engine holds more points than --memory allows for one unit; the incremental engine built the store".into());
+                    r
+                }),
+            },
+            _ => build_into(ds, writer, opts, progress, bounds, t0),
+        }
+    };
+    let result = run(&mut writer, progress).map(|mut r| {
         warnings.append(&mut r.warnings);
         r.warnings = warnings;
         r.resumed = resumed;

@@ -32,7 +32,7 @@ const PER_POINT: u64 = 16;
 
 /// Bits of the Morton code by which records are scattered into buckets: buckets of about 10 k
 /// points at 20 M points, sorted in cache.
-const BUCKET_BITS: u32 = 11;
+pub(super) const BUCKET_BITS: u32 = 11;
 
 /// Memory the sorted engine needs for `ds`: the records sorted (and, for compressed inputs,
 /// decoded: mapped LAS is read in place), 16 bytes per point, and two groups of encoded
@@ -52,7 +52,7 @@ pub fn applies(ds: &Dataset, opts: &BuildOptions) -> bool {
 /// The Morton grid whose codes order points as the octree over `root` needs: origin at the
 /// root's corner, one shift so that the root fits 21 bits per axis (ties of a shifted code are
 /// ordered by the bits the shift dropped).
-fn grid_of(root: Cube) -> MortonGrid {
+pub(super) fn grid_of(root: Cube) -> MortonGrid {
     MortonGrid { origin: root.min, shift: (root.size_log2 as u32).saturating_sub(mortar_core::morton::BITS_PER_AXIS) }
 }
 
@@ -69,15 +69,15 @@ fn code_of(r: &[u8], g: &MortonGrid) -> u64 {
 }
 
 /// Points in Morton order: whole records and their arrival numbers (`piece << 32 | index`).
-struct Sorted {
-    records: Vec<u8>,
-    arrival: Vec<u64>,
-    rl: usize,
+pub(super) struct Sorted {
+    pub(super) records: Vec<u8>,
+    pub(super) arrival: Vec<u64>,
+    pub(super) rl: usize,
 }
 
 impl Sorted {
     #[inline]
-    fn record(&self, i: usize) -> &[u8] {
+    pub(super) fn record(&self, i: usize) -> &[u8] {
         &self.records[i * self.rl..(i + 1) * self.rl]
     }
 }
@@ -86,7 +86,10 @@ impl Sorted {
 /// the shift dropped, then by arrival: a parallel scatter of whole records into buckets by the
 /// code's top bits (sequential reads, one write stream per bucket), then each bucket sorted in
 /// cache. `hist[p]` is piece `p`'s count per bucket.
-fn sort_records(slabs: &[&[u8]], hist: &[Vec<u32>], rl: usize, g: &MortonGrid, shift: u32, prog: &Progress) -> Sorted {
+///
+/// Buckets are the `BUCKET_BITS` code bits from `shift` up (the bits above are shared, as in a
+/// unit of the partitioned engine); `arrival_of(slab, index)` numbers each record.
+pub(super) fn sort_records(slabs: &[&[u8]], hist: &[Vec<u32>], rl: usize, g: &MortonGrid, shift: u32, prog: &Progress, arrival_of: impl Fn(usize, usize) -> u64 + Sync) -> Sorted {
     let nb = 1usize << BUCKET_BITS;
     let n: usize = slabs.iter().map(|s| s.len() / rl).sum();
     let mut starts = vec![0usize; nb + 1];
@@ -112,13 +115,13 @@ fn sort_records(slabs: &[&[u8]], hist: &[Vec<u32>], rl: usize, g: &MortonGrid, s
             let (rp, ap) = (&rp, &ap);
             prog.add((slab.len() / rl) as u64);
             for (i, r) in slab.chunks_exact(rl).enumerate() {
-                let b = ((code_of(r, g) >> shift) as usize).min(nb - 1);
+                let b = ((code_of(r, g) >> shift) as usize) & (nb - 1);
                 let at = cur[b];
                 cur[b] += 1;
                 // SAFETY: the cursors of all pieces partition 0..n; each slot is written once.
                 unsafe {
                     std::ptr::copy_nonoverlapping(r.as_ptr(), rp.0.add(at * rl), rl);
-                    (ap.0 as *mut u64).add(at).write((p as u64) << 32 | i as u64);
+                    (ap.0 as *mut u64).add(at).write(arrival_of(p, i));
                 }
             }
         });
@@ -185,7 +188,7 @@ fn sort_records(slabs: &[&[u8]], hist: &[Vec<u32>], rl: usize, g: &MortonGrid, s
     Sorted { records, arrival, rl }
 }
 
-struct SendPtr(*mut u8);
+pub(super) struct SendPtr(pub(super) *mut u8);
 // SAFETY: used only for disjoint writes (see sort_records).
 unsafe impl Sync for SendPtr {}
 unsafe impl Send for SendPtr {}
@@ -233,7 +236,7 @@ pub(crate) fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOpt
     let ts = Instant::now();
     // Counted twice: once scattered into buckets, once sorted in its bucket.
     ds.progress.stage("sorting", 2 * all.count, "points");
-    let sorted = sort_records(&records, &hist, rl, &g, shift, &ds.progress);
+    let sorted = sort_records(&records, &hist, rl, &g, shift, &ds.progress, |p, i| (p as u64) << 32 | i as u64);
     drop(records);
     drop(slabs);
     report.sort_seconds = ts.elapsed().as_secs_f64();
@@ -261,10 +264,10 @@ pub(crate) fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOpt
 }
 
 /// Counts per bucket of the records of one piece.
-fn histogram(slab: &[u8], rl: usize, g: &MortonGrid, shift: u32) -> Vec<u32> {
+pub(super) fn histogram(slab: &[u8], rl: usize, g: &MortonGrid, shift: u32) -> Vec<u32> {
     let mut h = vec![0u32; 1 << BUCKET_BITS];
     for r in slab.chunks_exact(rl) {
-        h[((code_of(r, g) >> shift) as usize).min((1 << BUCKET_BITS) - 1)] += 1;
+        h[((code_of(r, g) >> shift) as usize) & ((1 << BUCKET_BITS) - 1)] += 1;
     }
     h
 }

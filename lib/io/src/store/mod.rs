@@ -28,6 +28,7 @@
 mod build;
 mod compact;
 mod engine;
+mod partitioned;
 mod format;
 mod incremental;
 mod reader;

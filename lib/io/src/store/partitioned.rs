@@ -1,0 +1,420 @@
+//! The partitioned engine of `mortar build`: the sorted engine for inputs larger than
+//! `--memory` (ARCHITECTURE.md, "The build engine").
+//!
+//! 1. Partition: every piece is read once (LAZ decoded once, groups of pieces in parallel) and
+//!    its records, each with its arrival number, are scattered by the Morton cell that holds
+//!    them at depth `D` of the root (at most 8^5 cells) into run files, one per group of about a
+//!    quarter of the budget, each with a table of where every cell begins. The cells' counts
+//!    make a histogram of the whole input.
+//! 2. Build: the tree's top is walked depth first from the root. A node whose points fit the
+//!    budget for one unit (or a cell of depth `D`) is a unit: its cells are read back from
+//!    every run (one contiguous range per run), sorted as the sorted engine sorts, and built by
+//!    [`build_subtree`]; its nodes are written at once, and it hands its parent the earliest
+//!    point per cell of the parent's grid. A node above the units is inner (it holds more
+//!    points than a unit, hence more than a leaf), and its voxels are its children's candidates
+//!    end to end, reduced by eight for its own parent ([`earliest_in_parent_cells`]).
+//! 3. The entries are put in the sorted engine's order (level by level, Morton order in a
+//!    level) and committed once.
+//!
+//! The tree is the one the sorted engine makes (a subtree depends on the points in its cube
+//! alone; `tests/build_engine.rs` compares them node by node). Where one cell of depth `D`
+//! holds more points than a unit may, the engine gives up before writing a node and the build
+//! falls back to the incremental engine. Not done yet: commits while it builds (a reader sees
+//! the store at the end only, and `--resume` starts over), and units built in parallel with
+//! one another (each unit's tree and encoding are parallel inside).
+
+use super::build::{BuildOptions, BuildProgress, BuildReport};
+use super::engine::{grid_of, histogram, sort_records, Sorted, BUCKET_BITS};
+use super::format::*;
+use super::writer::*;
+use crate::cleanup::TempPath;
+use crate::dataset::Dataset;
+use crate::error::{Error, Result};
+use crate::sort::{self, PieceStats};
+use mortar_core::color::{ColorSource, RgbDepth};
+use mortar_core::layout::read_xyz;
+use mortar_core::morton::MortonGrid;
+use mortar_core::octree::{build_subtree, earliest_in_parent_cells, Cube, NodeKey, SortedContent, MIN_INNER_SIZE_LOG2};
+use rayon::prelude::*;
+use std::io::{Read, Seek, SeekFrom, Write};
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// Deepest level of the cells the records are partitioned by (8^5 = 32,768 cells).
+const MAX_CELL_DEPTH: u8 = 5;
+
+/// One run file: the records of a group of pieces, each followed by its arrival number (8
+/// bytes, little endian), grouped by cell.
+struct Run {
+    path: PathBuf,
+    /// Entry index at which cell `c` begins (one more than the cells: the end).
+    starts: Vec<u64>,
+}
+
+/// Points taken from a finished unit or node for its parent: positions, arrival numbers and
+/// whole records.
+#[derive(Default)]
+struct Cands {
+    pos: Vec<[i32; 3]>,
+    arrival: Vec<u64>,
+    records: Vec<u8>,
+}
+
+impl Cands {
+    fn push(&mut self, pos: [i32; 3], arrival: u64, record: &[u8]) {
+        self.pos.push(pos);
+        self.arrival.push(arrival);
+        self.records.extend_from_slice(record);
+    }
+    fn append(&mut self, o: Cands) {
+        self.pos.extend(o.pos);
+        self.arrival.extend(o.arrival);
+        self.records.extend(o.records);
+    }
+}
+
+/// Bytes per point of a unit held in memory: the entry read back (record + 8), the sorted copy
+/// (record + 8), and the sort's keys and scratch (32).
+fn unit_bytes_per_point(rl: u64) -> u64 {
+    2 * (rl + 8) + 32
+}
+
+/// The depth of the partition cells for `root`: cells must still be able to split (so that
+/// every node above them is inner when it holds more than a unit).
+fn cell_depth(root: Cube, max_level: u8) -> u8 {
+    let room = root.size_log2.saturating_sub(MIN_INNER_SIZE_LOG2);
+    MAX_CELL_DEPTH.min(room).min(max_level).min(mortar_core::morton::BITS_PER_AXIS as u8)
+}
+
+/// Builds the store in `writer` from `ds`; `None` (before any node is written) when a cell is
+/// too dense for the budget, and the incremental engine must build it.
+pub(crate) fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOptions, progress: &mut dyn FnMut(&BuildProgress), header: Option<([i32; 3], [i32; 3])>, t0: Instant) -> Result<Option<BuildReport>> {
+    let rl = ds.layout.record_len;
+    let total = ds.declared_points();
+    let mut report = BuildReport { engine: "partitioned", ..BuildReport::default() };
+    let tmp = TempPath::dir_in(&writer.dir, "partition").map_err(|e| Error::io(&writer.dir, e))?;
+    let promised = header.map(|(l, h)| Cube::covering(l, h)).unwrap_or(Cube { min: [0; 3], size_log2: 32 });
+    let tr = Instant::now();
+    let block_bytes = ((opts.memory / 4).max(rl as u64 * 4096)) as usize;
+    ds.progress.stage("partitioning", total, "points");
+    let (mut runs, mut hist, all, real) = partition(ds, promised, opts, block_bytes, tmp.path())?;
+    for (src, st) in ds.inputs.iter().zip(&real) {
+        if let Some(w) = super::build::bounds_warning(ds, src.as_ref(), st) {
+            report.warnings.push(w);
+        }
+    }
+    // The same root as the sorted engine: the headers' box when it holds every point.
+    let (lo, hi) = if all.count == 0 { ([0; 3], [0; 3]) } else { (all.min, all.max) };
+    let root = match header {
+        Some((l, h)) if all.count > 0 && (0..3).all(|a| l[a] <= lo[a] && hi[a] <= h[a]) => Cube::covering(l, h),
+        _ => Cube::covering(lo, hi),
+    };
+    if root != promised {
+        // The headers lie (or say nothing): partition again on the points' own root.
+        for r in &runs {
+            let _ = std::fs::remove_file(&r.path);
+        }
+        ds.progress.stage("partitioning again (the headers' bounds are wrong)", total, "points");
+        (runs, hist, _, _) = partition(ds, root, opts, block_bytes, tmp.path())?;
+    }
+    report.read_seconds = tr.elapsed().as_secs_f64();
+    sort::trace("partitioned", t0);
+    let unit_points = ((opts.memory / 2) / unit_bytes_per_point(rl as u64)).max(opts.config.leaf_capacity as u64 + 1);
+    if hist.iter().any(|&c| c > unit_points) {
+        return Ok(None);
+    }
+    let color = match ds.layout.attribute("rgb") {
+        Some(a) if all.max_rgb > 0 => ColorSource::Rgb { offset: a.offset, depth: RgbDepth::detect(all.max_rgb) },
+        _ => ColorSource::Intensity { max_intensity: all.max_intensity },
+    };
+    ds.progress.stage("building", all.count, "points");
+    let depth = cell_depth(root, opts.config.max_level);
+    let mut w = Walk { ds, writer, opts, runs: &runs, hist: &hist, depth, root, unit_points, color, rl, entries: Vec::new(), seq: 0, points: 0, report: &mut report };
+    w.visit(NodeKey::ROOT, root, 0, 0..hist.len())?;
+    let Walk { mut entries, points, .. } = w;
+    // The sorted engine's order: level by level, depth-first (= Morton) order in a level.
+    entries.sort_by_key(|&(level, seq, _)| (level, seq));
+    for (i, (_, _, e)) in entries.iter().enumerate() {
+        writer.set_entry(i, *e);
+    }
+    let tc = Instant::now();
+    writer.write_hierarchy(root, points, opts.config.leaf_capacity, (lo, hi))?;
+    report.commit_seconds += tc.elapsed().as_secs_f64();
+    progress(&BuildProgress { points, total, nodes: entries.len(), commits: writer.commits() });
+    report.points = points;
+    report.nodes = entries.len() as u64;
+    report.leaves = entries.iter().filter(|(_, _, e)| e.kind == LEAF).count() as u64;
+    report.voxels = entries.iter().filter(|(_, _, e)| e.kind != LEAF).map(|(_, _, e)| e.count).sum();
+    report.commits = writer.commits();
+    report.nodes_bytes = writer.nodes_len;
+    drop(tmp);
+    report.seconds = t0.elapsed().as_secs_f64();
+    Ok(Some(report))
+}
+
+/// The cell (at depth `depth` of `root`) of a record, from its code on the root's grid.
+#[inline]
+fn cell_of(r: &[u8], g: &MortonGrid, root: Cube, depth: u8) -> usize {
+    let high = 3 * (root.size_log2 as u32).min(mortar_core::morton::BITS_PER_AXIS);
+    let q = read_xyz(r);
+    let code = g.code([q[0] as i64, q[1] as i64, q[2] as i64]);
+    ((code >> (high - 3 * depth as u32)) as usize).min((1usize << (3 * depth as u32)) - 1)
+}
+
+/// Pass 1: reads every piece once and writes the run files; the cells' counts, the statistics
+/// of all points and of each input.
+#[allow(clippy::type_complexity)]
+fn partition(ds: &Dataset, root: Cube, opts: &BuildOptions, block_bytes: usize, dir: &Path) -> Result<(Vec<Run>, Vec<u64>, PieceStats, Vec<PieceStats>)> {
+    let rl = ds.layout.record_len;
+    let el = rl + 8;
+    let depth = cell_depth(root, opts.config.max_level);
+    let cells = 1usize << (3 * depth as u32);
+    let g = grid_of(root);
+    let pieces = ds.pieces();
+    let mut runs = Vec::new();
+    let mut hist = vec![0u64; cells];
+    let mut all = PieceStats::default();
+    let mut real = vec![PieceStats::default(); ds.inputs.len()];
+    let mut i = 0;
+    while i < pieces.len() {
+        sort::check_interrupted()?;
+        let mut j = i;
+        let mut bytes = 0usize;
+        while j < pieces.len() && (j == i || bytes + pieces[j].piece.points as usize * rl <= block_bytes) {
+            bytes += pieces[j].piece.points as usize * rl;
+            j += 1;
+        }
+        // Decoded (or borrowed) in parallel, with the counts per cell made while in cache.
+        let group: Vec<(std::borrow::Cow<'_, [u8]>, PieceStats, Vec<u32>)> = (i..j)
+            .into_par_iter()
+            .map(|k| {
+                let p = &pieces[k];
+                let slab = ds.read_piece(p)?;
+                if slab.len() as u64 != p.piece.points * rl as u64 {
+                    return Err(Error::input(ds.inputs[p.input].path(), format!("piece {} holds another number of points than declared", p.piece.index)));
+                }
+                let mut h = vec![0u32; cells];
+                for r in slab.chunks_exact(rl) {
+                    h[cell_of(r, &g, root, depth)] += 1;
+                }
+                let st = PieceStats::of(&slab, &ds.layout);
+                Ok((slab, st, h))
+            })
+            .collect::<Result<_>>()?;
+        let mut starts = vec![0u64; cells + 1];
+        for c in 0..cells {
+            starts[c + 1] = starts[c] + group.iter().map(|(_, _, h)| h[c] as u64).sum::<u64>();
+        }
+        let n = starts[cells] as usize;
+        let mut cursors: Vec<Vec<usize>> = Vec::with_capacity(group.len());
+        let mut running: Vec<usize> = starts[..cells].iter().map(|&s| s as usize).collect();
+        for (_, _, h) in &group {
+            cursors.push(running.clone());
+            for c in 0..cells {
+                running[c] += h[c] as usize;
+            }
+        }
+        let mut buf = sort::zeroed_huge::<u8>(n * el);
+        {
+            let bp = super::engine::SendPtr(buf.as_mut_ptr());
+            group.par_iter().zip(cursors.into_par_iter()).enumerate().for_each(|(k, ((slab, _, _), mut cur))| {
+                let bp = &bp;
+                let piece = (i + k) as u64;
+                for (x, r) in slab.chunks_exact(rl).enumerate() {
+                    let c = cell_of(r, &g, root, depth);
+                    let at = cur[c];
+                    cur[c] += 1;
+                    // SAFETY: the cursors of all pieces partition 0..n; each entry is written once.
+                    unsafe {
+                        std::ptr::copy_nonoverlapping(r.as_ptr(), bp.0.add(at * el), rl);
+                        std::ptr::copy_nonoverlapping((piece << 32 | x as u64).to_le_bytes().as_ptr(), bp.0.add(at * el + rl), 8);
+                    }
+                }
+            });
+        }
+        for (k, (_, st, h)) in group.iter().enumerate() {
+            all.merge(st);
+            real[pieces[i + k].input].merge(st);
+            for c in 0..cells {
+                hist[c] += h[c] as u64;
+            }
+        }
+        for k in i..j {
+            ds.inputs[pieces[k].input].release_piece(&pieces[k].piece);
+        }
+        drop(group);
+        let path = dir.join(format!("run-{}.bin", runs.len()));
+        let mut f = std::io::BufWriter::with_capacity(8 << 20, std::fs::File::create(&path).map_err(|e| Error::io(&path, e))?);
+        f.write_all(&buf).map_err(|e| Error::io(&path, e))?;
+        f.flush().map_err(|e| Error::io(&path, e))?;
+        runs.push(Run { path, starts });
+        i = j;
+    }
+    Ok((runs, hist, all, real))
+}
+
+/// The depth-first walk over the tree's top (pass 2).
+struct Walk<'a, 'w> {
+    ds: &'a Dataset,
+    writer: &'w mut StoreWriter,
+    opts: &'a BuildOptions,
+    runs: &'a [Run],
+    hist: &'a [u64],
+    depth: u8,
+    root: Cube,
+    unit_points: u64,
+    color: ColorSource,
+    rl: usize,
+    /// (level, depth-first number, entry) of every node written.
+    entries: Vec<(u32, u64, NodeEntry)>,
+    seq: u64,
+    points: u64,
+    report: &'a mut BuildReport,
+}
+
+impl Walk<'_, '_> {
+    /// Builds the node `key` (cube `cube`, at `depth`, over the partition cells `cells`) and
+    /// everything under it; returns its candidates for its parent.
+    fn visit(&mut self, key: NodeKey, cube: Cube, depth: u8, cells: std::ops::Range<usize>) -> Result<Cands> {
+        sort::check_interrupted()?;
+        let count: u64 = self.hist[cells.clone()].iter().sum();
+        if depth == self.depth || count <= self.unit_points {
+            return self.unit(key, cube, cells, count);
+        }
+        // More points than a unit, so more than a leaf, in a cube that may split: inner.
+        let seq = self.seq;
+        self.seq += 1;
+        let step = cells.len() / 8;
+        let mut voxels = Cands::default();
+        for o in 0..8 {
+            let c = cells.start + o * step..cells.start + (o + 1) * step;
+            let kid = self.visit(key.child(o), cube.child(o), depth + 1, c)?;
+            voxels.append(kid);
+        }
+        let rl = self.rl;
+        let color = &self.color;
+        let (e, b) = encode_payload(key, INNER, voxels.pos.len(), rl - 12, |i| voxels.pos[i], |i| color.rgba(&voxels.records[i * rl..(i + 1) * rl]), |i| &voxels.records[i * rl + 12..(i + 1) * rl])
+            .map_err(|m| Error::input(&self.writer.dir, m))?;
+        self.put(seq, e, &b)?;
+        let mut out = Cands::default();
+        if key.level > 0 {
+            let keep = earliest_in_parent_cells(cube, 0..voxels.pos.len(), |i| voxels.pos[i], |i| voxels.arrival[i]);
+            for i in keep {
+                out.push(voxels.pos[i], voxels.arrival[i], &voxels.records[i * rl..(i + 1) * rl]);
+            }
+        }
+        Ok(out)
+    }
+
+    /// Writes one payload at the end of `nodes.bin` and keeps its entry.
+    fn put(&mut self, seq: u64, mut e: NodeEntry, bytes: &[u8]) -> Result<()> {
+        let off = self.writer.reserve(&[bytes.len() as u64])[0];
+        self.writer.write_at(off, bytes)?;
+        e.offset = off;
+        self.entries.push((e.level, seq, e));
+        Ok(())
+    }
+
+    /// Reads the points of `cells` back, sorts them and builds their subtree.
+    fn unit(&mut self, key: NodeKey, cube: Cube, cells: std::ops::Range<usize>, count: u64) -> Result<Cands> {
+        let rl = self.rl;
+        let el = rl + 8;
+        let n = count as usize;
+        let ts = Instant::now();
+        let mut records = sort::zeroed_huge::<u8>(n * rl);
+        let mut arrival = vec![0u64; n];
+        let mut at = 0usize;
+        let mut entry = Vec::new();
+        for run in self.runs {
+            let (a, b) = (run.starts[cells.start], run.starts[cells.end]);
+            if a == b {
+                continue;
+            }
+            let m = (b - a) as usize;
+            entry.resize(m * el, 0);
+            let mut f = std::fs::File::open(&run.path).map_err(|e| Error::io(&run.path, e))?;
+            f.seek(SeekFrom::Start(a * el as u64)).map_err(|e| Error::io(&run.path, e))?;
+            f.read_exact(&mut entry).map_err(|e| Error::io(&run.path, e))?;
+            for (k, e) in entry.chunks_exact(el).enumerate() {
+                records[(at + k) * rl..(at + k + 1) * rl].copy_from_slice(&e[..rl]);
+                arrival[at + k] = u64::from_le_bytes(e[rl..].try_into().expect("8 bytes"));
+            }
+            at += m;
+        }
+        if at != n {
+            return Err(Error::input(&self.writer.dir, "internal: the run files hold another number of points than counted"));
+        }
+        drop(entry);
+        // Sorted as the sorted engine sorts (buckets below the unit's own prefix): local order
+        // is input order, so ties come out the same.
+        let g = grid_of(self.root);
+        let high = 3 * (self.root.size_log2 as u32).min(mortar_core::morton::BITS_PER_AXIS);
+        let unit_level = key.level as u32;
+        let shift = high.saturating_sub(3 * unit_level.min(high / 3)).saturating_sub(BUCKET_BITS);
+        let sorted: Sorted = if n == 0 {
+            Sorted { records: Vec::new(), arrival: Vec::new(), rl }
+        } else {
+            let slabs = [&records[..]];
+            let hist = vec![histogram(&records, rl, &g, shift)];
+            sort_records(&slabs, &hist, rl, &g, shift, &crate::progress::Progress::new(), |_, i| arrival[i])
+        };
+        self.ds.progress.add(count);
+        drop(records);
+        drop(arrival);
+        self.report.sort_seconds += ts.elapsed().as_secs_f64();
+        let tt = Instant::now();
+        let pos = |i: usize| read_xyz(sorted.record(i));
+        let arr = |i: usize| sorted.arrival[i];
+        let sub = build_subtree(key, cube, n, &pos, &arr, self.opts.config).map_err(|e| Error::Usage(format!("octree: {e}")))?;
+        self.report.tree_seconds += tt.elapsed().as_secs_f64();
+        let tw = Instant::now();
+        let base = self.seq;
+        self.seq += sub.nodes.len() as u64;
+        let attr_len = rl - 12;
+        let dir = self.writer.dir.clone();
+        let color = &self.color;
+        let mut start = 0;
+        while start < sub.nodes.len() {
+            let mut end = start;
+            let mut bytes = 0u64;
+            while end < sub.nodes.len() && (end == start || bytes < COMMIT_GROUP_BYTES) {
+                bytes += payload_len(sub.nodes[end].count() as u64, attr_len as u64);
+                end += 1;
+            }
+            let lens: Vec<u64> = (start..end).map(|i| payload_len(sub.nodes[i].count() as u64, attr_len as u64)).collect();
+            let offsets = self.writer.reserve(&lens);
+            let w = &*self.writer;
+            let done: Vec<NodeEntry> = (start..end)
+                .into_par_iter()
+                .zip(offsets.into_par_iter())
+                .map(|(i, off)| {
+                    let nd = &sub.nodes[i];
+                    let (kind, idx): (u32, Box<dyn Fn(usize) -> usize + Sync>) = match &nd.content {
+                        SortedContent::Leaf(r) => {
+                            let s = r.start;
+                            (LEAF, Box::new(move |i| s + i))
+                        }
+                        SortedContent::Inner(v) => (INNER, Box::new(move |i| v[i] as usize)),
+                    };
+                    let (mut e, b) = encode_payload(nd.key, kind, nd.count(), attr_len, |i| read_xyz(sorted.record(idx(i))), |i| color.rgba(sorted.record(idx(i))), |i| &sorted.record(idx(i))[12..])
+                        .map_err(|m| Error::input(&dir, m))?;
+                    w.write_at(off, &b)?;
+                    e.offset = off;
+                    Ok(e)
+                })
+                .collect::<Result<_>>()?;
+            for (i, e) in (start..end).zip(done) {
+                self.entries.push((e.level, base + i as u64, e));
+            }
+            start = end;
+        }
+        self.points += sub.nodes.iter().filter(|x| x.is_leaf()).map(|x| x.count() as u64).sum::<u64>();
+        self.report.write_seconds += tw.elapsed().as_secs_f64();
+        let mut out = Cands::default();
+        for &i in &sub.candidates {
+            let r = sorted.record(i as usize);
+            out.push(read_xyz(r), sorted.arrival[i as usize], r);
+        }
+        Ok(out)
+    }
+}
