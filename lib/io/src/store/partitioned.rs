@@ -43,11 +43,12 @@ use std::time::Instant;
 /// Deepest level of the cells the records are partitioned by (8^5 = 32,768 cells).
 const MAX_CELL_DEPTH: u8 = 5;
 
-/// One run file: the records of a group of pieces, each followed by its arrival number (8
-/// bytes, little endian), grouped by cell.
+/// One run file: the records of a group of pieces grouped by cell, then their arrival numbers
+/// (8 bytes each, native order) in the same order, so that a range of cells is one contiguous
+/// read of records and one of arrival numbers, straight into the unit's buffers.
 struct Run {
     path: PathBuf,
-    /// Entry index at which cell `c` begins (one more than the cells: the end).
+    /// Index of the first record of cell `c` (one more than the cells: the end).
     starts: Vec<u64>,
 }
 
@@ -224,10 +225,10 @@ fn partition(ds: &Dataset, root: Cube, opts: &BuildOptions, block_bytes: usize, 
                     let c = cell_of(r, &g, root, depth);
                     let at = cur[c];
                     cur[c] += 1;
-                    // SAFETY: the cursors of all pieces partition 0..n; each entry is written once.
+                    // SAFETY: the cursors of all pieces partition 0..n; each slot is written once.
                     unsafe {
-                        std::ptr::copy_nonoverlapping(r.as_ptr(), bp.0.add(at * el), rl);
-                        std::ptr::copy_nonoverlapping((piece << 32 | x as u64).to_le_bytes().as_ptr(), bp.0.add(at * el + rl), 8);
+                        std::ptr::copy_nonoverlapping(r.as_ptr(), bp.0.add(at * rl), rl);
+                        std::ptr::copy_nonoverlapping((piece << 32 | x as u64).to_ne_bytes().as_ptr(), bp.0.add(n * rl + at * 8), 8);
                     }
                 }
             });
@@ -318,33 +319,42 @@ impl Walk<'_, '_> {
     /// Reads the points of `cells` back, sorts them and builds their subtree.
     fn unit(&mut self, key: NodeKey, cube: Cube, cells: std::ops::Range<usize>, count: u64) -> Result<Cands> {
         let rl = self.rl;
-        let el = rl + 8;
         let n = count as usize;
         let ts = Instant::now();
         let mut records = sort::zeroed_huge::<u8>(n * rl);
-        let mut arrival = vec![0u64; n];
-        let mut at = 0usize;
-        let mut entry = Vec::new();
-        for run in self.runs {
-            let (a, b) = (run.starts[cells.start], run.starts[cells.end]);
-            if a == b {
-                continue;
+        let mut arrival = sort::zeroed_huge::<u64>(n);
+        // Each run's share, read in parallel straight into place (runs in input order).
+        let mut parts: Vec<(&Run, &mut [u8], &mut [u64])> = Vec::with_capacity(self.runs.len());
+        {
+            let (mut rr, mut ar): (&mut [u8], &mut [u64]) = (&mut records, &mut arrival);
+            for run in self.runs {
+                let m = (run.starts[cells.end] - run.starts[cells.start]) as usize;
+                if m > ar.len() {
+                    return Err(Error::input(&self.writer.dir, "internal: the run files hold more points than counted"));
+                }
+                let (x, y) = std::mem::take(&mut rr).split_at_mut(m * rl);
+                let (u, v) = std::mem::take(&mut ar).split_at_mut(m);
+                parts.push((run, x, u));
+                rr = y;
+                ar = v;
             }
-            let m = (b - a) as usize;
-            entry.resize(m * el, 0);
+            if !ar.is_empty() {
+                return Err(Error::input(&self.writer.dir, "internal: the run files hold fewer points than counted"));
+            }
+        }
+        let cs = cells.start;
+        parts.into_par_iter().try_for_each(|(run, recs, arr)| -> Result<()> {
+            if arr.is_empty() {
+                return Ok(());
+            }
+            let total = *run.starts.last().expect("a run has an end") as u64;
+            let first = run.starts[cs];
             let mut f = std::fs::File::open(&run.path).map_err(|e| Error::io(&run.path, e))?;
-            f.seek(SeekFrom::Start(a * el as u64)).map_err(|e| Error::io(&run.path, e))?;
-            f.read_exact(&mut entry).map_err(|e| Error::io(&run.path, e))?;
-            for (k, e) in entry.chunks_exact(el).enumerate() {
-                records[(at + k) * rl..(at + k + 1) * rl].copy_from_slice(&e[..rl]);
-                arrival[at + k] = u64::from_le_bytes(e[rl..].try_into().expect("8 bytes"));
-            }
-            at += m;
-        }
-        if at != n {
-            return Err(Error::input(&self.writer.dir, "internal: the run files hold another number of points than counted"));
-        }
-        drop(entry);
+            f.seek(SeekFrom::Start(first * rl as u64)).map_err(|e| Error::io(&run.path, e))?;
+            f.read_exact(recs).map_err(|e| Error::io(&run.path, e))?;
+            f.seek(SeekFrom::Start(total * rl as u64 + first * 8)).map_err(|e| Error::io(&run.path, e))?;
+            f.read_exact(bytemuck::cast_slice_mut(arr)).map_err(|e| Error::io(&run.path, e))
+        })?;
         // Sorted as the sorted engine sorts (buckets below the unit's own prefix): local order
         // is input order, so ties come out the same.
         let g = grid_of(self.root);
@@ -354,9 +364,11 @@ impl Walk<'_, '_> {
         let sorted: Sorted = if n == 0 {
             Sorted { records: Vec::new(), arrival: Vec::new(), rl }
         } else {
-            let slabs = [&records[..]];
-            let hist = vec![histogram(&records, rl, &g, shift)];
-            sort_records(&slabs, &hist, rl, &g, shift, &crate::progress::Progress::new(), |_, i| arrival[i])
+            // Slabs of the unit, so that the histograms and the scatter run on every thread.
+            const SLAB: usize = 1 << 16;
+            let slabs: Vec<&[u8]> = records.chunks(SLAB * rl).collect();
+            let hist: Vec<Vec<u32>> = slabs.par_iter().map(|s| histogram(s, rl, &g, shift)).collect();
+            sort_records(&slabs, &hist, rl, &g, shift, &crate::progress::Progress::new(), |p, i| arrival[p * SLAB + i])
         };
         self.ds.progress.add(count);
         drop(records);
