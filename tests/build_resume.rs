@@ -262,3 +262,48 @@ fn compact_keeps_the_store_and_drops_superseded_payloads() {
     assert_eq!(o.status.code(), Some(1));
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// The partitioned engine (inputs larger than `--memory`) commits once, at the end; what a
+/// killed build keeps is its partition and the log of finished units in `.partition/`, and
+/// `--resume` continues from them to the uninterrupted store, byte for byte.
+#[test]
+fn a_partitioned_build_resumes_after_sigkill_to_the_uninterrupted_store() {
+    let dir = tempdir("resume-partitioned");
+    let inp = input(&dir, 2_000_000);
+    let args = ["--memory", "16M", "--engine", "partitioned"];
+    let reference = dir.join("ref");
+    let t = Instant::now();
+    let o = run_ok(mortar().arg("build").arg(&inp).arg("-o").arg(&reference).args(args).arg("--json"));
+    let full = t.elapsed();
+    let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(j["engine"], "partitioned", "{j}");
+    assert!(!reference.join(".partition").exists(), "the partition is removed at the end");
+    let want = snapshot(&reference);
+    let mut seed = 0x9e37_79b9_7f4a_7c15u64;
+    let (mut kept_partition, mut kept_units) = (0, 0);
+    for k in 0..12 {
+        seed ^= seed << 13;
+        seed ^= seed >> 7;
+        seed ^= seed << 17;
+        let at = full.mul_f64((seed % 1000) as f64 / 1000.0);
+        let out = dir.join(format!("p{k}"));
+        let mut child = mortar().arg("build").arg(&inp).arg("-o").arg(&out).args(args).stdout(Stdio::null()).stderr(Stdio::null()).spawn().unwrap();
+        std::thread::sleep(at);
+        let _ = child.kill(); // SIGKILL
+        let _ = child.wait();
+        if out.join(".partition/manifest.json").exists() {
+            kept_partition += 1;
+        }
+        let o = run_ok(resume(&inp, &out).args(args).arg("--json"));
+        let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+        assert_eq!(j["points"], 2_000_000, "kill {k} at {at:?}: {j}");
+        if j["kept_nodes"].as_u64().unwrap_or(0) > 0 {
+            kept_units += 1;
+        }
+        assert!(snapshot(&out) == want, "kill {k} at {at:?}: the resumed store differs from the uninterrupted one ({j})");
+        assert!(!out.join(".partition").exists());
+        let _ = std::fs::remove_dir_all(&out);
+    }
+    assert!(kept_partition >= 3 && kept_units >= 2, "kills kept the partition {kept_partition} times and units {kept_units} times (build {full:?})");
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -211,7 +211,8 @@ pub fn build(ds: &Dataset, dir: &Path, opts: &BuildOptions, progress: &mut dyn F
             w
         }
     };
-    let resumed = writer.commits() > 0;
+    // Continued from a commit, or from a partitioned build's state (no commit yet).
+    let resumed = writer.commits() > 0 || (opts.resume && writer.guard.is_none());
     let run = |writer: &mut StoreWriter, progress: &mut dyn FnMut(&BuildProgress)| -> Result<BuildReport> {
         match engine {
             Engine::Sorted => super::engine::build_into(ds, writer, opts, progress, bounds, t0),
@@ -297,6 +298,12 @@ fn continue_store(dir: &Path, meta: &crate::dataset::SourceMeta, record: &BuildR
         std::fs::remove_dir_all(dir).map_err(|e| Error::io(dir, e))?;
         Ok(Continue::Fresh)
     };
+    if old.engine == "partitioned" && record.engine == "partitioned" {
+        return match StoreWriter::reopen_uncommitted(dir, meta)? {
+            Some(w) if super::partitioned::has_state(dir) => Ok(Continue::Writer(w)),
+            _ => start_over("nothing of its partition was kept".into(), warnings),
+        };
+    }
     if old.engine != "sorted" || record.engine != "sorted" {
         return start_over("the incremental engine keeps its tree in memory and cannot continue a build".into(), warnings);
     }

@@ -19,15 +19,21 @@
 //! The tree is the one the sorted engine makes (a subtree depends on the points in its cube
 //! alone; `tests/build_engine.rs` compares them node by node). Where one cell of depth `D`
 //! holds more points than a unit may, the engine gives up before writing a node and the build
-//! falls back to the incremental engine. Not done yet: commits while it builds (a reader sees
-//! the store at the end only, and `--resume` starts over), and units built in parallel with
-//! one another (each unit's tree and encoding are parallel inside).
+//! falls back to the incremental engine.
+//!
+//! Resume: the run files, a manifest of the partition (written once pass 1 is done and the runs
+//! are synced) and a log of finished visits (each node's entries, the points it added and its
+//! candidates, appended after `nodes.bin` is synced) live in `.partition/` inside the store
+//! until the build ends. `--resume` after kill -9 or power loss skips pass 1 when the manifest is
+//! whole, cuts `nodes.bin` back to the end of the last logged visit and walks again, taking
+//! logged visits from the log: the store is the uninterrupted one byte for byte. Not done yet:
+//! commits while it builds (a reader sees the store at the end only), and units built in
+//! parallel with one another (each unit's tree and encoding are parallel inside).
 
 use super::build::{BuildOptions, BuildProgress, BuildReport};
 use super::engine::{grid_of, histogram, sort_records, Sorted, BUCKET_BITS};
 use super::format::*;
 use super::writer::*;
-use crate::cleanup::TempPath;
 use crate::dataset::Dataset;
 use crate::error::{Error, Result};
 use crate::sort::{self, PieceStats};
@@ -42,6 +48,173 @@ use std::time::Instant;
 
 /// Deepest level of the cells the records are partitioned by (8^5 = 32,768 cells).
 const MAX_CELL_DEPTH: u8 = 5;
+
+/// The directory inside the store that holds the partition until the build ends.
+pub(crate) const STATE_DIR: &str = ".partition";
+const MANIFEST: &str = "manifest.json";
+const TABLES: &str = "tables.bin";
+const LOG: &str = "done.bin";
+const LOG_MAGIC: u32 = 0x4d50_4c47;
+
+/// Whether the store `dir` holds the state a partitioned build can resume from.
+pub(crate) fn has_state(dir: &Path) -> bool {
+    dir.join(STATE_DIR).join(MANIFEST).is_file()
+}
+
+/// What pass 1 found, kept in the manifest for `--resume`.
+struct Partition {
+    root: Cube,
+    runs: Vec<Run>,
+    hist: Vec<u64>,
+    all: PieceStats,
+    warnings: Vec<String>,
+}
+
+fn sync_dir(d: &Path) {
+    if let Ok(f) = std::fs::File::open(d) {
+        let _ = f.sync_all();
+    }
+}
+
+/// Writes the manifest (the tables first, then the JSON by rename) once the runs are synced.
+fn write_manifest(state: &Path, p: &Partition) -> Result<()> {
+    let tp = state.join(TABLES);
+    let mut t: Vec<u64> = p.hist.clone();
+    for r in &p.runs {
+        t.extend_from_slice(&r.starts);
+    }
+    std::fs::write(&tp, bytemuck::cast_slice::<u64, u8>(&t)).map_err(|e| Error::io(&tp, e))?;
+    std::fs::File::open(&tp).and_then(|f| f.sync_all()).map_err(|e| Error::io(&tp, e))?;
+    let j = serde_json::json!({
+        "root_min": p.root.min,
+        "root_size_log2": p.root.size_log2,
+        "cells": p.hist.len(),
+        "runs": p.runs.iter().map(|r| r.path.file_name().map(|n| n.to_string_lossy().to_string())).collect::<Vec<_>>(),
+        "count": p.all.count,
+        "min": p.all.min,
+        "max": p.all.max,
+        "max_rgb": p.all.max_rgb,
+        "max_intensity": p.all.max_intensity,
+        "warnings": p.warnings,
+    });
+    let mp = state.join(MANIFEST);
+    let tmp = state.join(format!("{MANIFEST}.tmp"));
+    std::fs::write(&tmp, serde_json::to_vec_pretty(&j).unwrap_or_default()).map_err(|e| Error::io(&tmp, e))?;
+    std::fs::File::open(&tmp).and_then(|f| f.sync_all()).map_err(|e| Error::io(&tmp, e))?;
+    std::fs::rename(&tmp, &mp).map_err(|e| Error::io(&mp, e))?;
+    sync_dir(state);
+    Ok(())
+}
+
+/// The manifest of a stopped build, if it is whole and its run files are all there.
+fn read_manifest(state: &Path, rl: usize) -> Option<Partition> {
+    let j: serde_json::Value = serde_json::from_slice(&std::fs::read(state.join(MANIFEST)).ok()?).ok()?;
+    let arr3 = |v: &serde_json::Value| -> Option<[i64; 3]> { Some([v.get(0)?.as_i64()?, v.get(1)?.as_i64()?, v.get(2)?.as_i64()?]) };
+    let root = Cube { min: arr3(&j["root_min"])?, size_log2: j["root_size_log2"].as_u64()? as u8 };
+    let cells = j["cells"].as_u64()? as usize;
+    let names: Vec<String> = j["runs"].as_array()?.iter().map(|v| v.as_str().map(str::to_string)).collect::<Option<_>>()?;
+    let t = std::fs::read(state.join(TABLES)).ok()?;
+    if t.len() != 8 * (cells + names.len() * (cells + 1)) {
+        return None;
+    }
+    let t: Vec<u64> = t.chunks_exact(8).map(|c| u64::from_le_bytes(c.try_into().expect("8 bytes"))).collect();
+    let hist = t[..cells].to_vec();
+    let mut runs = Vec::new();
+    for (k, name) in names.iter().enumerate() {
+        let starts = t[cells + k * (cells + 1)..cells + (k + 1) * (cells + 1)].to_vec();
+        let path = state.join(name);
+        let len = std::fs::metadata(&path).ok()?.len();
+        if len != *starts.last()? * (rl as u64 + 8) {
+            return None;
+        }
+        runs.push(Run { path, starts });
+    }
+    let i32x3 = |v: &serde_json::Value| -> Option<[i32; 3]> { arr3(v).map(|a| a.map(|x| x as i32)) };
+    let all = PieceStats { count: j["count"].as_u64()?, min: i32x3(&j["min"])?, max: i32x3(&j["max"])?, max_rgb: j["max_rgb"].as_u64()? as u16, max_intensity: j["max_intensity"].as_u64()? as u16, ..PieceStats::default() };
+    let warnings = j["warnings"].as_array()?.iter().filter_map(|w| w.as_str().map(str::to_string)).collect();
+    Some(Partition { root, runs, hist, all, warnings })
+}
+
+/// A finished visit as the log keeps it.
+struct Logged {
+    seq_after: u64,
+    cands: Cands,
+}
+
+fn fnv(b: &[u8]) -> u64 {
+    b.iter().fold(0xcbf2_9ce4_8422_2325u64, |h, &x| (h ^ x as u64).wrapping_mul(0x100_0000_01b3))
+}
+
+/// One log record: the visit's key, where the walk stood after it, its nodes and candidates.
+fn log_record(key: NodeKey, seq_after: u64, points: u64, nodes_end: u64, entries: &[(u32, u64, NodeEntry)], cands: &Cands, rl: usize) -> Vec<u8> {
+    let mut b = Vec::new();
+    for v in [LOG_MAGIC, key.level as u32, key.index[0], key.index[1], key.index[2], entries.len() as u32, cands.pos.len() as u32] {
+        b.extend_from_slice(&v.to_le_bytes());
+    }
+    for v in [seq_after, points, nodes_end] {
+        b.extend_from_slice(&v.to_le_bytes());
+    }
+    for (_, seq, e) in entries {
+        b.extend_from_slice(&seq.to_le_bytes());
+        b.extend_from_slice(bytemuck::bytes_of(e));
+    }
+    for i in 0..cands.pos.len() {
+        for a in cands.pos[i] {
+            b.extend_from_slice(&a.to_le_bytes());
+        }
+        b.extend_from_slice(&cands.arrival[i].to_le_bytes());
+        b.extend_from_slice(&cands.records[i * rl..(i + 1) * rl]);
+    }
+    let h = fnv(&b);
+    b.extend_from_slice(&h.to_le_bytes());
+    b
+}
+
+/// The log's whole records: the visits by key, every logged entry, the points they added, and
+/// where `nodes.bin` ended after the last one; the log is cut after its last whole record.
+#[allow(clippy::type_complexity)]
+fn read_log(path: &Path, rl: usize) -> Result<(std::collections::HashMap<(u32, [u32; 3]), Logged>, Vec<(u32, u64, NodeEntry)>, u64, u64)> {
+    let b = std::fs::read(path).unwrap_or_default();
+    let mut visits = std::collections::HashMap::new();
+    let (mut entries, mut points, mut end, mut at) = (Vec::new(), 0u64, 0u64, 0usize);
+    let es = std::mem::size_of::<NodeEntry>();
+    let u32_at = |o: usize| u32::from_le_bytes(b[o..o + 4].try_into().expect("4 bytes"));
+    let u64_at = |o: usize| u64::from_le_bytes(b[o..o + 8].try_into().expect("8 bytes"));
+    while b.len() >= at + 52 {
+        if u32_at(at) != LOG_MAGIC {
+            break;
+        }
+        let (ne, nc) = (u32_at(at + 20) as usize, u32_at(at + 24) as usize);
+        let len = 52 + ne * (8 + es) + nc * (20 + rl);
+        if b.len() < at + len + 8 || fnv(&b[at..at + len]) != u64_at(at + len) {
+            break;
+        }
+        let key = (u32_at(at + 4), [u32_at(at + 8), u32_at(at + 12), u32_at(at + 16)]);
+        let (seq_after, p, nodes_end) = (u64_at(at + 28), u64_at(at + 36), u64_at(at + 44));
+        let mut o = at + 52;
+        for _ in 0..ne {
+            let seq = u64_at(o);
+            let e: NodeEntry = bytemuck::pod_read_unaligned(&b[o + 8..o + 8 + es]);
+            entries.push((e.level, seq, e));
+            o += 8 + es;
+        }
+        let mut cands = Cands::default();
+        for _ in 0..nc {
+            let q = [0, 1, 2].map(|a| i32::from_le_bytes(b[o + 4 * a..o + 4 * a + 4].try_into().expect("4 bytes")));
+            cands.push(q, u64_at(o + 12), &b[o + 20..o + 20 + rl]);
+            o += 20 + rl;
+        }
+        visits.insert(key, Logged { seq_after, cands });
+        points += p;
+        end = nodes_end;
+        at += len + 8;
+    }
+    if at < b.len() {
+        let f = std::fs::OpenOptions::new().write(true).open(path).map_err(|e| Error::io(path, e))?;
+        f.set_len(at as u64).map_err(|e| Error::io(path, e))?;
+    }
+    Ok((visits, entries, points, end))
+}
 
 /// One run file: the records of a group of pieces grouped by cell, then their arrival numbers
 /// (8 bytes each, native order) in the same order, so that a range of cells is one contiguous
@@ -93,44 +266,46 @@ pub(crate) fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOpt
     let rl = ds.layout.record_len;
     let total = ds.declared_points();
     let mut report = BuildReport { engine: "partitioned", ..BuildReport::default() };
-    let tmp = TempPath::dir_in(&writer.dir, "partition").map_err(|e| Error::io(&writer.dir, e))?;
-    let promised = header.map(|(l, h)| Cube::covering(l, h)).unwrap_or(Cube { min: [0; 3], size_log2: 32 });
+    let state = writer.dir.join(STATE_DIR);
     let tr = Instant::now();
-    let block_bytes = ((opts.memory / 4).max(rl as u64 * 4096)) as usize;
-    ds.progress.stage("partitioning", total, "points");
-    let (mut runs, mut hist, all, real) = partition(ds, promised, opts, block_bytes, tmp.path())?;
-    for (src, st) in ds.inputs.iter().zip(&real) {
-        if let Some(w) = super::build::bounds_warning(ds, src.as_ref(), st) {
-            report.warnings.push(w);
+    let kept = if opts.resume { read_manifest(&state, rl) } else { None };
+    let resumed = kept.is_some();
+    let part = match kept {
+        Some(p) => p,
+        None => {
+            let _ = std::fs::remove_dir_all(&state);
+            std::fs::create_dir_all(&state).map_err(|e| Error::io(&state, e))?;
+            let p = partition_all(ds, opts, header, &state)?;
+            write_manifest(&state, &p)?;
+            p
         }
-    }
-    // The same root as the sorted engine: the headers' box when it holds every point.
-    let (lo, hi) = if all.count == 0 { ([0; 3], [0; 3]) } else { (all.min, all.max) };
-    let root = match header {
-        Some((l, h)) if all.count > 0 && (0..3).all(|a| l[a] <= lo[a] && hi[a] <= h[a]) => Cube::covering(l, h),
-        _ => Cube::covering(lo, hi),
     };
-    if root != promised {
-        // The headers lie (or say nothing): partition again on the points' own root.
-        for r in &runs {
-            let _ = std::fs::remove_file(&r.path);
-        }
-        ds.progress.stage("partitioning again (the headers' bounds are wrong)", total, "points");
-        (runs, hist, _, _) = partition(ds, root, opts, block_bytes, tmp.path())?;
-    }
+    let Partition { root, runs, hist, all, warnings } = part;
+    report.warnings = warnings;
     report.read_seconds = tr.elapsed().as_secs_f64();
     sort::trace("partitioned", t0);
+    let (lo, hi) = if all.count == 0 { ([0; 3], [0; 3]) } else { (all.min, all.max) };
     let unit_points = ((opts.memory / 2) / unit_bytes_per_point(rl as u64)).max(opts.config.leaf_capacity as u64 + 1);
     if hist.iter().any(|&c| c > unit_points) {
+        writer.cut_nodes(0)?;
+        let _ = std::fs::remove_dir_all(&state);
         return Ok(None);
     }
+    // A resumed walk: what the log holds is taken as it is; nodes.bin is cut after it.
+    let log_path = state.join(LOG);
+    let (replay, logged, logged_points, nodes_end) = if resumed { read_log(&log_path, rl)? } else { Default::default() };
+    writer.cut_nodes(nodes_end)?;
+    report.kept_nodes = logged.len() as u64;
+    ds.progress.stage("building", all.count, "points");
+    ds.progress.add(logged_points);
+    let log = std::fs::OpenOptions::new().create(true).append(true).open(&log_path).map_err(|e| Error::io(&log_path, e))?;
     let color = match ds.layout.attribute("rgb") {
         Some(a) if all.max_rgb > 0 => ColorSource::Rgb { offset: a.offset, depth: RgbDepth::detect(all.max_rgb) },
         _ => ColorSource::Intensity { max_intensity: all.max_intensity },
     };
     ds.progress.stage("building", all.count, "points");
     let depth = cell_depth(root, opts.config.max_level);
-    let mut w = Walk { ds, writer, opts, runs: &runs, hist: &hist, depth, root, unit_points, color, rl, entries: Vec::new(), seq: 0, points: 0, report: &mut report };
+    let mut w = Walk { ds, writer, opts, runs: &runs, hist: &hist, depth, root, unit_points, color, rl, entries: logged, seq: 0, points: logged_points, report: &mut report, replay, log, pending: Vec::new(), log_path };
     w.visit(NodeKey::ROOT, root, 0, 0..hist.len())?;
     let Walk { mut entries, points, .. } = w;
     // The sorted engine's order: level by level, depth-first (= Morton) order in a level.
@@ -148,9 +323,44 @@ pub(crate) fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOpt
     report.voxels = entries.iter().filter(|(_, _, e)| e.kind != LEAF).map(|(_, _, e)| e.count).sum();
     report.commits = writer.commits();
     report.nodes_bytes = writer.nodes_len;
-    drop(tmp);
+    report.resumed = resumed;
+    let _ = std::fs::remove_dir_all(&state);
     report.seconds = t0.elapsed().as_secs_f64();
     Ok(Some(report))
+}
+
+/// Pass 1 with the root the sorted engine takes (the headers' box when it holds every point,
+/// else the points' own box: then a second pass), the runs synced.
+fn partition_all(ds: &Dataset, opts: &BuildOptions, header: Option<([i32; 3], [i32; 3])>, state: &Path) -> Result<Partition> {
+    let rl = ds.layout.record_len;
+    let total = ds.declared_points();
+    let promised = header.map(|(l, h)| Cube::covering(l, h)).unwrap_or(Cube { min: [0; 3], size_log2: 32 });
+    let block_bytes = ((opts.memory / 4).max(rl as u64 * 4096)) as usize;
+    ds.progress.stage("partitioning", total, "points");
+    let (mut runs, mut hist, all, real) = partition(ds, promised, opts, block_bytes, state)?;
+    let mut warnings = Vec::new();
+    for (src, st) in ds.inputs.iter().zip(&real) {
+        if let Some(w) = super::build::bounds_warning(ds, src.as_ref(), st) {
+            warnings.push(w);
+        }
+    }
+    let (lo, hi) = if all.count == 0 { ([0; 3], [0; 3]) } else { (all.min, all.max) };
+    let root = match header {
+        Some((l, h)) if all.count > 0 && (0..3).all(|a| l[a] <= lo[a] && hi[a] <= h[a]) => Cube::covering(l, h),
+        _ => Cube::covering(lo, hi),
+    };
+    if root != promised {
+        // The headers lie (or say nothing): partition again on the points' own root.
+        for r in &runs {
+            let _ = std::fs::remove_file(&r.path);
+        }
+        ds.progress.stage("partitioning again (the headers' bounds are wrong)", total, "points");
+        (runs, hist, _, _) = partition(ds, root, opts, block_bytes, state)?;
+    }
+    for r in &runs {
+        std::fs::File::open(&r.path).and_then(|f| f.sync_data()).map_err(|e| Error::io(&r.path, e))?;
+    }
+    Ok(Partition { root, runs, hist, all, warnings })
 }
 
 /// The cell (at depth `depth` of `root`) of a record, from its code on the root's grid.
@@ -271,6 +481,13 @@ struct Walk<'a, 'w> {
     seq: u64,
     points: u64,
     report: &'a mut BuildReport,
+    /// Visits a stopped build finished, by key (`--resume`).
+    replay: std::collections::HashMap<(u32, [u32; 3]), Logged>,
+    /// The log of finished visits, and records not yet in it (empty units wait for the next
+    /// visit that holds points, so that each sync covers many).
+    log: std::fs::File,
+    pending: Vec<u8>,
+    log_path: PathBuf,
 }
 
 impl Walk<'_, '_> {
@@ -278,9 +495,17 @@ impl Walk<'_, '_> {
     /// everything under it; returns its candidates for its parent.
     fn visit(&mut self, key: NodeKey, cube: Cube, depth: u8, cells: std::ops::Range<usize>) -> Result<Cands> {
         sort::check_interrupted()?;
+        if let Some(l) = self.replay.remove(&(key.level as u32, key.index)) {
+            self.seq = l.seq_after;
+            return Ok(l.cands);
+        }
         let count: u64 = self.hist[cells.clone()].iter().sum();
         if depth == self.depth || count <= self.unit_points {
-            return self.unit(key, cube, cells, count);
+            let before = self.entries.len();
+            let points_before = self.points;
+            let out = self.unit(key, cube, cells, count)?;
+            self.logged(key, before, self.points - points_before, &out, count > 0)?;
+            return Ok(out);
         }
         // More points than a unit, so more than a leaf, in a cube that may split: inner.
         let seq = self.seq;
@@ -296,6 +521,7 @@ impl Walk<'_, '_> {
         let color = &self.color;
         let (e, b) = encode_payload(key, INNER, voxels.pos.len(), rl - 12, |i| voxels.pos[i], |i| color.rgba(&voxels.records[i * rl..(i + 1) * rl]), |i| &voxels.records[i * rl + 12..(i + 1) * rl])
             .map_err(|m| Error::input(&self.writer.dir, m))?;
+        let before = self.entries.len();
         self.put(seq, e, &b)?;
         let mut out = Cands::default();
         if key.level > 0 {
@@ -304,7 +530,26 @@ impl Walk<'_, '_> {
                 out.push(voxels.pos[i], voxels.arrival[i], &voxels.records[i * rl..(i + 1) * rl]);
             }
         }
+        if key.level > 0 {
+            self.logged(key, before, 0, &out, true)?;
+        }
         Ok(out)
+    }
+
+    /// Logs a finished visit (its entries from `before` on): kept in memory, and with those
+    /// before it written to the log once `nodes.bin` is synced, when `sync` (the visit wrote
+    /// points).
+    fn logged(&mut self, key: NodeKey, before: usize, points: u64, out: &Cands, sync: bool) -> Result<()> {
+        let rec = log_record(key, self.seq, points, self.writer.nodes_len, &self.entries[before..], out, self.rl);
+        self.pending.extend_from_slice(&rec);
+        if sync {
+            let np = self.writer.dir.join(NODES_FILE);
+            self.writer.nodes.sync_data().map_err(|e| Error::io(&np, e))?;
+            self.log.write_all(&self.pending).map_err(|e| Error::io(&self.log_path, e))?;
+            self.log.sync_data().map_err(|e| Error::io(&self.log_path, e))?;
+            self.pending.clear();
+        }
+        Ok(())
     }
 
     /// Writes one payload at the end of `nodes.bin` and keeps its entry.

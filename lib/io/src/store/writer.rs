@@ -103,6 +103,36 @@ impl StoreWriter {
         Ok(Some((w, store.header)))
     }
 
+    /// Reopens the store `dir` that a partitioned build left before its one commit (killed, or
+    /// power loss), to continue it from its `.partition` state: `None` when it has a commit or
+    /// no `nodes.bin`. Fails when the store was made from another source.
+    pub fn reopen_uncommitted(dir: &Path, meta: &SourceMeta) -> Result<Option<StoreWriter>> {
+        let src = dir.join(SOURCE_FILE);
+        let np = dir.join(NODES_FILE);
+        if dir.join(HIERARCHY_FILE).exists() || !np.is_file() || !src.is_file() {
+            return Ok(None);
+        }
+        let want = source_bytes(dir, meta)?;
+        let have = std::fs::read(&src).map_err(|e| Error::io(&src, e))?;
+        if have != want {
+            return Err(Error::input(dir, "was built from other inputs (its source header, VLRs or CRS differ); give a new directory or remove it"));
+        }
+        let nodes = std::fs::OpenOptions::new().write(true).open(&np).map_err(|e| Error::io(&np, e))?;
+        let nodes_len = nodes.metadata().map_err(|e| Error::io(&np, e))?.len();
+        let reader = File::open(&np).map_err(|e| Error::io(&np, e))?;
+        Ok(Some(StoreWriter { dir: dir.to_path_buf(), nodes, reader, nodes_len, entries: Vec::new(), commit: 0, last_revision: None, record_len: meta.layout.record_len, guard: None }))
+    }
+
+    /// Cuts `nodes.bin` to `len` bytes (what a resumed build keeps of it).
+    pub(crate) fn cut_nodes(&mut self, len: u64) -> Result<()> {
+        use std::io::Seek;
+        let np = self.dir.join(NODES_FILE);
+        self.nodes.set_len(len).map_err(|e| Error::io(&np, e))?;
+        self.nodes.seek(std::io::SeekFrom::Start(len)).map_err(|e| Error::io(&np, e))?;
+        self.nodes_len = len;
+        Ok(())
+    }
+
     /// The entries committed or set so far, in id order.
     pub fn entries(&self) -> impl Iterator<Item = &NodeEntry> {
         self.entries.iter().flatten()
