@@ -21,12 +21,14 @@
 //! holds more points than a unit may, the engine gives up before writing a node and the build
 //! falls back to the incremental engine.
 //!
-//! Resume: the run files, a manifest of the partition (written once pass 1 is done and the runs
-//! are synced) and a log of finished visits (each node's entries, the points it added and its
-//! candidates, appended after `nodes.bin` is synced) live in `.partition/` inside the store
-//! until the build ends. `--resume` after kill -9 or power loss skips pass 1 when the manifest is
-//! whole, cuts `nodes.bin` back to the end of the last logged visit and walks again, taking
-//! logged visits from the log: the store is the uninterrupted one byte for byte. Not done yet:
+//! Resume: the run files, a manifest of the partition (with a checksum of every run) and a log
+//! of finished visits (each node's entry and payload checksum, the points it added and its
+//! candidates, each record checksummed) live in `.partition/` inside the store until the build
+//! ends. Nothing is synced before the final commit: after kill -9 the page cache holds it all;
+//! after a power loss whatever did not reach the disk fails its checksum. `--resume` skips pass 1
+//! when the manifest and every run check out, keeps the log's records up to the first one whose
+//! record or payloads do not, cuts `nodes.bin` after them and walks again, taking logged visits
+//! from the log: the store is the uninterrupted one byte for byte. Not done yet:
 //! commits while it builds (a reader sees the store at the end only), and units built in
 //! parallel with one another (each unit's tree and encoding are parallel inside).
 
@@ -70,12 +72,6 @@ struct Partition {
     warnings: Vec<String>,
 }
 
-fn sync_dir(d: &Path) {
-    if let Ok(f) = std::fs::File::open(d) {
-        let _ = f.sync_all();
-    }
-}
-
 /// Writes the manifest (the tables first, then the JSON by rename) once the runs are synced.
 fn write_manifest(state: &Path, p: &Partition) -> Result<()> {
     let tp = state.join(TABLES);
@@ -84,12 +80,12 @@ fn write_manifest(state: &Path, p: &Partition) -> Result<()> {
         t.extend_from_slice(&r.starts);
     }
     std::fs::write(&tp, bytemuck::cast_slice::<u64, u8>(&t)).map_err(|e| Error::io(&tp, e))?;
-    std::fs::File::open(&tp).and_then(|f| f.sync_all()).map_err(|e| Error::io(&tp, e))?;
     let j = serde_json::json!({
         "root_min": p.root.min,
         "root_size_log2": p.root.size_log2,
         "cells": p.hist.len(),
         "runs": p.runs.iter().map(|r| r.path.file_name().map(|n| n.to_string_lossy().to_string())).collect::<Vec<_>>(),
+        "run_checksums": p.runs.iter().map(|r| r.hash).collect::<Vec<_>>(),
         "count": p.all.count,
         "min": p.all.min,
         "max": p.all.max,
@@ -100,9 +96,7 @@ fn write_manifest(state: &Path, p: &Partition) -> Result<()> {
     let mp = state.join(MANIFEST);
     let tmp = state.join(format!("{MANIFEST}.tmp"));
     std::fs::write(&tmp, serde_json::to_vec_pretty(&j).unwrap_or_default()).map_err(|e| Error::io(&tmp, e))?;
-    std::fs::File::open(&tmp).and_then(|f| f.sync_all()).map_err(|e| Error::io(&tmp, e))?;
     std::fs::rename(&tmp, &mp).map_err(|e| Error::io(&mp, e))?;
-    sync_dir(state);
     Ok(())
 }
 
@@ -113,6 +107,10 @@ fn read_manifest(state: &Path, rl: usize) -> Option<Partition> {
     let root = Cube { min: arr3(&j["root_min"])?, size_log2: j["root_size_log2"].as_u64()? as u8 };
     let cells = j["cells"].as_u64()? as usize;
     let names: Vec<String> = j["runs"].as_array()?.iter().map(|v| v.as_str().map(str::to_string)).collect::<Option<_>>()?;
+    let hashes: Vec<u64> = j["run_checksums"].as_array()?.iter().map(|v| v.as_u64()).collect::<Option<_>>()?;
+    if hashes.len() != names.len() {
+        return None;
+    }
     let t = std::fs::read(state.join(TABLES)).ok()?;
     if t.len() != 8 * (cells + names.len() * (cells + 1)) {
         return None;
@@ -127,7 +125,12 @@ fn read_manifest(state: &Path, rl: usize) -> Option<Partition> {
         if len != *starts.last()? * (rl as u64 + 8) {
             return None;
         }
-        runs.push(Run { path, starts });
+        runs.push(Run { path, starts, hash: hashes[k] });
+    }
+    // Every run as it was written (a power loss may have kept the sizes but not the bytes).
+    let whole = runs.par_iter().all(|r| std::fs::read(&r.path).is_ok_and(|b| checksum(&b) == r.hash));
+    if !whole {
+        return None;
     }
     let i32x3 = |v: &serde_json::Value| -> Option<[i32; 3]> { arr3(v).map(|a| a.map(|x| x as i32)) };
     let all = PieceStats { count: j["count"].as_u64()?, min: i32x3(&j["min"])?, max: i32x3(&j["max"])?, max_rgb: j["max_rgb"].as_u64()? as u16, max_intensity: j["max_intensity"].as_u64()? as u16, ..PieceStats::default() };
@@ -146,7 +149,7 @@ fn fnv(b: &[u8]) -> u64 {
 }
 
 /// One log record: the visit's key, where the walk stood after it, its nodes and candidates.
-fn log_record(key: NodeKey, seq_after: u64, points: u64, nodes_end: u64, entries: &[(u32, u64, NodeEntry)], cands: &Cands, rl: usize) -> Vec<u8> {
+fn log_record(key: NodeKey, seq_after: u64, points: u64, nodes_end: u64, entries: &[(u32, u64, NodeEntry)], hashes: &[u64], cands: &Cands, rl: usize) -> Vec<u8> {
     let mut b = Vec::new();
     for v in [LOG_MAGIC, key.level as u32, key.index[0], key.index[1], key.index[2], entries.len() as u32, cands.pos.len() as u32] {
         b.extend_from_slice(&v.to_le_bytes());
@@ -154,8 +157,9 @@ fn log_record(key: NodeKey, seq_after: u64, points: u64, nodes_end: u64, entries
     for v in [seq_after, points, nodes_end] {
         b.extend_from_slice(&v.to_le_bytes());
     }
-    for (_, seq, e) in entries {
+    for ((_, seq, e), h) in entries.iter().zip(hashes) {
         b.extend_from_slice(&seq.to_le_bytes());
+        b.extend_from_slice(&h.to_le_bytes());
         b.extend_from_slice(bytemuck::bytes_of(e));
     }
     for i in 0..cands.pos.len() {
@@ -170,13 +174,23 @@ fn log_record(key: NodeKey, seq_after: u64, points: u64, nodes_end: u64, entries
     b
 }
 
-/// The log's whole records: the visits by key, every logged entry, the points they added, and
-/// where `nodes.bin` ended after the last one; the log is cut after its last whole record.
-#[allow(clippy::type_complexity)]
-fn read_log(path: &Path, rl: usize) -> Result<(std::collections::HashMap<(u32, [u32; 3]), Logged>, Vec<(u32, u64, NodeEntry)>, u64, u64)> {
+/// What a stopped walk left: the visits by key, every logged entry with its payload checksum,
+/// the points they added, and where `nodes.bin` ended after the last one.
+type LogState = (std::collections::HashMap<(u32, [u32; 3]), Logged>, Vec<(u32, u64, NodeEntry)>, Vec<u64>, u64, u64);
+
+/// The log's records up to the first that is not whole or whose payloads in `nodes` are not
+/// what it wrote; the log is cut after them.
+fn read_log(path: &Path, nodes: &Path, rl: usize) -> Result<LogState> {
     let b = std::fs::read(path).unwrap_or_default();
     let mut visits = std::collections::HashMap::new();
-    let (mut entries, mut points, mut end, mut at) = (Vec::new(), 0u64, 0u64, 0usize);
+    let (mut entries, mut hashes, mut points, mut end, mut at) = (Vec::new(), Vec::new(), 0u64, 0u64, 0usize);
+    let nf = std::fs::File::open(nodes).ok();
+    let payload_ok = |e: &NodeEntry, h: u64| -> bool {
+        use std::os::unix::fs::FileExt;
+        let Some(f) = &nf else { return false };
+        let mut buf = vec![0u8; e.length as usize];
+        f.read_exact_at(&mut buf, e.offset).is_ok() && checksum(&buf) == h
+    };
     let es = std::mem::size_of::<NodeEntry>();
     let u32_at = |o: usize| u32::from_le_bytes(b[o..o + 4].try_into().expect("4 bytes"));
     let u64_at = |o: usize| u64::from_le_bytes(b[o..o + 8].try_into().expect("8 bytes"));
@@ -185,18 +199,26 @@ fn read_log(path: &Path, rl: usize) -> Result<(std::collections::HashMap<(u32, [
             break;
         }
         let (ne, nc) = (u32_at(at + 20) as usize, u32_at(at + 24) as usize);
-        let len = 52 + ne * (8 + es) + nc * (20 + rl);
+        let len = 52 + ne * (16 + es) + nc * (20 + rl);
         if b.len() < at + len + 8 || fnv(&b[at..at + len]) != u64_at(at + len) {
             break;
         }
         let key = (u32_at(at + 4), [u32_at(at + 8), u32_at(at + 12), u32_at(at + 16)]);
         let (seq_after, p, nodes_end) = (u64_at(at + 28), u64_at(at + 36), u64_at(at + 44));
         let mut o = at + 52;
+        let mut these = Vec::with_capacity(ne);
         for _ in 0..ne {
-            let seq = u64_at(o);
-            let e: NodeEntry = bytemuck::pod_read_unaligned(&b[o + 8..o + 8 + es]);
-            entries.push((e.level, seq, e));
-            o += 8 + es;
+            let (seq, h) = (u64_at(o), u64_at(o + 8));
+            let e: NodeEntry = bytemuck::pod_read_unaligned(&b[o + 16..o + 16 + es]);
+            these.push((e.level, seq, e, h));
+            o += 16 + es;
+        }
+        if !these.par_iter().all(|(_, _, e, h)| payload_ok(e, *h)) {
+            break;
+        }
+        for (l, seq, e, h) in these {
+            entries.push((l, seq, e));
+            hashes.push(h);
         }
         let mut cands = Cands::default();
         for _ in 0..nc {
@@ -213,7 +235,7 @@ fn read_log(path: &Path, rl: usize) -> Result<(std::collections::HashMap<(u32, [
         let f = std::fs::OpenOptions::new().write(true).open(path).map_err(|e| Error::io(path, e))?;
         f.set_len(at as u64).map_err(|e| Error::io(path, e))?;
     }
-    Ok((visits, entries, points, end))
+    Ok((visits, entries, hashes, points, end))
 }
 
 /// One run file: the records of a group of pieces grouped by cell, then their arrival numbers
@@ -223,6 +245,28 @@ struct Run {
     path: PathBuf,
     /// Index of the first record of cell `c` (one more than the cells: the end).
     starts: Vec<u64>,
+    /// [`checksum`] of the file.
+    hash: u64,
+}
+
+/// A fast 64-bit checksum (8 bytes per step), in parallel over 1 MiB blocks for large inputs.
+fn checksum(b: &[u8]) -> u64 {
+    fn block(b: &[u8]) -> u64 {
+        let mut h = 0x243f_6a88_85a3_08d3u64 ^ b.len() as u64;
+        let mut words = b.chunks_exact(8);
+        for w in &mut words {
+            h = (h ^ u64::from_le_bytes(w.try_into().expect("8 bytes"))).wrapping_mul(0x9e37_79b9_7f4a_7c15).rotate_left(29);
+        }
+        for &x in words.remainder() {
+            h = (h ^ x as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15).rotate_left(29);
+        }
+        h
+    }
+    if b.len() <= 1 << 20 {
+        return block(b);
+    }
+    let parts: Vec<u64> = b.par_chunks(1 << 20).map(block).collect();
+    block(bytemuck::cast_slice(&parts))
 }
 
 /// Points taken from a finished unit or node for its parent: positions, arrival numbers and
@@ -293,7 +337,7 @@ pub(crate) fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOpt
     }
     // A resumed walk: what the log holds is taken as it is; nodes.bin is cut after it.
     let log_path = state.join(LOG);
-    let (replay, logged, logged_points, nodes_end) = if resumed { read_log(&log_path, rl)? } else { Default::default() };
+    let (replay, logged, logged_hashes, logged_points, nodes_end) = if resumed { read_log(&log_path, &writer.dir.join(NODES_FILE), rl)? } else { Default::default() };
     writer.cut_nodes(nodes_end)?;
     report.kept_nodes = logged.len() as u64;
     ds.progress.stage("building", all.count, "points");
@@ -305,7 +349,7 @@ pub(crate) fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOpt
     };
     ds.progress.stage("building", all.count, "points");
     let depth = cell_depth(root, opts.config.max_level);
-    let mut w = Walk { ds, writer, opts, runs: &runs, hist: &hist, depth, root, unit_points, color, rl, entries: logged, seq: 0, points: logged_points, report: &mut report, replay, log, pending: Vec::new(), log_path };
+    let mut w = Walk { ds, writer, opts, runs: &runs, hist: &hist, depth, root, unit_points, color, rl, entries: logged, hashes: logged_hashes, seq: 0, points: logged_points, report: &mut report, replay, log, log_path };
     w.visit(NodeKey::ROOT, root, 0, 0..hist.len())?;
     let Walk { mut entries, points, .. } = w;
     // The sorted engine's order: level by level, depth-first (= Morton) order in a level.
@@ -330,7 +374,7 @@ pub(crate) fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOpt
 }
 
 /// Pass 1 with the root the sorted engine takes (the headers' box when it holds every point,
-/// else the points' own box: then a second pass), the runs synced.
+/// else the points' own box: then a second pass).
 fn partition_all(ds: &Dataset, opts: &BuildOptions, header: Option<([i32; 3], [i32; 3])>, state: &Path) -> Result<Partition> {
     let rl = ds.layout.record_len;
     let total = ds.declared_points();
@@ -356,9 +400,6 @@ fn partition_all(ds: &Dataset, opts: &BuildOptions, header: Option<([i32; 3], [i
         }
         ds.progress.stage("partitioning again (the headers' bounds are wrong)", total, "points");
         (runs, hist, _, _) = partition(ds, root, opts, block_bytes, state)?;
-    }
-    for r in &runs {
-        std::fs::File::open(&r.path).and_then(|f| f.sync_data()).map_err(|e| Error::io(&r.path, e))?;
     }
     Ok(Partition { root, runs, hist, all, warnings })
 }
@@ -458,7 +499,8 @@ fn partition(ds: &Dataset, root: Cube, opts: &BuildOptions, block_bytes: usize, 
         let mut f = std::io::BufWriter::with_capacity(8 << 20, std::fs::File::create(&path).map_err(|e| Error::io(&path, e))?);
         f.write_all(&buf).map_err(|e| Error::io(&path, e))?;
         f.flush().map_err(|e| Error::io(&path, e))?;
-        runs.push(Run { path, starts });
+        let hash = checksum(&buf);
+        runs.push(Run { path, starts, hash });
         i = j;
     }
     Ok((runs, hist, all, real))
@@ -483,11 +525,11 @@ struct Walk<'a, 'w> {
     report: &'a mut BuildReport,
     /// Visits a stopped build finished, by key (`--resume`).
     replay: std::collections::HashMap<(u32, [u32; 3]), Logged>,
-    /// The log of finished visits, and records not yet in it (empty units wait for the next
-    /// visit that holds points, so that each sync covers many).
+    /// The log of finished visits.
     log: std::fs::File,
-    pending: Vec<u8>,
     log_path: PathBuf,
+    /// [`checksum`] of each payload in `entries`.
+    hashes: Vec<u64>,
 }
 
 impl Walk<'_, '_> {
@@ -504,7 +546,7 @@ impl Walk<'_, '_> {
             let before = self.entries.len();
             let points_before = self.points;
             let out = self.unit(key, cube, cells, count)?;
-            self.logged(key, before, self.points - points_before, &out, count > 0)?;
+            self.logged(key, before, self.points - points_before, &out)?;
             return Ok(out);
         }
         // More points than a unit, so more than a leaf, in a cube that may split: inner.
@@ -531,25 +573,15 @@ impl Walk<'_, '_> {
             }
         }
         if key.level > 0 {
-            self.logged(key, before, 0, &out, true)?;
+            self.logged(key, before, 0, &out)?;
         }
         Ok(out)
     }
 
-    /// Logs a finished visit (its entries from `before` on): kept in memory, and with those
-    /// before it written to the log once `nodes.bin` is synced, when `sync` (the visit wrote
-    /// points).
-    fn logged(&mut self, key: NodeKey, before: usize, points: u64, out: &Cands, sync: bool) -> Result<()> {
-        let rec = log_record(key, self.seq, points, self.writer.nodes_len, &self.entries[before..], out, self.rl);
-        self.pending.extend_from_slice(&rec);
-        if sync {
-            let np = self.writer.dir.join(NODES_FILE);
-            self.writer.nodes.sync_data().map_err(|e| Error::io(&np, e))?;
-            self.log.write_all(&self.pending).map_err(|e| Error::io(&self.log_path, e))?;
-            self.log.sync_data().map_err(|e| Error::io(&self.log_path, e))?;
-            self.pending.clear();
-        }
-        Ok(())
+    /// Logs a finished visit (its entries from `before` on). Not synced: see the module docs.
+    fn logged(&mut self, key: NodeKey, before: usize, points: u64, out: &Cands) -> Result<()> {
+        let rec = log_record(key, self.seq, points, self.writer.nodes_len, &self.entries[before..], &self.hashes[before..], out, self.rl);
+        self.log.write_all(&rec).map_err(|e| Error::io(&self.log_path, e))
     }
 
     /// Writes one payload at the end of `nodes.bin` and keeps its entry.
@@ -558,6 +590,7 @@ impl Walk<'_, '_> {
         self.writer.write_at(off, bytes)?;
         e.offset = off;
         self.entries.push((e.level, seq, e));
+        self.hashes.push(checksum(bytes));
         Ok(())
     }
 
@@ -641,7 +674,7 @@ impl Walk<'_, '_> {
             let lens: Vec<u64> = (start..end).map(|i| payload_len(sub.nodes[i].count() as u64, attr_len as u64)).collect();
             let offsets = self.writer.reserve(&lens);
             let w = &*self.writer;
-            let done: Vec<NodeEntry> = (start..end)
+            let done: Vec<(NodeEntry, u64)> = (start..end)
                 .into_par_iter()
                 .zip(offsets.into_par_iter())
                 .map(|(i, off)| {
@@ -657,11 +690,12 @@ impl Walk<'_, '_> {
                         .map_err(|m| Error::input(&dir, m))?;
                     w.write_at(off, &b)?;
                     e.offset = off;
-                    Ok(e)
+                    Ok((e, checksum(&b)))
                 })
                 .collect::<Result<_>>()?;
-            for (i, e) in (start..end).zip(done) {
+            for (i, (e, h)) in (start..end).zip(done) {
                 self.entries.push((e.level, base + i as u64, e));
+                self.hashes.push(h);
             }
             start = end;
         }
