@@ -149,6 +149,7 @@ fn fnv(b: &[u8]) -> u64 {
 }
 
 /// One log record: the visit's key, where the walk stood after it, its nodes and candidates.
+#[allow(clippy::too_many_arguments)]
 fn log_record(key: NodeKey, seq_after: u64, points: u64, nodes_end: u64, entries: &[(u32, u64, NodeEntry)], hashes: &[u64], cands: &Cands, rl: usize) -> Vec<u8> {
     let mut b = Vec::new();
     for v in [LOG_MAGIC, key.level as u32, key.index[0], key.index[1], key.index[2], entries.len() as u32, cands.pos.len() as u32] {
@@ -491,8 +492,8 @@ fn partition(ds: &Dataset, root: Cube, opts: &BuildOptions, block_bytes: usize, 
                 hist[c] += h[c] as u64;
             }
         }
-        for k in i..j {
-            ds.inputs[pieces[k].input].release_piece(&pieces[k].piece);
+        for p in &pieces[i..j] {
+            ds.inputs[p.input].release_piece(&p.piece);
         }
         drop(group);
         let path = dir.join(format!("run-{}.bin", runs.len()));
@@ -625,7 +626,7 @@ impl Walk<'_, '_> {
             if arr.is_empty() {
                 return Ok(());
             }
-            let total = *run.starts.last().expect("a run has an end") as u64;
+            let total = *run.starts.last().expect("a run has an end");
             let first = run.starts[cs];
             let mut f = std::fs::File::open(&run.path).map_err(|e| Error::io(&run.path, e))?;
             f.seek(SeekFrom::Start(first * rl as u64)).map_err(|e| Error::io(&run.path, e))?;
