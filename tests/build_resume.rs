@@ -265,8 +265,9 @@ fn compact_keeps_the_store_and_drops_superseded_payloads() {
 
 /// The partitioned engine (inputs larger than `--memory`) commits once, at the end; what a
 /// killed build keeps is its partition and the log of finished units in `.partition/`, and
-/// `--resume` continues from them to the uninterrupted store, byte for byte, also when a run
-/// file or `nodes.bin` lost bytes (as after a power loss: checked by checksums, and redone).
+/// `--resume` continues from them to the uninterrupted store, byte for byte (18 SIGKILLs), also
+/// when a run file or `nodes.bin` lost bytes (as after a power loss: checked by checksums, and
+/// redone) and when the state files are not what mortar wrote.
 #[test]
 fn a_partitioned_build_resumes_after_sigkill_to_the_uninterrupted_store() {
     let dir = tempdir("resume-partitioned");
@@ -282,7 +283,7 @@ fn a_partitioned_build_resumes_after_sigkill_to_the_uninterrupted_store() {
     let want = snapshot(&reference);
     let mut seed = 0x9e37_79b9_7f4a_7c15u64;
     let (mut kept_partition, mut kept_units) = (0, 0);
-    for k in 0..12 {
+    for k in 0..18 {
         seed ^= seed << 13;
         seed ^= seed >> 7;
         seed ^= seed << 17;
@@ -306,10 +307,21 @@ fn a_partitioned_build_resumes_after_sigkill_to_the_uninterrupted_store() {
                 }
             }
         };
-        match k % 3 {
-            _ if out.join("hierarchy.bin").exists() => {} // finished: nothing to lose
-            1 => flip(&out.join(".partition/run-0.bin")),
+        // And state files that are not what mortar wrote: never trusted, never a panic.
+        let state = out.join(".partition");
+        match k % 6 {
+            _ if out.join("hierarchy.bin").exists() || !state.exists() => {} // finished, or nothing kept
+            1 => flip(&state.join("run-0.bin")),
             2 => flip(&out.join("nodes.bin")),
+            3 => std::fs::write(state.join("manifest.json"), b"{\"cells\": 18446744073709551615, \"runs\": [\"../../x\"]}").unwrap(),
+            4 => std::fs::write(state.join("tables.bin"), [1u8; 24]).unwrap(),
+            5 => {
+                // A record header claiming 2^32 - 1 entries, then the end of the file.
+                let mut b = std::fs::read(state.join("done.bin")).unwrap_or_default();
+                b.extend_from_slice(&0x4d50_4c47u32.to_le_bytes());
+                b.extend_from_slice(&[0xff; 60]);
+                std::fs::write(state.join("done.bin"), b).unwrap();
+            }
             _ => {}
         }
         let o = run_ok(resume(&inp, &out).args(args).arg("--json"));

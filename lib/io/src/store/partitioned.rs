@@ -79,13 +79,16 @@ fn write_manifest(state: &Path, p: &Partition) -> Result<()> {
     for r in &p.runs {
         t.extend_from_slice(&r.starts);
     }
-    std::fs::write(&tp, bytemuck::cast_slice::<u64, u8>(&t)).map_err(|e| Error::io(&tp, e))?;
+    let tables = bytemuck::cast_slice::<u64, u8>(&t);
+    std::fs::write(&tp, tables).map_err(|e| Error::io(&tp, e))?;
     let j = serde_json::json!({
         "root_min": p.root.min,
         "root_size_log2": p.root.size_log2,
         "cells": p.hist.len(),
         "runs": p.runs.iter().map(|r| r.path.file_name().map(|n| n.to_string_lossy().to_string())).collect::<Vec<_>>(),
         "run_checksums": p.runs.iter().map(|r| r.hash).collect::<Vec<_>>(),
+        "tables_checksum": checksum(tables),
+        "checksum": manifest_sum(p, checksum(tables)),
         "count": p.all.count,
         "min": p.all.min,
         "max": p.all.max,
@@ -100,6 +103,15 @@ fn write_manifest(state: &Path, p: &Partition) -> Result<()> {
     Ok(())
 }
 
+/// A checksum of what the manifest says (its JSON is checked field by field against it).
+fn manifest_sum(p: &Partition, tables: u64) -> u64 {
+    let names: Vec<String> = p.runs.iter().map(|r| r.path.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default()).collect();
+    let hashes: Vec<u64> = p.runs.iter().map(|r| r.hash).collect();
+    let a = &p.all;
+    let text = format!("{:?} {} {} {names:?} {hashes:?} {} {:?} {:?} {} {} {tables} {:?}", p.root.min, p.root.size_log2, p.hist.len(), a.count, a.min, a.max, a.max_rgb, a.max_intensity, p.warnings);
+    checksum(text.as_bytes())
+}
+
 /// The manifest of a stopped build, if it is whole and its run files are all there.
 fn read_manifest(state: &Path, rl: usize) -> Option<Partition> {
     let j: serde_json::Value = serde_json::from_slice(&std::fs::read(state.join(MANIFEST)).ok()?).ok()?;
@@ -112,20 +124,31 @@ fn read_manifest(state: &Path, rl: usize) -> Option<Partition> {
         return None;
     }
     let t = std::fs::read(state.join(TABLES)).ok()?;
-    if t.len() != 8 * (cells + names.len() * (cells + 1)) {
+    let want = cells.checked_add(names.len().checked_mul(cells.checked_add(1)?)?)?.checked_mul(8)?;
+    if t.len() != want || checksum(&t) != j["tables_checksum"].as_u64()? || cells == 0 || !cells.is_power_of_two() {
         return None;
     }
     let t: Vec<u64> = t.chunks_exact(8).map(|c| u64::from_le_bytes(c.try_into().expect("8 bytes"))).collect();
     let hist = t[..cells].to_vec();
     let mut runs = Vec::new();
+    if names.iter().any(|n| !(n.starts_with("run-") && n.ends_with(".bin")) || n.contains('/')) {
+        return None;
+    }
     for (k, name) in names.iter().enumerate() {
         let starts = t[cells + k * (cells + 1)..cells + (k + 1) * (cells + 1)].to_vec();
+        if starts[0] != 0 || starts.windows(2).any(|w| w[0] > w[1]) {
+            return None;
+        }
         let path = state.join(name);
         let len = std::fs::metadata(&path).ok()?.len();
         if len != *starts.last()? * (rl as u64 + 8) {
             return None;
         }
         runs.push(Run { path, starts, hash: hashes[k] });
+    }
+    // The cells' counts are the runs' counts summed.
+    if (0..cells).any(|c| runs.iter().map(|r| r.starts[c + 1] - r.starts[c]).sum::<u64>() != hist[c]) {
+        return None;
     }
     // Every run as it was written (a power loss may have kept the sizes but not the bytes).
     let whole = runs.par_iter().all(|r| std::fs::read(&r.path).is_ok_and(|b| checksum(&b) == r.hash));
@@ -135,7 +158,8 @@ fn read_manifest(state: &Path, rl: usize) -> Option<Partition> {
     let i32x3 = |v: &serde_json::Value| -> Option<[i32; 3]> { arr3(v).map(|a| a.map(|x| x as i32)) };
     let all = PieceStats { count: j["count"].as_u64()?, min: i32x3(&j["min"])?, max: i32x3(&j["max"])?, max_rgb: j["max_rgb"].as_u64()? as u16, max_intensity: j["max_intensity"].as_u64()? as u16, ..PieceStats::default() };
     let warnings = j["warnings"].as_array()?.iter().filter_map(|w| w.as_str().map(str::to_string)).collect();
-    Some(Partition { root, runs, hist, all, warnings })
+    let p = Partition { root, runs, hist, all, warnings };
+    (manifest_sum(&p, j["tables_checksum"].as_u64()?) == j["checksum"].as_u64()?).then_some(p)
 }
 
 /// A finished visit as the log keeps it.
@@ -314,6 +338,8 @@ pub(crate) fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOpt
     let state = writer.dir.join(STATE_DIR);
     let tr = Instant::now();
     let kept = if opts.resume { read_manifest(&state, rl) } else { None };
+    // A partition made for another tree shape (another --max-level) is not used.
+    let kept = kept.filter(|p| p.hist.len() == 1usize << (3 * cell_depth(p.root, opts.config.max_level) as u32));
     let resumed = kept.is_some();
     let part = match kept {
         Some(p) => p,
