@@ -119,18 +119,7 @@ where
     if root.size_log2 > super::MAX_ROOT_SIZE_LOG2 {
         return Err(OctreeError::RootTooLarge { size_log2: root.size_log2 });
     }
-    if config.color_mode != ColorMode::FirstCome {
-        return Err(OctreeError::Unsupported("the sorted build makes first-come voxels only".into()));
-    }
-    if n > u32::MAX as usize {
-        return Err(OctreeError::BatchTooLarge { points: n, spilled: 0 });
-    }
-    if let Some(index) = (0..n).into_par_iter().position_any(|i| !root.contains(pos(i))) {
-        return Err(OctreeError::PointOutsideRoot { index, pos: pos(index), min: root.min, size: root.size() });
-    }
-    let ctx = Ctx { pos, arrival, config };
-    let mut nodes = Vec::new();
-    subtree(&ctx, NodeKey::ROOT, root, 0..n, &mut nodes);
+    let mut nodes = build_subtree(NodeKey::ROOT, root, n, pos, arrival, config)?.nodes;
     // Depth-first order within a level is the Morton order of the level's nodes.
     nodes.sort_by_key(|n| n.key.level);
     Ok(SortedTree { nodes })
