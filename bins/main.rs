@@ -4,6 +4,7 @@
 mod batch;
 mod build;
 mod build_frames;
+mod export;
 mod common;
 mod info;
 mod progressive;
@@ -41,6 +42,8 @@ enum Cmd {
     Render(render::Args),
     /// Build an octree LOD store (paper 004) from LAS/LAZ or batch files.
     Build(build::Args),
+    /// Export the octree for other tools: one COPC 1.0 file or a Potree 2.0 directory.
+    Export(export::Args),
     /// Show a batch file, a store (LOD) or raw LAS/LAZ (progressive) in a window (orbit, pan, zoom).
     View(view::Args),
 }
@@ -73,6 +76,7 @@ fn main() {
         Cmd::Batch(a) => batch::run(a),
         Cmd::Render(a) => render::run(a),
         Cmd::Build(a) => build::run(a),
+        Cmd::Export(a) => export::run(a),
         Cmd::View(a) => view::run(a),
     };
     if let Err(e) = r {

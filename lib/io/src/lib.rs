@@ -19,4 +19,5 @@ pub mod render_input;
 pub mod progressive;
 pub mod progress;
 pub mod store;
+pub mod export;
 pub mod store_lod;

@@ -52,12 +52,12 @@ pub fn applies(ds: &Dataset, opts: &BuildOptions) -> bool {
 /// The Morton grid whose codes order points as the octree over `root` needs: origin at the
 /// root's corner, one shift so that the root fits 21 bits per axis (ties of a shifted code are
 /// ordered by the bits the shift dropped).
-pub(super) fn grid_of(root: Cube) -> MortonGrid {
+pub(crate) fn grid_of(root: Cube) -> MortonGrid {
     MortonGrid { origin: root.min, shift: (root.size_log2 as u32).saturating_sub(mortar_core::morton::BITS_PER_AXIS) }
 }
 
 /// The shift that gives a code's bucket.
-fn bucket_shift(root: Cube) -> u32 {
+pub(crate) fn bucket_shift(root: Cube) -> u32 {
     let high = 3 * (root.size_log2 as u32).min(mortar_core::morton::BITS_PER_AXIS);
     high.saturating_sub(BUCKET_BITS)
 }
@@ -69,15 +69,15 @@ fn code_of(r: &[u8], g: &MortonGrid) -> u64 {
 }
 
 /// Points in Morton order: whole records and their arrival numbers (`piece << 32 | index`).
-pub(super) struct Sorted {
-    pub(super) records: Vec<u8>,
-    pub(super) arrival: Vec<u64>,
-    pub(super) rl: usize,
+pub(crate) struct Sorted {
+    pub(crate) records: Vec<u8>,
+    pub(crate) arrival: Vec<u64>,
+    pub(crate) rl: usize,
 }
 
 impl Sorted {
     #[inline]
-    pub(super) fn record(&self, i: usize) -> &[u8] {
+    pub(crate) fn record(&self, i: usize) -> &[u8] {
         &self.records[i * self.rl..(i + 1) * self.rl]
     }
 }
@@ -89,7 +89,7 @@ impl Sorted {
 ///
 /// Buckets are the `BUCKET_BITS` code bits from `shift` up (the bits above are shared, as in a
 /// unit of the partitioned engine); `arrival_of(slab, index)` numbers each record.
-pub(super) fn sort_records(slabs: &[&[u8]], hist: &[Vec<u32>], rl: usize, g: &MortonGrid, shift: u32, prog: &Progress, arrival_of: impl Fn(usize, usize) -> u64 + Sync) -> Sorted {
+pub(crate) fn sort_records(slabs: &[&[u8]], hist: &[Vec<u32>], rl: usize, g: &MortonGrid, shift: u32, prog: &Progress, arrival_of: impl Fn(usize, usize) -> u64 + Sync) -> Sorted {
     let nb = 1usize << BUCKET_BITS;
     let n: usize = slabs.iter().map(|s| s.len() / rl).sum();
     let mut starts = vec![0usize; nb + 1];
@@ -264,7 +264,7 @@ pub(crate) fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOpt
 }
 
 /// Counts per bucket of the records of one piece.
-pub(super) fn histogram(slab: &[u8], rl: usize, g: &MortonGrid, shift: u32) -> Vec<u32> {
+pub(crate) fn histogram(slab: &[u8], rl: usize, g: &MortonGrid, shift: u32) -> Vec<u32> {
     let mut h = vec![0u32; 1 << BUCKET_BITS];
     for r in slab.chunks_exact(rl) {
         h[((code_of(r, g) >> shift) as usize) & ((1 << BUCKET_BITS) - 1)] += 1;
@@ -275,7 +275,7 @@ pub(super) fn histogram(slab: &[u8], rl: usize, g: &MortonGrid, shift: u32) -> V
 /// Reads every piece in parallel (LAZ decoded once, mapped LAS borrowed in place), with its
 /// statistics and its bucket counts on the grid of `root` made while it is in cache.
 #[allow(clippy::type_complexity)]
-fn read_pieces(ds: &Dataset, root: Cube) -> Result<(Vec<(std::borrow::Cow<'_, [u8]>, PieceStats)>, Vec<Vec<u32>>)> {
+pub(crate) fn read_pieces(ds: &Dataset, root: Cube) -> Result<(Vec<(std::borrow::Cow<'_, [u8]>, PieceStats)>, Vec<Vec<u32>>)> {
     let rl = ds.layout.record_len;
     let g = grid_of(root);
     let shift = bucket_shift(root);

@@ -27,7 +27,7 @@
 
 mod build;
 mod compact;
-mod engine;
+pub(crate) mod engine;
 mod partitioned;
 mod format;
 mod incremental;
@@ -35,6 +35,7 @@ mod reader;
 mod record;
 mod writer;
 
+pub(crate) use build::header_bounds as header_bounds_of;
 pub use build::{build, BuildOptions, BuildProgress, BuildReport, Engine};
 pub use compact::{compact, CompactReport};
 pub use engine::in_memory_need;

@@ -1,0 +1,89 @@
+//! `mortar export`: the octree as COPC 1.0 or Potree 2.0 for other tools (`lib/io/src/export`).
+
+use crate::common;
+use anyhow::Result;
+use mortar_core::octree::{BuilderConfig, DEFAULT_LEAF_CAPACITY};
+use mortar_io::export::{export, ExportFormat, ExportOptions, PointOrder};
+use std::path::{Path, PathBuf};
+
+#[derive(clap::Args)]
+pub struct Args {
+    /// LAS/LAZ files, batch files, stores, directories, glob patterns, or - for stdin.
+    #[arg(required = true)]
+    pub inputs: Vec<String>,
+    /// The output: a COPC file (`.copc.laz`) or a Potree 2.0 directory (must not exist, or be
+    /// empty).
+    #[arg(short, long)]
+    pub output: PathBuf,
+    /// copc, potree, or auto: copc for an output ending in .laz, else potree.
+    #[arg(long, default_value = "auto")]
+    pub format: String,
+    /// Memory budget, e.g. 8G (the default 2G); the input must fit it.
+    #[arg(long, value_parser = common::parse_size, default_value = "2G")]
+    pub memory: u64,
+    /// Most points per leaf.
+    #[arg(long, default_value_t = DEFAULT_LEAF_CAPACITY)]
+    pub leaf_capacity: u32,
+    /// Order of the points inside a node: morton or gps-time.
+    #[arg(long, default_value = "morton")]
+    pub order: String,
+    /// Print a JSON summary on stdout.
+    #[arg(long)]
+    pub json: bool,
+    #[command(flatten)]
+    pub crs: common::CrsArgs,
+}
+
+fn format_of(a: &Args) -> Result<ExportFormat> {
+    Ok(match a.format.as_str() {
+        "copc" => ExportFormat::Copc,
+        "potree" => ExportFormat::Potree,
+        "auto" if a.output.to_string_lossy().to_ascii_lowercase().ends_with(".laz") => ExportFormat::Copc,
+        "auto" => ExportFormat::Potree,
+        f => anyhow::bail!("--format {f}: give copc, potree or auto"),
+    })
+}
+
+/// Refuses an output that cannot be written, before any point is read.
+fn check_output(out: &Path, format: ExportFormat) -> Result<()> {
+    let parent = out.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    if !parent.is_dir() {
+        anyhow::bail!("{}: its directory {} does not exist", out.display(), parent.display());
+    }
+    match format {
+        ExportFormat::Copc if out.is_dir() => anyhow::bail!("{}: is a directory; a COPC output is a file", out.display()),
+        ExportFormat::Potree if out.exists() && !out.is_dir() => anyhow::bail!("{}: exists and is not a directory", out.display()),
+        ExportFormat::Potree if out.is_dir() && std::fs::read_dir(out)?.next().is_some() => {
+            anyhow::bail!("{}: the directory is not empty; give a new or empty one", out.display())
+        }
+        _ => Ok(()),
+    }
+}
+
+pub fn run(a: Args) -> Result<()> {
+    let format = format_of(&a)?;
+    if a.leaf_capacity == 0 {
+        anyhow::bail!("--leaf-capacity must be at least 1");
+    }
+    let order = match a.order.as_str() {
+        "morton" => PointOrder::Morton,
+        "gps-time" => PointOrder::GpsTime,
+        o => anyhow::bail!("--order {o}: give morton or gps-time"),
+    };
+    check_output(&a.output, format)?;
+    let ds = common::open_dataset(&a.inputs, &a.crs)?;
+    common::print_warnings(&ds.warnings);
+    let opts = ExportOptions { format, memory: a.memory, config: BuilderConfig { leaf_capacity: a.leaf_capacity, ..BuilderConfig::default() }, order };
+    let bar = common::progress_bar("mortar export", &ds.progress);
+    let r = export(&ds, &a.output, &opts)?;
+    drop(bar);
+    common::print_warnings(&r.warnings);
+    if a.json {
+        let mut j = serde_json::to_value(&r)?;
+        j["peak_rss_bytes"] = serde_json::json!(common::peak_rss_bytes());
+        j["threads"] = serde_json::json!(rayon::current_num_threads());
+        j["points_per_second"] = serde_json::json!(r.points as f64 / r.seconds.max(1e-9));
+        println!("{}", serde_json::to_string_pretty(&j)?);
+    }
+    Ok(())
+}

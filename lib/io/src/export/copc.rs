@@ -1,0 +1,295 @@
+//! COPC 1.0 (<https://copc.io>): a LAZ 1.4 file of PDRF 6, 7 or 8 whose first VLR (at byte 375)
+//! is the `copc` info record (the readers' cube, the root spacing, where the root hierarchy
+//! page is, the GPS time range), with one variable-size LAZ chunk per node and the hierarchy
+//! as an EVLR (`copc` 1000) of 32-byte entries in pages: the root page holds the nodes of the
+//! first [`PAGE_LEVELS`] levels, and each node at a multiple of [`PAGE_LEVELS`] levels that has
+//! nodes below gets its own page (its entry in the parent page has point count -1).
+//!
+//! The header's bounds are the octree's cube, not the points' box: copclib places a node of
+//! level `l` at the header's minimum plus `index * span / 2^l`, `span` the header's largest
+//! extent, while laspy, PDAL and copc.js use the info record's center and halfsize; with both
+//! the same cube every reader finds each point inside its node (the points' own box is the
+//! `position` range that `mortar info` prints).
+//!
+//! Layout: header, VLRs (`copc` info, `laszip encoded`, the dataset's VLRs: CRS, extra bytes
+//! descriptions, ...), the offset of the chunk table, the chunks in the order of the nodes
+//! (level by level), the chunk table, the hierarchy EVLR, the dataset's EVLRs. Written to a
+//! temporary name and renamed.
+
+use super::{groups, ExportReport, OutNode, Prepared, GROUP_BYTES};
+use crate::cleanup::TempPath;
+use crate::dataset::Dataset;
+use crate::error::{Error, Result};
+use crate::las::{self, HeaderOut, Vlr};
+use crate::sort;
+use laz::laszip::{ChunkTable, ChunkTableEntry};
+use laz::record::{LayeredPointRecordCompressor, RecordCompressor};
+use laz::{LazItem, LazVlr, LazVlrBuilder};
+use mortar_core::octree::NodeKey;
+use rayon::prelude::*;
+use std::collections::HashMap;
+use std::fs::File;
+use std::io::{BufWriter, Cursor, Seek, SeekFrom, Write};
+use std::path::Path;
+
+/// Levels per hierarchy page.
+pub const PAGE_LEVELS: u8 = 4;
+/// Bytes of a hierarchy entry.
+const ENTRY: usize = 32;
+/// Bytes of the info VLR's data.
+const INFO_LEN: usize = 160;
+/// Bytes of an EVLR header.
+const EVLR_HEADER: u64 = 60;
+
+fn vlr(user: &str, id: u16, desc: &str, data: Vec<u8>) -> Vlr {
+    let mut user_id = [0u8; 16];
+    user_id[..user.len()].copy_from_slice(user.as_bytes());
+    let mut description = [0u8; 32];
+    description[..desc.len()].copy_from_slice(desc.as_bytes());
+    Vlr { reserved: 0, user_id, record_id: id, description, data }
+}
+
+/// The info VLR's data.
+fn info_data(p: &Prepared, root_hier_offset: u64, root_hier_size: u64) -> Vec<u8> {
+    let mut b = Vec::with_capacity(INFO_LEN);
+    for a in 0..3 {
+        b.extend_from_slice(&(p.cube_min[a] + p.halfsize).to_le_bytes());
+    }
+    b.extend_from_slice(&p.halfsize.to_le_bytes());
+    b.extend_from_slice(&p.spacing().to_le_bytes());
+    b.extend_from_slice(&root_hier_offset.to_le_bytes());
+    b.extend_from_slice(&root_hier_size.to_le_bytes());
+    let (g0, g1) = p.gps.unwrap_or((0.0, 0.0));
+    b.extend_from_slice(&g0.to_le_bytes());
+    b.extend_from_slice(&g1.to_le_bytes());
+    b.resize(INFO_LEN, 0);
+    b
+}
+
+/// One LAZ chunk (layered, LAZ 1.4 items) of `records`.
+pub(crate) fn encode_chunk(items: &Vec<LazItem>, records: &[u8]) -> std::io::Result<Vec<u8>> {
+    let mut c = LayeredPointRecordCompressor::new(Cursor::new(Vec::with_capacity(records.len() / 4)));
+    c.set_fields_from(items).map_err(std::io::Error::other)?;
+    c.compress_many(records)?;
+    c.done()?;
+    Ok(c.into_inner().into_inner())
+}
+
+/// Where a node's chunk is.
+#[derive(Clone, Copy, Debug, Default)]
+struct Placed {
+    offset: u64,
+    bytes: u64,
+    points: u64,
+}
+
+/// The hierarchy pages: `(page root, entries)` in file order, the root page first. A page holds
+/// the entries of its root and of the nodes below it down to the next page level; a node at a
+/// page level with nodes below has its own page.
+fn pages(nodes: &[OutNode]) -> Vec<(NodeKey, Vec<usize>)> {
+    let at: HashMap<NodeKey, usize> = nodes.iter().enumerate().map(|(i, n)| (n.key, i)).collect();
+    let mut out: Vec<(NodeKey, Vec<usize>)> = Vec::new();
+    let mut todo = vec![NodeKey::ROOT];
+    while let Some(root) = todo.pop() {
+        let mut entries = Vec::new();
+        let mut stack = vec![root];
+        while let Some(k) = stack.pop() {
+            let i = at[&k];
+            entries.push(i);
+            let n = &nodes[i];
+            let below_page = k != root && k.level % PAGE_LEVELS == 0;
+            if below_page && n.children != 0 {
+                // its own page; this entry is the pointer (entries list it once, as the pointer)
+                todo.push(k);
+                continue;
+            }
+            for o in (0..8).rev() {
+                if n.children >> o & 1 == 1 {
+                    stack.push(k.child(o));
+                }
+            }
+        }
+        out.push((root, entries));
+    }
+    out
+}
+
+/// Writes the COPC file.
+pub(crate) fn write(ds: &Dataset, p: &Prepared, out: &Path, report: &mut ExportReport) -> Result<()> {
+    let rl = p.out.record_len;
+    let extra = (rl - mortar_core::layout::base_len(p.out.format).unwrap()) as u16;
+    let laz_vlr: LazVlr = LazVlrBuilder::default()
+        .with_point_format(p.out.format, extra)
+        .map_err(|e| Error::Usage(format!("cannot write LAZ for point format {}: {e}", p.out.format)))?
+        .with_variable_chunk_size()
+        .build();
+    let items = laz_vlr.items().clone();
+    let mut laz_data = Vec::new();
+    laz_vlr.write_to(&mut laz_data).map_err(|e| Error::Usage(e.to_string()))?;
+    // The CRS: WKT is what COPC readers want; GeoTIFF keys alone get the WKT of their EPSG code.
+    let crs = crate::crs::CrsRecords::of(&ds.vlrs, &ds.evlrs);
+    let mut wkt_vlr = None;
+    if !crs.is_empty() && !crs.has_wkt() {
+        let info = crs.describe();
+        match info.epsg.and_then(|c| u16::try_from(c).ok()).and_then(crs_definitions::from_code) {
+            Some(def) => {
+                let mut data = def.wkt.as_bytes().to_vec();
+                data.push(0);
+                wkt_vlr = Some(vlr("LASF_Projection", 2112, "OGC WKT (from the GeoTIFF keys)", data));
+                if info.vertical_epsg.is_some() {
+                    report.warnings.push(format!(
+                        "the CRS is GeoTIFF keys ({}); the WKT written for COPC readers is that of EPSG:{} alone (the vertical code is in the keys only)",
+                        info.summary(),
+                        def.code
+                    ));
+                }
+            }
+            None => report.warnings.push(format!(
+                "the CRS is GeoTIFF keys only ({}) and mortar knows no WKT for it; COPC readers look for WKT (VLR LASF_Projection 2112), so most will show no CRS: give --assign-crs a LAS file with WKT",
+                info.summary()
+            )),
+        }
+    }
+    let mut header = ds.template.clone();
+    header.version = (1, 4);
+    header.extra_header.clear();
+    header.global_encoding &= !0x6; // no waveform data
+    // LAS 1.4 asks point formats 6-10 to set the WKT bit, and copclib refuses files without it.
+    header.global_encoding |= 0x10;
+    let mut vlrs = vec![vlr("copc", 1, "copc info", info_data(p, 0, 0)), vlr("laszip encoded", 22204, "mortar (laz-rs)", laz_data)];
+    vlrs.extend(ds.vlrs.iter().cloned());
+    vlrs.extend(wkt_vlr);
+    let s = &p.stats;
+    let g = &ds.grid;
+    let points: u64 = p.nodes.iter().map(|n| n.points.len() as u64).sum();
+    let head = |vlrs: &[Vlr], evlr_start: u64, evlr_count: u32| {
+        las::write_header(&HeaderOut {
+            template: &header,
+            point_format: p.out.format,
+            compressed: true,
+            record_len: rl as u16,
+            point_count: points,
+            points_by_return: s.by_return,
+            scale: g.scale,
+            offset: g.offset,
+            // The octree's cube, not the points' box: copclib places nodes from the header's
+            // minimum and its largest extent (module docs).
+            min: p.cube_min,
+            max: p.cube_min.map(|m| m + 2.0 * p.halfsize),
+            vlrs,
+            evlr_start,
+            evlr_count,
+        })
+        .map_err(|e| Error::Usage(format!("{}: {e}", out.display())))
+    };
+    let hb = head(&vlrs, 0, 0)?;
+    debug_assert_eq!(&hb[377..381], b"copc");
+    let tmp = TempPath::beside(out);
+    let path = tmp.path().to_path_buf();
+    let io = |e| Error::io(&path, e);
+    let f = File::create(&path).map_err(io)?;
+    let mut w = BufWriter::with_capacity(1 << 20, f);
+    w.write_all(&hb).map_err(io)?;
+    let table_at = hb.len() as u64;
+    w.write_all(&0i64.to_le_bytes()).map_err(io)?;
+    let mut pos = table_at + 8;
+    let mut placed = vec![Placed::default(); p.nodes.len()];
+    let mut table = ChunkTable::default();
+    ds.progress.stage("writing", points, "points");
+    for grp in groups(&p.nodes, rl, GROUP_BYTES) {
+        sort::check_interrupted()?;
+        let chunks: Vec<Option<Vec<u8>>> = p.nodes[grp.clone()]
+            .par_iter()
+            .map(|n| {
+                if n.points.is_empty() {
+                    return Ok(None);
+                }
+                let recs = p.node_records(n);
+                let c = encode_chunk(&items, &recs).map_err(|e| Error::io(&path, e))?;
+                ds.progress.add(n.points.len() as u64);
+                Ok(Some(c))
+            })
+            .collect::<Result<_>>()?;
+        for (i, c) in grp.zip(chunks) {
+            if let Some(c) = c {
+                w.write_all(&c).map_err(io)?;
+                let n = p.nodes[i].points.len() as u64;
+                placed[i] = Placed { offset: pos, bytes: c.len() as u64, points: n };
+                table.push(ChunkTableEntry { point_count: n, byte_count: c.len() as u64 });
+                pos += c.len() as u64;
+            }
+        }
+    }
+    let table_offset = pos;
+    let mut tb = Vec::new();
+    table.write_to(&mut tb, &laz_vlr).map_err(io)?;
+    w.write_all(&tb).map_err(io)?;
+    pos += tb.len() as u64;
+    // The hierarchy EVLR: pages laid out in order, each page's offset known before any is written.
+    let evlr_start = pos;
+    let pages = pages(&p.nodes);
+    let data_start = evlr_start + EVLR_HEADER;
+    let mut page_at: HashMap<NodeKey, (u64, u64)> = HashMap::new();
+    let mut at = data_start;
+    for (root, entries) in &pages {
+        let size = (entries.len() * ENTRY) as u64;
+        page_at.insert(*root, (at, size));
+        at += size;
+    }
+    let mut hier = Vec::with_capacity((at - data_start) as usize);
+    for (root, entries) in &pages {
+        for &i in entries {
+            let n = &p.nodes[i];
+            let k = n.key;
+            for v in [k.level as i32, k.index[0] as i32, k.index[1] as i32, k.index[2] as i32] {
+                hier.extend_from_slice(&v.to_le_bytes());
+            }
+            let (offset, bytes, count) = match page_at.get(&k) {
+                Some(&(o, sz)) if k != *root => (o, sz, -1i32),
+                _ => (placed[i].offset, placed[i].bytes, placed[i].points as i32),
+            };
+            hier.extend_from_slice(&offset.to_le_bytes());
+            hier.extend_from_slice(&(bytes as i32).to_le_bytes());
+            hier.extend_from_slice(&count.to_le_bytes());
+        }
+    }
+    let mut evlrs = vec![vlr("copc", 1000, "EPT hierarchy", hier)];
+    evlrs.extend(ds.evlrs.iter().cloned());
+    w.write_all(&las::write_evlrs(&evlrs)).map_err(io)?;
+    // The header again, now that the hierarchy and the EVLRs are placed.
+    let (root_at, root_size) = page_at[&NodeKey::ROOT];
+    vlrs[0].data = info_data(p, root_at, root_size);
+    let hb2 = head(&vlrs, evlr_start, evlrs.len() as u32)?;
+    debug_assert_eq!(hb2.len(), hb.len());
+    w.seek(SeekFrom::Start(0)).map_err(io)?;
+    w.write_all(&hb2).map_err(io)?;
+    w.write_all(&(table_offset as i64).to_le_bytes()).map_err(io)?;
+    let f = w.into_inner().map_err(|e| Error::io(&path, e.into_error()))?;
+    f.sync_all().map_err(io)?;
+    report.bytes = f.metadata().map_err(io)?.len();
+    drop(f);
+    tmp.persist(out).map_err(|e| Error::io(out, e))?;
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn node(level: u8, index: [u32; 3], children: u8) -> OutNode {
+        OutNode { key: NodeKey { level, index }, points: vec![0], children }
+    }
+
+    #[test]
+    fn pages_split_every_page_levels() {
+        // a chain root -> ... -> level 9, octant 0 each time
+        let nodes: Vec<OutNode> = (0..10u8).map(|l| node(l, [0; 3], if l < 9 { 1 } else { 0 })).collect();
+        let p = pages(&nodes);
+        assert_eq!(p.len(), 3, "{p:?}");
+        assert_eq!(p[0].0, NodeKey::ROOT);
+        assert_eq!(p[0].1, vec![0, 1, 2, 3, 4], "levels 0-3 and the pointer to level 4");
+        let rest: Vec<_> = p[1..].iter().map(|(k, e)| (k.level, e.clone())).collect();
+        assert!(rest.contains(&(4, vec![4, 5, 6, 7, 8])));
+        assert!(rest.contains(&(8, vec![8, 9])));
+    }
+}
