@@ -220,7 +220,7 @@ pub(crate) fn output_layout(layout: &RecordLayout) -> std::result::Result<(Recor
 
 /// The per-axis factors that make the grid's cells cubes in world units, or why there are none.
 fn stretch_factors(scale: [f64; 3]) -> std::result::Result<[i64; 3], String> {
-    if scale.iter().any(|s| !(*s > 0.0) || !s.is_finite()) {
+    if !scale.iter().all(|s| s.is_finite() && *s > 0.0) {
         return Err(format!("the scales {scale:?} are not all positive; the export needs positive scales (a reader's octree grows with the world coordinates)"));
     }
     let smin = scale.iter().cloned().fold(f64::INFINITY, f64::min);
