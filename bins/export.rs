@@ -21,11 +21,15 @@ pub struct Args {
     /// Memory budget, e.g. 8G (the default 2G); the input must fit it.
     #[arg(long, value_parser = common::parse_size, default_value = "2G")]
     pub memory: u64,
-    /// Most points per leaf.
-    #[arg(long, default_value_t = DEFAULT_LEAF_CAPACITY)]
-    pub leaf_capacity: u32,
-    /// Order of the points inside a node: morton or gps-time.
-    #[arg(long, default_value = "morton")]
+    /// Most points per leaf (default: 200,000 for COPC, where larger LAZ chunks compress
+    /// better, 20 % smaller than at 50,000 (BENCHMARKS.md); 50,000 for Potree, whose viewers
+    /// load nodes one request each).
+    #[arg(long)]
+    pub leaf_capacity: Option<u32>,
+    /// Order of the points inside a node: gps-time (the default; Morton order where the records
+    /// have no GPS time) or morton. By GPS time LAZ compresses the scanner's fields far better:
+    /// COPC files 1.5x smaller than in Morton order (BENCHMARKS.md).
+    #[arg(long, default_value = "gps-time")]
     pub order: String,
     /// Print a JSON summary on stdout.
     #[arg(long)]
@@ -33,6 +37,9 @@ pub struct Args {
     #[command(flatten)]
     pub crs: common::CrsArgs,
 }
+
+/// Leaf capacity of COPC exports.
+const COPC_LEAF_CAPACITY: u32 = 200_000;
 
 fn format_of(a: &Args) -> Result<ExportFormat> {
     Ok(match a.format.as_str() {
@@ -62,7 +69,11 @@ fn check_output(out: &Path, format: ExportFormat) -> Result<()> {
 
 pub fn run(a: Args) -> Result<()> {
     let format = format_of(&a)?;
-    if a.leaf_capacity == 0 {
+    let leaf_capacity = a.leaf_capacity.unwrap_or(match format {
+        ExportFormat::Copc => COPC_LEAF_CAPACITY,
+        ExportFormat::Potree => DEFAULT_LEAF_CAPACITY,
+    });
+    if leaf_capacity == 0 {
         anyhow::bail!("--leaf-capacity must be at least 1");
     }
     let order = match a.order.as_str() {
@@ -73,7 +84,7 @@ pub fn run(a: Args) -> Result<()> {
     check_output(&a.output, format)?;
     let ds = common::open_dataset(&a.inputs, &a.crs)?;
     common::print_warnings(&ds.warnings);
-    let opts = ExportOptions { format, memory: a.memory, config: BuilderConfig { leaf_capacity: a.leaf_capacity, ..BuilderConfig::default() }, order };
+    let opts = ExportOptions { format, memory: a.memory, config: BuilderConfig { leaf_capacity, ..BuilderConfig::default() }, order };
     let bar = common::progress_bar("mortar export", &ds.progress);
     let r = export(&ds, &a.output, &opts)?;
     drop(bar);

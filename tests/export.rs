@@ -114,9 +114,9 @@ fn samples_read_back_by_independent_readers() {
             jobs.push(serde_json::json!({"kind": "potree", "out": p, "inputs": [f]}));
         }
     }
-    // GPS time order inside nodes: the same points
+    // Morton order inside nodes (the default is GPS time): the same points
     let g = d.join("gps.copc.laz");
-    export(&[&samples()[0]], &g, &["--order", "gps-time", "--leaf-capacity", "2000"]);
+    export(&[&samples()[0]], &g, &["--order", "morton", "--leaf-capacity", "2000"]);
     jobs.push(serde_json::json!({"kind": "copc", "out": g, "inputs": [samples()[0]]}));
     let r = check(&py, &d, &jobs);
     assert!(r.iter().any(|r| r["depth"].as_u64().unwrap_or(0) >= 3), "a deep tree was checked: {r:?}");

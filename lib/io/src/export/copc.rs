@@ -265,7 +265,6 @@ pub(crate) fn write(ds: &Dataset, p: &Prepared, out: &Path, report: &mut ExportR
     w.write_all(&hb2).map_err(io)?;
     w.write_all(&(table_offset as i64).to_le_bytes()).map_err(io)?;
     let f = w.into_inner().map_err(|e| Error::io(&path, e.into_error()))?;
-    f.sync_all().map_err(io)?;
     report.bytes = f.metadata().map_err(io)?.len();
     drop(f);
     tmp.persist(out).map_err(|e| Error::io(out, e))?;

@@ -47,11 +47,13 @@ struct Attr {
     at: usize,
     /// For bit fields of one byte: (shift, mask).
     bits: Option<(u8, u8)>,
+    /// Whether a 2-byte value is signed.
+    signed: bool,
 }
 
 fn attributes(format: u8, record_len: usize) -> Vec<Attr> {
-    let a = |name, ty, elem, num, at| Attr { name, ty, elem, num, at, bits: None };
-    let b = |name, at, shift, mask| Attr { name, ty: "uint8", elem: 1, num: 1, at, bits: Some((shift, mask)) };
+    let a = |name, ty: &'static str, elem, num, at| Attr { name, ty, elem, num, at, bits: None, signed: ty == "int16" };
+    let b = |name, at, shift, mask| Attr { name, ty: "uint8", elem: 1, num: 1, at, bits: Some((shift, mask)), signed: false };
     let mut v = vec![
         a("position", "int32", 4, 3, 0),
         a("intensity", "uint16", 2, 1, 12),
@@ -81,16 +83,17 @@ fn attributes(format: u8, record_len: usize) -> Vec<Attr> {
 }
 
 /// The value of element `e` of `attr` in `rec`, for the min/max.
+#[inline]
 fn value(attr: &Attr, rec: &[u8], e: usize) -> f64 {
     let o = attr.at + e * attr.elem;
     if let Some((s, m)) = attr.bits {
         return ((rec[o] >> s) & m) as f64;
     }
-    match attr.ty {
-        "int32" => i32::from_le_bytes(rec[o..o + 4].try_into().unwrap()) as f64,
-        "uint16" => u16::from_le_bytes([rec[o], rec[o + 1]]) as f64,
-        "int16" => i16::from_le_bytes([rec[o], rec[o + 1]]) as f64,
-        "double" => f64::from_le_bytes(rec[o..o + 8].try_into().unwrap()),
+    match (attr.elem, attr.signed) {
+        (4, _) => i32::from_le_bytes(rec[o..o + 4].try_into().unwrap()) as f64,
+        (2, false) => u16::from_le_bytes([rec[o], rec[o + 1]]) as f64,
+        (2, true) => i16::from_le_bytes([rec[o], rec[o + 1]]) as f64,
+        (8, _) => f64::from_le_bytes(rec[o..o + 8].try_into().unwrap()),
         _ => rec[o] as f64,
     }
 }
@@ -190,7 +193,6 @@ pub(crate) fn write(ds: &Dataset, p: &Prepared, out: &Path, report: &mut ExportR
         }
     }
     let f = w.into_inner().map_err(|e| Error::io(&octree_path, e.into_error()))?;
-    f.sync_all().map_err(io)?;
     drop(f);
     // hierarchy.bin
     let chunks = chunks(&p.nodes);
