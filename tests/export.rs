@@ -118,6 +118,13 @@ fn samples_read_back_by_independent_readers() {
     let g = d.join("gps.copc.laz");
     export(&[&samples()[0]], &g, &["--order", "morton", "--leaf-capacity", "2000"]);
     jobs.push(serde_json::json!({"kind": "copc", "out": g, "inputs": [samples()[0]]}));
+    // a store as input: read as points, the same points come out
+    let st = d.join("store");
+    run_ok(mortar().args(["build", s(&samples()[0]), "-o", s(&st), "--quiet"]));
+    for (name, fmt) in [("st.copc.laz", "copc"), ("st-potree", "potree")] {
+        export(&[&st], &d.join(name), &["--leaf-capacity", "3000"]);
+        jobs.push(serde_json::json!({"kind": fmt, "out": d.join(name), "inputs": [samples()[0]]}));
+    }
     let r = check(&py, &d, &jobs);
     assert!(r.iter().any(|r| r["depth"].as_u64().unwrap_or(0) >= 3), "a deep tree was checked: {r:?}");
     // a check that can fail: the wrong input
