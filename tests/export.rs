@@ -13,30 +13,15 @@ fn s(p: &Path) -> &str {
     p.to_str().unwrap()
 }
 
-/// Python with laspy and lazrs (and copclib where installed); `None` after a SKIP line unless
-/// `MORTAR_REQUIRE_PYTHON=1`.
+/// Python with laspy and lazrs ([`laspy_python`]); with `MORTAR_REQUIRE_COPCLIB=1` it must
+/// import copclib too.
 fn python() -> Option<PathBuf> {
-    let py = std::env::var_os("MORTAR_PYTHON").map(PathBuf::from).unwrap_or_else(|| {
-        let venv = root().join(".ci-venv/bin/python");
-        if venv.exists() {
-            venv
-        } else {
-            PathBuf::from("python3")
-        }
-    });
-    let ok = Command::new(&py).args(["-c", "import laspy, lazrs"]).output().map(|o| o.status.success()).unwrap_or(false);
-    if ok {
-        if std::env::var("MORTAR_REQUIRE_COPCLIB").as_deref() == Ok("1") {
-            let c = Command::new(&py).args(["-c", "import copclib"]).output().unwrap();
-            assert!(c.status.success(), "MORTAR_REQUIRE_COPCLIB=1 but copclib does not import");
-        }
-        return Some(py);
+    let py = laspy_python()?;
+    if std::env::var("MORTAR_REQUIRE_COPCLIB").as_deref() == Ok("1") {
+        let c = Command::new(&py).args(["-c", "import copclib"]).output().unwrap();
+        assert!(c.status.success(), "MORTAR_REQUIRE_COPCLIB=1 but copclib does not import");
     }
-    if std::env::var("MORTAR_REQUIRE_PYTHON").as_deref() == Ok("1") {
-        panic!("MORTAR_REQUIRE_PYTHON=1 but {} cannot import laspy and lazrs", py.display());
-    }
-    eprintln!("SKIP: no Python with laspy and lazrs (set MORTAR_PYTHON)");
-    None
+    Some(py)
 }
 
 /// Whether the web checks can run (node, tests/web installed, chromium); with

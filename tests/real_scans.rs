@@ -358,27 +358,6 @@ fn assign_crs_from_a_file_or_an_epsg_code() {
     std::fs::remove_dir_all(&d).unwrap();
 }
 
-/// The Python with laspy and lazrs (`$MORTAR_PYTHON`, else `python3`); `None` (after a SKIP line)
-/// when there is none, unless `MORTAR_REQUIRE_PYTHON=1`, which makes that a failure.
-fn laspy_python() -> Option<PathBuf> {
-    let py = std::env::var_os("MORTAR_PYTHON").map(PathBuf::from).unwrap_or_else(|| {
-        let venv = root().join(".ci-venv/bin/python");
-        if venv.exists() {
-            venv
-        } else {
-            PathBuf::from("python3")
-        }
-    });
-    let ok = Command::new(&py).args(["-c", "import laspy, lazrs"]).output().map(|o| o.status.success()).unwrap_or(false);
-    if ok {
-        return Some(py);
-    }
-    if std::env::var("MORTAR_REQUIRE_PYTHON").as_deref() == Ok("1") {
-        panic!("MORTAR_REQUIRE_PYTHON=1 but {} cannot import laspy and lazrs", py.display());
-    }
-    eprintln!("SKIP: no Python with laspy and lazrs (set MORTAR_PYTHON)");
-    None
-}
 
 /// What laspy reads of a file: point count, (E)VLR ids, and the sorted X/Y/Z integers' digest.
 fn laspy_read(py: &Path, f: &Path) -> serde_json::Value {
