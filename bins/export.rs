@@ -18,7 +18,8 @@ pub struct Args {
     /// copc, potree, or auto: copc for an output ending in .laz, else potree.
     #[arg(long, default_value = "auto")]
     pub format: String,
-    /// Memory budget, e.g. 8G (the default 2G); the input must fit it.
+    /// Memory budget, e.g. 8G (the default 2G). A larger input is exported through run files
+    /// on disk (beside the output), one subtree at a time.
     #[arg(long, value_parser = common::parse_size, default_value = "2G")]
     pub memory: u64,
     /// Most points per leaf (default: 200,000 for COPC, where larger LAZ chunks compress

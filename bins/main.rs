@@ -64,8 +64,13 @@ fn main() {
     unsafe {
         libc::signal(libc::SIGXFSZ, libc::SIG_IGN);
     }
+    // Ctrl-C: the temporary paths are removed at once, and again a moment later (the work may
+    // have made one between the flag and its next check, which would stay); work that sees the
+    // flag first returns an error, and main exits 130 below.
     let _ = ctrlc::set_handler(|| {
         mortar_io::sort::INTERRUPTED.store(true, std::sync::atomic::Ordering::Relaxed);
+        mortar_io::cleanup::remove_all();
+        std::thread::sleep(std::time::Duration::from_millis(300));
         mortar_io::cleanup::remove_all();
         eprintln!("mortar: interrupted");
         std::process::exit(130);
@@ -81,6 +86,10 @@ fn main() {
     };
     if let Err(e) = r {
         mortar_io::cleanup::remove_all();
+        if mortar_io::sort::INTERRUPTED.load(std::sync::atomic::Ordering::Relaxed) {
+            eprintln!("mortar: interrupted");
+            std::process::exit(130);
+        }
         if common::is_broken_pipe(&e) {
             std::process::exit(0);
         }

@@ -153,7 +153,7 @@ fn every_real_file_alone_and_merged() {
     // Refusals are the documented ones only: waveforms, scales that share no cube, files that
     // are not readable as points.
     for (f, e) in &refused {
-        assert!(e.contains("waveform") || e.contains("scales") || e.contains("no points") || e.contains("in memory"), "{}: {e}", f.display());
+        assert!(e.contains("waveform") || e.contains("scales") || e.contains("no points"), "{}: {e}", f.display());
     }
     assert!(jobs.len() >= files.len(), "most real files export: {} jobs of {} files; refused {refused:?}", jobs.len(), files.len());
     // merged: the bcts tiles, and 8 EPT tiles
@@ -184,6 +184,73 @@ fn every_real_file_alone_and_merged() {
         eprintln!("copc.js read {ok} COPC files; {} hit its extra-bytes limit: {limits:?}", limits.len());
         assert!(ok >= 9 * (ok + limits.len()) / 10, "copc.js read {ok}, {} hit its limit", limits.len());
     }
+    std::fs::remove_dir_all(&d).unwrap();
+}
+
+/// Exports `inputs` with `extra`; the JSON summary, or the error text of a refusal (exit 1).
+fn export_json(inputs: &[&Path], out: &Path, extra: &[&str]) -> Result<serde_json::Value, String> {
+    let mut c = mortar();
+    c.arg("export");
+    for i in inputs {
+        c.arg(i);
+    }
+    let o = c.args(["-o", s(out), "--quiet", "--json"]).args(extra).output().unwrap();
+    if o.status.success() {
+        return Ok(serde_json::from_slice(&o.stdout).unwrap());
+    }
+    let err = String::from_utf8_lossy(&o.stderr).to_string();
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(!err.contains("panicked"), "{err}");
+    assert!(!out.exists(), "a refused export left {}", out.display());
+    Err(err)
+}
+
+/// Inputs larger than `--memory` go through run files, one subtree at a time: the same nodes
+/// with the same records in the same order as the in-memory export, on the samples and on
+/// every real file alone and merged, and no run file left behind.
+#[test]
+fn larger_than_memory_gives_the_same_export() {
+    let Some(py) = python() else { return };
+    let d = tempdir("export-stream");
+    let mut sets: Vec<Vec<PathBuf>> = samples().into_iter().map(|p| vec![p]).collect();
+    if let Some(data) = shared_data() {
+        let files = readable_fixtures(&data);
+        let bcts: Vec<PathBuf> = files.iter().filter(|f| f.to_string_lossy().contains("bcts_")).cloned().collect();
+        sets.extend(files.into_iter().map(|f| vec![f]));
+        sets.push(bcts);
+    }
+    let (mut jobs, mut refused, mut streamed) = (Vec::new(), Vec::new(), 0);
+    for (i, set) in sets.iter().enumerate() {
+        let refs: Vec<&Path> = set.iter().map(|p| p.as_path()).collect();
+        for (kind, a, b) in [("copc", format!("{i}-mem.copc.laz"), format!("{i}-part.copc.laz")), ("potree", format!("{i}-mem"), format!("{i}-part"))] {
+            let (a, b) = (d.join(a), d.join(b));
+            let common = ["--format", kind, "--leaf-capacity", "2000"];
+            if export_json(&refs, &a, &common).is_err() {
+                continue; // refused in memory too: every_real_file_alone_and_merged checks why
+            }
+            // small enough for many units, large enough for the densest cells of most files
+            let memory = if set.len() > 1 { "16M" } else { "4M" };
+            match export_json(&refs, &b, &[&common[..], &["--memory", memory]].concat()) {
+                Ok(j) => {
+                    assert_eq!(j["engine"], "partitioned", "{set:?}");
+                    streamed += 1;
+                    jobs.push(serde_json::json!({"kind": "same", "format": kind, "a": a, "b": b}));
+                    if i == 0 || set.len() > 1 {
+                        jobs.push(serde_json::json!({"kind": kind, "out": b, "inputs": set}));
+                    }
+                }
+                Err(e) => {
+                    assert!(e.contains("one cell of the partition"), "{set:?}: {e}");
+                    refused.push((set.clone(), e));
+                }
+            }
+        }
+    }
+    eprintln!("{streamed} exports through run files; refused: {refused:?}");
+    assert!(streamed >= 4 * (streamed + refused.len()) / 5, "most exports go through: {streamed}, refused {refused:?}");
+    check(&py, &d, &jobs);
+    let left: Vec<_> = std::fs::read_dir(&d).unwrap().filter_map(|e| e.ok()).map(|e| e.file_name().to_string_lossy().to_string()).filter(|n| n.starts_with('.')).collect();
+    assert!(left.is_empty(), "left behind: {left:?}");
     std::fs::remove_dir_all(&d).unwrap();
 }
 
@@ -273,15 +340,22 @@ fn bad_input_and_interruptions_leave_nothing() {
     let o = mortar().args(["export", s(&samples()[0]), "-o", s(&full), "--format", "potree"]).output().unwrap();
     assert_eq!(o.status.code(), Some(1));
     assert_eq!(entries(&full), vec!["keep.txt".to_string()]);
-    // too little memory: a clear error
-    let o = mortar().args(["export", s(&samples()[0]), "-o", s(&d.join("m.copc.laz")), "--memory", "1M"]).output().unwrap();
+    // too little memory for the densest cell of the partition (all points of one tile in one
+    // cell of a root that a far tile makes 100 km wide): a clear error, nothing left
+    let (near, far) = (d.join("near.las"), d.join("far.las"));
+    run_ok(gen().args(["--points", "200000", "--extent", "1", "-o", s(&near)]));
+    run_ok(gen().args(["--points", "10", "--extent", "1", "--origin", "600000,5000000,0", "-o", s(&far)]));
+    let o = mortar().args(["export", s(&near), s(&far), "-o", s(&d.join("m.copc.laz")), "--memory", "1M", "--leaf-capacity", "1000"]).output().unwrap();
     assert_eq!(o.status.code(), Some(1));
-    assert!(String::from_utf8_lossy(&o.stderr).contains("--memory"));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("one cell of the partition") && err.contains("--memory"), "{err}");
+    std::fs::remove_file(&near).unwrap();
+    std::fs::remove_file(&far).unwrap();
     // Ctrl-C in the middle: exit 130, nothing left
     let big = d.join("big.las");
     run_ok(gen().args(["--points", "4000000", "-o", s(&big)]));
-    for out in ["i.copc.laz", "i-potree"] {
-        let child = mortar().args(["export", s(&big), "-o", s(&d.join(out)), "--threads", "1"]).stderr(std::process::Stdio::piped()).spawn().unwrap();
+    for (out, memory) in [("i.copc.laz", "2G"), ("i-potree", "2G"), ("j.copc.laz", "32M")] {
+        let child = mortar().args(["export", s(&big), "-o", s(&d.join(out)), "--threads", "1", "--memory", memory]).stderr(std::process::Stdio::piped()).spawn().unwrap();
         std::thread::sleep(std::time::Duration::from_millis(700));
         unsafe {
             libc::kill(child.id() as i32, libc::SIGINT);

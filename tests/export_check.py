@@ -2,7 +2,9 @@
 
     python export_check.py MANIFEST.json
 
-The manifest is a list of jobs {"kind": "copc" | "potree", "out": PATH, "inputs": [PATHS]}.
+The manifest is a list of jobs {"kind": "copc" | "potree", "out": PATH, "inputs": [PATHS]}
+(or {"kind": "same", "format": "copc" | "potree", "a": PATH, "b": PATH}: two exports with the
+same nodes holding the same records in the same order).
 For each job the output is read with readers that are not mortar's: laspy's CopcReader (and
 copclib when installed) for COPC, a walk of hierarchy.bin/octree.bin written here from the
 Potree 2.0 format description for Potree. Every point of the inputs must come out exactly once
@@ -346,12 +348,59 @@ def raster(job):
     return {"out": job.get("out"), "ok": True, "problems": [], "covered_pixels": int(len(np.unique(py * W + px)))}
 
 
+def copc_nodes(path):
+    """{key: raw records of the node, in its order}, from a walk of the hierarchy pages."""
+    out = {}
+    with laspy.CopcReader.open(path) as r:
+        info = r.copc_info
+        rl = r.header.point_format.size
+        with open(path, "rb") as f:
+            data = f.read()
+
+        def page(off, size):
+            for i in range(0, size, 32):
+                lvl, x, yy, z, o, bs, pc = struct.unpack_from("<iiiiQii", data, off + i)
+                if pc == -1:
+                    page(o, bs)
+                    continue
+                raw = b""
+                if pc > 0:
+                    node = laspy.copc.OctreeNode()
+                    node.key.level, node.key.x, node.key.y, node.key.z = lvl, x, yy, z
+                    node.offset, node.byte_size, node.point_count = o, bs, pc
+                    raw = r._fetch_and_decompress_points_of_nodes([node]).array.tobytes()
+                out[(lvl, x, yy, z)] = raw
+        page(info.hierarchy_root_offset, info.hierarchy_root_size)
+    return out
+
+
+def potree_nodes(d):
+    meta, nodes = walk_potree(d)
+    octree = open(f"{d}/octree.bin", "rb").read()
+    return {key: octree[bo:bo + bs] for (key, ty, mask, n, bo, bs) in nodes}
+
+
+def same(job):
+    """Two exports of the same input (in memory and through run files): the same nodes, each
+    with the same records in the same order; the files may place the nodes differently."""
+    problems = []
+    read = copc_nodes if job["format"] == "copc" else potree_nodes
+    a, b = read(job["a"]), read(job["b"])
+    if set(a) != set(b):
+        problems.append(f"nodes differ: {len(set(a) - set(b))} only in a, {len(set(b) - set(a))} only in b")
+    differ = [k for k in set(a) & set(b) if a[k] != b[k]]
+    if differ:
+        problems.append(f"{len(differ)} nodes hold other records, e.g. {sorted(differ)[0]}")
+    return {"out": job["b"], "ok": not problems, "problems": problems, "nodes": len(a),
+            "bytes": sum(len(v) for v in a.values())}
+
+
 def main():
     jobs = json.load(open(sys.argv[1]))
     bad = False
     for job in jobs:
         try:
-            r = {"copc": check_copc, "potree": check_potree, "raster": raster}[job["kind"]](job)
+            r = {"copc": check_copc, "potree": check_potree, "raster": raster, "same": same}[job["kind"]](job)
         except Exception as e:  # a reader that fails is a failed check
             r = {"out": job.get("out"), "ok": False, "problems": [f"{type(e).__name__}: {e}"]}
         bad |= not r["ok"]

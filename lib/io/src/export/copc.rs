@@ -16,12 +16,12 @@
 //! (level by level), the chunk table, the hierarchy EVLR, the dataset's EVLRs. Written to a
 //! temporary name and renamed.
 
-use super::{groups, ExportReport, OutNode, Prepared, GROUP_BYTES};
+use super::{ExportReport, Frame, NodeWriter, OutNode};
 use crate::cleanup::TempPath;
 use crate::dataset::Dataset;
 use crate::error::{Error, Result};
 use crate::las::{self, HeaderOut, Vlr};
-use crate::sort;
+use crate::sort::{self, PieceStats};
 use laz::laszip::{ChunkTable, ChunkTableEntry};
 use laz::record::{LayeredPointRecordCompressor, RecordCompressor};
 use laz::{LazItem, LazVlr, LazVlrBuilder};
@@ -30,7 +30,7 @@ use rayon::prelude::*;
 use std::collections::HashMap;
 use std::fs::File;
 use std::io::{BufWriter, Cursor, Seek, SeekFrom, Write};
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 /// Levels per hierarchy page.
 pub const PAGE_LEVELS: u8 = 4;
@@ -50,18 +50,17 @@ fn vlr(user: &str, id: u16, desc: &str, data: Vec<u8>) -> Vlr {
 }
 
 /// The info VLR's data.
-fn info_data(p: &Prepared, root_hier_offset: u64, root_hier_size: u64) -> Vec<u8> {
+fn info_data(f: &Frame, root_hier_offset: u64, root_hier_size: u64, gps: (f64, f64)) -> Vec<u8> {
     let mut b = Vec::with_capacity(INFO_LEN);
     for a in 0..3 {
-        b.extend_from_slice(&(p.cube_min[a] + p.halfsize).to_le_bytes());
+        b.extend_from_slice(&(f.cube_min[a] + f.halfsize).to_le_bytes());
     }
-    b.extend_from_slice(&p.halfsize.to_le_bytes());
-    b.extend_from_slice(&p.spacing().to_le_bytes());
+    b.extend_from_slice(&f.halfsize.to_le_bytes());
+    b.extend_from_slice(&f.spacing().to_le_bytes());
     b.extend_from_slice(&root_hier_offset.to_le_bytes());
     b.extend_from_slice(&root_hier_size.to_le_bytes());
-    let (g0, g1) = p.gps.unwrap_or((0.0, 0.0));
-    b.extend_from_slice(&g0.to_le_bytes());
-    b.extend_from_slice(&g1.to_le_bytes());
+    b.extend_from_slice(&gps.0.to_le_bytes());
+    b.extend_from_slice(&gps.1.to_le_bytes());
     b.resize(INFO_LEN, 0);
     b
 }
@@ -114,161 +113,216 @@ fn pages(nodes: &[OutNode]) -> Vec<(NodeKey, Vec<usize>)> {
     out
 }
 
-/// Writes the COPC file.
-pub(crate) fn write(ds: &Dataset, p: &Prepared, out: &Path, report: &mut ExportReport) -> Result<()> {
-    let rl = p.out.record_len;
-    let extra = (rl - mortar_core::layout::base_len(p.out.format).unwrap()) as u16;
-    let laz_vlr: LazVlr = LazVlrBuilder::default()
-        .with_point_format(p.out.format, extra)
-        .map_err(|e| Error::Usage(format!("cannot write LAZ for point format {}: {e}", p.out.format)))?
-        .with_variable_chunk_size()
-        .build();
-    let items = laz_vlr.items().clone();
-    let mut laz_data = Vec::new();
-    laz_vlr.write_to(&mut laz_data).map_err(|e| Error::Usage(e.to_string()))?;
-    // The CRS: WKT is what COPC readers want; GeoTIFF keys alone get the WKT of their EPSG code.
-    let crs = crate::crs::CrsRecords::of(&ds.vlrs, &ds.evlrs);
-    let mut wkt_vlr = None;
-    if !crs.is_empty() && !crs.has_wkt() {
-        let info = crs.describe();
-        match info.epsg.and_then(|c| u16::try_from(c).ok()).and_then(crs_definitions::from_code) {
-            Some(def) => {
-                let mut data = def.wkt.as_bytes().to_vec();
-                data.push(0);
-                wkt_vlr = Some(vlr("LASF_Projection", 2112, "OGC WKT (from the GeoTIFF keys)", data));
-                if info.vertical_epsg.is_some() {
-                    report.warnings.push(format!(
-                        "the CRS is GeoTIFF keys ({}); the WKT written for COPC readers is that of EPSG:{} alone (the vertical code is in the keys only)",
-                        info.summary(),
-                        def.code
-                    ));
+/// The COPC file being written: nodes are appended as they come ([`NodeWriter`]), the
+/// header, the chunk table and the hierarchy are written at the end.
+pub(crate) struct CopcWriter<'a> {
+    ds: &'a Dataset,
+    frame: Frame,
+    out: PathBuf,
+    tmp: TempPath,
+    w: BufWriter<File>,
+    laz_vlr: LazVlr,
+    items: Vec<LazItem>,
+    header: las::Header,
+    vlrs: Vec<Vlr>,
+    header_len: u64,
+    pos: u64,
+    table: ChunkTable,
+    placed: HashMap<NodeKey, Placed>,
+    points: u64,
+    gps: (f64, f64),
+}
+
+impl<'a> CopcWriter<'a> {
+    /// Opens the temporary file and reserves the header; CRS notes go to `warnings`.
+    pub(crate) fn create(ds: &'a Dataset, frame: Frame, out: &Path, warnings: &mut Vec<String>) -> Result<CopcWriter<'a>> {
+        let rl = frame.out.record_len;
+        let extra = (rl - mortar_core::layout::base_len(frame.out.format).unwrap_or(rl)) as u16;
+        let laz_vlr: LazVlr = LazVlrBuilder::default()
+            .with_point_format(frame.out.format, extra)
+            .map_err(|e| Error::Usage(format!("cannot write LAZ for point format {}: {e}", frame.out.format)))?
+            .with_variable_chunk_size()
+            .build();
+        let items = laz_vlr.items().clone();
+        let mut laz_data = Vec::new();
+        laz_vlr.write_to(&mut laz_data).map_err(|e| Error::Usage(e.to_string()))?;
+        // The CRS: WKT is what COPC readers want; GeoTIFF keys alone get the WKT of their EPSG code.
+        let crs = crate::crs::CrsRecords::of(&ds.vlrs, &ds.evlrs);
+        let mut wkt_vlr = None;
+        if !crs.is_empty() && !crs.has_wkt() {
+            let info = crs.describe();
+            match info.epsg.and_then(|c| u16::try_from(c).ok()).and_then(crs_definitions::from_code) {
+                Some(def) => {
+                    let mut data = def.wkt.as_bytes().to_vec();
+                    data.push(0);
+                    wkt_vlr = Some(vlr("LASF_Projection", 2112, "OGC WKT (from the GeoTIFF keys)", data));
+                    if info.vertical_epsg.is_some() {
+                        warnings.push(format!(
+                            "the CRS is GeoTIFF keys ({}); the WKT written for COPC readers is that of EPSG:{} alone (the vertical code is in the keys only)",
+                            info.summary(),
+                            def.code
+                        ));
+                    }
                 }
+                None => warnings.push(format!(
+                    "the CRS is GeoTIFF keys only ({}) and mortar knows no WKT for it; COPC readers look for WKT (VLR LASF_Projection 2112), so most will show no CRS: give --assign-crs a LAS file with WKT",
+                    info.summary()
+                )),
             }
-            None => report.warnings.push(format!(
-                "the CRS is GeoTIFF keys only ({}) and mortar knows no WKT for it; COPC readers look for WKT (VLR LASF_Projection 2112), so most will show no CRS: give --assign-crs a LAS file with WKT",
-                info.summary()
-            )),
         }
+        let mut header = ds.template.clone();
+        header.version = (1, 4);
+        header.extra_header.clear();
+        header.global_encoding &= !0x6; // no waveform data
+        // LAS 1.4 asks point formats 6-10 to set the WKT bit, and copclib refuses files without it.
+        header.global_encoding |= 0x10;
+        let mut vlrs = vec![vlr("copc", 1, "copc info", info_data(&frame, 0, 0, (0.0, 0.0))), vlr("laszip encoded", 22204, "mortar (laz-rs)", laz_data)];
+        vlrs.extend(ds.vlrs.iter().cloned());
+        vlrs.extend(wkt_vlr);
+        let tmp = TempPath::beside(out);
+        let path = tmp.path().to_path_buf();
+        let f = File::create(&path).map_err(|e| Error::io(&path, e))?;
+        let mut me = CopcWriter {
+            ds,
+            frame,
+            out: out.to_path_buf(),
+            tmp,
+            w: BufWriter::with_capacity(1 << 20, f),
+            laz_vlr,
+            items,
+            header,
+            vlrs,
+            header_len: 0,
+            pos: 0,
+            table: ChunkTable::default(),
+            placed: HashMap::new(),
+            points: 0,
+            gps: (f64::INFINITY, f64::NEG_INFINITY),
+        };
+        let hb = me.head(&[0; 15], 0, 0)?;
+        debug_assert_eq!(&hb[377..381], b"copc");
+        me.header_len = hb.len() as u64;
+        me.w.write_all(&hb).map_err(|e| Error::io(&path, e))?;
+        // The offset of the chunk table, known at the end.
+        me.w.write_all(&0i64.to_le_bytes()).map_err(|e| Error::io(&path, e))?;
+        me.pos = me.header_len + 8;
+        Ok(me)
     }
-    let mut header = ds.template.clone();
-    header.version = (1, 4);
-    header.extra_header.clear();
-    header.global_encoding &= !0x6; // no waveform data
-    // LAS 1.4 asks point formats 6-10 to set the WKT bit, and copclib refuses files without it.
-    header.global_encoding |= 0x10;
-    let mut vlrs = vec![vlr("copc", 1, "copc info", info_data(p, 0, 0)), vlr("laszip encoded", 22204, "mortar (laz-rs)", laz_data)];
-    vlrs.extend(ds.vlrs.iter().cloned());
-    vlrs.extend(wkt_vlr);
-    let s = &p.stats;
-    let g = &ds.grid;
-    let points: u64 = p.nodes.iter().map(|n| n.points.len() as u64).sum();
-    let head = |vlrs: &[Vlr], evlr_start: u64, evlr_count: u32| {
+
+    fn head(&self, by_return: &[u64; 15], evlr_start: u64, evlr_count: u32) -> Result<Vec<u8>> {
+        let f = &self.frame;
+        let g = &self.ds.grid;
         las::write_header(&HeaderOut {
-            template: &header,
-            point_format: p.out.format,
+            template: &self.header,
+            point_format: f.out.format,
             compressed: true,
-            record_len: rl as u16,
-            point_count: points,
-            points_by_return: s.by_return,
+            record_len: f.out.record_len as u16,
+            point_count: self.points,
+            points_by_return: *by_return,
             scale: g.scale,
             offset: g.offset,
             // The octree's cube, not the points' box: copclib places nodes from the header's
             // minimum and its largest extent (module docs).
-            min: p.cube_min,
-            max: p.cube_min.map(|m| m + 2.0 * p.halfsize),
-            vlrs,
+            min: f.cube_min,
+            max: f.cube_min.map(|m| m + 2.0 * f.halfsize),
+            vlrs: &self.vlrs,
             evlr_start,
             evlr_count,
         })
-        .map_err(|e| Error::Usage(format!("{}: {e}", out.display())))
-    };
-    let hb = head(&vlrs, 0, 0)?;
-    debug_assert_eq!(&hb[377..381], b"copc");
-    let tmp = TempPath::beside(out);
-    let path = tmp.path().to_path_buf();
-    let io = |e| Error::io(&path, e);
-    let f = File::create(&path).map_err(io)?;
-    let mut w = BufWriter::with_capacity(1 << 20, f);
-    w.write_all(&hb).map_err(io)?;
-    let table_at = hb.len() as u64;
-    w.write_all(&0i64.to_le_bytes()).map_err(io)?;
-    let mut pos = table_at + 8;
-    let mut placed = vec![Placed::default(); p.nodes.len()];
-    let mut table = ChunkTable::default();
-    ds.progress.stage("writing", points, "points");
-    for grp in groups(&p.nodes, rl, GROUP_BYTES) {
+        .map_err(|e| Error::Usage(format!("{}: {e}", self.out.display())))
+    }
+}
+
+impl NodeWriter for CopcWriter<'_> {
+    fn write_nodes(&mut self, nodes: Vec<(NodeKey, Vec<u8>)>) -> Result<()> {
         sort::check_interrupted()?;
-        let chunks: Vec<Option<Vec<u8>>> = p.nodes[grp.clone()]
+        let rl = self.frame.out.record_len;
+        let path = self.tmp.path().to_path_buf();
+        let items = &self.items;
+        let progress = &self.ds.progress;
+        let chunks: Vec<(Vec<u8>, (f64, f64))> = nodes
             .par_iter()
-            .map(|n| {
-                if n.points.is_empty() {
-                    return Ok(None);
-                }
-                let recs = p.node_records(n);
-                let c = encode_chunk(&items, &recs).map_err(|e| Error::io(&path, e))?;
-                ds.progress.add(n.points.len() as u64);
-                Ok(Some(c))
+            .map(|(_, recs)| {
+                let c = encode_chunk(items, recs).map_err(|e| Error::io(&path, e))?;
+                // PDRF 6-8 keep the GPS time at byte 22.
+                let t = recs.chunks_exact(rl).map(|r| f64::from_le_bytes(r[22..30].try_into().expect("8 bytes"))).fold((f64::INFINITY, f64::NEG_INFINITY), |a, t| (a.0.min(t), a.1.max(t)));
+                progress.add((recs.len() / rl) as u64);
+                Ok((c, t))
             })
             .collect::<Result<_>>()?;
-        for (i, c) in grp.zip(chunks) {
-            if let Some(c) = c {
-                w.write_all(&c).map_err(io)?;
-                let n = p.nodes[i].points.len() as u64;
-                placed[i] = Placed { offset: pos, bytes: c.len() as u64, points: n };
-                table.push(ChunkTableEntry { point_count: n, byte_count: c.len() as u64 });
-                pos += c.len() as u64;
+        for ((key, recs), (c, t)) in nodes.iter().zip(chunks) {
+            let n = (recs.len() / rl) as u64;
+            if n == 0 {
+                continue;
+            }
+            self.w.write_all(&c).map_err(|e| Error::io(&path, e))?;
+            self.placed.insert(*key, Placed { offset: self.pos, bytes: c.len() as u64, points: n });
+            self.table.push(ChunkTableEntry { point_count: n, byte_count: c.len() as u64 });
+            self.pos += c.len() as u64;
+            self.points += n;
+            self.gps = (self.gps.0.min(t.0), self.gps.1.max(t.1));
+        }
+        Ok(())
+    }
+
+    fn finish(mut self: Box<Self>, tree: &[OutNode], stats: &PieceStats, report: &mut ExportReport) -> Result<()> {
+        let path = self.tmp.path().to_path_buf();
+        let io = |e| Error::io(&path, e);
+        let table_offset = self.pos;
+        let mut tb = Vec::new();
+        self.table.write_to(&mut tb, &self.laz_vlr).map_err(io)?;
+        self.w.write_all(&tb).map_err(io)?;
+        self.pos += tb.len() as u64;
+        // The hierarchy EVLR: pages laid out in order, each page's offset known before any is written.
+        let evlr_start = self.pos;
+        let pages = pages(tree);
+        let data_start = evlr_start + EVLR_HEADER;
+        let mut page_at: HashMap<NodeKey, (u64, u64)> = HashMap::new();
+        let mut at = data_start;
+        for (root, entries) in &pages {
+            let size = (entries.len() * ENTRY) as u64;
+            page_at.insert(*root, (at, size));
+            at += size;
+        }
+        let mut hier = Vec::with_capacity((at - data_start) as usize);
+        for (root, entries) in &pages {
+            for &i in entries {
+                let k = tree[i].key;
+                for v in [k.level as i32, k.index[0] as i32, k.index[1] as i32, k.index[2] as i32] {
+                    hier.extend_from_slice(&v.to_le_bytes());
+                }
+                let (offset, bytes, count) = match page_at.get(&k) {
+                    Some(&(o, sz)) if k != *root => (o, sz, -1i32),
+                    _ => {
+                        let p = self.placed.get(&k).copied().unwrap_or_default();
+                        (p.offset, p.bytes, p.points as i32)
+                    }
+                };
+                hier.extend_from_slice(&offset.to_le_bytes());
+                hier.extend_from_slice(&(bytes as i32).to_le_bytes());
+                hier.extend_from_slice(&count.to_le_bytes());
             }
         }
+        let mut evlrs = vec![vlr("copc", 1000, "EPT hierarchy", hier)];
+        evlrs.extend(self.ds.evlrs.iter().cloned());
+        self.w.write_all(&las::write_evlrs(&evlrs)).map_err(io)?;
+        // The header again, now that the hierarchy and the EVLRs are placed.
+        let (root_at, root_size) = page_at[&NodeKey::ROOT];
+        let gps = if self.points == 0 { (0.0, 0.0) } else { self.gps };
+        self.vlrs[0].data = info_data(&self.frame, root_at, root_size, gps);
+        let hb2 = self.head(&stats.by_return, evlr_start, evlrs.len() as u32)?;
+        debug_assert_eq!(hb2.len() as u64, self.header_len);
+        self.w.seek(SeekFrom::Start(0)).map_err(io)?;
+        self.w.write_all(&hb2).map_err(io)?;
+        self.w.write_all(&(table_offset as i64).to_le_bytes()).map_err(io)?;
+        let CopcWriter { w, tmp, out, .. } = *self;
+        let f = w.into_inner().map_err(|e| Error::io(&path, e.into_error()))?;
+        report.points = self.points;
+        report.bytes = f.metadata().map_err(io)?.len();
+        drop(f);
+        tmp.persist(&out).map_err(|e| Error::io(&out, e))?;
+        Ok(())
     }
-    let table_offset = pos;
-    let mut tb = Vec::new();
-    table.write_to(&mut tb, &laz_vlr).map_err(io)?;
-    w.write_all(&tb).map_err(io)?;
-    pos += tb.len() as u64;
-    // The hierarchy EVLR: pages laid out in order, each page's offset known before any is written.
-    let evlr_start = pos;
-    let pages = pages(&p.nodes);
-    let data_start = evlr_start + EVLR_HEADER;
-    let mut page_at: HashMap<NodeKey, (u64, u64)> = HashMap::new();
-    let mut at = data_start;
-    for (root, entries) in &pages {
-        let size = (entries.len() * ENTRY) as u64;
-        page_at.insert(*root, (at, size));
-        at += size;
-    }
-    let mut hier = Vec::with_capacity((at - data_start) as usize);
-    for (root, entries) in &pages {
-        for &i in entries {
-            let n = &p.nodes[i];
-            let k = n.key;
-            for v in [k.level as i32, k.index[0] as i32, k.index[1] as i32, k.index[2] as i32] {
-                hier.extend_from_slice(&v.to_le_bytes());
-            }
-            let (offset, bytes, count) = match page_at.get(&k) {
-                Some(&(o, sz)) if k != *root => (o, sz, -1i32),
-                _ => (placed[i].offset, placed[i].bytes, placed[i].points as i32),
-            };
-            hier.extend_from_slice(&offset.to_le_bytes());
-            hier.extend_from_slice(&(bytes as i32).to_le_bytes());
-            hier.extend_from_slice(&count.to_le_bytes());
-        }
-    }
-    let mut evlrs = vec![vlr("copc", 1000, "EPT hierarchy", hier)];
-    evlrs.extend(ds.evlrs.iter().cloned());
-    w.write_all(&las::write_evlrs(&evlrs)).map_err(io)?;
-    // The header again, now that the hierarchy and the EVLRs are placed.
-    let (root_at, root_size) = page_at[&NodeKey::ROOT];
-    vlrs[0].data = info_data(p, root_at, root_size);
-    let hb2 = head(&vlrs, evlr_start, evlrs.len() as u32)?;
-    debug_assert_eq!(hb2.len(), hb.len());
-    w.seek(SeekFrom::Start(0)).map_err(io)?;
-    w.write_all(&hb2).map_err(io)?;
-    w.write_all(&(table_offset as i64).to_le_bytes()).map_err(io)?;
-    let f = w.into_inner().map_err(|e| Error::io(&path, e.into_error()))?;
-    report.bytes = f.metadata().map_err(io)?.len();
-    drop(f);
-    tmp.persist(out).map_err(|e| Error::io(out, e))?;
-    Ok(())
 }
 
 #[cfg(test)]

@@ -25,19 +25,27 @@
 //! smallest one (an integer, checked), so that the cube is a cube in world units; records keep
 //! their own coordinates.
 //!
-//! Not done yet: inputs larger than `--memory` (the partitioned engine of `mortar build` is the
-//! way: its units are subtrees) and reusing the octree of an existing store (a store given as
-//! input is read as points, and the tree is made again).
+//! Inputs larger than `--memory` go through the partitioned engine of `mortar build`
+//! ([`stream`]): the records are scattered once into run files by cell, and each unit (a
+//! subtree that fits the budget) is read back, built, assigned and written on its own. The
+//! nodes are the same and hold the same points as in memory; only their order in the file
+//! differs. Not done: reusing the octree of an existing store (a store given as input is read
+//! as points, and the tree is made again: its inner nodes hold copies, not the points).
+//!
+//! Both paths hand the nodes to a [`NodeWriter`] ([`copc::CopcWriter`],
+//! [`potree::PotreeWriter`]): nodes are encoded in parallel and appended as they come, and the
+//! hierarchy is written at the end from the tree's shape.
 
 pub mod copc;
 pub mod potree;
+mod stream;
 
 use crate::dataset::Dataset;
 use crate::error::{Error, Result};
 use crate::sort::{self, PieceStats};
 use crate::store::engine::{self as eng, Sorted};
 use mortar_core::layout::{base_len, merge_layouts, read_xyz, write_xyz, Conversion, RecordLayout};
-use mortar_core::octree::{build_sorted, BuilderConfig, Cube, NodeKey, SortedContent};
+use mortar_core::octree::{build_sorted, BuilderConfig, Cube, NodeKey, SortedContent, SortedNode};
 use rayon::prelude::*;
 use serde::Serialize;
 use std::collections::HashMap;
@@ -67,7 +75,8 @@ pub enum PointOrder {
 #[derive(Clone, Debug)]
 pub struct ExportOptions {
     pub format: ExportFormat,
-    /// Memory budget in bytes; the input must fit it (see the module docs).
+    /// Memory budget in bytes: an input that needs more is exported through run files on
+    /// disk, unit by unit (module docs).
     pub memory: u64,
     /// Most points per leaf and the deepest level (the tree of `mortar build`).
     pub config: BuilderConfig,
@@ -93,6 +102,9 @@ pub struct ExportReport {
     pub sort_seconds: f64,
     pub tree_seconds: f64,
     pub write_seconds: f64,
+    /// "memory" (read, sorted and assigned in memory) or "partitioned" (larger than
+    /// `--memory`: through run files on disk, one unit at a time).
+    pub engine: &'static str,
     pub warnings: Vec<String>,
 }
 
@@ -100,25 +112,82 @@ pub struct ExportReport {
 pub fn export(ds: &Dataset, out: &Path, opts: &ExportOptions) -> Result<ExportReport> {
     let t0 = Instant::now();
     let mut report = ExportReport { output: out.display().to_string(), ..ExportReport::default() };
-    let prep = prepare(ds, opts, &mut report)?;
-    let tw = Instant::now();
-    match opts.format {
-        ExportFormat::Copc => {
-            report.format = "copc";
-            copc::write(ds, &prep, out, &mut report)?
-        }
-        ExportFormat::Potree => {
-            report.format = "potree";
-            potree::write(ds, &prep, out, &mut report)?
-        }
-    }
-    report.write_seconds = tw.elapsed().as_secs_f64();
-    report.points = prep.nodes.iter().map(|n| n.points.len() as u64).sum();
-    report.nodes = prep.nodes.len() as u64;
-    report.depth = prep.nodes.iter().map(|n| n.key.level as u32).max().unwrap_or(0);
-    report.point_format = prep.out.format;
+    report.format = match opts.format {
+        ExportFormat::Copc => "copc",
+        ExportFormat::Potree => "potree",
+    };
+    let tree = if eng::in_memory_need(ds) <= opts.memory && ds.declared_points() < u32::MAX as u64 {
+        report.engine = "memory";
+        in_memory(ds, out, opts, &mut report)?
+    } else {
+        report.engine = "partitioned";
+        stream::export(ds, out, opts, &mut report)?
+    };
+    report.nodes = tree.len() as u64;
+    report.depth = tree.iter().map(|n| n.key.level as u32).max().unwrap_or(0);
     report.seconds = t0.elapsed().as_secs_f64();
     Ok(report)
+}
+
+/// The in-memory export: every point read, sorted and assigned, then the nodes written level
+/// by level. Returns the tree's shape.
+fn in_memory(ds: &Dataset, out: &Path, opts: &ExportOptions, report: &mut ExportReport) -> Result<Vec<OutNode>> {
+    let prep = prepare(ds, opts, report)?;
+    let tw = Instant::now();
+    let mut w = open_writer(ds, prep.frame.clone(), out, opts.format, report)?;
+    let points: u64 = prep.nodes.iter().map(|n| n.points.len() as u64).sum();
+    ds.progress.stage("writing", points, "points");
+    for grp in groups(&prep.nodes, prep.frame.out.record_len, GROUP_BYTES) {
+        let batch: Vec<(NodeKey, Vec<u8>)> = prep.nodes[grp].par_iter().filter(|n| !n.points.is_empty()).map(|n| (n.key, prep.node_records(n))).collect();
+        w.write_nodes(batch)?;
+    }
+    let shape: Vec<OutNode> = prep.nodes.iter().map(OutNode::shape).collect();
+    w.finish(&shape, &prep.stats, report)?;
+    report.write_seconds = tw.elapsed().as_secs_f64();
+    report.point_format = prep.frame.out.format;
+    Ok(shape)
+}
+
+/// What a writer knows before the first node: the records it writes and the readers' cube.
+#[derive(Clone, Debug)]
+pub(crate) struct Frame {
+    pub out: RecordLayout,
+    /// The readers' cube in world coordinates: its smallest corner and half its edge.
+    pub cube_min: [f64; 3],
+    pub halfsize: f64,
+}
+
+impl Frame {
+    /// Spacing of the root's points: its edge over the 128 cells of its grid.
+    pub(crate) fn spacing(&self) -> f64 {
+        2.0 * self.halfsize / mortar_core::octree::GRID_SIZE as f64
+    }
+
+    /// The frame of the tree over `root` (on the grid of `stretch`) for the records `out`.
+    fn of(ds: &Dataset, out: RecordLayout, stretch: &Stretch, root: Cube) -> Frame {
+        let smin = ds.grid.scale.iter().cloned().fold(f64::INFINITY, f64::min);
+        let origin = [0, 1, 2].map(|a| ds.grid.offset[a] + ds.grid.scale[a] * stretch.base[a] as f64);
+        let cube_min = [0, 1, 2].map(|a| origin[a] + smin * (root.min[a] as f64 - 0.5));
+        Frame { out, cube_min, halfsize: smin * root.size() as f64 / 2.0 }
+    }
+}
+
+/// The output being written, node by node.
+pub(crate) trait NodeWriter {
+    /// Encodes `nodes` (each its key and its output records, in order; none empty) in
+    /// parallel and appends them in order.
+    fn write_nodes(&mut self, nodes: Vec<(NodeKey, Vec<u8>)>) -> Result<()>;
+    /// Writes the hierarchy of `tree` (every node that holds points or has such nodes below,
+    /// with its children mask; its points are not looked at) and the metadata, and moves the
+    /// output into place; sets `report.points` and `report.bytes`.
+    fn finish(self: Box<Self>, tree: &[OutNode], stats: &PieceStats, report: &mut ExportReport) -> Result<()>;
+}
+
+fn open_writer<'a>(ds: &'a Dataset, frame: Frame, out: &Path, format: ExportFormat, report: &mut ExportReport) -> Result<Box<dyn NodeWriter + 'a>> {
+    Ok(match format {
+        ExportFormat::Copc => Box::new(copc::CopcWriter::create(ds, frame, out, &mut report.warnings)?),
+        ExportFormat::Potree => Box::new(potree::PotreeWriter::create(ds, frame, out)?),
+    })
 }
 
 /// Integer coordinates on the grid the tree is built on: `t = (p - base) * m` per axis.
@@ -151,6 +220,13 @@ pub(crate) struct OutNode {
     pub children: u8,
 }
 
+impl OutNode {
+    /// The node without its points (what the hierarchy needs).
+    pub(crate) fn shape(&self) -> OutNode {
+        OutNode { key: self.key, points: Vec::new(), children: self.children }
+    }
+}
+
 /// Everything the writers need.
 pub(crate) struct Prepared {
     pub sorted: Sorted,
@@ -160,43 +236,32 @@ pub(crate) struct Prepared {
     pub out: RecordLayout,
     /// The nodes written, level by level from the root, each level in Morton order.
     pub nodes: Vec<OutNode>,
-    /// The readers' cube in world coordinates: its smallest corner and half its edge.
-    pub cube_min: [f64; 3],
-    pub halfsize: f64,
+    pub frame: Frame,
     /// The points' statistics (integer bounds on the dataset's grid, returns).
     pub stats: PieceStats,
-    /// Smallest and largest GPS time, where the records have one.
-    pub gps: Option<(f64, f64)>,
 }
 
 impl Prepared {
-    /// The output record of sorted point `i`, into `dst` (`out.record_len` bytes).
-    #[inline]
-    pub(crate) fn record_into(&self, i: usize, dst: &mut [u8]) {
-        let src = self.sorted.record(i);
-        match &self.conv {
-            Some(c) => c.apply(src, self.sorted.rl, dst),
-            None => dst.copy_from_slice(src),
-        }
-        if !self.stretch.is_identity() {
-            write_xyz(dst, self.stretch.inverse(read_xyz(src)));
-        }
-    }
-
     /// The output records of a node, in its order.
     pub(crate) fn node_records(&self, n: &OutNode) -> Vec<u8> {
-        let rl = self.out.record_len;
-        let mut b = vec![0u8; n.points.len() * rl];
-        for (d, &i) in b.chunks_exact_mut(rl).zip(&n.points) {
-            self.record_into(i as usize, d);
-        }
-        b
+        output_records(n.points.iter().map(|&i| self.sorted.record(i as usize)), n.points.len(), self.sorted.rl, self.out.record_len, &self.conv, &self.stretch)
     }
+}
 
-    /// Spacing of the root's points: its edge over the 128 cells of its grid.
-    pub(crate) fn spacing(&self) -> f64 {
-        2.0 * self.halfsize / mortar_core::octree::GRID_SIZE as f64
+/// The output records of the input records `src` (`n` of them, `rl` bytes each): converted
+/// to the output's format, positions back on the dataset's grid.
+pub(crate) fn output_records<'r>(src: impl Iterator<Item = &'r [u8]>, n: usize, rl: usize, out_rl: usize, conv: &Option<Conversion>, stretch: &Stretch) -> Vec<u8> {
+    let mut b = vec![0u8; n * out_rl];
+    for (d, s) in b.chunks_exact_mut(out_rl).zip(src) {
+        match conv {
+            Some(c) => c.apply(s, rl, d),
+            None => d.copy_from_slice(s),
+        }
+        if !stretch.is_identity() {
+            write_xyz(d, stretch.inverse(read_xyz(s)));
+        }
     }
+    b
 }
 
 /// The record layout COPC holds for `layout` (PDRF 6, 7 or 8 with the same extra bytes) and
@@ -244,18 +309,6 @@ pub(crate) fn prepare(ds: &Dataset, opts: &ExportOptions, report: &mut ExportRep
     let rl = ds.layout.record_len;
     let (out, conv) = output_layout(&ds.layout).map_err(|e| Error::input(ds.inputs[0].path(), e))?;
     let m = stretch_factors(ds.grid.scale).map_err(|e| Error::input(ds.inputs[0].path(), e))?;
-    let need = eng::in_memory_need(ds);
-    if need > opts.memory {
-        return Err(Error::Usage(format!(
-            "the export holds the input in memory: {} points need about {} MiB, above --memory ({} MiB); give more memory (exports larger than memory are not done yet)",
-            ds.declared_points(),
-            need >> 20,
-            opts.memory >> 20
-        )));
-    }
-    if ds.declared_points() >= u32::MAX as u64 {
-        return Err(Error::Usage("too many points for one in-memory export (at most 4,294,967,294)".into()));
-    }
     let total = ds.declared_points();
     ds.progress.stage("reading", total, "points");
     let mut header_warnings = Vec::new();
@@ -321,34 +374,32 @@ pub(crate) fn prepare(ds: &Dataset, opts: &ExportOptions, report: &mut ExportRep
     let pos = |i: usize| read_xyz(sorted.record(i));
     let arrival = |i: usize| sorted.arrival[i];
     let tree = build_sorted(root, n, &pos, &arrival, opts.config).map_err(|e| Error::Usage(format!("octree: {e}")))?;
-    let nodes = assign(&tree, n, &sorted, &ds.layout, opts.order);
+    let nodes = assign(&tree.nodes, n, &sorted, &ds.layout, opts.order, &[]);
     report.tree_seconds = tt.elapsed().as_secs_f64();
-    // The readers' cube in world units.
-    let smin = ds.grid.scale.iter().cloned().fold(f64::INFINITY, f64::min);
-    let origin = [0, 1, 2].map(|a| ds.grid.offset[a] + ds.grid.scale[a] * stretch.base[a] as f64);
-    let cube_min = [0, 1, 2].map(|a| origin[a] + smin * (root.min[a] as f64 - 0.5));
-    let halfsize = smin * root.size() as f64 / 2.0;
-    let gps = ds.layout.attribute("gps_time").map(|a| {
-        let o = a.offset;
-        (0..n)
-            .into_par_iter()
-            .map(|i| {
-                let t = f64::from_le_bytes(sorted.record(i)[o..o + 8].try_into().unwrap());
-                (t, t)
-            })
-            .reduce(|| (f64::INFINITY, f64::NEG_INFINITY), |a, b| (a.0.min(b.0), a.1.max(b.1)))
-    });
     report.warnings.extend(header_warnings);
-    Ok(Prepared { sorted, stretch, conv, out, nodes, cube_min, halfsize, stats: all, gps })
+    let frame = Frame::of(ds, out, &stretch, root);
+    Ok(Prepared { sorted, stretch, conv, out: frame.out.clone(), nodes, frame, stats: all })
 }
 
-/// Every point to one node (module docs), empty subtrees dropped, children masks set.
-fn assign(tree: &mortar_core::octree::SortedTree, n: usize, sorted: &Sorted, layout: &RecordLayout, order: PointOrder) -> Vec<OutNode> {
+/// Every point to one node (module docs), empty subtrees dropped, children masks set. `tree`
+/// is a tree or a subtree, its nodes level by level (Morton order in a level); `taken` are the
+/// points that the nodes above a subtree hold (its candidates).
+pub(crate) fn assign(tree: &[SortedNode], n: usize, sorted: &Sorted, layout: &RecordLayout, order: PointOrder, taken_above: &[u32]) -> Vec<OutNode> {
     let taken: Vec<AtomicU64> = (0..n.div_ceil(64)).map(|_| AtomicU64::new(0)).collect();
+    for &i in taken_above {
+        taken[i as usize / 64].fetch_or(1u64 << (i % 64), Ordering::Relaxed);
+    }
     let gps = layout.attribute("gps_time").map(|a| a.offset);
-    let mut nodes: Vec<OutNode> = Vec::with_capacity(tree.nodes.len());
-    for level in tree.levels() {
-        let mut here: Vec<OutNode> = tree.nodes[level]
+    let mut nodes: Vec<OutNode> = Vec::with_capacity(tree.len());
+    let mut levels: Vec<std::ops::Range<usize>> = Vec::new();
+    for (i, nd) in tree.iter().enumerate() {
+        match levels.last_mut() {
+            Some(r) if tree[r.start].key.level == nd.key.level => r.end = i + 1,
+            _ => levels.push(i..i + 1),
+        }
+    }
+    for level in levels {
+        let mut here: Vec<OutNode> = tree[level]
             .par_iter()
             .map(|node| {
                 let mut points: Vec<u32> = match &node.content {
@@ -376,8 +427,7 @@ fn assign(tree: &mortar_core::octree::SortedTree, n: usize, sorted: &Sorted, lay
     let mut keep: Vec<bool> = nodes.iter().map(|n| !n.points.is_empty()).collect();
     for i in (0..nodes.len()).rev() {
         if keep[i] {
-            if let Some(p) = nodes[i].key.parent() {
-                let pi = at[&p];
+            if let Some(&pi) = nodes[i].key.parent().and_then(|p| at.get(&p)) {
                 keep[pi] = true;
                 nodes[pi].children |= 1 << nodes[i].key.octant();
             }

@@ -18,18 +18,18 @@
 //! classification, user data, scan angle, point source id, gps-time, rgb, nir, and the extra
 //! bytes as one `uint8` array. Written into a temporary directory and renamed.
 
-use super::{groups, ExportReport, OutNode, Prepared, GROUP_BYTES};
+use super::{ExportReport, Frame, NodeWriter, OutNode};
 use crate::cleanup::TempPath;
 use crate::dataset::Dataset;
 use crate::error::{Error, Result};
-use crate::sort;
+use crate::sort::{self, PieceStats};
 use mortar_core::octree::NodeKey;
 use rayon::prelude::*;
 use serde_json::json;
 use std::collections::HashMap;
 use std::fs::File;
 use std::io::{BufWriter, Write};
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 /// Levels per hierarchy chunk (PotreeConverter's step).
 pub const STEP: u8 = 4;
@@ -136,36 +136,67 @@ fn chunks(nodes: &[OutNode]) -> Vec<(NodeKey, Vec<usize>)> {
     out
 }
 
-/// Writes the Potree directory.
-pub(crate) fn write(ds: &Dataset, p: &Prepared, out: &Path, report: &mut ExportReport) -> Result<()> {
-    let rl = p.out.record_len;
-    let attrs = attributes(p.out.format, rl);
-    let bpp: usize = attrs.iter().map(|a| a.elem * a.num).sum();
-    let tmp = TempPath::beside(out);
-    let dir = tmp.path().to_path_buf();
-    std::fs::create_dir_all(&dir).map_err(|e| Error::io(&dir, e))?;
-    let octree_path = dir.join("octree.bin");
-    let io = |e| Error::io(&octree_path, e);
-    let mut w = BufWriter::with_capacity(1 << 20, File::create(&octree_path).map_err(io)?);
-    let points: u64 = p.nodes.iter().map(|n| n.points.len() as u64).sum();
-    let mut placed = vec![(0u64, 0u64); p.nodes.len()];
-    let mut pos = 0u64;
-    let nvals: usize = attrs.iter().map(|a| a.num).sum();
-    let mut lo = vec![f64::INFINITY; nvals];
-    let mut hi = vec![f64::NEG_INFINITY; nvals];
-    ds.progress.stage("writing", points, "points");
-    for grp in groups(&p.nodes, rl, GROUP_BYTES) {
+/// The Potree directory being written: `octree.bin` grows as nodes come ([`NodeWriter`]);
+/// `hierarchy.bin` and `metadata.json` are written at the end.
+pub(crate) struct PotreeWriter<'a> {
+    ds: &'a Dataset,
+    frame: Frame,
+    out: PathBuf,
+    tmp: TempPath,
+    octree_path: PathBuf,
+    w: BufWriter<File>,
+    attrs: Vec<Attr>,
+    nvals: usize,
+    lo: Vec<f64>,
+    hi: Vec<f64>,
+    placed: HashMap<NodeKey, (u64, u64, u32)>,
+    pos: u64,
+    points: u64,
+}
+
+impl<'a> PotreeWriter<'a> {
+    /// Makes the temporary directory and opens `octree.bin` in it.
+    pub(crate) fn create(ds: &'a Dataset, frame: Frame, out: &Path) -> Result<PotreeWriter<'a>> {
+        let attrs = attributes(frame.out.format, frame.out.record_len);
+        let nvals: usize = attrs.iter().map(|a| a.num).sum();
+        let tmp = TempPath::beside(out);
+        let dir = tmp.path().to_path_buf();
+        std::fs::create_dir_all(&dir).map_err(|e| Error::io(&dir, e))?;
+        let octree_path = dir.join("octree.bin");
+        let w = BufWriter::with_capacity(1 << 20, File::create(&octree_path).map_err(|e| Error::io(&octree_path, e))?);
+        Ok(PotreeWriter {
+            ds,
+            frame,
+            out: out.to_path_buf(),
+            tmp,
+            octree_path,
+            w,
+            attrs,
+            nvals,
+            lo: vec![f64::INFINITY; nvals],
+            hi: vec![f64::NEG_INFINITY; nvals],
+            placed: HashMap::new(),
+            pos: 0,
+            points: 0,
+        })
+    }
+}
+
+impl NodeWriter for PotreeWriter<'_> {
+    fn write_nodes(&mut self, nodes: Vec<(NodeKey, Vec<u8>)>) -> Result<()> {
         sort::check_interrupted()?;
-        let enc: Vec<(Vec<u8>, Vec<f64>, Vec<f64>)> = p.nodes[grp.clone()]
+        let rl = self.frame.out.record_len;
+        let bpp: usize = self.attrs.iter().map(|a| a.elem * a.num).sum();
+        let (attrs, nvals, progress) = (&self.attrs, self.nvals, &self.ds.progress);
+        let enc: Vec<(Vec<u8>, Vec<f64>, Vec<f64>)> = nodes
             .par_iter()
-            .map(|n| {
-                let recs = p.node_records(n);
-                let mut b = Vec::with_capacity(n.points.len() * bpp);
+            .map(|(_, recs)| {
+                let mut b = Vec::with_capacity(recs.len() / rl * bpp);
                 let mut l = vec![f64::INFINITY; nvals];
                 let mut h = vec![f64::NEG_INFINITY; nvals];
                 for r in recs.chunks_exact(rl) {
                     let mut v = 0;
-                    for a in &attrs {
+                    for a in attrs {
                         match a.bits {
                             Some((s, m)) => b.push((r[a.at] >> s) & m),
                             None => b.extend_from_slice(&r[a.at..a.at + a.elem * a.num]),
@@ -178,101 +209,111 @@ pub(crate) fn write(ds: &Dataset, p: &Prepared, out: &Path, report: &mut ExportR
                         }
                     }
                 }
-                ds.progress.add(n.points.len() as u64);
+                progress.add((recs.len() / rl) as u64);
                 (b, l, h)
             })
             .collect();
-        for (i, (b, l, h)) in grp.zip(enc) {
-            w.write_all(&b).map_err(io)?;
-            placed[i] = (pos, b.len() as u64);
-            pos += b.len() as u64;
+        for ((key, recs), (b, l, h)) in nodes.iter().zip(enc) {
+            self.w.write_all(&b).map_err(|e| Error::io(&self.octree_path, e))?;
+            let n = (recs.len() / rl) as u32;
+            self.placed.insert(*key, (self.pos, b.len() as u64, n));
+            self.pos += b.len() as u64;
+            self.points += n as u64;
             for v in 0..nvals {
-                lo[v] = lo[v].min(l[v]);
-                hi[v] = hi[v].max(h[v]);
+                self.lo[v] = self.lo[v].min(l[v]);
+                self.hi[v] = self.hi[v].max(h[v]);
             }
         }
+        Ok(())
     }
-    let f = w.into_inner().map_err(|e| Error::io(&octree_path, e.into_error()))?;
-    drop(f);
-    // hierarchy.bin
-    let chunks = chunks(&p.nodes);
-    let mut chunk_at: HashMap<NodeKey, (u64, u64)> = HashMap::new();
-    let mut at = 0u64;
-    for (root, list) in &chunks {
-        let size = (list.len() * RECORD) as u64;
-        chunk_at.insert(*root, (at, size));
-        at += size;
-    }
-    let mut hier = Vec::with_capacity(at as usize);
-    for (root, list) in &chunks {
-        for &i in list {
-            let n = &p.nodes[i];
-            let mut mask = 0u8;
-            for o in 0..8 {
-                if n.children >> o & 1 == 1 {
-                    mask |= 1 << potree_child(o);
+
+    fn finish(self: Box<Self>, tree: &[OutNode], stats: &PieceStats, report: &mut ExportReport) -> Result<()> {
+        let PotreeWriter { ds, frame, out, tmp, octree_path, w, attrs, lo, hi, placed, pos, points, .. } = *self;
+        let dir = tmp.path().to_path_buf();
+        let f = w.into_inner().map_err(|e| Error::io(&octree_path, e.into_error()))?;
+        drop(f);
+        // hierarchy.bin
+        let chunks = chunks(tree);
+        let mut chunk_at: HashMap<NodeKey, (u64, u64)> = HashMap::new();
+        let mut at = 0u64;
+        for (root, list) in &chunks {
+            let size = (list.len() * RECORD) as u64;
+            chunk_at.insert(*root, (at, size));
+            at += size;
+        }
+        let mut hier = Vec::with_capacity(at as usize);
+        for (root, list) in &chunks {
+            for &i in list {
+                let n = &tree[i];
+                let mut mask = 0u8;
+                for o in 0..8 {
+                    if n.children >> o & 1 == 1 {
+                        mask |= 1 << potree_child(o);
+                    }
                 }
+                let (offset, size, count) = placed.get(&n.key).copied().unwrap_or_default();
+                let (ty, offset, size) = match chunk_at.get(&n.key) {
+                    Some(&(o, s)) if n.key != *root => (2u8, o, s),
+                    _ => (if n.children == 0 { 1u8 } else { 0u8 }, offset, size),
+                };
+                hier.push(ty);
+                hier.push(mask);
+                hier.extend_from_slice(&count.to_le_bytes());
+                hier.extend_from_slice(&offset.to_le_bytes());
+                hier.extend_from_slice(&size.to_le_bytes());
             }
-            let (ty, offset, size) = match chunk_at.get(&n.key) {
-                Some(&(o, s)) if n.key != *root => (2u8, o, s),
-                _ => (if n.children == 0 { 1u8 } else { 0u8 }, placed[i].0, placed[i].1),
-            };
-            hier.push(ty);
-            hier.push(mask);
-            hier.extend_from_slice(&(n.points.len() as u32).to_le_bytes());
-            hier.extend_from_slice(&offset.to_le_bytes());
-            hier.extend_from_slice(&size.to_le_bytes());
         }
-    }
-    let hp = dir.join("hierarchy.bin");
-    std::fs::write(&hp, &hier).map_err(|e| Error::io(&hp, e))?;
-    // metadata.json
-    let g = &ds.grid;
-    let s = &p.stats;
-    let world = |a: usize, v: i32| g.offset[a] + g.scale[a] * v as f64;
-    let mut v = 0;
-    let attributes: Vec<serde_json::Value> = attrs
-        .iter()
-        .map(|a| {
-            let (mn, mx): (Vec<f64>, Vec<f64>) = if a.name == "position" {
-                ((0..3).map(|k| world(k, s.min[k])).collect(), (0..3).map(|k| world(k, s.max[k])).collect())
-            } else {
-                (lo[v..v + a.num].to_vec(), hi[v..v + a.num].to_vec())
-            };
-            v += a.num;
-            json!({
-                "name": a.name, "description": "", "size": a.elem * a.num, "numElements": a.num,
-                "elementSize": a.elem, "type": a.ty, "min": mn, "max": mx,
-                "scale": vec![1.0; a.num], "offset": vec![0.0; a.num],
+        let hp = dir.join("hierarchy.bin");
+        std::fs::write(&hp, &hier).map_err(|e| Error::io(&hp, e))?;
+        // metadata.json
+        let g = &ds.grid;
+        let s = stats;
+        let world = |a: usize, v: i32| g.offset[a] + g.scale[a] * v as f64;
+        let mut v = 0;
+        let attributes: Vec<serde_json::Value> = attrs
+            .iter()
+            .map(|a| {
+                let (mn, mx): (Vec<f64>, Vec<f64>) = if a.name == "position" {
+                    ((0..3).map(|k| world(k, s.min[k])).collect(), (0..3).map(|k| world(k, s.max[k])).collect())
+                } else {
+                    (lo[v..v + a.num].to_vec(), hi[v..v + a.num].to_vec())
+                };
+                v += a.num;
+                json!({
+                    "name": a.name, "description": "", "size": a.elem * a.num, "numElements": a.num,
+                    "elementSize": a.elem, "type": a.ty, "min": mn, "max": mx,
+                    "scale": vec![1.0; a.num], "offset": vec![0.0; a.num],
+                })
             })
-        })
-        .collect();
-    let cube_max: Vec<f64> = p.cube_min.iter().map(|m| m + 2.0 * p.halfsize).collect();
-    let name = out.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-    let meta = json!({
-        "version": "2.0",
-        "name": name,
-        "description": "written by mortar export",
-        "points": points,
-        "projection": "",
-        "hierarchy": {"firstChunkSize": chunk_at[&NodeKey::ROOT].1, "stepSize": STEP, "depth": p.nodes.iter().map(|n| n.key.level).max().unwrap_or(0)},
-        "offset": g.offset,
-        "scale": g.scale,
-        "spacing": p.spacing(),
-        "boundingBox": {"min": p.cube_min, "max": cube_max},
-        "encoding": "DEFAULT",
-        "attributes": attributes,
-    });
-    let mp = dir.join("metadata.json");
-    let text = serde_json::to_vec_pretty(&meta).map_err(|e| Error::input(&mp, e.to_string()))?;
-    std::fs::write(&mp, text).map_err(|e| Error::io(&mp, e))?;
-    report.bytes = pos + hier.len() as u64 + std::fs::metadata(&mp).map(|m| m.len()).unwrap_or(0);
-    if out.is_dir() {
-        // an empty directory given as the output (checked before the export began)
-        std::fs::remove_dir(out).map_err(|e| Error::io(out, e))?;
+            .collect();
+        let cube_max: Vec<f64> = frame.cube_min.iter().map(|m| m + 2.0 * frame.halfsize).collect();
+        let name = out.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        let meta = json!({
+            "version": "2.0",
+            "name": name,
+            "description": "written by mortar export",
+            "points": points,
+            "projection": "",
+            "hierarchy": {"firstChunkSize": chunk_at[&NodeKey::ROOT].1, "stepSize": STEP, "depth": tree.iter().map(|n| n.key.level).max().unwrap_or(0)},
+            "offset": g.offset,
+            "scale": g.scale,
+            "spacing": frame.spacing(),
+            "boundingBox": {"min": frame.cube_min, "max": cube_max},
+            "encoding": "DEFAULT",
+            "attributes": attributes,
+        });
+        let mp = dir.join("metadata.json");
+        let text = serde_json::to_vec_pretty(&meta).map_err(|e| Error::input(&mp, e.to_string()))?;
+        std::fs::write(&mp, text).map_err(|e| Error::io(&mp, e))?;
+        report.points = points;
+        report.bytes = pos + hier.len() as u64 + std::fs::metadata(&mp).map(|m| m.len()).unwrap_or(0);
+        if out.is_dir() {
+            // an empty directory given as the output (checked before the export began)
+            std::fs::remove_dir(&out).map_err(|e| Error::io(&out, e))?;
+        }
+        tmp.persist(&out).map_err(|e| Error::io(&out, e))?;
+        Ok(())
     }
-    tmp.persist(out).map_err(|e| Error::io(out, e))?;
-    Ok(())
 }
 
 #[cfg(test)]

@@ -28,7 +28,7 @@
 mod build;
 mod compact;
 pub(crate) mod engine;
-mod partitioned;
+pub(crate) mod partitioned;
 mod format;
 mod incremental;
 mod reader;

@@ -64,12 +64,14 @@ pub(crate) fn has_state(dir: &Path) -> bool {
 }
 
 /// What pass 1 found, kept in the manifest for `--resume`.
-struct Partition {
-    root: Cube,
-    runs: Vec<Run>,
-    hist: Vec<u64>,
-    all: PieceStats,
-    warnings: Vec<String>,
+pub(crate) struct Partition {
+    pub root: Cube,
+    pub runs: Vec<Run>,
+    pub hist: Vec<u64>,
+    pub all: PieceStats,
+    pub warnings: Vec<String>,
+    /// The `base` of a stretched grid ([`partition_all`]); zeros for builds.
+    pub base: [i64; 3],
 }
 
 /// Writes the manifest (the tables first, then the JSON by rename) once the runs are synced.
@@ -158,7 +160,7 @@ fn read_manifest(state: &Path, rl: usize) -> Option<Partition> {
     let i32x3 = |v: &serde_json::Value| -> Option<[i32; 3]> { arr3(v).map(|a| a.map(|x| x as i32)) };
     let all = PieceStats { count: j["count"].as_u64()?, min: i32x3(&j["min"])?, max: i32x3(&j["max"])?, max_rgb: j["max_rgb"].as_u64()? as u16, max_intensity: j["max_intensity"].as_u64()? as u16, ..PieceStats::default() };
     let warnings = j["warnings"].as_array()?.iter().filter_map(|w| w.as_str().map(str::to_string)).collect();
-    let p = Partition { root, runs, hist, all, warnings };
+    let p = Partition { root, runs, hist, all, warnings, base: [0; 3] };
     (manifest_sum(&p, j["tables_checksum"].as_u64()?) == j["checksum"].as_u64()?).then_some(p)
 }
 
@@ -266,7 +268,7 @@ fn read_log(path: &Path, nodes: &Path, rl: usize) -> Result<LogState> {
 /// One run file: the records of a group of pieces grouped by cell, then their arrival numbers
 /// (8 bytes each, native order) in the same order, so that a range of cells is one contiguous
 /// read of records and one of arrival numbers, straight into the unit's buffers.
-struct Run {
+pub(crate) struct Run {
     path: PathBuf,
     /// Index of the first record of cell `c` (one more than the cells: the end).
     starts: Vec<u64>,
@@ -297,19 +299,19 @@ fn checksum(b: &[u8]) -> u64 {
 /// Points taken from a finished unit or node for its parent: positions, arrival numbers and
 /// whole records.
 #[derive(Default)]
-struct Cands {
-    pos: Vec<[i32; 3]>,
-    arrival: Vec<u64>,
-    records: Vec<u8>,
+pub(crate) struct Cands {
+    pub pos: Vec<[i32; 3]>,
+    pub arrival: Vec<u64>,
+    pub records: Vec<u8>,
 }
 
 impl Cands {
-    fn push(&mut self, pos: [i32; 3], arrival: u64, record: &[u8]) {
+    pub(crate) fn push(&mut self, pos: [i32; 3], arrival: u64, record: &[u8]) {
         self.pos.push(pos);
         self.arrival.push(arrival);
         self.records.extend_from_slice(record);
     }
-    fn append(&mut self, o: Cands) {
+    pub(crate) fn append(&mut self, o: Cands) {
         self.pos.extend(o.pos);
         self.arrival.extend(o.arrival);
         self.records.extend(o.records);
@@ -318,13 +320,13 @@ impl Cands {
 
 /// Bytes per point of a unit held in memory: the entry read back (record + 8), the sorted copy
 /// (record + 8), and the sort's keys and scratch (32).
-fn unit_bytes_per_point(rl: u64) -> u64 {
+pub(crate) fn unit_bytes_per_point(rl: u64) -> u64 {
     2 * (rl + 8) + 32
 }
 
 /// The depth of the partition cells for `root`: cells must still be able to split (so that
 /// every node above them is inner when it holds more than a unit).
-fn cell_depth(root: Cube, max_level: u8) -> u8 {
+pub(crate) fn cell_depth(root: Cube, max_level: u8) -> u8 {
     let room = root.size_log2.saturating_sub(MIN_INNER_SIZE_LOG2);
     MAX_CELL_DEPTH.min(room).min(max_level).min(mortar_core::morton::BITS_PER_AXIS as u8)
 }
@@ -346,12 +348,12 @@ pub(crate) fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOpt
         None => {
             let _ = std::fs::remove_dir_all(&state);
             std::fs::create_dir_all(&state).map_err(|e| Error::io(&state, e))?;
-            let p = partition_all(ds, opts, header, &state)?;
+            let p = partition_all(ds, opts.memory, opts.config.max_level, [1; 3], header, &state)?;
             write_manifest(&state, &p)?;
             p
         }
     };
-    let Partition { root, runs, hist, all, warnings } = part;
+    let Partition { root, runs, hist, all, warnings, .. } = part;
     report.warnings = warnings;
     report.read_seconds = tr.elapsed().as_secs_f64();
     sort::trace("partitioned", t0);
@@ -401,14 +403,23 @@ pub(crate) fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOpt
 }
 
 /// Pass 1 with the root the sorted engine takes (the headers' box when it holds every point,
-/// else the points' own box: then a second pass).
-fn partition_all(ds: &Dataset, opts: &BuildOptions, header: Option<([i32; 3], [i32; 3])>, state: &Path) -> Result<Partition> {
+/// else the points' own box: then a second pass). With `stretch` other than `[1; 3]` (the
+/// export of axes with different scales) the records in the runs are on the stretched grid
+/// `(p - base) * stretch` with `base` the points' smallest position, and the root is the
+/// points' own box on it.
+pub(crate) fn partition_all(ds: &Dataset, memory: u64, max_level: u8, stretch: [i64; 3], header: Option<([i32; 3], [i32; 3])>, state: &Path) -> Result<Partition> {
     let rl = ds.layout.record_len;
     let total = ds.declared_points();
-    let promised = header.map(|(l, h)| Cube::covering(l, h)).unwrap_or(Cube { min: [0; 3], size_log2: 32 });
-    let block_bytes = ((opts.memory / 4).max(rl as u64 * 4096)) as usize;
+    let stretched = stretch != [1; 3];
+    let guess = match header {
+        Some((l, h)) if stretched => (Grid { base: l.map(|v| v as i64), m: stretch }, Cube::covering([0; 3], [0, 1, 2].map(|a| Grid::clamp((h[a] as i64 - l[a] as i64) * stretch[a])))),
+        Some((l, h)) => (Grid::IDENTITY, Cube::covering(l, h)),
+        None if stretched => (Grid { base: [0; 3], m: stretch }, Cube { min: [0; 3], size_log2: 32 }),
+        None => (Grid::IDENTITY, Cube { min: [0; 3], size_log2: 32 }),
+    };
+    let block_bytes = ((memory / 4).max(rl as u64 * 4096)) as usize;
     ds.progress.stage("partitioning", total, "points");
-    let (mut runs, mut hist, all, real) = partition(ds, promised, opts, block_bytes, state)?;
+    let (mut runs, mut hist, all, real) = partition(ds, guess.1, guess.0, max_level, block_bytes, state)?;
     let mut warnings = Vec::new();
     for (src, st) in ds.inputs.iter().zip(&real) {
         if let Some(w) = super::build::bounds_warning(ds, src.as_ref(), st) {
@@ -416,26 +427,66 @@ fn partition_all(ds: &Dataset, opts: &BuildOptions, header: Option<([i32; 3], [i
         }
     }
     let (lo, hi) = if all.count == 0 { ([0; 3], [0; 3]) } else { (all.min, all.max) };
-    let root = match header {
-        Some((l, h)) if all.count > 0 && (0..3).all(|a| l[a] <= lo[a] && hi[a] <= h[a]) => Cube::covering(l, h),
-        _ => Cube::covering(lo, hi),
+    let (grid, root) = if stretched {
+        let mut t = [0i32; 3];
+        for a in 0..3 {
+            let v = (hi[a] as i64 - lo[a] as i64) * stretch[a];
+            if v >= i32::MAX as i64 {
+                return Err(Error::input(ds.inputs[0].path(), format!(
+                    "its axes' scales {:?} differ, and its extent on axis {a} on the finest of them does not fit the octree's grid (2^31 units); re-scale it to one scale on all axes (e.g. `las2las -rescale`)",
+                    ds.grid.scale
+                )));
+            }
+            t[a] = v as i32;
+        }
+        (Grid { base: lo.map(|v| v as i64), m: stretch }, Cube::covering([0; 3], t))
+    } else {
+        let root = match header {
+            Some((l, h)) if all.count > 0 && (0..3).all(|a| l[a] <= lo[a] && hi[a] <= h[a]) => Cube::covering(l, h),
+            _ => Cube::covering(lo, hi),
+        };
+        (Grid::IDENTITY, root)
     };
-    if root != promised {
+    if root != guess.1 || grid != guess.0 {
         // The headers lie (or say nothing): partition again on the points' own root.
         for r in &runs {
             let _ = std::fs::remove_file(&r.path);
         }
         ds.progress.stage("partitioning again (the headers' bounds are wrong)", total, "points");
-        (runs, hist, _, _) = partition(ds, root, opts, block_bytes, state)?;
+        (runs, hist, _, _) = partition(ds, root, grid, max_level, block_bytes, state)?;
     }
-    Ok(Partition { root, runs, hist, all, warnings })
+    Ok(Partition { root, runs, hist, all, warnings, base: grid.base })
+}
+
+/// The integer grid the runs hold positions on: `(p - base) * m` per axis (the identity for
+/// builds; exports of axes with different scales stretch them to cubic cells).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+struct Grid {
+    base: [i64; 3],
+    m: [i64; 3],
+}
+
+impl Grid {
+    const IDENTITY: Grid = Grid { base: [0; 3], m: [1; 3] };
+    fn is_identity(&self) -> bool {
+        *self == Self::IDENTITY
+    }
+    fn clamp(v: i64) -> i32 {
+        v.clamp(i32::MIN as i64, i32::MAX as i64) as i32
+    }
+    #[inline]
+    fn apply(&self, p: [i32; 3]) -> [i32; 3] {
+        if self.is_identity() {
+            return p;
+        }
+        [0, 1, 2].map(|a| Self::clamp((p[a] as i64 - self.base[a]) * self.m[a]))
+    }
 }
 
 /// The cell (at depth `depth` of `root`) of a record, from its code on the root's grid.
 #[inline]
-fn cell_of(r: &[u8], g: &MortonGrid, root: Cube, depth: u8) -> usize {
+fn cell_of(q: [i32; 3], g: &MortonGrid, root: Cube, depth: u8) -> usize {
     let high = 3 * (root.size_log2 as u32).min(mortar_core::morton::BITS_PER_AXIS);
-    let q = read_xyz(r);
     let code = g.code([q[0] as i64, q[1] as i64, q[2] as i64]);
     ((code >> (high - 3 * depth as u32)) as usize).min((1usize << (3 * depth as u32)) - 1)
 }
@@ -443,10 +494,10 @@ fn cell_of(r: &[u8], g: &MortonGrid, root: Cube, depth: u8) -> usize {
 /// Pass 1: reads every piece once and writes the run files; the cells' counts, the statistics
 /// of all points and of each input.
 #[allow(clippy::type_complexity)]
-fn partition(ds: &Dataset, root: Cube, opts: &BuildOptions, block_bytes: usize, dir: &Path) -> Result<(Vec<Run>, Vec<u64>, PieceStats, Vec<PieceStats>)> {
+fn partition(ds: &Dataset, root: Cube, grid: Grid, max_level: u8, block_bytes: usize, dir: &Path) -> Result<(Vec<Run>, Vec<u64>, PieceStats, Vec<PieceStats>)> {
     let rl = ds.layout.record_len;
     let el = rl + 8;
-    let depth = cell_depth(root, opts.config.max_level);
+    let depth = cell_depth(root, max_level);
     let cells = 1usize << (3 * depth as u32);
     let g = grid_of(root);
     let pieces = ds.pieces();
@@ -474,7 +525,7 @@ fn partition(ds: &Dataset, root: Cube, opts: &BuildOptions, block_bytes: usize, 
                 }
                 let mut h = vec![0u32; cells];
                 for r in slab.chunks_exact(rl) {
-                    h[cell_of(r, &g, root, depth)] += 1;
+                    h[cell_of(grid.apply(read_xyz(r)), &g, root, depth)] += 1;
                 }
                 let st = PieceStats::of(&slab, &ds.layout);
                 Ok((slab, st, h))
@@ -500,12 +551,19 @@ fn partition(ds: &Dataset, root: Cube, opts: &BuildOptions, block_bytes: usize, 
                 let bp = &bp;
                 let piece = (i + k) as u64;
                 for (x, r) in slab.chunks_exact(rl).enumerate() {
-                    let c = cell_of(r, &g, root, depth);
+                    let q = grid.apply(read_xyz(r));
+                    let c = cell_of(q, &g, root, depth);
                     let at = cur[c];
                     cur[c] += 1;
                     // SAFETY: the cursors of all pieces partition 0..n; each slot is written once.
                     unsafe {
                         std::ptr::copy_nonoverlapping(r.as_ptr(), bp.0.add(at * rl), rl);
+                        if !grid.is_identity() {
+                            let q = q.map(i32::to_le_bytes);
+                            for (a, b) in q.iter().enumerate() {
+                                std::ptr::copy_nonoverlapping(b.as_ptr(), bp.0.add(at * rl + 4 * a), 4);
+                            }
+                        }
                         std::ptr::copy_nonoverlapping((piece << 32 | x as u64).to_ne_bytes().as_ptr(), bp.0.add(n * rl + at * 8), 8);
                     }
                 }
@@ -626,58 +684,8 @@ impl Walk<'_, '_> {
         let rl = self.rl;
         let n = count as usize;
         let ts = Instant::now();
-        let mut records = sort::zeroed_huge::<u8>(n * rl);
-        let mut arrival = sort::zeroed_huge::<u64>(n);
-        // Each run's share, read in parallel straight into place (runs in input order).
-        let mut parts: Vec<(&Run, &mut [u8], &mut [u64])> = Vec::with_capacity(self.runs.len());
-        {
-            let (mut rr, mut ar): (&mut [u8], &mut [u64]) = (&mut records, &mut arrival);
-            for run in self.runs {
-                let m = (run.starts[cells.end] - run.starts[cells.start]) as usize;
-                if m > ar.len() {
-                    return Err(Error::input(&self.writer.dir, "internal: the run files hold more points than counted"));
-                }
-                let (x, y) = std::mem::take(&mut rr).split_at_mut(m * rl);
-                let (u, v) = std::mem::take(&mut ar).split_at_mut(m);
-                parts.push((run, x, u));
-                rr = y;
-                ar = v;
-            }
-            if !ar.is_empty() {
-                return Err(Error::input(&self.writer.dir, "internal: the run files hold fewer points than counted"));
-            }
-        }
-        let cs = cells.start;
-        parts.into_par_iter().try_for_each(|(run, recs, arr)| -> Result<()> {
-            if arr.is_empty() {
-                return Ok(());
-            }
-            let total = *run.starts.last().expect("a run has an end");
-            let first = run.starts[cs];
-            let mut f = std::fs::File::open(&run.path).map_err(|e| Error::io(&run.path, e))?;
-            f.seek(SeekFrom::Start(first * rl as u64)).map_err(|e| Error::io(&run.path, e))?;
-            f.read_exact(recs).map_err(|e| Error::io(&run.path, e))?;
-            f.seek(SeekFrom::Start(total * rl as u64 + first * 8)).map_err(|e| Error::io(&run.path, e))?;
-            f.read_exact(bytemuck::cast_slice_mut(arr)).map_err(|e| Error::io(&run.path, e))
-        })?;
-        // Sorted as the sorted engine sorts (buckets below the unit's own prefix): local order
-        // is input order, so ties come out the same.
-        let g = grid_of(self.root);
-        let high = 3 * (self.root.size_log2 as u32).min(mortar_core::morton::BITS_PER_AXIS);
-        let unit_level = key.level as u32;
-        let shift = high.saturating_sub(3 * unit_level.min(high / 3)).saturating_sub(BUCKET_BITS);
-        let sorted: Sorted = if n == 0 {
-            Sorted { records: Vec::new(), arrival: Vec::new(), rl }
-        } else {
-            // Slabs of the unit, so that the histograms and the scatter run on every thread.
-            const SLAB: usize = 1 << 16;
-            let slabs: Vec<&[u8]> = records.chunks(SLAB * rl).collect();
-            let hist: Vec<Vec<u32>> = slabs.par_iter().map(|s| histogram(s, rl, &g, shift)).collect();
-            sort_records(&slabs, &hist, rl, &g, shift, &crate::progress::Progress::new(), |p, i| arrival[p * SLAB + i])
-        };
+        let sorted = read_unit(self.runs, self.root, key, cells, count, rl, &self.writer.dir)?;
         self.ds.progress.add(count);
-        drop(records);
-        drop(arrival);
         self.report.sort_seconds += ts.elapsed().as_secs_f64();
         let tt = Instant::now();
         let pos = |i: usize| read_xyz(sorted.record(i));
@@ -735,4 +743,61 @@ impl Walk<'_, '_> {
         }
         Ok(out)
     }
+}
+
+/// The points of the partition cells `cells` (those of node `key`, `count` of them) read back
+/// from every run and sorted as the sorted engine sorts: a unit's points, ready for
+/// [`build_subtree`]. `dir` names the place in errors.
+pub(crate) fn read_unit(runs: &[Run], root: Cube, key: NodeKey, cells: std::ops::Range<usize>, count: u64, rl: usize, dir: &Path) -> Result<Sorted> {
+    let n = count as usize;
+    let mut records = sort::zeroed_huge::<u8>(n * rl);
+    let mut arrival = sort::zeroed_huge::<u64>(n);
+    // Each run's share, read in parallel straight into place (runs in input order).
+    let mut parts: Vec<(&Run, &mut [u8], &mut [u64])> = Vec::with_capacity(runs.len());
+    {
+        let (mut rr, mut ar): (&mut [u8], &mut [u64]) = (&mut records, &mut arrival);
+        for run in runs {
+            let m = (run.starts[cells.end] - run.starts[cells.start]) as usize;
+            if m > ar.len() {
+                return Err(Error::input(dir, "internal: the run files hold more points than counted"));
+            }
+            let (x, y) = std::mem::take(&mut rr).split_at_mut(m * rl);
+            let (u, v) = std::mem::take(&mut ar).split_at_mut(m);
+            parts.push((run, x, u));
+            rr = y;
+            ar = v;
+        }
+        if !ar.is_empty() {
+            return Err(Error::input(dir, "internal: the run files hold fewer points than counted"));
+        }
+    }
+    let cs = cells.start;
+    parts.into_par_iter().try_for_each(|(run, recs, arr)| -> Result<()> {
+        if arr.is_empty() {
+            return Ok(());
+        }
+        let total = *run.starts.last().expect("a run has an end");
+        let first = run.starts[cs];
+        let mut f = std::fs::File::open(&run.path).map_err(|e| Error::io(&run.path, e))?;
+        f.seek(SeekFrom::Start(first * rl as u64)).map_err(|e| Error::io(&run.path, e))?;
+        f.read_exact(recs).map_err(|e| Error::io(&run.path, e))?;
+        f.seek(SeekFrom::Start(total * rl as u64 + first * 8)).map_err(|e| Error::io(&run.path, e))?;
+        f.read_exact(bytemuck::cast_slice_mut(arr)).map_err(|e| Error::io(&run.path, e))
+    })?;
+    // Sorted as the sorted engine sorts (buckets below the unit's own prefix): local order
+    // is input order, so ties come out the same.
+    let g = grid_of(root);
+    let high = 3 * (root.size_log2 as u32).min(mortar_core::morton::BITS_PER_AXIS);
+    let unit_level = key.level as u32;
+    let shift = high.saturating_sub(3 * unit_level.min(high / 3)).saturating_sub(BUCKET_BITS);
+    let sorted: Sorted = if n == 0 {
+        Sorted { records: Vec::new(), arrival: Vec::new(), rl }
+    } else {
+        // Slabs of the unit, so that the histograms and the scatter run on every thread.
+        const SLAB: usize = 1 << 16;
+        let slabs: Vec<&[u8]> = records.chunks(SLAB * rl).collect();
+        let hist: Vec<Vec<u32>> = slabs.par_iter().map(|s| histogram(s, rl, &g, shift)).collect();
+        sort_records(&slabs, &hist, rl, &g, shift, &crate::progress::Progress::new(), |p, i| arrival[p * SLAB + i])
+    };
+    Ok(sorted)
 }

@@ -1,0 +1,208 @@
+//! The export of inputs larger than `--memory`: the partitioned engine of `mortar build`
+//! (`store/partitioned.rs`) with the export's writers as its sink.
+//!
+//! 1. Pass 1 of the partitioned engine: every piece read once, its records scattered by their
+//!    cell at depth `D` of the root into run files in a temporary directory beside the output.
+//! 2. The tree's top is walked depth first. A node whose points fit one unit's budget is a unit:
+//!    its points are read back and sorted, [`build_subtree`] makes its subtree, and
+//!    [`assign`](super::assign) gives each of its points to one node, starting with the unit's
+//!    candidates marked as taken. That is exact: an inner node's voxels are its children's
+//!    candidates end to end, so every candidate a unit hands up is a voxel of the node above
+//!    it and is held there or higher, and no other point of the unit is held above it. The
+//!    unit's nodes are written at once.
+//! 3. A node above the units holds its voxels (its children's candidates) less those it hands
+//!    its own parent; it is written when its children are done.
+//!
+//! The nodes and their points are those of the in-memory export (the tree is the sorted
+//! engine's; `tests/export.rs` compares both node by node); the nodes come in another order in
+//! the file. Axes with different scales are stretched as in memory: the run files hold the
+//! stretched positions (base: the points' smallest position, so such inputs are read twice).
+//! Refused: a partition cell denser than one unit's budget.
+
+use super::{assign, open_writer, output_layout, stretch_factors, ExportOptions, ExportReport, Frame, NodeWriter, OutNode, PointOrder, Stretch, GROUP_BYTES};
+use crate::cleanup::TempPath;
+use crate::dataset::Dataset;
+use crate::error::{Error, Result};
+use crate::sort;
+use crate::store::partitioned::{cell_depth, partition_all, read_unit, unit_bytes_per_point, Cands, Run};
+use mortar_core::layout::{read_xyz, Conversion};
+use mortar_core::octree::{build_subtree, earliest_in_parent_cells, Cube, NodeKey};
+use rayon::prelude::*;
+use std::path::Path;
+use std::time::Instant;
+
+/// Exports `ds` through run files; returns the tree's shape.
+pub(crate) fn export(ds: &Dataset, out: &Path, opts: &ExportOptions, report: &mut ExportReport) -> Result<Vec<OutNode>> {
+    let t0 = Instant::now();
+    let first = ds.inputs[0].path();
+    let (layout, conv) = output_layout(&ds.layout).map_err(|e| Error::input(first, e))?;
+    let m = stretch_factors(ds.grid.scale).map_err(|e| Error::input(first, e))?;
+    let parent = out.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    let state = TempPath::dir_in(parent, "export-runs").map_err(|e| Error::io(parent, e))?;
+    let mut header_warnings = Vec::new();
+    let header = crate::store::header_bounds_of(ds, &mut header_warnings);
+    let part = partition_all(ds, opts.memory, opts.config.max_level, m, header, state.path())?;
+    report.warnings.extend(header_warnings);
+    report.warnings.extend(part.warnings.iter().cloned());
+    report.read_seconds = t0.elapsed().as_secs_f64();
+    if part.all.count == 0 {
+        return Err(Error::input(first, "no points to export"));
+    }
+    let rl = ds.layout.record_len;
+    let unit_points = ((opts.memory / 2) / unit_bytes_per_point(rl as u64)).max(opts.config.leaf_capacity as u64 + 1);
+    if let Some(c) = part.hist.iter().max().filter(|&&c| c > unit_points) {
+        return Err(Error::Usage(format!(
+            "one cell of the partition holds {c} points, more than --memory ({} MiB) lets one unit hold ({unit_points}); give more --memory",
+            opts.memory >> 20
+        )));
+    }
+    let stretch = Stretch { base: part.base, m };
+    let frame = Frame::of(ds, layout, &stretch, part.root);
+    report.point_format = frame.out.format;
+    let out_rl = frame.out.record_len;
+    let mut writer = open_writer(ds, frame, out, opts.format, report)?;
+    ds.progress.stage("building and writing", part.all.count, "points");
+    let gps = match opts.order {
+        PointOrder::GpsTime => ds.layout.attribute("gps_time").map(|a| a.offset),
+        PointOrder::Morton => None,
+    };
+    let mut w = Walk {
+        ds,
+        opts,
+        runs: &part.runs,
+        hist: &part.hist,
+        depth: cell_depth(part.root, opts.config.max_level),
+        root: part.root,
+        unit_points,
+        rl,
+        out_rl,
+        conv,
+        stretch,
+        gps,
+        writer: &mut *writer,
+        tree: Vec::new(),
+        dir: state.path().to_path_buf(),
+        report: &mut *report,
+    };
+    w.visit(NodeKey::ROOT, part.root, 0, 0..part.hist.len())?;
+    let tree = std::mem::take(&mut w.tree);
+    let tw = Instant::now();
+    writer.finish(&tree, &part.all, report)?;
+    report.write_seconds += tw.elapsed().as_secs_f64();
+    drop(state);
+    Ok(tree)
+}
+
+/// The depth-first walk over the tree's top.
+struct Walk<'a, 'w> {
+    ds: &'a Dataset,
+    opts: &'a ExportOptions,
+    runs: &'a [Run],
+    hist: &'a [u64],
+    /// Depth of the partition cells.
+    depth: u8,
+    root: Cube,
+    unit_points: u64,
+    rl: usize,
+    out_rl: usize,
+    conv: Option<Conversion>,
+    stretch: Stretch,
+    /// Offset of the GPS time in the input records, when nodes are ordered by it.
+    gps: Option<usize>,
+    writer: &'w mut dyn NodeWriter,
+    /// Every node written or with written nodes below.
+    tree: Vec<OutNode>,
+    dir: std::path::PathBuf,
+    report: &'w mut ExportReport,
+}
+
+impl Walk<'_, '_> {
+    /// Exports node `key` (cube `cube`, at `depth`, over the partition cells `cells`) and
+    /// everything under it; returns its candidates for its parent and whether it is kept.
+    fn visit(&mut self, key: NodeKey, cube: Cube, depth: u8, cells: std::ops::Range<usize>) -> Result<(Cands, bool)> {
+        sort::check_interrupted()?;
+        let count: u64 = self.hist[cells.clone()].iter().sum();
+        if count == 0 {
+            return Ok((Cands::default(), false));
+        }
+        if depth == self.depth || count <= self.unit_points {
+            return self.unit(key, cube, cells, count);
+        }
+        // More points than a unit, so more than a leaf, in a cube that may split: inner.
+        let step = cells.len() / 8;
+        let mut voxels = Cands::default();
+        let mut children = 0u8;
+        for o in 0..8 {
+            let c = cells.start + o * step..cells.start + (o + 1) * step;
+            let (kid, kept) = self.visit(key.child(o), cube.child(o), depth + 1, c)?;
+            if kept {
+                children |= 1 << o;
+            }
+            voxels.append(kid);
+        }
+        let rl = self.rl;
+        let n = voxels.pos.len();
+        let up = if key.level > 0 { earliest_in_parent_cells(cube, 0..n, |i| voxels.pos[i], |i| voxels.arrival[i]) } else { Vec::new() };
+        let mut above = vec![false; n];
+        for &i in &up {
+            above[i] = true;
+        }
+        let mut own: Vec<usize> = (0..n).filter(|&i| !above[i]).collect();
+        if let Some(o) = self.gps {
+            let t = |i: usize| f64::from_le_bytes(voxels.records[i * rl + o..i * rl + o + 8].try_into().expect("8 bytes"));
+            own.sort_by(|a, b| t(*a).total_cmp(&t(*b)));
+        }
+        if !own.is_empty() {
+            let recs = super::output_records(own.iter().map(|&i| &voxels.records[i * rl..(i + 1) * rl]), own.len(), rl, self.out_rl, &self.conv, &self.stretch);
+            let tw = Instant::now();
+            self.writer.write_nodes(vec![(key, recs)])?;
+            self.report.write_seconds += tw.elapsed().as_secs_f64();
+        }
+        let kept = !own.is_empty() || children != 0;
+        if kept {
+            self.tree.push(OutNode { key, points: Vec::new(), children });
+        }
+        let mut out = Cands::default();
+        for i in up {
+            out.push(voxels.pos[i], voxels.arrival[i], &voxels.records[i * rl..(i + 1) * rl]);
+        }
+        Ok((out, kept))
+    }
+
+    /// Reads a unit's points back, builds, assigns and writes its subtree.
+    fn unit(&mut self, key: NodeKey, cube: Cube, cells: std::ops::Range<usize>, count: u64) -> Result<(Cands, bool)> {
+        let rl = self.rl;
+        let n = count as usize;
+        let ts = Instant::now();
+        let sorted = read_unit(self.runs, self.root, key, cells, count, rl, &self.dir)?;
+        self.report.sort_seconds += ts.elapsed().as_secs_f64();
+        let tt = Instant::now();
+        let pos = |i: usize| read_xyz(sorted.record(i));
+        let arr = |i: usize| sorted.arrival[i];
+        let sub = build_subtree(key, cube, n, &pos, &arr, self.opts.config).map_err(|e| Error::Usage(format!("octree: {e}")))?;
+        let mut nodes = sub.nodes;
+        // Level by level, depth-first (= Morton) order in a level, as `assign` wants.
+        nodes.sort_by_key(|x| x.key.level);
+        let assigned = assign(&nodes, n, &sorted, &self.ds.layout, self.opts.order, &sub.candidates);
+        drop(nodes);
+        self.report.tree_seconds += tt.elapsed().as_secs_f64();
+        let tw = Instant::now();
+        for grp in super::groups(&assigned, self.out_rl, GROUP_BYTES) {
+            let batch: Vec<(NodeKey, Vec<u8>)> = assigned[grp]
+                .par_iter()
+                .filter(|x| !x.points.is_empty())
+                .map(|x| (x.key, super::output_records(x.points.iter().map(|&i| sorted.record(i as usize)), x.points.len(), rl, self.out_rl, &self.conv, &self.stretch)))
+                .collect();
+            self.writer.write_nodes(batch)?;
+        }
+        self.report.write_seconds += tw.elapsed().as_secs_f64();
+        let kept = assigned.iter().any(|x| x.key == key);
+        self.tree.extend(assigned.iter().map(OutNode::shape));
+        let mut out = Cands::default();
+        for &i in &sub.candidates {
+            let r = sorted.record(i as usize);
+            out.push(read_xyz(r), sorted.arrival[i as usize], r);
+        }
+        Ok((out, kept))
+    }
+}
