@@ -9,7 +9,7 @@ use std::path::PathBuf;
 #[derive(clap::Args)]
 pub struct Args {
     /// LAS/LAZ files, batch files, stores, directories, glob patterns, or - for stdin.
-    #[arg(required_unless_present = "compact")]
+    #[arg(required_unless_present_any = ["compact", "plan"])]
     pub inputs: Vec<String>,
     /// The store directory to create (must not exist, or be empty).
     #[arg(short, long, required_unless_present = "compact")]
@@ -19,6 +19,13 @@ pub struct Args {
     /// node versions). Run it when no build writes the store.
     #[arg(long, value_name = "STORE", conflicts_with_all = ["inputs", "resume"])]
     pub compact: Option<PathBuf>,
+    /// Build one job of a plan (`mortar plan`) into a part for `mortar merge`: its inputs and
+    /// tree come from the plan; -o names the part's directory (an earlier attempt is replaced).
+    #[arg(long, requires = "job", conflicts_with_all = ["inputs", "compact", "resume"])]
+    pub plan: Option<PathBuf>,
+    /// The job of --plan to build (0 to jobs - 1).
+    #[arg(long, requires = "plan")]
+    pub job: Option<usize>,
     /// Most points per leaf.
     #[arg(long, default_value_t = DEFAULT_LEAF_CAPACITY)]
     pub leaf_capacity: u32,
@@ -75,6 +82,22 @@ pub fn run(a: Args) -> Result<()> {
         return Ok(());
     }
     let Some(output) = a.output.clone() else { anyhow::bail!("give the store directory with -o") };
+    if let (Some(plan), Some(job)) = (&a.plan, a.job) {
+        let plan = mortar_io::store::distributed::Plan::read(plan)?;
+        let paths: Vec<String> = plan.inputs.iter().map(|i| i.path.clone()).collect();
+        let ds = common::open_dataset(&paths, &common::CrsArgs::default())?;
+        let bar = common::progress_bar("mortar build (job)", &ds.progress);
+        let r = mortar_io::store::distributed::build_job(&ds, &plan, job, &output, a.memory)?;
+        drop(bar);
+        common::print_warnings(&r.warnings);
+        if a.json {
+            let mut j = serde_json::to_value(&r)?;
+            j["output"] = serde_json::json!(output);
+            j["peak_rss_bytes"] = serde_json::json!(common::peak_rss_bytes());
+            println!("{}", serde_json::to_string_pretty(&j)?);
+        }
+        return Ok(());
+    }
     if a.leaf_capacity == 0 {
         anyhow::bail!("--leaf-capacity must be at least 1");
     }

@@ -7,6 +7,8 @@ mod build_frames;
 mod export;
 mod common;
 mod info;
+mod merge;
+mod plan;
 mod progressive;
 mod render;
 mod render_lod;
@@ -42,6 +44,10 @@ enum Cmd {
     Render(render::Args),
     /// Build an octree LOD store (paper 004) from LAS/LAZ or batch files.
     Build(build::Args),
+    /// Split a build into independent jobs (for a cluster): a plan for `build --plan --job`.
+    Plan(plan::Args),
+    /// Join the parts of a planned build into one store.
+    Merge(merge::Args),
     /// Export the octree for other tools: one COPC 1.0 file or a Potree 2.0 directory.
     Export(export::Args),
     /// Show a batch file, a store (LOD) or raw LAS/LAZ (progressive) in a window (orbit, pan, zoom).
@@ -82,6 +88,8 @@ fn main() {
         Cmd::Render(a) => render::run(a),
         Cmd::Build(a) => build::run(a),
         Cmd::Export(a) => export::run(a),
+        Cmd::Plan(a) => plan::run(a),
+        Cmd::Merge(a) => merge::run(a),
         Cmd::View(a) => view::run(a),
     };
     if let Err(e) = r {

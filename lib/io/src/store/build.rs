@@ -112,36 +112,36 @@ pub struct BuildReport {
 /// The integer bounds the inputs' headers declare (one unit of margin), on the merged grid, with
 /// a warning for each input whose header bounds are not usable; `None` when no header is.
 pub(crate) fn header_bounds(ds: &Dataset, warnings: &mut Vec<String>) -> Option<([i32; 3], [i32; 3])> {
-    let (mut lo, mut hi) = ([i64::MAX; 3], [i64::MIN; 3]);
+    let (mut lo, mut hi) = ([i32::MAX; 3], [i32::MIN; 3]);
     for src in &ds.inputs {
-        let h = src.header();
         if src.point_count() == 0 {
             continue;
         }
-        if src.point_count() > 1 && (0..3).all(|a| h.min[a] == 0.0 && h.max[a] == 0.0) {
-            warnings.push(format!("{}: the header's bounds are all zero (not set by the writer); the octree is placed from the points", src.path().display()));
-            continue;
-        }
-        if let Some(a) = (0..3).find(|&a| !(h.min[a].is_finite() && h.max[a].is_finite()) || h.min[a] > h.max[a]) {
-            warnings.push(format!(
-                "{}: the header's bounds on axis {} are not usable ({} .. {}); the octree is placed from the points",
-                src.path().display(),
-                ['x', 'y', 'z'][a],
-                h.min[a],
-                h.max[a]
-            ));
-            continue;
-        }
-        for a in 0..3 {
-            lo[a] = lo[a].min(ds.grid.to_int(a, h.min[a]).saturating_sub(1));
-            hi[a] = hi[a].max(ds.grid.to_int(a, h.max[a]).saturating_add(1));
+        match header_box(ds, src.as_ref()) {
+            Ok((l, h)) => {
+                for a in 0..3 {
+                    lo[a] = lo[a].min(l[a]);
+                    hi[a] = hi[a].max(h[a]);
+                }
+            }
+            Err(why) => warnings.push(format!("{}: {why}; the octree is placed from the points", src.path().display())),
         }
     }
-    if lo[0] > hi[0] {
-        return None;
+    (lo[0] <= hi[0]).then_some((lo, hi))
+}
+
+/// The integer box the header of `src` declares (one unit of margin), on the merged grid, or
+/// why it is not usable.
+pub(crate) fn header_box(ds: &Dataset, src: &dyn RecordSource) -> std::result::Result<([i32; 3], [i32; 3]), String> {
+    let h = src.header();
+    if src.point_count() > 1 && (0..3).all(|a| h.min[a] == 0.0 && h.max[a] == 0.0) {
+        return Err("the header's bounds are all zero (not set by the writer)".into());
+    }
+    if let Some(a) = (0..3).find(|&a| !(h.min[a].is_finite() && h.max[a].is_finite()) || h.min[a] > h.max[a]) {
+        return Err(format!("the header's bounds on axis {} are not usable ({} .. {})", ['x', 'y', 'z'][a], h.min[a], h.max[a]));
     }
     let c = |v: i64| v.clamp(i32::MIN as i64, i32::MAX as i64) as i32;
-    Some((lo.map(c), hi.map(c)))
+    Ok(([0, 1, 2].map(|a| c(ds.grid.to_int(a, h.min[a]).saturating_sub(1))), [0, 1, 2].map(|a| c(ds.grid.to_int(a, h.max[a]).saturating_add(1)))))
 }
 
 /// A warning when the points of `src` (`st`, on the merged grid) reach outside the bounds its

@@ -29,6 +29,7 @@ mod build;
 mod compact;
 pub(crate) mod engine;
 pub(crate) mod partitioned;
+pub mod distributed;
 mod format;
 mod incremental;
 mod reader;

@@ -419,7 +419,7 @@ pub(crate) fn partition_all(ds: &Dataset, memory: u64, max_level: u8, stretch: [
     };
     let block_bytes = ((memory / 4).max(rl as u64 * 4096)) as usize;
     ds.progress.stage("partitioning", total, "points");
-    let (mut runs, mut hist, all, real) = partition(ds, guess.1, guess.0, max_level, block_bytes, state)?;
+    let (mut runs, mut hist, all, real) = partition(ds, guess.1, guess.0, max_level, block_bytes, state, None)?;
     let mut warnings = Vec::new();
     for (src, st) in ds.inputs.iter().zip(&real) {
         if let Some(w) = super::build::bounds_warning(ds, src.as_ref(), st) {
@@ -453,7 +453,7 @@ pub(crate) fn partition_all(ds: &Dataset, memory: u64, max_level: u8, stretch: [
             let _ = std::fs::remove_file(&r.path);
         }
         ds.progress.stage("partitioning again (the headers' bounds are wrong)", total, "points");
-        (runs, hist, _, _) = partition(ds, root, grid, max_level, block_bytes, state)?;
+        (runs, hist, _, _) = partition(ds, root, grid, max_level, block_bytes, state, None)?;
     }
     Ok(Partition { root, runs, hist, all, warnings, base: grid.base })
 }
@@ -494,13 +494,16 @@ fn cell_of(q: [i32; 3], g: &MortonGrid, root: Cube, depth: u8) -> usize {
 /// Pass 1: reads every piece once and writes the run files; the cells' counts, the statistics
 /// of all points and of each input.
 #[allow(clippy::type_complexity)]
-fn partition(ds: &Dataset, root: Cube, grid: Grid, max_level: u8, block_bytes: usize, dir: &Path) -> Result<(Vec<Run>, Vec<u64>, PieceStats, Vec<PieceStats>)> {
+fn partition(ds: &Dataset, root: Cube, grid: Grid, max_level: u8, block_bytes: usize, dir: &Path, filter: Option<&Filter>) -> Result<(Vec<Run>, Vec<u64>, PieceStats, Vec<PieceStats>)> {
     let rl = ds.layout.record_len;
     let el = rl + 8;
     let depth = cell_depth(root, max_level);
     let cells = 1usize << (3 * depth as u32);
     let g = grid_of(root);
-    let pieces = ds.pieces();
+    // The pieces read (all, or those a filter keeps), each with its number in the dataset: the
+    // arrival numbers are those of a build that reads every piece.
+    let pieces: Vec<(usize, crate::dataset::DatasetPiece)> = ds.pieces().into_iter().enumerate().filter(|(k, _)| filter.is_none_or(|f| f.pieces[*k])).collect();
+    let wanted = |c: usize| filter.is_none_or(|f| f.cells[c]);
     let mut runs = Vec::new();
     let mut hist = vec![0u64; cells];
     let mut all = PieceStats::default();
@@ -510,22 +513,25 @@ fn partition(ds: &Dataset, root: Cube, grid: Grid, max_level: u8, block_bytes: u
         sort::check_interrupted()?;
         let mut j = i;
         let mut bytes = 0usize;
-        while j < pieces.len() && (j == i || bytes + pieces[j].piece.points as usize * rl <= block_bytes) {
-            bytes += pieces[j].piece.points as usize * rl;
+        while j < pieces.len() && (j == i || bytes + pieces[j].1.piece.points as usize * rl <= block_bytes) {
+            bytes += pieces[j].1.piece.points as usize * rl;
             j += 1;
         }
         // Decoded (or borrowed) in parallel, with the counts per cell made while in cache.
         let group: Vec<(std::borrow::Cow<'_, [u8]>, PieceStats, Vec<u32>)> = (i..j)
             .into_par_iter()
             .map(|k| {
-                let p = &pieces[k];
+                let p = &pieces[k].1;
                 let slab = ds.read_piece(p)?;
                 if slab.len() as u64 != p.piece.points * rl as u64 {
                     return Err(Error::input(ds.inputs[p.input].path(), format!("piece {} holds another number of points than declared", p.piece.index)));
                 }
                 let mut h = vec![0u32; cells];
                 for r in slab.chunks_exact(rl) {
-                    h[cell_of(grid.apply(read_xyz(r)), &g, root, depth)] += 1;
+                    let c = cell_of(grid.apply(read_xyz(r)), &g, root, depth);
+                    if wanted(c) {
+                        h[c] += 1;
+                    }
                 }
                 let st = PieceStats::of(&slab, &ds.layout);
                 Ok((slab, st, h))
@@ -549,10 +555,13 @@ fn partition(ds: &Dataset, root: Cube, grid: Grid, max_level: u8, block_bytes: u
             let bp = super::engine::SendPtr(buf.as_mut_ptr());
             group.par_iter().zip(cursors.into_par_iter()).enumerate().for_each(|(k, ((slab, _, _), mut cur))| {
                 let bp = &bp;
-                let piece = (i + k) as u64;
+                let piece = pieces[i + k].0 as u64;
                 for (x, r) in slab.chunks_exact(rl).enumerate() {
                     let q = grid.apply(read_xyz(r));
                     let c = cell_of(q, &g, root, depth);
+                    if !wanted(c) {
+                        continue;
+                    }
                     let at = cur[c];
                     cur[c] += 1;
                     // SAFETY: the cursors of all pieces partition 0..n; each slot is written once.
@@ -571,12 +580,12 @@ fn partition(ds: &Dataset, root: Cube, grid: Grid, max_level: u8, block_bytes: u
         }
         for (k, (_, st, h)) in group.iter().enumerate() {
             all.merge(st);
-            real[pieces[i + k].input].merge(st);
+            real[pieces[i + k].1.input].merge(st);
             for c in 0..cells {
                 hist[c] += h[c] as u64;
             }
         }
-        for p in &pieces[i..j] {
+        for (_, p) in &pieces[i..j] {
             ds.inputs[p.input].release_piece(&p.piece);
         }
         drop(group);
@@ -800,4 +809,48 @@ pub(crate) fn read_unit(runs: &[Run], root: Cube, key: NodeKey, cells: std::ops:
         sort_records(&slabs, &hist, rl, &g, shift, &crate::progress::Progress::new(), |p, i| arrival[p * SLAB + i])
     };
     Ok(sorted)
+}
+
+/// What a job of a distributed build reads ([`super::distributed`]): the dataset's pieces
+/// (by number) and the partition cells it keeps.
+pub(crate) struct Filter {
+    pub pieces: Vec<bool>,
+    pub cells: Vec<bool>,
+}
+
+/// Pass 1 on a root fixed beforehand (a plan's), reading only what `filter` keeps: the runs,
+/// the cells' counts of the points kept, their statistics and those of every piece read, per
+/// input (to check the files against the bounds the plan took for them).
+pub(crate) fn partition_fixed(ds: &Dataset, root: Cube, max_level: u8, memory: u64, filter: &Filter, dir: &Path) -> Result<(Vec<Run>, Vec<u64>, PieceStats, Vec<PieceStats>)> {
+    let block_bytes = ((memory / 4).max(ds.layout.record_len as u64 * 4096)) as usize;
+    partition(ds, root, Grid::IDENTITY, max_level, block_bytes, dir, Some(filter))
+}
+
+/// The nodes a distributed job wrote: (level, depth-first number, entry) of each, the
+/// candidates of each unit for its parent, and the points in the leaves.
+pub(crate) type Units = (Vec<(u32, u64, NodeEntry)>, Vec<Cands>, u64);
+
+/// Builds the subtrees `units` (key, cube, partition cells) from the runs into `writer`, each
+/// as the partitioned engine builds a node and everything under it, with `color` for the
+/// payloads.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn build_units(ds: &Dataset, writer: &mut StoreWriter, config: mortar_core::octree::BuilderConfig, memory: u64, root: Cube, runs: &[Run], hist: &[u64], units: &[(NodeKey, Cube, std::ops::Range<usize>)], color: ColorSource, state: &Path) -> Result<Units> {
+    let rl = ds.layout.record_len;
+    let opts = BuildOptions { config, batch_points: 0, commit_every: f64::INFINITY, first_commit_after: None, memory, engine: super::build::Engine::Partitioned, resume: false };
+    let unit_points = ((memory / 2) / unit_bytes_per_point(rl as u64)).max(config.leaf_capacity as u64 + 1);
+    if let Some(c) = hist.iter().max().filter(|&&c| c > unit_points) {
+        return Err(Error::Usage(format!("one cell of the partition holds {c} points, more than --memory ({} MiB) lets one unit hold ({unit_points}); give more --memory", memory >> 20)));
+    }
+    let log_path = state.join(LOG);
+    let log = std::fs::OpenOptions::new().create(true).append(true).open(&log_path).map_err(|e| Error::io(&log_path, e))?;
+    let mut report = BuildReport::default();
+    let depth = cell_depth(root, config.max_level);
+    let mut w = Walk { ds, writer, opts: &opts, runs, hist, depth, root, unit_points, color, rl, entries: Vec::new(), hashes: Vec::new(), seq: 0, points: 0, report: &mut report, replay: Default::default(), log, log_path };
+    let mut cands = Vec::with_capacity(units.len());
+    for (key, cube, cells) in units {
+        // An empty subtree too: it is an empty leaf where its parent is inner.
+        cands.push(w.visit(*key, *cube, key.level, cells.clone())?);
+    }
+    let Walk { entries, points, .. } = w;
+    Ok((entries, cands, points))
 }
