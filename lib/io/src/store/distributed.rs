@@ -604,8 +604,8 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> Result<MergeReport> {
     }
     // The nodes above the cut, from the subtrees' candidates; written after the parts' nodes.
     let mut top = Top { subtrees, parts: &parts, plan, color, rl, made: Vec::new(), absorbed: std::collections::HashSet::new() };
-    if let Visit::Small { records, .. } = top.visit(NodeKey::ROOT, plan.root())? {
-        // Few points in all: the root is a leaf.
+    if let Visit::Small { records, unit: false, .. } = top.visit(NodeKey::ROOT, plan.root())? {
+        // Few points in all: the root is a leaf (held as it is where the cut is the root).
         top.leaf(NodeKey::ROOT, &records)?;
     }
     let Top { made, absorbed, .. } = top;

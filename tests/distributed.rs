@@ -1,0 +1,217 @@
+//! Issue 15: a build split by `mortar plan` into jobs (`mortar build --plan --job`) and joined
+//! by `mortar merge` is the store one machine builds: the same entries in the same order and
+//! the same payload bytes, node for node, for N = 1, 2, 7 and 16 jobs, on the samples, on real
+//! files alone and merged, and on a synthetic scan; headers that lie are refused by the jobs
+//! (and planned with --scan); missing, repeated and foreign parts are refused; a job killed
+//! half-way and run again gives the same part.
+
+mod common;
+
+use common::*;
+use mortar_io::store::Store;
+use std::path::{Path, PathBuf};
+
+fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+const LEAF: &str = "3000";
+
+/// The one-machine store of `inputs`.
+fn one_machine(inputs: &[PathBuf], out: &Path) {
+    run_ok(mortar().arg("build").args(inputs).args(["-o", s(out), "--quiet", "--leaf-capacity", LEAF]));
+}
+
+/// Plans `inputs` in `n` jobs, runs every job (with a memory budget that splits them into
+/// units) and merges the parts; the store's path, or the first error.
+fn distributed(inputs: &[PathBuf], n: usize, dir: &Path, scan: bool) -> Result<PathBuf, String> {
+    let plan = dir.join(format!("plan{n}.json"));
+    let mut c = mortar();
+    c.arg("plan").args(inputs).args(["--jobs", &n.to_string(), "-o", s(&plan), "--quiet", "--leaf-capacity", LEAF]);
+    if scan {
+        c.arg("--scan");
+    }
+    let o = c.output().unwrap();
+    if !o.status.success() {
+        return Err(String::from_utf8_lossy(&o.stderr).into());
+    }
+    let mut parts = Vec::new();
+    for i in 0..n {
+        let part = dir.join(format!("n{n}-part{i:02}"));
+        let o = mortar().args(["build", "--plan", s(&plan), "--job", &i.to_string(), "-o", s(&part), "--quiet", "--memory", "32M"]).output().unwrap();
+        if !o.status.success() {
+            assert_eq!(o.status.code(), Some(1));
+            return Err(String::from_utf8_lossy(&o.stderr).into());
+        }
+        parts.push(part);
+    }
+    let store = dir.join(format!("merged{n}"));
+    let o = mortar().arg("merge").args(&parts).args(["-o", s(&store), "--quiet"]).output().unwrap();
+    if !o.status.success() {
+        return Err(String::from_utf8_lossy(&o.stderr).into());
+    }
+    for p in parts {
+        std::fs::remove_dir_all(p).unwrap();
+    }
+    Ok(store)
+}
+
+/// The stores hold the same entries in the same order with the same payloads.
+fn assert_same_store(a: &Path, b: &Path, name: &str) {
+    let (sa, sb) = (Store::open(a).unwrap(), Store::open(b).unwrap());
+    assert_eq!(sa.header.points, sb.header.points, "{name}: points");
+    assert_eq!(sa.root_cube(), sb.root_cube(), "{name}: root");
+    assert_eq!((sa.header.min, sa.header.max), (sb.header.min, sb.header.max), "{name}: bounds");
+    assert_eq!(sa.entries.len(), sb.entries.len(), "{name}: node count");
+    for (i, (x, y)) in sa.entries.iter().zip(&sb.entries).enumerate() {
+        assert_eq!((x.level, x.kind, x.index, x.count, x.length), (y.level, y.kind, y.index, y.count, y.length), "{name}: entry {i}");
+        assert!(sa.node_bytes(i) == sb.node_bytes(i), "{name}: payload of node {i} ({:?})", (x.level, x.index));
+    }
+    let live: u64 = sb.entries.iter().map(|e| e.length).sum();
+    assert_eq!(live, sb.header.nodes_len, "{name}: nodes.bin holds only live payloads");
+}
+
+fn sets() -> Vec<(String, Vec<PathBuf>)> {
+    let mut out: Vec<(String, Vec<PathBuf>)> = std::fs::read_dir(root().join("data-samples"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|e| e == "laz" || e == "las"))
+        .map(|p| (p.file_name().unwrap().to_string_lossy().to_string(), vec![p]))
+        .collect();
+    if let Some(data) = shared_data() {
+        let files = readable_fixtures(&data);
+        let bcts: Vec<PathBuf> = files.iter().filter(|f| f.to_string_lossy().contains("bcts_")).cloned().collect();
+        let ept: Vec<PathBuf> = files.iter().filter(|f| f.to_string_lossy().contains("ept-data/")).take(8).cloned().collect();
+        out.push(("bcts merged".into(), bcts));
+        out.push(("8 EPT tiles merged".into(), ept));
+        // every 12th real file alone, the larger ones first
+        let mut big: Vec<PathBuf> = files.into_iter().filter(|f| std::fs::metadata(f).map(|m| m.len()).unwrap_or(0) > 20_000).collect();
+        big.sort();
+        out.extend(big.into_iter().step_by(12).map(|f| (f.display().to_string(), vec![f])));
+    }
+    out
+}
+
+#[test]
+fn merged_stores_equal_the_one_machine_store() {
+    let d = tempdir("dist-equal");
+    let synth = d.join("synth.las");
+    run_ok(gen().args(["--points", "400000", "--seed", "7", "-o", s(&synth)]));
+    let mut all = sets();
+    all.push(("synthetic 400k".into(), vec![synth.clone()]));
+    let mut compared = 0;
+    for (name, inputs) in &all {
+        if inputs.is_empty() {
+            continue;
+        }
+        let one = d.join("one");
+        let _ = std::fs::remove_dir_all(&one);
+        let o = mortar().arg("build").args(inputs).args(["-o", s(&one), "--quiet", "--leaf-capacity", LEAF]).output().unwrap();
+        if !o.status.success() {
+            continue; // not buildable on one machine either (e.g. no points)
+        }
+        for n in [1, 2, 7, 16] {
+            match distributed(inputs, n, &d, false) {
+                Ok(store) => {
+                    assert_same_store(&one, &store, &format!("{name}, {n} jobs"));
+                    if n == 7 && name.starts_with("synthetic") {
+                        // the same points back, byte for byte
+                        let (a, b) = (d.join("a.las"), d.join("b.las"));
+                        run_ok(mortar().args(["sort", s(&one), "-o", s(&a), "--quiet"]));
+                        run_ok(mortar().args(["sort", s(&store), "-o", s(&b), "--quiet"]));
+                        assert!(std::fs::read(&a).unwrap() == std::fs::read(&b).unwrap(), "{name}: mortar sort differs");
+                    }
+                    std::fs::remove_dir_all(&store).unwrap();
+                    compared += 1;
+                }
+                // headers that lie: refused by a job, and planned with --scan
+                Err(e) if e.contains("--scan") => {
+                    let store = distributed(inputs, n, &d, true).unwrap_or_else(|e| panic!("{name}, {n} jobs, --scan: {e}"));
+                    assert_same_store(&one, &store, &format!("{name}, {n} jobs, --scan"));
+                    std::fs::remove_dir_all(&store).unwrap();
+                    compared += 1;
+                }
+                Err(e) => panic!("{name}, {n} jobs: {e}"),
+            }
+        }
+    }
+    assert!(compared >= 4 * 3, "compared {compared} builds");
+    std::fs::remove_dir_all(&d).unwrap();
+}
+
+/// A LAS file whose header's bounds leave out part of its points (max x moved down).
+fn lying(dir: &Path) -> PathBuf {
+    let p = dir.join("lying.las");
+    run_ok(gen().args(["--points", "200000", "--seed", "3", "-o", s(&p)]));
+    let mut b = std::fs::read(&p).unwrap();
+    let max_x = f64::from_le_bytes(b[179..187].try_into().unwrap());
+    let min_x = f64::from_le_bytes(b[187..195].try_into().unwrap());
+    b[179..187].copy_from_slice(&(min_x + 0.6 * (max_x - min_x)).to_le_bytes());
+    std::fs::write(&p, b).unwrap();
+    p
+}
+
+#[test]
+fn lying_headers_and_bad_parts_are_refused() {
+    let d = tempdir("dist-faults");
+    let f = lying(&d);
+    let other = d.join("other.las");
+    run_ok(gen().args(["--points", "150000", "--seed", "4", "--origin", "500600,5000000,0", "-o", s(&other)]));
+    let inputs = vec![f.clone(), other.clone()];
+    // the jobs that read the lying file refuse it, naming it and --scan
+    let e = distributed(&inputs, 4, &d, false).unwrap_err();
+    assert!(e.contains("lying.las") && e.contains("--scan"), "{e}");
+    // with --scan the plan is right
+    let one = d.join("one");
+    one_machine(&inputs, &one);
+    let store = distributed(&inputs, 4, &d, true).unwrap();
+    assert_same_store(&one, &store, "lying header, --scan");
+    std::fs::remove_dir_all(&store).unwrap();
+    // parts: a complete set of 3 jobs, and one of another plan
+    let plan = d.join("p3.json");
+    run_ok(mortar().args(["plan", s(&other), s(&f), "--scan", "--jobs", "3", "-o", s(&plan), "--quiet", "--leaf-capacity", LEAF]));
+    let part = |i: usize| d.join(format!("q{i}"));
+    for i in 0..3 {
+        run_ok(mortar().args(["build", "--plan", s(&plan), "--job", &i.to_string(), "-o", s(&part(i)), "--quiet"]));
+    }
+    let plan2 = d.join("p2.json");
+    run_ok(mortar().args(["plan", s(&other), "--jobs", "2", "-o", s(&plan2), "--quiet"]));
+    let foreign = d.join("foreign");
+    run_ok(mortar().args(["build", "--plan", s(&plan2), "--job", "0", "-o", s(&foreign), "--quiet"]));
+    let out = d.join("merged");
+    for (parts, want) in [
+        (vec![part(0), part(1)], "missing"),
+        (vec![part(0), part(1), part(1), part(2)], "again"),
+        (vec![part(0), part(1), part(2), foreign.clone()], "another plan"),
+        (vec![part(0), part(1), d.join("nothing")], "not a part"),
+    ] {
+        let o = mortar().arg("merge").args(&parts).args(["-o", s(&out)]).output().unwrap();
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert_eq!(o.status.code(), Some(1), "{err}");
+        assert!(err.contains(want), "{want}: {err}");
+        assert!(!out.exists(), "a refused merge wrote {}", out.display());
+    }
+    // a job run again gives the same part; one killed half-way and run again too
+    let snapshot = |p: &Path| -> Vec<Vec<u8>> { ["nodes.bin", "entries.bin", "candidates.bin", "part.json"].iter().map(|n| std::fs::read(p.join(n)).unwrap()).collect() };
+    let before = snapshot(&part(1));
+    run_ok(mortar().args(["build", "--plan", s(&plan), "--job", "1", "-o", s(&part(1)), "--quiet"]));
+    assert!(snapshot(&part(1)) == before, "a repeated job gives another part");
+    std::fs::remove_dir_all(part(1)).unwrap();
+    let mut child = mortar().args(["build", "--plan", s(&plan), "--job", "1", "-o", s(&part(1)), "--quiet", "--threads", "1"]).spawn().unwrap();
+    std::thread::sleep(std::time::Duration::from_millis(150));
+    child.kill().unwrap();
+    let _ = child.wait();
+    // merging now fails (or the job had finished)
+    if !part(1).join("part.json").exists() {
+        let o = mortar().arg("merge").args([part(0), part(1), part(2)]).args(["-o", s(&out)]).output().unwrap();
+        assert_eq!(o.status.code(), Some(1));
+        assert!(!out.exists());
+    }
+    run_ok(mortar().args(["build", "--plan", s(&plan), "--job", "1", "-o", s(&part(1)), "--quiet"]));
+    assert!(snapshot(&part(1)) == before, "a job run again after a kill gives another part");
+    run_ok(mortar().arg("merge").args([part(0), part(1), part(2)]).args(["-o", s(&out), "--quiet"]));
+    let one = d.join("one-b");
+    one_machine(&[other, f], &one);
+    assert_same_store(&one, &out, "after a kill");
+    std::fs::remove_dir_all(&d).unwrap();
+}
