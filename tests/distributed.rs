@@ -3,7 +3,9 @@
 //! the same payload bytes, node for node, for N = 1, 2, 7 and 16 jobs, on the samples, on real
 //! files alone and merged, and on a synthetic scan; headers that lie are refused by the jobs
 //! (and planned with --scan); missing, repeated and foreign parts are refused; a job killed
-//! half-way and run again gives the same part.
+//! half-way and run again gives the same part. With `MORTAR_SLURM=1` (`.ci/run` starts a
+//! one-node cluster) `deploy/slurm/submit.sh` runs the plan, the job array and the merge on
+//! Slurm, and the store is compared with the one-machine store.
 
 mod common;
 
@@ -209,9 +211,45 @@ fn lying_headers_and_bad_parts_are_refused() {
     }
     run_ok(mortar().args(["build", "--plan", s(&plan), "--job", "1", "-o", s(&part(1)), "--quiet"]));
     assert!(snapshot(&part(1)) == before, "a job run again after a kill gives another part");
+    let stale: Vec<String> = entries(&d).into_iter().filter(|n| n.starts_with(".q1.")).collect();
+    assert!(stale.is_empty(), "the killed attempt's files stay: {stale:?}");
     run_ok(mortar().arg("merge").args([part(0), part(1), part(2)]).args(["-o", s(&out), "--quiet"]));
     let one = d.join("one-b");
     one_machine(&[other, f], &one);
     assert_same_store(&one, &out, "after a kill");
+    std::fs::remove_dir_all(&d).unwrap();
+}
+
+#[test]
+fn a_slurm_job_array_builds_the_one_machine_store() {
+    if std::env::var("MORTAR_SLURM").as_deref() != Ok("1") {
+        eprintln!("SKIP: no Slurm cluster (MORTAR_SLURM=1 after deploy/slurm/localhost-cluster.sh)");
+        return;
+    }
+    let d = tempdir("dist-slurm");
+    let mut all: Vec<(String, Vec<PathBuf>)> = sets().into_iter().filter(|(n, _)| n == "autzen_trim.laz" || n == "bcts merged").collect();
+    all.retain(|(_, i)| !i.is_empty());
+    let bin = PathBuf::from(env!("CARGO_BIN_EXE_mortar"));
+    for (k, (name, inputs)) in all.iter().enumerate() {
+        let out = d.join(format!("run{k}"));
+        let o = std::process::Command::new("bash")
+            .arg(root().join("deploy/slurm/submit.sh"))
+            .arg("5")
+            .arg(&out)
+            .args(inputs)
+            .env("MORTAR", &bin)
+            .env("WAIT", "1")
+            .env("CPUS", "1")
+            .env("LEAF", LEAF)
+            .env("MEMORY", "64M")
+            .output()
+            .unwrap();
+        let logs = std::fs::read_dir(out.join("logs")).map(|r| r.filter_map(|e| e.ok()).map(|e| format!("{}: {}", e.path().display(), std::fs::read_to_string(e.path()).unwrap_or_default())).collect::<Vec<_>>().join("\n")).unwrap_or_default();
+        assert!(o.status.success(), "{name}: submit.sh failed: {}\n{logs}", String::from_utf8_lossy(&o.stderr));
+        let one = d.join(format!("one{k}"));
+        one_machine(inputs, &one);
+        assert_same_store(&one, &out.join("store"), &format!("{name} on Slurm"));
+        assert_eq!(std::fs::read_dir(out.join("parts")).unwrap().count(), 5, "{name}: five parts");
+    }
     std::fs::remove_dir_all(&d).unwrap();
 }

@@ -395,6 +395,7 @@ pub fn build_job(ds: &Dataset, plan: &Plan, job: usize, out: &Path, memory: u64)
     if !parent.is_dir() {
         return Err(Error::Usage(format!("{}: its directory {} does not exist", out.display(), parent.display())));
     }
+    remove_stale_attempts(out);
     let tmp = TempPath::beside(out);
     let mut writer = StoreWriter::create(tmp.path(), &ds.source_meta())?;
     let state = tmp.path().join(".partition");
@@ -475,6 +476,22 @@ pub fn build_job(ds: &Dataset, plan: &Plan, job: usize, out: &Path, memory: u64)
         }
     }
     Ok(JobReport { job, jobs: plan.jobs.len(), points, nodes: eb.len() as u64, inputs_read: pj.inputs.len(), seconds: t0.elapsed().as_secs_f64(), warnings })
+}
+
+/// Removes what killed attempts at the part `out` left beside it (temporary directories of
+/// processes that no longer run), so that re-running a job cleans up after the one it repeats.
+fn remove_stale_attempts(out: &Path) {
+    let (Some(parent), Some(name)) = (out.parent().map(|p| if p.as_os_str().is_empty() { Path::new(".") } else { p }), out.file_name()) else { return };
+    let prefix = format!(".{}.mortar-tmp-", name.to_string_lossy());
+    let Ok(rd) = std::fs::read_dir(parent) else { return };
+    for e in rd.flatten() {
+        let n = e.file_name().to_string_lossy().to_string();
+        if let Some(pid) = n.strip_prefix(&prefix).and_then(|p| p.parse::<u32>().ok()) {
+            if pid != std::process::id() && !Path::new(&format!("/proc/{pid}")).exists() {
+                let _ = std::fs::remove_dir_all(e.path());
+            }
+        }
+    }
 }
 
 /// What a merge reports.
