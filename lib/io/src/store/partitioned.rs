@@ -493,8 +493,7 @@ fn cell_of(q: [i32; 3], g: &MortonGrid, root: Cube, depth: u8) -> usize {
 
 /// Pass 1: reads every piece once and writes the run files; the cells' counts, the statistics
 /// of all points and of each input.
-#[allow(clippy::type_complexity)]
-fn partition(ds: &Dataset, root: Cube, grid: Grid, max_level: u8, block_bytes: usize, dir: &Path, filter: Option<&Filter>) -> Result<(Vec<Run>, Vec<u64>, PieceStats, Vec<PieceStats>)> {
+fn partition(ds: &Dataset, root: Cube, grid: Grid, max_level: u8, block_bytes: usize, dir: &Path, filter: Option<&Filter>) -> Result<Partitioned> {
     let rl = ds.layout.record_len;
     let el = rl + 8;
     let depth = cell_depth(root, max_level);
@@ -818,10 +817,14 @@ pub(crate) struct Filter {
     pub cells: Vec<bool>,
 }
 
+/// What pass 1 gives: the runs, the cells' counts, the statistics of every point read and of
+/// each input's.
+pub(crate) type Partitioned = (Vec<Run>, Vec<u64>, PieceStats, Vec<PieceStats>);
+
 /// Pass 1 on a root fixed beforehand (a plan's), reading only what `filter` keeps: the runs,
 /// the cells' counts of the points kept, their statistics and those of every piece read, per
 /// input (to check the files against the bounds the plan took for them).
-pub(crate) fn partition_fixed(ds: &Dataset, root: Cube, max_level: u8, memory: u64, filter: &Filter, dir: &Path) -> Result<(Vec<Run>, Vec<u64>, PieceStats, Vec<PieceStats>)> {
+pub(crate) fn partition_fixed(ds: &Dataset, root: Cube, max_level: u8, memory: u64, filter: &Filter, dir: &Path) -> Result<Partitioned> {
     let block_bytes = ((memory / 4).max(ds.layout.record_len as u64 * 4096)) as usize;
     partition(ds, root, Grid::IDENTITY, max_level, block_bytes, dir, Some(filter))
 }
