@@ -193,6 +193,25 @@ fn lying_headers_and_bad_parts_are_refused() {
         assert!(err.contains(want), "{want}: {err}");
         assert!(!out.exists(), "a refused merge wrote {}", out.display());
     }
+    // a plan edited by hand, and a damaged part: clear errors
+    let text = std::fs::read_to_string(&plan).unwrap();
+    let edited = d.join("edited.json");
+    std::fs::write(&edited, text.replacen("\"leaf_capacity\": 3000", "\"leaf_capacity\": 7", 1)).unwrap();
+    let o = mortar().args(["build", "--plan", s(&edited), "--job", "0", "-o", s(&d.join("e0"))]).output().unwrap();
+    assert_eq!(o.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("edited.json"), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(!d.join("e0").exists());
+    let o = mortar().args(["build", "--plan", s(&plan), "--job", "3", "-o", s(&d.join("e0"))]).output().unwrap();
+    assert_eq!(o.status.code(), Some(1), "job 3 of 3 jobs");
+    let broken = d.join("broken");
+    run_ok(mortar().args(["build", "--plan", s(&plan), "--job", "2", "-o", s(&broken), "--quiet"]));
+    let eb = std::fs::read(broken.join("entries.bin")).unwrap();
+    std::fs::write(broken.join("entries.bin"), &eb[..eb.len() / 2]).unwrap();
+    let o = mortar().arg("merge").args([part(0), part(1), broken.clone()]).args(["-o", s(&out)]).output().unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(err.contains("broken") && err.contains("damaged"), "{err}");
+    assert!(!out.exists());
     // a job run again gives the same part; one killed half-way and run again too
     let snapshot = |p: &Path| -> Vec<Vec<u8>> { ["nodes.bin", "entries.bin", "candidates.bin", "part.json"].iter().map(|n| std::fs::read(p.join(n)).unwrap()).collect() };
     let before = snapshot(&part(1));

@@ -130,6 +130,18 @@ impl Plan {
         if p.checksum() != p.id {
             return Err(Error::input(path, "the plan was changed after `mortar plan` wrote it (its checksum does not match); plan again"));
         }
+        // A checksum is no proof: everything the jobs index with is checked.
+        let ok = p.root_size_log2 <= mortar_core::octree::MAX_ROOT_SIZE_LOG2
+            && p.cell_depth <= p.root_size_log2
+            && p.cell_depth <= 8
+            && p.leaf_capacity > 0
+            && !p.jobs.is_empty()
+            && p.jobs.iter().all(|j| {
+                j.inputs.iter().all(|&i| i < p.inputs.len()) && j.nodes.iter().all(|n| n[0] <= p.cell_depth as u32 && n[1..].iter().all(|&x| (x as u64) < 1u64 << n[0]))
+            });
+        if !ok {
+            return Err(Error::input(path, "not a plan this mortar can run (a root, depth, node or input index out of range); plan again"));
+        }
         Ok(p)
     }
 
