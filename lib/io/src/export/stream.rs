@@ -26,7 +26,7 @@ use crate::error::{Error, Result};
 use crate::sort;
 use crate::store::partitioned::{cell_depth, partition_all, read_unit, unit_bytes_per_point, Cands, Run};
 use mortar_core::layout::{read_xyz, Conversion};
-use mortar_core::octree::{build_subtree, earliest_in_parent_cells, Cube, NodeKey};
+use mortar_core::octree::{build_subtree, Cube, NodeKey};
 use rayon::prelude::*;
 use std::path::Path;
 use std::time::Instant;
@@ -142,7 +142,7 @@ impl Walk<'_, '_> {
         }
         let rl = self.rl;
         let n = voxels.pos.len();
-        let up = if key.level > 0 { earliest_in_parent_cells(cube, 0..n, |i| voxels.pos[i], |i| voxels.arrival[i]) } else { Vec::new() };
+        let up = voxels.for_parent(key, cube);
         let mut above = vec![false; n];
         for &i in &up {
             above[i] = true;
@@ -162,11 +162,7 @@ impl Walk<'_, '_> {
         if kept {
             self.tree.push(OutNode { key, points: Vec::new(), children });
         }
-        let mut out = Cands::default();
-        for i in up {
-            out.push(voxels.pos[i], voxels.arrival[i], &voxels.records[i * rl..(i + 1) * rl]);
-        }
-        Ok((out, kept))
+        Ok((voxels.pick(&up, rl), kept))
     }
 
     /// Reads a unit's points back, builds, assigns and writes its subtree.

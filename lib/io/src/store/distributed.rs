@@ -48,7 +48,7 @@ use crate::error::{Error, Result};
 use crate::sort::PieceStats;
 use mortar_core::color::{ColorSource, RgbDepth};
 use mortar_core::layout::read_xyz;
-use mortar_core::octree::{earliest_in_parent_cells, splits, BuilderConfig, Cube, NodeKey};
+use mortar_core::octree::{splits, BuilderConfig, Cube, NodeKey};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
@@ -787,15 +787,7 @@ impl Top<'_> {
             }
         }
         let rl = self.rl;
-        let up = |voxels: &Cands| {
-            let mut out = Cands::default();
-            if key.level > 0 {
-                for i in earliest_in_parent_cells(cube, 0..voxels.pos.len(), |i| voxels.pos[i], |i| voxels.arrival[i]) {
-                    out.push(voxels.pos[i], voxels.arrival[i], &voxels.records[i * rl..(i + 1) * rl]);
-                }
-            }
-            out
-        };
+        let up = |voxels: &Cands| voxels.pick(&voxels.for_parent(key, cube), rl);
         if count <= self.plan.leaf_capacity as u64 {
             // A leaf of the one-machine tree (unless its parent is one too): the points below,
             // children in octant order, which is Morton order.

@@ -311,6 +311,24 @@ impl Cands {
         self.arrival.push(arrival);
         self.records.extend_from_slice(record);
     }
+    /// Which of these (a node's voxels, in Morton order) the node `key` with cube `cube` hands
+    /// its parent: the earliest in each cell of the parent's grid; none for the root.
+    pub(crate) fn for_parent(&self, key: NodeKey, cube: Cube) -> Vec<usize> {
+        if key.level == 0 {
+            return Vec::new();
+        }
+        earliest_in_parent_cells(cube, 0..self.pos.len(), |i| self.pos[i], |i| self.arrival[i])
+    }
+
+    /// The candidates at `idx` (records of `rl` bytes).
+    pub(crate) fn pick(&self, idx: &[usize], rl: usize) -> Cands {
+        let mut out = Cands::default();
+        for &i in idx {
+            out.push(self.pos[i], self.arrival[i], &self.records[i * rl..(i + 1) * rl]);
+        }
+        out
+    }
+
     pub(crate) fn append(&mut self, o: Cands) {
         self.pos.extend(o.pos);
         self.arrival.extend(o.arrival);
@@ -658,13 +676,7 @@ impl Walk<'_, '_> {
             .map_err(|m| Error::input(&self.writer.dir, m))?;
         let before = self.entries.len();
         self.put(seq, e, &b)?;
-        let mut out = Cands::default();
-        if key.level > 0 {
-            let keep = earliest_in_parent_cells(cube, 0..voxels.pos.len(), |i| voxels.pos[i], |i| voxels.arrival[i]);
-            for i in keep {
-                out.push(voxels.pos[i], voxels.arrival[i], &voxels.records[i * rl..(i + 1) * rl]);
-            }
-        }
+        let out = voxels.pick(&voxels.for_parent(key, cube), rl);
         if key.level > 0 {
             self.logged(key, before, 0, &out)?;
         }
