@@ -1,6 +1,6 @@
 //! `mortar batch`: the batch file of paper 003.
 
-use crate::common;
+use mortar_app::cli as common;
 use anyhow::{bail, Result};
 use mortar_io::batchfile::{AttributeSelection, BatchSink, Compression};
 use mortar_io::sort::sort;

@@ -1,6 +1,6 @@
 //! `mortar build`: the octree LOD store of paper 004 (`lib/io/STORE_FORMAT.md`).
 
-use crate::common;
+use mortar_app::cli as common;
 use anyhow::Result;
 use mortar_core::octree::{BuilderConfig, ColorMode, DEFAULT_LEAF_CAPACITY};
 use mortar_io::store::{build, BuildOptions, BuildProgress, Engine};
@@ -60,9 +60,9 @@ pub struct Args {
     #[command(flatten)]
     pub crs: common::CrsArgs,
     #[command(flatten)]
-    pub frames: crate::build_frames::FramesArgs,
+    pub frames: mortar_app::frames::FramesArgs,
     #[command(flatten)]
-    pub preview: crate::view::PreviewArgs,
+    pub preview: mortar_app::viewer::PreviewArgs,
 }
 
 /// Seconds between commits while a preview window shows the store.
@@ -122,7 +122,7 @@ pub fn run(a: Args) -> Result<()> {
         },
         resume: a.resume,
     };
-    let mut recorder = crate::build_frames::FrameRecorder::new(&a.frames, &ds, &output)?;
+    let mut recorder = mortar_app::frames::FrameRecorder::new(&a.frames, &ds, &output)?;
     let mut opts = opts;
     if let Some(r) = &recorder {
         opts.commit_every = opts.commit_every.min(r.every());
@@ -142,7 +142,7 @@ pub fn run(a: Args) -> Result<()> {
     };
     let (r, preview_json) = if a.preview.preview {
         let view = a.preview.view_args(&output, &a.frames.camera);
-        let bounds = crate::build_frames::header_bounds(&ds);
+        let bounds = mortar_app::frames::header_bounds(&ds);
         let (ds, output, opts) = (&ds, &output, &opts);
         let job = move |report: &mut dyn FnMut(&BuildProgress)| {
             build(ds, output, opts, &mut |p| {
@@ -152,9 +152,9 @@ pub fn run(a: Args) -> Result<()> {
             .map_err(anyhow::Error::from)
         };
         if a.preview.preview_offscreen {
-            crate::view::run_preview_offscreen(&view, output, bounds, &ds.layout, job)?
+            mortar_app::viewer::run_preview_offscreen(&view, output, bounds, &ds.layout, job)?
         } else {
-            crate::view::run_preview(&view, output, bounds, &ds.layout, job)?
+            mortar_app::viewer::run_preview(&view, output, bounds, &ds.layout, job)?
         }
     } else {
         (build(&ds, &output, &opts, &mut progress)?, serde_json::Value::Null)
@@ -168,7 +168,7 @@ pub fn run(a: Args) -> Result<()> {
     if let Some(rec) = recorder.as_mut() {
         rec.on_commit(r.commits, true)?;
         let sheet = rec.finish()?;
-        frames_json = crate::build_frames::frames_json(rec, &sheet);
+        frames_json = mortar_app::frames::frames_json(rec, &sheet);
     }
     if a.json {
         let n = r.batch_seconds.len().max(1) as f64;

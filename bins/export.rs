@@ -1,6 +1,6 @@
 //! `mortar export`: the octree as COPC 1.0 or Potree 2.0 for other tools (`lib/io/src/export`).
 
-use crate::common;
+use mortar_app::cli as common;
 use anyhow::Result;
 use mortar_core::octree::{BuilderConfig, DEFAULT_LEAF_CAPACITY};
 use mortar_io::export::{export, ExportFormat, ExportOptions, PointOrder};

@@ -1,6 +1,6 @@
 //! `mortar info`: describe inputs, as text or as JSON (`docs/info-json.md`).
 
-use crate::common;
+use mortar_app::cli as common;
 use anyhow::Result;
 use mortar_io::batchfile::{is_batch_file, BatchFile};
 use mortar_io::info::{describe, FileInfo};

@@ -3,21 +3,14 @@
 
 mod batch;
 mod build;
-mod build_frames;
 mod export;
-mod common;
 mod info;
 mod merge;
 mod plan;
-mod progressive;
-mod render;
-mod render_lod;
 mod sort;
-mod view;
-mod view_progressive;
-mod view_store;
 
 use clap::{Parser, Subcommand};
+use mortar_app::{cli as common, render, viewer as view};
 
 #[derive(Parser)]
 #[command(name = "mortar", version, about = "LAS/LAZ to GPU-ready Morton-sorted batch files, sorted LAS/LAZ, and more")]

@@ -1,6 +1,6 @@
 //! `mortar plan`: splits a build into independent jobs (`lib/io/src/store/distributed.rs`).
 
-use crate::common;
+use mortar_app::cli as common;
 use anyhow::Result;
 use mortar_core::octree::{BuilderConfig, DEFAULT_LEAF_CAPACITY};
 use mortar_io::store::distributed::{plan, PlanOptions};

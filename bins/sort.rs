@@ -1,6 +1,6 @@
 //! `mortar sort`: Morton-ordered LAS/LAZ.
 
-use crate::common;
+use mortar_app::cli as common;
 use anyhow::Result;
 use mortar_io::sink_las::{LasSink, Target};
 use mortar_io::sort::sort;

@@ -406,18 +406,14 @@ fn compare(file: &mortar_io::batchfile::BatchFile, cam: &Camera, precision: Prec
     let test = render_input::render(file, &refs, cam, &s).unwrap();
     let covered = full.keys.iter().filter(|&&k| k != EMPTY_KEY).count();
     let mut a = Accuracy { covered, winner: 0, coverage: 0, net: test.covered as i64 - full.covered as i64, color: 0, psnr: 0.0 };
-    let mut se = 0f64;
     for i in 0..full.keys.len() {
         let (k, r) = (test.keys[i], full.keys[i]);
         let empty_differs = (k == EMPTY_KEY) != (r == EMPTY_KEY);
         a.coverage += empty_differs as usize;
         a.winner += (empty_differs || (k != EMPTY_KEY && key_index(k) != key_index(r))) as usize;
-        a.color += (test.rgba[i] != full.rgba[i]) as usize;
-        let (x, y) = (test.rgba[i].to_le_bytes(), full.rgba[i].to_le_bytes());
-        se += (0..3).map(|c| (x[c] as f64 - y[c] as f64).powi(2)).sum::<f64>();
     }
-    let mse = se / (3 * full.keys.len()) as f64;
-    a.psnr = if mse == 0.0 { f64::INFINITY } else { 10.0 * (255.0f64 * 255.0 / mse).log10() };
+    a.color = mortar_core::metrics::differing_pixels(&test.rgba, &full.rgba);
+    a.psnr = mortar_core::metrics::psnr(&test.rgba, &full.rgba);
     a
 }
 

@@ -6,13 +6,15 @@
 //! quantization of paper 003 §3.3 ([`quantize`]), splitting sorted points into batches ([`batching`]),
 //! the render colour derived from the source's fields ([`color`]), the incremental octree LOD builder
 //! of paper 004 §3-5 with its snapshots ([`octree`]) and the rendering logic of paper 003 §3.2-3.4:
-//! camera, culling, adaptive precision, the CPU rasterizer and the resolve ([`render`]).
+//! camera, culling, adaptive precision, the CPU rasterizer and the resolve ([`render`]); and the
+//! statistics every benchmark and accuracy test reports: medians, percentiles, PSNR ([`metrics`]).
 
 pub mod batch;
 pub mod batching;
 pub mod color;
 pub mod grid;
 pub mod layout;
+pub mod metrics;
 pub mod morton;
 pub mod octree;
 pub mod quantize;

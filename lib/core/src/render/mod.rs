@@ -2,8 +2,8 @@
 //! camera and per-batch f32 projection ([`camera`]), frustum culling ([`frustum`]), adaptive
 //! precision with the 500 px rule and a bound on the decode error on screen ([`precision`]), the 64-bit depth|index visibility buffer
 //! ([`framebuffer`]), the records the GPU rasterizer reads ([`gpu`]), the CPU rasterizer ([`raster`]) and the resolve from point indices to colours
-//! with hole filling, eye-dome lighting and attribute colour modes ([`resolve`]); the progressive
-//! renderer of paper 000 on the CPU rasterizer, with its shuffle and adaptive fill budget ([`progressive`]).
+//! with hole filling, eye-dome lighting and attribute colour modes ([`resolve`]); the orbit camera
+//! of the viewer ([`orbit`]); the progressive renderer of paper 000 on the CPU rasterizer, with its shuffle and adaptive fill budget ([`progressive`]).
 //!
 //! No files and no GPU here: the GPU crate uploads the `#[repr(C)]` records defined in these modules.
 
@@ -12,6 +12,7 @@ pub mod framebuffer;
 pub mod gpu;
 pub mod frustum;
 pub mod math;
+pub mod orbit;
 pub mod precision;
 pub mod progressive;
 pub mod raster;
@@ -23,5 +24,6 @@ pub use camera::{BatchProjection, Camera, CameraError, Projection, ProjectedPoin
 pub use framebuffer::{pack_key, unpack_key, Framebuffer, EMPTY_KEY};
 pub use frustum::{Containment, Frustum, Plane};
 pub use math::{Aabb, DMat4, DVec3};
+pub use orbit::Orbit;
 pub use precision::{choose_precision, precision_for_pixels, PrecisionMode};
 pub use raster::{rasterize, rasterize_gathered, validate_batches, BatchPlan, BatchRef, GatheredRef, Planner, RasterError, RasterOptions, RasterStats, RasterUniforms};

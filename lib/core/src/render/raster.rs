@@ -984,17 +984,9 @@ mod tests {
 
     /// PSNR (dB) of the RGB colours of two key images over the pixels covered in either.
     fn psnr_covered(a: &[u64], b: &[u64], colors: &[u32]) -> f64 {
-        let rgb = |k: u64| if k == EMPTY_KEY { [0.0; 3] } else { colors[key_index(k) as usize].to_le_bytes()[..3].iter().map(|&c| c as f64).collect::<Vec<_>>().try_into().unwrap() };
-        let (mut se, mut n) = (0f64, 0usize);
-        for (&x, &y) in a.iter().zip(b) {
-            if x == EMPTY_KEY && y == EMPTY_KEY {
-                continue;
-            }
-            let (p, q) = (rgb(x), rgb(y));
-            se += (0..3).map(|c| (p[c] - q[c]).powi(2)).sum::<f64>();
-            n += 3;
-        }
-        10.0 * (255.0 * 255.0 / (se / n.max(1) as f64)).log10()
+        let rgb = |k: &u64| if *k == EMPTY_KEY { 0 } else { colors[key_index(*k) as usize] & 0x00ff_ffff };
+        let (x, y): (Vec<u32>, Vec<u32>) = (a.iter().map(rgb).collect(), b.iter().map(rgb).collect());
+        crate::metrics::psnr_where(&x, &y, |i| a[i] != EMPTY_KEY || b[i] != EMPTY_KEY)
     }
 
     #[test]

@@ -25,7 +25,8 @@
 
 use anyhow::{anyhow, bail, Result};
 use mortar_core::render::progressive::{AdaptiveBudget, FillBudget, FrameStats, ProgressiveRenderer};
-use mortar_render::{GpuContext, GpuProgressive, ProgressiveOptions};
+use super::content::{Content, GpuDrawn};
+use mortar_render::{wgpu, AtomicPath, GpuContext, GpuError, GpuProgressive, GpuRasterizer, ProgressiveOptions};
 use mortar_core::render::resolve::{resolve, ColorMode, ResolveOptions};
 use mortar_core::render::{Aabb, Camera, RasterOptions};
 use mortar_io::dataset::Dataset;
@@ -138,7 +139,7 @@ impl ProgressiveView {
     /// Opens `paths` (raw LAS/LAZ) and starts loading them; `color` is the first colour mode.
     pub fn open(paths: &[PathBuf], color: ColorChoice, range: Option<[f64; 2]>, threads: usize) -> Result<ProgressiveView> {
         let ds = Dataset::open(paths)?;
-        crate::common::print_warnings(&ds.warnings);
+        crate::cli::print_warnings(&ds.warnings);
         let label = paths.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(" ");
         let frame = header_frame(&ds)?;
         if frame.points == 0 {
@@ -182,10 +183,6 @@ impl ProgressiveView {
         })
     }
 
-    pub fn bounds(&self) -> Aabb {
-        self.bounds
-    }
-
     pub fn capacity(&self) -> u64 {
         self.frame.points
     }
@@ -197,6 +194,11 @@ impl ProgressiveView {
         }
     }
 
+    /// The colour mode shown (the one being switched to, during a switch).
+    pub fn shown_mode(&self) -> usize {
+        self.switch.as_ref().map_or(self.mode, |s| s.to)
+    }
+
     fn converged(&self) -> bool {
         match &self.gpu {
             Some(g) => g.renderer.converged(),
@@ -206,7 +208,7 @@ impl ProgressiveView {
 
     /// Draws with the GPU progressive renderer from now on (before the first frame). Fails
     /// (and the view stays on the CPU) where the context cannot run it (32-bit atomics).
-    pub fn use_gpu(&mut self, ctx: &GpuContext) -> Result<()> {
+    pub fn start_gpu(&mut self, ctx: &GpuContext) -> Result<()> {
         let f = &self.frame;
         let renderer = GpuProgressive::new(ctx, self.ds.grid, f.min, f.max, f.points, ProgressiveOptions { colors: true, ..Default::default() }).map_err(|e| anyhow!("{}: {e}", self.label))?;
         self.gpu = Some(GpuState { renderer, rules: None, loaded: 0 });
@@ -216,19 +218,8 @@ impl ProgressiveView {
     }
 
 
-    /// The colour mode shown (the one being switched to, during a switch).
-    pub fn mode(&self) -> usize {
-        self.switch.as_ref().map_or(self.mode, |s| s.to)
-    }
-
-    /// Whether more frames would change the image: points are loading, a colour switch is
-    /// streaming, or the image has not converged.
-    pub fn busy(&self) -> bool {
-        self.loader.is_some() || self.switch.is_some() || !self.converged()
-    }
-
     /// What the status line says of the loading and switching.
-    pub fn status(&self) -> String {
+    pub fn load_status(&self) -> String {
         let mut s = if self.loaded() < self.capacity() {
             format!("loading {:.0}%", 100.0 * self.loaded() as f64 / self.capacity().max(1) as f64)
         } else if self.converged() {
@@ -239,15 +230,15 @@ impl ProgressiveView {
         if let Some(w) = &self.switch {
             s += &format!(", switching colours {:.0}%", 100.0 * w.points as f64 / self.capacity().max(1) as f64);
         }
-        s += &format!(", budget {}", crate::view::group_digits(self.last.filled));
+        s += &format!(", budget {}", crate::viewer::group_digits(self.last.filled));
         s
     }
 
     /// Asks for colour mode `to`: at once where the payloads held serve it, else streamed
     /// (§3.5) once loading is done; `false` when it cannot start now (loading or switching).
     /// On the GPU path (`ctx`), a switch starts the view over with the new mode's attribute.
-    pub fn set_mode(&mut self, to: usize, ctx: Option<&GpuContext>) -> Result<bool> {
-        if to == self.mode() {
+    pub fn ask_mode(&mut self, to: usize, ctx: Option<&GpuContext>) -> Result<bool> {
+        if to == self.shown_mode() {
             return Ok(true);
         }
         if self.switch.is_some() {
@@ -328,7 +319,7 @@ impl ProgressiveView {
 
     /// Draws one progressive frame with the GPU renderer, resolved on the GPU into its image
     /// buffer (for the window's present pass): the image buffer and the frame's statistics.
-    pub fn draw_gpu(&mut self, ctx: &GpuContext, camera: &Camera, options: &RasterOptions, background: u32) -> Result<mortar_render::GpuProgressiveFrame> {
+    pub fn frame_gpu(&mut self, ctx: &GpuContext, camera: &Camera, options: &RasterOptions, background: u32) -> Result<mortar_render::GpuProgressiveFrame> {
         self.take_arrived_gpu(ctx)?;
         let g = self.gpu.as_mut().ok_or_else(|| anyhow!("the view is not on the GPU"))?;
         let f = g.renderer.frame(ctx, camera, options, &self.budget, Some(background)).map_err(|e| anyhow!("{}: GPU: {e}", self.label))?;
@@ -336,7 +327,7 @@ impl ProgressiveView {
         Ok(f)
     }
 
-    /// The GPU renderer's resolved image (after [`draw_gpu`](Self::draw_gpu)).
+    /// The GPU renderer's resolved image (after [`frame_gpu`](Self::frame_gpu)).
     pub fn image_buffer(&self) -> Option<&mortar_render::wgpu::Buffer> {
         self.gpu.as_ref().and_then(|g| g.renderer.image_buffer())
     }
@@ -381,7 +372,7 @@ impl ProgressiveView {
     }
 
     /// Draws one progressive frame with the CPU renderer and resolves it: the RGBA8 image.
-    pub fn draw_cpu(&mut self, camera: &Camera, options: &RasterOptions, background: u32) -> Result<Vec<u32>> {
+    pub fn frame_cpu(&mut self, camera: &Camera, options: &RasterOptions, background: u32) -> Result<Vec<u32>> {
         self.take_arrived()?;
         self.last = self.renderer.frame(camera, options, &self.budget).map_err(|e| anyhow!("{}: {e}", self.label))?;
         let keys = self.renderer.keys();
@@ -417,19 +408,80 @@ impl ProgressiveView {
     }
 }
 
+impl Content for ProgressiveView {
+    fn bounds(&self) -> Aabb {
+        self.bounds
+    }
+
+    /// The points the header declares, all of which are loading.
+    fn points(&self) -> u64 {
+        self.capacity()
+    }
+
+    fn modes(&self) -> &[ColorChoice] {
+        &self.modes
+    }
+
+    fn mode(&self) -> usize {
+        self.shown_mode()
+    }
+
+    /// See [`ask_mode`](ProgressiveView::ask_mode): a switch is streamed, not while loading.
+    fn set_mode(&mut self, to: usize, gpu: Option<&GpuContext>) -> Result<bool> {
+        self.ask_mode(to, gpu)
+    }
+
+    fn status(&self) -> Vec<String> {
+        vec![format!("{} of {} points", super::group_digits(self.loaded()), super::group_digits(self.capacity())), self.load_status()]
+    }
+
+    /// Points are loading, a colour switch is streaming, or the image has not converged.
+    fn busy(&self) -> bool {
+        self.loader.is_some() || self.switch.is_some() || !self.converged()
+    }
+
+    fn gpu_unsupported(&self, ctx: &GpuContext) -> Option<&'static str> {
+        (ctx.atomic_path() != AtomicPath::U64).then_some("the GPU progressive renderer needs 64-bit atomics")
+    }
+
+    fn use_gpu(&mut self, ctx: &GpuContext) -> Result<(), GpuError> {
+        self.start_gpu(ctx).map_err(|e| GpuError::Device(format!("{e:#}")))
+    }
+
+    fn draw_cpu(&mut self, camera: &Camera, options: &RasterOptions, background: u32) -> Result<(Vec<u32>, u64)> {
+        let rgba = self.frame_cpu(camera, options, background)?;
+        Ok((rgba, self.last.raster.points_drawn))
+    }
+
+    /// Resolved on the GPU into the progressive renderer's own image buffer.
+    fn draw_gpu(&mut self, ctx: &GpuContext, _raster: &mut GpuRasterizer, camera: &Camera, options: &RasterOptions, background: u32) -> Result<GpuDrawn> {
+        let f = self.frame_gpu(ctx, camera, options, background)?;
+        Ok(GpuDrawn {
+            points_drawn: f.stats.raster.points_drawn,
+            draw_ms: f.gpu.map(|t| t.reproject_ms + t.probe_ms + t.extra_fill_ms + t.prepare_ms),
+            resolve_ms: f.gpu.and_then(|t| t.resolve_ms),
+            own_image: true,
+        })
+    }
+
+    fn image(&self) -> Option<&wgpu::Buffer> {
+        self.image_buffer()
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use mortar_core::render::Projection;
 
     fn sample() -> PathBuf {
-        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("data-samples/autzen_trim.laz")
+        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../data-samples/autzen_trim.laz")
     }
 
     /// Frames until the image is final; the last image.
     fn settle(v: &mut ProgressiveView, camera: &Camera) -> Vec<u32> {
         for _ in 0..10_000 {
-            let img = v.draw_cpu(camera, &RasterOptions::default(), 0xff00_0000).unwrap();
+            let img = v.frame_cpu(camera, &RasterOptions::default(), 0xff00_0000).unwrap();
             if !v.busy() {
                 return img;
             }
@@ -466,7 +518,7 @@ mod tests {
     /// GPU frames until the image is final; the last image.
     fn settle_gpu(v: &mut ProgressiveView, ctx: &GpuContext, camera: &Camera) -> Vec<u32> {
         for _ in 0..10_000 {
-            v.draw_gpu(ctx, camera, &RasterOptions::default(), 0xff00_0000).unwrap();
+            v.frame_gpu(ctx, camera, &RasterOptions::default(), 0xff00_0000).unwrap();
             if !v.busy() {
                 return v.gpu.as_ref().unwrap().renderer.read_image(ctx).unwrap();
             }
@@ -480,7 +532,7 @@ mod tests {
         let Some(ctx) = mortar_render::testing::context_or_skip(mortar_render::AtomicPath::U64, None) else { return };
         let open = |c: ColorChoice| {
             let mut v = ProgressiveView::open(&[sample()], c, None, 2).unwrap();
-            v.use_gpu(&ctx).unwrap();
+            v.start_gpu(&ctx).unwrap();
             v
         };
         let mut v = open(ColorChoice::Auto);

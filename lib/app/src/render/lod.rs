@@ -11,7 +11,7 @@ use mortar_core::octree::{LodOptions, LodSelection, DEFAULT_THRESHOLD_PX};
 use mortar_core::render::Camera;
 use mortar_io::render_input::{RenderSettings, Rendered};
 use mortar_io::store_lod::{self, LodBatches, LodColor, StoreLod};
-use mortar_render::{GpuContext, GpuError, GpuRasterizer, GpuScene, SceneOptions};
+use mortar_render::{GpuContext, GpuError};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -141,10 +141,9 @@ pub fn lod_json(sel: &LodSelection, options: &LodOptions, selection_seconds: f64
     })
 }
 
-/// Draws the selected nodes with the GPU rasterizer: uploads them (in index order, so the
-/// framebuffer's index is the batches' sample index), draws one frame, reads the keys back and
-/// resolves them on the host as the CPU path does. The outer error is the GPU's, the inner one
-/// the store's.
+/// Draws the selected nodes with the GPU rasterizer ([`draw_keys_gpu`](super::draw_keys_gpu),
+/// in index order, so the framebuffer's index is the batches' sample index) and resolves the keys
+/// on the host as the CPU path does. The outer error is the GPU's, the inner one the store's.
 pub(crate) fn render_gpu(
     ctx: &GpuContext,
     lod: &StoreLod,
@@ -152,30 +151,6 @@ pub(crate) fn render_gpu(
     camera: &Camera,
     settings: &RenderSettings,
 ) -> std::result::Result<(mortar_io::Result<Rendered>, serde_json::Value), GpuError> {
-    let t = Instant::now();
-    let mut scene = GpuScene::new(ctx, lod.grid(), batches.samples, SceneOptions::default())?;
-    for b in &batches.refs {
-        scene.push(ctx, b, None)?;
-    }
-    scene.flush(ctx)?;
-    ctx.wait()?;
-    let upload_seconds = t.elapsed().as_secs_f64();
-    let mut raster = GpuRasterizer::new(ctx, camera.width, camera.height)?;
-    let frame = raster.draw(ctx, &mut scene, camera, &settings.raster, None)?;
-    let keys = raster.read_keys(ctx)?;
-    let a = ctx.adapter();
-    let j = serde_json::json!({
-        "adapter": a.name,
-        "api": a.backend,
-        "device_type": a.device_type,
-        "driver": a.driver,
-        "atomics": ctx.atomic_path().name(),
-        "chunks": scene.chunk_count(),
-        "gpu_bytes": scene.gpu_bytes(),
-        "upload_seconds": upload_seconds,
-        "plan_seconds": frame.plan_seconds,
-        "frame_seconds": frame.frame_seconds,
-        "draw_ms": frame.timings.map(|t| t.draw_ms),
-    });
+    let (keys, frame, j) = super::draw_keys_gpu(ctx, lod.grid(), batches.samples, &batches.refs, camera, &settings.raster)?;
     Ok((store_lod::resolve_keys(lod, batches, keys, frame.stats, frame.frame_seconds, camera, settings), j))
 }

@@ -3,7 +3,10 @@
 //! the same visibility buffer; the colours, hole filling and eye-dome lighting are then resolved
 //! on the host from the visible points alone.
 
-use crate::common;
+pub mod lod;
+pub mod progressive;
+
+use crate::cli as common;
 use anyhow::{anyhow, bail, Context, Result};
 use mortar_core::quantize::Precision;
 use mortar_core::render::resolve::{EyeDome, HoleFill, ResolveOptions};
@@ -12,7 +15,8 @@ use mortar_io::cleanup::TempPath;
 use mortar_core::render::BatchRef;
 use mortar_io::batchfile::{AttributeSelection, BatchFile};
 use mortar_io::render_input::{self, ColorChoice, RenderSettings, RenderSource, Rendered};
-use mortar_render::{AtomicPath, GpuContext, GpuError, GpuOptions, GpuRasterizer, GpuScene, SceneOptions};
+use mortar_core::grid::Grid;
+use mortar_render::{AtomicPath, GpuContext, GpuError, GpuFrame, GpuOptions, GpuRasterizer, GpuScene, SceneOptions};
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -232,9 +236,9 @@ pub struct Args {
     #[command(flatten)]
     pub sort: common::SortArgs,
     #[command(flatten)]
-    pub lod: crate::render_lod::LodArgs,
+    pub lod: crate::render::lod::LodArgs,
     #[command(flatten)]
-    pub progressive: crate::progressive::ProgressiveArgs,
+    pub progressive: crate::render::progressive::ProgressiveArgs,
 }
 
 /// Opens the inputs: a single batch file as it is, anything else batched into a temporary file,
@@ -370,10 +374,10 @@ pub fn run(a: Args) -> Result<()> {
         bail!("--fov {}: must be between 0 and 180 degrees", a.camera.fov);
     }
     if a.progressive.progressive.is_some() {
-        return crate::progressive::run(&a);
+        return crate::render::progressive::run(&a);
     }
-    if let Some(store) = crate::render_lod::store_input(&a)? {
-        return crate::render_lod::run(&a, &store);
+    if let Some(store) = crate::render::lod::store_input(&a)? {
+        return crate::render::lod::run(&a, &store);
     }
     let start = Instant::now();
     let source = open_source(&a.inputs, &a.sort, Some(a.color))?;
@@ -436,15 +440,14 @@ pub fn run(a: Args) -> Result<()> {
     Ok(())
 }
 
-/// Draws `refs` with the GPU rasterizer: uploads the batches, draws one frame, reads the keys back
-/// and resolves them on the host exactly as the CPU path does. The outer error is the GPU's, the
-/// inner one the input's.
-fn render_gpu(ctx: &GpuContext, file: &BatchFile, refs: &[BatchRef<'_>], camera: &Camera, settings: &RenderSettings) -> std::result::Result<(mortar_io::Result<Rendered>, serde_json::Value), GpuError> {
-    if let Err(e) = render_input::check_color(file, settings.color) {
-        return Ok((Err(e), serde_json::Value::Null));
-    }
+/// Draws `refs` (batches on `grid` holding `points` points, indexed so that the keys' indices
+/// are the points') with the GPU rasterizer: uploads them, draws one frame and reads the keys
+/// back. The one GPU render entry of `mortar render`, for batch files, LAS/LAZ and stores alike:
+/// the caller resolves the keys on the host exactly as its CPU path does. Returns the keys, the
+/// frame and its `gpu` statistics for `--json`.
+pub fn draw_keys_gpu(ctx: &GpuContext, grid: Grid, points: u64, refs: &[BatchRef<'_>], camera: &Camera, options: &RasterOptions) -> std::result::Result<(Vec<u64>, GpuFrame, serde_json::Value), GpuError> {
     let t = Instant::now();
-    let mut scene = GpuScene::new(ctx, file.grid(), file.header.point_count, SceneOptions::default())?;
+    let mut scene = GpuScene::new(ctx, grid, points, SceneOptions::default())?;
     for b in refs {
         scene.push(ctx, b, None)?;
     }
@@ -452,10 +455,9 @@ fn render_gpu(ctx: &GpuContext, file: &BatchFile, refs: &[BatchRef<'_>], camera:
     ctx.wait()?;
     let upload_seconds = t.elapsed().as_secs_f64();
     let mut raster = GpuRasterizer::new(ctx, camera.width, camera.height)?;
-    let frame = raster.draw(ctx, &mut scene, camera, &settings.raster, None)?;
+    let frame = raster.draw(ctx, &mut scene, camera, options, None)?;
     let keys = raster.read_keys(ctx)?;
     let a = ctx.adapter();
-    let timings = frame.timings.map(|t| serde_json::json!({ "clear_ms": t.clear_ms, "draw_ms": t.draw_ms }));
     let j = serde_json::json!({
         "adapter": a.name,
         "api": a.backend,
@@ -467,8 +469,18 @@ fn render_gpu(ctx: &GpuContext, file: &BatchFile, refs: &[BatchRef<'_>], camera:
         "upload_seconds": upload_seconds,
         "plan_seconds": frame.plan_seconds,
         "frame_seconds": frame.frame_seconds,
-        "timings": timings,
         "draw_ms": frame.timings.map(|t| t.draw_ms),
     });
+    Ok((keys, frame, j))
+}
+
+/// [`draw_keys_gpu`] for a batch file, resolved as the CPU path resolves. The outer error is the
+/// GPU's, the inner one the input's.
+fn render_gpu(ctx: &GpuContext, file: &BatchFile, refs: &[BatchRef<'_>], camera: &Camera, settings: &RenderSettings) -> std::result::Result<(mortar_io::Result<Rendered>, serde_json::Value), GpuError> {
+    if let Err(e) = render_input::check_color(file, settings.color) {
+        return Ok((Err(e), serde_json::Value::Null));
+    }
+    let (keys, frame, mut j) = draw_keys_gpu(ctx, file.grid(), file.header.point_count, refs, camera, &settings.raster)?;
+    j["timings"] = frame.timings.map(|t| serde_json::json!({ "clear_ms": t.clear_ms, "draw_ms": t.draw_ms })).into();
     Ok((render_input::resolve_keys(file, keys, frame.stats, frame.frame_seconds, camera, settings), j))
 }

@@ -25,6 +25,7 @@ use mortar_core::render::resolve::{ColorMode, ResolveOptions};
 use mortar_core::render::{Aabb, BatchRef, Camera, RasterOptions};
 use mortar_io::render_input::{ColorChoice, RenderSettings};
 use mortar_io::store_lod::{self, LodColor, StoreLod};
+use super::content::{Content, GpuDrawn};
 use mortar_render::{GpuContext, GpuError, GpuFrame, GpuRasterizer, GpuScene, SceneOptions};
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -54,7 +55,7 @@ pub struct Selected {
 }
 
 /// The GPU side of a store view: the scene and which payloads it holds.
-pub struct StoreGpu {
+struct StoreGpu {
     scene: GpuScene,
     /// Scene batches of each uploaded payload (by offset in `nodes.bin`: the first batch and how
     /// many), with its samples.
@@ -81,6 +82,9 @@ pub struct StoreView {
     /// Per mode, the range of scalar modes, fixed at the first commit (see the module docs).
     ranges: Vec<Option<[f64; 2]>>,
     bounds: Aabb,
+    /// The colour mode shown (a position in `modes`).
+    mode: usize,
+    gpu: Option<StoreGpu>,
     pub selected: Selected,
 }
 
@@ -107,12 +111,7 @@ impl StoreView {
         let range = given.unwrap_or([bounds.min[2], bounds.max[2].max(bounds.min[2] + 1e-9)]);
         let modes = modes_of(layout);
         let ranges = vec![None; modes.len()];
-        StoreView { path: dir.to_path_buf(), lod: None, commit: 0, options, modes, given, range, ranges, bounds, selected: Selected::default() }
-    }
-
-    /// The colour modes, in the order C cycles them.
-    pub fn modes(&self) -> &[ColorChoice] {
-        &self.modes
+        StoreView { path: dir.to_path_buf(), lod: None, commit: 0, options, modes, given, range, ranges, bounds, mode: 0, gpu: None, selected: Selected::default() }
     }
 
     /// Fixes the scalar modes' ranges from `lod` (the first commit seen).
@@ -139,14 +138,10 @@ impl StoreView {
         self.modes.iter().position(|&m| m == want).ok_or_else(|| anyhow!("{}: --color {}: the store's point format has no such attribute", self.path.display(), choice.name()))
     }
 
-    /// The bounds framed by the camera.
-    pub fn bounds(&self) -> Aabb {
-        self.bounds
-    }
-
-    /// Points in the last commit.
-    pub fn points(&self) -> u64 {
-        self.lod.as_ref().map_or(0, StoreLod::point_count)
+    /// Shows colour mode `choice` (see [`mode_of`](Self::mode_of)).
+    pub fn show_mode(&mut self, choice: ColorChoice) -> Result<()> {
+        self.mode = self.mode_of(choice)?;
+        Ok(())
     }
 
     /// Nodes in the last commit.
@@ -160,7 +155,7 @@ impl StoreView {
     }
 
     /// Opens the store's last commit if it is newer than the one shown; whether it was.
-    pub fn reload(&mut self, gpu: Option<&mut StoreGpu>) -> Result<bool> {
+    fn reload_commit(&mut self) -> Result<bool> {
         let lod = match StoreLod::open(&self.path) {
             Ok(l) => l,
             // No commit yet.
@@ -174,7 +169,7 @@ impl StoreView {
         if self.lod.is_none() {
             self.set_ranges(&lod);
         }
-        if let Some(g) = gpu {
+        if let Some(g) = &mut self.gpu {
             let live: std::collections::HashSet<u64> = (0..lod.node_count()).map(|i| lod.payload_offset(mortar_core::octree::NodeId(i as u32))).collect();
             let before = g.batches.len();
             let mut dropped = 0;
@@ -195,31 +190,75 @@ impl StoreView {
     fn settings(&self, mode: usize, options: &RasterOptions, background: u32) -> RenderSettings {
         RenderSettings { raster: *options, color: self.modes[mode], range: self.ranges[mode], resolve: ResolveOptions { background, ..Default::default() } }
     }
+}
 
-    /// Draws the view with the CPU rasterizer: the RGBA8 image.
-    pub fn draw_cpu(&mut self, camera: &Camera, options: &RasterOptions, background: u32, mode: usize) -> Result<Vec<u32>> {
+impl Content for StoreView {
+    fn bounds(&self) -> Aabb {
+        self.bounds
+    }
+
+    /// Points in the last commit.
+    fn points(&self) -> u64 {
+        self.lod.as_ref().map_or(0, StoreLod::point_count)
+    }
+
+    fn modes(&self) -> &[ColorChoice] {
+        &self.modes
+    }
+
+    fn mode(&self) -> usize {
+        self.mode
+    }
+
+    fn set_mode(&mut self, to: usize, _gpu: Option<&GpuContext>) -> Result<bool> {
+        self.mode = to;
+        Ok(true)
+    }
+
+    fn status(&self) -> Vec<String> {
+        use super::group_digits;
+        vec![
+            format!("{} points, {} nodes, commit {}", group_digits(self.points()), group_digits(self.nodes()), self.commit()),
+            format!("drawn {} nodes, {} samples", group_digits(self.selected.nodes), group_digits(self.selected.samples)),
+        ]
+    }
+
+    fn busy(&self) -> bool {
+        false
+    }
+
+    fn reload(&mut self) -> Result<bool> {
+        self.reload_commit()
+    }
+
+    fn use_gpu(&mut self, ctx: &GpuContext) -> Result<(), GpuError> {
+        let grid = self.lod.as_ref().map_or(Grid { scale: [1.0; 3], offset: [0.0; 3] }, StoreLod::grid);
+        self.gpu = Some(StoreGpu { scene: GpuScene::new(ctx, grid, 1 << 20, SceneOptions { colors: true, ..Default::default() })?, batches: HashMap::new(), mode: self.mode, garbage: 0 });
+        Ok(())
+    }
+
+    /// The LOD selection of `camera`, drawn by the CPU rasterizer.
+    fn draw_cpu(&mut self, camera: &Camera, options: &RasterOptions, background: u32) -> Result<(Vec<u32>, u64)> {
         let Some(lod) = &self.lod else {
-            return Ok(vec![background; camera.width as usize * camera.height as usize]);
+            return Ok((vec![background; camera.width as usize * camera.height as usize], 0));
         };
         let sel = lod.select(camera, &self.options)?;
         let batches = lod.batches(&sel.nodes)?;
-        let img = store_lod::render(lod, &batches, camera, &self.settings(mode, options, background))?;
+        let img = store_lod::render(lod, &batches, camera, &self.settings(self.mode, options, background))?;
         self.selected = Selected { nodes: sel.nodes.len() as u64, samples: batches.samples, uploaded_nodes: 0 };
-        Ok(img.rgba)
+        Ok((img.rgba, batches.samples))
     }
 
-    /// A GPU side for this view.
-    pub fn gpu(&self, ctx: &GpuContext, mode: usize) -> Result<StoreGpu, GpuError> {
-        let grid = self.lod.as_ref().map_or(Grid { scale: [1.0; 3], offset: [0.0; 3] }, StoreLod::grid);
-        Ok(StoreGpu { scene: GpuScene::new(ctx, grid, 1 << 20, SceneOptions { colors: true, ..Default::default() })?, batches: HashMap::new(), mode, garbage: 0 })
-    }
-
-    /// Draws the view with the GPU rasterizer into `raster` (resolved, ready to present),
-    /// uploading the selected nodes the GPU does not hold yet.
-    pub fn draw_gpu(&mut self, ctx: &GpuContext, g: &mut StoreGpu, raster: &mut GpuRasterizer, camera: &Camera, options: &RasterOptions, background: u32, mode: usize) -> Result<GpuFrame> {
-        let gpu = |e: GpuError| anyhow!("{}: GPU: {e}", self.path.display());
+    /// The LOD selection of `camera`, drawn by the GPU rasterizer into `raster` (resolved, ready
+    /// to present), uploading the selected nodes the GPU does not hold yet.
+    fn draw_gpu(&mut self, ctx: &GpuContext, raster: &mut GpuRasterizer, camera: &Camera, options: &RasterOptions, background: u32) -> Result<GpuDrawn> {
+        let mode = self.mode;
+        let path = self.path.display().to_string();
+        let gpu = |e: GpuError| anyhow!("{path}: GPU: {e}");
+        let drawn = |f: GpuFrame| GpuDrawn { points_drawn: f.stats.points_drawn, draw_ms: f.timings.map(|t| t.draw_ms), resolve_ms: f.timings.and_then(|t| t.resolve_ms), own_image: false };
+        let g = self.gpu.as_mut().ok_or_else(|| anyhow!("{path}: GPU: not set up"))?;
         let Some(lod) = &self.lod else {
-            return raster.draw_selected(ctx, &mut g.scene, Some(&[]), camera, options, Some(background)).map_err(gpu);
+            return raster.draw_selected(ctx, &mut g.scene, Some(&[]), camera, options, Some(background)).map(drawn).map_err(gpu);
         };
         let sel = lod.select(camera, &self.options)?;
         let samples: u64 = sel.nodes.iter().map(|&id| lod.index().samples(id)).sum();
@@ -259,6 +298,6 @@ impl StoreView {
             uploaded += 1;
         }
         self.selected = Selected { nodes: sel.nodes.len() as u64, samples, uploaded_nodes: uploaded };
-        raster.draw_selected(ctx, &mut g.scene, Some(&ids), camera, options, Some(background)).map_err(gpu)
+        raster.draw_selected(ctx, &mut g.scene, Some(&ids), camera, options, Some(background)).map(drawn).map_err(gpu)
     }
 }

@@ -82,7 +82,7 @@ pub struct FrameRecorder {
 }
 
 /// World bounds of the points as the headers declare them.
-pub(crate) fn header_bounds(ds: &Dataset) -> Aabb {
+pub fn header_bounds(ds: &Dataset) -> Aabb {
     let (mut lo, mut hi) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
     for s in ds.inputs.iter().filter(|s| s.point_count() > 0) {
         let h = s.header();
@@ -169,12 +169,13 @@ impl FrameRecorder {
         let batches = lod.batches(&sel.nodes)?;
         let settings = RenderSettings::default();
         let img = match &self.gpu {
-            Some(ctx) => crate::render_lod::render_gpu(ctx, &lod, &batches, &camera, &settings).map_err(|e| anyhow::anyhow!("{}: GPU: {e}", self.store.display()))?.0?,
+            Some(ctx) => crate::render::lod::render_gpu(ctx, &lod, &batches, &camera, &settings).map_err(|e| anyhow::anyhow!("{}: GPU: {e}", self.store.display()))?.0?,
             None => store_lod::render(&lod, &batches, &camera, &settings)?,
         };
         let file = self.dir.join(format!("frame-{:04}.png", self.frames.len() + 1));
         write_atomic(&file, &encode_png(img.width, img.height, &img.rgba)?)?;
-        self.thumbs.push((img.width, img.height, img.rgba));
+        // Only the thumbnail stays in memory (a long build's frames would not fit in --memory).
+        self.thumbs.push(thumbnail(img.width, img.height, &img.rgba));
         self.frames.push(FrameInfo {
             file,
             at_seconds: self.start.elapsed().as_secs_f64(),
@@ -196,37 +197,47 @@ impl FrameRecorder {
         if n == 0 {
             bail!("{}: no frame was drawn", self.dir.display());
         }
-        let (w, h) = (self.thumbs[0].0, self.thumbs[0].1);
-        let f = w.div_ceil(480).max(1);
-        let (tw, th) = (w / f, h / f);
+        let (tw, th) = (self.thumbs[0].0, self.thumbs[0].1);
         let cols = (n as f64).sqrt().ceil() as u32;
         let rows = (n as u32).div_ceil(cols);
         let gap = 4;
         let (sw, sh) = (cols * (tw + gap) + gap, rows * (th + gap) + gap);
         let mut sheet = vec![0xff20_2020u32; (sw * sh) as usize];
-        for (k, (fw, _, rgba)) in self.thumbs.iter().enumerate() {
+        for (k, (_, _, thumb)) in self.thumbs.iter().enumerate() {
             let (cx, cy) = ((k as u32 % cols) * (tw + gap) + gap, (k as u32 / cols) * (th + gap) + gap);
             for y in 0..th {
-                for x in 0..tw {
-                    let mut acc = [0u32; 4];
-                    for dy in 0..f {
-                        for dx in 0..f {
-                            let c = rgba[((y * f + dy) * fw + x * f + dx) as usize];
-                            for (i, v) in acc.iter_mut().enumerate() {
-                                *v += (c >> (8 * i)) & 0xff;
-                            }
-                        }
-                    }
-                    let m = f * f;
-                    let px = (0..4).fold(0u32, |p, i| p | ((acc[i] + m / 2) / m) << (8 * i));
-                    sheet[((cy + y) * sw + cx + x) as usize] = px;
-                }
+                let row = (y * tw) as usize;
+                let at = ((cy + y) * sw + cx) as usize;
+                sheet[at..at + tw as usize].copy_from_slice(&thumb[row..row + tw as usize]);
             }
         }
         write_atomic(&path, &encode_png(sw, sh, &sheet)?)?;
         self.thumbs.clear();
         Ok(path)
     }
+}
+
+/// A frame scaled down to at most 480 pixels wide by an integer factor (box filter, rounded).
+fn thumbnail(w: u32, h: u32, rgba: &[u32]) -> (u32, u32, Vec<u32>) {
+    let f = w.div_ceil(480).max(1);
+    let (tw, th) = (w / f, h / f);
+    let mut out = Vec::with_capacity((tw * th) as usize);
+    for y in 0..th {
+        for x in 0..tw {
+            let mut acc = [0u32; 4];
+            for dy in 0..f {
+                for dx in 0..f {
+                    let c = rgba[((y * f + dy) * w + x * f + dx) as usize];
+                    for (i, v) in acc.iter_mut().enumerate() {
+                        *v += (c >> (8 * i)) & 0xff;
+                    }
+                }
+            }
+            let m = f * f;
+            out.push((0..4).fold(0u32, |p, i| p | ((acc[i] + m / 2) / m) << (8 * i)));
+        }
+    }
+    (tw, th, out)
 }
 
 /// The `frames` object of `mortar build --json`.

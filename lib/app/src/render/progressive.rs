@@ -11,7 +11,8 @@
 //!
 //! Progressive drawing in the interactive window (`mortar view`) is pending.
 
-use crate::common;
+use mortar_core::metrics::median;
+use crate::cli as common;
 use crate::render::{
     build_camera, camera_json, encode_png, gpu_context, write_atomic, Args, Backend,
 };
@@ -20,7 +21,7 @@ use mortar_core::render::progressive::{
     AdaptiveBudget, FillBudget, FrameStats, ProgressiveRenderer, Shuffle,
 };
 use mortar_core::render::resolve::{resolve, ColorMode, EyeDome, HoleFill, ResolveOptions};
-use mortar_core::render::RasterOptions;
+use mortar_core::render::{Camera, RasterOptions};
 use mortar_io::dataset::Dataset;
 use mortar_io::progressive::{
     header_frame, load_pieces, payload_colors, payload_for, resolve_choice, ColorStats, LoadedPiece,
@@ -141,92 +142,112 @@ fn ms(t: Instant) -> f64 {
     t.elapsed().as_secs_f64() * 1e3
 }
 
-/// Median of `v` (0 for none).
-fn median(mut v: Vec<f64>) -> f64 {
-    if v.is_empty() {
-        return 0.0;
+/// The progressive renderer a loop drives, on either backend: [`ProgressiveRenderer`] (CPU) or
+/// [`GpuProgressive`] on its context ([`OnGpu`]). Both hold the same shuffle and convergence
+/// state; the loop of `render --progressive` sees only this trait.
+pub trait ProgressiveEngine {
+    /// Points inserted so far.
+    fn loaded(&self) -> u64;
+    /// Points the buffer holds when full.
+    fn capacity(&self) -> u64;
+    /// The shuffle that maps arrival numbers to slots.
+    fn shuffle(&self) -> &Shuffle;
+    /// Inserts a decoded piece (positions and payloads).
+    fn insert(&mut self, piece: &LoadedPiece) -> std::result::Result<(), String>;
+    /// One frame: reproject, fill within `budget`, prepare; the GPU's own account where there is one.
+    fn frame(&mut self, camera: &Camera, options: &RasterOptions, budget: &FillBudget) -> std::result::Result<(FrameStats, Option<GpuProgressiveFrame>), String>;
+    /// The last frame's keys and its visible slots (sorted).
+    fn keys_and_visible(&self) -> Result<(Vec<u64>, Vec<u32>)>;
+    /// The payload in `slot`, once loaded.
+    fn payload(&self, slot: u32) -> Option<u64>;
+    /// The backend for `--json` (`null` for the CPU).
+    fn backend_json(&self) -> serde_json::Value {
+        serde_json::Value::Null
     }
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
 }
 
-/// The renderer the loop drives: the CPU one, or the GPU one on its context.
-enum Engine<'a> {
-    Cpu(Box<ProgressiveRenderer>),
-    Gpu {
-        ctx: &'a GpuContext,
-        r: Box<GpuProgressive>,
-    },
-}
-
-impl Engine<'_> {
+impl ProgressiveEngine for ProgressiveRenderer {
     fn loaded(&self) -> u64 {
-        match self {
-            Engine::Cpu(r) => r.loaded(),
-            Engine::Gpu { r, .. } => r.loaded(),
-        }
+        ProgressiveRenderer::loaded(self)
     }
 
     fn capacity(&self) -> u64 {
-        match self {
-            Engine::Cpu(r) => r.capacity(),
-            Engine::Gpu { r, .. } => r.capacity(),
-        }
+        ProgressiveRenderer::capacity(self)
     }
 
     fn shuffle(&self) -> &Shuffle {
-        match self {
-            Engine::Cpu(r) => r.shuffle(),
-            Engine::Gpu { r, .. } => r.shuffle(),
-        }
+        ProgressiveRenderer::shuffle(self)
     }
 
     fn insert(&mut self, piece: &LoadedPiece) -> std::result::Result<(), String> {
-        match self {
-            Engine::Cpu(r) => r
-                .insert(piece.first, &piece.xyz, &piece.payload)
-                .map_err(|e| e.to_string()),
-            Engine::Gpu { ctx, r } => r
-                .insert(ctx, piece.first, &piece.xyz, None, Some(&piece.payload))
-                .map_err(|e| e.to_string()),
-        }
+        ProgressiveRenderer::insert(self, piece.first, &piece.xyz, &piece.payload).map_err(|e| e.to_string())
     }
 
-    fn frame(
-        &mut self,
-        camera: &mortar_core::render::Camera,
-        options: &RasterOptions,
-        budget: &FillBudget,
-    ) -> std::result::Result<(FrameStats, Option<GpuProgressiveFrame>), String> {
-        match self {
-            Engine::Cpu(r) => r
-                .frame(camera, options, budget)
-                .map(|s| (s, None))
-                .map_err(|e| e.to_string()),
-            Engine::Gpu { ctx, r } => r
-                .frame(ctx, camera, options, budget, None)
-                .map(|f| (f.stats, Some(f)))
-                .map_err(|e| format!("GPU: {e}")),
-        }
+    fn frame(&mut self, camera: &Camera, options: &RasterOptions, budget: &FillBudget) -> std::result::Result<(FrameStats, Option<GpuProgressiveFrame>), String> {
+        ProgressiveRenderer::frame(self, camera, options, budget).map(|s| (s, None)).map_err(|e| e.to_string())
     }
 
-    /// The last frame's keys and its visible slots (sorted).
     fn keys_and_visible(&self) -> Result<(Vec<u64>, Vec<u32>)> {
-        Ok(match self {
-            Engine::Cpu(r) => {
-                let mut v = r.visible();
-                v.sort_unstable();
-                (r.keys(), v)
-            }
-            Engine::Gpu { ctx, r } => (r.read_keys(ctx)?, r.read_visible(ctx)?),
-        })
+        let mut v = self.visible();
+        v.sort_unstable();
+        Ok((self.keys(), v))
     }
 
     fn payload(&self, slot: u32) -> Option<u64> {
-        match self {
-            Engine::Cpu(r) => r.payload(slot),
-            Engine::Gpu { r, .. } => r.payload(slot),
-        }
+        ProgressiveRenderer::payload(self, slot)
+    }
+}
+
+/// The GPU progressive renderer with the context it runs on.
+pub struct OnGpu<'a> {
+    pub ctx: &'a GpuContext,
+    pub r: GpuProgressive,
+}
+
+impl ProgressiveEngine for OnGpu<'_> {
+    fn loaded(&self) -> u64 {
+        self.r.loaded()
+    }
+
+    fn capacity(&self) -> u64 {
+        self.r.capacity()
+    }
+
+    fn shuffle(&self) -> &Shuffle {
+        self.r.shuffle()
+    }
+
+    fn insert(&mut self, piece: &LoadedPiece) -> std::result::Result<(), String> {
+        self.r.insert(self.ctx, piece.first, &piece.xyz, None, Some(&piece.payload)).map_err(|e| e.to_string())
+    }
+
+    fn frame(&mut self, camera: &Camera, options: &RasterOptions, budget: &FillBudget) -> std::result::Result<(FrameStats, Option<GpuProgressiveFrame>), String> {
+        self.r.frame(self.ctx, camera, options, budget, None).map(|f| (f.stats, Some(f))).map_err(|e| format!("GPU: {e}"))
+    }
+
+    fn keys_and_visible(&self) -> Result<(Vec<u64>, Vec<u32>)> {
+        Ok((self.r.read_keys(self.ctx)?, self.r.read_visible(self.ctx)?))
+    }
+
+    fn payload(&self, slot: u32) -> Option<u64> {
+        self.r.payload(slot)
+    }
+
+    fn backend_json(&self) -> serde_json::Value {
+        let (ctx, r) = (self.ctx, &self.r);
+        let ad = ctx.adapter();
+        serde_json::json!({
+            "adapter": ad.name,
+            "api": ad.backend,
+            "device_type": ad.device_type,
+            "driver": ad.driver,
+            "atomics": ctx.atomic_path().name(),
+            "chunks": r.chunk_count(),
+            "gpu_bytes": r.gpu_bytes(),
+            // How pass times and the adaptive budget were measured: "gpu-timestamps" or "host-clock".
+            "timing": r.timing().name(),
+            "timestamps": r.timing() == mortar_render::BudgetTiming::GpuTimestamps,
+        })
     }
 }
 
@@ -255,7 +276,7 @@ struct Outcome {
 /// Draws frames until `frames` says stop, taking pieces from `rx` as they arrive.
 #[allow(clippy::too_many_arguments)]
 fn render_loop(
-    r: &mut Engine<'_>,
+    r: &mut dyn ProgressiveEngine,
     rx: Receiver<mortar_io::Result<LoadedPiece>>,
     frames: Frames,
     preload: bool,
@@ -274,7 +295,7 @@ fn render_loop(
         decode_seconds: 0.0,
     };
     let mut open = true;
-    let take = |r: &mut Engine<'_>,
+    let take = |r: &mut dyn ProgressiveEngine,
                 piece: mortar_io::Result<LoadedPiece>,
                 out: &mut Outcome|
      -> Result<()> {
@@ -395,11 +416,11 @@ pub fn run(a: &Args) -> Result<()> {
         Some(ctx) if a.backend == Backend::Auto && ctx.atomic_path() != AtomicPath::U64 => None,
         ctx => ctx,
     };
-    let mut renderer = match &gpu {
-        None => Engine::Cpu(Box::new(
+    let mut renderer: Box<dyn ProgressiveEngine> = match &gpu {
+        None => Box::new(
             ProgressiveRenderer::new(ds.grid, frame.min, frame.max, frame.points)
                 .map_err(|e| anyhow!("{label}: {e}"))?,
-        )),
+        ),
         Some(ctx) => {
             let options = ProgressiveOptions {
                 payloads: true,
@@ -407,10 +428,7 @@ pub fn run(a: &Args) -> Result<()> {
             };
             let r = GpuProgressive::new(ctx, ds.grid, frame.min, frame.max, frame.points, options)
                 .map_err(|e| anyhow!("{label}: --backend {}: {e}", backend_name(a.backend)))?;
-            Engine::Gpu {
-                ctx,
-                r: Box::new(r),
-            }
+            Box::new(OnGpu { ctx, r })
         }
     };
     let threads = p.load_threads.unwrap_or_else(|| {
@@ -431,7 +449,7 @@ pub fn run(a: &Args) -> Result<()> {
             })
         });
         let result = render_loop(
-            &mut renderer,
+            &mut *renderer,
             rx,
             frames,
             p.preload,
@@ -509,24 +527,7 @@ pub fn run(a: &Args) -> Result<()> {
         return Ok(());
     }
     let converged_at = outcome.frames.iter().find(|f| f.stats.converged);
-    let gpu_json = match (&gpu, &renderer) {
-        (Some(ctx), Engine::Gpu { r, .. }) => {
-            let ad = ctx.adapter();
-            serde_json::json!({
-                "adapter": ad.name,
-                "api": ad.backend,
-                "device_type": ad.device_type,
-                "driver": ad.driver,
-                "atomics": ctx.atomic_path().name(),
-                "chunks": r.chunk_count(),
-                "gpu_bytes": r.gpu_bytes(),
-                // How pass times and the adaptive budget were measured: "gpu-timestamps" or "host-clock".
-                "timing": r.timing().name(),
-                "timestamps": r.timing() == mortar_render::BudgetTiming::GpuTimestamps,
-            })
-        }
-        _ => serde_json::Value::Null,
-    };
+    let gpu_json = renderer.backend_json();
     let budget_json = match budget {
         FillBudget::Fixed(b) => {
             serde_json::json!({ "fixed": b, "frames_to_converge": renderer.capacity().div_ceil(b) })
@@ -598,17 +599,17 @@ pub fn run(a: &Args) -> Result<()> {
         "load_seconds": outcome.loaded_ms.map(|v| v * 1e-3),
         "decode_cpu_seconds": outcome.decode_seconds,
         "first_frame_seconds": outcome.first_frame_ms * 1e-3,
-        "filled_median": median(filled.clone()),
+        "filled_median": median(&filled),
         "filled_max": filled.iter().copied().fold(0.0, f64::max),
-        "frame_ms_median": median(outcome.frames.iter().map(|f| f.stats.total_ms).collect()),
+        "frame_ms_median": median(&outcome.frames.iter().map(|f| f.stats.total_ms).collect::<Vec<f64>>()),
         "frame_ms_max": outcome.frames.iter().map(|f| f.stats.total_ms).fold(0.0, f64::max),
         "loaded_frames": {
             "count": loaded_frames.len(),
-            "filled_median": median(loaded_frames.iter().map(|f| f.stats.filled as f64).collect()),
-            "frame_ms_median": median(loaded_frames.iter().map(|f| f.stats.total_ms).collect()),
-            "reproject_ms_median": median(loaded_frames.iter().map(|f| f.stats.reproject_ms).collect()),
-            "fill_ms_median": median(loaded_frames.iter().map(|f| f.stats.fill_ms).collect()),
-            "prepare_ms_median": median(loaded_frames.iter().map(|f| f.stats.prepare_ms).collect()),
+            "filled_median": median(&loaded_frames.iter().map(|f| f.stats.filled as f64).collect::<Vec<f64>>()),
+            "frame_ms_median": median(&loaded_frames.iter().map(|f| f.stats.total_ms).collect::<Vec<f64>>()),
+            "reproject_ms_median": median(&loaded_frames.iter().map(|f| f.stats.reproject_ms).collect::<Vec<f64>>()),
+            "fill_ms_median": median(&loaded_frames.iter().map(|f| f.stats.fill_ms).collect::<Vec<f64>>()),
+            "prepare_ms_median": median(&loaded_frames.iter().map(|f| f.stats.prepare_ms).collect::<Vec<f64>>()),
         },
         "pixels_covered": last.visible,
         "resolve_seconds": resolve_seconds,

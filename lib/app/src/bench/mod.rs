@@ -1,0 +1,7 @@
+//! The render benchmarks' procedures; each `mortar-bench-*` binary parses its [`Args`](render::Args)
+//! and calls `run`.
+
+pub mod gpu;
+pub mod lod;
+pub mod progressive;
+pub mod render;
