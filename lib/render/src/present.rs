@@ -9,29 +9,9 @@
 use crate::context::{GpuContext, GpuError};
 use crate::raster::{map_read, GpuRasterizer};
 
-/// Constants of the present pass. 32 bytes; WGSL `PresentUniforms` in `shaders/present.wgsl`.
-#[repr(C)]
-#[derive(Clone, Copy, Debug, PartialEq, Eq, bytemuck::Pod, bytemuck::Zeroable)]
-pub struct PresentUniforms {
-    /// Image width in pixels (the surface's).
-    pub width: u32,
-    /// Image height in pixels.
-    pub height: u32,
-    /// Overlay width in pixels (0: no overlay).
-    pub overlay_width: u32,
-    /// Overlay height in pixels.
-    pub overlay_height: u32,
-    /// 1 when the surface format is sRGB (the shader decodes the image's sRGB bytes to linear).
-    pub srgb_target: u32,
-    /// Padding.
-    pub _pad0: u32,
-    /// Padding.
-    pub _pad1: u32,
-    /// Padding.
-    pub _pad2: u32,
-}
-
-const _: () = assert!(std::mem::size_of::<PresentUniforms>() == 32);
+/// The present pass's uniforms, defined with the other records the GPU reads in
+/// [`mortar_core::render::gpu`] (re-exported here where they used to be).
+pub use mortar_core::render::gpu::PresentUniforms;
 
 /// An RGBA8 image drawn over the top-left corner (alpha is coverage), e.g. a status line.
 #[derive(Clone, Copy, Debug)]

@@ -65,6 +65,10 @@ use std::num::NonZeroU64;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Instant;
 
+/// The uniforms of the scatter and Prepare passes, defined with the other records the GPU reads
+/// in [`mortar_core::render::gpu`] (re-exported here where they used to be).
+pub use mortar_core::render::gpu::{PrepareUniforms, ScatterUniforms};
+
 /// Slots (Fill) or list entries (Reproject) per thread of the draw passes; WGSL mirror
 /// `SLOTS_PER_THREAD` in `shaders/progressive_types.wgsl`.
 pub const SLOTS_PER_THREAD: u32 = 8;
@@ -74,40 +78,6 @@ const SLOTS_PER_GROUP: u64 = 128 * SLOTS_PER_THREAD as u64;
 
 /// Points per scatter upload.
 const STAGING_POINTS: usize = 4 << 20;
-
-/// Constants of the scatter pass. 16 bytes; WGSL `ScatterUniforms` in
-/// `shaders/progressive_types.wgsl` (keep in sync; checked by the shader test).
-#[repr(C)]
-#[derive(Clone, Copy, Debug, PartialEq, Eq, bytemuck::Pod, bytemuck::Zeroable)]
-pub struct ScatterUniforms {
-    /// 1 when the staged records carry a colour (5 words per point), 0 when not (4 words).
-    pub colors: u32,
-    /// 1 when the records are (slot, colour) and only colours are written ([`GpuProgressive::recolor`]).
-    pub colors_only: u32,
-    /// Padding.
-    pub _pad1: u32,
-    /// Padding.
-    pub _pad2: u32,
-}
-
-const _: () = assert!(std::mem::size_of::<ScatterUniforms>() == 16);
-
-/// Constants of the Prepare pass. 16 bytes; WGSL `PrepareUniforms` in
-/// `shaders/progressive_types.wgsl` (keep in sync; checked by the shader test).
-#[repr(C)]
-#[derive(Clone, Copy, Debug, PartialEq, Eq, bytemuck::Pod, bytemuck::Zeroable)]
-pub struct PrepareUniforms {
-    /// Pixels of the framebuffer.
-    pub pixels: u32,
-    /// Slots per chunk (a slot's list is `slot / chunk_slots`).
-    pub chunk_slots: u32,
-    /// Entries between the starts of two chunks' visible lists.
-    pub list_stride: u32,
-    /// Number of chunks.
-    pub chunks: u32,
-}
-
-const _: () = assert!(std::mem::size_of::<PrepareUniforms>() == 16);
 
 /// Why the GPU progressive renderer refused something or failed.
 #[derive(Debug, thiserror::Error)]

@@ -2,10 +2,9 @@
 //! assemble it (with 64-bit capabilities only where the pass needs them), and every struct shared
 //! with WGSL has the same size and member offsets as its `#[repr(C)]` Rust twin.
 
-use mortar_core::render::gpu::{DrawRecord, FrameUniforms, ResolveUniforms};
-use mortar_core::render::BatchProjection;
+use mortar_core::render::gpu::{BatchProjection, DrawRecord, FrameUniforms, PrepareUniforms, ResolveUniforms, ScatterUniforms};
 use mortar_core::render::progressive::UNLOADED;
-use mortar_render::progressive::{PrepareUniforms, ScatterUniforms, SLOTS_PER_THREAD};
+use mortar_render::progressive::SLOTS_PER_THREAD;
 use mortar_render::shaders::Pass;
 use naga::valid::{Capabilities, ValidationFlags, Validator};
 use std::mem::{offset_of, size_of};
