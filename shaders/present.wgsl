@@ -4,8 +4,8 @@
 // compute pass, so that any surface format works (Bgra8 or Rgba8, sRGB or not) without storage
 // texture support: the fragment output is converted by the hardware.
 //
-// KEEP IN SYNC with PresentUniforms in lib/render/src/present.rs (32 bytes; mortar-render's
-// layout test compares them).
+// KEEP IN SYNC with mortar_core::render::gpu::PresentUniforms (lib/core/src/render/gpu.rs,
+// 32 bytes; mortar-render's layout test compares them).
 
 struct PresentUniforms {
     // Size of the image (equal to the surface's).

@@ -5,8 +5,8 @@
 // values naga computes here with the Rust ones):
 //   UNLOADED           mortar_core::render::progressive::UNLOADED
 //   SLOTS_PER_THREAD   mortar_render::progressive::SLOTS_PER_THREAD
-//   ScatterUniforms    mortar_render::progressive::ScatterUniforms  (16 bytes)
-//   PrepareUniforms    mortar_render::progressive::PrepareUniforms  (16 bytes)
+//   ScatterUniforms    mortar_core::render::gpu::ScatterUniforms  (16 bytes)
+//   PrepareUniforms    mortar_core::render::gpu::PrepareUniforms  (16 bytes)
 
 // The coarse word of a slot whose point has not arrived (bit 31: no real coarse word has it).
 const UNLOADED: u32 = 0x80000000u;

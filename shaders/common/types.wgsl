@@ -1,11 +1,12 @@
 // Types shared by the passes of the GPU rasterizer.
 //
-// KEEP IN SYNC with their #[repr(C)] twins in Rust (one definition per layout; mortar-render's
-// layout test compares the offsets and sizes naga computes here with the Rust ones):
-//   BatchProjection  lib/core/src/render/camera.rs  (112 bytes)
-//   DrawRecord       lib/core/src/render/gpu.rs     (128 bytes)
-//   FrameUniforms    lib/core/src/render/gpu.rs     (32 bytes)
-//   ResolveUniforms  lib/core/src/render/gpu.rs     (32 bytes)
+// KEEP IN SYNC with their #[repr(C)] twins in Rust, all in mortar_core::render::gpu
+// (lib/core/src/render/gpu.rs; one definition per layout; mortar-render's layout test compares
+// the offsets and sizes naga computes here with the Rust ones):
+//   BatchProjection  (112 bytes; defined in lib/core/src/render/camera.rs, re-exported by gpu.rs)
+//   DrawRecord       (128 bytes)
+//   FrameUniforms    (32 bytes)
+//   ResolveUniforms  (32 bytes)
 
 struct BatchProjection {
     // Rows X, Y, D, W of pixel_from_local (row-major, as in Rust; not a WGSL matrix).

@@ -11,7 +11,11 @@
 //! - [`progressive`]: the progressive renderer of paper 000 (shuffled buffer, Reproject, Fill,
 //!   Prepare, adaptive fill budget from GPU timestamps), the twin of mortar-core's CPU one.
 //! - [`shaders`]: the WGSL modules of `shaders/`, assembled from `shaders/common/` and one file
-//!   per pass.
+//!   per pass, and the binding table of every pass (tested against the WGSL).
+//! - `pipeline` (private): what the renderers build once: each pass's pipeline with explicit
+//!   bind-group layouts made from its binding table.
+//!
+//! The `#[repr(C)]` records the passes read are defined once, in [`mortar_core::render::gpu`].
 //!
 //! - [`present`]: the window's surface (`mortar view`): the resolved image drawn into the surface
 //!   texture by one render pass, without leaving the GPU. The surface comes from
@@ -20,6 +24,7 @@
 //! This crate opens no files: callers hand it in-memory batches ([`mortar_core::render::BatchRef`]).
 
 pub mod context;
+mod pipeline;
 pub mod present;
 pub mod progressive;
 pub mod raster;

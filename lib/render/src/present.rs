@@ -7,31 +7,13 @@
 //! [`GpuContext::for_window`] from any window that has raw window and display handles.
 
 use crate::context::{GpuContext, GpuError};
+use crate::pipeline::{bind_group_layout, entry};
 use crate::raster::{map_read, GpuRasterizer};
+use crate::shaders::{binding, PRESENT_BINDINGS};
 
-/// Constants of the present pass. 32 bytes; WGSL `PresentUniforms` in `shaders/present.wgsl`.
-#[repr(C)]
-#[derive(Clone, Copy, Debug, PartialEq, Eq, bytemuck::Pod, bytemuck::Zeroable)]
-pub struct PresentUniforms {
-    /// Image width in pixels (the surface's).
-    pub width: u32,
-    /// Image height in pixels.
-    pub height: u32,
-    /// Overlay width in pixels (0: no overlay).
-    pub overlay_width: u32,
-    /// Overlay height in pixels.
-    pub overlay_height: u32,
-    /// 1 when the surface format is sRGB (the shader decodes the image's sRGB bytes to linear).
-    pub srgb_target: u32,
-    /// Padding.
-    pub _pad0: u32,
-    /// Padding.
-    pub _pad1: u32,
-    /// Padding.
-    pub _pad2: u32,
-}
-
-const _: () = assert!(std::mem::size_of::<PresentUniforms>() == 32);
+/// The present pass's uniforms, defined with the other records the GPU reads in
+/// [`mortar_core::render::gpu`] (re-exported here where they used to be).
+pub use mortar_core::render::gpu::PresentUniforms;
 
 /// An RGBA8 image drawn over the top-left corner (alpha is coverage), e.g. a status line.
 #[derive(Clone, Copy, Debug)]
@@ -70,6 +52,8 @@ pub struct WindowSurface {
     surface: wgpu::Surface<'static>,
     config: wgpu::SurfaceConfiguration,
     pipeline: wgpu::RenderPipeline,
+    /// The layout of the pass's one bind group ([`PRESENT_BINDINGS`]).
+    layout: wgpu::BindGroupLayout,
     uniforms: wgpu::Buffer,
     overlay: wgpu::Buffer,
     srgb: bool,
@@ -126,9 +110,12 @@ impl WindowSurface {
             label: Some("present.wgsl"),
             source: wgpu::ShaderSource::Wgsl(crate::shaders::PRESENT.into()),
         });
+        let layout = bind_group_layout(ctx, "present", PRESENT_BINDINGS, 0, wgpu::ShaderStages::FRAGMENT);
+        let pipeline_layout =
+            ctx.device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor { label: Some("present"), bind_group_layouts: &[Some(&layout)], immediate_size: 0 });
         let pipeline = ctx.device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
             label: Some("present"),
-            layout: None,
+            layout: Some(&pipeline_layout),
             vertex: wgpu::VertexState { module: &module, entry_point: Some("vs_main"), compilation_options: Default::default(), buffers: &[] },
             primitive: wgpu::PrimitiveState::default(),
             depth_stencil: None,
@@ -142,15 +129,10 @@ impl WindowSurface {
             multiview_mask: None,
             cache: None,
         });
-        let uniforms = ctx.device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("present uniforms"),
-            size: std::mem::size_of::<PresentUniforms>() as u64,
-            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        });
+        let uniforms = crate::pipeline::uniform::<PresentUniforms>(ctx, "present uniforms");
         let overlay = overlay_buffer(ctx, 4);
         ctx.check()?;
-        Ok(WindowSurface { surface, config, pipeline, uniforms, overlay, srgb: format.is_srgb(), readable_bgra })
+        Ok(WindowSurface { surface, config, pipeline, layout, uniforms, overlay, srgb: format.is_srgb(), readable_bgra })
     }
 
     /// The surface's size in pixels.
@@ -228,14 +210,14 @@ impl WindowSurface {
             }
         };
         let view = texture.texture.create_view(&wgpu::TextureViewDescriptor::default());
-        let layout = self.pipeline.get_bind_group_layout(0);
+        // Per frame: the image and the overlay buffer may change between frames.
         let group = ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("present"),
-            layout: &layout,
+            layout: &self.layout,
             entries: &[
-                wgpu::BindGroupEntry { binding: 0, resource: self.uniforms.as_entire_binding() },
-                wgpu::BindGroupEntry { binding: 1, resource: image.as_entire_binding() },
-                wgpu::BindGroupEntry { binding: 2, resource: self.overlay.as_entire_binding() },
+                entry(binding::PRESENT_PARAMS, self.uniforms.as_entire_binding()),
+                entry(binding::PRESENT_IMAGE, image.as_entire_binding()),
+                entry(binding::PRESENT_OVERLAY, self.overlay.as_entire_binding()),
             ],
         });
         let mut enc = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("present") });

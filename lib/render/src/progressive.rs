@@ -44,6 +44,12 @@
 //! - **Convergence** as in the CPU renderer: a bit per slot drawn since the view (camera and
 //!   options) last changed; converged once every slot is loaded and drawn.
 //!
+//! GPU state, as in the batch rasterizer: the passes (pipelines with explicit bind-group layouts
+//! from the tables of [`crate::shaders`]), the shuffled buffer and the per-frame buffers are made
+//! with the renderer; the framebuffer, the visible lists and the bind groups that use them are
+//! made by the first frame of a viewport size, the resolved image by the first frame of that size
+//! drawn with `resolve`.
+//!
 //! Only the 64-bit atomic path is implemented: on a context whose
 //! [`atomic_path`](GpuContext::atomic_path) is the 32-bit two-pass path,
 //! [`GpuProgressive::new`] fails with [`ProgressiveGpuError::Needs64BitAtomics`] (the two-pass path
@@ -52,9 +58,10 @@
 //! 16 bytes of floats and attributes; [`RasterStats`] counts one "batch" per dispatch.
 
 use crate::context::{AtomicPath, GpuContext, GpuError};
-use crate::raster::{entry, map_read, pipeline, read_image_buffer, readback, storage};
+use crate::pipeline::{batches_group, entry, storage, uniform, PassPipeline, SharedLayouts, Timestamps};
+use crate::raster::{map_read, read_image_buffer, readback};
 use crate::scene::MAX_CHUNK_POINTS;
-use crate::shaders::Pass;
+use crate::shaders::{binding, Pass};
 use mortar_core::grid::Grid;
 use mortar_core::quantize::BatchGrid;
 use mortar_core::render::gpu::{DrawRecord, FrameUniforms, ResolveUniforms};
@@ -65,6 +72,10 @@ use std::num::NonZeroU64;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Instant;
 
+/// The uniforms of the scatter and Prepare passes, defined with the other records the GPU reads
+/// in [`mortar_core::render::gpu`] (re-exported here where they used to be).
+pub use mortar_core::render::gpu::{PrepareUniforms, ScatterUniforms};
+
 /// Slots (Fill) or list entries (Reproject) per thread of the draw passes; WGSL mirror
 /// `SLOTS_PER_THREAD` in `shaders/progressive_types.wgsl`.
 pub const SLOTS_PER_THREAD: u32 = 8;
@@ -74,40 +85,6 @@ const SLOTS_PER_GROUP: u64 = 128 * SLOTS_PER_THREAD as u64;
 
 /// Points per scatter upload.
 const STAGING_POINTS: usize = 4 << 20;
-
-/// Constants of the scatter pass. 16 bytes; WGSL `ScatterUniforms` in
-/// `shaders/progressive_types.wgsl` (keep in sync; checked by the shader test).
-#[repr(C)]
-#[derive(Clone, Copy, Debug, PartialEq, Eq, bytemuck::Pod, bytemuck::Zeroable)]
-pub struct ScatterUniforms {
-    /// 1 when the staged records carry a colour (5 words per point), 0 when not (4 words).
-    pub colors: u32,
-    /// 1 when the records are (slot, colour) and only colours are written ([`GpuProgressive::recolor`]).
-    pub colors_only: u32,
-    /// Padding.
-    pub _pad1: u32,
-    /// Padding.
-    pub _pad2: u32,
-}
-
-const _: () = assert!(std::mem::size_of::<ScatterUniforms>() == 16);
-
-/// Constants of the Prepare pass. 16 bytes; WGSL `PrepareUniforms` in
-/// `shaders/progressive_types.wgsl` (keep in sync; checked by the shader test).
-#[repr(C)]
-#[derive(Clone, Copy, Debug, PartialEq, Eq, bytemuck::Pod, bytemuck::Zeroable)]
-pub struct PrepareUniforms {
-    /// Pixels of the framebuffer.
-    pub pixels: u32,
-    /// Slots per chunk (a slot's list is `slot / chunk_slots`).
-    pub chunk_slots: u32,
-    /// Entries between the starts of two chunks' visible lists.
-    pub list_stride: u32,
-    /// Number of chunks.
-    pub chunks: u32,
-}
-
-const _: () = assert!(std::mem::size_of::<PrepareUniforms>() == 16);
 
 /// Why the GPU progressive renderer refused something or failed.
 #[derive(Debug, thiserror::Error)]
@@ -207,22 +184,80 @@ struct SlotChunk {
     len: u32,
 }
 
-struct Pipelines {
-    clear: wgpu::ComputePipeline,
-    unload: wgpu::ComputePipeline,
-    scatter: wgpu::ComputePipeline,
-    reproject: wgpu::ComputePipeline,
-    fill: wgpu::ComputePipeline,
-    prepare: wgpu::ComputePipeline,
-    resolve: wgpu::ComputePipeline,
+/// The pipelines and layouts of the renderer: built once with it.
+struct Passes {
+    shared: SharedLayouts,
+    clear: PassPipeline,
+    unload: PassPipeline,
+    scatter: PassPipeline,
+    reproject: PassPipeline,
+    fill: PassPipeline,
+    prepare: PassPipeline,
+    resolve: PassPipeline,
 }
 
-/// The framebuffer and visible lists of one viewport size.
+/// What the renderer writes anew every frame: the camera's uniforms, the drawn-point counter,
+/// the draw records, Prepare's constants and list counts, the resolve dispatches' uniforms. The
+/// buffers live as long as the renderer.
+struct PerFrame {
+    frame_uniforms: wgpu::Buffer,
+    counters: wgpu::Buffer,
+    /// Draw records, one per `record_stride` bytes (a storage-offset boundary).
+    records: wgpu::Buffer,
+    record_stride: u64,
+    prepare_uniforms: wgpu::Buffer,
+    /// Entries of each chunk's visible list, as Prepare counted them.
+    list_counts: wgpu::Buffer,
+    /// One per chunk (at least one), with colours only.
+    resolve_uniforms: Vec<wgpu::Buffer>,
+}
+
+/// The framebuffer of one viewport size, the visible lists, and the bind groups that use them,
+/// made together by the first frame of that size ([`Target::ensure`]).
 struct Target {
     width: u32,
     height: u32,
     keys: wgpu::Buffer,
-    image: Option<wgpu::Buffer>,
+    /// The visible lists, one region of `list_stride` entries per chunk (carried over, grown if
+    /// needed, when the size changes: the next Reproject draws them in the new view).
+    lists: wgpu::Buffer,
+    list_stride: u32,
+    clear_group: wgpu::BindGroup,
+    /// Group 0 of Fill (frame uniforms, keys, counters).
+    fill_group: wgpu::BindGroup,
+    prepare_group: wgpu::BindGroup,
+}
+
+/// The resolved image of a [`Target`] and the resolve pass's bind groups (one per chunk), made by
+/// the first frame of that target drawn with `resolve`.
+struct Resolved {
+    image: wgpu::Buffer,
+    groups: Vec<wgpu::BindGroup>,
+}
+
+/// The host's bookkeeping of the slots, as the CPU renderer keeps it.
+struct SlotBook {
+    /// A bit per slot: its point arrived.
+    loaded_bits: Vec<AtomicU64>,
+    loaded: u64,
+    /// A bit per slot: drawn since the view last changed, and how many.
+    done: Vec<u64>,
+    done_count: u64,
+    /// The next slot Fill draws.
+    cursor: u64,
+}
+
+/// The GPU state that lives as long as the renderer: the shuffled buffer, the passes, the
+/// per-frame buffers and the constant uniforms.
+struct GpuState {
+    chunks: Vec<SlotChunk>,
+    passes: Passes,
+    per_frame: PerFrame,
+    scatter_uniforms: wgpu::Buffer,
+    recolor_uniforms: wgpu::Buffer,
+    /// A 4-byte buffer bound where a pass needs a buffer that is not there (no colours).
+    dummy: wgpu::Buffer,
+    queries: Option<Timestamps>,
 }
 
 /// One draw dispatch: a record and the chunk it reads.
@@ -245,37 +280,19 @@ pub struct GpuProgressive {
     shuffle: Shuffle,
     options: ProgressiveOptions,
     chunk_slots: u32,
-    chunks: Vec<SlotChunk>,
-    pipelines: Pipelines,
-    /// A bit per slot: its point arrived.
-    loaded_bits: Vec<AtomicU64>,
-    loaded: u64,
+    slots: SlotBook,
     payload: Option<Vec<AtomicU64>>,
-    /// A bit per slot: drawn since the view last changed, and how many.
-    done: Vec<u64>,
-    done_count: u64,
-    cursor: u64,
     frames: u64,
     view: Option<(Camera, RasterOptions)>,
+    gpu: GpuState,
+    /// `None` until the first frame gives the viewport size.
     target: Option<Target>,
-    /// The visible lists, one region of `list_stride` entries per chunk.
-    lists: Option<wgpu::Buffer>,
-    list_stride: u32,
+    /// `None` until a frame of the current target is drawn with `resolve`.
+    resolved: Option<Resolved>,
     /// Entries of each chunk's list after the last Prepare.
     list_counts: Vec<u32>,
-    list_counts_buf: wgpu::Buffer,
-    counters: wgpu::Buffer,
-    frame_uniforms: wgpu::Buffer,
-    prepare_uniforms: wgpu::Buffer,
-    scatter_uniforms: wgpu::Buffer,
-    recolor_uniforms: wgpu::Buffer,
-    resolve_uniforms: Vec<wgpu::Buffer>,
-    records: wgpu::Buffer,
-    record_stride: u64,
-    staging: Option<wgpu::Buffer>,
-    /// A 4-byte buffer bound where a pass needs a buffer that is not there (no colours).
-    dummy: wgpu::Buffer,
-    queries: Option<(wgpu::QuerySet, wgpu::Buffer)>,
+    /// Scatter records, grown by the first insert that needs more.
+    staging: wgpu::Buffer,
     /// Time of the last frame's Prepare and resolve, ms (the adaptive budget's `after_fill_ms`).
     last_after_fill_ms: f64,
     /// Bytes uploaded since the last wait for the GPU.
@@ -309,14 +326,16 @@ impl GpuProgressive {
         }
         let by_device = ((ctx.max_binding() / 4).min(MAX_CHUNK_POINTS as u64) as u32 & !255).max(256);
         let chunk_slots = options.chunk_slots.unwrap_or(by_device).clamp(1, by_device);
-        let pipelines = Pipelines {
-            clear: pipeline(ctx, Pass::Clear),
-            unload: pipeline(ctx, Pass::ProgressiveUnload),
-            scatter: pipeline(ctx, Pass::ProgressiveScatter),
-            reproject: pipeline(ctx, Pass::ProgressiveReproject),
-            fill: pipeline(ctx, Pass::ProgressiveFill),
-            prepare: pipeline(ctx, Pass::ProgressivePrepare),
-            resolve: pipeline(ctx, Pass::Resolve),
+        let shared = SharedLayouts::new(ctx);
+        let passes = Passes {
+            clear: PassPipeline::new(ctx, Pass::Clear, &shared),
+            unload: PassPipeline::new(ctx, Pass::ProgressiveUnload, &shared),
+            scatter: PassPipeline::new(ctx, Pass::ProgressiveScatter, &shared),
+            reproject: PassPipeline::new(ctx, Pass::ProgressiveReproject, &shared),
+            fill: PassPipeline::new(ctx, Pass::ProgressiveFill, &shared),
+            prepare: PassPipeline::new(ctx, Pass::ProgressivePrepare, &shared),
+            resolve: PassPipeline::new(ctx, Pass::Resolve, &shared),
+            shared,
         };
         let dev = &ctx.device;
         let mut chunks = Vec::new();
@@ -333,13 +352,12 @@ impl GpuProgressive {
         // Every slot unloaded.
         let mut enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("unload") });
         {
-            let layout = pipelines.unload.get_bind_group_layout(0);
             let groups: Vec<(wgpu::BindGroup, u32)> = chunks
                 .iter()
-                .map(|c| (dev.create_bind_group(&wgpu::BindGroupDescriptor { label: None, layout: &layout, entries: &[entry(0, c.words[0].as_entire_binding())] }), c.len.div_ceil(256)))
+                .map(|c| (passes.unload.bind_group(ctx, 0, &[entry(binding::UNLOAD_COARSE, c.words[0].as_entire_binding())]), c.len.div_ceil(256)))
                 .collect();
             let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("unload"), timestamp_writes: None });
-            pass.set_pipeline(&pipelines.unload);
+            pass.set_pipeline(passes.unload.pipeline());
             for (bg, n) in &groups {
                 let (x, y) = ctx.split_dispatch(*n);
                 pass.set_bind_group(0, bg, &[]);
@@ -348,14 +366,9 @@ impl GpuProgressive {
         }
         ctx.queue.submit([enc.finish()]);
         let copy = wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST;
-        let uniform = |label: &str, size: u64| {
-            dev.create_buffer(&wgpu::BufferDescriptor { label: Some(label), size, usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST, mapped_at_creation: false })
-        };
-        let frame_uniforms = uniform("frame uniforms", std::mem::size_of::<FrameUniforms>() as u64);
-        let prepare_uniforms = uniform("prepare uniforms", std::mem::size_of::<PrepareUniforms>() as u64);
-        let scatter_uniforms = uniform("scatter uniforms", std::mem::size_of::<ScatterUniforms>() as u64);
+        let scatter_uniforms = uniform::<ScatterUniforms>(ctx, "scatter uniforms");
         ctx.queue.write_buffer(&scatter_uniforms, 0, bytemuck::bytes_of(&ScatterUniforms { colors: options.colors as u32, colors_only: 0, _pad1: 0, _pad2: 0 }));
-        let recolor_uniforms = uniform("recolour uniforms", std::mem::size_of::<ScatterUniforms>() as u64);
+        let recolor_uniforms = uniform::<ScatterUniforms>(ctx, "recolour uniforms");
         ctx.queue.write_buffer(&recolor_uniforms, 0, bytemuck::bytes_of(&ScatterUniforms { colors: 1, colors_only: 1, _pad1: 0, _pad2: 0 }));
         let align = ctx.limits().min_storage_buffer_offset_alignment.max(4) as u64;
         let record_size = std::mem::size_of::<DrawRecord>() as u64;
@@ -363,17 +376,16 @@ impl GpuProgressive {
         // Reproject: one record per chunk; each Fill step: at most one per chunk plus one for the
         // run that wraps around inside a chunk.
         let max_records = 3 * chunks.len().max(1) as u64 + 2;
-        let records = storage(ctx, "progressive draw records", max_records * record_stride, wgpu::BufferUsages::COPY_DST);
-        let queries = (ctx.has_timestamps() && !options.host_clock).then(|| {
-            let set = dev.create_query_set(&wgpu::QuerySetDescriptor { label: Some("progressive pass times"), ty: wgpu::QueryType::Timestamp, count: QUERIES });
-            let buf = dev.create_buffer(&wgpu::BufferDescriptor {
-                label: Some("progressive pass times"),
-                size: QUERIES as u64 * 8,
-                usage: wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
-                mapped_at_creation: false,
-            });
-            (set, buf)
-        });
+        let per_frame = PerFrame {
+            frame_uniforms: uniform::<FrameUniforms>(ctx, "frame uniforms"),
+            counters: storage(ctx, "progressive counters", 8, copy),
+            records: storage(ctx, "progressive draw records", max_records * record_stride, wgpu::BufferUsages::COPY_DST),
+            record_stride,
+            prepare_uniforms: uniform::<PrepareUniforms>(ctx, "prepare uniforms"),
+            list_counts: storage(ctx, "visible list counts", chunks.len().max(1) as u64 * 4, copy),
+            resolve_uniforms: if options.colors { (0..chunks.len().max(1)).map(|_| uniform::<ResolveUniforms>(ctx, "resolve uniforms")).collect() } else { Vec::new() },
+        };
+        let queries = (ctx.has_timestamps() && !options.host_clock).then(|| Timestamps::new(ctx, "progressive pass times", QUERIES));
         let n = len as usize;
         let words64 = n.div_ceil(64);
         let r = GpuProgressive {
@@ -385,38 +397,20 @@ impl GpuProgressive {
             options,
             chunk_slots,
             list_counts: vec![0; chunks.len()],
-            list_counts_buf: storage(ctx, "visible list counts", chunks.len().max(1) as u64 * 4, copy),
-            chunks,
-            pipelines,
-            loaded_bits: (0..words64).map(|_| AtomicU64::new(0)).collect(),
-            loaded: 0,
+            gpu: GpuState { chunks, passes, per_frame, scatter_uniforms, recolor_uniforms, dummy: storage(ctx, "unused", 4, wgpu::BufferUsages::empty()), queries },
+            slots: SlotBook { loaded_bits: (0..words64).map(|_| AtomicU64::new(0)).collect(), loaded: 0, done: vec![0; words64], done_count: 0, cursor: 0 },
             payload: options.payloads.then(|| (0..n).map(|_| AtomicU64::new(0)).collect()),
-            done: vec![0; words64],
-            done_count: 0,
-            cursor: 0,
             frames: 0,
             view: None,
             target: None,
-            lists: None,
-            list_stride: 0,
-            counters: storage(ctx, "progressive counters", 8, copy),
-            frame_uniforms,
-            prepare_uniforms,
-            scatter_uniforms,
-            recolor_uniforms,
-            resolve_uniforms: Vec::new(),
-            records,
-            record_stride,
-            staging: None,
-            dummy: storage(ctx, "unused", 4, wgpu::BufferUsages::empty()),
-            queries,
+            resolved: None,
+            staging: storage(ctx, "scatter staging", 0, wgpu::BufferUsages::COPY_DST),
             last_after_fill_ms: 0.0,
             unwaited: 0,
         };
         ctx.wait()?;
         Ok(r)
     }
-
     /// Number of points the renderer holds once everything arrived.
     pub fn capacity(&self) -> u64 {
         self.shuffle.len() as u64
@@ -424,7 +418,7 @@ impl GpuProgressive {
 
     /// Points inserted so far.
     pub fn loaded(&self) -> u64 {
-        self.loaded
+        self.slots.loaded
     }
 
     /// The shuffle placing input index `i` at slot `shuffle().target(i)`.
@@ -449,7 +443,7 @@ impl GpuProgressive {
 
     /// Chunks of the shuffled buffer.
     pub fn chunk_count(&self) -> usize {
-        self.chunks.len()
+        self.gpu.chunks.len()
     }
 
     /// Slots per full chunk.
@@ -459,21 +453,17 @@ impl GpuProgressive {
 
     /// Bytes of GPU memory of the shuffled buffer.
     pub fn gpu_bytes(&self) -> u64 {
-        self.chunks.iter().map(|c| c.len as u64 * 4 * (3 + c.colors.is_some() as u64)).sum()
+        self.gpu.chunks.iter().map(|c| c.len as u64 * 4 * (3 + c.colors.is_some() as u64)).sum()
     }
 
     /// How the adaptive budget's timings are measured on this device.
     pub fn timing(&self) -> BudgetTiming {
-        if self.queries.is_some() {
-            BudgetTiming::GpuTimestamps
-        } else {
-            BudgetTiming::HostClock
-        }
+        self.gpu.timing()
     }
 
     /// Whether slot `slot` holds a point.
     pub fn is_loaded(&self, slot: u32) -> bool {
-        self.loaded_bits.get(slot as usize / 64).is_some_and(|w| w.load(Ordering::Relaxed) >> (slot % 64) & 1 == 1)
+        self.slots.loaded_bits.get(slot as usize / 64).is_some_and(|w| w.load(Ordering::Relaxed) >> (slot % 64) & 1 == 1)
     }
 
     /// The payload of the point in slot `slot`, if loaded and the renderer keeps payloads.
@@ -484,7 +474,7 @@ impl GpuProgressive {
 
     /// Whether the last frame's image is final (see [`FrameStats::converged`]).
     pub fn converged(&self) -> bool {
-        self.loaded == self.capacity() && self.done_count == self.capacity()
+        self.slots.converged(self.capacity())
     }
 
     /// The viewport size `(width, height)` of the last frame (`(0, 0)` before the first).
@@ -496,7 +486,7 @@ impl GpuProgressive {
     /// `r | g << 8 | b << 16 | a << 24`, row-major, `width * height` words; a storage buffer), for
     /// [`WindowSurface::present_image`](crate::present::WindowSurface::present_image).
     pub fn image_buffer(&self) -> Option<&wgpu::Buffer> {
-        self.target.as_ref().and_then(|t| t.image.as_ref())
+        self.resolved.as_ref().map(|r| &r.image)
     }
 
     /// Inserts points `first..first + xyz.len()` of the input (integer coordinates on the grid)
@@ -528,7 +518,7 @@ impl GpuProgressive {
         }
         let shuffle = self.shuffle;
         let targets: Vec<u32> = (0..n).into_par_iter().with_min_len(4096).map(|k| shuffle.target((first + k as u64) as u32)).collect();
-        let bits = &self.loaded_bits;
+        let bits = &self.slots.loaded_bits;
         let is_set = |t: u32| bits[t as usize / 64].load(Ordering::Relaxed) >> (t % 64) & 1 == 1;
         if let Some(k) = targets.par_iter().position_first(|&t| is_set(t)) {
             return Err(ProgressiveError::Duplicate(first + k as u64).into());
@@ -540,7 +530,7 @@ impl GpuProgressive {
         if let (Some(store), Some(p)) = (&self.payload, payload) {
             targets.par_iter().zip(p).with_min_len(4096).for_each(|(&t, &v)| store[t as usize].store(v, Ordering::Relaxed));
         }
-        self.loaded += n as u64;
+        self.slots.loaded += n as u64;
         // The GPU: staged records, scattered per chunk.
         let mut s = 0;
         while s < n {
@@ -561,7 +551,7 @@ impl GpuProgressive {
         let frame = self.frame;
         // Per chunk its records (slot in the chunk, coarse, medium, fine[, colour]).
         let mut parts: Vec<(usize, Vec<u32>)> = Vec::new();
-        for (c, chunk) in self.chunks.iter().enumerate() {
+        for (c, chunk) in self.gpu.chunks.iter().enumerate() {
             let recs: Vec<u32> = (0..targets.len())
                 .into_par_iter()
                 .with_min_len(4096)
@@ -594,7 +584,7 @@ impl GpuProgressive {
         }
         let shuffle = self.shuffle;
         let targets: Vec<u32> = (0..n).into_par_iter().with_min_len(4096).map(|k| shuffle.target((first + k as u64) as u32)).collect();
-        let bits = &self.loaded_bits;
+        let bits = &self.slots.loaded_bits;
         if let Some(k) = targets.par_iter().position_first(|&t| bits[t as usize / 64].load(Ordering::Relaxed) >> (t % 64) & 1 == 0) {
             return Err(ProgressiveError::NotLoaded(first + k as u64).into());
         }
@@ -602,6 +592,7 @@ impl GpuProgressive {
         for s in (0..n).step_by(STAGING_POINTS) {
             let e = (s + STAGING_POINTS).min(n);
             let parts: Vec<(usize, Vec<u32>)> = self
+                .gpu
                 .chunks
                 .iter()
                 .enumerate()
@@ -621,41 +612,40 @@ impl GpuProgressive {
     fn submit_scatter(&mut self, ctx: &GpuContext, parts: Vec<(usize, Vec<u32>)>, stride: usize, colors_only: bool) -> Result<(), GpuError> {
         let align = ctx.limits().min_storage_buffer_offset_alignment.max(4) as u64;
         let total: u64 = parts.iter().map(|(_, r)| round_up(r.len() as u64 * 4, align)).sum();
-        if self.staging.as_ref().is_none_or(|b| b.size() < total) {
-            let size = (STAGING_POINTS as u64 * 20 + self.chunks.len() as u64 * align).max(total);
+        if self.staging.size() < total {
+            let size = (STAGING_POINTS as u64 * 20 + self.gpu.chunks.len() as u64 * align).max(total);
             if size > ctx.limits().max_buffer_size {
                 return Err(GpuError::TooLarge { what: "the scatter staging buffer", needed: size, limit: ctx.limits().max_buffer_size });
             }
-            self.staging = Some(storage(ctx, "scatter staging", size, wgpu::BufferUsages::COPY_DST));
+            self.staging = storage(ctx, "scatter staging", size, wgpu::BufferUsages::COPY_DST);
         }
-        let staging = self.staging.as_ref().expect("made above");
+        let staging = &self.staging;
         let dev = &ctx.device;
-        let layout = self.pipelines.scatter.get_bind_group_layout(0);
         let mut groups = Vec::new();
         let mut offset = 0u64;
         for (c, recs) in &parts {
             let bytes = recs.len() as u64 * 4;
             ctx.queue.write_buffer(staging, offset, bytemuck::cast_slice(recs));
-            let chunk = &self.chunks[*c];
-            let bg = dev.create_bind_group(&wgpu::BindGroupDescriptor {
-                label: None,
-                layout: &layout,
-                entries: &[
-                    entry(0, if colors_only { &self.recolor_uniforms } else { &self.scatter_uniforms }.as_entire_binding()),
-                    entry(1, wgpu::BindingResource::Buffer(wgpu::BufferBinding { buffer: staging, offset, size: NonZeroU64::new(bytes) })),
-                    entry(2, chunk.words[0].as_entire_binding()),
-                    entry(3, chunk.words[1].as_entire_binding()),
-                    entry(4, chunk.words[2].as_entire_binding()),
-                    entry(5, chunk.colors.as_ref().unwrap_or(&self.dummy).as_entire_binding()),
+            let chunk = &self.gpu.chunks[*c];
+            let bg = self.gpu.passes.scatter.bind_group(
+                ctx,
+                0,
+                &[
+                    entry(binding::SCATTER_PARAMS, if colors_only { &self.gpu.recolor_uniforms } else { &self.gpu.scatter_uniforms }.as_entire_binding()),
+                    entry(binding::SCATTER_STAGED, wgpu::BindingResource::Buffer(wgpu::BufferBinding { buffer: staging, offset, size: NonZeroU64::new(bytes) })),
+                    entry(binding::SCATTER_COARSE, chunk.words[0].as_entire_binding()),
+                    entry(binding::SCATTER_MEDIUM, chunk.words[1].as_entire_binding()),
+                    entry(binding::SCATTER_FINE, chunk.words[2].as_entire_binding()),
+                    entry(binding::SCATTER_COLORS, chunk.colors.as_ref().unwrap_or(&self.gpu.dummy).as_entire_binding()),
                 ],
-            });
+            );
             groups.push((bg, (recs.len() / stride).div_ceil(256) as u32));
             offset += round_up(bytes, align);
         }
         let mut enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("scatter") });
         {
             let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("scatter"), timestamp_writes: None });
-            pass.set_pipeline(&self.pipelines.scatter);
+            pass.set_pipeline(self.gpu.passes.scatter.pipeline());
             for (bg, n) in &groups {
                 let (x, y) = ctx.split_dispatch(*n);
                 pass.set_bind_group(0, bg, &[]);
@@ -672,57 +662,248 @@ impl GpuProgressive {
         ctx.check()
     }
 
-    /// Makes the framebuffer (and grows the visible lists) for `width x height`.
-    fn ensure_target(&mut self, ctx: &GpuContext, width: u32, height: u32) -> Result<(), GpuError> {
-        let pixels = width as u64 * height as u64;
-        if pixels == 0 || pixels * 8 > ctx.max_binding() {
-            return Err(GpuError::TooLarge { what: "the framebuffer", needed: pixels * 8, limit: ctx.max_binding() });
-        }
-        if self.target.as_ref().is_none_or(|t| (t.width, t.height) != (width, height)) {
-            let copy = wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST;
-            self.target = Some(Target { width, height, keys: storage(ctx, "progressive keys", pixels * 8, copy), image: None });
-        }
-        let align = ctx.limits().min_storage_buffer_offset_alignment.max(4) as u64;
-        let stride = round_up(pixels, align / 4);
-        if (self.list_stride as u64) < stride {
-            let chunks = self.chunks.len().max(1) as u64;
-            let size = chunks * stride * 4;
-            if size > ctx.max_binding() || stride > u32::MAX as u64 {
-                return Err(GpuError::TooLarge { what: "the visible lists", needed: size, limit: ctx.max_binding() });
-            }
-            let lists = storage(ctx, "visible lists", size, wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST);
-            // The last Prepare's lists move along: the next Reproject draws them in the new view.
-            if let Some(old) = &self.lists {
-                let mut enc = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("grow visible lists") });
-                for (c, &count) in self.list_counts.iter().enumerate() {
-                    if count > 0 {
-                        enc.copy_buffer_to_buffer(old, c as u64 * self.list_stride as u64 * 4, &lists, c as u64 * stride * 4, count as u64 * 4);
-                    }
-                }
-                ctx.queue.submit([enc.finish()]);
-            }
-            self.lists = Some(lists);
-            self.list_stride = stride as u32;
-        }
-        ctx.check()
+    fn read_queries(ctx: &GpuContext, buf: &wgpu::Buffer) -> Result<Vec<f64>, GpuError> {
+        let t = map_read(ctx, buf)?;
+        let period = ctx.queue.get_timestamp_period() as f64 * 1e-6;
+        let raw: Vec<u64> = bytemuck::pod_collect_to_vec(&t);
+        Ok(raw.iter().map(|&v| v.wrapping_sub(raw[0]) as f64 * period).collect())
     }
 
+    /// Draws one frame for `camera`: clear, Reproject, Fill with `budget`, Prepare and, with
+    /// `resolve` (a background colour; the renderer must have colours), the resolve into
+    /// [`image_buffer`](Self::image_buffer). Waits for the GPU. A change of camera or options
+    /// keeps the visible lists (that is what they are for) but starts convergence over.
+    pub fn frame(&mut self, ctx: &GpuContext, camera: &Camera, options: &RasterOptions, budget: &FillBudget, resolve: Option<u32>) -> Result<GpuProgressiveFrame, ProgressiveGpuError> {
+        let start = Instant::now();
+        camera.validate().map_err(RasterError::from)?;
+        if resolve.is_some() && !self.options.colors {
+            return Err(GpuError::Colors("resolve asked for but the renderer has no colours".into()).into());
+        }
+        let planner = Planner::new(camera, &self.grid, options)?;
+        let n = self.capacity();
+        let gpu = &self.gpu;
+        let t = Target::ensure(&mut self.target, &mut self.resolved, ctx, gpu, &self.list_counts, camera.width, camera.height)?;
+        let resolving = match resolve {
+            Some(background) => Some((background, Resolved::ensure(&mut self.resolved, ctx, gpu, t)?)),
+            None => None,
+        };
+        if self.view != Some((*camera, *options)) {
+            self.view = Some((*camera, *options));
+            self.slots.done.par_iter_mut().with_min_len(1 << 14).for_each(|w| *w = 0);
+            self.slots.done_count = 0;
+        }
+        self.frames += 1;
+        let mut st = FrameStats { frame: self.frames, loaded: self.slots.loaded, ..FrameStats::default() };
+        // One plan for every slot: one frame, one set of bounds.
+        let plan = planner.plan(&self.frame, &self.bounds, n as usize);
+        let projection = match plan {
+            BatchPlan::Draw { precision, projection } => Some((precision, projection)),
+            _ => None,
+        };
+        let mut raster = RasterStats::default();
+        let count_batches = |raster: &mut RasterStats, dispatches: usize, points: u64| {
+            raster.batches += dispatches as u64;
+            match &projection {
+                Some((precision, _)) => {
+                    raster.batches_drawn += dispatches as u64;
+                    raster.points_by_precision[precision.words() - 1] += points;
+                }
+                None if plan == BatchPlan::Culled => raster.batches_culled += dispatches as u64,
+                None => {}
+            }
+        };
+        ctx.queue.write_buffer(&gpu.per_frame.frame_uniforms, 0, bytemuck::bytes_of(&FrameUniforms::new(camera, ctx.division())));
+        ctx.queue.write_buffer(&gpu.per_frame.counters, 0, &[0u8; 8]);
+
+        // Reproject: each chunk's list of the last Prepare.
+        let reproject: Vec<Dispatch> = match &projection {
+            Some((_, p)) => self
+                .list_counts
+                .iter()
+                .enumerate()
+                .filter(|(_, &count)| count > 0)
+                .map(|(c, &count)| Dispatch { chunk: c, record: DrawRecord { projection: *p, offset: 0, count, first_index: gpu.chunks[c].first, _pad: 0 } })
+                .collect(),
+            None => Vec::new(),
+        };
+        st.reprojected = self.list_counts.iter().map(|&c| c as u64).sum();
+        count_batches(&mut raster, self.list_counts.iter().filter(|&&c| c > 0).count(), st.reprojected);
+
+        // Fill, first step: the fixed budget or the probe.
+        let (first, adaptive): (u64, Option<AdaptiveBudget>) = match budget {
+            FillBudget::Fixed(b) => (*b, None),
+            FillBudget::Adaptive(a) => (a.probe_points.min(n), Some(*a)),
+        };
+        let (runs, points) = self.slots.sweep(first, &gpu.chunks, self.chunk_slots, n);
+        st.filled = first.min(n);
+        st.fill_points = points;
+        count_batches(&mut raster, runs.len(), points);
+        let probe: Vec<Dispatch> = projection.as_ref().map(|(_, p)| gpu.fill_dispatches(&runs, p)).unwrap_or_default();
+        let timed = gpu.queries.is_some();
+        let host_ms = |t: Instant| t.elapsed().as_secs_f64() * 1e3;
+
+        let dev = &ctx.device;
+        let mut enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("progressive frame") });
+        gpu.encode_clear(ctx, &mut enc, t, (Some(0), None));
+        gpu.encode_draw(ctx, &mut enc, t, "reproject", &reproject, 0, true, (None, Some(1)));
+        let mut host_times = [0.0f64; 4]; // reproject, fill, prepare, resolve (host clock)
+        if !timed {
+            let t = Instant::now();
+            ctx.queue.submit([enc.finish()]);
+            ctx.wait()?;
+            host_times[0] = host_ms(t);
+            enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("progressive frame") });
+        }
+        let t_fill = Instant::now();
+        gpu.encode_draw(ctx, &mut enc, t, "fill", &probe, reproject.len(), false, (Some(2), Some(3)));
+        let mut extra_dispatches = Vec::new();
+        if let Some(a) = adaptive {
+            st.probe = st.filled;
+            // Read the probe's timings back, then plan the rest of the fill.
+            let timings = match gpu.resolve_queries(ctx, &mut enc, 4) {
+                Some(q) => {
+                    ctx.queue.submit([enc.finish()]);
+                    let t = Self::read_queries(ctx, &q)?;
+                    enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("progressive frame") });
+                    ProbeTimings { probe_points: st.probe, probe_ms: t[3] - t[2], elapsed_ms: t[3], after_fill_ms: self.last_after_fill_ms }
+                }
+                None => {
+                    ctx.queue.submit([enc.finish()]);
+                    ctx.wait()?;
+                    enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("progressive frame") });
+                    ProbeTimings { probe_points: st.probe, probe_ms: host_ms(t_fill), elapsed_ms: host_ms(start), after_fill_ms: self.last_after_fill_ms }
+                }
+            };
+            let more = a.extra_points(&timings).min(n - st.filled);
+            let (runs, points) = self.slots.sweep(more, &gpu.chunks, self.chunk_slots, n);
+            st.filled += more;
+            st.fill_points += points;
+            count_batches(&mut raster, runs.len(), points);
+            if let Some((_, p)) = &projection {
+                extra_dispatches = gpu.fill_dispatches(&runs, p);
+            }
+        }
+        // The second Fill step (empty without the adaptive budget, timed all the same).
+        gpu.encode_draw(ctx, &mut enc, t, "fill more", &extra_dispatches, reproject.len() + probe.len(), false, (Some(4), Some(5)));
+        if !timed {
+            ctx.queue.submit([enc.finish()]);
+            ctx.wait()?;
+            host_times[1] = host_ms(t_fill);
+            enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("progressive frame") });
+        }
+        let t_prepare = Instant::now();
+        gpu.encode_prepare(ctx, &mut enc, t, self.chunk_slots, (Some(6), Some(7)));
+        if !timed {
+            ctx.queue.submit([enc.finish()]);
+            ctx.wait()?;
+            host_times[2] = host_ms(t_prepare);
+            enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("progressive frame") });
+        }
+        let t_resolve = Instant::now();
+        if let Some((background, r)) = resolving {
+            gpu.encode_resolve(ctx, &mut enc, t, r, background, (Some(8), Some(9)));
+        }
+        let stamps = if resolve.is_some() { 10 } else { 8 };
+        let queries = gpu.resolve_queries(ctx, &mut enc, stamps);
+        let counters_read = readback(ctx, &mut enc, &gpu.per_frame.counters, 8);
+        let counts_read = readback(ctx, &mut enc, &gpu.per_frame.list_counts, gpu.per_frame.list_counts.size());
+        ctx.queue.submit([enc.finish()]);
+        let c: Vec<u32> = bytemuck::pod_collect_to_vec(&map_read(ctx, &counters_read)?);
+        raster.points_drawn = c[0] as u64 | (c[1] as u64) << 32;
+        let counts: Vec<u32> = bytemuck::pod_collect_to_vec(&map_read(ctx, &counts_read)?);
+        self.list_counts.copy_from_slice(&counts[..gpu.chunks.len()]);
+        st.visible = self.list_counts.iter().map(|&c| c as u64).sum();
+        host_times[3] = host_ms(t_resolve);
+        let gpu_times = match queries {
+            Some(q) => {
+                let t = Self::read_queries(ctx, &q)?;
+                let resolve_ms = resolve.map(|_| t[9] - t[8]);
+                Some(ProgressiveGpuTimings {
+                    reproject_ms: t[1],
+                    probe_ms: t[3] - t[2],
+                    extra_fill_ms: t[5] - t[4],
+                    prepare_ms: t[7] - t[6],
+                    resolve_ms,
+                    frame_ms: t[stamps as usize - 1],
+                })
+            }
+            None => None,
+        };
+        match &gpu_times {
+            Some(g) => {
+                st.reproject_ms = g.reproject_ms;
+                st.fill_ms = g.probe_ms + g.extra_fill_ms;
+                st.prepare_ms = g.prepare_ms;
+                self.last_after_fill_ms = g.prepare_ms + g.resolve_ms.unwrap_or(0.0);
+            }
+            None => {
+                st.reproject_ms = host_times[0];
+                st.fill_ms = host_times[1];
+                st.prepare_ms = host_times[2];
+                self.last_after_fill_ms = host_times[2] + host_times[3];
+            }
+        }
+        st.raster = raster;
+        st.total_ms = host_ms(start);
+        st.converged = self.slots.converged(n);
+        ctx.check()?;
+        Ok(GpuProgressiveFrame { stats: st, timing: gpu.timing(), gpu: gpu_times })
+    }
+
+    /// The visibility buffer of the last frame (row-major depth|index keys; indices are slots, as
+    /// in the CPU renderer), empty before the first frame.
+    pub fn read_keys(&self, ctx: &GpuContext) -> Result<Vec<u64>, GpuError> {
+        let Some(t) = &self.target else { return Ok(Vec::new()) };
+        let mut enc = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("read keys") });
+        let buf = readback(ctx, &mut enc, &t.keys, t.keys.size());
+        ctx.queue.submit([enc.finish()]);
+        let bytes = map_read(ctx, &buf)?;
+        Ok(bytemuck::pod_collect_to_vec::<u8, u64>(&bytes)[..t.width as usize * t.height as usize].to_vec())
+    }
+
+    /// The resolved image of the last frame drawn with `resolve` (RGBA8 packed, row-major).
+    pub fn read_image(&self, ctx: &GpuContext) -> Result<Vec<u32>, GpuError> {
+        match (&self.target, &self.resolved) {
+            (Some(t), Some(r)) => read_image_buffer(ctx, &r.image, t.width, t.height),
+            _ => Err(GpuError::Colors("no frame was resolved yet".into())),
+        }
+    }
+
+    /// The slots of the points visible at the end of the last frame (the next Reproject's input),
+    /// in increasing order.
+    pub fn read_visible(&self, ctx: &GpuContext) -> Result<Vec<u32>, GpuError> {
+        let Some(t) = &self.target else { return Ok(Vec::new()) };
+        let mut enc = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("read visible") });
+        let buf = readback(ctx, &mut enc, &t.lists, t.lists.size());
+        ctx.queue.submit([enc.finish()]);
+        let all: Vec<u32> = bytemuck::pod_collect_to_vec(&map_read(ctx, &buf)?);
+        let mut out = Vec::with_capacity(self.list_counts.iter().map(|&c| c as usize).sum());
+        for (c, &count) in self.list_counts.iter().enumerate() {
+            let s = c * t.list_stride as usize;
+            out.extend_from_slice(&all[s..s + count as usize]);
+        }
+        out.par_sort_unstable();
+        Ok(out)
+    }
+}
+
+impl SlotBook {
     /// The runs of Fill for `count` slots from the cursor (wrapping around), split at chunk
     /// boundaries, as `(chunk, offset in chunk, slots)`; advances the cursor and marks the loaded
     /// slots drawn. Returns the runs and the points (loaded slots) among them.
-    fn sweep(&mut self, count: u64) -> (Vec<(usize, u32, u32)>, u64) {
-        let n = self.capacity();
+    fn sweep(&mut self, count: u64, chunks: &[SlotChunk], chunk_slots: u32, capacity: u64) -> (Vec<(usize, u32, u32)>, u64) {
+        let n = capacity;
         let mut left = count.min(n);
         let mut runs = Vec::new();
         let mut points = 0;
         while left > 0 {
             let s = self.cursor;
-            let c = (s / self.chunk_slots as u64) as usize;
-            let chunk = &self.chunks[c];
+            let c = (s / chunk_slots as u64) as usize;
+            let chunk = &chunks[c];
             let chunk_end = chunk.first as u64 + chunk.len as u64;
             let e = (s + left).min(chunk_end);
             runs.push((c, (s - chunk.first as u64) as u32, (e - s) as u32));
-            points += self.mark(s as usize, e as usize);
+            points += self.mark(s as usize, e as usize, capacity);
             left -= e - s;
             self.cursor = if e == n { 0 } else { e };
         }
@@ -730,8 +911,8 @@ impl GpuProgressive {
     }
 
     /// Marks the loaded slots of `[s, e)` drawn since the view changed; returns how many there are.
-    fn mark(&mut self, s: usize, e: usize) -> u64 {
-        let all = self.loaded == self.capacity();
+    fn mark(&mut self, s: usize, e: usize, capacity: u64) -> u64 {
+        let all = self.loaded == capacity;
         let (ws, we) = (s / 64, e.div_ceil(64));
         let bits = &self.loaded_bits[ws..we];
         let (points, new): (u64, u64) = self.done[ws..we]
@@ -754,48 +935,174 @@ impl GpuProgressive {
         points
     }
 
+    /// Whether every slot is loaded and drawn since the view last changed.
+    fn converged(&self, capacity: u64) -> bool {
+        self.loaded == capacity && self.done_count == capacity
+    }
+}
+
+impl Target {
+    /// The target of the next frame: `slot`'s if it has `width x height` pixels, else a new one
+    /// (the last Prepare's visible lists carried over; the old resolved image dropped). On an
+    /// error `slot` and `resolved` are left as they were.
+    fn ensure<'a>(slot: &'a mut Option<Target>, resolved: &mut Option<Resolved>, ctx: &GpuContext, gpu: &GpuState, list_counts: &[u32], width: u32, height: u32) -> Result<&'a Target, GpuError> {
+        let t = match slot.take() {
+            Some(t) if (t.width, t.height) == (width, height) => t,
+            old => match Target::new(ctx, gpu, old.as_ref(), list_counts, width, height) {
+                Ok(t) => {
+                    *resolved = None;
+                    t
+                }
+                Err(e) => {
+                    *slot = old;
+                    return Err(e);
+                }
+            },
+        };
+        Ok(slot.insert(t))
+    }
+
+    /// The framebuffer for `width x height`, the visible lists (`old`'s if they are large
+    /// enough, else grown with `old`'s entries copied) and the bind groups of clear, Fill and
+    /// Prepare.
+    fn new(ctx: &GpuContext, gpu: &GpuState, old: Option<&Target>, list_counts: &[u32], width: u32, height: u32) -> Result<Target, GpuError> {
+        let pixels = width as u64 * height as u64;
+        if pixels == 0 || pixels * 8 > ctx.max_binding() {
+            return Err(GpuError::TooLarge { what: "the framebuffer", needed: pixels * 8, limit: ctx.max_binding() });
+        }
+        let copy = wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST;
+        let align = ctx.limits().min_storage_buffer_offset_alignment.max(4) as u64;
+        let stride = round_up(pixels, align / 4);
+        let (lists, list_stride) = match old {
+            Some(o) if o.list_stride as u64 >= stride => (o.lists.clone(), o.list_stride),
+            _ => {
+                let size = gpu.chunks.len().max(1) as u64 * stride * 4;
+                if size > ctx.max_binding() || stride > u32::MAX as u64 {
+                    return Err(GpuError::TooLarge { what: "the visible lists", needed: size, limit: ctx.max_binding() });
+                }
+                let lists = storage(ctx, "visible lists", size, copy);
+                // The last Prepare's lists move along: the next Reproject draws them in the new view.
+                if let Some(o) = old {
+                    let mut enc = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("grow visible lists") });
+                    for (c, &count) in list_counts.iter().enumerate() {
+                        if count > 0 {
+                            enc.copy_buffer_to_buffer(&o.lists, c as u64 * o.list_stride as u64 * 4, &lists, c as u64 * stride * 4, count as u64 * 4);
+                        }
+                    }
+                    ctx.queue.submit([enc.finish()]);
+                }
+                (lists, stride as u32)
+            }
+        };
+        let keys = storage(ctx, "progressive keys", pixels * 8, copy);
+        let (passes, f) = (&gpu.passes, &gpu.per_frame);
+        let clear_group = passes.clear.bind_group(ctx, 0, &[entry(binding::CLEAR_WORDS, keys.as_entire_binding())]);
+        let fill_group = passes.fill.bind_group(
+            ctx,
+            0,
+            &[
+                entry(binding::FRAME, f.frame_uniforms.as_entire_binding()),
+                entry(binding::KEYS, keys.as_entire_binding()),
+                entry(binding::COUNTERS, f.counters.as_entire_binding()),
+            ],
+        );
+        let prepare_group = passes.prepare.bind_group(
+            ctx,
+            0,
+            &[
+                entry(binding::PREPARE_PARAMS, f.prepare_uniforms.as_entire_binding()),
+                entry(binding::PREPARE_KEY_WORDS, keys.as_entire_binding()),
+                entry(binding::PREPARE_LIST_COUNTS, f.list_counts.as_entire_binding()),
+                entry(binding::PREPARE_LISTS, lists.as_entire_binding()),
+            ],
+        );
+        ctx.check()?;
+        Ok(Target { width, height, keys, lists, list_stride, clear_group, fill_group, prepare_group })
+    }
+}
+
+impl Resolved {
+    /// `slot`'s image and bind groups, made for `t` if there are none.
+    fn ensure<'a>(slot: &'a mut Option<Resolved>, ctx: &GpuContext, gpu: &GpuState, t: &Target) -> Result<&'a Resolved, GpuError> {
+        let r = match slot.take() {
+            Some(r) => r,
+            None => Resolved::new(ctx, gpu, t)?,
+        };
+        Ok(slot.insert(r))
+    }
+
+    /// The image of `t` and one resolve bind group per chunk (the dummy colours when there is
+    /// no chunk).
+    fn new(ctx: &GpuContext, gpu: &GpuState, t: &Target) -> Result<Resolved, GpuError> {
+        let image = storage(ctx, "progressive image", t.width as u64 * t.height as u64 * 4, wgpu::BufferUsages::COPY_SRC);
+        let colors: Vec<&wgpu::Buffer> = if gpu.chunks.is_empty() {
+            vec![&gpu.dummy]
+        } else {
+            // A renderer with colours (checked by `frame`) has them in every chunk.
+            gpu.chunks.iter().map(|c| c.colors.as_ref().ok_or_else(|| GpuError::Colors("resolve asked for but the renderer has no colours".into()))).collect::<Result<_, _>>()?
+        };
+        let groups = colors
+            .iter()
+            .zip(&gpu.per_frame.resolve_uniforms)
+            .map(|(colors, u)| {
+                // The 64-bit keys read as words: index at 2p, depth bits at 2p + 1.
+                gpu.passes.resolve.bind_group(
+                    ctx,
+                    0,
+                    &[
+                        entry(binding::RESOLVE_PARAMS, u.as_entire_binding()),
+                        entry(binding::RESOLVE_INDEX_WORDS, t.keys.as_entire_binding()),
+                        entry(binding::RESOLVE_DEPTH_WORDS, t.keys.as_entire_binding()),
+                        entry(binding::RESOLVE_COLORS, colors.as_entire_binding()),
+                        entry(binding::RESOLVE_IMAGE, image.as_entire_binding()),
+                    ],
+                )
+            })
+            .collect();
+        ctx.check()?;
+        Ok(Resolved { image, groups })
+    }
+}
+
+impl GpuState {
     fn timestamps(&self, begin: Option<u32>, end: Option<u32>) -> Option<wgpu::ComputePassTimestampWrites<'_>> {
-        self.queries.as_ref().map(|(set, _)| wgpu::ComputePassTimestampWrites { query_set: set, beginning_of_pass_write_index: begin, end_of_pass_write_index: end })
+        self.queries.as_ref().map(|q| q.writes(begin, end))
+    }
+
+    /// How the adaptive budget's timings are measured.
+    fn timing(&self) -> BudgetTiming {
+        if self.queries.is_some() {
+            BudgetTiming::GpuTimestamps
+        } else {
+            BudgetTiming::HostClock
+        }
     }
 
     /// Writes `dispatches` as records from slot `first_record` and returns their bind groups
     /// (group 1, and for Reproject group 0 with the chunk's list) with workgroup counts.
-    fn draw_groups(&self, ctx: &GpuContext, pipe: &wgpu::ComputePipeline, dispatches: &[Dispatch], first_record: usize, reproject: bool) -> Vec<(Option<wgpu::BindGroup>, wgpu::BindGroup, u32)> {
-        let dev = &ctx.device;
-        let layout0 = pipe.get_bind_group_layout(0);
-        let layout1 = pipe.get_bind_group_layout(1);
-        let t = self.target.as_ref().expect("target made before drawing");
+    fn draw_groups(&self, ctx: &GpuContext, t: &Target, dispatches: &[Dispatch], first_record: usize, reproject: bool) -> Vec<(Option<wgpu::BindGroup>, wgpu::BindGroup, u32)> {
+        let f = &self.per_frame;
         let record_size = std::mem::size_of::<DrawRecord>() as u64;
         dispatches
             .iter()
             .enumerate()
             .map(|(k, d)| {
-                let offset = (first_record + k) as u64 * self.record_stride;
-                ctx.queue.write_buffer(&self.records, offset, bytemuck::bytes_of(&d.record));
-                let chunk = &self.chunks[d.chunk];
-                let g1 = dev.create_bind_group(&wgpu::BindGroupDescriptor {
-                    label: None,
-                    layout: &layout1,
-                    entries: &[
-                        entry(0, wgpu::BindingResource::Buffer(wgpu::BufferBinding { buffer: &self.records, offset, size: NonZeroU64::new(record_size) })),
-                        entry(1, chunk.words[0].as_entire_binding()),
-                        entry(2, chunk.words[1].as_entire_binding()),
-                        entry(3, chunk.words[2].as_entire_binding()),
-                    ],
-                });
+                let offset = (first_record + k) as u64 * f.record_stride;
+                ctx.queue.write_buffer(&f.records, offset, bytemuck::bytes_of(&d.record));
+                let record = wgpu::BufferBinding { buffer: &f.records, offset, size: NonZeroU64::new(record_size) };
+                let g1 = batches_group(ctx, &self.passes.shared, record, &self.chunks[d.chunk].words);
                 let g0 = reproject.then(|| {
-                    let lists = self.lists.as_ref().expect("lists made with the target");
-                    let list = wgpu::BufferBinding { buffer: lists, offset: d.chunk as u64 * self.list_stride as u64 * 4, size: NonZeroU64::new(d.record.count as u64 * 4) };
-                    dev.create_bind_group(&wgpu::BindGroupDescriptor {
-                        label: None,
-                        layout: &layout0,
-                        entries: &[
-                            entry(0, self.frame_uniforms.as_entire_binding()),
-                            entry(1, t.keys.as_entire_binding()),
-                            entry(2, self.counters.as_entire_binding()),
-                            entry(3, wgpu::BindingResource::Buffer(list)),
+                    let list = wgpu::BufferBinding { buffer: &t.lists, offset: d.chunk as u64 * t.list_stride as u64 * 4, size: NonZeroU64::new(d.record.count as u64 * 4) };
+                    self.passes.reproject.bind_group(
+                        ctx,
+                        0,
+                        &[
+                            entry(binding::FRAME, f.frame_uniforms.as_entire_binding()),
+                            entry(binding::KEYS, t.keys.as_entire_binding()),
+                            entry(binding::COUNTERS, f.counters.as_entire_binding()),
+                            entry(binding::VISIBLE, wgpu::BindingResource::Buffer(list)),
                         ],
-                    })
+                    )
                 });
                 (g0, g1, (d.record.count as u64).div_ceil(SLOTS_PER_GROUP) as u32)
             })
@@ -804,24 +1111,21 @@ impl GpuProgressive {
 
     /// Records one draw pass (Reproject or Fill) of `dispatches` into `enc`.
     #[allow(clippy::too_many_arguments)]
-    fn encode_draw(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, label: &str, dispatches: &[Dispatch], first_record: usize, reproject: bool, ts: (Option<u32>, Option<u32>)) {
-        let pipe = if reproject { &self.pipelines.reproject } else { &self.pipelines.fill };
-        let groups = self.draw_groups(ctx, pipe, dispatches, first_record, reproject);
-        let t = self.target.as_ref().expect("target made before drawing");
-        let fill_g0 = (!reproject && !groups.is_empty()).then(|| {
-            ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
-                label: None,
-                layout: &pipe.get_bind_group_layout(0),
-                entries: &[entry(0, self.frame_uniforms.as_entire_binding()), entry(1, t.keys.as_entire_binding()), entry(2, self.counters.as_entire_binding())],
-            })
-        });
+    fn encode_draw(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, t: &Target, label: &str, dispatches: &[Dispatch], first_record: usize, reproject: bool, ts: (Option<u32>, Option<u32>)) {
+        let pipe = if reproject { &self.passes.reproject } else { &self.passes.fill };
+        let groups = self.draw_groups(ctx, t, dispatches, first_record, reproject);
         let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some(label), timestamp_writes: self.timestamps(ts.0, ts.1) });
-        pass.set_pipeline(pipe);
+        pass.set_pipeline(pipe.pipeline());
         for (g0, g1, n) in &groups {
             if *n == 0 {
                 continue;
             }
-            pass.set_bind_group(0, g0.as_ref().or(fill_g0.as_ref()).expect("group 0 made above"), &[]);
+            // Reproject binds its chunk's list in group 0; Fill the target's one group 0.
+            let g0 = match g0 {
+                Some(g) => g,
+                None => &t.fill_group,
+            };
+            pass.set_bind_group(0, g0, &[]);
             pass.set_bind_group(1, g1, &[]);
             let (x, y) = ctx.split_dispatch(*n);
             pass.dispatch_workgroups(x, y, 1);
@@ -829,89 +1133,39 @@ impl GpuProgressive {
     }
 
     /// Records the clear of the framebuffer.
-    fn encode_clear(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, ts: (Option<u32>, Option<u32>)) {
-        let t = self.target.as_ref().expect("target made before drawing");
-        let bg = ctx.device.create_bind_group(&wgpu::BindGroupDescriptor { label: None, layout: &self.pipelines.clear.get_bind_group_layout(0), entries: &[entry(0, t.keys.as_entire_binding())] });
+    fn encode_clear(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, t: &Target, ts: (Option<u32>, Option<u32>)) {
         let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("clear"), timestamp_writes: self.timestamps(ts.0, ts.1) });
-        pass.set_pipeline(&self.pipelines.clear);
-        pass.set_bind_group(0, &bg, &[]);
+        pass.set_pipeline(self.passes.clear.pipeline());
+        pass.set_bind_group(0, &t.clear_group, &[]);
         let (x, y) = ctx.split_dispatch((t.keys.size() / 4).div_ceil(256) as u32);
         pass.dispatch_workgroups(x, y, 1);
     }
 
     /// Records Prepare (the list counts zeroed first).
-    fn encode_prepare(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, ts: (Option<u32>, Option<u32>)) {
-        let t = self.target.as_ref().expect("target made before drawing");
+    fn encode_prepare(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, t: &Target, chunk_slots: u32, ts: (Option<u32>, Option<u32>)) {
         let pixels = t.width * t.height;
-        let u = PrepareUniforms { pixels, chunk_slots: self.chunk_slots, list_stride: self.list_stride, chunks: self.chunks.len() as u32 };
-        ctx.queue.write_buffer(&self.prepare_uniforms, 0, bytemuck::bytes_of(&u));
-        enc.clear_buffer(&self.list_counts_buf, 0, None);
-        let bg = ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: None,
-            layout: &self.pipelines.prepare.get_bind_group_layout(0),
-            entries: &[
-                entry(0, self.prepare_uniforms.as_entire_binding()),
-                entry(1, t.keys.as_entire_binding()),
-                entry(2, self.list_counts_buf.as_entire_binding()),
-                entry(3, self.lists.as_ref().expect("lists made with the target").as_entire_binding()),
-            ],
-        });
+        let u = PrepareUniforms { pixels, chunk_slots, list_stride: t.list_stride, chunks: self.chunks.len() as u32 };
+        ctx.queue.write_buffer(&self.per_frame.prepare_uniforms, 0, bytemuck::bytes_of(&u));
+        enc.clear_buffer(&self.per_frame.list_counts, 0, None);
         let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("prepare"), timestamp_writes: self.timestamps(ts.0, ts.1) });
-        pass.set_pipeline(&self.pipelines.prepare);
-        pass.set_bind_group(0, &bg, &[]);
+        pass.set_pipeline(self.passes.prepare.pipeline());
+        pass.set_bind_group(0, &t.prepare_group, &[]);
         let (x, y) = ctx.split_dispatch(pixels.div_ceil(256));
         pass.dispatch_workgroups(x, y, 1);
     }
 
-    /// Records the resolve into the image (made on first use), one dispatch per chunk.
-    fn encode_resolve(&mut self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, background: u32, ts: (Option<u32>, Option<u32>)) {
-        let dev = &ctx.device;
-        let (width, height) = self.size();
-        let pixels = width as u64 * height as u64;
-        let t = self.target.as_mut().expect("target made before drawing");
-        if t.image.is_none() {
-            t.image = Some(storage(ctx, "progressive image", pixels * 4, wgpu::BufferUsages::COPY_SRC));
+    /// Records the resolve into `r`'s image, one dispatch per chunk.
+    fn encode_resolve(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, t: &Target, r: &Resolved, background: u32, ts: (Option<u32>, Option<u32>)) {
+        for (i, u) in self.per_frame.resolve_uniforms.iter().enumerate().take(r.groups.len()) {
+            let (first_index, count) = self.chunks.get(i).map_or((0, 0), |c| (c.first, c.len));
+            // The 64-bit keys read as words: index at 2p, depth bits at 2p + 1.
+            let u_val = ResolveUniforms { width: t.width, height: t.height, key_stride: 2, depth_offset: 1, first_index, count, background, write_background: (i == 0) as u32 };
+            ctx.queue.write_buffer(u, 0, bytemuck::bytes_of(&u_val));
         }
-        while self.resolve_uniforms.len() < self.chunks.len().max(1) {
-            self.resolve_uniforms.push(dev.create_buffer(&wgpu::BufferDescriptor {
-                label: Some("resolve uniforms"),
-                size: std::mem::size_of::<ResolveUniforms>() as u64,
-                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-                mapped_at_creation: false,
-            }));
-        }
-        let t = self.target.as_ref().expect("made above");
-        let image = t.image.as_ref().expect("made above");
-        let chunk_list: Vec<(u32, u32, &wgpu::Buffer)> = if self.chunks.is_empty() {
-            vec![(0, 0, &self.dummy)]
-        } else {
-            self.chunks.iter().map(|c| (c.first, c.len, c.colors.as_ref().expect("resolve needs colours"))).collect()
-        };
-        let layout = self.pipelines.resolve.get_bind_group_layout(0);
-        let groups: Vec<wgpu::BindGroup> = chunk_list
-            .into_iter()
-            .enumerate()
-            .map(|(i, (first_index, count, colors))| {
-                // The 64-bit keys read as words: index at 2p, depth bits at 2p + 1.
-                let u = ResolveUniforms { width, height, key_stride: 2, depth_offset: 1, first_index, count, background, write_background: (i == 0) as u32 };
-                ctx.queue.write_buffer(&self.resolve_uniforms[i], 0, bytemuck::bytes_of(&u));
-                dev.create_bind_group(&wgpu::BindGroupDescriptor {
-                    label: None,
-                    layout: &layout,
-                    entries: &[
-                        entry(0, self.resolve_uniforms[i].as_entire_binding()),
-                        entry(1, t.keys.as_entire_binding()),
-                        entry(2, t.keys.as_entire_binding()),
-                        entry(3, colors.as_entire_binding()),
-                        entry(4, image.as_entire_binding()),
-                    ],
-                })
-            })
-            .collect();
         let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("resolve"), timestamp_writes: self.timestamps(ts.0, ts.1) });
-        pass.set_pipeline(&self.pipelines.resolve);
-        let (x, y) = ctx.split_dispatch(pixels.div_ceil(256) as u32);
-        for bg in &groups {
+        pass.set_pipeline(self.passes.resolve.pipeline());
+        let (x, y) = ctx.split_dispatch((t.width as u64 * t.height as u64).div_ceil(256) as u32);
+        for bg in &r.groups {
             pass.set_bind_group(0, bg, &[]);
             pass.dispatch_workgroups(x, y, 1);
         }
@@ -926,225 +1180,9 @@ impl GpuProgressive {
 
     /// Reads `count` timestamps from slot 0 (resolved into the query buffer by `enc`).
     fn resolve_queries(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, count: u32) -> Option<wgpu::Buffer> {
-        self.queries.as_ref().map(|(set, buf)| {
-            enc.resolve_query_set(set, 0..count, buf, 0);
-            readback(ctx, enc, buf, count as u64 * 8)
+        self.queries.as_ref().map(|q| {
+            enc.resolve_query_set(&q.set, 0..count, &q.buffer, 0);
+            readback(ctx, enc, &q.buffer, count as u64 * 8)
         })
-    }
-
-    fn read_queries(ctx: &GpuContext, buf: &wgpu::Buffer) -> Result<Vec<f64>, GpuError> {
-        let t = map_read(ctx, buf)?;
-        let period = ctx.queue.get_timestamp_period() as f64 * 1e-6;
-        let raw: Vec<u64> = bytemuck::pod_collect_to_vec(&t);
-        Ok(raw.iter().map(|&v| v.wrapping_sub(raw[0]) as f64 * period).collect())
-    }
-
-    /// Draws one frame for `camera`: clear, Reproject, Fill with `budget`, Prepare and, with
-    /// `resolve` (a background colour; the renderer must have colours), the resolve into
-    /// [`image_buffer`](Self::image_buffer). Waits for the GPU. A change of camera or options
-    /// keeps the visible lists (that is what they are for) but starts convergence over.
-    pub fn frame(&mut self, ctx: &GpuContext, camera: &Camera, options: &RasterOptions, budget: &FillBudget, resolve: Option<u32>) -> Result<GpuProgressiveFrame, ProgressiveGpuError> {
-        let start = Instant::now();
-        camera.validate().map_err(RasterError::from)?;
-        if resolve.is_some() && !self.options.colors {
-            return Err(GpuError::Colors("resolve asked for but the renderer has no colours".into()).into());
-        }
-        let planner = Planner::new(camera, &self.grid, options)?;
-        self.ensure_target(ctx, camera.width, camera.height)?;
-        if self.view != Some((*camera, *options)) {
-            self.view = Some((*camera, *options));
-            self.done.par_iter_mut().with_min_len(1 << 14).for_each(|w| *w = 0);
-            self.done_count = 0;
-        }
-        let n = self.capacity();
-        self.frames += 1;
-        let mut st = FrameStats { frame: self.frames, loaded: self.loaded, ..FrameStats::default() };
-        // One plan for every slot: one frame, one set of bounds.
-        let plan = planner.plan(&self.frame, &self.bounds, n as usize);
-        let projection = match plan {
-            BatchPlan::Draw { precision, projection } => Some((precision, projection)),
-            _ => None,
-        };
-        let mut raster = RasterStats::default();
-        let count_batches = |raster: &mut RasterStats, dispatches: usize, points: u64| {
-            raster.batches += dispatches as u64;
-            match &projection {
-                Some((precision, _)) => {
-                    raster.batches_drawn += dispatches as u64;
-                    raster.points_by_precision[precision.words() - 1] += points;
-                }
-                None if plan == BatchPlan::Culled => raster.batches_culled += dispatches as u64,
-                None => {}
-            }
-        };
-        ctx.queue.write_buffer(&self.frame_uniforms, 0, bytemuck::bytes_of(&FrameUniforms::new(camera, ctx.division())));
-        ctx.queue.write_buffer(&self.counters, 0, &[0u8; 8]);
-
-        // Reproject: each chunk's list of the last Prepare.
-        let reproject: Vec<Dispatch> = match &projection {
-            Some((_, p)) => self
-                .list_counts
-                .iter()
-                .enumerate()
-                .filter(|(_, &count)| count > 0)
-                .map(|(c, &count)| Dispatch { chunk: c, record: DrawRecord { projection: *p, offset: 0, count, first_index: self.chunks[c].first, _pad: 0 } })
-                .collect(),
-            None => Vec::new(),
-        };
-        st.reprojected = self.list_counts.iter().map(|&c| c as u64).sum();
-        count_batches(&mut raster, self.list_counts.iter().filter(|&&c| c > 0).count(), st.reprojected);
-
-        // Fill, first step: the fixed budget or the probe.
-        let (first, adaptive): (u64, Option<AdaptiveBudget>) = match budget {
-            FillBudget::Fixed(b) => (*b, None),
-            FillBudget::Adaptive(a) => (a.probe_points.min(n), Some(*a)),
-        };
-        let (runs, points) = self.sweep(first);
-        st.filled = first.min(n);
-        st.fill_points = points;
-        count_batches(&mut raster, runs.len(), points);
-        let probe: Vec<Dispatch> = projection.as_ref().map(|(_, p)| self.fill_dispatches(&runs, p)).unwrap_or_default();
-        let timed = self.queries.is_some();
-        let host_ms = |t: Instant| t.elapsed().as_secs_f64() * 1e3;
-
-        let dev = &ctx.device;
-        let mut enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("progressive frame") });
-        self.encode_clear(ctx, &mut enc, (Some(0), None));
-        self.encode_draw(ctx, &mut enc, "reproject", &reproject, 0, true, (None, Some(1)));
-        let mut host_times = [0.0f64; 4]; // reproject, fill, prepare, resolve (host clock)
-        if !timed {
-            let t = Instant::now();
-            ctx.queue.submit([enc.finish()]);
-            ctx.wait()?;
-            host_times[0] = host_ms(t);
-            enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("progressive frame") });
-        }
-        let t_fill = Instant::now();
-        self.encode_draw(ctx, &mut enc, "fill", &probe, reproject.len(), false, (Some(2), Some(3)));
-        let mut extra_dispatches = Vec::new();
-        if let Some(a) = adaptive {
-            st.probe = st.filled;
-            // Read the probe's timings back, then plan the rest of the fill.
-            let timings = if timed {
-                let q = self.resolve_queries(ctx, &mut enc, 4).expect("timed");
-                ctx.queue.submit([enc.finish()]);
-                let t = Self::read_queries(ctx, &q)?;
-                enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("progressive frame") });
-                ProbeTimings { probe_points: st.probe, probe_ms: t[3] - t[2], elapsed_ms: t[3], after_fill_ms: self.last_after_fill_ms }
-            } else {
-                ctx.queue.submit([enc.finish()]);
-                ctx.wait()?;
-                enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("progressive frame") });
-                ProbeTimings { probe_points: st.probe, probe_ms: host_ms(t_fill), elapsed_ms: host_ms(start), after_fill_ms: self.last_after_fill_ms }
-            };
-            let more = a.extra_points(&timings).min(n - st.filled);
-            let (runs, points) = self.sweep(more);
-            st.filled += more;
-            st.fill_points += points;
-            count_batches(&mut raster, runs.len(), points);
-            if let Some((_, p)) = &projection {
-                extra_dispatches = self.fill_dispatches(&runs, p);
-            }
-        }
-        // The second Fill step (empty without the adaptive budget, timed all the same).
-        self.encode_draw(ctx, &mut enc, "fill more", &extra_dispatches, reproject.len() + probe.len(), false, (Some(4), Some(5)));
-        if !timed {
-            ctx.queue.submit([enc.finish()]);
-            ctx.wait()?;
-            host_times[1] = host_ms(t_fill);
-            enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("progressive frame") });
-        }
-        let t_prepare = Instant::now();
-        self.encode_prepare(ctx, &mut enc, (Some(6), Some(7)));
-        if !timed {
-            ctx.queue.submit([enc.finish()]);
-            ctx.wait()?;
-            host_times[2] = host_ms(t_prepare);
-            enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("progressive frame") });
-        }
-        let t_resolve = Instant::now();
-        if let Some(background) = resolve {
-            self.encode_resolve(ctx, &mut enc, background, (Some(8), Some(9)));
-        }
-        let queries = self.resolve_queries(ctx, &mut enc, if resolve.is_some() { 10 } else { 8 });
-        let counters_read = readback(ctx, &mut enc, &self.counters, 8);
-        let counts_read = readback(ctx, &mut enc, &self.list_counts_buf, self.list_counts_buf.size());
-        ctx.queue.submit([enc.finish()]);
-        let c: Vec<u32> = bytemuck::pod_collect_to_vec(&map_read(ctx, &counters_read)?);
-        raster.points_drawn = c[0] as u64 | (c[1] as u64) << 32;
-        let counts: Vec<u32> = bytemuck::pod_collect_to_vec(&map_read(ctx, &counts_read)?);
-        self.list_counts.copy_from_slice(&counts[..self.chunks.len()]);
-        st.visible = self.list_counts.iter().map(|&c| c as u64).sum();
-        host_times[3] = host_ms(t_resolve);
-        let gpu = match queries {
-            Some(q) => {
-                let t = Self::read_queries(ctx, &q)?;
-                let resolve_ms = resolve.map(|_| t[9] - t[8]);
-                Some(ProgressiveGpuTimings {
-                    reproject_ms: t[1],
-                    probe_ms: t[3] - t[2],
-                    extra_fill_ms: t[5] - t[4],
-                    prepare_ms: t[7] - t[6],
-                    resolve_ms,
-                    frame_ms: *t.last().expect("8 or 10 stamps"),
-                })
-            }
-            None => None,
-        };
-        match &gpu {
-            Some(g) => {
-                st.reproject_ms = g.reproject_ms;
-                st.fill_ms = g.probe_ms + g.extra_fill_ms;
-                st.prepare_ms = g.prepare_ms;
-                self.last_after_fill_ms = g.prepare_ms + g.resolve_ms.unwrap_or(0.0);
-            }
-            None => {
-                st.reproject_ms = host_times[0];
-                st.fill_ms = host_times[1];
-                st.prepare_ms = host_times[2];
-                self.last_after_fill_ms = host_times[2] + host_times[3];
-            }
-        }
-        st.raster = raster;
-        st.total_ms = host_ms(start);
-        st.converged = self.converged();
-        ctx.check()?;
-        Ok(GpuProgressiveFrame { stats: st, timing: self.timing(), gpu })
-    }
-
-    /// The visibility buffer of the last frame (row-major depth|index keys; indices are slots, as
-    /// in the CPU renderer), empty before the first frame.
-    pub fn read_keys(&self, ctx: &GpuContext) -> Result<Vec<u64>, GpuError> {
-        let Some(t) = &self.target else { return Ok(Vec::new()) };
-        let mut enc = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("read keys") });
-        let buf = readback(ctx, &mut enc, &t.keys, t.keys.size());
-        ctx.queue.submit([enc.finish()]);
-        let bytes = map_read(ctx, &buf)?;
-        Ok(bytemuck::pod_collect_to_vec::<u8, u64>(&bytes)[..t.width as usize * t.height as usize].to_vec())
-    }
-
-    /// The resolved image of the last frame drawn with `resolve` (RGBA8 packed, row-major).
-    pub fn read_image(&self, ctx: &GpuContext) -> Result<Vec<u32>, GpuError> {
-        match (&self.target, self.image_buffer()) {
-            (Some(t), Some(image)) => read_image_buffer(ctx, image, t.width, t.height),
-            _ => Err(GpuError::Colors("no frame was resolved yet".into())),
-        }
-    }
-
-    /// The slots of the points visible at the end of the last frame (the next Reproject's input),
-    /// in increasing order.
-    pub fn read_visible(&self, ctx: &GpuContext) -> Result<Vec<u32>, GpuError> {
-        let Some(lists) = &self.lists else { return Ok(Vec::new()) };
-        let mut enc = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("read visible") });
-        let buf = readback(ctx, &mut enc, lists, lists.size());
-        ctx.queue.submit([enc.finish()]);
-        let all: Vec<u32> = bytemuck::pod_collect_to_vec(&map_read(ctx, &buf)?);
-        let mut out = Vec::with_capacity(self.list_counts.iter().map(|&c| c as usize).sum());
-        for (c, &count) in self.list_counts.iter().enumerate() {
-            let s = c * self.list_stride as usize;
-            out.extend_from_slice(&all[s..s + count as usize]);
-        }
-        out.par_sort_unstable();
-        Ok(out)
     }
 }

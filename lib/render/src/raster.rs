@@ -7,8 +7,9 @@
 //! round differently).
 
 use crate::context::{AtomicPath, GpuContext, GpuError};
+use crate::pipeline::{batches_group, entry, storage, uniform, PassPipeline, SharedLayouts, Timestamps};
 use crate::scene::GpuScene;
-use crate::shaders::Pass;
+use crate::shaders::{binding, Pass};
 use mortar_core::render::framebuffer::EMPTY_KEY;
 use mortar_core::render::gpu::{DrawRecord, FrameUniforms, ResolveUniforms};
 use mortar_core::render::{BatchPlan, Camera, Planner, RasterError, RasterOptions, RasterStats};
@@ -41,57 +42,123 @@ pub struct GpuFrame {
     pub frame_seconds: f64,
 }
 
-struct Pipelines {
-    clear: wgpu::ComputePipeline,
-    draw: Vec<wgpu::ComputePipeline>,
-    resolve: wgpu::ComputePipeline,
+/// The draw pipelines of the context's atomic path.
+enum DrawPasses {
+    /// `draw.wgsl`.
+    U64(PassPipeline),
+    /// `draw_depth.wgsl`, then `draw_index.wgsl`.
+    TwoPass32([PassPipeline; 2]),
 }
 
-/// The framebuffer, pipelines and per-frame buffers of one viewport size.
-pub struct GpuRasterizer {
+impl DrawPasses {
+    /// The draw steps in order (one compute pass each).
+    fn steps(&self) -> &[PassPipeline] {
+        match self {
+            DrawPasses::U64(draw) => std::slice::from_ref(draw),
+            DrawPasses::TwoPass32(steps) => steps,
+        }
+    }
+}
+
+/// The pipelines and layouts of the rasterizer: built once, whatever the viewport and the frame.
+struct Passes {
+    shared: SharedLayouts,
+    clear: PassPipeline,
+    draw: DrawPasses,
+    resolve: PassPipeline,
+}
+
+/// The framebuffer of the atomic path.
+enum Keys {
+    /// 64-bit depth|index keys (`width * height * 8` bytes).
+    U64(wgpu::Buffer),
+    /// The 32-bit path's depths and point indices (`width * height * 4` bytes each).
+    TwoPass32 { depths: wgpu::Buffer, indices: wgpu::Buffer },
+}
+
+impl Keys {
+    /// Every buffer of the framebuffer (what the clear pass clears).
+    fn buffers(&self) -> Vec<&wgpu::Buffer> {
+        match self {
+            Keys::U64(keys) => vec![keys],
+            Keys::TwoPass32 { depths, indices } => vec![depths, indices],
+        }
+    }
+}
+
+/// What the rasterizer writes anew every frame: the camera's uniforms, the drawn-point counter,
+/// the draw records and the resolve dispatches' uniforms. The buffers live as long as the
+/// rasterizer; the records grow when a frame needs more.
+struct PerFrame {
+    frame_uniforms: wgpu::Buffer,
+    counters: wgpu::Buffer,
+    records: wgpu::Buffer,
+    /// One per chunk of the last resolved scene (grown, never shrunk).
+    resolve_uniforms: Vec<wgpu::Buffer>,
+}
+
+/// The framebuffer of one viewport size and the bind groups that use it, made together
+/// ([`GpuRasterizer::new`], [`GpuRasterizer::resize`]).
+struct Target {
     width: u32,
     height: u32,
-    path: AtomicPath,
-    pipelines: Pipelines,
-    /// 64-bit keys (`width * height * 8` bytes), or the 32-bit path's depths.
-    keys: wgpu::Buffer,
-    /// The 32-bit path's point indices.
-    indices: Option<wgpu::Buffer>,
-    counters: wgpu::Buffer,
-    frame_uniforms: wgpu::Buffer,
-    records: Option<wgpu::Buffer>,
+    keys: Keys,
+    /// The clear pass's bind group per framebuffer buffer, with its workgroup count.
+    clear_groups: Vec<(wgpu::BindGroup, u32)>,
+    /// Group 0 of each draw step (frame uniforms, framebuffer, counters).
+    draw_groups: Vec<wgpu::BindGroup>,
+    /// The resolved image, made by the first frame drawn with `resolve`.
     image: Option<wgpu::Buffer>,
-    resolve_uniforms: Vec<wgpu::Buffer>,
-    queries: Option<(wgpu::QuerySet, wgpu::Buffer)>,
 }
 
-pub(crate) fn pipeline(ctx: &GpuContext, pass: Pass) -> wgpu::ComputePipeline {
-    let module = ctx.device.create_shader_module(wgpu::ShaderModuleDescriptor {
-        label: Some(pass.file()),
-        source: wgpu::ShaderSource::Wgsl(pass.source().into()),
-    });
-    ctx.device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-        label: Some(pass.file()),
-        layout: None,
-        module: &module,
-        entry_point: Some("main"),
-        // The passes initialise the little workgroup memory they use (common/counters.wgsl).
-        compilation_options: wgpu::PipelineCompilationOptions { zero_initialize_workgroup_memory: false, ..Default::default() },
-        cache: None,
-    })
+impl Target {
+    fn new(ctx: &GpuContext, passes: &Passes, per_frame: &PerFrame, width: u32, height: u32) -> Result<Target, GpuError> {
+        let pixels = width as u64 * height as u64;
+        let key_bytes = pixels * if matches!(passes.draw, DrawPasses::U64(_)) { 8 } else { 4 };
+        if key_bytes > ctx.max_binding() || pixels == 0 {
+            return Err(GpuError::TooLarge { what: "the framebuffer", needed: key_bytes, limit: ctx.max_binding() });
+        }
+        let copy = wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST;
+        let frame = entry(binding::FRAME, per_frame.frame_uniforms.as_entire_binding());
+        let counters = entry(binding::COUNTERS, per_frame.counters.as_entire_binding());
+        let (keys, draw_groups) = match &passes.draw {
+            DrawPasses::U64(draw) => {
+                let keys = storage(ctx, "keys", key_bytes, copy);
+                let g = draw.bind_group(ctx, 0, &[frame, entry(binding::KEYS, keys.as_entire_binding()), counters]);
+                (Keys::U64(keys), vec![g])
+            }
+            DrawPasses::TwoPass32([depth, index]) => {
+                let depths = storage(ctx, "keys", key_bytes, copy);
+                let indices = storage(ctx, "indices", pixels * 4, copy);
+                let g0 = depth.bind_group(ctx, 0, &[frame.clone(), entry(binding::DEPTHS, depths.as_entire_binding())]);
+                let g1 = index.bind_group(
+                    ctx,
+                    0,
+                    &[frame, entry(binding::DEPTHS, depths.as_entire_binding()), counters, entry(binding::INDICES, indices.as_entire_binding())],
+                );
+                (Keys::TwoPass32 { depths, indices }, vec![g0, g1])
+            }
+        };
+        let clear_groups = keys
+            .buffers()
+            .into_iter()
+            .map(|buf| (passes.clear.bind_group(ctx, 0, &[entry(binding::CLEAR_WORDS, buf.as_entire_binding())]), (buf.size() / 4).div_ceil(256) as u32))
+            .collect();
+        ctx.check()?;
+        Ok(Target { width, height, keys, clear_groups, draw_groups, image: None })
+    }
 }
 
-pub(crate) fn storage(ctx: &GpuContext, label: &str, size: u64, extra: wgpu::BufferUsages) -> wgpu::Buffer {
-    ctx.device.create_buffer(&wgpu::BufferDescriptor {
-        label: Some(label),
-        size: size.max(4),
-        usage: wgpu::BufferUsages::STORAGE | extra,
-        mapped_at_creation: false,
-    })
-}
-
-pub(crate) fn entry(binding: u32, resource: wgpu::BindingResource<'_>) -> wgpu::BindGroupEntry<'_> {
-    wgpu::BindGroupEntry { binding, resource }
+/// The GPU rasterizer: pipelines built once, per-frame buffers, and the framebuffer of one
+/// viewport size.
+pub struct GpuRasterizer {
+    path: AtomicPath,
+    passes: Passes,
+    per_frame: PerFrame,
+    target: Target,
+    /// Bound as the colours of a resolve dispatch when the scene holds no chunk.
+    no_colors: wgpu::Buffer,
+    queries: Option<Timestamps>,
 }
 
 /// Timestamp slots: clear begin/end, draw begin/end, resolve begin/end.
@@ -100,52 +167,26 @@ const QUERIES: u32 = 6;
 impl GpuRasterizer {
     /// A rasterizer for `width x height` pixels on the context's atomic path.
     pub fn new(ctx: &GpuContext, width: u32, height: u32) -> Result<GpuRasterizer, GpuError> {
-        let pixels = width as u64 * height as u64;
         let path = ctx.atomic_path();
-        let key_bytes = pixels * if path == AtomicPath::U64 { 8 } else { 4 };
-        if key_bytes > ctx.max_binding() || pixels == 0 {
-            return Err(GpuError::TooLarge { what: "the framebuffer", needed: key_bytes, limit: ctx.max_binding() });
-        }
+        let shared = SharedLayouts::new(ctx);
         let draw = match path {
-            AtomicPath::U64 => vec![pipeline(ctx, Pass::Draw64)],
-            AtomicPath::TwoPass32 => vec![pipeline(ctx, Pass::DrawDepth32), pipeline(ctx, Pass::DrawIndex32)],
+            AtomicPath::U64 => DrawPasses::U64(PassPipeline::new(ctx, Pass::Draw64, &shared)),
+            AtomicPath::TwoPass32 => DrawPasses::TwoPass32([PassPipeline::new(ctx, Pass::DrawDepth32, &shared), PassPipeline::new(ctx, Pass::DrawIndex32, &shared)]),
         };
-        let pipelines = Pipelines { clear: pipeline(ctx, Pass::Clear), draw, resolve: pipeline(ctx, Pass::Resolve) };
+        let passes = Passes { clear: PassPipeline::new(ctx, Pass::Clear, &shared), draw, resolve: PassPipeline::new(ctx, Pass::Resolve, &shared), shared };
         let copy = wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST;
-        let keys = storage(ctx, "keys", key_bytes, copy);
-        let indices = (path == AtomicPath::TwoPass32).then(|| storage(ctx, "indices", pixels * 4, copy));
-        let counters = storage(ctx, "counters", 8, copy);
-        let frame_uniforms = ctx.device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("frame uniforms"),
-            size: std::mem::size_of::<FrameUniforms>() as u64,
-            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        });
-        let queries = ctx.has_timestamps().then(|| {
-            let set = ctx.device.create_query_set(&wgpu::QuerySetDescriptor { label: Some("pass times"), ty: wgpu::QueryType::Timestamp, count: QUERIES });
-            let buf = ctx.device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some("pass times"),
-                size: QUERIES as u64 * 8,
-                usage: wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC,
-                mapped_at_creation: false,
-            });
-            (set, buf)
-        });
-        ctx.check()?;
-        Ok(GpuRasterizer {
-            width,
-            height,
-            path,
-            pipelines,
-            keys,
-            indices,
-            counters,
-            frame_uniforms,
-            records: None,
-            image: None,
+        let per_frame = PerFrame {
+            frame_uniforms: uniform::<FrameUniforms>(ctx, "frame uniforms"),
+            counters: storage(ctx, "counters", 8, copy),
+            // Grown by the first frame that draws anything.
+            records: storage(ctx, "draw records", 0, wgpu::BufferUsages::COPY_DST),
             resolve_uniforms: Vec::new(),
-            queries,
-        })
+        };
+        let target = Target::new(ctx, &passes, &per_frame, width, height)?;
+        let queries = ctx.has_timestamps().then(|| Timestamps::new(ctx, "pass times", QUERIES));
+        let no_colors = storage(ctx, "no colours", 4, wgpu::BufferUsages::empty());
+        ctx.check()?;
+        Ok(GpuRasterizer { path, passes, per_frame, target, no_colors, queries })
     }
 
     /// The atomic path in use.
@@ -155,42 +196,24 @@ impl GpuRasterizer {
 
     /// The viewport size `(width, height)` in pixels.
     pub fn size(&self) -> (u32, u32) {
-        (self.width, self.height)
+        (self.target.width, self.target.height)
     }
 
     /// Changes the viewport size: the framebuffer (and the resolved image) are made anew, the
     /// pipelines kept. A frame must be drawn before the next read.
     pub fn resize(&mut self, ctx: &GpuContext, width: u32, height: u32) -> Result<(), GpuError> {
-        if (width, height) == (self.width, self.height) {
+        if (width, height) == self.size() {
             return Ok(());
         }
-        let pixels = width as u64 * height as u64;
-        let key_bytes = pixels * if self.path == AtomicPath::U64 { 8 } else { 4 };
-        if key_bytes > ctx.max_binding() || pixels == 0 {
-            return Err(GpuError::TooLarge { what: "the framebuffer", needed: key_bytes, limit: ctx.max_binding() });
-        }
-        let copy = wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST;
-        self.keys = storage(ctx, "keys", key_bytes, copy);
-        self.indices = (self.path == AtomicPath::TwoPass32).then(|| storage(ctx, "indices", pixels * 4, copy));
-        self.image = None;
-        self.width = width;
-        self.height = height;
-        ctx.check()
+        self.target = Target::new(ctx, &self.passes, &self.per_frame, width, height)?;
+        Ok(())
     }
 
     /// The resolved image of the last frame drawn with `resolve` (RGBA8 packed
     /// `r | g << 8 | b << 16 | a << 24`, row-major, `width * height` words; a storage buffer), for
     /// passes that use it on the GPU (the window's present pass).
     pub fn image_buffer(&self) -> Option<&wgpu::Buffer> {
-        self.image.as_ref()
-    }
-
-    fn timestamps(&self, begin: u32) -> Option<wgpu::ComputePassTimestampWrites<'_>> {
-        self.queries.as_ref().map(|(set, _)| wgpu::ComputePassTimestampWrites {
-            query_set: set,
-            beginning_of_pass_write_index: Some(begin),
-            end_of_pass_write_index: Some(begin + 1),
-        })
+        self.target.image.as_ref()
     }
 
     /// Draws the scene for `camera` into a cleared framebuffer; with `resolve` (a background
@@ -205,8 +228,9 @@ impl GpuRasterizer {
     /// level-of-detail selection is drawn from a scene holding every node once.
     pub fn draw_selected(&mut self, ctx: &GpuContext, scene: &mut GpuScene, selected: Option<&[u32]>, camera: &Camera, options: &RasterOptions, resolve: Option<u32>) -> Result<GpuFrame, GpuError> {
         let start = Instant::now();
-        if camera.width != self.width || camera.height != self.height {
-            return Err(RasterError::Viewport { fb_width: self.width, fb_height: self.height, width: camera.width, height: camera.height }.into());
+        let (width, height) = self.size();
+        if camera.width != width || camera.height != height {
+            return Err(RasterError::Viewport { fb_width: width, fb_height: height, width: camera.width, height: camera.height }.into());
         }
         if resolve.is_some() && !scene.has_colors() {
             return Err(GpuError::Colors("resolve asked for but the scene has no colours".into()));
@@ -244,14 +268,16 @@ impl GpuRasterizer {
                 BatchPlan::Draw { precision, projection } => {
                     stats.batches_drawn += 1;
                     stats.points_by_precision[precision.words() - 1] += b.count as u64;
-                    if ranges.last().is_none_or(|r| r.0 != b.chunk as usize) {
-                        while records.len() * std::mem::size_of::<DrawRecord>() % align != 0 {
-                            records.push(bytemuck::Zeroable::zeroed());
+                    match ranges.last_mut() {
+                        Some(r) if r.0 == b.chunk as usize => r.2 += 1,
+                        _ => {
+                            while !(records.len() * std::mem::size_of::<DrawRecord>()).is_multiple_of(align) {
+                                records.push(bytemuck::Zeroable::zeroed());
+                            }
+                            ranges.push((b.chunk as usize, records.len(), 1));
                         }
-                        ranges.push((b.chunk as usize, records.len(), 0));
                     }
                     records.push(DrawRecord { projection: *projection, offset: b.offset, count: b.count, first_index: b.first_index, _pad: 0 });
-                    ranges.last_mut().expect("pushed above").2 += 1;
                 }
             }
         }
@@ -260,80 +286,50 @@ impl GpuRasterizer {
         if let Some(r) = ranges.iter().find(|r| r.2 as u64 * record_size > ctx.max_binding()) {
             return Err(GpuError::TooLarge { what: "one chunk's draw records", needed: r.2 as u64 * record_size, limit: ctx.max_binding() });
         }
+        let f = &mut self.per_frame;
         let needed = (records.len() as u64 * record_size).max(record_size);
-        if self.records.as_ref().is_none_or(|b| b.size() < needed) {
-            let size = needed.max(self.records.as_ref().map_or(0, |b| b.size() * 3 / 2)).min(ctx.limits().max_buffer_size);
-            self.records = Some(storage(ctx, "draw records", size.max(needed), wgpu::BufferUsages::COPY_DST));
+        if f.records.size() < needed {
+            let size = needed.max(f.records.size() * 3 / 2).min(ctx.limits().max_buffer_size);
+            f.records = storage(ctx, "draw records", size.max(needed), wgpu::BufferUsages::COPY_DST);
         }
-        let records_buf = self.records.as_ref().expect("made above");
         if !records.is_empty() {
-            ctx.queue.write_buffer(records_buf, 0, bytemuck::cast_slice(&records));
+            ctx.queue.write_buffer(&f.records, 0, bytemuck::cast_slice(&records));
         }
-        ctx.queue.write_buffer(&self.frame_uniforms, 0, bytemuck::bytes_of(&FrameUniforms::new(camera, ctx.division())));
-        ctx.queue.write_buffer(&self.counters, 0, &[0u8; 8]);
+        ctx.queue.write_buffer(&f.frame_uniforms, 0, bytemuck::bytes_of(&FrameUniforms::new(camera, ctx.division())));
+        ctx.queue.write_buffer(&f.counters, 0, &[0u8; 8]);
+        let f = &self.per_frame;
+        let t = &mut self.target;
+        let passes = &self.passes;
+        let queries = self.queries.as_ref();
 
         let dev = &ctx.device;
         let mut enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("frame") });
         // Clear.
         {
-            let targets: Vec<&wgpu::Buffer> = std::iter::once(&self.keys).chain(self.indices.as_ref()).collect();
-            let groups: Vec<(wgpu::BindGroup, u32)> = targets
-                .iter()
-                .map(|buf| {
-                    let layout = self.pipelines.clear.get_bind_group_layout(0);
-                    let bg = dev.create_bind_group(&wgpu::BindGroupDescriptor { label: None, layout: &layout, entries: &[entry(0, buf.as_entire_binding())] });
-                    (bg, (buf.size() / 4).div_ceil(256) as u32)
-                })
-                .collect();
-            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("clear"), timestamp_writes: self.timestamps(0) });
-            pass.set_pipeline(&self.pipelines.clear);
-            for (bg, n) in &groups {
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("clear"), timestamp_writes: queries.map(|q| q.writes(Some(0), Some(1))) });
+            pass.set_pipeline(passes.clear.pipeline());
+            for (bg, n) in &t.clear_groups {
                 let (x, y) = ctx.split_dispatch(*n);
                 pass.set_bind_group(0, bg, &[]);
                 pass.dispatch_workgroups(x, y, 1);
             }
         }
-        // Draw: one pass per step (the 32-bit path's second step must see the first's depths).
-        let steps = self.pipelines.draw.len();
-        for (step, pipe) in self.pipelines.draw.iter().enumerate() {
-            let layout0 = pipe.get_bind_group_layout(0);
-            let mut e0 = vec![entry(0, self.frame_uniforms.as_entire_binding()), entry(1, self.keys.as_entire_binding())];
-            // Every draw pass counts except the 32-bit path's first step.
-            if self.path == AtomicPath::U64 || step == 1 {
-                e0.push(entry(2, self.counters.as_entire_binding()));
-            }
-            if step == 1 {
-                e0.push(entry(3, self.indices.as_ref().expect("32-bit path").as_entire_binding()));
-            }
-            let bg0 = dev.create_bind_group(&wgpu::BindGroupDescriptor { label: None, layout: &layout0, entries: &e0 });
-            let layout1 = pipe.get_bind_group_layout(1);
-            let groups1: Vec<(wgpu::BindGroup, u32)> = ranges
-                .iter()
-                .map(|&(chunk, first, count)| {
-                    let c = &scene.chunks[chunk];
-                    let rec = wgpu::BufferBinding { buffer: records_buf, offset: first as u64 * record_size, size: NonZeroU64::new(count as u64 * record_size) };
-                    let bg = dev.create_bind_group(&wgpu::BindGroupDescriptor {
-                        label: None,
-                        layout: &layout1,
-                        entries: &[
-                            entry(0, wgpu::BindingResource::Buffer(rec)),
-                            entry(1, c.words[0].as_entire_binding()),
-                            entry(2, c.words[1].as_entire_binding()),
-                            entry(3, c.words[2].as_entire_binding()),
-                        ],
-                    });
-                    (bg, count as u32)
-                })
-                .collect();
-            let ts = self.queries.as_ref().map(|(set, _)| wgpu::ComputePassTimestampWrites {
-                query_set: set,
-                beginning_of_pass_write_index: (step == 0).then_some(2),
-                end_of_pass_write_index: (step + 1 == steps).then_some(3),
-            });
-            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some(Pass::ALL[1 + step].file()), timestamp_writes: ts });
-            pass.set_pipeline(pipe);
-            pass.set_bind_group(0, &bg0, &[]);
-            for (bg, n) in &groups1 {
+        // Draw: one pass per step (the 32-bit path's second step must see the first's depths),
+        // every step with the same batches bind groups (one per chunk).
+        let batches: Vec<(wgpu::BindGroup, u32)> = ranges
+            .iter()
+            .map(|&(chunk, first, count)| {
+                let rec = wgpu::BufferBinding { buffer: &f.records, offset: first as u64 * record_size, size: NonZeroU64::new(count as u64 * record_size) };
+                (batches_group(ctx, &passes.shared, rec, &scene.chunks[chunk].words), count as u32)
+            })
+            .collect();
+        let steps = passes.draw.steps();
+        for (step, (pipe, group0)) in steps.iter().zip(&t.draw_groups).enumerate() {
+            let ts = queries.map(|q| q.writes((step == 0).then_some(2), (step + 1 == steps.len()).then_some(3)));
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some(pipe.pass().file()), timestamp_writes: ts });
+            pass.set_pipeline(pipe.pipeline());
+            pass.set_bind_group(0, group0, &[]);
+            for (bg, n) in &batches {
                 let (x, y) = ctx.split_dispatch(*n);
                 pass.set_bind_group(1, bg, &[]);
                 pass.dispatch_workgroups(x, y, 1);
@@ -341,69 +337,51 @@ impl GpuRasterizer {
         }
         // Resolve: one dispatch per chunk.
         if let Some(background) = resolve {
-            let pixels = self.width as u64 * self.height as u64;
-            if self.image.is_none() {
-                self.image = Some(storage(ctx, "image", pixels * 4, wgpu::BufferUsages::COPY_SRC));
+            let pixels = width as u64 * height as u64;
+            let image = t.image.get_or_insert_with(|| storage(ctx, "image", pixels * 4, wgpu::BufferUsages::COPY_SRC));
+            let resolve_uniforms = &mut self.per_frame.resolve_uniforms;
+            while resolve_uniforms.len() < scene.chunks.len().max(1) {
+                resolve_uniforms.push(uniform::<ResolveUniforms>(ctx, "resolve uniforms"));
             }
-            while self.resolve_uniforms.len() < scene.chunks.len().max(1) {
-                self.resolve_uniforms.push(dev.create_buffer(&wgpu::BufferDescriptor {
-                    label: Some("resolve uniforms"),
-                    size: std::mem::size_of::<ResolveUniforms>() as u64,
-                    usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-                    mapped_at_creation: false,
-                }));
-            }
-            let (index_buf, stride, depth_offset) = match &self.indices {
-                None => (&self.keys, 2, 1),
-                Some(ix) => (ix, 1, 0),
+            let (index_buf, depth_buf, stride, depth_offset) = match &t.keys {
+                Keys::U64(keys) => (keys, keys, 2, 1),
+                Keys::TwoPass32 { depths, indices } => (indices, depths, 1, 0),
             };
-            let layout = self.pipelines.resolve.get_bind_group_layout(0);
-            let image = self.image.as_ref().expect("made above");
-            let empty_colors;
-            let mut groups = Vec::new();
             let chunk_list: Vec<(u32, u32, Option<&wgpu::Buffer>)> = if scene.chunks.is_empty() {
-                empty_colors = storage(ctx, "no colours", 4, wgpu::BufferUsages::empty());
-                vec![(0, 0, Some(&empty_colors))]
+                vec![(0, 0, Some(&self.no_colors))]
             } else {
                 scene.chunks.iter().map(|c| (c.first_index, c.len, c.colors.as_ref())).collect()
             };
+            let mut groups = Vec::with_capacity(chunk_list.len());
             for (i, (first_index, count, colors)) in chunk_list.into_iter().enumerate() {
-                let u = ResolveUniforms {
-                    width: self.width,
-                    height: self.height,
-                    key_stride: stride,
-                    depth_offset,
-                    first_index,
-                    count,
-                    background,
-                    write_background: (i == 0) as u32,
-                };
-                ctx.queue.write_buffer(&self.resolve_uniforms[i], 0, bytemuck::bytes_of(&u));
-                let colors = colors.expect("scene has colours");
-                groups.push(dev.create_bind_group(&wgpu::BindGroupDescriptor {
-                    label: None,
-                    layout: &layout,
-                    entries: &[
-                        entry(0, self.resolve_uniforms[i].as_entire_binding()),
-                        entry(1, index_buf.as_entire_binding()),
-                        entry(2, self.keys.as_entire_binding()),
-                        entry(3, colors.as_entire_binding()),
-                        entry(4, image.as_entire_binding()),
+                // Checked at the top: a scene with colours has them in every chunk.
+                let Some(colors) = colors else { return Err(GpuError::Colors("a chunk of the scene has no colours".into())) };
+                let u = ResolveUniforms { width, height, key_stride: stride, depth_offset, first_index, count, background, write_background: (i == 0) as u32 };
+                ctx.queue.write_buffer(&resolve_uniforms[i], 0, bytemuck::bytes_of(&u));
+                groups.push(passes.resolve.bind_group(
+                    ctx,
+                    0,
+                    &[
+                        entry(binding::RESOLVE_PARAMS, resolve_uniforms[i].as_entire_binding()),
+                        entry(binding::RESOLVE_INDEX_WORDS, index_buf.as_entire_binding()),
+                        entry(binding::RESOLVE_DEPTH_WORDS, depth_buf.as_entire_binding()),
+                        entry(binding::RESOLVE_COLORS, colors.as_entire_binding()),
+                        entry(binding::RESOLVE_IMAGE, image.as_entire_binding()),
                     ],
-                }));
+                ));
             }
-            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("resolve"), timestamp_writes: self.timestamps(4) });
-            pass.set_pipeline(&self.pipelines.resolve);
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("resolve"), timestamp_writes: queries.map(|q| q.writes(Some(4), Some(5))) });
+            pass.set_pipeline(passes.resolve.pipeline());
             let (x, y) = ctx.split_dispatch(pixels.div_ceil(256) as u32);
             for bg in &groups {
                 pass.set_bind_group(0, bg, &[]);
                 pass.dispatch_workgroups(x, y, 1);
             }
         }
-        let counters_read = readback(ctx, &mut enc, &self.counters, 8);
-        let times_read = self.queries.as_ref().map(|(set, buf)| {
-            enc.resolve_query_set(set, 0..QUERIES, buf, 0);
-            readback(ctx, &mut enc, buf, QUERIES as u64 * 8)
+        let counters_read = readback(ctx, &mut enc, &self.per_frame.counters, 8);
+        let times_read = queries.map(|q| {
+            enc.resolve_query_set(&q.set, 0..QUERIES, &q.buffer, 0);
+            readback(ctx, &mut enc, &q.buffer, QUERIES as u64 * 8)
         });
         ctx.queue.submit([enc.finish()]);
         let counters = map_read(ctx, &counters_read)?;
@@ -411,8 +389,7 @@ impl GpuRasterizer {
         stats.points_drawn = c[0] as u64 | (c[1] as u64) << 32;
         let timings = match times_read {
             Some(buf) => {
-                let t = map_read(ctx, &buf)?;
-                let t: Vec<u64> = t.chunks_exact(8).map(|b| u64::from_le_bytes(b.try_into().expect("8 bytes"))).collect();
+                let t: Vec<u64> = bytemuck::pod_collect_to_vec(&map_read(ctx, &buf)?);
                 let period = ctx.queue.get_timestamp_period() as f64 * 1e-6;
                 let ms = |a: usize| t[a + 1].saturating_sub(t[a]) as f64 * period;
                 Some(GpuTimings { clear_ms: ms(0), draw_ms: ms(2), resolve_ms: resolve.map(|_| ms(4)) })
@@ -426,28 +403,30 @@ impl GpuRasterizer {
     /// The framebuffer's keys as the CPU rasterizer writes them (`depth bits << 32 | index`,
     /// [`EMPTY_KEY`] for an empty pixel), row-major from the top-left pixel.
     pub fn read_keys(&self, ctx: &GpuContext) -> Result<Vec<u64>, GpuError> {
+        let pixels = self.target.width as usize * self.target.height as usize;
         let mut enc = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("read keys") });
-        let keys = readback(ctx, &mut enc, &self.keys, self.keys.size());
-        let indices = self.indices.as_ref().map(|ix| readback(ctx, &mut enc, ix, ix.size()));
-        ctx.queue.submit([enc.finish()]);
-        let keys = map_read(ctx, &keys)?;
-        let pixels = self.width as usize * self.height as usize;
-        Ok(match indices {
-            None => bytemuck::pod_collect_to_vec::<u8, u64>(&keys)[..pixels].to_vec(),
-            Some(ix) => {
-                let ix = map_read(ctx, &ix)?;
-                let d: Vec<u32> = bytemuck::pod_collect_to_vec(&keys);
-                let i: Vec<u32> = bytemuck::pod_collect_to_vec(&ix);
-                (0..pixels).map(|p| if d[p] == u32::MAX { EMPTY_KEY } else { (d[p] as u64) << 32 | i[p] as u64 }).collect()
+        match &self.target.keys {
+            Keys::U64(keys) => {
+                let keys = readback(ctx, &mut enc, keys, keys.size());
+                ctx.queue.submit([enc.finish()]);
+                Ok(bytemuck::pod_collect_to_vec::<u8, u64>(&map_read(ctx, &keys)?)[..pixels].to_vec())
             }
-        })
+            Keys::TwoPass32 { depths, indices } => {
+                let d = readback(ctx, &mut enc, depths, depths.size());
+                let i = readback(ctx, &mut enc, indices, indices.size());
+                ctx.queue.submit([enc.finish()]);
+                let d: Vec<u32> = bytemuck::pod_collect_to_vec(&map_read(ctx, &d)?);
+                let i: Vec<u32> = bytemuck::pod_collect_to_vec(&map_read(ctx, &i)?);
+                Ok((0..pixels).map(|p| if d[p] == u32::MAX { EMPTY_KEY } else { (d[p] as u64) << 32 | i[p] as u64 }).collect())
+            }
+        }
     }
 
     /// The resolved image (RGBA8 packed `r | g << 8 | b << 16 | a << 24`, row-major) of the last
     /// frame drawn with `resolve`.
     pub fn read_image(&self, ctx: &GpuContext) -> Result<Vec<u32>, GpuError> {
-        let Some(image) = &self.image else { return Err(GpuError::Colors("no frame was resolved yet".into())) };
-        read_image_buffer(ctx, image, self.width, self.height)
+        let Some(image) = &self.target.image else { return Err(GpuError::Colors("no frame was resolved yet".into())) };
+        read_image_buffer(ctx, image, self.target.width, self.target.height)
     }
 }
 

@@ -150,13 +150,14 @@ impl GpuScene {
         if n > self.chunk_points as usize {
             return Err(GpuError::TooLarge { what: "one batch", needed: n as u64 * 4, limit: self.chunk_points as u64 * 4 });
         }
-        let fits = self.chunks.last().is_some_and(|c| c.capacity - c.len >= n as u32);
-        if !fits {
-            self.flush(ctx)?;
-            self.new_chunk(ctx, n as u32)?;
-        }
-        let chunk = self.chunks.len() - 1;
-        let c = self.chunks.last_mut().expect("a chunk was just made");
+        let chunk = match self.chunks.last() {
+            Some(c) if c.capacity - c.len >= n as u32 => self.chunks.len() - 1,
+            _ => {
+                self.flush(ctx)?;
+                self.new_chunk(ctx, n as u32)?
+            }
+        };
+        let c = &mut self.chunks[chunk];
         self.batches.push(GpuBatch {
             grid: b.grid,
             bounds: b.bounds(),
@@ -179,7 +180,8 @@ impl GpuScene {
         Ok(())
     }
 
-    fn new_chunk(&mut self, ctx: &GpuContext, at_least: u32) -> Result<(), GpuError> {
+    /// Makes a chunk for at least `at_least` more points and returns its position.
+    fn new_chunk(&mut self, ctx: &GpuContext, at_least: u32) -> Result<usize, GpuError> {
         let remaining = self.expected_points.saturating_sub(self.points);
         let capacity = (remaining.min(self.chunk_points as u64) as u32).max(at_least).max(1);
         let first_index = self.points as u32;
@@ -195,7 +197,7 @@ impl GpuScene {
         let colors = self.options.colors.then(|| make("colours"));
         ctx.check()?;
         self.chunks.push(Chunk { words, colors, capacity, len: 0, first_index, written: 0 });
-        Ok(())
+        Ok(self.chunks.len() - 1)
     }
 
     /// Replaces the colours of every point added so far (`colors[i]` is point `i`'s RGBA8) without

@@ -2,6 +2,11 @@
 //! `shaders/` exactly as the pipelines and the validation test use them: WGSL has no `#include`,
 //! so each pass is the shared files of `shaders/common/` (and, for the progressive passes,
 //! `shaders/progressive_types.wgsl`) followed by the pass's own file.
+//!
+//! The bind groups of every pass are defined here once ([`binding`], [`Pass::bindings`],
+//! [`PRESENT_BINDINGS`]): the pipelines build their bind-group layouts from these tables and the
+//! bind groups name the same constants, and mortar-render's shader test checks that each WGSL
+//! module declares exactly these `@group`/`@binding`s with the same kind and name.
 
 /// The shared types and the split-dispatch helper (every pass).
 const TYPES: &str = include_str!("../../../shaders/common/types.wgsl");
@@ -17,6 +22,115 @@ const PROGRESSIVE: &str = include_str!("../../../shaders/progressive_types.wgsl"
 /// The window's present pass (`shaders/present.wgsl`: a vertex and a fragment entry point, no
 /// shared files), used by [`crate::present::WindowSurface`].
 pub const PRESENT: &str = include_str!("../../../shaders/present.wgsl");
+
+/// What a binding holds, as the bind-group layout gives it and the WGSL must declare it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum BindingKind {
+    /// `var<uniform>`.
+    Uniform,
+    /// `var<storage, read>`.
+    StorageRead,
+    /// `var<storage, read_write>`.
+    StorageReadWrite,
+}
+
+/// One `@group(g) @binding(b)` of a pass: where it is, what it holds, and the name of its WGSL
+/// variable.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct Binding {
+    /// The bind group (`@group`).
+    pub group: u32,
+    /// The slot in the group (`@binding`).
+    pub binding: u32,
+    /// Uniform or storage, read-only or not.
+    pub kind: BindingKind,
+    /// The WGSL variable's name.
+    pub name: &'static str,
+}
+
+const fn bind(group: u32, binding: u32, kind: BindingKind, name: &'static str) -> Binding {
+    Binding { group, binding, kind, name }
+}
+
+/// The bindings of every pass, each defined once; the tables of [`Pass::bindings`] and
+/// [`PRESENT_BINDINGS`] list them per pass and the bind groups use them by name.
+pub mod binding {
+    use super::{bind, Binding, BindingKind::*};
+
+    /// `clear.wgsl`: the framebuffer words to clear.
+    pub const CLEAR_WORDS: Binding = bind(0, 0, StorageReadWrite, "words");
+
+    /// Draw passes (`common/decode.wgsl` users): the per-frame camera constants (`FrameUniforms`).
+    pub const FRAME: Binding = bind(0, 0, Uniform, "frame");
+    /// `draw.wgsl`, `progressive_reproject.wgsl`, `progressive_fill.wgsl`: the 64-bit keys.
+    pub const KEYS: Binding = bind(0, 1, StorageReadWrite, "keys");
+    /// `draw_depth.wgsl`, `draw_index.wgsl`: the 32-bit path's depths.
+    pub const DEPTHS: Binding = bind(0, 1, StorageReadWrite, "depths");
+    /// `common/counters.wgsl`: the drawn-point counter (two words).
+    pub const COUNTERS: Binding = bind(0, 2, StorageReadWrite, "counters");
+    /// `draw_index.wgsl`: the 32-bit path's point indices.
+    pub const INDICES: Binding = bind(0, 3, StorageReadWrite, "indices");
+    /// `progressive_reproject.wgsl`: one chunk's visible list.
+    pub const VISIBLE: Binding = bind(0, 3, StorageRead, "visible");
+
+    /// `common/batches.wgsl` (group 1 of every draw pass, one bind group per chunk): the draw
+    /// records.
+    pub const RECORDS: Binding = bind(1, 0, StorageRead, "records");
+    /// `common/batches.wgsl`: the chunk's coarse words.
+    pub const COARSE: Binding = bind(1, 1, StorageRead, "coarse");
+    /// `common/batches.wgsl`: the chunk's medium words.
+    pub const MEDIUM: Binding = bind(1, 2, StorageRead, "medium");
+    /// `common/batches.wgsl`: the chunk's fine words.
+    pub const FINE: Binding = bind(1, 3, StorageRead, "fine");
+    /// Group 1 of every draw pass.
+    pub const BATCHES: [Binding; 4] = [RECORDS, COARSE, MEDIUM, FINE];
+
+    /// `resolve.wgsl`: the dispatch's constants (`ResolveUniforms`).
+    pub const RESOLVE_PARAMS: Binding = bind(0, 0, Uniform, "params");
+    /// `resolve.wgsl`: the words holding the point indices.
+    pub const RESOLVE_INDEX_WORDS: Binding = bind(0, 1, StorageRead, "index_words");
+    /// `resolve.wgsl`: the words holding the depth bits.
+    pub const RESOLVE_DEPTH_WORDS: Binding = bind(0, 2, StorageRead, "depth_words");
+    /// `resolve.wgsl`: the chunk's colours.
+    pub const RESOLVE_COLORS: Binding = bind(0, 3, StorageRead, "colors");
+    /// `resolve.wgsl`: the RGBA8 image.
+    pub const RESOLVE_IMAGE: Binding = bind(0, 4, StorageReadWrite, "image");
+
+    /// `progressive_unload.wgsl`: a chunk's coarse words.
+    pub const UNLOAD_COARSE: Binding = bind(0, 0, StorageReadWrite, "coarse_words");
+
+    /// `progressive_scatter.wgsl`: the pass's constants (`ScatterUniforms`).
+    pub const SCATTER_PARAMS: Binding = bind(0, 0, Uniform, "params");
+    /// `progressive_scatter.wgsl`: the staged records.
+    pub const SCATTER_STAGED: Binding = bind(0, 1, StorageRead, "staged");
+    /// `progressive_scatter.wgsl`: the chunk's coarse words.
+    pub const SCATTER_COARSE: Binding = bind(0, 2, StorageReadWrite, "coarse_out");
+    /// `progressive_scatter.wgsl`: the chunk's medium words.
+    pub const SCATTER_MEDIUM: Binding = bind(0, 3, StorageReadWrite, "medium_out");
+    /// `progressive_scatter.wgsl`: the chunk's fine words.
+    pub const SCATTER_FINE: Binding = bind(0, 4, StorageReadWrite, "fine_out");
+    /// `progressive_scatter.wgsl`: the chunk's colours.
+    pub const SCATTER_COLORS: Binding = bind(0, 5, StorageReadWrite, "colors_out");
+
+    /// `progressive_prepare.wgsl`: the pass's constants (`PrepareUniforms`).
+    pub const PREPARE_PARAMS: Binding = bind(0, 0, Uniform, "params");
+    /// `progressive_prepare.wgsl`: the 64-bit keys read as words.
+    pub const PREPARE_KEY_WORDS: Binding = bind(0, 1, StorageRead, "key_words");
+    /// `progressive_prepare.wgsl`: the entries of each chunk's visible list.
+    pub const PREPARE_LIST_COUNTS: Binding = bind(0, 2, StorageReadWrite, "list_counts");
+    /// `progressive_prepare.wgsl`: the visible lists.
+    pub const PREPARE_LISTS: Binding = bind(0, 3, StorageReadWrite, "lists");
+
+    /// `present.wgsl`: the pass's constants (`PresentUniforms`).
+    pub const PRESENT_PARAMS: Binding = bind(0, 0, Uniform, "params");
+    /// `present.wgsl`: the resolved image.
+    pub const PRESENT_IMAGE: Binding = bind(0, 1, StorageRead, "image");
+    /// `present.wgsl`: the overlay.
+    pub const PRESENT_OVERLAY: Binding = bind(0, 2, StorageRead, "overlay");
+}
+
+/// The bindings of the present pass (`shaders/present.wgsl`, fragment stage).
+pub const PRESENT_BINDINGS: &[Binding] = &[binding::PRESENT_PARAMS, binding::PRESENT_IMAGE, binding::PRESENT_OVERLAY];
 
 /// A compute pass of the rasterizer; one WGSL file each.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -91,6 +205,28 @@ impl Pass {
             Pass::ProgressiveFill => include_str!("../../../shaders/progressive_fill.wgsl"),
             Pass::ProgressivePrepare => include_str!("../../../shaders/progressive_prepare.wgsl"),
         }
+    }
+
+    /// Every binding the pass's WGSL module declares, in groups 0 and (draw passes) 1.
+    pub fn bindings(self) -> &'static [Binding] {
+        use binding::*;
+        match self {
+            Pass::Clear => &[CLEAR_WORDS],
+            Pass::Draw64 => &[FRAME, KEYS, COUNTERS, RECORDS, COARSE, MEDIUM, FINE],
+            Pass::DrawDepth32 => &[FRAME, DEPTHS, RECORDS, COARSE, MEDIUM, FINE],
+            Pass::DrawIndex32 => &[FRAME, DEPTHS, COUNTERS, INDICES, RECORDS, COARSE, MEDIUM, FINE],
+            Pass::Resolve => &[RESOLVE_PARAMS, RESOLVE_INDEX_WORDS, RESOLVE_DEPTH_WORDS, RESOLVE_COLORS, RESOLVE_IMAGE],
+            Pass::ProgressiveUnload => &[UNLOAD_COARSE],
+            Pass::ProgressiveScatter => &[SCATTER_PARAMS, SCATTER_STAGED, SCATTER_COARSE, SCATTER_MEDIUM, SCATTER_FINE, SCATTER_COLORS],
+            Pass::ProgressiveReproject => &[FRAME, KEYS, COUNTERS, VISIBLE, RECORDS, COARSE, MEDIUM, FINE],
+            Pass::ProgressiveFill => &[FRAME, KEYS, COUNTERS, RECORDS, COARSE, MEDIUM, FINE],
+            Pass::ProgressivePrepare => &[PREPARE_PARAMS, PREPARE_KEY_WORDS, PREPARE_LIST_COUNTS, PREPARE_LISTS],
+        }
+    }
+
+    /// Whether the pass draws batches: its group 1 is [`binding::BATCHES`] (`common/batches.wgsl`).
+    pub fn draws_batches(self) -> bool {
+        matches!(self, Pass::Draw64 | Pass::DrawDepth32 | Pass::DrawIndex32 | Pass::ProgressiveReproject | Pass::ProgressiveFill)
     }
 
     /// Whether the pass uses 64-bit integers and atomics (SHADER_INT64 +

@@ -1,12 +1,13 @@
 //! Shader checks that need no GPU: naga parses and validates every pass exactly as the pipelines
-//! assemble it (with 64-bit capabilities only where the pass needs them), and every struct shared
-//! with WGSL has the same size and member offsets as its `#[repr(C)]` Rust twin.
+//! assemble it (with 64-bit capabilities only where the pass needs them), every pass declares
+//! exactly the bindings of its Rust table (the one the pipelines build their bind-group layouts
+//! from), and every struct shared with WGSL has the same size and member offsets as its
+//! `#[repr(C)]` Rust twin.
 
-use mortar_core::render::gpu::{DrawRecord, FrameUniforms, ResolveUniforms};
-use mortar_core::render::BatchProjection;
+use mortar_core::render::gpu::{BatchProjection, DrawRecord, FrameUniforms, PrepareUniforms, ResolveUniforms, ScatterUniforms};
 use mortar_core::render::progressive::UNLOADED;
-use mortar_render::progressive::{PrepareUniforms, ScatterUniforms, SLOTS_PER_THREAD};
-use mortar_render::shaders::Pass;
+use mortar_render::progressive::SLOTS_PER_THREAD;
+use mortar_render::shaders::{binding, Binding, BindingKind, Pass, PRESENT, PRESENT_BINDINGS};
 use naga::valid::{Capabilities, ValidationFlags, Validator};
 use std::mem::{offset_of, size_of};
 
@@ -36,6 +37,127 @@ fn every_pass_validates_with_the_capabilities_it_is_given() {
     assert!(Validator::new(ValidationFlags::all(), Capabilities::SHADER_INT64).validate(&module).is_err(), "atomicMin on u64 needs SHADER_INT64_ATOMIC_MIN_MAX");
 }
 
+/// What a WGSL resource variable is, as wgpu's bind-group layouts distinguish them.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
+enum Kind {
+    Uniform,
+    StorageRead,
+    StorageReadWrite,
+    Texture,
+    StorageTexture,
+    Sampler,
+    /// Anything else with a binding (push constants, ...): never in a Rust table.
+    Other,
+}
+
+impl From<BindingKind> for Kind {
+    fn from(k: BindingKind) -> Kind {
+        match k {
+            BindingKind::Uniform => Kind::Uniform,
+            BindingKind::StorageRead => Kind::StorageRead,
+            BindingKind::StorageReadWrite => Kind::StorageReadWrite,
+        }
+    }
+}
+
+/// Every `@group(g) @binding(b)` the module declares: (group, binding, kind, name), sorted.
+fn declared_bindings(module: &naga::Module) -> Vec<(u32, u32, Kind, String)> {
+    let mut out: Vec<(u32, u32, Kind, String)> = module
+        .global_variables
+        .iter()
+        .filter_map(|(_, var)| {
+            let rb = var.binding.as_ref()?;
+            let kind = match var.space {
+                naga::AddressSpace::Uniform => Kind::Uniform,
+                naga::AddressSpace::Storage { access } if access.contains(naga::StorageAccess::STORE) => Kind::StorageReadWrite,
+                naga::AddressSpace::Storage { .. } => Kind::StorageRead,
+                naga::AddressSpace::Handle => match module.types[var.ty].inner {
+                    naga::TypeInner::Image { class: naga::ImageClass::Storage { .. }, .. } => Kind::StorageTexture,
+                    naga::TypeInner::Image { .. } => Kind::Texture,
+                    naga::TypeInner::Sampler { .. } => Kind::Sampler,
+                    _ => Kind::Other,
+                },
+                _ => Kind::Other,
+            };
+            Some((rb.group, rb.binding, kind, var.name.clone().unwrap_or_default()))
+        })
+        .collect();
+    out.sort();
+    out
+}
+
+/// The differences between what `module` declares and the Rust table `bindings` (empty: they
+/// agree on every group, binding number, kind and variable name, and neither has an entry the
+/// other lacks).
+fn binding_mismatches(module: &naga::Module, bindings: &[Binding]) -> Vec<String> {
+    let wgsl = declared_bindings(module);
+    let mut rust: Vec<(u32, u32, Kind, String)> = bindings.iter().map(|b| (b.group, b.binding, Kind::from(b.kind), b.name.to_string())).collect();
+    rust.sort();
+    let mut out = Vec::new();
+    for w in rust.windows(2) {
+        if (w[0].0, w[0].1) == (w[1].0, w[1].1) {
+            out.push(format!("Rust lists @group({}) @binding({}) twice ({} and {})", w[0].0, w[0].1, w[0].3, w[1].3));
+        }
+    }
+    for r in &rust {
+        match wgsl.iter().find(|w| (w.0, w.1) == (r.0, r.1)) {
+            None => out.push(format!("Rust has @group({}) @binding({}) {} ({:?}) that the WGSL does not declare", r.0, r.1, r.3, r.2)),
+            Some(w) if w != r => out.push(format!("@group({}) @binding({}): WGSL {} ({:?}), Rust {} ({:?})", r.0, r.1, w.3, w.2, r.3, r.2)),
+            Some(_) => {}
+        }
+    }
+    for w in &wgsl {
+        if !rust.iter().any(|r| (r.0, r.1) == (w.0, w.1)) {
+            out.push(format!("the WGSL declares @group({}) @binding({}) {} ({:?}) that Rust does not list", w.0, w.1, w.3, w.2));
+        }
+    }
+    out
+}
+
+#[test]
+fn every_pass_declares_exactly_its_rust_bindings() {
+    for pass in Pass::ALL {
+        let problems = binding_mismatches(&parse(pass), pass.bindings());
+        assert!(problems.is_empty(), "{}: bindings differ from Pass::bindings():\n  {}", pass.file(), problems.join("\n  "));
+        // The draw passes share one group-1 layout (binding::BATCHES) and so one bind group.
+        let group1: Vec<Binding> = pass.bindings().iter().copied().filter(|b| b.group == 1).collect();
+        assert_eq!(pass.draws_batches(), !group1.is_empty(), "{}: draws_batches() and the table disagree", pass.file());
+        if pass.draws_batches() {
+            assert_eq!(group1, binding::BATCHES, "{}: group 1 is not binding::BATCHES", pass.file());
+        }
+    }
+    let present = naga::front::wgsl::parse_str(PRESENT).unwrap();
+    let problems = binding_mismatches(&present, PRESENT_BINDINGS);
+    assert!(problems.is_empty(), "present.wgsl: bindings differ from PRESENT_BINDINGS:\n  {}", problems.join("\n  "));
+}
+
+#[test]
+fn a_wrong_binding_table_is_noticed() {
+    // The check above must be able to fail: a changed number, kind or name, a missing entry and
+    // an extra entry are each reported.
+    let module = parse(Pass::Draw64);
+    let good = Pass::Draw64.bindings();
+    assert!(binding_mismatches(&module, good).is_empty());
+    type Edit = fn(&mut Vec<Binding>);
+    let edits: [(&str, Edit); 5] = [
+        ("number", |t| t[2].binding = 5),
+        ("kind", |t| t[1].kind = BindingKind::StorageRead),
+        ("name", |t| t[0].name = "camera"),
+        ("missing", |t| {
+            t.pop();
+        }),
+        ("extra", |t| t.push(Binding { group: 0, binding: 7, kind: BindingKind::Uniform, name: "extra" })),
+    ];
+    for (what, edit) in edits {
+        let mut bad = good.to_vec();
+        edit(&mut bad);
+        assert!(!binding_mismatches(&module, &bad).is_empty(), "a table with a wrong {what} passed");
+    }
+    let mut twice = good.to_vec();
+    twice.push(binding::COUNTERS);
+    assert!(!binding_mismatches(&module, &twice).is_empty(), "a table listing a binding twice passed");
+}
+
 /// Size and member offsets (by name) of the WGSL struct `name`.
 fn wgsl_layout(module: &naga::Module, name: &str) -> (u32, Vec<(String, u32)>) {
     let mut layouter = naga::proc::Layouter::default();
@@ -58,7 +180,9 @@ fn shared_structs_have_the_rust_layout() {
     let resolve = parse(Pass::Resolve);
     let scatter = parse(Pass::ProgressiveScatter);
     let prepare = parse(Pass::ProgressivePrepare);
-    let cases: Vec<(&str, &naga::Module, usize, Vec<(&str, usize)>)> = vec![
+    // (struct, module holding it, Rust size, Rust members with their offsets)
+    type Case<'a> = (&'a str, &'a naga::Module, usize, Vec<(&'a str, usize)>);
+    let cases: Vec<Case<'_>> = vec![
         (
             "BatchProjection",
             &draw,

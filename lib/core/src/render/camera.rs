@@ -188,8 +188,9 @@ pub struct ProjectedPoint {
 /// The centre of the unloaded low bits (see [`BatchGrid::decode_relative`]) is part of the
 /// translation, so the result equals projecting `decode_relative(w, precision)`.
 ///
-/// `#[repr(C)]` and Pod: this is the per-batch record the GPU rasterizer will read (keep the WGSL
-/// mirror in sync with this layout; 112 bytes).
+/// `#[repr(C)]` and Pod: the per-batch projection the GPU passes read inside a
+/// [`DrawRecord`](super::gpu::DrawRecord) (112 bytes; WGSL mirror `BatchProjection` in
+/// `shaders/common/types.wgsl`, keep in sync: mortar-render's layout test compares them).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
 pub struct BatchProjection {
@@ -724,8 +725,8 @@ mod tests {
     }
 
     /// The rasterizer's f32 projection against the f64 reference on a Morton-batched terrain
-    /// placed at `offset`, for overviews and close-ups: over all views, the same pixel for
-    /// >= 99.99 % of points, and with adaptive precision every point within half a pixel of its
+    /// placed at `offset`, for overviews and close-ups: over all views, the same pixel for at
+    /// least 99.99 % of points, and with adaptive precision every point within half a pixel of its
     /// exact projection (the 500 px rule).
     ///
     /// f32 pixel coordinates carry errors of a few 2^-24 of the batch's extent on screen (here up

@@ -1,9 +1,19 @@
-//! The `#[repr(C)]` records the GPU rasterizer (mortar-render, `shaders/`) reads, defined once
-//! here next to the CPU twin that fills the same fields. Every struct has a WGSL mirror in
-//! `shaders/common/types.wgsl` (keep both in sync: mortar-render's layout test compares the
-//! offsets and sizes naga computes for the WGSL structs with these).
+//! The `#[repr(C)]` records the GPU passes (mortar-render, `shaders/`) read, defined once here:
+//! the rasterizer's [`DrawRecord`], [`FrameUniforms`] and [`ResolveUniforms`] next to the CPU twin
+//! that fills the same fields, the progressive renderer's [`ScatterUniforms`] and
+//! [`PrepareUniforms`], and the window's [`PresentUniforms`]. [`BatchProjection`] (inside
+//! [`DrawRecord`]) lives with the camera maths that computes it and is re-exported here.
+//!
+//! Every struct has a WGSL mirror (keep both in sync: mortar-render's layout tests compare the
+//! offsets and sizes naga computes for the WGSL structs with these):
+//! - `shaders/common/types.wgsl`: `BatchProjection`, `DrawRecord`, `FrameUniforms`, `ResolveUniforms`;
+//! - `shaders/progressive_types.wgsl`: `ScatterUniforms`, `PrepareUniforms`;
+//! - `shaders/present.wgsl`: `PresentUniforms`.
+//!
+//! Only bytemuck layouts here: no GPU API (the crate graph keeps core free of wgpu).
 
-use super::camera::{BatchProjection, Camera};
+pub use super::camera::BatchProjection;
+use super::camera::Camera;
 
 /// One batch to draw in one frame: its projection and where its points are in the chunk's
 /// word buffers. 128 bytes; WGSL `DrawRecord`.
@@ -102,3 +112,62 @@ pub struct ResolveUniforms {
 }
 
 const _: () = assert!(std::mem::size_of::<ResolveUniforms>() == 32);
+
+/// Constants of the progressive renderer's scatter pass. 16 bytes; WGSL `ScatterUniforms` in
+/// `shaders/progressive_types.wgsl`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct ScatterUniforms {
+    /// 1 when the staged records carry a colour (5 words per point), 0 when not (4 words).
+    pub colors: u32,
+    /// 1 when the records are (slot, colour) and only colours are written (a colour switch).
+    pub colors_only: u32,
+    /// Padding.
+    pub _pad1: u32,
+    /// Padding.
+    pub _pad2: u32,
+}
+
+const _: () = assert!(std::mem::size_of::<ScatterUniforms>() == 16);
+
+/// Constants of the progressive renderer's Prepare pass. 16 bytes; WGSL `PrepareUniforms` in
+/// `shaders/progressive_types.wgsl`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct PrepareUniforms {
+    /// Pixels of the framebuffer.
+    pub pixels: u32,
+    /// Slots per chunk (a slot's list is `slot / chunk_slots`).
+    pub chunk_slots: u32,
+    /// Entries between the starts of two chunks' visible lists.
+    pub list_stride: u32,
+    /// Number of chunks.
+    pub chunks: u32,
+}
+
+const _: () = assert!(std::mem::size_of::<PrepareUniforms>() == 16);
+
+/// Constants of the window's present pass. 32 bytes; WGSL `PresentUniforms` in
+/// `shaders/present.wgsl`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct PresentUniforms {
+    /// Image width in pixels (the surface's).
+    pub width: u32,
+    /// Image height in pixels.
+    pub height: u32,
+    /// Overlay width in pixels (0: no overlay).
+    pub overlay_width: u32,
+    /// Overlay height in pixels.
+    pub overlay_height: u32,
+    /// 1 when the surface format is sRGB (the shader decodes the image's sRGB bytes to linear).
+    pub srgb_target: u32,
+    /// Padding.
+    pub _pad0: u32,
+    /// Padding.
+    pub _pad1: u32,
+    /// Padding.
+    pub _pad2: u32,
+}
+
+const _: () = assert!(std::mem::size_of::<PresentUniforms>() == 32);

@@ -159,9 +159,8 @@ pub enum RasterError {
     },
 }
 
-/// Viewport and depth range as the per-point loop (and the GPU shader) reads them.
-///
-/// `#[repr(C)]` and Pod: the uniform the GPU rasterizer will read (keep the WGSL mirror in sync; 16 bytes).
+/// Viewport and depth range as the CPU per-point loop reads them (the same f32 values the GPU
+/// passes read from [`FrameUniforms`](super::gpu::FrameUniforms); this struct has no WGSL mirror).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
 pub struct RasterUniforms {
@@ -805,7 +804,7 @@ mod tests {
                 let world = [0, 1, 2].map(|a| scene.grid.world(a, p[a] as i64));
                 if let Some(q) = cam.project(world) {
                     let (x, y) = (q.x.floor(), q.y.floor());
-                    if x >= 0.0 && x < 640.0 && y >= 0.0 && y < 480.0 {
+                    if (0.0..640.0).contains(&x) && (0.0..480.0).contains(&y) {
                         let slot = &mut best[y as usize * 640 + x as usize];
                         if (q.depth, i as u32) < *slot {
                             *slot = (q.depth, i as u32);
