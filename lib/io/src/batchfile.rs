@@ -9,7 +9,7 @@
 
 use crate::cleanup::TempPath;
 use crate::dataset::{RecordSource, SourceMeta};
-use crate::error::{Error, Result};
+use crate::error::{BatchError, Error, Result};
 use crate::las::{self, Header, HeaderOut, Vlr};
 use crate::source::{open_bytes, Bytes, Piece};
 use crate::sort::{Key, OrderedSink, Summary};
@@ -94,6 +94,16 @@ pub enum AttributeSelection {
     Only(Vec<String>),
 }
 
+/// An attribute named in an [`AttributeSelection`] that the point format does not have.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+#[error("point format {format} has no attribute '{name}' (it has: {})", have.join(", "))]
+pub struct UnknownAttribute {
+    pub format: u8,
+    pub name: String,
+    /// The attributes the point format has.
+    pub have: Vec<String>,
+}
+
 impl AttributeSelection {
     /// Parses `all`, `none` or a comma-separated list of names.
     pub fn parse(s: &str) -> AttributeSelection {
@@ -105,7 +115,7 @@ impl AttributeSelection {
     }
 
     /// The attributes of `layout` this selection keeps; an error names an unknown attribute.
-    pub fn resolve(&self, layout: &RecordLayout) -> std::result::Result<Vec<Attribute>, String> {
+    pub fn resolve(&self, layout: &RecordLayout) -> std::result::Result<Vec<Attribute>, UnknownAttribute> {
         match self {
             AttributeSelection::All => Ok(layout.attributes.clone()),
             AttributeSelection::Only(names) => {
@@ -114,12 +124,8 @@ impl AttributeSelection {
                     match layout.attribute(n) {
                         Some(a) => out.push(a.clone()),
                         None => {
-                            let have: Vec<&str> = layout.attributes.iter().map(|a| a.name.as_str()).collect();
-                            return Err(format!(
-                                "point format {} has no attribute '{n}' (it has: {})",
-                                layout.format,
-                                have.join(", ")
-                            ));
+                            let have = layout.attributes.iter().map(|a| a.name.clone()).collect();
+                            return Err(UnknownAttribute { format: layout.format, name: n.clone(), have });
                         }
                     }
                 }
@@ -212,7 +218,7 @@ impl BatchSink {
         }
         if self.compression == Compression::Zstd {
             for s in sections.iter_mut() {
-                *s = zstd::bulk::compress(s, 3).map_err(|e| Error::Usage(format!("zstd: {e}")))?;
+                *s = zstd::bulk::compress(s, 3).map_err(|error| Error::Compress { error })?;
             }
         }
         let g = &self.t.grid;
@@ -304,8 +310,8 @@ impl BatchSink {
         self.flush_records(&carry, true)?;
         let pending = std::mem::take(&mut self.pending);
         self.write_placed(&pending)?;
-        let meta = self.meta.clone().ok_or_else(|| Error::Usage("batch sink finished before it began".into()))?;
-        let json = serde_json::to_vec_pretty(&meta).map_err(|e| Error::Usage(e.to_string()))?;
+        let meta = self.meta.clone().ok_or(Error::SinkOrder { what: "batch sink finished before it began" })?;
+        let json = serde_json::to_vec_pretty(&meta).map_err(|error| Error::Json { error })?;
         let meta_r = self.put(&json)?;
         let entries = std::mem::take(&mut self.entries);
         let sections = std::mem::take(&mut self.sections);
@@ -360,7 +366,7 @@ impl OrderedSink for BatchSink {
             evlr_start: 0,
             evlr_count: 0,
         })
-        .map_err(|e| Error::input(&self.target, e))?;
+        .map_err(|error| Error::Las { path: self.target.clone(), error })?;
         let las_header = self.put(&hb)?;
         let evlrs = self.put(&las::write_evlrs(&self.t.evlrs))?;
         let color = match self.t.layout.attribute("rgb") {
@@ -511,25 +517,25 @@ impl BatchFile {
     /// Opens a batch file held in `bytes` (`path` names it in messages); every length is
     /// checked against the bytes that exist. The fuzz targets' entry point.
     pub fn from_bytes(path: &Path, bytes: Bytes) -> Result<BatchFile> {
-        let err = |m: String| Error::input(path, m);
+        let err = |error: BatchError| Error::Batch { path: path.to_path_buf(), error };
         let hs = std::mem::size_of::<FileHeader>();
         if bytes.len() < hs || bytes[..8] != MAGIC {
-            return Err(err("not a mortar batch file".into()));
+            return Err(err(BatchError::NotBatchFile));
         }
         let header: FileHeader = bytemuck::pod_read_unaligned(&bytes[..hs]);
         if header.version != VERSION {
-            return Err(err(format!("batch file version {} is not supported (this mortar reads {VERSION})", header.version)));
+            return Err(err(BatchError::Version { found: header.version, supported: VERSION }));
         }
         let len = bytes.len() as u64;
         let in_file = |o: u64, l: u64| o.checked_add(l).is_some_and(|e| e <= len);
         if !in_file(header.meta_offset, header.meta_len) {
-            return Err(err("metadata lies outside the file (truncated?)".into()));
+            return Err(err(BatchError::MetaOutside));
         }
         let meta: Meta = serde_json::from_slice(&bytes[header.meta_offset as usize..(header.meta_offset + header.meta_len) as usize])
-            .map_err(|e| err(format!("metadata is not valid: {e}")))?;
+            .map_err(|error| err(BatchError::BadMeta { error }))?;
         let sc = header.section_count as u64;
         if sc != (FIRST_ATTRIBUTE_SECTION + meta.attributes.len()) as u64 {
-            return Err(err("section count disagrees with the metadata".into()));
+            return Err(err(BatchError::SectionCount));
         }
         let table_len = header
             .batch_count
@@ -537,23 +543,23 @@ impl BatchFile {
             .and_then(|a| header.batch_count.checked_mul(sc).and_then(|b| b.checked_mul(16)).and_then(|b| a.checked_add(b)));
         match table_len {
             Some(tl) if in_file(header.table_offset, tl) && header.table_offset % 8 == 0 => {}
-            _ => return Err(err("batch table lies outside the file (truncated?)".into())),
+            _ => return Err(err(BatchError::TableOutside)),
         }
         if !in_file(meta.las_header.offset, meta.las_header.len) || !in_file(meta.evlrs.offset, meta.evlrs.len) {
-            return Err(err("LAS header record lies outside the file".into()));
+            return Err(err(BatchError::LasHeaderOutside));
         }
         let hb = &bytes[meta.las_header.offset as usize..(meta.las_header.offset + meta.las_header.len) as usize];
-        let mut lasmeta = las::parse(hb).map_err(|e| err(format!("stored LAS header is invalid: {e}")))?;
+        let mut lasmeta = las::parse(hb).map_err(|error| err(BatchError::BadLasHeader { error }))?;
         let eb = &bytes[meta.evlrs.offset as usize..(meta.evlrs.offset + meta.evlrs.len) as usize];
-        lasmeta.evlrs = parse_evlr_blob(eb).map_err(|e| err(format!("stored EVLRs are invalid: {e}")))?;
-        let layout = RecordLayout::new(meta.point_format, meta.record_len).map_err(|e| err(e.to_string()))?;
+        lasmeta.evlrs = parse_evlr_blob(eb).map_err(|error| err(BatchError::BadEvlrs { error }))?;
+        let layout = RecordLayout::new(meta.point_format, meta.record_len).map_err(|error| err(BatchError::Layout { error }))?;
         // Records are rebuilt from the attribute columns: each must lie inside a record (fuzz
         // regression attribute-outside-record), and records are LAS records (at most 65,535 bytes).
         if meta.record_len > u16::MAX as usize {
-            return Err(err(format!("record length {} is more than a LAS record can hold", meta.record_len)));
+            return Err(err(BatchError::RecordTooLong { record_len: meta.record_len }));
         }
         if let Some(a) = meta.attributes.iter().find(|a| a.offset.checked_add(a.width).is_none_or(|e| e > meta.record_len) || a.offset < 12) {
-            return Err(err(format!("attribute {} (bytes {}..+{}) lies outside the {}-byte record", a.name, a.offset, a.width, meta.record_len)));
+            return Err(err(BatchError::AttributeOutside { name: a.name.clone(), offset: a.offset, width: a.width, record_len: meta.record_len }));
         }
         let f = BatchFile { path: path.to_path_buf(), bytes, header, meta, las: lasmeta, layout, table_offset: header.table_offset as usize };
         f.check_table().map_err(err)?;
@@ -578,30 +584,30 @@ impl BatchFile {
         w
     }
 
-    fn check_table(&self) -> std::result::Result<(), String> {
+    fn check_table(&self) -> std::result::Result<(), BatchError> {
         let sc = self.header.section_count as usize;
         let widths = self.widths();
         let mut total = 0u64;
         for (i, e) in self.entries().iter().enumerate() {
             if e.count as usize > (1 << 24) || e.bits.iter().take(3).any(|&b| b > 30) {
-                return Err(format!("batch {i} has an invalid entry"));
+                return Err(BatchError::BadEntry { batch: i });
             }
             if e.first_point != total {
-                return Err(format!("batch {i} starts at point {} but {total} points precede it", e.first_point));
+                return Err(BatchError::BatchStart { batch: i, first: e.first_point, preceding: total });
             }
             total += e.count as u64;
             for (s, se) in self.section_entries()[i * sc..(i + 1) * sc].iter().enumerate() {
                 if se.offset.checked_add(se.stored_len).is_none_or(|end| end > self.bytes.len() as u64) {
-                    return Err(format!("batch {i} section {s} lies outside the file (truncated?)"));
+                    return Err(BatchError::SectionOutside { batch: i, section: s });
                 }
                 let raw = e.count as u64 * widths[s] as u64;
                 if self.meta.compression == Compression::None && (se.stored_len != raw || se.offset % 4 != 0) {
-                    return Err(format!("batch {i} section {s} has {} bytes, expected {raw}", se.stored_len));
+                    return Err(BatchError::SectionLen { batch: i, section: s, len: se.stored_len, expected: raw });
                 }
             }
         }
         if total != self.header.point_count {
-            return Err(format!("batches hold {total} points but the header says {}", self.header.point_count));
+            return Err(BatchError::PointCount { total, declared: self.header.point_count });
         }
         Ok(())
     }
@@ -631,9 +637,9 @@ impl BatchFile {
                     let mut v = vec![0u32; raw.div_ceil(4)];
                     let n = zstd::bulk::Decompressor::new()
                         .and_then(|mut d| d.decompress_to_buffer(stored, &mut bytemuck::cast_slice_mut::<u32, u8>(&mut v)[..raw]))
-                        .map_err(|er| Error::input(&self.path, format!("batch {i} section {s} is corrupt: {er}")))?;
+                        .map_err(|error| Error::Batch { path: self.path.clone(), error: BatchError::SectionCorrupt { batch: i, section: s, error } })?;
                     if n != raw {
-                        return Err(Error::input(&self.path, format!("batch {i} section {s} decompresses to {n} bytes, expected {raw}")));
+                        return Err(Error::Batch { path: self.path.clone(), error: BatchError::SectionSize { batch: i, section: s, len: n, expected: raw } });
                     }
                     sections.push(SectionData::Owned(v, raw));
                 }
@@ -688,7 +694,7 @@ impl BatchFile {
     }
 }
 
-fn parse_evlr_blob(b: &[u8]) -> std::result::Result<Vec<Vlr>, String> {
+fn parse_evlr_blob(b: &[u8]) -> std::result::Result<Vec<Vlr>, las::LasError> {
     let mut out = Vec::new();
     let mut p = 0usize;
     while p < b.len() {

@@ -278,13 +278,21 @@ impl AssignCrs {
     }
 }
 
+/// Why CRS records cannot be made for an EPSG code.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum CrsError {
+    /// A geocentric CRS, which GeoTIFF 1.0 keys cannot express.
+    #[error("EPSG:{code} is geocentric, which GeoTIFF keys cannot name; give --assign-crs a LAS file that carries it as WKT")]
+    Geocentric { code: u32 },
+}
+
 /// Whether an EPSG code is a geographic 2D/3D CRS (degrees) rather than a projected one, as far
 /// as mortar can tell without the EPSG database: the 4000-4999 block is geographic, except the
 /// geocentric codes in it, which GeoTIFF 1.0 keys cannot express.
-fn epsg_kind(code: u32) -> Result<bool, String> {
+fn epsg_kind(code: u32) -> Result<bool, CrsError> {
     const GEOCENTRIC: [u32; 6] = [4328, 4330, 4338, 4340, 4936, 4978];
     if GEOCENTRIC.contains(&code) {
-        return Err(format!("EPSG:{code} is geocentric, which GeoTIFF keys cannot name; give --assign-crs a LAS file that carries it as WKT"));
+        return Err(CrsError::Geocentric { code });
     }
     Ok((4000..5000).contains(&code))
 }
@@ -293,7 +301,7 @@ fn epsg_kind(code: u32) -> Result<bool, String> {
 /// code: GTModelTypeGeoKey (1 projected, 2 geographic), GTRasterTypeGeoKey (1, pixel is area),
 /// ProjectedCSTypeGeoKey or GeographicTypeGeoKey, VerticalCSTypeGeoKey when given. mortar has
 /// no EPSG database, so it cannot write the WKT that LAS 1.4 formats 6-10 ask for.
-pub fn epsg_records(horizontal: u32, vertical: Option<u32>) -> Result<CrsRecords, String> {
+pub fn epsg_records(horizontal: u32, vertical: Option<u32>) -> Result<CrsRecords, CrsError> {
     let geographic = epsg_kind(horizontal)?;
     // a citation only where mortar knows the name (readers show it; a bare code says nothing new)
     let citation = epsg_name(horizontal).map(|n| format!("{n}|"));

@@ -37,7 +37,7 @@ pub trait RecordSource: Send + Sync {
     fn read_piece_into(&self, piece: &Piece, out: &mut [u8]) -> Result<()> {
         let r = self.read_piece(piece)?;
         if r.len() != out.len() {
-            return Err(Error::input(self.path(), format!("piece {} holds {} bytes, expected {}", piece.index, r.len(), out.len())));
+            return Err(Error::PieceSize { path: self.path().to_path_buf(), piece: piece.index, got: r.len(), expected: out.len() });
         }
         out.copy_from_slice(&r);
         Ok(())
@@ -134,14 +134,14 @@ impl Dataset {
     /// [`new`](Self::new) with the user's choices (the CRS to assign).
     pub fn with_options(inputs: Vec<Box<dyn RecordSource>>, opts: &OpenOptions) -> Result<Dataset> {
         if inputs.is_empty() {
-            return Err(Error::Usage("no input given".into()));
+            return Err(Error::NoInput);
         }
         let first = &inputs[0];
         let mut warnings = Vec::new();
         let layouts: Vec<RecordLayout> = inputs.iter().map(|i| i.layout().clone()).collect();
         let (layout, conversions) = merge_layouts(&layouts).map_err(|e| {
             let odd = inputs.iter().find(|i| i.layout() != first.layout()).unwrap_or(first);
-            Error::input(odd.path(), format!("{e} (this file has point format {}, {} has {})", odd.layout().format, first.path().display(), first.layout().format))
+            Error::FormatsDiffer { path: odd.path().to_path_buf(), problem: e, format: odd.layout().format, first: first.path().to_path_buf(), first_format: first.layout().format }
         })?;
         if conversions.iter().any(|c| c.is_some()) {
             warnings.push(format!(
@@ -176,8 +176,8 @@ impl Dataset {
                 _ => None,
             };
             match idx {
-                Some(i) => Error::input(inputs[i].path(), e.to_string()),
-                None => Error::Usage(e.to_string()),
+                Some(i) => Error::IncompatibleGrid { path: inputs[i].path().to_path_buf(), error: e },
+                None => Error::Grid { error: e },
             }
         })?;
         if maps.iter().any(|m| !m.is_identity()) {
@@ -360,10 +360,7 @@ impl Dataset {
         }
         for r in records.chunks_exact_mut(self.layout.record_len) {
             let xyz = map.apply(read_xyz(r)).ok_or_else(|| {
-                Error::input(
-                    self.inputs[input].path(),
-                    "a point lies outside the bounds its header declares, beyond what the merged grid can hold",
-                )
+                Error::OutsideGrid { path: self.inputs[input].path().to_path_buf() }
             })?;
             write_xyz(r, xyz);
         }
@@ -380,7 +377,7 @@ impl Dataset {
                 let r = src.read_piece(&p.piece)?;
                 let srl = src.layout().record_len;
                 if r.len() / srl * c.target_len != out.len() {
-                    return Err(Error::input(src.path(), format!("piece {} holds another number of points than declared", p.piece.index)));
+                    return Err(Error::PieceCount { path: src.path().to_path_buf(), piece: p.piece.index });
                 }
                 c.apply(&r, srl, out);
             }
@@ -460,10 +457,7 @@ fn check_extra_bytes(inputs: &[Box<dyn RecordSource>], extra: usize) -> Result<(
     let first = desc(inputs[0].as_ref());
     for i in &inputs[1..] {
         if desc(i.as_ref()) != first {
-            return Err(Error::input(
-                i.path(),
-                format!("its {extra} extra bytes per point are described differently from those of {}; they cannot be merged", inputs[0].path().display()),
-            ));
+            return Err(Error::ExtraBytesDiffer { path: i.path().to_path_buf(), extra, first: inputs[0].path().to_path_buf() });
         }
     }
     Ok(())
@@ -502,17 +496,17 @@ fn choose_crs(inputs: &[Box<dyn RecordSource>], opts: &OpenOptions, warnings: &m
     match &opts.assign_crs {
         Some(AssignCrs::File(p)) => {
             let f = LasInput::open(p).map_err(|e| match e {
-                Error::Input { path, problem } => Error::input(path, format!("--assign-crs: {problem}")),
-                e => e,
+                e @ Error::Io { .. } => e,
+                e => Error::AssignCrsFile { error: Box::new(e) },
             })?;
             let c = CrsRecords::of(&f.meta.vlrs, &f.meta.evlrs);
             if c.is_empty() {
-                return Err(Error::input(p, "--assign-crs: this file has no CRS records (LASF_Projection VLRs)"));
+                return Err(Error::AssignCrsNoRecords { path: p.clone() });
             }
             return Ok(Some(c));
         }
         Some(AssignCrs::Epsg { horizontal, vertical }) => {
-            return epsg_records(*horizontal, *vertical).map(Some).map_err(|e| Error::Usage(format!("--assign-crs: {e}")));
+            return epsg_records(*horizontal, *vertical).map(Some).map_err(|error| Error::AssignCrsCode { error });
         }
         None => {}
     }
@@ -522,15 +516,12 @@ fn choose_crs(inputs: &[Box<dyn RecordSource>], opts: &OpenOptions, warnings: &m
     };
     for (j, c) in all.iter().enumerate() {
         if !c.is_empty() && !c.agrees_with(&all[k]) {
-            return Err(Error::input(
-                inputs[j].path(),
-                format!(
-                    "its CRS, {}, differs from that of {}, {}; refusing to merge them (reproject one, or choose with --assign-crs FILE|EPSG:CODE)",
-                    c.describe().summary(),
-                    inputs[k].path().display(),
-                    all[k].describe().summary()
-                ),
-            ));
+            return Err(Error::CrsConflict {
+                path: inputs[j].path().to_path_buf(),
+                crs: c.describe().summary(),
+                first: inputs[k].path().to_path_buf(),
+                first_crs: all[k].describe().summary(),
+            });
         }
     }
     let without: Vec<usize> = (0..inputs.len()).filter(|&j| all[j].is_empty()).collect();

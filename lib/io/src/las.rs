@@ -90,6 +90,65 @@ fn f64_at(b: &[u8], o: usize) -> f64 {
     f64::from_le_bytes(b[o..o + 8].try_into().unwrap())
 }
 
+/// Why LAS front matter (header, VLRs, EVLRs) cannot be read or written.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum LasError {
+    /// The file does not start with `LASF`.
+    #[error("not a LAS/LAZ file (no LASF signature)")]
+    NoSignature,
+    /// The file is shorter than the smallest LAS header.
+    #[error("file is {len} bytes, shorter than a LAS header (227)")]
+    TooShort { len: usize },
+    /// A version other than LAS 1.0 to 1.4.
+    #[error("unsupported LAS version {major}.{minor}")]
+    Version { major: u8, minor: u8 },
+    /// The header size is below the standard header of its version.
+    #[error("header size {header_size} is smaller than the {standard} bytes of LAS 1.{minor}")]
+    HeaderTooSmall { header_size: u16, standard: usize, minor: u8 },
+    /// The header size is beyond the end of the file.
+    #[error("header size {header_size} is larger than the file ({len} bytes)")]
+    HeaderTooLarge { header_size: u16, len: usize },
+    /// The offset to the point data lies inside the header.
+    #[error("offset to point data {offset} lies inside the header ({header_size} bytes)")]
+    PointDataInHeader { offset: u32, header_size: u16 },
+    /// The offset to the point data is beyond the end of the file.
+    #[error("offset to point data {offset} is beyond the end of the file ({len} bytes)")]
+    PointDataBeyondEnd { offset: u32, len: usize },
+    /// A scale factor is zero, negative or not finite.
+    #[error("scale factor {scale} on axis {axis} is not a positive number")]
+    BadScale { scale: f64, axis: char },
+    /// An offset is not finite.
+    #[error("offset {offset} on axis {axis} is not a finite number")]
+    BadOffset { offset: f64, axis: char },
+    /// The EVLRs start outside the file's data.
+    #[error("EVLRs start at byte {start}, outside the file's data ({len} bytes)")]
+    EvlrsOutside { start: u64, len: usize },
+    /// The file ends before the EVLRs the header declares.
+    #[error("header says {declared} EVLRs but the file ends after {found}")]
+    EvlrCount { declared: u32, found: u32 },
+    /// One EVLR is damaged.
+    #[error("EVLR {index}: {error}")]
+    Evlr { index: u32, error: Box<LasError> },
+    /// An EVLR's header is cut off.
+    #[error("truncated EVLR header")]
+    EvlrHeaderTruncated,
+    /// An EVLR claims more bytes than the file holds.
+    #[error("claims {len} bytes, more than the file holds")]
+    EvlrTooLong { len: u64 },
+    /// The VLRs do not fit the 32-bit offset to the point data.
+    #[error("VLRs too large for a LAS header")]
+    VlrsTooLarge,
+    /// More points than a LAS 1.0-1.3 header can count.
+    #[error("{count} points do not fit a LAS 1.{minor} header (at most 4,294,967,295)")]
+    TooManyPoints { count: u64, minor: u8 },
+    /// A point format of LAS 1.4 in an older header.
+    #[error("point format {format} needs LAS 1.4")]
+    FormatNeedsLas14 { format: u8 },
+    /// A VLR payload larger than a VLR (65,535 bytes) can hold.
+    #[error("VLR {user_id} {record_id} is too large for a LAS VLR")]
+    VlrTooLarge { user_id: String, record_id: u16 },
+}
+
 /// The parsed front matter of a LAS/LAZ file.
 #[derive(Clone, Debug)]
 pub struct LasMeta {
@@ -104,32 +163,32 @@ const VLR_HEADER: usize = 54;
 const EVLR_HEADER: usize = 60;
 
 /// Parses the header, VLRs and EVLRs of a LAS/LAZ file held in `b`.
-pub fn parse(b: &[u8]) -> Result<LasMeta, String> {
+pub fn parse(b: &[u8]) -> Result<LasMeta, LasError> {
     if b.len() < 4 || &b[0..4] != b"LASF" {
-        return Err("not a LAS/LAZ file (no LASF signature)".into());
+        return Err(LasError::NoSignature);
     }
     if b.len() < 227 {
-        return Err(format!("file is {} bytes, shorter than a LAS header (227)", b.len()));
+        return Err(LasError::TooShort { len: b.len() });
     }
     let major = b[24];
     let minor = b[25];
     if major != 1 || minor > 4 {
-        return Err(format!("unsupported LAS version {major}.{minor}"));
+        return Err(LasError::Version { major, minor });
     }
     let header_size = u16_at(b, 94);
     let std = standard_header_size(minor);
     if (header_size as usize) < std {
-        return Err(format!("header size {header_size} is smaller than the {std} bytes of LAS 1.{minor}"));
+        return Err(LasError::HeaderTooSmall { header_size, standard: std, minor });
     }
     if header_size as usize > b.len() {
-        return Err(format!("header size {header_size} is larger than the file ({} bytes)", b.len()));
+        return Err(LasError::HeaderTooLarge { header_size, len: b.len() });
     }
     let offset_to_point_data = u32_at(b, 96);
     if (offset_to_point_data as u64) < header_size as u64 {
-        return Err(format!("offset to point data {offset_to_point_data} lies inside the header ({header_size} bytes)"));
+        return Err(LasError::PointDataInHeader { offset: offset_to_point_data, header_size });
     }
     if offset_to_point_data as u64 > b.len() as u64 {
-        return Err(format!("offset to point data {offset_to_point_data} is beyond the end of the file ({} bytes)", b.len()));
+        return Err(LasError::PointDataBeyondEnd { offset: offset_to_point_data, len: b.len() });
     }
     let format_byte = b[104];
     let mut warnings = Vec::new();
@@ -186,10 +245,10 @@ pub fn parse(b: &[u8]) -> Result<LasMeta, String> {
     for a in 0..3 {
         let s = header.scale[a];
         if !(s.is_finite() && s > 0.0) {
-            return Err(format!("scale factor {s} on axis {} is not a positive number", ["x", "y", "z"][a]));
+            return Err(LasError::BadScale { scale: s, axis: ['x', 'y', 'z'][a] });
         }
         if !header.offset[a].is_finite() {
-            return Err(format!("offset {} on axis {} is not a finite number", header.offset[a], ["x", "y", "z"][a]));
+            return Err(LasError::BadOffset { offset: header.offset[a], axis: ['x', 'y', 'z'][a] });
         }
     }
 
@@ -226,13 +285,13 @@ pub fn parse(b: &[u8]) -> Result<LasMeta, String> {
     if header.evlr_count > 0 && header.evlr_start > 0 {
         let mut pos = header.evlr_start;
         if pos < offset_to_point_data as u64 || pos > b.len() as u64 {
-            return Err(format!("EVLRs start at byte {pos}, outside the file's data ({} bytes)", b.len()));
+            return Err(LasError::EvlrsOutside { start: pos, len: b.len() });
         }
         for i in 0..header.evlr_count {
             if pos + EVLR_HEADER as u64 > b.len() as u64 {
-                return Err(format!("header says {} EVLRs but the file ends after {i}", header.evlr_count));
+                return Err(LasError::EvlrCount { declared: header.evlr_count, found: i });
             }
-            let (v, next) = parse_evlr(b, pos as usize).map_err(|e| format!("EVLR {i}: {e}"))?;
+            let (v, next) = parse_evlr(b, pos as usize).map_err(|e| LasError::Evlr { index: i, error: Box::new(e) })?;
             evlrs.push(v);
             pos = next as u64;
         }
@@ -241,15 +300,15 @@ pub fn parse(b: &[u8]) -> Result<LasMeta, String> {
 }
 
 /// Parses the EVLR starting at byte `at` of `b`; returns it and the position after it.
-pub fn parse_evlr(b: &[u8], at: usize) -> Result<(Vlr, usize), String> {
+pub fn parse_evlr(b: &[u8], at: usize) -> Result<(Vlr, usize), LasError> {
     if at.checked_add(EVLR_HEADER).is_none_or(|e| e > b.len()) {
-        return Err("truncated EVLR header".into());
+        return Err(LasError::EvlrHeaderTruncated);
     }
     let len = u64_at(b, at + 20);
     let end = (at as u64 + EVLR_HEADER as u64)
         .checked_add(len)
         .filter(|&e| e <= b.len() as u64)
-        .ok_or_else(|| format!("claims {len} bytes, more than the file holds"))? as usize;
+        .ok_or(LasError::EvlrTooLong { len })? as usize;
     let v = Vlr {
         reserved: u16_at(b, at),
         user_id: b[at + 2..at + 18].try_into().unwrap(),
@@ -285,20 +344,20 @@ pub fn vlrs_len(vlrs: &[Vlr]) -> usize {
 }
 
 /// Serializes header and VLRs; the point data starts right after the returned bytes.
-pub fn write_header(h: &HeaderOut) -> Result<Vec<u8>, String> {
+pub fn write_header(h: &HeaderOut) -> Result<Vec<u8>, LasError> {
     let t = h.template;
     let minor = t.version.1;
     let std = standard_header_size(minor);
     let header_size = std + t.extra_header.len();
     let offset_to_point_data = header_size + vlrs_len(h.vlrs);
     if offset_to_point_data > u32::MAX as usize {
-        return Err("VLRs too large for a LAS header".into());
+        return Err(LasError::VlrsTooLarge);
     }
     if minor < 4 && (h.point_count > u32::MAX as u64) {
-        return Err(format!("{} points do not fit a LAS 1.{minor} header (at most 4,294,967,295)", h.point_count));
+        return Err(LasError::TooManyPoints { count: h.point_count, minor });
     }
     if minor < 4 && h.point_format > 5 {
-        return Err(format!("point format {} needs LAS 1.4", h.point_format));
+        return Err(LasError::FormatNeedsLas14 { format: h.point_format });
     }
     let mut b = Vec::with_capacity(offset_to_point_data);
     b.extend_from_slice(b"LASF");
@@ -350,7 +409,7 @@ pub fn write_header(h: &HeaderOut) -> Result<Vec<u8>, String> {
     b.extend_from_slice(&t.extra_header);
     for v in h.vlrs {
         if v.data.len() > u16::MAX as usize {
-            return Err(format!("VLR {} {} is too large for a LAS VLR", v.user_id_str(), v.record_id));
+            return Err(LasError::VlrTooLarge { user_id: v.user_id_str(), record_id: v.record_id });
         }
         b.extend_from_slice(&v.reserved.to_le_bytes());
         b.extend_from_slice(&v.user_id);

@@ -11,7 +11,7 @@
 //! decision, scalar modes over the 1st to 99th percentile of the visible points.
 
 use crate::dataset::Dataset;
-use crate::error::{Error, Result};
+use crate::error::{Error, RenderError, Result};
 use crate::render_input::{quantile, ColorChoice};
 use mortar_core::color::RgbDepth;
 use mortar_core::grid::Grid;
@@ -59,10 +59,7 @@ pub fn header_frame(ds: &Dataset) -> Result<HeaderFrame> {
             continue;
         }
         if (0..3).any(|a| !(h.min[a].is_finite() && h.max[a].is_finite() && h.min[a] <= h.max[a])) {
-            return Err(Error::input(
-                src.path(),
-                format!("the header's bounds {:?}..{:?} are not usable, and the progressive renderer frames the points with them before reading them", h.min, h.max),
-            ));
+            return Err(Error::Render { path: src.path().to_path_buf(), error: RenderError::UnusableBounds { min: h.min, max: h.max } });
         }
         for a in 0..3 {
             // Either end may be the smaller integer when a scale is negative.
@@ -142,10 +139,7 @@ pub fn payload_for(
         ColorChoice::Mode(ColorMode::Rgb) => match rgb {
             Some(offset) => Payload::RgbIntensity { offset },
             None => {
-                return Err(Error::input(
-                    path,
-                    format!("--color rgb: the points have no colour (the point format has no RGB, point format {}); try --color intensity", layout.format),
-                ))
+                return Err(Error::Render { path: path.to_path_buf(), error: RenderError::NoColour { format: layout.format, has_rgb: false } })
             }
         },
         ColorChoice::Mode(ColorMode::Intensity) => Payload::Intensity,
@@ -155,7 +149,10 @@ pub fn payload_for(
         ColorChoice::Mode(ColorMode::GpsTime) => match layout.attribute("gps_time") {
             Some(a) => Payload::GpsTime { offset: a.offset },
             None => {
-                return Err(Error::input(path, format!("--color gps-time: needs the attribute 'gps_time', but point format {} has no such field", layout.format)))
+                return Err(Error::Render {
+                    path: path.to_path_buf(),
+                    error: RenderError::MissingAttribute { mode: "gps-time", attribute: "gps_time", format: layout.format, not_kept: false },
+                })
             }
         },
     })
@@ -230,7 +227,7 @@ pub fn load_pieces(
         .num_threads(threads.max(1))
         .thread_name(|i| format!("mortar-load-{i}"))
         .build()
-        .map_err(|e| Error::Usage(format!("cannot start {threads} loader threads: {e}")))?;
+        .map_err(|error| Error::ThreadPool { threads, error })?;
     let mut firsts = Vec::with_capacity(ds.inputs.len());
     let mut first = 0u64;
     for src in &ds.inputs {

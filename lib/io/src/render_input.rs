@@ -13,7 +13,7 @@
 use crate::batchfile::{AttributeSelection, BatchFile, BatchSink, BatchView, Compression};
 use crate::cleanup::TempPath;
 use crate::dataset::Dataset;
-use crate::error::{Error, Result};
+use crate::error::{Error, RenderError, Result};
 use crate::sort::{sort, SortOptions};
 use mortar_core::layout::Family;
 use mortar_core::render::framebuffer::{key_index, EMPTY_KEY};
@@ -57,7 +57,7 @@ impl RenderSource {
         let names: Vec<String> = ds.inputs.iter().map(|i| i.path().display().to_string()).collect();
         let dir = TempPath::dir_in(&opts.tmp_dir, "render").map_err(|e| Error::io(&opts.tmp_dir, e))?;
         let path = dir.path().join("input.mbat");
-        let attributes = attributes.resolve(&ds.layout).map_err(Error::Usage)?;
+        let attributes = attributes.resolve(&ds.layout)?;
         let template = ds.source_meta();
         let mut sink = BatchSink::new(&path, template, attributes, Compression::None);
         sort(ds, opts, &mut sink)?;
@@ -68,11 +68,7 @@ impl RenderSource {
     /// `e` with the temporary batch file's path replaced by the inputs' names, so that messages
     /// name what the user gave.
     pub fn own_error(&self, e: Error) -> Error {
-        match e {
-            Error::Input { path, problem } if path == self.file.path => Error::Input { path: self.name.clone(), problem },
-            Error::Io { path, source } if path == self.file.path => Error::Io { path: self.name.clone(), source },
-            e => e,
-        }
+        e.renamed(&self.file.path, &self.name)
     }
 
     /// Whether the batch file is a temporary one made from LAS/LAZ.
@@ -97,10 +93,7 @@ pub fn load_words(file: &BatchFile) -> Result<Vec<BatchView<'_>>> {
 /// file holds more than 2^32 points (point indices are 32-bit in the framebuffer).
 pub fn batch_refs<'a>(file: &BatchFile, views: &'a [BatchView<'_>]) -> Result<Vec<BatchRef<'a>>> {
     if file.header.point_count > 1u64 << 32 {
-        return Err(Error::input(
-            &file.path,
-            format!("{} points: at most 2^32 points can be drawn at once (point indices are 32-bit)", file.header.point_count),
-        ));
+        return Err(Error::Render { path: file.path.clone(), error: RenderError::TooManyToDraw { points: file.header.point_count } });
     }
     Ok(views
         .iter()
@@ -206,11 +199,7 @@ fn source_of(file: &BatchFile, choice: ColorChoice) -> Result<Source> {
             return if file.meta.color.source == "rgb" {
                 Ok(Source::Stored)
             } else {
-                let why = if file.layout.has_rgb() { "every RGB value is zero" } else { "the point format has no RGB" };
-                Err(Error::input(
-                    &file.path,
-                    format!("--color rgb: the points have no colour ({why}, point format {}); try --color intensity", file.layout.format),
-                ))
+                Err(Error::Render { path: file.path.clone(), error: RenderError::NoColour { format: file.layout.format, has_rgb: file.layout.has_rgb() } })
             };
         }
         ColorChoice::Mode(m) => m,
@@ -219,12 +208,8 @@ fn source_of(file: &BatchFile, choice: ColorChoice) -> Result<Source> {
     if let Some(index) = file.meta.attributes.iter().position(|a| a.name == name) {
         return Ok(Source::Attribute { index });
     }
-    let why = if file.layout.attribute(name).is_some() {
-        "it was not kept when the batch file was written (batch again with --attributes all)".to_string()
-    } else {
-        format!("point format {} has no such field", file.layout.format)
-    };
-    Err(Error::input(&file.path, format!("--color {}: needs the attribute '{name}', but {why}", mode.name())))
+    let not_kept = file.layout.attribute(name).is_some();
+    Err(Error::Render { path: file.path.clone(), error: RenderError::MissingAttribute { mode: mode.name(), attribute: name, format: file.layout.format, not_kept } })
 }
 
 /// Checks that `file` has the attribute `choice` needs (an error naming the file otherwise).
@@ -290,7 +275,7 @@ pub fn point_colors(file: &BatchFile, choice: ColorChoice, range: Option<[f64; 2
     let choice = choice.resolved(file);
     let source = source_of(file, choice)?;
     if file.header.point_count > 1u64 << 32 {
-        return Err(Error::input(&file.path, format!("{} points: at most 2^32 points can be coloured at once", file.header.point_count)));
+        return Err(Error::Render { path: file.path.clone(), error: RenderError::TooManyToColour { points: file.header.point_count } });
     }
     let indices: Vec<u32> = (0..file.header.point_count).map(|i| i as u32).collect();
     let c = colors_for_indices(file, indices, choice, source, range)?;
@@ -302,7 +287,7 @@ fn colors_for_indices(file: &BatchFile, indices: Vec<u32>, choice: ColorChoice, 
     let entries = file.entries();
     let total = file.header.point_count;
     if indices.last().is_some_and(|&i| i as u64 >= total) {
-        return Err(Error::input(&file.path, "framebuffer holds a point index beyond the file's points"));
+        return Err(Error::Render { path: file.path.clone(), error: RenderError::StrayIndex { beyond: "the file's points" } });
     }
     // Runs of indices that fall in one batch.
     let mut groups = Vec::new();
@@ -465,7 +450,7 @@ pub fn render(file: &BatchFile, refs: &[BatchRef<'_>], camera: &Camera, settings
     check_color(file, settings.color)?;
     let fb = Framebuffer::new(camera.width, camera.height);
     let t0 = Instant::now();
-    let stats = rasterize(&fb, refs, &file.grid(), camera, &settings.raster).map_err(|e| Error::input(&file.path, e.to_string()))?;
+    let stats = rasterize(&fb, refs, &file.grid(), camera, &settings.raster).map_err(|error| Error::Render { path: file.path.clone(), error: RenderError::Raster { error } })?;
     let raster_seconds = t0.elapsed().as_secs_f64();
     resolve_keys(file, fb.into_keys(), stats, raster_seconds, camera, settings)
 }

@@ -76,10 +76,10 @@ impl LasSink {
             let extra = (self.t.layout.record_len - mortar_core::layout::base_len(self.t.layout.format).unwrap()) as u16;
             let v = laz::LazVlrBuilder::default()
                 .with_point_format(self.t.layout.format, extra)
-                .map_err(|e| Error::Usage(format!("cannot write LAZ for point format {}: {e}", self.t.layout.format)))?
+                .map_err(|error| Error::LazFormat { format: self.t.layout.format, error })?
                 .build();
             let mut data = Vec::new();
-            v.write_to(&mut data).map_err(|e| Error::Usage(e.to_string()))?;
+            v.write_to(&mut data).map_err(|error| Error::LazSetup { error })?;
             let mut user_id = [0u8; 16];
             user_id[..14].copy_from_slice(b"laszip encoded");
             let mut description = [0u8; 32];
@@ -116,14 +116,14 @@ impl LasSink {
             evlr_start,
             evlr_count: if evlr_start > 0 { self.t.evlrs.len() as u32 } else { 0 },
         };
-        las::write_header(&h).map_err(|e| Error::Usage(format!("{}: {e}", self.target.display())))
+        las::write_header(&h).map_err(|error| Error::Las { path: self.target.display().to_string().into(), error })
     }
 
     /// Finishes the file: LAZ chunk table, EVLRs, header fix-up, rename into place.
     pub fn finish(mut self) -> Result<u64> {
-        let s = self.summary.clone().ok_or_else(|| Error::Usage("sink finished before it began".into()))?;
+        let s = self.summary.clone().ok_or(Error::SinkOrder { what: "sink finished before it began" })?;
         if self.written != s.count {
-            return Err(Error::Usage(format!("{}: wrote {} of {} points", self.target.display(), self.written, s.count)));
+            return Err(Error::ShortWrite { path: self.target.display().to_string().into(), written: self.written, expected: s.count });
         }
         let evlrs = las::write_evlrs(&self.t.evlrs);
         let has_evlrs = !self.t.evlrs.is_empty() && self.t.header.version.1 >= 4;
@@ -140,7 +140,7 @@ impl LasSink {
                 let mut w = match out {
                     Out::Las(w) => w,
                     Out::Laz(mut c) => {
-                        c.done().map_err(|e| Error::Usage(format!("{}: LAZ compression failed: {e}", self.target.display())))?;
+                        c.done().map_err(|error| Error::LazCompress { path: self.target.display().to_string().into(), error })?;
                         c.into_inner()
                     }
                     Out::Stdout(_) => unreachable!(),
@@ -165,7 +165,7 @@ impl LasSink {
                     }
                 }
             }
-            None => return Err(Error::Usage("sink finished before it began".into())),
+            None => return Err(Error::SinkOrder { what: "sink finished before it began" }),
         }
         Ok(s.count)
     }
@@ -195,9 +195,9 @@ impl OrderedSink for LasSink {
                     let extra = (self.t.layout.record_len - mortar_core::layout::base_len(self.t.layout.format).unwrap()) as u16;
                     let vlr = laz::LazVlrBuilder::default()
                         .with_point_format(self.t.layout.format, extra)
-                        .map_err(|e| Error::Usage(e.to_string()))?
+                        .map_err(|e| Error::LazSetup { error: std::io::Error::other(e) })?
                         .build();
-                    let c = laz::ParLasZipCompressor::new(w, vlr).map_err(|e| Error::Usage(e.to_string()))?;
+                    let c = laz::ParLasZipCompressor::new(w, vlr).map_err(|e| Error::LazSetup { error: std::io::Error::other(e) })?;
                     self.out = Some(Out::Laz(Box::new(c)));
                 } else {
                     self.out = Some(Out::Las(w));
@@ -214,7 +214,7 @@ impl OrderedSink for LasSink {
             Some(Out::Las(w)) => w.write_all(records).map_err(|e| Error::io(&target, e))?,
             Some(Out::Stdout(w)) => w.write_all(records).map_err(|e| Error::io(&target, e))?,
             Some(Out::Laz(c)) => c.compress_many(records).map_err(|e| Error::io(&target, e))?,
-            None => return Err(Error::Usage("write before begin".into())),
+            None => return Err(Error::SinkOrder { what: "write before begin" }),
         }
         self.written += n;
         Ok(())

@@ -293,7 +293,7 @@ pub fn read_all<'a>(ds: &'a Dataset, guess: &MortonGrid, arena: &'a mut Vec<u8>)
     let rl = ds.layout.record_len;
     let n: usize = pieces.iter().map(|p| p.piece.points as usize).sum();
     if pieces.len() > u32::MAX as usize || pieces.iter().any(|p| p.piece.points > u32::MAX as u64) {
-        return Err(Error::Usage("too many points for one in-memory sort".into()));
+        return Err(Error::TooManyPoints { what: "sort" });
     }
     let buffered = |p: &DatasetPiece| ds.needs_buffer(p.input);
     let arena_len: usize = pieces.iter().filter(|p| buffered(p)).map(|p| p.piece.points as usize * rl).sum();
@@ -329,7 +329,7 @@ pub fn read_all<'a>(ds: &'a Dataset, guess: &MortonGrid, arena: &'a mut Vec<u8>)
                 None => ds.read_piece(&p)?,
             };
             if slab.len() != ks.len() * rl {
-                return Err(Error::input(ds.inputs[p.input].path(), format!("piece {} holds another number of points than declared", p.piece.index)));
+                return Err(Error::PieceCount { path: ds.inputs[p.input].path().to_path_buf(), piece: p.piece.index });
             }
             let s = PieceStats::of_with(&slab, &ds.layout, |idx, q| {
                 ks[idx] = Key { code: guess.code([q[0] as i64, q[1] as i64, q[2] as i64]), slab: i as u32, idx: idx as u32 };
@@ -361,7 +361,7 @@ pub fn declared_grid(ds: &Dataset) -> MortonGrid {
 pub fn make_keys(slabs: &[&[u8]], record_len: usize, morton: &MortonGrid) -> Result<Vec<Key>> {
     let n: usize = slabs.iter().map(|s| s.len() / record_len).sum();
     if slabs.len() > u32::MAX as usize || slabs.iter().any(|s| s.len() / record_len > u32::MAX as usize) {
-        return Err(Error::Usage("too many points for one in-memory sort".into()));
+        return Err(Error::TooManyPoints { what: "sort" });
     }
     let mut keys = key_buffer(n);
     let mut starts = Vec::with_capacity(slabs.len());
@@ -650,7 +650,7 @@ pub fn emit(
             }
         }
         drop(tx);
-        writer.join().map_err(|_| Error::Usage("writer thread panicked".into()))??;
+        writer.join().map_err(|_| Error::ThreadPanicked { thread: "writer" })??;
         check_interrupted()
     })
 }

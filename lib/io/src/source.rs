@@ -6,7 +6,7 @@
 //! chunk decoded on its own thread by laz-rs. Nothing is allocated from a header's claims before
 //! it has been checked against the bytes that exist.
 
-use crate::error::{Error, Result};
+use crate::error::{Error, LazError, Result};
 use crate::las::{self, LasMeta};
 use memmap2::Mmap;
 use mortar_core::layout::RecordLayout;
@@ -56,26 +56,26 @@ pub fn expand_inputs(args: &[String]) -> Result<Vec<PathBuf>> {
             let mut found = Vec::new();
             collect_dir(p, &mut found)?;
             if found.is_empty() {
-                return Err(Error::input(p, "directory holds no .las or .laz files"));
+                return Err(Error::NoLasInDirectory { path: p.to_path_buf() });
             }
             found.sort();
             out.extend(found);
         } else if p.exists() {
             out.push(p.to_path_buf());
         } else if a.contains(['*', '?', '[']) {
-            let paths = glob::glob(a).map_err(|e| Error::Usage(format!("{a}: bad pattern: {e}")))?;
+            let paths = glob::glob(a).map_err(|error| Error::BadPattern { pattern: a.clone(), error })?;
             let mut found: Vec<PathBuf> = paths.filter_map(|r| r.ok()).filter(|p| p.is_file()).collect();
             if found.is_empty() {
-                return Err(Error::Usage(format!("{a}: no file matches this pattern")));
+                return Err(Error::NoMatch { pattern: a.clone() });
             }
             found.sort();
             out.extend(found);
         } else {
-            return Err(Error::input(p, "no such file or directory"));
+            return Err(Error::NotFound { path: p.to_path_buf() });
         }
     }
     if out.is_empty() {
-        return Err(Error::Usage("no input given".into()));
+        return Err(Error::NoInput);
     }
     Ok(out)
 }
@@ -229,10 +229,10 @@ impl LasInput {
     }
 
     pub fn from_bytes(path: PathBuf, bytes: Bytes) -> Result<LasInput> {
-        let err = |m: String| Error::input(&path, m);
-        let mut meta = las::parse(&bytes).map_err(err)?;
+        let err = |error: LazError| Error::Laz { path: path.clone(), error };
+        let mut meta = las::parse(&bytes).map_err(|error| Error::Las { path: path.clone(), error })?;
         let h = &meta.header;
-        let layout = RecordLayout::new(h.point_format, h.record_len as usize).map_err(|e| err(e.to_string()))?;
+        let layout = RecordLayout::new(h.point_format, h.record_len as usize).map_err(|error| Error::Layout { path: path.clone(), error })?;
         let start = h.offset_to_point_data as usize;
         let laszip = meta.vlrs.iter().find(|v| v.is_laszip());
         let kind;
@@ -240,14 +240,14 @@ impl LasInput {
         let point_count = h.point_count;
         if h.compressed || laszip.is_some() {
             let Some(lv) = laszip else {
-                return Err(err("point format is marked compressed but the file has no LASzip VLR".into()));
+                return Err(err(LazError::NoLaszipVlr));
             };
-            let vlr = laz::LazVlr::from_buffer(&lv.data).map_err(|e| err(format!("LASzip VLR is invalid: {e}")))?;
+            let vlr = laz::LazVlr::from_buffer(&lv.data).map_err(|error| err(LazError::BadVlr { error }))?;
             // Summed here in u64: laz sums the item sizes in u16 (an overflow panic in debug
             // builds, a wrapped size in release; fuzz regression laz-item-sizes-overflow).
             let items_size: u64 = vlr.items().iter().map(|i| u64::from(i.size())).sum();
             if items_size != h.record_len as u64 {
-                return Err(err(format!("LASzip VLR describes {items_size}-byte points but the header says {}", h.record_len)));
+                return Err(err(LazError::ItemSizes { items_size, record_len: h.record_len }));
             }
             // Reject unknown items up front (decoding them would fail or panic mid-way).
             if let Err(e) = check_laz_items(&vlr) {
@@ -265,12 +265,12 @@ impl LasInput {
                 }
                 Ok(None) => {
                     if vlr.uses_variable_size_chunks() {
-                        return Err(err("LAZ file uses variable-size chunks but has no chunk table".into()));
+                        return Err(err(LazError::NoChunkTable));
                     }
                     if point_count > 0 {
                         let max = (data_end - start) as u64 * MAX_LAZ_POINTS_PER_BYTE;
                         if point_count > max {
-                            return Err(err(format!("header claims {point_count} points, implausible for {} bytes of LAZ data", data_end - start)));
+                            return Err(err(LazError::Implausible { points: point_count, bytes: data_end - start }));
                         }
                         pieces.push(Piece { index: 0, first_point: 0, points: point_count });
                     }
@@ -295,10 +295,7 @@ impl LasInput {
                 ));
             }
             if point_count > available {
-                return Err(err(format!(
-                    "header says {point_count} points but the file holds only {available} ({} bytes of point data, {rl} per point): truncated or damaged",
-                    end - start as u64
-                )));
+                return Err(Error::Truncated { path: path.clone(), declared: point_count, available, bytes: end - start as u64, record_len: rl });
             }
             let mut first = 0;
             let mut i = 0;
@@ -362,7 +359,7 @@ impl LasInput {
     pub fn read_piece_into(&self, piece: &Piece, out: &mut [u8]) -> Result<()> {
         let rl = self.layout.record_len;
         if out.len() != piece.points as usize * rl {
-            return Err(Error::input(&self.path, "internal: piece buffer of the wrong size"));
+            return Err(Error::Internal { path: self.path.clone(), what: "piece buffer of the wrong size" });
         }
         match &self.kind {
             Kind::Laz { vlr, chunks } => {
@@ -370,7 +367,7 @@ impl LasInput {
                 let entry = laz::laszip::ChunkTableEntry { point_count: c.points, byte_count: c.len as u64 };
                 let src = &self.bytes[c.offset..c.offset + c.len];
                 if c.points > 0 {
-                    check_layer_sizes(vlr, src).map_err(|m| Error::input(&self.path, format!("LAZ chunk {} is corrupt: {m}", piece.index)))?;
+                    check_layer_sizes(vlr, src, piece.index).map_err(|error| Error::Laz { path: self.path.clone(), error })?;
                 }
                 let selection = self.skip.as_ref().map_or(laz::DecompressionSelection::all(), |s| s.selection);
                 let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
@@ -383,14 +380,14 @@ impl LasInput {
                         }
                         Ok(())
                     }
-                    Ok(Err(e)) => Err(Error::input(&self.path, format!("LAZ chunk {} is corrupt: {e}", piece.index))),
-                    Err(_) => Err(Error::input(&self.path, format!("LAZ chunk {} is corrupt (the decoder gave up)", piece.index))),
+                    Ok(Err(error)) => Err(Error::Laz { path: self.path.clone(), error: LazError::ChunkCorrupt { chunk: piece.index, error } }),
+                    Err(_) => Err(Error::Laz { path: self.path.clone(), error: LazError::ChunkGaveUp { chunk: piece.index } }),
                 }
             }
             _ => {
                 let r = self.read_piece(piece)?;
                 if r.len() != out.len() {
-                    return Err(Error::input(&self.path, format!("LAZ data ends early: {} of {} points", r.len() / rl, piece.points)));
+                    return Err(Error::Laz { path: self.path.clone(), error: LazError::EndsEarly { got: r.len() / rl, expected: piece.points } });
                 }
                 out.copy_from_slice(&r);
                 Ok(())
@@ -414,10 +411,10 @@ impl LasInput {
             Kind::LazSequential { vlr, start } => {
                 let mut out = Vec::new();
                 let src = std::io::Cursor::new(&self.bytes[*start..]);
-                check_sequential_table(&self.bytes[*start..]).map_err(|m| Error::input(&self.path, m))?;
-                let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| -> std::result::Result<(), String> {
+                check_sequential_table(&self.bytes[*start..]).map_err(|error| Error::Laz { path: self.path.clone(), error })?;
+                let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| -> std::io::Result<()> {
                     let selection = self.skip.as_ref().map_or(laz::DecompressionSelection::all(), |s| s.selection);
-                    let mut d = laz::LasZipDecompressor::selective(src, vlr.clone(), selection).map_err(|e| e.to_string())?;
+                    let mut d = laz::LasZipDecompressor::selective(src, vlr.clone(), selection).map_err(std::io::Error::other)?;
                     // grow as points decode, never by the header's claim alone
                     let step = 65_536usize;
                     let mut done = 0u64;
@@ -425,7 +422,7 @@ impl LasInput {
                         let n = (piece.points - done).min(step as u64) as usize;
                         let at = out.len();
                         out.resize(at + n * rl, 0);
-                        d.decompress_many(&mut out[at..]).map_err(|e| e.to_string())?;
+                        d.decompress_many(&mut out[at..])?;
                         done += n as u64;
                     }
                     Ok(())
@@ -435,15 +432,15 @@ impl LasInput {
                 }
                 match r {
                     Ok(Ok(())) => Ok(Cow::Owned(out)),
-                    Ok(Err(e)) => Err(Error::input(&self.path, format!("LAZ data is corrupt: {e}"))),
-                    Err(_) => Err(Error::input(&self.path, "LAZ data is corrupt (the decoder gave up)")),
+                    Ok(Err(error)) => Err(Error::Laz { path: self.path.clone(), error: LazError::DataCorrupt { error } }),
+                    Err(_) => Err(Error::Laz { path: self.path.clone(), error: LazError::DataGaveUp }),
                 }
             }
         }
     }
 }
 
-fn check_laz_items(vlr: &laz::LazVlr) -> std::result::Result<(), String> {
+fn check_laz_items(vlr: &laz::LazVlr) -> std::result::Result<(), LazError> {
     use laz::LazItemType as T;
     for item in vlr.items() {
         let ok = match item.item_type() {
@@ -455,7 +452,7 @@ fn check_laz_items(vlr: &laz::LazVlr) -> std::result::Result<(), String> {
             _ => false,
         };
         if !ok {
-            return Err(format!("LASzip item {:?} version {} is not supported", item.item_type(), item.version()));
+            return Err(LazError::UnsupportedItem { item: format!("{:?}", item.item_type()), version: item.version() });
         }
     }
     Ok(())
@@ -465,7 +462,7 @@ fn check_laz_items(vlr: &laz::LazVlr) -> std::result::Result<(), String> {
 /// chunk's bytes: laz-rs allocates each layer's claimed size before reading it, so a damaged
 /// size of up to 4 GiB per layer was a huge allocation (fuzz regression laz-layer-size). The
 /// chunk starts with the first point raw, the point count (u32), then one u32 size per layer.
-fn check_layer_sizes(vlr: &laz::LazVlr, chunk: &[u8]) -> std::result::Result<(), String> {
+fn check_layer_sizes(vlr: &laz::LazVlr, chunk: &[u8], index: usize) -> std::result::Result<(), LazError> {
     use laz::LazItemType as T;
     let mut layers = 0usize;
     for item in vlr.items() {
@@ -490,7 +487,7 @@ fn check_layer_sizes(vlr: &laz::LazVlr, chunk: &[u8]) -> std::result::Result<(),
     let total: u64 = sizes.chunks_exact(4).map(|b| u32::from_le_bytes(b.try_into().unwrap()) as u64).sum();
     let room = (chunk.len() - sizes_at - 4 * layers) as u64;
     if total > room {
-        return Err(format!("its layers claim {total} bytes but {room} follow"));
+        return Err(LazError::ChunkLayers { chunk: index, total, room });
     }
     Ok(())
 }
@@ -500,7 +497,7 @@ fn check_layer_sizes(vlr: &laz::LazVlr, chunk: &[u8]) -> std::result::Result<(),
 /// or in the last 8, and allocates the chunk count it finds there before reading the entries. A
 /// count the bytes after it cannot hold is refused (fuzz regression laz-sequential-table: 11 GB
 /// asked for by a 2 KB file).
-fn check_sequential_table(data: &[u8]) -> std::result::Result<(), String> {
+fn check_sequential_table(data: &[u8]) -> std::result::Result<(), LazError> {
     let at = |i: usize| data.get(i..i + 8).map(|x| i64::from_le_bytes(x.try_into().unwrap()));
     let Some(mut off) = at(0) else { return Ok(()) };
     if off <= 0 {
@@ -513,7 +510,7 @@ fn check_sequential_table(data: &[u8]) -> std::result::Result<(), String> {
     let count = u32::from_le_bytes(head[4..8].try_into().unwrap()) as u64;
     let room = (data.len() - off as usize - 8) as u64;
     if count > room.saturating_mul(8).min(1 << 26) {
-        return Err(format!("LAZ chunk table claims {count} chunks in {room} bytes (corrupt chunk table)"));
+        return Err(LazError::SequentialTable { chunks: count, bytes: room });
     }
     Ok(())
 }
@@ -525,9 +522,9 @@ fn read_chunk_table(
     data_end: usize,
     vlr: &laz::LazVlr,
     point_count: u64,
-) -> std::result::Result<Option<Vec<LazChunk>>, String> {
+) -> std::result::Result<Option<Vec<LazChunk>>, LazError> {
     if data_end < start + 8 || data_end > b.len() {
-        return if point_count == 0 { Ok(Some(Vec::new())) } else { Err("LAZ point data is missing".into()) };
+        return if point_count == 0 { Ok(Some(Vec::new())) } else { Err(LazError::NoPointData) };
     }
     let mut table_at = i64::from_le_bytes(b[start..start + 8].try_into().unwrap());
     if table_at <= start as i64 || table_at as u64 + 8 > data_end as u64 {
@@ -536,10 +533,7 @@ fn read_chunk_table(
         if tail > start as i64 && (tail as u64) + 8 <= data_end as u64 {
             table_at = tail;
         } else if table_at > start as i64 && table_at as u64 + 8 > b.len() as u64 && point_count > 0 {
-            return Err(format!(
-                "the LAZ chunk table should be at byte {table_at} but the file ends at byte {}: truncated (the header says {point_count} points)",
-                b.len()
-            ));
+            return Err(LazError::TableTruncated { at: table_at, file_len: b.len(), points: point_count });
         } else {
             return Ok(None);
         }
@@ -548,13 +542,13 @@ fn read_chunk_table(
     let n_chunks = u32::from_le_bytes(b[table_at + 4..table_at + 8].try_into().unwrap()) as u64;
     let data_bytes = (table_at - start - 8) as u64;
     if n_chunks > data_bytes.max(1) || n_chunks > (1 << 26) {
-        return Err(format!("LAZ chunk table claims {n_chunks} chunks, impossible in {data_bytes} bytes of data"));
+        return Err(LazError::TooManyChunks { chunks: n_chunks, bytes: data_bytes });
     }
     let variable = vlr.uses_variable_size_chunks();
     let mut cur = std::io::Cursor::new(&b[table_at..data_end]);
     let table = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| laz::laszip::ChunkTable::read(&mut cur, variable)))
-        .map_err(|_| "LAZ chunk table is corrupt".to_string())?
-        .map_err(|e| format!("LAZ chunk table is corrupt: {e}"))?;
+        .map_err(|_| LazError::BadTable { error: None })?
+        .map_err(|e| LazError::BadTable { error: Some(e) })?;
     let mut chunks = Vec::with_capacity(n_chunks as usize);
     let mut offset = start as u64 + 8;
     let mut total = 0u64;
@@ -568,22 +562,22 @@ fn read_chunk_table(
             vlr.chunk_size() as u64
         };
         if points > MAX_LAZ_CHUNK_POINTS {
-            return Err(format!("LAZ chunk {i} claims {points} points, more than mortar accepts per chunk"));
+            return Err(LazError::ChunkTooLarge { chunk: i, points });
         }
         // The decoded chunk is allocated from this claim: bound it by the chunk's bytes (fuzz
         // regression laz-chunk-points).
         if points > e.byte_count.saturating_mul(MAX_LAZ_POINTS_PER_BYTE).max(1) {
-            return Err(format!("LAZ chunk {i} claims {points} points in {} bytes (corrupt chunk table)", e.byte_count));
+            return Err(LazError::ChunkPoints { chunk: i, points, bytes: e.byte_count });
         }
         if offset.checked_add(e.byte_count).is_none_or(|end| end > table_at as u64) {
-            return Err(format!("LAZ chunk {i} runs past the chunk table (corrupt chunk table)"));
+            return Err(LazError::ChunkPastTable { chunk: i });
         }
         chunks.push(LazChunk { offset: offset as usize, len: e.byte_count as usize, points });
         offset += e.byte_count;
         total += points;
     }
     if total != point_count {
-        return Err(format!("header says {point_count} points but the LAZ chunk table holds {total}"));
+        return Err(LazError::CountMismatch { declared: point_count, table: total });
     }
     Ok(Some(chunks))
 }

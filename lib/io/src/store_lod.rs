@@ -26,7 +26,7 @@
 //!   where the source has colours, else intensity. Hole filling and eye-dome lighting work as
 //!   for batch files: they read only the keys.
 
-use crate::error::{Error, Result};
+use crate::error::{Error, RenderError, Result, StoreError};
 use crate::render_input::{attribute_value, percentile_range, scalar_colors, ColorChoice, RenderSettings, Rendered};
 use crate::store::{NodeData, Store, LEAF};
 use mortar_core::grid::Grid;
@@ -63,24 +63,24 @@ impl StoreLod {
     /// Rebuilds the tree of `store` from its hierarchy; an error naming the store where the
     /// entries do not form one octree.
     pub fn new(store: Store) -> Result<StoreLod> {
-        let bad = |m: String| Error::input(&store.path, m);
+        let bad = |error: StoreError| Error::Store { path: store.path.clone(), error };
         let root_log2 = store.header.root_size_log2;
         let root = store.root_cube();
         if root_log2 > 32 {
-            return Err(bad(format!("hierarchy.bin: root cube of 2^{root_log2} grid units; at most 2^32 is supported")));
+            return Err(bad(StoreError::RootTooLarge { size_log2: root_log2 }));
         }
         // The cube must overlap the i32 grid of the points; a damaged corner overflowed the
         // cube arithmetic (fuzz regression root-min-overflow).
         let (lo, hi) = (i32::MIN as i64 - (1i64 << 32), i32::MAX as i64);
         if root.min.iter().any(|&m| !(lo..=hi).contains(&m)) {
-            return Err(bad(format!("hierarchy.bin: root cube corner {:?} lies outside the 32-bit grid", root.min)));
+            return Err(bad(StoreError::RootOutside { min: root.min }));
         }
         let mut entries = Vec::with_capacity(store.entries.len());
         for (i, e) in store.entries.iter().enumerate() {
-            let level = u8::try_from(e.level).map_err(|_| bad(format!("hierarchy.bin: node {i} has level {}", e.level)))?;
+            let level = u8::try_from(e.level).map_err(|_| bad(StoreError::NodeLevel { node: i, level: e.level }))?;
             entries.push(IndexEntry { key: NodeKey { level, index: e.index }, leaf: e.kind == LEAF, samples: e.count });
         }
-        let index = LodIndex::new_partial(root, &entries).map_err(|e| bad(format!("hierarchy.bin: {e}")))?;
+        let index = LodIndex::new_partial(root, &entries).map_err(|error| bad(StoreError::Index { error }))?;
         let h = &store.meta.header;
         let grid = Grid { scale: h.scale, offset: h.offset };
         let maxima = (0..entries.len()).map(|_| OnceLock::new()).collect();
@@ -129,7 +129,7 @@ impl StoreLod {
 
     /// The nodes to draw for `camera` ([`select_nodes`] on the store's tree).
     pub fn select(&self, camera: &Camera, options: &LodOptions) -> Result<LodSelection> {
-        select_nodes(self, &self.grid, camera, options).map_err(|e| Error::input(&self.store.path, e.to_string()))
+        select_nodes(self, &self.grid, camera, options).map_err(|error| Error::Render { path: self.store.path.clone(), error: RenderError::Camera { error } })
     }
 
     /// The payload of node `id`.
@@ -163,14 +163,11 @@ impl StoreLod {
     /// from 0. Fails where they hold more than 2^32 samples (point indices are 32-bit).
     pub fn batches(&self, nodes: &[NodeId]) -> Result<LodBatches<'_>> {
         if let Some(&id) = nodes.iter().find(|id| id.index() >= self.store.entries.len()) {
-            return Err(Error::input(&self.store.path, format!("node {} is not in the store", id.0)));
+            return Err(Error::Store { path: self.store.path.clone(), error: StoreError::NoSuchNode { node: id.0 } });
         }
         let samples: u64 = nodes.iter().map(|&id| self.store.entries[id.index()].count).sum();
         if samples > 1u64 << 32 {
-            return Err(Error::input(
-                &self.store.path,
-                format!("{samples} samples selected: at most 2^32 can be drawn at once (point indices are 32-bit); set a --point-budget"),
-            ));
+            return Err(Error::Render { path: self.store.path.clone(), error: RenderError::TooManySamples { samples } });
         }
         nodes.par_iter().for_each(|&id| {
             self.sample_max(id);
@@ -330,14 +327,13 @@ impl LodColor {
             ColorChoice::Mode(ColorMode::Elevation) => Ok(LodColor::Elevation),
             ColorChoice::Mode(ColorMode::Rgb) if rgb_in_use(store) => Ok(LodColor::Stored),
             ColorChoice::Mode(ColorMode::Rgb) => {
-                let why = if store.layout.has_rgb() { "every RGB value is zero" } else { "the point format has no RGB" };
-                Err(Error::input(&store.path, format!("--color rgb: the points have no colour ({why}, point format {}); try --color intensity", store.layout.format)))
+                Err(Error::Render { path: store.path.clone(), error: RenderError::NoColour { format: store.layout.format, has_rgb: store.layout.has_rgb() } })
             }
             ColorChoice::Mode(m) if store.layout.attribute(m.attribute()).is_some() => Ok(LodColor::Attribute(m)),
-            ColorChoice::Mode(m) => Err(Error::input(
-                &store.path,
-                format!("--color {}: needs the attribute '{}', but point format {} has no such field", m.name(), m.attribute(), store.layout.format),
-            )),
+            ColorChoice::Mode(m) => Err(Error::Render {
+                path: store.path.clone(),
+                error: RenderError::MissingAttribute { mode: m.name(), attribute: m.attribute(), format: store.layout.format, not_kept: false },
+            }),
         }
     }
 
@@ -416,7 +412,7 @@ pub fn render(lod: &StoreLod, batches: &LodBatches<'_>, camera: &Camera, setting
     LodColor::of(&lod.store, settings.color)?;
     let fb = Framebuffer::new(camera.width, camera.height);
     let t0 = Instant::now();
-    let stats = rasterize(&fb, &batches.refs, &lod.grid, camera, &settings.raster).map_err(|e| Error::input(&lod.store.path, e.to_string()))?;
+    let stats = rasterize(&fb, &batches.refs, &lod.grid, camera, &settings.raster).map_err(|error| Error::Render { path: lod.store.path.clone(), error: RenderError::Raster { error } })?;
     let raster_seconds = t0.elapsed().as_secs_f64();
     resolve_keys(lod, batches, fb.into_keys(), stats, raster_seconds, camera, settings)
 }
@@ -437,7 +433,7 @@ pub fn resolve_keys(
     let color = LodColor::of(&lod.store, settings.color)?;
     let t1 = Instant::now();
     if keys.par_iter().any(|&k| k != EMPTY_KEY && key_index(k) as u64 >= batches.samples) {
-        return Err(Error::input(&lod.store.path, "framebuffer holds a point index beyond the selected samples"));
+        return Err(Error::Render { path: lod.store.path.clone(), error: RenderError::StrayIndex { beyond: "the selected samples" } });
     }
     let bg = settings.resolve.background;
     // The visible samples, their values, then their colours.

@@ -140,12 +140,12 @@ impl<'a> CopcWriter<'a> {
         let extra = (rl - mortar_core::layout::base_len(frame.out.format).unwrap_or(rl)) as u16;
         let laz_vlr: LazVlr = LazVlrBuilder::default()
             .with_point_format(frame.out.format, extra)
-            .map_err(|e| Error::Usage(format!("cannot write LAZ for point format {}: {e}", frame.out.format)))?
+            .map_err(|error| Error::LazFormat { format: frame.out.format, error })?
             .with_variable_chunk_size()
             .build();
         let items = laz_vlr.items().clone();
         let mut laz_data = Vec::new();
-        laz_vlr.write_to(&mut laz_data).map_err(|e| Error::Usage(e.to_string()))?;
+        laz_vlr.write_to(&mut laz_data).map_err(|error| Error::LazSetup { error })?;
         // The CRS: WKT is what COPC readers want; GeoTIFF keys alone get the WKT of their EPSG code.
         let crs = crate::crs::CrsRecords::of(&ds.vlrs, &ds.evlrs);
         let mut wkt_vlr = None;
@@ -229,7 +229,7 @@ impl<'a> CopcWriter<'a> {
             evlr_start,
             evlr_count,
         })
-        .map_err(|e| Error::Usage(format!("{}: {e}", self.out.display())))
+        .map_err(|error| Error::Las { path: self.out.clone(), error })
     }
 }
 

@@ -41,7 +41,7 @@ pub mod potree;
 mod stream;
 
 use crate::dataset::Dataset;
-use crate::error::{Error, Result};
+use crate::error::{Error, ExportError, Result};
 use crate::sort::{self, PieceStats};
 use crate::store::engine::{self as eng, Sorted};
 use mortar_core::layout::{base_len, merge_layouts, read_xyz, write_xyz, Conversion, RecordLayout};
@@ -266,27 +266,26 @@ pub(crate) fn output_records<'r>(src: impl Iterator<Item = &'r [u8]>, n: usize, 
 
 /// The record layout COPC holds for `layout` (PDRF 6, 7 or 8 with the same extra bytes) and
 /// the conversion into it, or why there is none.
-pub(crate) fn output_layout(layout: &RecordLayout) -> std::result::Result<(RecordLayout, Option<Conversion>), String> {
+pub(crate) fn output_layout(layout: &RecordLayout) -> std::result::Result<(RecordLayout, Option<Conversion>), ExportError> {
     match layout.format {
         6..=8 => Ok((layout.clone(), None)),
-        4 | 5 | 9 | 10 => Err(format!(
-            "point format {} carries waveforms; COPC holds point formats 6, 7 and 8 only (give the points without waveforms, e.g. `pdal translate` to format {})",
-            layout.format,
-            if layout.format == 10 { 8 } else if layout.format == 5 { 7 } else { 6 }
-        )),
+        4 | 5 | 9 | 10 => Err(ExportError::Waveforms {
+            format: layout.format,
+            instead: if layout.format == 10 { 8 } else if layout.format == 5 { 7 } else { 6 },
+        }),
         f => {
             let extra = layout.record_len - base_len(f).unwrap_or(layout.record_len);
-            let six = RecordLayout::new(6, 30 + extra).map_err(|e| e.to_string())?;
-            let (target, convs) = merge_layouts(&[layout.clone(), six])?;
+            let six = RecordLayout::new(6, 30 + extra).map_err(|error| ExportError::Layout { error })?;
+            let (target, convs) = merge_layouts(&[layout.clone(), six]).map_err(|problem| ExportError::Convert { problem })?;
             Ok((target, convs.into_iter().next().flatten()))
         }
     }
 }
 
 /// The per-axis factors that make the grid's cells cubes in world units, or why there are none.
-fn stretch_factors(scale: [f64; 3]) -> std::result::Result<[i64; 3], String> {
+fn stretch_factors(scale: [f64; 3]) -> std::result::Result<[i64; 3], ExportError> {
     if !scale.iter().all(|s| s.is_finite() && *s > 0.0) {
-        return Err(format!("the scales {scale:?} are not all positive; the export needs positive scales (a reader's octree grows with the world coordinates)"));
+        return Err(ExportError::ScalesNotPositive { scale });
     }
     let smin = scale.iter().cloned().fold(f64::INFINITY, f64::min);
     let mut m = [1i64; 3];
@@ -294,9 +293,7 @@ fn stretch_factors(scale: [f64; 3]) -> std::result::Result<[i64; 3], String> {
         let r = scale[a] / smin;
         let k = r.round();
         if (r - k).abs() > 1e-6 * k || k > (1u64 << 20) as f64 {
-            return Err(format!(
-                "the scales {scale:?} are not whole multiples of one another, so no octree cube has whole cells on every axis (re-scale the input, e.g. with `las2las -rescale`)"
-            ));
+            return Err(ExportError::ScalesNotMultiples { scale });
         }
         m[a] = k as i64;
     }
@@ -307,8 +304,8 @@ fn stretch_factors(scale: [f64; 3]) -> std::result::Result<[i64; 3], String> {
 pub(crate) fn prepare(ds: &Dataset, opts: &ExportOptions, report: &mut ExportReport) -> Result<Prepared> {
     let t0 = Instant::now();
     let rl = ds.layout.record_len;
-    let (out, conv) = output_layout(&ds.layout).map_err(|e| Error::input(ds.inputs[0].path(), e))?;
-    let m = stretch_factors(ds.grid.scale).map_err(|e| Error::input(ds.inputs[0].path(), e))?;
+    let (out, conv) = output_layout(&ds.layout).map_err(|error| Error::Export { path: ds.inputs[0].path().to_path_buf(), error })?;
+    let m = stretch_factors(ds.grid.scale).map_err(|error| Error::Export { path: ds.inputs[0].path().to_path_buf(), error })?;
     let total = ds.declared_points();
     ds.progress.stage("reading", total, "points");
     let mut header_warnings = Vec::new();
@@ -320,7 +317,7 @@ pub(crate) fn prepare(ds: &Dataset, opts: &ExportOptions, report: &mut ExportRep
         all.merge(st);
     }
     if all.count == 0 {
-        return Err(Error::input(ds.inputs[0].path(), "no points to export"));
+        return Err(Error::NoPoints { path: ds.inputs[0].path().to_path_buf(), action: "export" });
     }
     report.read_seconds = t0.elapsed().as_secs_f64();
     let (lo, hi) = (all.min, all.max);
@@ -331,10 +328,7 @@ pub(crate) fn prepare(ds: &Dataset, opts: &ExportOptions, report: &mut ExportRep
     } else {
         for a in 0..3 {
             if (hi[a] as i64 - lo[a] as i64) * m[a] >= i32::MAX as i64 {
-                return Err(Error::input(ds.inputs[0].path(), format!(
-                    "its axes' scales {:?} differ, and its extent on axis {a} on the finest of them does not fit the octree's grid (2^31 units); re-scale it to one scale on all axes (e.g. `las2las -rescale`)",
-                    ds.grid.scale
-                )));
+                return Err(Error::ScalesDiffer { path: ds.inputs[0].path().to_path_buf(), scale: ds.grid.scale, axis: a });
             }
         }
         slabs
@@ -373,7 +367,7 @@ pub(crate) fn prepare(ds: &Dataset, opts: &ExportOptions, report: &mut ExportRep
     let n = sorted.arrival.len();
     let pos = |i: usize| read_xyz(sorted.record(i));
     let arrival = |i: usize| sorted.arrival[i];
-    let tree = build_sorted(root, n, &pos, &arrival, opts.config).map_err(|e| Error::Usage(format!("octree: {e}")))?;
+    let tree = build_sorted(root, n, &pos, &arrival, opts.config).map_err(|error| Error::Octree { error })?;
     let nodes = assign(&tree.nodes, n, &sorted, &ds.layout, opts.order, &[]);
     report.tree_seconds = tt.elapsed().as_secs_f64();
     report.warnings.extend(header_warnings);

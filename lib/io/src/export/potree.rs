@@ -303,7 +303,7 @@ impl NodeWriter for PotreeWriter<'_> {
             "attributes": attributes,
         });
         let mp = dir.join("metadata.json");
-        let text = serde_json::to_vec_pretty(&meta).map_err(|e| Error::input(&mp, e.to_string()))?;
+        let text = serde_json::to_vec_pretty(&meta).map_err(|error| Error::JsonFile { path: mp.clone(), error })?;
         std::fs::write(&mp, text).map_err(|e| Error::io(&mp, e))?;
         report.points = points;
         report.bytes = pos + hier.len() as u64 + std::fs::metadata(&mp).map(|m| m.len()).unwrap_or(0);

@@ -35,8 +35,8 @@ use std::time::Instant;
 pub(crate) fn export(ds: &Dataset, out: &Path, opts: &ExportOptions, report: &mut ExportReport) -> Result<Vec<OutNode>> {
     let t0 = Instant::now();
     let first = ds.inputs[0].path();
-    let (layout, conv) = output_layout(&ds.layout).map_err(|e| Error::input(first, e))?;
-    let m = stretch_factors(ds.grid.scale).map_err(|e| Error::input(first, e))?;
+    let (layout, conv) = output_layout(&ds.layout).map_err(|error| Error::Export { path: first.to_path_buf(), error })?;
+    let m = stretch_factors(ds.grid.scale).map_err(|error| Error::Export { path: first.to_path_buf(), error })?;
     let parent = out.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
     let state = TempPath::dir_in(parent, "export-runs").map_err(|e| Error::io(parent, e))?;
     let mut header_warnings = Vec::new();
@@ -46,15 +46,12 @@ pub(crate) fn export(ds: &Dataset, out: &Path, opts: &ExportOptions, report: &mu
     report.warnings.extend(part.warnings.iter().cloned());
     report.read_seconds = t0.elapsed().as_secs_f64();
     if part.all.count == 0 {
-        return Err(Error::input(first, "no points to export"));
+        return Err(Error::NoPoints { path: first.to_path_buf(), action: "export" });
     }
     let rl = ds.layout.record_len;
     let unit_points = ((opts.memory / 2) / unit_bytes_per_point(rl as u64)).max(opts.config.leaf_capacity as u64 + 1);
     if let Some(c) = part.hist.iter().max().filter(|&&c| c > unit_points) {
-        return Err(Error::Usage(format!(
-            "one cell of the partition holds {c} points, more than --memory ({} MiB) lets one unit hold ({unit_points}); give more --memory",
-            opts.memory >> 20
-        )));
+        return Err(Error::CellTooLarge { points: *c, memory_mib: opts.memory >> 20, unit_points });
     }
     let stretch = Stretch { base: part.base, m };
     let frame = Frame::of(ds, layout, &stretch, part.root);
@@ -175,7 +172,7 @@ impl Walk<'_, '_> {
         let tt = Instant::now();
         let pos = |i: usize| read_xyz(sorted.record(i));
         let arr = |i: usize| sorted.arrival[i];
-        let sub = build_subtree(key, cube, n, &pos, &arr, self.opts.config).map_err(|e| Error::Usage(format!("octree: {e}")))?;
+        let sub = build_subtree(key, cube, n, &pos, &arr, self.opts.config).map_err(|error| Error::Octree { error })?;
         let mut nodes = sub.nodes;
         // Level by level, depth-first (= Morton) order in a level, as `assign` wants.
         nodes.sort_by_key(|x| x.key.level);

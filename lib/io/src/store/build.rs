@@ -1,7 +1,7 @@
 //! `mortar build`: options, report, and the choice of engine.
 
 use crate::dataset::{Dataset, RecordSource};
-use crate::error::{Error, Result};
+use crate::error::{BoundsError, Error, Result, StoreError};
 use mortar_core::octree::BuilderConfig;
 use std::path::Path;
 use std::time::Instant;
@@ -132,13 +132,13 @@ pub(crate) fn header_bounds(ds: &Dataset, warnings: &mut Vec<String>) -> Option<
 
 /// The integer box the header of `src` declares (one unit of margin), on the merged grid, or
 /// why it is not usable.
-pub(crate) fn header_box(ds: &Dataset, src: &dyn RecordSource) -> std::result::Result<([i32; 3], [i32; 3]), String> {
+pub(crate) fn header_box(ds: &Dataset, src: &dyn RecordSource) -> std::result::Result<([i32; 3], [i32; 3]), BoundsError> {
     let h = src.header();
     if src.point_count() > 1 && (0..3).all(|a| h.min[a] == 0.0 && h.max[a] == 0.0) {
-        return Err("the header's bounds are all zero (not set by the writer)".into());
+        return Err(BoundsError::AllZero);
     }
     if let Some(a) = (0..3).find(|&a| !(h.min[a].is_finite() && h.max[a].is_finite()) || h.min[a] > h.max[a]) {
-        return Err(format!("the header's bounds on axis {} are not usable ({} .. {})", ['x', 'y', 'z'][a], h.min[a], h.max[a]));
+        return Err(BoundsError::Unusable { axis: ['x', 'y', 'z'][a], min: h.min[a], max: h.max[a] });
     }
     let c = |v: i64| v.clamp(i32::MIN as i64, i32::MAX as i64) as i32;
     Ok(([0, 1, 2].map(|a| c(ds.grid.to_int(a, h.min[a]).saturating_sub(1))), [0, 1, 2].map(|a| c(ds.grid.to_int(a, h.max[a]).saturating_add(1)))))
@@ -187,7 +187,7 @@ pub fn build(ds: &Dataset, dir: &Path, opts: &BuildOptions, progress: &mut dyn F
         Engine::Auto if first_come => Engine::Partitioned,
         Engine::Auto => Engine::Incremental,
         Engine::Sorted | Engine::Partitioned if !first_come => {
-            return Err(Error::Usage("the sorted engines make first-come voxel colours only; averaged colours need the incremental engine".into()));
+            return Err(Error::AveragedColours);
         }
         e => e,
     };
@@ -241,11 +241,7 @@ pub fn build(ds: &Dataset, dir: &Path, opts: &BuildOptions, progress: &mut dyn F
         Err(Error::Interrupted) => Err(Error::Interrupted),
         // Out of disk, or another failure of the file system, after a commit: the store keeps
         // its last commit, and `--resume` continues from it once there is room.
-        Err(e @ Error::Io { .. }) if writer.commits() > 0 => Err(Error::Usage(format!(
-            "{e}; the store {} keeps its last commit (commit {}), readable; `mortar build --resume` continues it",
-            dir.display(),
-            writer.commits()
-        ))),
+        Err(e @ Error::Io { .. }) if writer.commits() > 0 => Err(Error::KeptCommit { error: Box::new(e), store: dir.to_path_buf(), commit: writer.commits() }),
         Err(e) if resumed => Err(e),
         Err(e) => {
             // Not a store the user asked for: remove what was written (also after commits).
@@ -273,10 +269,10 @@ fn continue_store(dir: &Path, meta: &crate::dataset::SourceMeta, record: &BuildR
         return Ok(Continue::Fresh);
     }
     let Some(old) = BuildRecord::read(dir)? else {
-        return Err(Error::input(dir, "has no build record (build.json): not a store that `mortar build` began, or one begun by an older mortar; give a new directory"));
+        return Err(Error::Store { path: dir.to_path_buf(), error: StoreError::NoBuildRecord });
     };
     if let Some(m) = record.mismatch(&old) {
-        return Err(Error::input(dir, format!("{m}; give a new directory, or remove it to start over")));
+        return Err(Error::Store { path: dir.to_path_buf(), error: StoreError::Settings { mismatch: m } });
     }
     if old.complete {
         let s = super::reader::Store::open(dir)?;

@@ -11,7 +11,7 @@
 
 use super::format::*;
 use super::reader::Store;
-use crate::error::{Error, Result};
+use crate::error::{Error, Result, StoreError};
 use std::fs::File;
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -38,7 +38,7 @@ pub fn compact(dir: &Path) -> Result<CompactReport> {
     let (tmp, old) = (beside(dir, ".compacting"), beside(dir, ".old"));
     for p in [&tmp, &old] {
         if p.exists() {
-            return Err(Error::input(p, "is left from an earlier compaction that stopped; remove it (the store is the one without this suffix, or this one if that is missing)"));
+            return Err(Error::Store { path: p.to_path_buf(), error: StoreError::CompactionLeft });
         }
     }
     let store = Store::open(dir)?;
@@ -76,7 +76,7 @@ pub fn compact(dir: &Path) -> Result<CompactReport> {
     // The copy must read back as the same store before it replaces the old one.
     let check = Store::open(&tmp)?;
     if check.header.points != store.header.points || check.entries.len() != store.entries.len() {
-        return Err(Error::input(&tmp, "the compacted copy does not hold the store's nodes"));
+        return Err(Error::Store { path: tmp.clone(), error: StoreError::CompactionCheck });
     }
     drop(check);
     let nodes = store.entries.len() as u64;

@@ -44,7 +44,7 @@ use super::record::BuildRecord;
 use super::writer::StoreWriter;
 use crate::cleanup::TempPath;
 use crate::dataset::Dataset;
-use crate::error::{Error, Result};
+use crate::error::{Error, JobError, PartError, PlanError, Result};
 use crate::sort::PieceStats;
 use mortar_core::color::{ColorSource, RgbDepth};
 use mortar_core::layout::read_xyz;
@@ -123,12 +123,12 @@ impl Plan {
     /// Reads a plan and checks its checksum.
     pub fn read(path: &Path) -> Result<Plan> {
         let b = std::fs::read(path).map_err(|e| Error::io(path, e))?;
-        let p: Plan = serde_json::from_slice(&b).map_err(|e| Error::input(path, format!("not a plan of `mortar plan`: {e}")))?;
+        let p: Plan = serde_json::from_slice(&b).map_err(|error| Error::Plan { path: path.to_path_buf(), error: PlanError::NotPlan { error } })?;
         if p.format != PLAN_FORMAT {
-            return Err(Error::input(path, format!("a plan of format {:?}; this mortar reads {PLAN_FORMAT}", p.format)));
+            return Err(Error::Plan { path: path.to_path_buf(), error: PlanError::Format { found: p.format, supported: PLAN_FORMAT } });
         }
         if p.checksum() != p.id {
-            return Err(Error::input(path, "the plan was changed after `mortar plan` wrote it (its checksum does not match); plan again"));
+            return Err(Error::Plan { path: path.to_path_buf(), error: PlanError::Checksum });
         }
         // A checksum is no proof: everything the jobs index with is checked.
         let ok = p.root_size_log2 <= mortar_core::octree::MAX_ROOT_SIZE_LOG2
@@ -140,7 +140,7 @@ impl Plan {
                 j.inputs.iter().all(|&i| i < p.inputs.len()) && j.nodes.iter().all(|n| n[0] <= p.cell_depth as u32 && n[1..].iter().all(|&x| (x as u64) < 1u64 << n[0]))
             });
         if !ok {
-            return Err(Error::input(path, "not a plan this mortar can run (a root, depth, node or input index out of range); plan again"));
+            return Err(Error::Plan { path: path.to_path_buf(), error: PlanError::OutOfRange });
         }
         Ok(p)
     }
@@ -213,7 +213,7 @@ pub struct PlanOptions {
 /// Plans a build of `ds` in `opts.jobs` jobs.
 pub fn plan(ds: &Dataset, opts: &PlanOptions) -> Result<Plan> {
     if opts.jobs == 0 {
-        return Err(Error::Usage("--jobs must be at least 1".into()));
+        return Err(Error::Job { error: JobError::NoJobs });
     }
     let mut warnings = Vec::new();
     let mut inputs = Vec::with_capacity(ds.inputs.len());
@@ -226,14 +226,14 @@ pub fn plan(ds: &Dataset, opts: &PlanOptions) -> Result<Plan> {
         } else if src.point_count() == 0 {
             None
         } else {
-            Some(header_box(ds, src.as_ref()).map_err(|why| Error::input(src.path(), format!("{why}; plan with --scan (which reads the points for their box)")))?)
+            Some(header_box(ds, src.as_ref()).map_err(|error| Error::Plan { path: src.path().to_path_buf(), error: PlanError::HeaderBox { error } })?)
         };
         let points = if opts.scan { real[i].count } else { src.point_count() };
         inputs.push(PlanInput { path: path.display().to_string(), bytes, points, bounds });
     }
     let boxes: Vec<_> = inputs.iter().filter_map(|i| i.bounds).collect();
     if boxes.is_empty() {
-        return Err(Error::input(ds.inputs[0].path(), "no points to build"));
+        return Err(Error::NoPoints { path: ds.inputs[0].path().to_path_buf(), action: "build" });
     }
     let lo = [0, 1, 2].map(|a| boxes.iter().map(|b| b.0[a]).min().unwrap_or(0));
     let hi = [0, 1, 2].map(|a| boxes.iter().map(|b| b.1[a]).max().unwrap_or(0));
@@ -370,21 +370,21 @@ fn color_of(rgb_offset: Option<usize>, max_rgb: u16, max_intensity: u16) -> Colo
 pub fn build_job(ds: &Dataset, plan: &Plan, job: usize, out: &Path, memory: u64) -> Result<JobReport> {
     let t0 = Instant::now();
     let Some(pj) = plan.jobs.get(job) else {
-        return Err(Error::Usage(format!("--job {job}: the plan has jobs 0 to {}", plan.jobs.len() - 1)));
+        return Err(Error::Job { error: JobError::NoSuchJob { job, last: plan.jobs.len() - 1 } });
     };
     if ds.inputs.len() != plan.inputs.len() {
-        return Err(Error::Usage(format!("the plan names {} inputs, {} were opened", plan.inputs.len(), ds.inputs.len())));
+        return Err(Error::Job { error: JobError::Inputs { planned: plan.inputs.len(), opened: ds.inputs.len() } });
     }
     for (src, pi) in ds.inputs.iter().zip(&plan.inputs) {
         let bytes = std::fs::metadata(src.path()).map(|m| m.len()).unwrap_or(0);
         if bytes != pi.bytes || (!plan.scanned && src.point_count() != pi.points) {
-            return Err(Error::input(src.path(), format!("is not the file the plan was made from ({} bytes and {} points now, {} and {} in the plan); plan again", bytes, src.point_count(), pi.bytes, pi.points)));
+            return Err(Error::Plan { path: src.path().to_path_buf(), error: PlanError::OtherFile { bytes, points: src.point_count(), plan_bytes: pi.bytes, plan_points: pi.points } });
         }
     }
     let root = plan.root();
     let depth = cell_depth(root, plan.max_level);
     if depth != plan.cell_depth {
-        return Err(Error::Usage(format!("the plan's cells are at depth {}, this mortar makes them at {depth}; plan again", plan.cell_depth)));
+        return Err(Error::Job { error: JobError::CellDepth { planned: plan.cell_depth, ours: depth } });
     }
     let units: Vec<(NodeKey, Cube, std::ops::Range<usize>)> = pj
         .nodes
@@ -392,7 +392,7 @@ pub fn build_job(ds: &Dataset, plan: &Plan, job: usize, out: &Path, memory: u64)
         .map(|n| {
             let k = NodeKey { level: n[0] as u8, index: [n[1], n[2], n[3]] };
             if k.level > depth || (0..3).any(|a| k.index[a] as u64 >= 1u64 << k.level) {
-                return Err(Error::Usage(format!("the plan's node {n:?} is not in its tree")));
+                return Err(Error::Job { error: JobError::NodeOutside { node: *n } });
             }
             Ok((k, cube_of(root, k), cells_of(k, depth)))
         })
@@ -405,7 +405,7 @@ pub fn build_job(ds: &Dataset, plan: &Plan, job: usize, out: &Path, memory: u64)
     let filter = Filter { pieces: ds.pieces().iter().map(|p| read[p.input]).collect(), cells };
     let parent = out.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
     if !parent.is_dir() {
-        return Err(Error::Usage(format!("{}: its directory {} does not exist", out.display(), parent.display())));
+        return Err(Error::NoParentDirectory { path: out.to_path_buf(), parent: parent.to_path_buf() });
     }
     remove_stale_attempts(out);
     let tmp = TempPath::beside(out);
@@ -420,10 +420,10 @@ pub fn build_job(ds: &Dataset, plan: &Plan, job: usize, out: &Path, memory: u64)
         let (st, b) = (&real[i], plan.inputs[i].bounds);
         if let Some((lo, hi)) = b.filter(|_| st.count > 0) {
             if (0..3).any(|a| st.min[a] < lo[a] || st.max[a] > hi[a]) {
-                return Err(Error::input(ds.inputs[i].path(), format!(
-                    "its points reach outside the box the plan took for it ({:?} .. {:?} against {lo:?} .. {hi:?} on the grid){}; plan again with --scan",
-                    st.min, st.max, if plan.scanned { " (the file changed since)" } else { " (its header's bounds are wrong)" }
-                )));
+                return Err(Error::Plan {
+                    path: ds.inputs[i].path().to_path_buf(),
+                    error: PlanError::OutsideBox { min: st.min, max: st.max, lo, hi, scanned: plan.scanned },
+                });
             }
         }
     }
@@ -475,7 +475,7 @@ pub fn build_job(ds: &Dataset, plan: &Plan, job: usize, out: &Path, memory: u64)
     // An earlier attempt is replaced whole.
     if out.exists() {
         if !out.join(PART_FILE).is_file() && std::fs::read_dir(out).map_err(|e| Error::io(out, e))?.next().is_some() {
-            return Err(Error::input(out, "exists and is neither a part nor empty; give a new directory for the part"));
+            return Err(Error::Part { path: out.to_path_buf(), error: PartError::NotEmpty });
         }
         std::fs::remove_dir_all(out).map_err(|e| Error::io(out, e))?;
     }
@@ -528,18 +528,18 @@ struct Part {
 
 fn read_part(dir: &Path) -> Result<Part> {
     let pp = dir.join(PART_FILE);
-    let b = std::fs::read(&pp).map_err(|_| Error::input(dir, "is not a part of `mortar build --plan` (no part.json): its job did not finish, or it is another directory"))?;
-    let file: PartFile = serde_json::from_slice(&b).map_err(|e| Error::input(&pp, format!("not a part description: {e}")))?;
+    let b = std::fs::read(&pp).map_err(|_| Error::Part { path: dir.to_path_buf(), error: PartError::NotPart })?;
+    let file: PartFile = serde_json::from_slice(&b).map_err(|error| Error::Part { path: pp.clone(), error: PartError::BadDescription { error } })?;
     let ep = dir.join(ENTRIES_FILE);
     let eb = std::fs::read(&ep).map_err(|e| Error::io(&ep, e))?;
     let es = std::mem::size_of::<NodeEntry>();
     if eb.len() as u64 != file.entries * es as u64 {
-        return Err(Error::input(&ep, "damaged: another size than part.json says; run its job again"));
+        return Err(Error::Part { path: ep, error: PartError::Damaged { what: "another size than part.json says" } });
     }
     let entries: Vec<NodeEntry> = eb.chunks_exact(es).map(bytemuck::pod_read_unaligned).collect();
     let nl = std::fs::metadata(dir.join(NODES_FILE)).map(|m| m.len()).unwrap_or(u64::MAX);
     if nl != file.nodes_len || entries.iter().any(|e| e.offset.checked_add(e.length).is_none_or(|end| end > nl)) {
-        return Err(Error::input(dir, "damaged: nodes.bin is not what part.json says; run its job again"));
+        return Err(Error::Part { path: dir.to_path_buf(), error: PartError::Damaged { what: "nodes.bin is not what part.json says" } });
     }
     Ok(Part { dir: dir.to_path_buf(), file, entries })
 }
@@ -548,37 +548,37 @@ fn read_part(dir: &Path) -> Result<Part> {
 pub fn merge(dirs: &[PathBuf], out: &Path) -> Result<MergeReport> {
     let t0 = Instant::now();
     if dirs.is_empty() {
-        return Err(Error::Usage("give the parts to merge".into()));
+        return Err(Error::Job { error: JobError::NoParts });
     }
     let parts: Vec<Part> = dirs.iter().map(|d| read_part(d)).collect::<Result<_>>()?;
     let plan = &parts[0].file.plan;
     let mut by_job: Vec<Option<usize>> = vec![None; plan.jobs.len()];
     for (i, p) in parts.iter().enumerate() {
         if p.file.plan.id != plan.id || p.file.plan != *plan {
-            return Err(Error::input(&p.dir, format!("was built from another plan (id {}) than {} (id {}); merge the parts of one plan", p.file.plan.id, parts[0].dir.display(), plan.id)));
+            return Err(Error::Part { path: p.dir.clone(), error: PartError::OtherPlan { id: p.file.plan.id.clone(), first: parts[0].dir.clone(), first_id: plan.id.clone() } });
         }
         match by_job.get_mut(p.file.job) {
-            Some(Some(o)) => return Err(Error::input(&p.dir, format!("is job {} again (as {}); give each part once", p.file.job, parts[*o].dir.display()))),
+            Some(Some(o)) => return Err(Error::Part { path: p.dir.clone(), error: PartError::Repeated { job: p.file.job, first: parts[*o].dir.clone() } }),
             Some(slot) => *slot = Some(i),
-            None => return Err(Error::input(&p.dir, format!("is job {}, the plan has {}", p.file.job, plan.jobs.len()))),
+            None => return Err(Error::Part { path: p.dir.clone(), error: PartError::NoSuchJob { job: p.file.job, jobs: plan.jobs.len() } }),
         }
     }
     if let Some(j) = by_job.iter().position(|s| s.is_none()) {
         let missing: Vec<usize> = by_job.iter().enumerate().filter(|(_, s)| s.is_none()).map(|(j, _)| j).collect();
-        return Err(Error::Usage(format!("the plan has {} jobs and part {j} is missing (missing: {missing:?}); run those jobs and merge all parts", plan.jobs.len())));
+        return Err(Error::Job { error: JobError::MissingParts { jobs: plan.jobs.len(), first: j, missing } });
     }
     let source = std::fs::read(parts[0].dir.join(SOURCE_FILE)).map_err(|e| Error::io(&parts[0].dir, e))?;
     for p in &parts[1..] {
         if std::fs::read(p.dir.join(SOURCE_FILE)).ok().as_deref() != Some(&source[..]) {
-            return Err(Error::input(&p.dir, format!("its source.las differs from {}'s: built from other inputs", parts[0].dir.display())));
+            return Err(Error::Part { path: p.dir.clone(), error: PartError::OtherInputs { first: parts[0].dir.clone() } });
         }
     }
     if out.exists() && !(out.is_dir() && std::fs::read_dir(out).map_err(|e| Error::io(out, e))?.next().is_none()) {
-        return Err(Error::input(out, "exists and is not an empty directory; give a new directory for the store"));
+        return Err(Error::Store { path: out.to_path_buf(), error: crate::error::StoreError::NotEmpty });
     }
     let parent = out.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
     if !parent.is_dir() {
-        return Err(Error::Usage(format!("{}: its directory {} does not exist", out.display(), parent.display())));
+        return Err(Error::NoParentDirectory { path: out.to_path_buf(), parent: parent.to_path_buf() });
     }
     // The whole input's statistics and colours.
     let f0 = &parts[0].file;
@@ -621,7 +621,7 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> Result<MergeReport> {
             let mut c = Cands::default();
             let end = at + n.candidates as usize * one;
             if end > b.len() {
-                return Err(Error::input(&cp, "damaged: shorter than part.json says; run its job again"));
+                return Err(Error::Part { path: cp.clone(), error: PartError::Damaged { what: "shorter than part.json says" } });
             }
             while at < end {
                 let q = [0, 1, 2].map(|a| i32::from_le_bytes(b[at + 4 * a..at + 4 * a + 4].try_into().expect("4 bytes")));
@@ -668,7 +668,7 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> Result<MergeReport> {
                 .map(|(e, off)| {
                     let mut b = bytes[e.offset as usize..(e.offset + e.length) as usize].to_vec();
                     if !same_color {
-                        recolour(&mut b, &color, rl).map_err(|m| Error::input(&p.dir, m))?;
+                        recolour(&mut b, &color, rl).map_err(|error| Error::Payload { path: p.dir.clone(), error })?;
                     }
                     w.write_at(off, &b)?;
                     Ok(NodeEntry { offset: off, ..**e })
@@ -696,11 +696,11 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> Result<MergeReport> {
 }
 
 /// Rewrites the colours of a payload with `color` (from its records: position and attributes).
-fn recolour(b: &mut [u8], color: &ColorSource, rl: usize) -> std::result::Result<(), String> {
+fn recolour(b: &mut [u8], color: &ColorSource, rl: usize) -> std::result::Result<(), PayloadError> {
     let d = DecodedLeaf::parse(b)?;
     let n = d.count;
     if d.attr_len + 12 != rl {
-        return Err("damaged payload: another record length".into());
+        return Err(PayloadError::RecordLength);
     }
     let mut rec = vec![0u8; rl];
     let cols: Vec<u32> = (0..n)
@@ -755,7 +755,7 @@ impl Top<'_> {
                 .entries
                 .iter()
                 .find(|e| e.level == key.level as u32 && e.index == key.index && e.kind == LEAF)
-                .ok_or_else(|| Error::input(&p.dir, format!("damaged: no leaf for its subtree {}; run its job again", key.name())))?;
+                .ok_or_else(|| Error::Part { path: p.dir.clone(), error: PartError::NoLeaf { subtree: key.name() } })?;
             let src = p.dir.join(NODES_FILE);
             let mut b = vec![0u8; e.length as usize];
             {
@@ -763,11 +763,11 @@ impl Top<'_> {
                 let f = std::fs::File::open(&src).map_err(|x| Error::io(&src, x))?;
                 f.read_exact_at(&mut b, e.offset).map_err(|x| Error::io(&src, x))?;
             }
-            let records = records_of(&b, self.rl).map_err(|m| Error::input(&p.dir, m))?;
+            let records = records_of(&b, self.rl).map_err(|error| Error::Payload { path: p.dir.clone(), error })?;
             return Ok(Visit::Small { cands, count, records, unit: true });
         }
         if key.level >= self.plan.cell_depth {
-            return Err(Error::Usage(format!("the plan's nodes do not cover node {} of the tree", key.name())));
+            return Err(Error::Job { error: JobError::Uncovered { node: key.name() } });
         }
         let mut kids = Vec::with_capacity(8);
         let mut voxels = Cands::default();
@@ -799,7 +799,7 @@ impl Top<'_> {
             return Ok(Visit::Small { cands: up(&voxels), count, records, unit: false });
         }
         if !splits(count, key, cube, &self.plan.config()) {
-            return Err(Error::Usage(format!("node {} holds {count} points and cannot split, but the plan split it", key.name())));
+            return Err(Error::Job { error: JobError::CannotSplit { node: key.name(), count } });
         }
         // Inner: small children are leaves; those the parts hold as leaves stay as they are.
         for (o, k) in kids.into_iter().enumerate() {
@@ -809,7 +809,7 @@ impl Top<'_> {
         }
         let color = &self.color;
         let (e, b) = encode_payload(key, INNER, voxels.pos.len(), rl - 12, |i| voxels.pos[i], |i| color.rgba(&voxels.records[i * rl..(i + 1) * rl]), |i| &voxels.records[i * rl + 12..(i + 1) * rl])
-            .map_err(|m| Error::Usage(format!("node {}: {m}", key.name())))?;
+            .map_err(|m| Error::MergePayload { error: m.in_node(key.name()) })?;
         self.made.push((e, b));
         Ok(Visit::Big { cands: up(&voxels), count })
     }
@@ -832,17 +832,17 @@ impl Top<'_> {
         let n = records.len() / rl;
         let color = &self.color;
         let (e, b) = encode_payload(key, LEAF, n, rl - 12, |i| read_xyz(&records[i * rl..]), |i| color.rgba(&records[i * rl..(i + 1) * rl]), |i| &records[i * rl + 12..(i + 1) * rl])
-            .map_err(|m| Error::Usage(format!("node {}: {m}", key.name())))?;
+            .map_err(|m| Error::MergePayload { error: m.in_node(key.name()) })?;
         self.made.push((e, b));
         Ok(())
     }
 }
 
 /// The records (position and attributes) of a payload, in its order.
-fn records_of(b: &[u8], rl: usize) -> std::result::Result<Vec<u8>, String> {
+fn records_of(b: &[u8], rl: usize) -> std::result::Result<Vec<u8>, PayloadError> {
     let d = DecodedLeaf::parse(b)?;
     if d.attr_len + 12 != rl {
-        return Err("damaged payload: another record length".into());
+        return Err(PayloadError::RecordLength);
     }
     let mut out = vec![0u8; d.count * rl];
     for (i, r) in out.chunks_exact_mut(rl).enumerate() {

@@ -17,7 +17,7 @@ use super::format::*;
 use super::writer::*;
 use crate::dataset::Dataset;
 use crate::progress::Progress;
-use crate::error::{Error, Result};
+use crate::error::{Error, Result, StoreError};
 use crate::sort::{self, Key, PieceStats};
 use mortar_core::color::{ColorSource, RgbDepth};
 use mortar_core::layout::read_xyz;
@@ -252,7 +252,7 @@ pub(crate) fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOpt
     let n = sorted.arrival.len();
     let pos = |i: usize| read_xyz(sorted.record(i));
     let arrival = |i: usize| sorted.arrival[i];
-    let tree = build_sorted(root, n, &pos, &arrival, opts.config).map_err(|e| Error::Usage(format!("octree: {e}")))?;
+    let tree = build_sorted(root, n, &pos, &arrival, opts.config).map_err(|error| Error::Octree { error })?;
     report.tree_seconds = tt.elapsed().as_secs_f64();
     report.batch_seconds.push(report.tree_seconds);
     sort::trace("tree", t0);
@@ -282,7 +282,7 @@ pub(crate) fn read_pieces(ds: &Dataset, root: Cube) -> Result<(Vec<(std::borrow:
     ds.inputs.par_iter().for_each(|i| i.prefetch());
     let pieces = ds.pieces();
     if pieces.len() > u32::MAX as usize || pieces.iter().any(|p| p.piece.points > u32::MAX as u64) {
-        return Err(Error::Usage("too many points for one in-memory build".into()));
+        return Err(Error::TooManyPoints { what: "build" });
     }
     let out: Vec<((std::borrow::Cow<'_, [u8]>, PieceStats), Vec<u32>)> = pieces
         .par_iter()
@@ -290,7 +290,7 @@ pub(crate) fn read_pieces(ds: &Dataset, root: Cube) -> Result<(Vec<(std::borrow:
             sort::check_interrupted()?;
             let slab = ds.read_piece(p)?;
             if slab.len() as u64 != p.piece.points * rl as u64 {
-                return Err(Error::input(ds.inputs[p.input].path(), format!("piece {} holds another number of points than declared", p.piece.index)));
+                return Err(Error::PieceCount { path: ds.inputs[p.input].path().to_path_buf(), piece: p.piece.index });
             }
             let mut h = vec![0u32; 1 << BUCKET_BITS];
             let st = PieceStats::of_with(&slab, &ds.layout, |_, q| {
@@ -331,7 +331,7 @@ fn write_tree(
         let same = kept.len() <= tree.nodes.len()
             && kept.iter().zip(&tree.nodes).all(|(e, n)| e.level == n.key.level as u32 && e.index == n.key.index && (e.kind == LEAF) == n.is_leaf() && e.count == n.count() as u64);
         if !whole || !same {
-            return Err(Error::input(&writer.dir, "its committed nodes are not those the inputs give (the store was changed, or built by another mortar); give a new directory"));
+            return Err(Error::Store { path: writer.dir.clone(), error: StoreError::CommittedNodes });
         }
         report.kept_nodes = kept.len() as u64;
         prog.add(kept.len() as u64);
@@ -347,7 +347,7 @@ fn write_tree(
         };
         encode_payload(n.key, kind, n.count(), attr_len, |i| read_xyz(sorted.record(idx(i))), |i| color.rgba(sorted.record(idx(i))), |i| &sorted.record(idx(i))[12..])
             .map(|(e, b)| (id, e, b))
-            .map_err(|m| Error::input(&dir, m))
+            .map_err(|error| Error::Payload { path: dir.clone(), error })
     };
     for level in &levels {
         if level.end <= kept.len() {

@@ -127,15 +127,51 @@ pub(crate) struct DecodedLeaf<'a> {
     pub(crate) attr_len: usize,
 }
 
+/// Why a node payload cannot be read or written.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum PayloadError {
+    /// The payload is shorter than its header.
+    #[error("payload shorter than its header")]
+    Short,
+    /// The payload's header is damaged (magic, kind, length or bit widths).
+    #[error("damaged payload")]
+    Damaged,
+    /// The payload holds records of another length than the store's.
+    #[error("damaged payload: another record length")]
+    RecordLength,
+    /// More points than a payload can count.
+    #[error("node {node} holds {count} points, more than a payload can (2^32 - 1)")]
+    TooManyPoints { node: String, count: usize },
+    /// The node's points span more than a payload's grid.
+    #[error("node {node} spans more than 2^30 grid units on an axis")]
+    TooWide { node: String },
+    /// A node's last payload does not hold the points the builder saved in it.
+    #[error("node {node}: its last payload does not match the points saved")]
+    Stale { node: String },
+    /// The attributes gathered for a node are not those of its points.
+    #[error("node {node}: {bytes} bytes of attributes for {count} points")]
+    AttributeBytes { node: String, bytes: usize, count: usize },
+    /// A payload error of node `node`.
+    #[error("node {node}: {error}")]
+    InNode { node: String, error: Box<PayloadError> },
+}
+
+impl PayloadError {
+    /// `self` as an error of node `node`.
+    pub(crate) fn in_node(self, node: impl ToString) -> PayloadError {
+        PayloadError::InNode { node: node.to_string(), error: Box::new(self) }
+    }
+}
+
 impl<'a> DecodedLeaf<'a> {
-    pub(crate) fn parse(b: &'a [u8]) -> std::result::Result<DecodedLeaf<'a>, String> {
+    pub(crate) fn parse(b: &'a [u8]) -> std::result::Result<DecodedLeaf<'a>, PayloadError> {
         if b.len() < 64 {
-            return Err("payload shorter than its header".into());
+            return Err(PayloadError::Short);
         }
         let h: NodeHeader = bytemuck::pod_read_unaligned(&b[..64]);
         let (n, al) = (h.count as usize, h.attr_len as usize);
         if h.magic != NODE_MAGIC || h.kind > INNER || (b.len() as u64) < payload_len(n as u64, al as u64) || h.bits[..3].iter().any(|&x| x > 30) {
-            return Err("damaged payload".into());
+            return Err(PayloadError::Damaged);
         }
         let w = |k: usize| &b[64 + 4 * n * k..64 + 4 * n * (k + 1)];
         Ok(DecodedLeaf {
@@ -178,9 +214,9 @@ pub(crate) fn encode_payload<'r>(
     pos: impl Fn(usize) -> [i32; 3],
     color: impl Fn(usize) -> u32,
     attrs: impl Fn(usize) -> &'r [u8],
-) -> std::result::Result<(NodeEntry, Vec<u8>), String> {
+) -> std::result::Result<(NodeEntry, Vec<u8>), PayloadError> {
     if count > u32::MAX as usize {
-        return Err(format!("node {} holds {count} points, more than a payload can (2^32 - 1)", key.name()));
+        return Err(PayloadError::TooManyPoints { node: key.name(), count });
     }
     let (mut lo, mut hi) = ([i32::MAX; 3], [i32::MIN; 3]);
     for i in 0..count {
@@ -193,7 +229,7 @@ pub(crate) fn encode_payload<'r>(
     if count == 0 {
         (lo, hi) = ([0; 3], [0; 3]);
     }
-    let grid = BatchGrid::for_bounds(lo, hi).ok_or_else(|| format!("node {} spans more than 2^30 grid units on an axis", key.name()))?;
+    let grid = BatchGrid::for_bounds(lo, hi).ok_or_else(|| PayloadError::TooWide { node: key.name() })?;
     let len = payload_len(count as u64, attr_len as u64) as usize;
     let mut out = vec![0u8; len];
     let header = NodeHeader {

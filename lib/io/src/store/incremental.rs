@@ -47,7 +47,7 @@ pub(crate) fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOpt
         }
         let tr = Instant::now();
         let base = records.len();
-        let bytes = usize::try_from(n).ok().and_then(|n| n.checked_mul(rl)).ok_or_else(|| Error::Usage(format!("a piece of {n} points does not fit in memory")))?;
+        let bytes = usize::try_from(n).ok().and_then(|n| n.checked_mul(rl)).ok_or(Error::PieceTooLarge { points: n })?;
         records.resize(base + bytes, 0);
         {
             let mut slices = Vec::with_capacity(next - first);
@@ -84,7 +84,7 @@ pub(crate) fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOpt
                 Some((l, h)) if (0..3).all(|a| l[a] <= st.min[a] && st.max[a] <= h[a]) => (l, h),
                 _ => (st.min, st.max),
             };
-            builder = Some(Builder::for_bounds(l, h, opts.config).map_err(|e| Error::Usage(format!("octree: {e}")))?);
+            builder = Some(Builder::for_bounds(l, h, opts.config).map_err(|error| Error::Octree { error })?);
         }
         let Some(builder) = builder.as_mut() else { continue };
         if st.count > 0 {
@@ -116,8 +116,8 @@ pub(crate) fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOpt
                     w.page_in(id.index(), None, &paged).map_err(|e| e.to_string())
                 };
                 let st = builder.add_batch_paged(&points, &page_in).map_err(|e| match e {
-                    OctreeError::PageIn(m) => Error::input(&w.dir, format!("reading a node back: {m}")),
-                    e => Error::Usage(format!("octree: {e}")),
+                    OctreeError::PageIn(problem) => Error::PageIn { path: w.dir.clone(), problem },
+                    error => Error::Octree { error },
                 })?;
                 report.root_growths += st.growths as u64;
             }
@@ -144,7 +144,7 @@ pub(crate) fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOpt
     }
     let builder = match builder.as_mut() {
         Some(b) => b,
-        None => builder.insert(Builder::for_bounds([0; 3], [0; 3], opts.config).map_err(|e| Error::Usage(format!("octree: {e}")))?),
+        None => builder.insert(Builder::for_bounds([0; 3], [0; 3], opts.config).map_err(|error| Error::Octree { error })?),
     };
     let all = records.len();
     commit_and_page_out(writer, builder, (lo, hi), &mut records, all, &paged, rl, &mut report)?;
@@ -171,7 +171,7 @@ pub(crate) fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOpt
 pub(crate) fn commit_and_page_out(writer: &mut StoreWriter, builder: &mut Builder, bounds: ([i32; 3], [i32; 3]), records: &mut Vec<u8>, added: usize, paged: &std::sync::Mutex<Vec<u8>>, rl: usize, report: &mut BuildReport) -> Result<()> {
     let tc = Instant::now();
     {
-        let paged = paged.lock().map_err(|_| Error::Usage("a page-in thread panicked".into()))?;
+        let paged = paged.lock().map_err(|_| Error::ThreadPanicked { thread: "a page-in" })?;
         let recs: &[u8] = records;
         let pg: &[u8] = &paged;
         let record = |h: u64| -> &[u8] {

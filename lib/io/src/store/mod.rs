@@ -40,7 +40,7 @@ pub(crate) use build::header_bounds as header_bounds_of;
 pub use build::{build, BuildOptions, BuildProgress, BuildReport, Engine};
 pub use compact::{compact, CompactReport};
 pub use engine::in_memory_need;
-pub use format::{HierarchyHeader, NodeEntry, NodeHeader, HIERARCHY_FILE, INNER, LEAF, NODES_FILE, SOURCE_FILE};
+pub use format::{HierarchyHeader, NodeEntry, NodeHeader, PayloadError, HIERARCHY_FILE, INNER, LEAF, NODES_FILE, SOURCE_FILE};
 pub use reader::{is_store, NodeData, Store};
 pub use record::{BuildRecord, InputPrint, RECORD_FILE};
 pub use writer::{CommitStats, StoreWriter, COMMIT_GROUP_BYTES, PAGED};

@@ -450,10 +450,7 @@ pub(crate) fn partition_all(ds: &Dataset, memory: u64, max_level: u8, stretch: [
         for a in 0..3 {
             let v = (hi[a] as i64 - lo[a] as i64) * stretch[a];
             if v >= i32::MAX as i64 {
-                return Err(Error::input(ds.inputs[0].path(), format!(
-                    "its axes' scales {:?} differ, and its extent on axis {a} on the finest of them does not fit the octree's grid (2^31 units); re-scale it to one scale on all axes (e.g. `las2las -rescale`)",
-                    ds.grid.scale
-                )));
+                return Err(Error::ScalesDiffer { path: ds.inputs[0].path().to_path_buf(), scale: ds.grid.scale, axis: a });
             }
             t[a] = v as i32;
         }
@@ -541,7 +538,7 @@ fn partition(ds: &Dataset, root: Cube, grid: Grid, max_level: u8, block_bytes: u
                 let p = &pieces[k].1;
                 let slab = ds.read_piece(p)?;
                 if slab.len() as u64 != p.piece.points * rl as u64 {
-                    return Err(Error::input(ds.inputs[p.input].path(), format!("piece {} holds another number of points than declared", p.piece.index)));
+                    return Err(Error::PieceCount { path: ds.inputs[p.input].path().to_path_buf(), piece: p.piece.index });
                 }
                 let mut h = vec![0u32; cells];
                 for r in slab.chunks_exact(rl) {
@@ -673,7 +670,7 @@ impl Walk<'_, '_> {
         let rl = self.rl;
         let color = &self.color;
         let (e, b) = encode_payload(key, INNER, voxels.pos.len(), rl - 12, |i| voxels.pos[i], |i| color.rgba(&voxels.records[i * rl..(i + 1) * rl]), |i| &voxels.records[i * rl + 12..(i + 1) * rl])
-            .map_err(|m| Error::input(&self.writer.dir, m))?;
+            .map_err(|error| Error::Payload { path: self.writer.dir.clone(), error })?;
         let before = self.entries.len();
         self.put(seq, e, &b)?;
         let out = voxels.pick(&voxels.for_parent(key, cube), rl);
@@ -710,7 +707,7 @@ impl Walk<'_, '_> {
         let tt = Instant::now();
         let pos = |i: usize| read_xyz(sorted.record(i));
         let arr = |i: usize| sorted.arrival[i];
-        let sub = build_subtree(key, cube, n, &pos, &arr, self.opts.config).map_err(|e| Error::Usage(format!("octree: {e}")))?;
+        let sub = build_subtree(key, cube, n, &pos, &arr, self.opts.config).map_err(|error| Error::Octree { error })?;
         self.report.tree_seconds += tt.elapsed().as_secs_f64();
         let tw = Instant::now();
         let base = self.seq;
@@ -742,7 +739,7 @@ impl Walk<'_, '_> {
                         SortedContent::Inner(v) => (INNER, Box::new(move |i| v[i] as usize)),
                     };
                     let (mut e, b) = encode_payload(nd.key, kind, nd.count(), attr_len, |i| read_xyz(sorted.record(idx(i))), |i| color.rgba(sorted.record(idx(i))), |i| &sorted.record(idx(i))[12..])
-                        .map_err(|m| Error::input(&dir, m))?;
+                        .map_err(|error| Error::Payload { path: dir.clone(), error })?;
                     w.write_at(off, &b)?;
                     e.offset = off;
                     Ok((e, checksum(&b)))
@@ -779,7 +776,7 @@ pub(crate) fn read_unit(runs: &[Run], root: Cube, key: NodeKey, cells: std::ops:
         for run in runs {
             let m = (run.starts[cells.end] - run.starts[cells.start]) as usize;
             if m > ar.len() {
-                return Err(Error::input(dir, "internal: the run files hold more points than counted"));
+                return Err(Error::Internal { path: dir.to_path_buf(), what: "the run files hold more points than counted" });
             }
             let (x, y) = std::mem::take(&mut rr).split_at_mut(m * rl);
             let (u, v) = std::mem::take(&mut ar).split_at_mut(m);
@@ -788,7 +785,7 @@ pub(crate) fn read_unit(runs: &[Run], root: Cube, key: NodeKey, cells: std::ops:
             ar = v;
         }
         if !ar.is_empty() {
-            return Err(Error::input(dir, "internal: the run files hold fewer points than counted"));
+            return Err(Error::Internal { path: dir.to_path_buf(), what: "the run files hold fewer points than counted" });
         }
     }
     let cs = cells.start;
@@ -854,7 +851,7 @@ pub(crate) fn build_units(ds: &Dataset, writer: &mut StoreWriter, config: mortar
     let opts = BuildOptions { config, batch_points: 0, commit_every: f64::INFINITY, first_commit_after: None, memory, engine: super::build::Engine::Partitioned, resume: false };
     let unit_points = ((memory / 2) / unit_bytes_per_point(rl as u64)).max(config.leaf_capacity as u64 + 1);
     if let Some(c) = hist.iter().max().filter(|&&c| c > unit_points) {
-        return Err(Error::Usage(format!("one cell of the partition holds {c} points, more than --memory ({} MiB) lets one unit hold ({unit_points}); give more --memory", memory >> 20)));
+        return Err(Error::CellTooLarge { points: *c, memory_mib: memory >> 20, unit_points });
     }
     let log_path = state.join(LOG);
     let log = std::fs::OpenOptions::new().create(true).append(true).open(&log_path).map_err(|e| Error::io(&log_path, e))?;

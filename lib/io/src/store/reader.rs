@@ -1,7 +1,7 @@
 //! Reading a store's last commit.
 
 use crate::dataset::RecordSource;
-use crate::error::{Error, Result};
+use crate::error::{Error, Result, StoreError};
 use crate::las::{self, Header, Vlr};
 use crate::source::{LasInput, Piece};
 use memmap2::Mmap;
@@ -58,30 +58,30 @@ impl Store {
     /// Opens the last commit of the store `dir`, checking every length against the bytes that
     /// exist.
     pub fn open(dir: &Path) -> Result<Store> {
-        let bad = |m: String| Error::input(dir, m);
+        let bad = |error: StoreError| Error::Store { path: dir.to_path_buf(), error };
         let src = LasInput::open(&dir.join(SOURCE_FILE))?;
         let hp = dir.join(HIERARCHY_FILE);
         let hb = std::fs::read(&hp).map_err(|e| Error::io(&hp, e))?;
         if hb.len() < HIERARCHY_HEADER {
-            return Err(bad("hierarchy.bin is truncated".into()));
+            return Err(bad(StoreError::HierarchyTruncated));
         }
         let header: HierarchyHeader = bytemuck::pod_read_unaligned(&hb[..HIERARCHY_HEADER]);
         if header.magic != HIERARCHY_MAGIC {
-            return Err(bad("hierarchy.bin is not a mortar store hierarchy".into()));
+            return Err(bad(StoreError::NotHierarchy));
         }
         if header.version != VERSION || header.entry_size != 48 {
-            return Err(bad(format!("store version {} (entry size {}) is not supported", header.version, header.entry_size)));
+            return Err(bad(StoreError::Version { version: header.version, entry_size: header.entry_size }));
         }
         let avail = (hb.len() - HIERARCHY_HEADER) as u64 / 48;
         if header.node_count != avail || (hb.len() - HIERARCHY_HEADER) % 48 != 0 {
-            return Err(bad(format!("hierarchy.bin declares {} nodes but holds {avail}", header.node_count)));
+            return Err(bad(StoreError::NodeCount { declared: header.node_count, held: avail }));
         }
         let entries: Vec<NodeEntry> = bytemuck::pod_collect_to_vec(&hb[HIERARCHY_HEADER..]);
         let np = dir.join(NODES_FILE);
         let f = File::open(&np).map_err(|e| Error::io(&np, e))?;
         let file_len = f.metadata().map_err(|e| Error::io(&np, e))?.len();
         if header.nodes_len > file_len {
-            return Err(bad(format!("nodes.bin holds {file_len} bytes, fewer than the {} the hierarchy covers", header.nodes_len)));
+            return Err(bad(StoreError::NodesShort { held: file_len, covered: header.nodes_len }));
         }
         // SAFETY: the file is only appended to while it is mapped (by a builder); the part read
         // (up to nodes_len) never changes after its commit.
@@ -93,12 +93,12 @@ impl Store {
         for (i, e) in entries.iter().enumerate() {
             let al = attr_len;
             if e.kind > INNER || e.offset % 8 != 0 || e.count > u32::MAX as u64 || e.length != payload_len(e.count, al) || e.offset.checked_add(e.length).is_none_or(|end| end > header.nodes_len) {
-                return Err(bad(format!("node entry {i} is damaged (kind {}, {} points, {} bytes at {})", e.kind, e.count, e.length, e.offset)));
+                return Err(bad(StoreError::EntryDamaged { node: i, kind: e.kind, count: e.count, length: e.length, offset: e.offset }));
             }
             let nb = &nodes.as_ref().expect("non-empty")[e.offset as usize..(e.offset + e.length) as usize];
             let h: NodeHeader = bytemuck::pod_read_unaligned(&nb[..64]);
             if h.magic != NODE_MAGIC || h.count as u64 != e.count || h.kind != e.kind || h.attr_len as u64 != al || h.bits[..3].iter().any(|&b| b > 30) {
-                return Err(bad(format!("node payload {i} does not match its hierarchy entry")));
+                return Err(bad(StoreError::PayloadMismatch { node: i }));
             }
             if e.kind == LEAF {
                 leaves.push(i);
@@ -106,7 +106,7 @@ impl Store {
             }
         }
         if points != header.points {
-            return Err(bad(format!("the leaves hold {points} points, the hierarchy says {}", header.points)));
+            return Err(bad(StoreError::LeafPoints { leaves: points, declared: header.points }));
         }
         let mut meta = src.meta.clone();
         meta.header.point_count = points;
@@ -204,7 +204,7 @@ impl RecordSource for Store {
             }
         }
         if out.len() != piece.points as usize * rl {
-            return Err(Error::input(&self.path, format!("piece {} holds another number of points than its leaves declare", piece.index)));
+            return Err(Error::Store { path: self.path.clone(), error: StoreError::PieceCount { piece: piece.index } });
         }
         Ok(Cow::Owned(out))
     }

@@ -4,7 +4,7 @@
 //! is the hierarchy's last commit. Written atomically (temporary name, then rename).
 
 use crate::dataset::Dataset;
-use crate::error::{Error, Result};
+use crate::error::{Error, Result, StoreError};
 use mortar_core::octree::{BuilderConfig, ColorMode};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
@@ -82,7 +82,7 @@ impl BuildRecord {
     pub fn write(&self, dir: &Path) -> Result<()> {
         let p = dir.join(RECORD_FILE);
         let tmp = dir.join(format!("{RECORD_FILE}.tmp"));
-        let bytes = serde_json::to_vec_pretty(self).map_err(|e| Error::input(&p, e.to_string()))?;
+        let bytes = serde_json::to_vec_pretty(self).map_err(|error| Error::JsonFile { path: p.clone(), error })?;
         std::fs::write(&tmp, bytes).map_err(|e| Error::io(&tmp, e))?;
         std::fs::rename(&tmp, &p).map_err(|e| Error::io(&p, e))
     }
@@ -93,7 +93,7 @@ impl BuildRecord {
         match std::fs::read(&p) {
             Ok(b) => serde_json::from_slice(&b)
                 .map(Some)
-                .map_err(|e| Error::input(&p, format!("not a build record: {e}"))),
+                .map_err(|error| Error::Store { path: p.clone(), error: StoreError::BadBuildRecord { error } }),
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
             Err(e) => Err(Error::io(&p, e)),
         }

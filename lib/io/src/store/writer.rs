@@ -2,7 +2,7 @@
 
 use crate::cleanup::TempPath;
 use crate::dataset::SourceMeta;
-use crate::error::{Error, Result};
+use crate::error::{Error, Result, StoreError};
 use crate::las::{self, HeaderOut};
 use mortar_core::octree::{Cube, NodeView, Payload, Point, Snapshot};
 use rayon::prelude::*;
@@ -43,7 +43,7 @@ impl StoreWriter {
         if dir.exists() {
             let empty = dir.is_dir() && std::fs::read_dir(dir).map_err(|e| Error::io(dir, e))?.next().is_none();
             if !empty {
-                return Err(Error::input(dir, "exists and is not an empty directory; give a new directory for the store"));
+                return Err(Error::Store { path: dir.to_path_buf(), error: StoreError::NotEmpty });
             }
         } else {
             std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
@@ -81,7 +81,7 @@ impl StoreWriter {
         let want = source_bytes(dir, meta)?;
         let have = std::fs::read(&src).map_err(|e| Error::io(&src, e))?;
         if have != want {
-            return Err(Error::input(dir, "was built from other inputs (its source header, VLRs or CRS differ); give a new directory or remove it"));
+            return Err(Error::Store { path: dir.to_path_buf(), error: StoreError::OtherInputs });
         }
         let store = super::reader::Store::open(dir)?;
         let np = dir.join(NODES_FILE);
@@ -115,7 +115,7 @@ impl StoreWriter {
         let want = source_bytes(dir, meta)?;
         let have = std::fs::read(&src).map_err(|e| Error::io(&src, e))?;
         if have != want {
-            return Err(Error::input(dir, "was built from other inputs (its source header, VLRs or CRS differ); give a new directory or remove it"));
+            return Err(Error::Store { path: dir.to_path_buf(), error: StoreError::OtherInputs });
         }
         let nodes = std::fs::OpenOptions::new().write(true).open(&np).map_err(|e| Error::io(&np, e))?;
         let nodes_len = nodes.metadata().map_err(|e| Error::io(&np, e))?.len();
@@ -233,7 +233,7 @@ impl StoreWriter {
             .map(|&(id, n)| {
                 let kept = n.paged_points() + n.saved_voxels();
                 let old = if kept > 0 { Some(this.read_payload(id, Some(kept))?) } else { None };
-                encode_node(n, old.as_deref(), record_len, record).map(|(e, b)| (id, e, b)).map_err(|m| Error::input(&this.dir, m))
+                encode_node(n, old.as_deref(), record_len, record).map(|(e, b)| (id, e, b)).map_err(|error| Error::Payload { path: this.dir.clone(), error })
             })
             .collect::<Result<_>>()?;
         self.append(payloads, stats)
@@ -289,9 +289,9 @@ impl StoreWriter {
     fn read_payload(&self, id: usize, count: Option<u64>) -> Result<Vec<u8>> {
         use std::os::unix::fs::FileExt;
         let np = self.dir.join(NODES_FILE);
-        let e = self.entries.get(id).copied().flatten().ok_or_else(|| Error::input(&np, format!("node {id} has saved points but no payload")))?;
+        let e = self.entries.get(id).copied().flatten().ok_or_else(|| Error::Store { path: np.clone(), error: StoreError::NoPayload { node: id } })?;
         if count.is_some_and(|c| c != e.count) {
-            return Err(Error::input(&np, format!("node {id}: the last payload holds {} points, {count:?} were saved", e.count)));
+            return Err(Error::Store { path: np, error: StoreError::PayloadCount { node: id, held: e.count, saved: count } });
         }
         let mut buf = vec![0u8; e.length as usize];
         self.reader.read_exact_at(&mut buf, e.offset).map_err(|err| Error::io(&np, err))?;
@@ -304,7 +304,7 @@ impl StoreWriter {
     /// `PAGED | index` of its record there.
     pub fn page_in(&self, id: usize, count: Option<u64>, records: &std::sync::Mutex<Vec<u8>>) -> Result<Vec<Point>> {
         let buf = self.read_payload(id, count)?;
-        let leaf = DecodedLeaf::parse(&buf).map_err(|m| Error::input(self.dir.join(NODES_FILE), format!("node {id}: {m}")))?;
+        let leaf = DecodedLeaf::parse(&buf).map_err(|m| Error::Payload { path: self.dir.join(NODES_FILE), error: m.in_node(id) })?;
         let rl = self.record_len;
         let mut recs = vec![0u8; leaf.count * rl];
         for (i, r) in recs.chunks_exact_mut(rl).enumerate() {
@@ -314,7 +314,7 @@ impl StoreWriter {
             }
             r[12..].copy_from_slice(leaf.attributes(i));
         }
-        let mut all = records.lock().map_err(|_| Error::Usage("a page-in thread panicked".into()))?;
+        let mut all = records.lock().map_err(|_| Error::ThreadPanicked { thread: "a page-in" })?;
         let base = (all.len() / rl) as u64;
         all.extend_from_slice(&recs);
         drop(all);
@@ -334,13 +334,13 @@ pub const COMMIT_GROUP_BYTES: u64 = 128 << 20;
 /// attributes are taken from it; positions and colours from the voxels in memory).
 /// Encodes one node's payload (entry offset left 0). `old` is the node's last payload when it is
 /// a leaf with paged-out points (those come first) or an inner node with saved voxels (their
-pub(crate) fn encode_node<'r>(n: &NodeView, old: Option<&[u8]>, record_len: usize, record: &(dyn Fn(u64) -> &'r [u8] + Sync)) -> std::result::Result<(NodeEntry, Vec<u8>), String> {
+pub(crate) fn encode_node<'r>(n: &NodeView, old: Option<&[u8]>, record_len: usize, record: &(dyn Fn(u64) -> &'r [u8] + Sync)) -> std::result::Result<(NodeEntry, Vec<u8>), PayloadError> {
     let key = n.key();
     let attr_len = record_len - 12;
-    let old = old.map(DecodedLeaf::parse).transpose().map_err(|m| format!("node {}: {m}", key.name()))?;
+    let old = old.map(DecodedLeaf::parse).transpose().map_err(|m| m.in_node(key.name()))?;
     let kept = if n.is_leaf() { n.paged_points() } else { n.saved_voxels() };
     if old.as_ref().is_some_and(|o| o.attr_len != attr_len || o.count as u64 != kept) {
-        return Err(format!("node {}: its last payload does not match the points saved", key.name()));
+        return Err(PayloadError::Stale { node: key.name() });
     }
     let k = old.as_ref().map_or(0, |o| o.count);
     let mut attrs: Vec<u8> = Vec::new();
@@ -372,7 +372,7 @@ pub(crate) fn encode_node<'r>(n: &NodeView, old: Option<&[u8]>, record_len: usiz
     };
     let count = positions.len();
     if attrs.len() != count * attr_len {
-        return Err(format!("node {}: {} bytes of attributes for {count} points", key.name(), attrs.len()));
+        return Err(PayloadError::AttributeBytes { node: key.name(), bytes: attrs.len(), count });
     }
     encode_payload(key, kind, count, attr_len, |i| positions[i], |i| colors[i], |i| &attrs[i * attr_len..(i + 1) * attr_len])
 }
@@ -395,11 +395,11 @@ pub(crate) fn source_bytes(dir: &Path, meta: &SourceMeta) -> Result<Vec<u8>> {
         evlr_start: 0,
         evlr_count: 0,
     };
-    let mut bytes = las::write_header(&h).map_err(|e| Error::input(dir, e))?;
+    let mut bytes = las::write_header(&h).map_err(|error| Error::Las { path: dir.to_path_buf(), error })?;
     if !meta.evlrs.is_empty() {
         let start = bytes.len() as u64;
         let h = HeaderOut { evlr_start: start, evlr_count: meta.evlrs.len() as u32, ..h };
-        bytes = las::write_header(&h).map_err(|e| Error::input(dir, e))?;
+        bytes = las::write_header(&h).map_err(|error| Error::Las { path: dir.to_path_buf(), error })?;
         bytes.extend_from_slice(&las::write_evlrs(&meta.evlrs));
     }
     Ok(bytes)
