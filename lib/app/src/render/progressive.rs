@@ -9,7 +9,8 @@
 //! backends leave the same keys) and written as PNG; `--json` prints every frame's statistics and
 //! when the image converged.
 //!
-//! Progressive drawing in the interactive window (`mortar view`) is pending.
+//! The interactive window (`mortar view` on raw LAS/LAZ) draws progressively too:
+//! [`crate::viewer::progressive`].
 
 use mortar_core::metrics::median;
 use crate::cli as common;

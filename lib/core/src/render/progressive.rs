@@ -34,8 +34,9 @@
 //! shaders, the same [`Shuffle`] and [`UNLOADED`] sentinel, one plan for all slots, GPU timestamps
 //! feeding [`AdaptiveBudget`]); its keys equal this renderer's frame by frame for the same budgets.
 //!
-//! Not done here (pending): progressive drawing in the interactive window (`mortar view`); MSAA
-//! (paper §3.4: it acts as supersampling) is not implemented.
+//! The interactive window (`mortar view` on raw LAS/LAZ) drives this renderer or its GPU twin
+//! (mortar-app's `viewer::progressive`). Not implemented: MSAA (paper §3.4: it acts as
+//! supersampling).
 
 use super::camera::Camera;
 use super::framebuffer::{key_index, Framebuffer, EMPTY_KEY};

@@ -49,7 +49,7 @@ pub struct NodeHeader {
 
 const _: () = assert!(std::mem::size_of::<NodeHeader>() == 64);
 
-/// The header of `hierarchy.bin` (80 bytes).
+/// The header of `hierarchy.bin` (104 bytes).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, PartialEq, Eq, bytemuck::Pod, bytemuck::Zeroable)]
 pub struct HierarchyHeader {
