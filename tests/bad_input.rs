@@ -84,7 +84,8 @@ fn hostile(tag: &str, patch: impl Fn(&mut Vec<u8>)) -> std::path::PathBuf {
 
 #[test]
 fn hostile_headers() {
-    let cases: Vec<(&str, Box<dyn Fn(&mut Vec<u8>)>)> = vec![
+    type Damage = Box<dyn Fn(&mut Vec<u8>)>;
+    let cases: Vec<(&str, Damage)> = vec![
         ("not-las", Box::new(|b: &mut Vec<u8>| b[0] = b'X')),
         ("truncated-header", Box::new(|b: &mut Vec<u8>| b.truncate(100))),
         ("huge-count", Box::new(|b: &mut Vec<u8>| b[107..111].copy_from_slice(&u32::MAX.to_le_bytes()))),

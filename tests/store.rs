@@ -169,7 +169,8 @@ fn bad_input_and_damaged_stores_are_clear_errors() {
     run_ok(mortar().arg("build").arg(sample()).arg("-o").arg(&store));
     let h = std::fs::read(store.join("hierarchy.bin")).unwrap();
     let n = std::fs::read(store.join("nodes.bin")).unwrap();
-    let cases: Vec<(&str, Box<dyn Fn()>)> = vec![
+    type Damage<'a> = Box<dyn Fn() + 'a>;
+    let cases: Vec<(&str, Damage)> = vec![
         ("truncated hierarchy", Box::new(|| std::fs::write(store.join("hierarchy.bin"), &h[..50]).unwrap())),
         ("hierarchy cut mid-entry", Box::new(|| std::fs::write(store.join("hierarchy.bin"), &h[..h.len() - 7]).unwrap())),
         ("truncated nodes", Box::new(|| std::fs::write(store.join("nodes.bin"), &n[..n.len() / 2]).unwrap())),

@@ -143,14 +143,14 @@ impl FrameRecorder {
     fn camera(&self, k: usize) -> Result<Camera> {
         let c = &self.camera;
         if self.orbit == 0.0 {
-            return Ok(c.clone());
+            return Ok(*c);
         }
         let t = (k as f64 * self.orbit).to_radians();
         let (s, co) = t.sin_cos();
         let d = [c.eye[0] - c.target[0], c.eye[1] - c.target[1]];
         let eye = [c.target[0] + co * d[0] - s * d[1], c.target[1] + s * d[0] + co * d[1], c.eye[2]];
         // The distance to the target and so the clip planes stay the same.
-        Ok(Camera { eye, ..c.clone() })
+        Ok(Camera { eye, ..*c })
     }
 
     /// After a commit (`commits` so far): draws a frame if the store has a new commit and

@@ -223,7 +223,7 @@ mod tests {
         let g = BatchGrid::for_bounds([100, 100, 100], [1123, 1123, 1123]).unwrap();
         assert_eq!(g.bits, [10, 10, 10]);
         let w = g.encode([1123, 100, 600]);
-        assert_eq!(w[0], 1023 | (0 << 10) | (500 << 20));
+        assert_eq!(w[0], 1023 | (500 << 20));
         assert_eq!(w[1], 0);
         assert_eq!(w[2], 0);
         assert_eq!(g.error_bound(Precision::Bits10), [0.0; 3]);

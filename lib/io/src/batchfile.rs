@@ -542,7 +542,7 @@ impl BatchFile {
             .checked_mul(96)
             .and_then(|a| header.batch_count.checked_mul(sc).and_then(|b| b.checked_mul(16)).and_then(|b| a.checked_add(b)));
         match table_len {
-            Some(tl) if in_file(header.table_offset, tl) && header.table_offset % 8 == 0 => {}
+            Some(tl) if in_file(header.table_offset, tl) && header.table_offset.is_multiple_of(8) => {}
             _ => return Err(err(BatchError::TableOutside)),
         }
         if !in_file(meta.las_header.offset, meta.las_header.len) || !in_file(meta.evlrs.offset, meta.evlrs.len) {

@@ -121,11 +121,10 @@ pub fn describe(vlrs: &[&Vlr]) -> CrsInfo {
                 if loc == 0 {
                     let code = val as u32;
                     match id {
-                        3072 | 2048 if code != 32767 && code != 0 => {
-                            if id == 3072 || info.epsg.is_none() {
+                        3072 | 2048 if code != 32767 && code != 0
+                            && (id == 3072 || info.epsg.is_none()) => {
                                 info.epsg = Some(code)
                             }
-                        }
                         4096 if code != 32767 && code != 0 => info.vertical_epsg = Some(code),
                         _ => {}
                     }

@@ -319,10 +319,13 @@ impl Acc {
     }
 }
 
+/// A field's value read from a record.
+type FieldReader = Box<dyn Fn(&[u8]) -> f64 + Sync>;
+
 /// Numeric fields for ranges: (name, fn(record) -> value).
-fn numeric_fields(layout: &RecordLayout) -> Vec<(&'static str, Box<dyn Fn(&[u8]) -> f64 + Sync>)> {
+fn numeric_fields(layout: &RecordLayout) -> Vec<(&'static str, FieldReader)> {
     let u16_at = |o: usize| move |r: &[u8]| u16::from_le_bytes([r[o], r[o + 1]]) as f64;
-    let mut f: Vec<(&'static str, Box<dyn Fn(&[u8]) -> f64 + Sync>)> = vec![("intensity", Box::new(u16_at(12)))];
+    let mut f: Vec<(&'static str, FieldReader)> = vec![("intensity", Box::new(u16_at(12)))];
     match layout.family() {
         Family::Legacy => {
             f.push(("number_of_returns", Box::new(|r: &[u8]| ((r[14] >> 3) & 7) as f64)));

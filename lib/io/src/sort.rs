@@ -575,7 +575,7 @@ pub(crate) fn sort_bucket(s: &mut [Key], bits: u32, scratch: &mut Vec<Key>) {
                 count[((k.code >> shift) & 0xff) as usize] += 1;
             }
         }
-        if count.iter().any(|&c| c == s.len()) {
+        if count.contains(&s.len()) {
             shift += 8;
             continue;
         }
@@ -669,7 +669,7 @@ mod tests {
             state
         };
         // keys come in input order (slab, idx); codes with many ties and with wide ranges
-        for mask in [0xffff_ffff_ffu64, 0x3ff, (1 << 62) - 1] {
+        for mask in [0x00ff_ffff_ffff_u64, 0x3ff, (1 << 62) - 1] {
             let keys: Vec<Key> = (0..300_000u32)
                 .map(|i| Key { code: next() & mask, slab: i / 40_000, idx: i % 40_000 })
                 .collect();

@@ -85,7 +85,8 @@ fn damaged_batch_files_are_refused() {
     std::fs::create_dir_all(&dir).unwrap();
     let (path, _) = make_batch_file(&dir, Compression::None);
     let good = std::fs::read(&path).unwrap();
-    let cases: Vec<(&str, Box<dyn Fn(&mut Vec<u8>)>)> = vec![
+    type Damage = Box<dyn Fn(&mut Vec<u8>)>;
+    let cases: Vec<(&str, Damage)> = vec![
         ("truncated", Box::new(|b: &mut Vec<u8>| b.truncate(b.len() / 2))),
         ("bad-version", Box::new(|b: &mut Vec<u8>| b[8] = 99)),
         ("huge-batch-count", Box::new(|b: &mut Vec<u8>| b[24..32].copy_from_slice(&u64::MAX.to_le_bytes()))),

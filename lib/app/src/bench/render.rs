@@ -479,7 +479,7 @@ fn batch_report(md: &mut String, view: &str, n: usize, refs: &[BatchRef<'_>], gr
         lost_old.iter().sum::<u64>(), lost_new.iter().sum::<u64>(),
     )?;
     let mut top: Vec<&BatchLoss> = losses.iter().filter(|l| l.old.3 > 0).collect();
-    top.sort_by(|a, b| b.old.3.cmp(&a.old.3));
+    top.sort_by_key(|l| std::cmp::Reverse(l.old.3));
     writeln!(md, "| batch | points | box px | depth far/near | 500 px rule: bits, bound px, measured px, pixels lost | adaptive: bits, bound px, measured px, pixels lost |")?;
     writeln!(md, "|---|---|---|---|---|---|")?;
     for l in top.iter().take(n) {

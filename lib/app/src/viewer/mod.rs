@@ -795,7 +795,8 @@ impl App<'_> {
         if pan {
             let Some(window) = &self.window else { return };
             let size = window.inner_size();
-            if self.orbit.pan(dx, dy, self.fov(), self.args.camera.ortho, &self.bounds, size.width, size.height).is_some() {
+            let Ok(cam) = self.orbit.camera(self.fov(), self.args.camera.ortho, &self.bounds, size.width.max(1), size.height.max(1)) else { return };
+            if self.orbit.pan(dx, dy, self.fov(), &cam).is_some() {
                 self.redraw();
             }
         } else if self.drag.left {

@@ -941,7 +941,7 @@ fn the_sorted_build_matches_the_reference() {
 #[test]
 fn the_sorted_build_refuses_what_it_cannot_build() {
     let root = Cube::new([0; 3], 10);
-    let pos = vec![[5, 5, 5], [2000, 0, 0]];
+    let pos = [[5, 5, 5], [2000, 0, 0]];
     assert!(matches!(build_sorted(root, 2, &|i: usize| pos[i], &|i: usize| i as u64, config(1, ColorMode::FirstCome)), Err(OctreeError::PointOutsideRoot { index: 1, .. })));
     assert!(matches!(build_sorted(root, 1, &|i: usize| pos[i], &|i: usize| i as u64, config(1, ColorMode::Averaged)), Err(OctreeError::Unsupported(_))));
 }

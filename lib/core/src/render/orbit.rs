@@ -71,14 +71,12 @@ impl Orbit {
     }
 
     /// A drag of `(dx, dy)` pixels moves the target with the cursor in the plane of the view, at
-    /// the target's distance, for a window `height` pixels high; `None` where the camera has no
-    /// axes (degenerate).
-    pub fn pan(&mut self, dx: f64, dy: f64, fov_y: f64, ortho: bool, bounds: &Aabb, width: u32, height: u32) -> Option<()> {
-        let (w, h) = (width.max(1), height.max(1));
-        let cam = self.camera(fov_y, ortho, bounds, w, h).ok()?;
-        let axes = cam.axes()?;
+    /// the target's distance; `camera` is this orbit's camera (vertical field of view `fov_y`)
+    /// for the window. `None` where the camera has no axes (degenerate).
+    pub fn pan(&mut self, dx: f64, dy: f64, fov_y: f64, camera: &Camera) -> Option<()> {
+        let axes = camera.axes()?;
         // World units per pixel at the target's distance.
-        let per_px = 2.0 * self.distance * (0.5 * fov_y).tan() / h as f64;
+        let per_px = 2.0 * self.distance * (0.5 * fov_y).tan() / camera.height.max(1) as f64;
         for i in 0..3 {
             self.target[i] += (-dx * axes.right[i] + dy * axes.up[i]) * per_px;
         }
@@ -175,7 +173,8 @@ mod tests {
         }
         assert!((o.distance - bounds.diagonal() * 1e-6).abs() < 1e-12);
         let mut p = before;
-        p.pan(10.0, 0.0, 0.8, false, &bounds, 640, 480).unwrap();
+        let cam = p.camera(0.8, false, &bounds, 640, 480).unwrap();
+        p.pan(10.0, 0.0, 0.8, &cam).unwrap();
         // Dragging right moves the target left on screen's right axis: its distance is unchanged.
         assert_ne!(p.target, before.target);
         assert!((p.distance - before.distance).abs() < 1e-12);

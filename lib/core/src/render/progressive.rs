@@ -878,7 +878,7 @@ mod tests {
     // --- shuffle ------------------------------------------------------------------------------
 
     fn trial_division(n: u64) -> bool {
-        n >= 2 && (2..).take_while(|d| d * d <= n).all(|d| n % d != 0)
+        n >= 2 && (2..).take_while(|d| d * d <= n).all(|d| !n.is_multiple_of(d))
     }
 
     /// Asserts that `target` is a bijection on `0..n`, that `permute` is one on `0..P` and the

@@ -73,7 +73,7 @@ impl Store {
             return Err(bad(StoreError::Version { version: header.version, entry_size: header.entry_size }));
         }
         let avail = (hb.len() - HIERARCHY_HEADER) as u64 / 48;
-        if header.node_count != avail || (hb.len() - HIERARCHY_HEADER) % 48 != 0 {
+        if header.node_count != avail || !(hb.len() - HIERARCHY_HEADER).is_multiple_of(48) {
             return Err(bad(StoreError::NodeCount { declared: header.node_count, held: avail }));
         }
         let entries: Vec<NodeEntry> = bytemuck::pod_collect_to_vec(&hb[HIERARCHY_HEADER..]);
