@@ -5,7 +5,7 @@
 //! stored colours (or elevation), hole filling and eye-dome lighting. `--no-lod` draws every
 //! point through a temporary batch file instead (the path of LAS/LAZ inputs; every colour mode).
 
-use crate::render::{build_camera, camera_json, encode_png, write_atomic, Args};
+use crate::render::{build_camera, encode_png, write_atomic, Args};
 use anyhow::{anyhow, bail, Result};
 use mortar_core::octree::{LodOptions, LodSelection, DEFAULT_THRESHOLD_PX};
 use mortar_core::render::Camera;
@@ -88,34 +88,9 @@ pub fn run(a: &Args, dir: &Path) -> Result<()> {
     write_atomic(&a.output, &png)?;
     let png_seconds = t.elapsed().as_secs_f64();
     if a.json {
-        let s = &r.stats;
-        let j = serde_json::json!({
-            "input": label,
-            "output": a.output,
-            "width": r.width,
-            "height": r.height,
-            "backend": if gpu.is_some() { "gpu" } else { "cpu" },
-            "gpu": gpu_json,
-            "precision": a.precision.name(),
-            "cull": !a.no_cull,
-            "color": color.name(),
-            "color_range": r.color_range,
-            "camera": camera_json(&camera),
-            "points": lod.point_count(),
-            "lod": lod_json(&selection, &options, selection_seconds, prepare_seconds),
-            "batches": s.batches,
-            "batches_culled": s.batches_culled,
-            "batches_drawn": s.batches_drawn,
-            "points_projected": s.points_projected(),
-            "points_by_precision": { "10": s.points_by_precision[0], "20": s.points_by_precision[1], "30": s.points_by_precision[2] },
-            "points_drawn": s.points_drawn,
-            "pixels_covered": r.covered,
-            "open_seconds": open_seconds,
-            "raster_seconds": r.raster_seconds,
-            "resolve_seconds": r.resolve_seconds,
-            "png_seconds": png_seconds,
-            "points_per_second": s.points_projected() as f64 / r.raster_seconds.max(1e-9),
-        });
+        let mut j = crate::render::rendered_json(a, &label, &r, &gpu_json, color.name(), &camera, lod.point_count(), png_seconds);
+        j["lod"] = lod_json(&selection, &options, selection_seconds, prepare_seconds);
+        j["open_seconds"] = serde_json::json!(open_seconds);
         crate::render::print_json(a, &j)?;
     }
     Ok(())

@@ -407,37 +407,45 @@ pub fn run(a: Args) -> Result<()> {
     write_atomic(&a.output, &png)?;
     let png_seconds = t.elapsed().as_secs_f64();
     if a.json {
-        let s = &r.stats;
-        let j = serde_json::json!({
-            "input": label,
-            "output": a.output,
-            "width": r.width,
-            "height": r.height,
-            "backend": if gpu.is_some() { "gpu" } else { "cpu" },
-            "gpu": gpu_json,
-            "precision": a.precision.name(),
-            "cull": !a.no_cull,
-            "color": a.color.resolved(file).name(),
-            "color_range": r.color_range,
-            "camera": camera_json(&camera),
-            "points": file.header.point_count,
-            "batches": s.batches,
-            "batches_culled": s.batches_culled,
-            "batches_drawn": s.batches_drawn,
-            "points_projected": s.points_projected(),
-            "points_by_precision": { "10": s.points_by_precision[0], "20": s.points_by_precision[1], "30": s.points_by_precision[2] },
-            "points_drawn": s.points_drawn,
-            "pixels_covered": r.covered,
-            "batch_seconds": if source.is_temporary() { Some(batch_seconds) } else { None },
-            "raster_seconds": r.raster_seconds,
-            "resolve_seconds": r.resolve_seconds,
-            "png_seconds": png_seconds,
-            "points_per_second": s.points_projected() as f64 / r.raster_seconds.max(1e-9),
-            "gpu_points_per_second": gpu_json.get("draw_ms").and_then(|v| v.as_f64()).map(|ms| s.points_projected() as f64 / (ms * 1e-3).max(1e-12)),
-        });
+        let projected = r.stats.points_projected() as f64;
+        let mut j = rendered_json(&a, &label, &r, &gpu_json, a.color.resolved(file).name(), &camera, file.header.point_count, png_seconds);
+        j["batch_seconds"] = serde_json::json!(if source.is_temporary() { Some(batch_seconds) } else { None });
+        j["gpu_points_per_second"] = serde_json::json!(gpu_json.get("draw_ms").and_then(|v| v.as_f64()).map(|ms| projected / (ms * 1e-3).max(1e-12)));
         print_json(&a, &j)?;
     }
     Ok(())
+}
+
+/// The `--json` statistics every `mortar render` of batches (batch files, LAS/LAZ, stores)
+/// reports; each caller adds its own.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn rendered_json(a: &Args, label: &str, r: &Rendered, gpu_json: &serde_json::Value, color: &str, camera: &Camera, points: u64, png_seconds: f64) -> serde_json::Value {
+    let s = &r.stats;
+    serde_json::json!({
+        "input": label,
+        "output": a.output,
+        "width": r.width,
+        "height": r.height,
+        "backend": if gpu_json.is_null() { "cpu" } else { "gpu" },
+        "gpu": gpu_json,
+        "precision": a.precision.name(),
+        "cull": !a.no_cull,
+        "color": color,
+        "color_range": r.color_range,
+        "camera": camera_json(camera),
+        "points": points,
+        "batches": s.batches,
+        "batches_culled": s.batches_culled,
+        "batches_drawn": s.batches_drawn,
+        "points_projected": s.points_projected(),
+        "points_by_precision": { "10": s.points_by_precision[0], "20": s.points_by_precision[1], "30": s.points_by_precision[2] },
+        "points_drawn": s.points_drawn,
+        "pixels_covered": r.covered,
+        "raster_seconds": r.raster_seconds,
+        "resolve_seconds": r.resolve_seconds,
+        "png_seconds": png_seconds,
+        "points_per_second": s.points_projected() as f64 / r.raster_seconds.max(1e-9),
+    })
 }
 
 /// Draws `refs` (batches on `grid` holding `points` points, indexed so that the keys' indices

@@ -14,7 +14,7 @@ use mortar_core::render::resolve::{resolve, ColorMode, ResolveOptions};
 use mortar_core::render::{rasterize, Aabb, BatchRef, Camera, Framebuffer, RasterOptions};
 use mortar_io::batchfile::BatchFile;
 use mortar_io::render_input::{self, ColorChoice};
-use mortar_render::{wgpu, GpuContext, GpuError, GpuRasterizer, GpuScene, SceneOptions};
+use mortar_render::{wgpu, GpuContext, GpuError, GpuFrame, GpuRasterizer, GpuScene, SceneOptions};
 use std::time::Instant;
 
 /// The time slice of a frame spent uploading a batch file's batches to the GPU.
@@ -30,6 +30,13 @@ pub struct GpuDrawn {
     pub resolve_ms: Option<f64>,
     /// The image is in the content's own buffer ([`Content::image`]), not in the rasterizer.
     pub own_image: bool,
+}
+
+impl GpuDrawn {
+    /// What a frame of the batch rasterizer drew (resolved in the rasterizer).
+    pub fn of(f: &GpuFrame) -> GpuDrawn {
+        GpuDrawn { points_drawn: f.stats.points_drawn, draw_ms: f.timings.map(|t| t.draw_ms), resolve_ms: f.timings.and_then(|t| t.resolve_ms), own_image: false }
+    }
 }
 
 /// What a window shows: its bounds, its colour modes, new data to poll for, and a frame on the
@@ -202,6 +209,6 @@ impl Content for BatchContent<'_> {
         } else {
             raster.draw(ctx, &mut g.scene, camera, options, Some(background)).map_err(gpu)?
         };
-        Ok(GpuDrawn { points_drawn: frame.stats.points_drawn, draw_ms: frame.timings.map(|t| t.draw_ms), resolve_ms: frame.timings.and_then(|t| t.resolve_ms), own_image: false })
+        Ok(GpuDrawn::of(&frame))
     }
 }

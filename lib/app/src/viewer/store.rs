@@ -255,7 +255,7 @@ impl Content for StoreView {
         let mode = self.mode;
         let path = self.path.display().to_string();
         let gpu = |e: GpuError| anyhow!("{path}: GPU: {e}");
-        let drawn = |f: GpuFrame| GpuDrawn { points_drawn: f.stats.points_drawn, draw_ms: f.timings.map(|t| t.draw_ms), resolve_ms: f.timings.and_then(|t| t.resolve_ms), own_image: false };
+        let drawn = |f: GpuFrame| GpuDrawn::of(&f);
         let g = self.gpu.as_mut().ok_or_else(|| anyhow!("{path}: GPU: not set up"))?;
         let Some(lod) = &self.lod else {
             return raster.draw_selected(ctx, &mut g.scene, Some(&[]), camera, options, Some(background)).map(drawn).map_err(gpu);
