@@ -39,5 +39,5 @@ pub use wgpu;
 pub use context::{AdapterSummary, AtomicPath, GpuContext, GpuError, GpuOptions};
 pub use present::{Overlay, Presented, ReadBack, WindowSurface};
 pub use progressive::{BudgetTiming, GpuProgressive, GpuProgressiveFrame, ProgressiveGpuError, ProgressiveGpuTimings, ProgressiveOptions};
-pub use raster::{GpuFrame, GpuRasterizer, GpuTimings};
+pub use raster::{DrawTuning, GpuFrame, GpuRasterizer, GpuTimings, RecordOrder};
 pub use scene::{GpuBatch, GpuScene, SceneOptions};

@@ -58,6 +58,11 @@ impl PassPipeline {
     /// Compiles `pass` with layouts from [`Pass::bindings`] (group 1 of the draw passes from
     /// `shared`).
     pub(crate) fn new(ctx: &GpuContext, pass: Pass, shared: &SharedLayouts) -> PassPipeline {
+        PassPipeline::with_constants(ctx, pass, shared, &[])
+    }
+
+    /// [`new`](Self::new) with values for the WGSL module's `override` constants (name, value).
+    pub(crate) fn with_constants(ctx: &GpuContext, pass: Pass, shared: &SharedLayouts, constants: &[(&str, f64)]) -> PassPipeline {
         let bindings = pass.bindings();
         let groups = bindings.iter().map(|b| b.group + 1).max().unwrap_or(0);
         let layouts: Vec<wgpu::BindGroupLayout> = (0..groups)
@@ -81,7 +86,7 @@ impl PassPipeline {
             module: &module,
             entry_point: Some("main"),
             // The passes initialise the little workgroup memory they use (common/counters.wgsl).
-            compilation_options: wgpu::PipelineCompilationOptions { zero_initialize_workgroup_memory: false, ..Default::default() },
+            compilation_options: wgpu::PipelineCompilationOptions { constants, zero_initialize_workgroup_memory: false },
             cache: None,
         });
         PassPipeline { pass, pipeline, layouts }

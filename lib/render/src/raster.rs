@@ -42,6 +42,49 @@ pub struct GpuFrame {
     pub frame_seconds: f64,
 }
 
+/// Variants of the 64-bit draw pass for measuring where its time goes (issue 17; the bench
+/// `mortar-bench-gpu --kernels --workgroups --orders`). The renderer draws with the default,
+/// which every test checks; the others are diagnostics (kernel 3 leaves no image at all).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct DrawTuning {
+    /// `draw.wgsl`'s `KERNEL`: 0 the renderer (atomicLoad early test), 1 early test from a plain
+    /// load of the depth word, 2 no early test, 3 no framebuffer access.
+    pub kernel: u32,
+    /// Threads per workgroup (`WG`; one workgroup per batch whatever the size).
+    pub workgroup: u32,
+    /// Order of a chunk's draw records, i.e. of the workgroups.
+    pub order: RecordOrder,
+}
+
+impl Default for DrawTuning {
+    fn default() -> Self {
+        DrawTuning { kernel: 0, workgroup: 128, order: RecordOrder::Scene }
+    }
+}
+
+/// The order in which a chunk's batches are handed to workgroups.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum RecordOrder {
+    /// Scene (Morton) order: workgroups that run together draw neighbouring batches.
+    Scene,
+    /// Records `k, k + s, k + 2s, ...` for `k` in `0..s`: workgroups that run together draw
+    /// batches `s` apart, in other places of the screen.
+    Strided(u32),
+}
+
+impl RecordOrder {
+    /// The permutation of `n` records.
+    fn permutation(self, n: usize) -> Vec<usize> {
+        match self {
+            RecordOrder::Scene => (0..n).collect(),
+            RecordOrder::Strided(s) => {
+                let s = (s as usize).max(1);
+                (0..s).flat_map(|k| (k..n).step_by(s)).collect()
+            }
+        }
+    }
+}
+
 /// The draw pipelines of the context's atomic path.
 enum DrawPasses {
     /// `draw.wgsl`.
@@ -124,7 +167,11 @@ impl Target {
         let (keys, draw_groups) = match &passes.draw {
             DrawPasses::U64(draw) => {
                 let keys = storage(ctx, "keys", key_bytes, copy);
-                let g = draw.bind_group(ctx, 0, &[frame, entry(binding::KEYS, keys.as_entire_binding()), counters]);
+                let g = draw.bind_group(
+                    ctx,
+                    0,
+                    &[frame, entry(binding::KEYS, keys.as_entire_binding()), counters, entry(binding::KEY_WORDS, keys.as_entire_binding())],
+                );
                 (Keys::U64(keys), vec![g])
             }
             DrawPasses::TwoPass32([depth, index]) => {
@@ -159,6 +206,7 @@ pub struct GpuRasterizer {
     /// Bound as the colours of a resolve dispatch when the scene holds no chunk.
     no_colors: wgpu::Buffer,
     queries: Option<Timestamps>,
+    tuning: DrawTuning,
 }
 
 /// Timestamp slots: clear begin/end, draw begin/end, resolve begin/end.
@@ -186,7 +234,25 @@ impl GpuRasterizer {
         let queries = ctx.has_timestamps().then(|| Timestamps::new(ctx, "pass times", QUERIES));
         let no_colors = storage(ctx, "no colours", 4, wgpu::BufferUsages::empty());
         ctx.check()?;
-        Ok(GpuRasterizer { path, passes, per_frame, target, no_colors, queries })
+        Ok(GpuRasterizer { path, passes, per_frame, target, no_colors, queries, tuning: DrawTuning::default() })
+    }
+
+    /// Rebuilds the 64-bit draw pipeline with `tuning` (measurements only: see [`DrawTuning`]).
+    pub fn set_tuning(&mut self, ctx: &GpuContext, tuning: DrawTuning) -> Result<(), GpuError> {
+        if tuning == self.tuning {
+            return Ok(());
+        }
+        let DrawPasses::U64(_) = self.passes.draw else {
+            return Err(GpuError::Device("draw tuning applies to the 64-bit path only".into()));
+        };
+        if !(32..=1024).contains(&tuning.workgroup) || tuning.kernel > 3 {
+            return Err(GpuError::Device(format!("draw tuning out of range: {tuning:?}")));
+        }
+        let constants = [("KERNEL", tuning.kernel as f64), ("WG", tuning.workgroup as f64)];
+        self.passes.draw = DrawPasses::U64(PassPipeline::with_constants(ctx, Pass::Draw64, &self.passes.shared, &constants));
+        self.tuning = tuning;
+        self.target = Target::new(ctx, &self.passes, &self.per_frame, self.target.width, self.target.height)?;
+        ctx.check()
     }
 
     /// The atomic path in use.
@@ -278,6 +344,14 @@ impl GpuRasterizer {
                         }
                     }
                     records.push(DrawRecord { projection: *projection, offset: b.offset, count: b.count, first_index: b.first_index, _pad: 0 });
+                }
+            }
+        }
+        if self.tuning.order != RecordOrder::Scene {
+            for &(_, first, count) in &ranges {
+                let part = records[first..first + count].to_vec();
+                for (dst, src) in self.tuning.order.permutation(count).into_iter().enumerate() {
+                    records[first + dst] = part[src];
                 }
             }
         }

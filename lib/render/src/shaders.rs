@@ -70,6 +70,9 @@ pub mod binding {
     pub const COUNTERS: Binding = bind(0, 2, StorageReadWrite, "counters");
     /// `draw_index.wgsl`: the 32-bit path's point indices.
     pub const INDICES: Binding = bind(0, 3, StorageReadWrite, "indices");
+    /// `draw.wgsl`: the 64-bit keys again, as plain words (bound to the same buffer as [`KEYS`];
+    /// read by the diagnostic kernel 1 of [`crate::DrawTuning`]).
+    pub const KEY_WORDS: Binding = bind(0, 3, StorageReadWrite, "key_words");
     /// `progressive_reproject.wgsl`: one chunk's visible list.
     pub const VISIBLE: Binding = bind(0, 3, StorageRead, "visible");
 
@@ -212,7 +215,7 @@ impl Pass {
         use binding::*;
         match self {
             Pass::Clear => &[CLEAR_WORDS],
-            Pass::Draw64 => &[FRAME, KEYS, COUNTERS, RECORDS, COARSE, MEDIUM, FINE],
+            Pass::Draw64 => &[FRAME, KEYS, COUNTERS, KEY_WORDS, RECORDS, COARSE, MEDIUM, FINE],
             Pass::DrawDepth32 => &[FRAME, DEPTHS, RECORDS, COARSE, MEDIUM, FINE],
             Pass::DrawIndex32 => &[FRAME, DEPTHS, COUNTERS, INDICES, RECORDS, COARSE, MEDIUM, FINE],
             Pass::Resolve => &[RESOLVE_PARAMS, RESOLVE_INDEX_WORDS, RESOLVE_DEPTH_WORDS, RESOLVE_COLORS, RESOLVE_IMAGE],

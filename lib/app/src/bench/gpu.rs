@@ -17,7 +17,7 @@ use mortar_core::quantize::Precision;
 use mortar_core::render::framebuffer::{key_depth, EMPTY_KEY};
 use mortar_core::render::{rasterize, Aabb, BatchRef, Camera, Framebuffer, PrecisionMode, RasterOptions, ViewPreset};
 use mortar_io::batchfile::BatchFile;
-use mortar_render::{AtomicPath, GpuContext, GpuOptions, GpuRasterizer, GpuScene, SceneOptions};
+use mortar_render::{AtomicPath, DrawTuning, GpuContext, GpuOptions, GpuRasterizer, GpuScene, RecordOrder, SceneOptions};
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -54,10 +54,38 @@ pub struct Args {
     /// View: iso or top (framing the tiles).
     #[arg(long, default_value = "iso")]
     view: String,
+    /// Draw-pass kernels to measure (`DrawTuning::kernel`: 0 the renderer, 1 plain-load early
+    /// test, 2 no early test, 3 no framebuffer access).
+    #[arg(long, value_delimiter = ',', default_value = "0")]
+    kernels: Vec<u32>,
+    /// Threads per workgroup of the draw pass.
+    #[arg(long, value_delimiter = ',', default_value = "128")]
+    workgroups: Vec<u32>,
+    /// Orders of the draw records: scene, or strided:S.
+    #[arg(long, value_delimiter = ',', default_value = "scene")]
+    orders: Vec<String>,
+    /// Rounds over all configurations per size (interleaved, so that clock changes show as
+    /// differences between rounds rather than between configurations).
+    #[arg(long, default_value_t = 1)]
+    rounds: usize,
+    /// Milliseconds of back-to-back frames drawn before each size's first measurement (GPU clocks
+    /// up).
+    #[arg(long, default_value_t = 0)]
+    warmup_ms: u64,
     /// After each GPU measurement, draw the same frame with the CPU rasterizer and count the
     /// pixels whose key differs (exact depth ties apart).
     #[arg(long)]
     compare_cpu: bool,
+}
+
+fn order(name: &str) -> Result<RecordOrder> {
+    if name == "scene" {
+        return Ok(RecordOrder::Scene);
+    }
+    match name.strip_prefix("strided:").and_then(|s| s.parse().ok()) {
+        Some(s) => Ok(RecordOrder::Strided(s)),
+        None => bail!("unknown order {name} (scene, strided:S)"),
+    }
 }
 
 fn options(variant: &str) -> Result<RasterOptions> {
@@ -166,7 +194,29 @@ pub fn run(a: Args) -> Result<()> {
         upload_seconds += t.elapsed().as_secs_f64();
         let preset = if a.view == "top" { ViewPreset::Top } else { ViewPreset::Iso };
         let cam = Camera::frame_perspective(&bounds, preset, 50f64.to_radians(), a.width, a.height).map_err(|e| anyhow!("{e}"))?;
-        for variant in &a.variants {
+        if let (Some(c), Some(s), Some(r), true) = (&ctx, &mut scene, &mut raster, a.warmup_ms > 0) {
+            let t = Instant::now();
+            while t.elapsed().as_millis() < a.warmup_ms as u128 {
+                r.draw(c, s, &cam, &RasterOptions::default(), Some(0xff00_0000)).map_err(|e| anyhow!("{e}"))?;
+            }
+        }
+        let mut configs = Vec::new();
+        for round in 0..a.rounds.max(1) {
+            for variant in &a.variants {
+                for &kernel in &a.kernels {
+                    for &workgroup in &a.workgroups {
+                        for o in &a.orders {
+                            configs.push((round, variant.clone(), DrawTuning { kernel, workgroup, order: order(o)? }, o.clone()));
+                        }
+                    }
+                }
+            }
+        }
+        for (round, variant, tuning, order_name) in &configs {
+            let variant = variant.as_str();
+            if let (Some(c), Some(r)) = (&ctx, &mut raster) {
+                r.set_tuning(c, *tuning).map_err(|e| anyhow!("{e}"))?;
+            }
             let opts = options(variant)?;
             let (mut draw, mut clear, mut resolve, mut wall, mut plan) = (Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new());
             let mut stats = Default::default();
@@ -198,7 +248,7 @@ pub fn run(a: Args) -> Result<()> {
                 }
             }
             let mut compare = serde_json::Value::Null;
-            if let (true, Some(c), Some(r), Some(sc)) = (a.compare_cpu, &ctx, &mut raster, &mut scene) {
+            if let (true, Some(c), Some(r), Some(sc)) = (a.compare_cpu && tuning.kernel < 3, &ctx, &mut raster, &mut scene) {
                 r.draw(c, sc, &cam, &opts, None).map_err(|e| anyhow!("{e}"))?;
                 let f = r.read_keys(c).map_err(|e| anyhow!("{e}"))?;
                 let fb = Framebuffer::new(a.width, a.height);
@@ -227,6 +277,13 @@ pub fn run(a: Args) -> Result<()> {
                 "driver": ctx.as_ref().map(|c| c.adapter().driver.clone()),
                 "threads": rayon::current_num_threads(),
                 "variant": variant,
+                "kernel": tuning.kernel,
+                "workgroup": tuning.workgroup,
+                "order": order_name,
+                "round": round,
+                "unix_ms": std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_millis() as u64).unwrap_or(0),
+                "draw_ms_min": draw.iter().cloned().fold(f64::INFINITY, f64::min),
+                "draw_ms_max": draw.iter().cloned().fold(0.0, f64::max),
                 "view": a.view,
                 "points": points,
                 "tiles": tile,
@@ -249,9 +306,13 @@ pub fn run(a: Args) -> Result<()> {
             });
             println!("{j}");
             eprintln!(
-                "{:>6} M points  {:<8}  draw {:8.3} ms ({:6.1} G points/s)  gpu frame {:8.3} ms  wall {:8.3} ms  plan {:6.2} ms",
+                "{:>6} M points  {:<8} k{} wg{} {:<11} r{}  draw {:8.3} ms ({:6.1} G points/s)  gpu frame {:8.3} ms  wall {:8.3} ms  plan {:6.2} ms",
                 points / 1_000_000,
                 variant,
+                tuning.kernel,
+                tuning.workgroup,
+                order_name,
+                round,
                 draw_ms,
                 points as f64 / (draw_ms * 1e-3) / 1e9,
                 if gpu { gpu_ms } else { f64::NAN },

@@ -273,7 +273,7 @@ impl Camera {
 
     /// Half the visible extent on x and y: tangents of the half angles (perspective) or world
     /// units (orthographic).
-    fn half_extent(&self) -> [f64; 2] {
+    pub(crate) fn half_extent(&self) -> [f64; 2] {
         match self.projection {
             Projection::Perspective { fov_y } => {
                 let ty = (fov_y * 0.5).tan();

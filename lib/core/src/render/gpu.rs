@@ -113,6 +113,102 @@ pub struct ResolveUniforms {
 
 const _: () = assert!(std::mem::size_of::<ResolveUniforms>() == 32);
 
+/// One batch as the plan pass reads it (`shaders/plan.wgsl`; [`super::plan`]): where its points
+/// are, its quantization frame and the integer bounds of its points. Written once when the batch
+/// is uploaded; 64 bytes; WGSL `PlanBatch`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct PlanBatch {
+    /// The batch's smallest integer coordinate per axis ([`crate::quantize::BatchGrid::min`]).
+    pub min: [i32; 3],
+    /// Position of the batch's draw record in the records buffer.
+    pub record: u32,
+    /// Smallest integer offset of its points from `min`, per axis.
+    pub lo: [u32; 3],
+    /// Position of the batch's first point in its chunk's word buffers.
+    pub offset: u32,
+    /// Largest integer offset of its points from `min`, per axis.
+    pub hi: [u32; 3],
+    /// Number of points.
+    pub count: u32,
+    /// Bits per axis of the batch's integer offsets ([`crate::quantize::BatchGrid::bits`]).
+    pub bits: [u32; 3],
+    /// Index of the batch's first point.
+    pub first_index: u32,
+}
+
+const _: () = assert!(std::mem::size_of::<PlanBatch>() == 64);
+
+/// The per-frame constants of the plan pass and of its CPU twin ([`super::plan`]): the camera
+/// relative to the points' integer grid, in f32; only the split of the eye into an integer and a
+/// fractional part is made in f64 on the host. 160 bytes; WGSL `PlanUniforms`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct PlanUniforms {
+    /// The eye in grid units, rounded down (clamped to ±(2^31 - 2)).
+    pub eye_int: [i32; 3],
+    /// 1 for a perspective camera, 0 for orthographic.
+    pub perspective: u32,
+    /// The eye's grid units minus `eye_int`, in [0, 1).
+    pub eye_frac: [f32; 3],
+    /// Number of batches the pass plans.
+    pub batches: u32,
+    /// The view's right axis times the grid scale per axis (world metres of view x per unit).
+    pub right: [f32; 4],
+    /// The view's up axis times the grid scale.
+    pub up: [f32; 4],
+    /// The view's forward (depth) axis times the grid scale.
+    pub forward: [f32; 4],
+    /// |scale| per axis (world units per grid unit).
+    pub scale: [f32; 4],
+    /// Pixels per unit of `x / depth` (perspective) or of world x (orthographic).
+    pub sx: f32,
+    /// The same for y.
+    pub sy: f32,
+    /// Half the viewport width (the principal point's x).
+    pub cx: f32,
+    /// Half the viewport height.
+    pub cy: f32,
+    /// Near plane (view depth).
+    pub near: f32,
+    /// Far plane.
+    pub far: f32,
+    /// Viewport width in pixels.
+    pub width: f32,
+    /// Viewport height in pixels.
+    pub height: f32,
+    /// 0: adaptive precision; 1-3: that many words for every batch (never more than it needs).
+    pub words: u32,
+    /// 1: frustum culling on.
+    pub cull: u32,
+    /// How the divisions are made ([`DIVISION_PLAIN`] or [`DIVISION_REFINED`]).
+    pub division: u32,
+    /// Always 0 (see [`FrameUniforms::zero`]).
+    pub zero: u32,
+    /// Pixels by which the culling frustum is wider than the viewport.
+    pub margin_px: f32,
+    /// Relative slack of culling in units of (distance + batch size), for f32 rounding.
+    pub slack: f32,
+    /// The largest displacement on screen, in pixels, the precision rule accepts.
+    pub max_error_px: f32,
+    /// Padding.
+    pub _pad: u32,
+}
+
+const _: () = assert!(std::mem::size_of::<PlanUniforms>() == 160);
+
+/// Counters the plan pass adds to (eight words; WGSL `plan_counters`).
+pub mod plan_counter {
+    /// Batches culled.
+    pub const CULLED: usize = 0;
+    /// Batches drawn.
+    pub const DRAWN: usize = 1;
+    /// Points drawn from 1, 2 and 3 words (three words from here).
+    pub const POINTS_BY_WORDS: usize = 2;
+    /// Number of words.
+    pub const WORDS: usize = 8;
+}
+
 /// Constants of the progressive renderer's scatter pass. 16 bytes; WGSL `ScatterUniforms` in
 /// `shaders/progressive_types.wgsl`.
 #[repr(C)]

@@ -13,6 +13,7 @@ pub mod gpu;
 pub mod frustum;
 pub mod math;
 pub mod orbit;
+pub mod plan;
 pub mod precision;
 pub mod progressive;
 pub mod raster;

@@ -14,9 +14,10 @@
 
 use super::camera::{BatchProjection, Camera, CameraError};
 use super::framebuffer::Framebuffer;
-use super::frustum::{Containment, Frustum};
-use super::math::{length, sub, Aabb};
-use super::precision::{choose_precision, PrecisionMode};
+use super::math::Aabb;
+use super::gpu::{PlanBatch, PlanUniforms, DIVISION_REFINED};
+use super::plan::plan_batch;
+use super::precision::PrecisionMode;
 use crate::grid::Grid;
 use crate::quantize::{BatchGrid, Precision};
 use rayon::prelude::*;
@@ -25,10 +26,6 @@ use rayon::prelude::*;
 /// only if every point of it would land at least this far outside, so f32 rounding in the
 /// per-point projection can never bring a culled point on screen.
 pub const CULL_MARGIN_PX: f64 = 1.0;
-
-/// Relative depth margin of culling, in units of (distance to the batch + batch size): covers the
-/// f32 rounding of the per-point depth against the near and far planes.
-const CULL_DEPTH_MARGIN: f64 = 1e-5;
 
 /// One batch to draw: its quantization frame, world bounds and packed coordinate words.
 #[derive(Clone, Copy, Debug)]
@@ -215,28 +212,31 @@ pub enum BatchPlan {
 
 /// The per-view decisions about whole batches, shared by the CPU rasterizer and the GPU one so
 /// that both cull the same batches, choose the same precision and project with the same
-/// [`BatchProjection`] (paper 003 §3.2-3.3). The paper makes these decisions inside each
-/// workgroup from f32 bounds; mortar makes them per batch in f64 on the host because the
-/// projection itself must be built in f64 for georeferenced coordinates (1e6 m and more), and
-/// it is the same decision for every point of the batch either way.
+/// [`BatchProjection`] (paper 003 §3.2-3.3). The decisions are those of [`super::plan`]: made in
+/// f32 from camera-relative integer offsets, as the GPU's plan pass makes them, so that the GPU
+/// can plan every batch itself and still leave the CPU's keys.
 #[derive(Clone, Debug)]
 pub struct Planner {
     camera: Camera,
     grid: Grid,
-    frustum: Frustum,
-    options: RasterOptions,
+    uniforms: PlanUniforms,
 }
 
 impl Planner {
     /// The planner of a view; fails if the camera is unusable.
     pub fn new(camera: &Camera, grid: &Grid, options: &RasterOptions) -> Result<Planner, RasterError> {
         camera.validate()?;
-        Ok(Planner { camera: *camera, grid: *grid, frustum: Frustum::new(camera, CULL_MARGIN_PX), options: *options })
+        Ok(Planner { camera: *camera, grid: *grid, uniforms: PlanUniforms::new(camera, grid, options, DIVISION_REFINED) })
     }
 
     /// The camera planned for.
     pub fn camera(&self) -> &Camera {
         &self.camera
+    }
+
+    /// The f32 constants the plan is made from (the plan pass's uniforms).
+    pub fn uniforms(&self) -> &PlanUniforms {
+        &self.uniforms
     }
 
     /// Culls one batch of `len` points with quantization frame `batch` and world `bounds`, and
@@ -245,20 +245,8 @@ impl Planner {
         if len == 0 {
             return BatchPlan::Empty;
         }
-        let camera = &self.camera;
-        let grid = &self.grid;
-        let (precision, _) = choose_precision(self.options.precision, camera, grid, batch, bounds);
-        if self.options.cull {
-            // Decoded positions may lie up to the error bound outside the points' bounds; f32 depth
-            // may be off by a tiny fraction of the distance.
-            let err = batch.error_bound(precision);
-            let slack = CULL_DEPTH_MARGIN * (length(sub(bounds.center(), camera.eye)) + bounds.diagonal());
-            let margin = [0, 1, 2].map(|a| err[a] * grid.scale[a].abs() + slack);
-            if self.frustum.test_aabb(&bounds.expanded(margin)) == Containment::Outside {
-                return BatchPlan::Culled;
-            }
-        }
-        BatchPlan::Draw { precision, projection: camera.batch_projection(grid, batch, bounds, precision) }
+        let count = len.min(u32::MAX as usize) as u32;
+        plan_batch(&PlanBatch::new(&self.grid, batch, bounds, count, 0, 0, 0), &self.uniforms)
     }
 }
 
@@ -858,6 +846,15 @@ mod tests {
         }
     }
 
+    /// The projection the planner gives batch `b` at precision `p` (culling off).
+    fn planned(grid: &Grid, cam: &Camera, b: &BatchRef<'_>, p: Precision) -> BatchProjection {
+        let planner = Planner::new(cam, grid, &RasterOptions { precision: PrecisionMode::Fixed(p), cull: false }).unwrap();
+        match planner.plan(&b.grid, &b.bounds(), b.len()) {
+            BatchPlan::Draw { projection, .. } => projection,
+            other => panic!("{other:?}"),
+        }
+    }
+
     /// The reference per-point path the kernel must reproduce: `BatchProjection::local` and
     /// `::transform`, `(X / W, Y / W)` floored with `f32::floor`, one point at a time.
     fn reference_keys(scene: &Scene, cam: &Camera, precision: Precision) -> Vec<u64> {
@@ -865,7 +862,7 @@ mod tests {
         let mut keys = vec![EMPTY_KEY; (cam.width * cam.height) as usize];
         for b in scene.refs() {
             let p = precision.min(crate::render::precision::sufficient_precision(&b.grid));
-            let bp = cam.batch_projection(&scene.grid, &b.grid, &b.bounds(), p);
+            let bp = planned(&scene.grid, cam, &b, p);
             for i in 0..b.len() {
                 let w = [b.words[0][i], b.words[1][i], b.words[2][i]];
                 let [x, y, depth, wc] = bp.transform(bp.local(crate::quantize::join_words(w, p)));
@@ -908,7 +905,7 @@ mod tests {
                 let (base, wide) = (Framebuffer::new(cam.width, cam.height), Framebuffer::new(cam.width, cam.height));
                 for b in scene.refs() {
                     let p = precision.min(crate::render::precision::sufficient_precision(&b.grid));
-                    let k = Kernel::new(&cam.batch_projection(&scene.grid, &b.grid, &b.bounds(), p), &u);
+                    let k = Kernel::new(&planned(&scene.grid, cam, &b, p), &u);
                     let n1 = draw_with(&base, &k, &b, p, cam.is_perspective(), false);
                     if avx2_present() {
                         assert_eq!(n1, draw_with(&wide, &k, &b, p, cam.is_perspective(), true));

@@ -136,7 +136,8 @@ impl Scene {
 }
 
 use super::camera::Camera;
-use super::precision::{choose_precision, PrecisionMode};
+use super::precision::PrecisionMode;
+use super::raster::{BatchPlan, Planner, RasterOptions};
 use crate::quantize::join_words;
 
 /// Per-point comparison of the f32 batch projection with the f64 reference, over a scene.
@@ -171,9 +172,10 @@ impl Scene {
         let (w, h) = (cam.width as f64, cam.height as f64);
         let near = cam.near as f32;
         let far = cam.far as f32;
+        // The rasterizer's own plan (precision and projection, in f32 as the GPU makes it).
+        let planner = Planner::new(cam, &self.grid, &RasterOptions { precision: mode, cull: false }).expect("a valid camera");
         for (b, bounds) in self.batches.iter().zip(&self.batch_bounds) {
-            let (precision, _) = choose_precision(mode, cam, &self.grid, &b.grid, bounds);
-            let bp = cam.batch_projection(&self.grid, &b.grid, bounds, precision);
+            let BatchPlan::Draw { precision, projection: bp } = planner.plan(&b.grid, bounds, b.range.len()) else { continue };
             c.by_precision[precision.words() - 1] += b.range.len();
             for i in b.range.clone() {
                 let words = [self.words[0][i], self.words[1][i], self.words[2][i]];

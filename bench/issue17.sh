@@ -1,0 +1,41 @@
+#!/usr/bin/env bash
+# Issue 17's measurements of the GPU draw pass on the device (H200): where the time goes.
+# Runs from the repository root with release binaries in $BIN (default .carry) and the four bcts
+# strips in $DATA (default .carry); writes JSON lines and logs under $OUT (default bench-data/issue17).
+# Method (device METHOD.md): warm-up, interleaved rounds, medians, SM/memory clocks logged
+# every 200 ms next to the timings (clocks.csv; match by unix_ms), the same configuration timed
+# in several rounds so that the noise is known.
+set -uo pipefail
+BIN=${BIN:-.carry}
+DATA=${DATA:-.carry}
+OUT=${OUT:-bench-data/issue17}
+mkdir -p "$OUT"
+nvidia-smi --query-gpu=name,driver_version,clocks.max.sm,clocks.max.mem,power.limit --format=csv > "$OUT/gpu.csv" 2>&1
+nvidia-smi --query-gpu=timestamp,clocks.sm,clocks.mem,power.draw,temperature.gpu,utilization.gpu --format=csv -lms 200 > "$OUT/clocks.csv" 2>&1 &
+SMI=$!
+M=/tmp/bcts.mbat
+[ -f $M ] || "$BIN/mortar" batch "$DATA"/bcts_*.laz -o $M --attributes none 2>&1 | tail -1
+# The copy bandwidth, the ceiling of the ratios (device-to-device, bytes read + written).
+python3 - <<'PY' 2>&1 | tee "$OUT/copy.txt"
+import torch
+n = 2 << 30
+a = torch.empty(n, dtype=torch.uint8, device='cuda'); b = torch.empty_like(a)
+a.random_(0, 255)
+for _ in range(3): b.copy_(a)
+torch.cuda.synchronize()
+ts = []
+for _ in range(20):
+    s = torch.cuda.Event(enable_timing=True); e = torch.cuda.Event(enable_timing=True)
+    s.record(); b.copy_(a); e.record(); e.synchronize(); ts.append(s.elapsed_time(e))
+ts.sort(); m = ts[len(ts)//2]
+print(f"copy {n/2**30:.0f} GiB: median {m:.3f} ms, {2*n/m/1e6:.0f} GB/s (read + write)")
+PY
+run() { local name=$1; shift; echo "== $name: $*" | tee -a "$OUT/bench.txt"; timeout 300 "$BIN/mortar-bench-gpu" $M "$@" > "$OUT/$name.jsonl" 2>> "$OUT/bench.txt"; echo "exit $?" >> "$OUT/bench.txt"; }
+# A: the kernels and the record order at every size, warm, two interleaved rounds.
+run kernels --millions 500,1000,2000,3000 --frames 10 --variants ten --kernels 0,1,2,3 --orders scene,strided:97 --rounds 2 --warmup-ms 2000
+# B: the issue's comparison as it was measured (no warm-up), three rounds: cold versus warm.
+run variants --millions 1000,3000 --frames 15 --variants adaptive,ten,brute --rounds 3
+# C: workgroup size.
+run workgroups --millions 1000,3000 --frames 10 --variants ten --workgroups 64,128,256 --rounds 2 --warmup-ms 2000
+kill $SMI
+grep -v '^{' "$OUT/bench.txt" | grep -v "^adapter\|tiles of" | tail -120
