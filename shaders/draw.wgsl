@@ -9,7 +9,9 @@
 //   1: early depth test with a plain load of the key's depth word (key_words aliases keys; a
 //      stale value is never smaller than the current one, so the test only lets more through);
 //   2: no early depth test: atomicMin for every point inside;
-//   3: no framebuffer access at all (load, decode, project, count): the floor of the pass.
+//   3: no framebuffer access at all (load, decode, project, count): the floor of the pass;
+//   4: kernel 0 with the words of four points loaded before any of them is projected (the
+//      paper's prefetch, §3.4), so that four loads are in flight per thread.
 
 override KERNEL: u32 = 0u;
 override WG: u32 = 128u;
@@ -26,6 +28,32 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) groups: v
     }
     let rec = records[r];
     var drawn = 0u;
+    if KERNEL == 4u {
+        for (var base = lid; base < rec.count; base += 4u * WG) {
+            var w: array<vec3<u32>, 4>;
+            for (var k = 0u; k < 4u; k++) {
+                let i = base + k * WG;
+                if i < rec.count {
+                    w[k] = load_words(rec, i);
+                }
+            }
+            for (var k = 0u; k < 4u; k++) {
+                let i = base + k * WG;
+                if i < rec.count {
+                    let pt = project_words(rec, w[k], frame);
+                    if pt.inside {
+                        drawn += 1u;
+                        let key = (u64(bitcast<u32>(pt.depth)) << 32u) | u64(rec.first_index + i);
+                        if key < atomicLoad(&keys[pt.pixel]) {
+                            atomicMin(&keys[pt.pixel], key);
+                        }
+                    }
+                }
+            }
+        }
+        count_drawn(drawn, lid);
+        return;
+    }
     for (var i = lid; i < rec.count; i += WG) {
         let pt = load_and_project(rec, i, frame);
         if pt.inside {

@@ -7,6 +7,8 @@
 //   DrawRecord       (128 bytes)
 //   FrameUniforms    (32 bytes)
 //   ResolveUniforms  (32 bytes)
+//   PlanBatch        (64 bytes)
+//   PlanUniforms     (160 bytes)
 
 struct BatchProjection {
     // Rows X, Y, D, W of pixel_from_local (row-major, as in Rust; not a WGSL matrix).
@@ -47,6 +49,44 @@ struct ResolveUniforms {
     count: u32,
     background: u32,
     write_background: u32,
+}
+
+struct PlanBatch {
+    min: vec3<i32>,
+    record: u32,
+    lo: vec3<u32>,
+    offset: u32,
+    hi: vec3<u32>,
+    count: u32,
+    bits: vec3<u32>,
+    first_index: u32,
+}
+
+struct PlanUniforms {
+    eye_int: vec3<i32>,
+    perspective: u32,
+    eye_frac: vec3<f32>,
+    batches: u32,
+    right: vec4<f32>,
+    up: vec4<f32>,
+    forward: vec4<f32>,
+    scale: vec4<f32>,
+    sx: f32,
+    sy: f32,
+    cx: f32,
+    cy: f32,
+    near: f32,
+    far: f32,
+    width: f32,
+    height: f32,
+    words: u32,
+    cull: u32,
+    division: u32,
+    zero: u32,
+    margin_px: f32,
+    slack: f32,
+    max_error_px: f32,
+    _pad: u32,
 }
 
 // The linear index of a workgroup in a dispatch split over x and y (at most 65,535 per dimension).

@@ -11,7 +11,7 @@ use crate::pipeline::{batches_group, entry, storage, uniform, PassPipeline, Shar
 use crate::scene::GpuScene;
 use crate::shaders::{binding, Pass};
 use mortar_core::render::framebuffer::EMPTY_KEY;
-use mortar_core::render::gpu::{DrawRecord, FrameUniforms, ResolveUniforms};
+use mortar_core::render::gpu::{plan_counter, DrawRecord, FrameUniforms, PlanUniforms, ResolveUniforms};
 use mortar_core::render::{BatchPlan, Camera, Planner, RasterError, RasterOptions, RasterStats};
 use rayon::prelude::*;
 use std::num::NonZeroU64;
@@ -27,6 +27,8 @@ pub struct GpuTimings {
     pub draw_ms: f64,
     /// Resolving indices to colours (`None` when not run).
     pub resolve_ms: Option<f64>,
+    /// Planning every batch on the GPU (`None` when planned on the host).
+    pub plan_ms: Option<f64>,
 }
 
 /// What one frame did.
@@ -48,17 +50,21 @@ pub struct GpuFrame {
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub struct DrawTuning {
     /// `draw.wgsl`'s `KERNEL`: 0 the renderer (atomicLoad early test), 1 early test from a plain
-    /// load of the depth word, 2 no early test, 3 no framebuffer access.
+    /// load of the depth word, 2 no early test, 3 no framebuffer access, 4 kernel 0 with four
+    /// points' words loaded before any is projected (the paper's prefetch, §3.4).
     pub kernel: u32,
     /// Threads per workgroup (`WG`; one workgroup per batch whatever the size).
     pub workgroup: u32,
-    /// Order of a chunk's draw records, i.e. of the workgroups.
+    /// Order of a chunk's draw records, i.e. of the workgroups (host planning only).
     pub order: RecordOrder,
+    /// Plan every batch on the GPU (the plan pass); `false` plans on the host (as a selection
+    /// always is), with the same plan.
+    pub plan_on_gpu: bool,
 }
 
 impl Default for DrawTuning {
     fn default() -> Self {
-        DrawTuning { kernel: 0, workgroup: 128, order: RecordOrder::Scene }
+        DrawTuning { kernel: 0, workgroup: 128, order: RecordOrder::Scene, plan_on_gpu: true }
     }
 }
 
@@ -107,6 +113,7 @@ impl DrawPasses {
 struct Passes {
     shared: SharedLayouts,
     clear: PassPipeline,
+    plan: PassPipeline,
     draw: DrawPasses,
     resolve: PassPipeline,
 }
@@ -136,6 +143,9 @@ struct PerFrame {
     frame_uniforms: wgpu::Buffer,
     counters: wgpu::Buffer,
     records: wgpu::Buffer,
+    /// The plan pass's constants and counters.
+    plan_uniforms: wgpu::Buffer,
+    plan_counters: wgpu::Buffer,
     /// One per chunk of the last resolved scene (grown, never shrunk).
     resolve_uniforms: Vec<wgpu::Buffer>,
 }
@@ -209,8 +219,8 @@ pub struct GpuRasterizer {
     tuning: DrawTuning,
 }
 
-/// Timestamp slots: clear begin/end, draw begin/end, resolve begin/end.
-const QUERIES: u32 = 6;
+/// Timestamp slots: clear begin/end, draw begin/end, resolve begin/end, plan begin/end.
+const QUERIES: u32 = 8;
 
 impl GpuRasterizer {
     /// A rasterizer for `width x height` pixels on the context's atomic path.
@@ -221,13 +231,15 @@ impl GpuRasterizer {
             AtomicPath::U64 => DrawPasses::U64(PassPipeline::new(ctx, Pass::Draw64, &shared)),
             AtomicPath::TwoPass32 => DrawPasses::TwoPass32([PassPipeline::new(ctx, Pass::DrawDepth32, &shared), PassPipeline::new(ctx, Pass::DrawIndex32, &shared)]),
         };
-        let passes = Passes { clear: PassPipeline::new(ctx, Pass::Clear, &shared), draw, resolve: PassPipeline::new(ctx, Pass::Resolve, &shared), shared };
+        let passes = Passes { clear: PassPipeline::new(ctx, Pass::Clear, &shared), plan: PassPipeline::new(ctx, Pass::Plan, &shared), draw, resolve: PassPipeline::new(ctx, Pass::Resolve, &shared), shared };
         let copy = wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST;
         let per_frame = PerFrame {
             frame_uniforms: uniform::<FrameUniforms>(ctx, "frame uniforms"),
             counters: storage(ctx, "counters", 8, copy),
             // Grown by the first frame that draws anything.
             records: storage(ctx, "draw records", 0, wgpu::BufferUsages::COPY_DST),
+            plan_uniforms: uniform::<PlanUniforms>(ctx, "plan uniforms"),
+            plan_counters: storage(ctx, "plan counters", 4 * plan_counter::WORDS as u64, copy),
             resolve_uniforms: Vec::new(),
         };
         let target = Target::new(ctx, &passes, &per_frame, width, height)?;
@@ -239,19 +251,18 @@ impl GpuRasterizer {
 
     /// Rebuilds the 64-bit draw pipeline with `tuning` (measurements only: see [`DrawTuning`]).
     pub fn set_tuning(&mut self, ctx: &GpuContext, tuning: DrawTuning) -> Result<(), GpuError> {
-        if tuning == self.tuning {
-            return Ok(());
+        if (tuning.kernel, tuning.workgroup) != (self.tuning.kernel, self.tuning.workgroup) {
+            let DrawPasses::U64(_) = self.passes.draw else {
+                return Err(GpuError::Device("draw kernels and workgroup sizes apply to the 64-bit path only".into()));
+            };
+            if !(32..=1024).contains(&tuning.workgroup) || tuning.kernel > 4 {
+                return Err(GpuError::Device(format!("draw tuning out of range: {tuning:?}")));
+            }
+            let constants = [("KERNEL", tuning.kernel as f64), ("WG", tuning.workgroup as f64)];
+            self.passes.draw = DrawPasses::U64(PassPipeline::with_constants(ctx, Pass::Draw64, &self.passes.shared, &constants));
+            self.target = Target::new(ctx, &self.passes, &self.per_frame, self.target.width, self.target.height)?;
         }
-        let DrawPasses::U64(_) = self.passes.draw else {
-            return Err(GpuError::Device("draw tuning applies to the 64-bit path only".into()));
-        };
-        if !(32..=1024).contains(&tuning.workgroup) || tuning.kernel > 3 {
-            return Err(GpuError::Device(format!("draw tuning out of range: {tuning:?}")));
-        }
-        let constants = [("KERNEL", tuning.kernel as f64), ("WG", tuning.workgroup as f64)];
-        self.passes.draw = DrawPasses::U64(PassPipeline::with_constants(ctx, Pass::Draw64, &self.passes.shared, &constants));
         self.tuning = tuning;
-        self.target = Target::new(ctx, &self.passes, &self.per_frame, self.target.width, self.target.height)?;
         ctx.check()
     }
 
@@ -302,73 +313,33 @@ impl GpuRasterizer {
             return Err(GpuError::Colors("resolve asked for but the scene has no colours".into()));
         }
         scene.flush(ctx)?;
-        let planner = Planner::new(camera, scene.grid(), options)?;
-
-        // Plan every batch (in parallel), then lay the drawn ones out per chunk, each chunk's
-        // records starting at a storage-offset boundary (padding records have no points).
-        // The batches to draw, in scene order (so that each chunk's records are contiguous).
-        let order: Vec<u32> = match selected {
-            None => (0..scene.batches.len() as u32).collect(),
-            Some(ids) => {
-                let mut v = ids.to_vec();
-                v.sort_unstable();
-                v.dedup();
-                if let Some(&bad) = v.iter().find(|&&i| i as usize >= scene.batches.len()) {
-                    return Err(GpuError::Selection(format!("batch {bad} selected, but the scene holds {}", scene.batches.len())));
-                }
-                v
-            }
-        };
-        let plans: Vec<BatchPlan> = order.par_iter().map(|&i| {
-            let b = &scene.batches[i as usize];
-            planner.plan(&b.grid, &b.bounds, b.count as usize)
-        }).collect();
-        let mut stats = RasterStats { batches: plans.len() as u64, ..Default::default() };
-        let align = ctx.limits().min_storage_buffer_offset_alignment.max(1) as usize;
-        let mut records: Vec<DrawRecord> = Vec::new();
-        let mut ranges: Vec<(usize, usize, usize)> = Vec::new(); // (chunk, first record, count)
-        for (b, plan) in order.iter().map(|&i| &scene.batches[i as usize]).zip(&plans) {
-            match plan {
-                BatchPlan::Empty => {}
-                BatchPlan::Culled => stats.batches_culled += 1,
-                BatchPlan::Draw { precision, projection } => {
-                    stats.batches_drawn += 1;
-                    stats.points_by_precision[precision.words() - 1] += b.count as u64;
-                    match ranges.last_mut() {
-                        Some(r) if r.0 == b.chunk as usize => r.2 += 1,
-                        _ => {
-                            while !(records.len() * std::mem::size_of::<DrawRecord>()).is_multiple_of(align) {
-                                records.push(bytemuck::Zeroable::zeroed());
-                            }
-                            ranges.push((b.chunk as usize, records.len(), 1));
-                        }
-                    }
-                    records.push(DrawRecord { projection: *projection, offset: b.offset, count: b.count, first_index: b.first_index, _pad: 0 });
-                }
-            }
-        }
-        if self.tuning.order != RecordOrder::Scene {
-            for &(_, first, count) in &ranges {
-                let part = records[first..first + count].to_vec();
-                for (dst, src) in self.tuning.order.permutation(count).into_iter().enumerate() {
-                    records[first + dst] = part[src];
-                }
-            }
-        }
-        let plan_seconds = start.elapsed().as_secs_f64();
         let record_size = std::mem::size_of::<DrawRecord>() as u64;
+        let mut stats = RasterStats::default();
+        // Every batch planned on the GPU (the plan pass writes the records) or, for a selection or
+        // when asked, on the host with the same plan.
+        let on_gpu = selected.is_none() && self.tuning.plan_on_gpu && !scene.batches.is_empty();
+        let ranges: Vec<(usize, usize, usize)> = if on_gpu {
+            Planner::new(camera, scene.grid(), options)?;
+            let f = &mut self.per_frame;
+            let needed = (scene.records_total as u64 * record_size).max(record_size);
+            if f.records.size() < needed {
+                let size = needed.max(f.records.size() * 3 / 2).min(ctx.limits().max_buffer_size.max(needed));
+                f.records = storage(ctx, "draw records", size, wgpu::BufferUsages::COPY_DST);
+            }
+            let mut u = PlanUniforms::new(camera, scene.grid(), options, ctx.division());
+            u.batches = scene.batches.len() as u32;
+            ctx.queue.write_buffer(&f.plan_uniforms, 0, bytemuck::bytes_of(&u));
+            ctx.queue.write_buffer(&f.plan_counters, 0, &[0u8; 4 * plan_counter::WORDS]);
+            stats.batches = scene.batches.len() as u64;
+            scene.record_ranges.iter().enumerate().filter(|r| r.1 .1 > 0).map(|(chunk, &(first, count))| (chunk, first as usize, count as usize)).collect()
+        } else {
+            self.plan_on_host(ctx, scene, selected, camera, options, &mut stats)?
+        };
+        let plan_seconds = start.elapsed().as_secs_f64();
         if let Some(r) = ranges.iter().find(|r| r.2 as u64 * record_size > ctx.max_binding()) {
             return Err(GpuError::TooLarge { what: "one chunk's draw records", needed: r.2 as u64 * record_size, limit: ctx.max_binding() });
         }
         let f = &mut self.per_frame;
-        let needed = (records.len() as u64 * record_size).max(record_size);
-        if f.records.size() < needed {
-            let size = needed.max(f.records.size() * 3 / 2).min(ctx.limits().max_buffer_size);
-            f.records = storage(ctx, "draw records", size.max(needed), wgpu::BufferUsages::COPY_DST);
-        }
-        if !records.is_empty() {
-            ctx.queue.write_buffer(&f.records, 0, bytemuck::cast_slice(&records));
-        }
         ctx.queue.write_buffer(&f.frame_uniforms, 0, bytemuck::bytes_of(&FrameUniforms::new(camera, ctx.division())));
         ctx.queue.write_buffer(&f.counters, 0, &[0u8; 8]);
         let f = &self.per_frame;
@@ -378,6 +349,24 @@ impl GpuRasterizer {
 
         let dev = &ctx.device;
         let mut enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("frame") });
+        if on_gpu {
+            let Some(plan_batches) = &scene.plan_buffer else { return Err(GpuError::Device("the scene's plan batches were not written".into())) };
+            let group = passes.plan.bind_group(
+                ctx,
+                0,
+                &[
+                    entry(binding::PLAN_PARAMS, f.plan_uniforms.as_entire_binding()),
+                    entry(binding::PLAN_BATCHES, plan_batches.as_entire_binding()),
+                    entry(binding::PLAN_RECORDS, f.records.as_entire_binding()),
+                    entry(binding::PLAN_COUNTERS, f.plan_counters.as_entire_binding()),
+                ],
+            );
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("plan"), timestamp_writes: queries.map(|q| q.writes(Some(6), Some(7))) });
+            pass.set_pipeline(passes.plan.pipeline());
+            pass.set_bind_group(0, &group, &[]);
+            let (x, y) = ctx.split_dispatch((scene.batches.len() as u32).div_ceil(256));
+            pass.dispatch_workgroups(x, y, 1);
+        }
         // Clear.
         {
             let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("clear"), timestamp_writes: queries.map(|q| q.writes(Some(0), Some(1))) });
@@ -453,6 +442,7 @@ impl GpuRasterizer {
             }
         }
         let counters_read = readback(ctx, &mut enc, &self.per_frame.counters, 8);
+        let plan_read = on_gpu.then(|| readback(ctx, &mut enc, &self.per_frame.plan_counters, 4 * plan_counter::WORDS as u64));
         let times_read = queries.map(|q| {
             enc.resolve_query_set(&q.set, 0..QUERIES, &q.buffer, 0);
             readback(ctx, &mut enc, &q.buffer, QUERIES as u64 * 8)
@@ -461,17 +451,92 @@ impl GpuRasterizer {
         let counters = map_read(ctx, &counters_read)?;
         let c: &[u32] = bytemuck::cast_slice(&counters);
         stats.points_drawn = c[0] as u64 | (c[1] as u64) << 32;
+        if let Some(buf) = plan_read {
+            let pc: Vec<u32> = bytemuck::pod_collect_to_vec(&map_read(ctx, &buf)?);
+            stats.batches_culled = pc[plan_counter::CULLED] as u64;
+            stats.batches_drawn = pc[plan_counter::DRAWN] as u64;
+            for w in 0..3 {
+                stats.points_by_precision[w] = pc[plan_counter::POINTS_BY_WORDS + w] as u64;
+            }
+        }
         let timings = match times_read {
             Some(buf) => {
                 let t: Vec<u64> = bytemuck::pod_collect_to_vec(&map_read(ctx, &buf)?);
                 let period = ctx.queue.get_timestamp_period() as f64 * 1e-6;
                 let ms = |a: usize| t[a + 1].saturating_sub(t[a]) as f64 * period;
-                Some(GpuTimings { clear_ms: ms(0), draw_ms: ms(2), resolve_ms: resolve.map(|_| ms(4)) })
+                Some(GpuTimings { clear_ms: ms(0), draw_ms: ms(2), resolve_ms: resolve.map(|_| ms(4)), plan_ms: on_gpu.then(|| ms(6)) })
             }
             None => None,
         };
         ctx.check()?;
         Ok(GpuFrame { stats, timings, plan_seconds, frame_seconds: start.elapsed().as_secs_f64() })
+    }
+
+    /// Plans the batches (all, or those `selected`) on the host, writes their records per chunk
+    /// (each chunk's records starting at a storage-offset boundary; padding records have no
+    /// points) and returns the chunks' record ranges `(chunk, first record, count)`.
+    fn plan_on_host(&mut self, ctx: &GpuContext, scene: &GpuScene, selected: Option<&[u32]>, camera: &Camera, options: &RasterOptions, stats: &mut RasterStats) -> Result<Vec<(usize, usize, usize)>, GpuError> {
+        let planner = Planner::new(camera, scene.grid(), options)?;
+        // The batches to draw, in scene order (so that each chunk's records are contiguous).
+        let order: Vec<u32> = match selected {
+            None => (0..scene.batches.len() as u32).collect(),
+            Some(ids) => {
+                let mut v = ids.to_vec();
+                v.sort_unstable();
+                v.dedup();
+                if let Some(&bad) = v.iter().find(|&&i| i as usize >= scene.batches.len()) {
+                    return Err(GpuError::Selection(format!("batch {bad} selected, but the scene holds {}", scene.batches.len())));
+                }
+                v
+            }
+        };
+        let plans: Vec<BatchPlan> = order.par_iter().map(|&i| {
+            let b = &scene.batches[i as usize];
+            planner.plan(&b.grid, &b.bounds, b.count as usize)
+        }).collect();
+        stats.batches = plans.len() as u64;
+        let align = ctx.limits().min_storage_buffer_offset_alignment.max(1) as usize;
+        let mut records: Vec<DrawRecord> = Vec::new();
+        let mut ranges: Vec<(usize, usize, usize)> = Vec::new();
+        for (b, plan) in order.iter().map(|&i| &scene.batches[i as usize]).zip(&plans) {
+            match plan {
+                BatchPlan::Empty => {}
+                BatchPlan::Culled => stats.batches_culled += 1,
+                BatchPlan::Draw { precision, projection } => {
+                    stats.batches_drawn += 1;
+                    stats.points_by_precision[precision.words() - 1] += b.count as u64;
+                    match ranges.last_mut() {
+                        Some(r) if r.0 == b.chunk as usize => r.2 += 1,
+                        _ => {
+                            while !(records.len() * std::mem::size_of::<DrawRecord>()).is_multiple_of(align) {
+                                records.push(bytemuck::Zeroable::zeroed());
+                            }
+                            ranges.push((b.chunk as usize, records.len(), 1));
+                        }
+                    }
+                    records.push(DrawRecord { projection: *projection, offset: b.offset, count: b.count, first_index: b.first_index, _pad: 0 });
+                }
+            }
+        }
+        if self.tuning.order != RecordOrder::Scene {
+            for &(_, first, count) in &ranges {
+                let part = records[first..first + count].to_vec();
+                for (dst, src) in self.tuning.order.permutation(count).into_iter().enumerate() {
+                    records[first + dst] = part[src];
+                }
+            }
+        }
+        let record_size = std::mem::size_of::<DrawRecord>() as u64;
+        let f = &mut self.per_frame;
+        let needed = (records.len() as u64 * record_size).max(record_size);
+        if f.records.size() < needed {
+            let size = needed.max(f.records.size() * 3 / 2).min(ctx.limits().max_buffer_size.max(needed));
+            f.records = storage(ctx, "draw records", size, wgpu::BufferUsages::COPY_DST);
+        }
+        if !records.is_empty() {
+            ctx.queue.write_buffer(&f.records, 0, bytemuck::cast_slice(&records));
+        }
+        Ok(ranges)
     }
 
     /// The framebuffer's keys as the CPU rasterizer writes them (`depth bits << 32 | index`,

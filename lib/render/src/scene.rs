@@ -13,6 +13,7 @@
 use crate::context::{GpuContext, GpuError};
 use mortar_core::grid::Grid;
 use mortar_core::quantize::BatchGrid;
+use mortar_core::render::gpu::{DrawRecord, PlanBatch};
 use mortar_core::render::{Aabb, BatchRef};
 
 /// The largest chunk, in points (1 GiB per word buffer).
@@ -71,6 +72,19 @@ pub struct GpuScene {
     staged: [Vec<u32>; 4],
     /// Bytes written since the last wait for the GPU (bounds wgpu's staging memory).
     unwaited: u64,
+    /// Every batch as the GPU plan pass reads it (`shaders/plan.wgsl`), in batch order.
+    pub(crate) plan: Vec<PlanBatch>,
+    /// The plan batches on the GPU (the first `plan_written` of `plan`).
+    pub(crate) plan_buffer: Option<wgpu::Buffer>,
+    plan_written: usize,
+    /// Per chunk (in order): its first draw record and its number of batches. Each chunk's
+    /// records start at a storage-offset boundary, so that one binding of the records buffer
+    /// per chunk serves its draw dispatch.
+    pub(crate) record_ranges: Vec<(u32, u32)>,
+    /// Records the plan pass writes (padding between chunks included).
+    pub(crate) records_total: u32,
+    /// Records per storage-offset alignment.
+    record_align: u32,
 }
 
 impl GpuScene {
@@ -89,6 +103,12 @@ impl GpuScene {
             batches: Vec::new(),
             staged: Default::default(),
             unwaited: 0,
+            plan: Vec::new(),
+            plan_buffer: None,
+            plan_written: 0,
+            record_ranges: Vec::new(),
+            records_total: 0,
+            record_align: (ctx.limits().min_storage_buffer_offset_alignment.max(1) as usize).div_ceil(std::mem::size_of::<DrawRecord>()) as u32,
         })
     }
 
@@ -157,6 +177,16 @@ impl GpuScene {
                 self.new_chunk(ctx, n as u32)?
             }
         };
+        if self.record_ranges.len() <= chunk {
+            let first = self.records_total.div_ceil(self.record_align) * self.record_align;
+            self.record_ranges.push((first, 0));
+            self.records_total = first;
+        }
+        let range = &mut self.record_ranges[chunk];
+        let record = range.0 + range.1;
+        range.1 += 1;
+        self.records_total = record + 1;
+        self.plan.push(PlanBatch::new(&self.grid, &b.grid, &b.bounds(), n as u32, self.chunks[chunk].len, b.first_index, record));
         let c = &mut self.chunks[chunk];
         self.batches.push(GpuBatch {
             grid: b.grid,
@@ -221,8 +251,33 @@ impl GpuScene {
         ctx.check()
     }
 
-    /// Writes the staged points to the GPU.
+    /// Writes the plan batches not yet on the GPU (the buffer grows by half when full, written
+    /// anew).
+    fn flush_plan(&mut self, ctx: &GpuContext) {
+        if self.plan_written == self.plan.len() {
+            return;
+        }
+        let size = std::mem::size_of::<PlanBatch>() as u64;
+        let needed = self.plan.len() as u64 * size;
+        if self.plan_buffer.as_ref().is_none_or(|b| b.size() < needed) {
+            let grown = needed.max(self.plan_buffer.as_ref().map_or(0, |b| b.size() * 3 / 2)).min(ctx.limits().max_buffer_size.max(needed));
+            self.plan_buffer = Some(ctx.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("plan batches"),
+                size: grown,
+                usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            }));
+            self.plan_written = 0;
+        }
+        if let Some(buf) = &self.plan_buffer {
+            ctx.queue.write_buffer(buf, self.plan_written as u64 * size, bytemuck::cast_slice(&self.plan[self.plan_written..]));
+        }
+        self.plan_written = self.plan.len();
+    }
+
+    /// Writes the staged points (and the new batches' plan records) to the GPU.
     pub fn flush(&mut self, ctx: &GpuContext) -> Result<(), GpuError> {
+        self.flush_plan(ctx);
         let Some(c) = self.chunks.last_mut() else { return Ok(()) };
         if self.staged[0].is_empty() {
             return Ok(());

@@ -99,6 +99,15 @@ pub mod binding {
     /// `resolve.wgsl`: the RGBA8 image.
     pub const RESOLVE_IMAGE: Binding = bind(0, 4, StorageReadWrite, "image");
 
+    /// `plan.wgsl`: the frame's plan constants (`PlanUniforms`).
+    pub const PLAN_PARAMS: Binding = bind(0, 0, Uniform, "u");
+    /// `plan.wgsl`: the batches to plan (`PlanBatch`, written when they were uploaded).
+    pub const PLAN_BATCHES: Binding = bind(0, 1, StorageRead, "plan_batches");
+    /// `plan.wgsl`: the draw records it writes.
+    pub const PLAN_RECORDS: Binding = bind(0, 2, StorageReadWrite, "out_records");
+    /// `plan.wgsl`: culled and drawn batches, points per number of words.
+    pub const PLAN_COUNTERS: Binding = bind(0, 3, StorageReadWrite, "plan_counters");
+
     /// `progressive_unload.wgsl`: a chunk's coarse words.
     pub const UNLOAD_COARSE: Binding = bind(0, 0, StorageReadWrite, "coarse_words");
 
@@ -148,6 +157,8 @@ pub enum Pass {
     DrawIndex32,
     /// Point index to colour (`shaders/resolve.wgsl`).
     Resolve,
+    /// Culling, precision and projection of every batch on the GPU (`shaders/plan.wgsl`).
+    Plan,
     /// Progressive renderer: marks a chunk's slots unloaded (`shaders/progressive_unload.wgsl`).
     ProgressiveUnload,
     /// Progressive renderer: staged points into their shuffled slots
@@ -166,8 +177,9 @@ pub enum Pass {
 
 impl Pass {
     /// Every pass.
-    pub const ALL: [Pass; 10] = [
+    pub const ALL: [Pass; 11] = [
         Pass::Clear,
+        Pass::Plan,
         Pass::Draw64,
         Pass::DrawDepth32,
         Pass::DrawIndex32,
@@ -187,6 +199,7 @@ impl Pass {
             Pass::DrawDepth32 => "draw_depth.wgsl",
             Pass::DrawIndex32 => "draw_index.wgsl",
             Pass::Resolve => "resolve.wgsl",
+            Pass::Plan => "plan.wgsl",
             Pass::ProgressiveUnload => "progressive_unload.wgsl",
             Pass::ProgressiveScatter => "progressive_scatter.wgsl",
             Pass::ProgressiveReproject => "progressive_reproject.wgsl",
@@ -202,6 +215,7 @@ impl Pass {
             Pass::DrawDepth32 => include_str!("../../../shaders/draw_depth.wgsl"),
             Pass::DrawIndex32 => include_str!("../../../shaders/draw_index.wgsl"),
             Pass::Resolve => include_str!("../../../shaders/resolve.wgsl"),
+            Pass::Plan => include_str!("../../../shaders/plan.wgsl"),
             Pass::ProgressiveUnload => include_str!("../../../shaders/progressive_unload.wgsl"),
             Pass::ProgressiveScatter => include_str!("../../../shaders/progressive_scatter.wgsl"),
             Pass::ProgressiveReproject => include_str!("../../../shaders/progressive_reproject.wgsl"),
@@ -219,6 +233,7 @@ impl Pass {
             Pass::DrawDepth32 => &[FRAME, DEPTHS, RECORDS, COARSE, MEDIUM, FINE],
             Pass::DrawIndex32 => &[FRAME, DEPTHS, COUNTERS, INDICES, RECORDS, COARSE, MEDIUM, FINE],
             Pass::Resolve => &[RESOLVE_PARAMS, RESOLVE_INDEX_WORDS, RESOLVE_DEPTH_WORDS, RESOLVE_COLORS, RESOLVE_IMAGE],
+            Pass::Plan => &[PLAN_PARAMS, PLAN_BATCHES, PLAN_RECORDS, PLAN_COUNTERS],
             Pass::ProgressiveUnload => &[UNLOAD_COARSE],
             Pass::ProgressiveScatter => &[SCATTER_PARAMS, SCATTER_STAGED, SCATTER_COARSE, SCATTER_MEDIUM, SCATTER_FINE, SCATTER_COLORS],
             Pass::ProgressiveReproject => &[FRAME, KEYS, COUNTERS, VISIBLE, RECORDS, COARSE, MEDIUM, FINE],
@@ -243,6 +258,8 @@ impl Pass {
         let mut parts = vec![TYPES];
         match self {
             Pass::Clear | Pass::Resolve => {}
+            // div_rn and opaque of the decode.
+            Pass::Plan => parts.push(DECODE),
             Pass::Draw64 | Pass::DrawIndex32 => parts.extend([DECODE, BATCHES, COUNTERS]),
             Pass::DrawDepth32 => parts.extend([DECODE, BATCHES]),
             Pass::ProgressiveUnload | Pass::ProgressiveScatter | Pass::ProgressivePrepare => parts.push(PROGRESSIVE),

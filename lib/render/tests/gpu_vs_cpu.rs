@@ -11,7 +11,7 @@ use mortar_core::render::framebuffer::{key_depth, key_index, EMPTY_KEY};
 use mortar_core::render::resolve::{resolve_with_colors, ResolveOptions};
 use mortar_core::render::testutil::Scene;
 use mortar_core::render::{rasterize, Camera, Framebuffer, PrecisionMode, RasterOptions, RasterStats, ViewPreset};
-use mortar_render::{AtomicPath, GpuContext, GpuError, GpuRasterizer, GpuScene, SceneOptions};
+use mortar_render::{AtomicPath, DrawTuning, GpuContext, GpuError, GpuRasterizer, GpuScene, RecordOrder, SceneOptions};
 
 fn context(atomics: AtomicPath, max_dispatch: Option<u32>) -> Option<GpuContext> {
     mortar_render::testing::context_or_skip(atomics, max_dispatch)
@@ -87,6 +87,25 @@ fn check_scene(name: &str, scene: &Scene, path: AtomicPath, chunk_points: Option
         }
     }
     eprintln!("{name} {path:?}: exact depth ties that differ: {total_ties}");
+    // The measurement variants of the draw pass and the host plan leave the same keys and
+    // statistics (kernel 3 draws nothing by design).
+    let (cam_name, cam) = cameras(scene).swap_remove(4);
+    let mut gr = GpuRasterizer::new(&ctx, cam.width, cam.height).unwrap();
+    let opts = RasterOptions::default();
+    let (want, want_stats) = cpu_keys(scene, &cam, &opts);
+    let kernels: &[u32] = if path == AtomicPath::U64 { &[0, 1, 2, 4] } else { &[0] };
+    for &kernel in kernels {
+        for plan_on_gpu in [true, false] {
+            let tuning = DrawTuning { kernel, workgroup: if kernel == 4 { 64 } else { 128 }, order: RecordOrder::Strided(5), plan_on_gpu };
+            gr.set_tuning(&ctx, tuning).unwrap();
+            let frame = gr.draw(&ctx, &mut gs, &cam, &opts, None).unwrap();
+            let got = gr.read_keys(&ctx).unwrap();
+            assert_eq!(compare(&got, &want).1, 0, "{name} {path:?} {cam_name} {tuning:?}");
+            assert_eq!(frame.stats, want_stats, "{name} {path:?} {cam_name} {tuning:?}: statistics");
+            assert_eq!(frame.timings.map(|t| t.plan_ms.is_some()), ctx.has_timestamps().then_some(plan_on_gpu));
+        }
+    }
+    assert!(want_stats.batches_culled > 0, "{name}: the 'past' view culls nothing");
 }
 
 fn utm_terrain(n: usize) -> Scene {

@@ -4,7 +4,7 @@
 //! from), and every struct shared with WGSL has the same size and member offsets as its
 //! `#[repr(C)]` Rust twin.
 
-use mortar_core::render::gpu::{BatchProjection, DrawRecord, FrameUniforms, PrepareUniforms, ResolveUniforms, ScatterUniforms};
+use mortar_core::render::gpu::{BatchProjection, DrawRecord, FrameUniforms, PlanBatch, PlanUniforms, PrepareUniforms, ResolveUniforms, ScatterUniforms};
 use mortar_core::render::progressive::UNLOADED;
 use mortar_render::progressive::SLOTS_PER_THREAD;
 use mortar_render::shaders::{binding, Binding, BindingKind, Pass, PRESENT, PRESENT_BINDINGS};
@@ -180,6 +180,7 @@ fn shared_structs_have_the_rust_layout() {
     let resolve = parse(Pass::Resolve);
     let scatter = parse(Pass::ProgressiveScatter);
     let prepare = parse(Pass::ProgressivePrepare);
+    let plan = parse(Pass::Plan);
     // (struct, module holding it, Rust size, Rust members with their offsets)
     type Case<'a> = (&'a str, &'a naga::Module, usize, Vec<(&'a str, usize)>);
     let cases: Vec<Case<'_>> = vec![
@@ -237,6 +238,52 @@ fn shared_structs_have_the_rust_layout() {
                 ("count", offset_of!(ResolveUniforms, count)),
                 ("background", offset_of!(ResolveUniforms, background)),
                 ("write_background", offset_of!(ResolveUniforms, write_background)),
+            ],
+        ),
+        (
+            "PlanBatch",
+            &plan,
+            size_of::<PlanBatch>(),
+            vec![
+                ("min", offset_of!(PlanBatch, min)),
+                ("record", offset_of!(PlanBatch, record)),
+                ("lo", offset_of!(PlanBatch, lo)),
+                ("offset", offset_of!(PlanBatch, offset)),
+                ("hi", offset_of!(PlanBatch, hi)),
+                ("count", offset_of!(PlanBatch, count)),
+                ("bits", offset_of!(PlanBatch, bits)),
+                ("first_index", offset_of!(PlanBatch, first_index)),
+            ],
+        ),
+        (
+            "PlanUniforms",
+            &plan,
+            size_of::<PlanUniforms>(),
+            vec![
+                ("eye_int", offset_of!(PlanUniforms, eye_int)),
+                ("perspective", offset_of!(PlanUniforms, perspective)),
+                ("eye_frac", offset_of!(PlanUniforms, eye_frac)),
+                ("batches", offset_of!(PlanUniforms, batches)),
+                ("right", offset_of!(PlanUniforms, right)),
+                ("up", offset_of!(PlanUniforms, up)),
+                ("forward", offset_of!(PlanUniforms, forward)),
+                ("scale", offset_of!(PlanUniforms, scale)),
+                ("sx", offset_of!(PlanUniforms, sx)),
+                ("sy", offset_of!(PlanUniforms, sy)),
+                ("cx", offset_of!(PlanUniforms, cx)),
+                ("cy", offset_of!(PlanUniforms, cy)),
+                ("near", offset_of!(PlanUniforms, near)),
+                ("far", offset_of!(PlanUniforms, far)),
+                ("width", offset_of!(PlanUniforms, width)),
+                ("height", offset_of!(PlanUniforms, height)),
+                ("words", offset_of!(PlanUniforms, words)),
+                ("cull", offset_of!(PlanUniforms, cull)),
+                ("division", offset_of!(PlanUniforms, division)),
+                ("zero", offset_of!(PlanUniforms, zero)),
+                ("margin_px", offset_of!(PlanUniforms, margin_px)),
+                ("slack", offset_of!(PlanUniforms, slack)),
+                ("max_error_px", offset_of!(PlanUniforms, max_error_px)),
+                ("_pad", offset_of!(PlanUniforms, _pad)),
             ],
         ),
         (

@@ -55,7 +55,7 @@ pub struct Args {
     #[arg(long, default_value = "iso")]
     view: String,
     /// Draw-pass kernels to measure (`DrawTuning::kernel`: 0 the renderer, 1 plain-load early
-    /// test, 2 no early test, 3 no framebuffer access).
+    /// test, 2 no early test, 3 no framebuffer access, 4 prefetch of four points).
     #[arg(long, value_delimiter = ',', default_value = "0")]
     kernels: Vec<u32>,
     /// Threads per workgroup of the draw pass.
@@ -64,6 +64,9 @@ pub struct Args {
     /// Orders of the draw records: scene, or strided:S.
     #[arg(long, value_delimiter = ',', default_value = "scene")]
     orders: Vec<String>,
+    /// Where the batches are planned: gpu (the plan pass, the default), host, or both in turn.
+    #[arg(long, value_delimiter = ',', default_value = "gpu")]
+    plans: Vec<String>,
     /// Rounds over all configurations per size (interleaved, so that clock changes show as
     /// differences between rounds rather than between configurations).
     #[arg(long, default_value_t = 1)]
@@ -206,7 +209,14 @@ pub fn run(a: Args) -> Result<()> {
                 for &kernel in &a.kernels {
                     for &workgroup in &a.workgroups {
                         for o in &a.orders {
-                            configs.push((round, variant.clone(), DrawTuning { kernel, workgroup, order: order(o)? }, o.clone()));
+                            for p in &a.plans {
+                                let plan_on_gpu = match p.as_str() {
+                                    "gpu" => true,
+                                    "host" => false,
+                                    p => bail!("--plans {p}: gpu or host"),
+                                };
+                                configs.push((round, variant.clone(), DrawTuning { kernel, workgroup, order: order(o)?, plan_on_gpu }, o.clone()));
+                            }
                         }
                     }
                 }
@@ -219,6 +229,7 @@ pub fn run(a: Args) -> Result<()> {
             }
             let opts = options(variant)?;
             let (mut draw, mut clear, mut resolve, mut wall, mut plan) = (Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new());
+            let mut gpu_plan = Vec::new();
             let mut stats = Default::default();
             for _ in 0..a.frames + 1 {
                 let t = Instant::now();
@@ -230,6 +241,7 @@ pub fn run(a: Args) -> Result<()> {
                             draw.push(tm.draw_ms);
                             clear.push(tm.clear_ms);
                             resolve.push(tm.resolve_ms.unwrap_or(0.0));
+                            gpu_plan.push(tm.plan_ms.unwrap_or(0.0));
                         }
                         plan.push(f.plan_seconds * 1e3);
                     }
@@ -242,13 +254,13 @@ pub fn run(a: Args) -> Result<()> {
                 wall.push(t.elapsed().as_secs_f64() * 1e3);
             }
             // The first frame warms caches and pipelines: left out.
-            for v in [&mut draw, &mut clear, &mut resolve, &mut wall, &mut plan] {
+            for v in [&mut draw, &mut clear, &mut resolve, &mut wall, &mut plan, &mut gpu_plan] {
                 if !v.is_empty() {
                     v.remove(0);
                 }
             }
             let mut compare = serde_json::Value::Null;
-            if let (true, Some(c), Some(r), Some(sc)) = (a.compare_cpu && tuning.kernel < 3, &ctx, &mut raster, &mut scene) {
+            if let (true, Some(c), Some(r), Some(sc)) = (a.compare_cpu && tuning.kernel != 3, &ctx, &mut raster, &mut scene) {
                 r.draw(c, sc, &cam, &opts, None).map_err(|e| anyhow!("{e}"))?;
                 let f = r.read_keys(c).map_err(|e| anyhow!("{e}"))?;
                 let fb = Framebuffer::new(a.width, a.height);
@@ -269,7 +281,7 @@ pub fn run(a: Args) -> Result<()> {
                 eprintln!("  GPU vs CPU keys: {other} of {covered} covered pixels differ, {ties} exact depth ties");
             }
             let draw_ms = median(&draw);
-            let gpu_ms = draw_ms + median(&clear) + median(&resolve);
+            let gpu_ms = draw_ms + median(&clear) + median(&resolve) + median(&gpu_plan);
             let j = serde_json::json!({
                 "backend": a.backend,
                 "atomics": ctx.as_ref().map(|c| c.atomic_path().name()),
@@ -296,6 +308,8 @@ pub fn run(a: Args) -> Result<()> {
                 "gpu_frame_ms": if gpu { Some(gpu_ms) } else { None },
                 "wall_frame_ms": median(&wall),
                 "plan_ms": median(&plan),
+                "plan_on_gpu": tuning.plan_on_gpu,
+                "gpu_plan_ms": median(&gpu_plan),
                 "gpoints_per_s": points as f64 / (draw_ms * 1e-3) / 1e9,
                 "points_drawn": stats.points_drawn,
                 "batches_culled": stats.batches_culled,
@@ -306,18 +320,20 @@ pub fn run(a: Args) -> Result<()> {
             });
             println!("{j}");
             eprintln!(
-                "{:>6} M points  {:<8} k{} wg{} {:<11} r{}  draw {:8.3} ms ({:6.1} G points/s)  gpu frame {:8.3} ms  wall {:8.3} ms  plan {:6.2} ms",
+                "{:>6} M points  {:<8} k{} wg{} {:<11} {} r{}  draw {:8.3} ms ({:6.1} G points/s)  gpu frame {:8.3} ms  wall {:8.3} ms  host plan {:6.2} ms  gpu plan {:6.3} ms",
                 points / 1_000_000,
                 variant,
                 tuning.kernel,
                 tuning.workgroup,
                 order_name,
+                if tuning.plan_on_gpu { "gpu-plan" } else { "host-plan" },
                 round,
                 draw_ms,
                 points as f64 / (draw_ms * 1e-3) / 1e9,
                 if gpu { gpu_ms } else { f64::NAN },
                 j["wall_frame_ms"].as_f64().unwrap_or(f64::NAN),
-                j["plan_ms"].as_f64().unwrap_or(f64::NAN)
+                j["plan_ms"].as_f64().unwrap_or(f64::NAN),
+                median(&gpu_plan)
             );
         }
     }

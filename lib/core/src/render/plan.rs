@@ -196,8 +196,8 @@ pub fn plan_batch(b: &PlanBatch, u: &PlanUniforms) -> BatchPlan {
     // The eye, rounded to the nearest grid coordinate (the host keeps eye_int within ±(2^31 - 2)).
     let er = [0, 1, 2].map(|a| u.eye_int[a] + (u.eye_frac[a] >= 0.5) as i32);
     // View-space corners of the points' bounds, and how far they reach.
-    let mut zmin = f32::INFINITY;
-    let mut zmax = f32::NEG_INFINITY;
+    let mut zmin = f32::MAX;
+    let mut zmax = f32::MIN;
     let mut xm = 0f32;
     let mut ym = 0f32;
     let mut corners = [[0f32; 3]; 8];
