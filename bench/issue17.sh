@@ -31,11 +31,30 @@ ts.sort(); m = ts[len(ts)//2]
 print(f"copy {n/2**30:.0f} GiB: median {m:.3f} ms, {2*n/m/1e6:.0f} GB/s (read + write)")
 PY
 run() { local name=$1; shift; echo "== $name: $*" | tee -a "$OUT/bench.txt"; timeout 300 "$BIN/mortar-bench-gpu" $M "$@" > "$OUT/$name.jsonl" 2>> "$OUT/bench.txt"; echo "exit $?" >> "$OUT/bench.txt"; }
+PHASE=${PHASE:-final}
+if [ "$PHASE" = diagnose ]; then
+# Run 1 (before the plan pass): where the draw pass's time goes.
 # A: the kernels and the record order at every size, warm, two interleaved rounds.
 run kernels --millions 500,1000,2000,3000 --frames 10 --variants ten --kernels 0,1,2,3 --orders scene,strided:97 --rounds 2 --warmup-ms 2000
 # B: the comparison as it was measured (no warm-up), three rounds: cold versus warm.
 run variants --millions 1000,3000 --frames 15 --variants adaptive,ten,brute --rounds 3
 # C: workgroup size.
 run workgroups --millions 1000,3000 --frames 10 --variants ten --workgroups 64,128,256 --rounds 2 --warmup-ms 2000
+elif [ "$PHASE" = final ]; then
+# Run 3 (the plan pass, the growth fix): timings without any CPU work between them (the CPU
+# comparisons of run 2 let the clocks fall), each configuration drawn for 0.5 s first.
+run final --millions 500,1000,2000,3000 --frames 15 --variants adaptive,brute,ten --plans gpu,host --rounds 2 --config-warmup-ms 500
+run closeup --millions 1000,3000 --frames 15 --view closeup --variants adaptive,brute --plans gpu,host --rounds 2 --config-warmup-ms 500
+run atomics32 --millions 500,1000 --frames 10 --atomics 32 --variants adaptive,brute --plans gpu,host --config-warmup-ms 500
+# Correctness at every size, apart from the timings: the GPU's keys against the CPU's.
+run compare --millions 500,1000,2000,3000 --frames 1 --variants adaptive,brute --compare-cpu
+run compare_closeup --millions 3000 --frames 1 --view closeup --variants adaptive,brute --compare-cpu
+else
+# Run 2: the plan pass against host planning, kernel 0 against the prefetch kernel 4, every
+# variant, with the GPU's keys compared to the CPU's after every measurement.
+run final --millions 500,1000,2000,3000 --frames 10 --variants adaptive,brute,ten --kernels 0,4 --plans gpu,host --rounds 2 --warmup-ms 3000 --compare-cpu
+# What the exact division costs (plain WGSL division: keys may differ from the CPU's).
+run division --millions 1000,3000 --frames 10 --variants adaptive --kernels 0,4 --divisions default,plain --rounds 2 --warmup-ms 2000
+fi
 kill $SMI
 grep -v '^{' "$OUT/bench.txt" | grep -v "^adapter\|tiles of" | tail -120

@@ -60,11 +60,15 @@ pub struct DrawTuning {
     /// Plan every batch on the GPU (the plan pass); `false` plans on the host (as a selection
     /// always is), with the same plan.
     pub plan_on_gpu: bool,
+    /// The division of the draw and plan passes instead of the context's
+    /// ([`GpuContext::division`]): `Some(DIVISION_PLAIN)` on a GPU whose `/` is not correctly
+    /// rounded measures what the exact division costs (its keys may then differ from the CPU's).
+    pub division: Option<u32>,
 }
 
 impl Default for DrawTuning {
     fn default() -> Self {
-        DrawTuning { kernel: 0, workgroup: 128, order: RecordOrder::Scene, plan_on_gpu: true }
+        DrawTuning { kernel: 0, workgroup: 128, order: RecordOrder::Scene, plan_on_gpu: true, division: None }
     }
 }
 
@@ -323,10 +327,10 @@ impl GpuRasterizer {
             let f = &mut self.per_frame;
             let needed = (scene.records_total as u64 * record_size).max(record_size);
             if f.records.size() < needed {
-                let size = needed.max(f.records.size() * 3 / 2).min(ctx.limits().max_buffer_size.max(needed));
+                let size = grown_size(ctx, f.records.size(), needed);
                 f.records = storage(ctx, "draw records", size, wgpu::BufferUsages::COPY_DST);
             }
-            let mut u = PlanUniforms::new(camera, scene.grid(), options, ctx.division());
+            let mut u = PlanUniforms::new(camera, scene.grid(), options, self.tuning.division.unwrap_or(ctx.division()));
             u.batches = scene.batches.len() as u32;
             ctx.queue.write_buffer(&f.plan_uniforms, 0, bytemuck::bytes_of(&u));
             ctx.queue.write_buffer(&f.plan_counters, 0, &[0u8; 4 * plan_counter::WORDS]);
@@ -340,7 +344,7 @@ impl GpuRasterizer {
             return Err(GpuError::TooLarge { what: "one chunk's draw records", needed: r.2 as u64 * record_size, limit: ctx.max_binding() });
         }
         let f = &mut self.per_frame;
-        ctx.queue.write_buffer(&f.frame_uniforms, 0, bytemuck::bytes_of(&FrameUniforms::new(camera, ctx.division())));
+        ctx.queue.write_buffer(&f.frame_uniforms, 0, bytemuck::bytes_of(&FrameUniforms::new(camera, self.tuning.division.unwrap_or(ctx.division()))));
         ctx.queue.write_buffer(&f.counters, 0, &[0u8; 8]);
         let f = &self.per_frame;
         let t = &mut self.target;
@@ -530,7 +534,7 @@ impl GpuRasterizer {
         let f = &mut self.per_frame;
         let needed = (records.len() as u64 * record_size).max(record_size);
         if f.records.size() < needed {
-            let size = needed.max(f.records.size() * 3 / 2).min(ctx.limits().max_buffer_size.max(needed));
+            let size = grown_size(ctx, f.records.size(), needed);
             f.records = storage(ctx, "draw records", size, wgpu::BufferUsages::COPY_DST);
         }
         if !records.is_empty() {
@@ -567,6 +571,14 @@ impl GpuRasterizer {
         let Some(image) = &self.target.image else { return Err(GpuError::Colors("no frame was resolved yet".into())) };
         read_image_buffer(ctx, image, self.target.width, self.target.height)
     }
+}
+
+/// The size of a buffer grown from `old` bytes to hold at least `needed`: half as large again,
+/// within the device's largest buffer, and a multiple of 256 bytes (a storage binding of the
+/// whole buffer must be a multiple of 4; growing by half again and again would soon make it odd).
+pub(crate) fn grown_size(ctx: &GpuContext, old: u64, needed: u64) -> u64 {
+    let size = needed.max(old + old / 2).min(ctx.limits().max_buffer_size.max(needed));
+    size.div_ceil(256) * 256
 }
 
 /// The first `width * height` RGBA8 pixels of an image buffer (a resolve pass's output).

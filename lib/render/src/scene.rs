@@ -260,7 +260,7 @@ impl GpuScene {
         let size = std::mem::size_of::<PlanBatch>() as u64;
         let needed = self.plan.len() as u64 * size;
         if self.plan_buffer.as_ref().is_none_or(|b| b.size() < needed) {
-            let grown = needed.max(self.plan_buffer.as_ref().map_or(0, |b| b.size() * 3 / 2)).min(ctx.limits().max_buffer_size.max(needed));
+            let grown = crate::raster::grown_size(ctx, self.plan_buffer.as_ref().map_or(0, |b| b.size()), needed);
             self.plan_buffer = Some(ctx.device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some("plan batches"),
                 size: grown,

@@ -96,7 +96,7 @@ fn check_scene(name: &str, scene: &Scene, path: AtomicPath, chunk_points: Option
     let kernels: &[u32] = if path == AtomicPath::U64 { &[0, 1, 2, 4] } else { &[0] };
     for &kernel in kernels {
         for plan_on_gpu in [true, false] {
-            let tuning = DrawTuning { kernel, workgroup: if kernel == 4 { 64 } else { 128 }, order: RecordOrder::Strided(5), plan_on_gpu };
+            let tuning = DrawTuning { kernel, workgroup: if kernel == 4 { 64 } else { 128 }, order: RecordOrder::Strided(5), plan_on_gpu, division: None };
             gr.set_tuning(&ctx, tuning).unwrap();
             let frame = gr.draw(&ctx, &mut gs, &cam, &opts, None).unwrap();
             let got = gr.read_keys(&ctx).unwrap();
@@ -183,4 +183,28 @@ fn adapter_is_reported() {
     eprintln!("adapter: {} ({}, {}, driver {}), timestamps: {}, largest binding: {} MiB", a.name, a.backend, a.device_type, a.driver, ctx.has_timestamps(), ctx.max_binding() >> 20);
     assert!(!a.name.is_empty());
     assert!(ctx.max_binding() >= 128 << 20);
+}
+
+#[test]
+fn a_scene_drawn_while_it_grows_matches_cpu_after_every_batch() {
+    // Draw after every batch pushed, planned on the GPU and on the host in turn: the records and
+    // plan buffers grow many times (their whole-buffer bindings must stay 4-byte multiples; a
+    // buffer grown by half again and again once became odd-sized on the H200).
+    let scene = utm_terrain(200_000);
+    let Some(ctx) = context(AtomicPath::U64, None) else { return };
+    let mut gs = GpuScene::new(&ctx, scene.grid, 1000, SceneOptions { chunk_points: Some(25_000), colors: false }).unwrap();
+    let cam = Camera::frame_perspective(&scene.bounds, ViewPreset::Iso, 0.8, 160, 100).unwrap();
+    let mut gr = GpuRasterizer::new(&ctx, cam.width, cam.height).unwrap();
+    let refs = scene.refs();
+    for (i, b) in refs.iter().enumerate() {
+        gs.push(&ctx, b, None).unwrap();
+        let plan_on_gpu = i % 3 != 1;
+        gr.set_tuning(&ctx, DrawTuning { plan_on_gpu, ..Default::default() }).unwrap();
+        let frame = gr.draw(&ctx, &mut gs, &cam, &RasterOptions::default(), None).unwrap();
+        let fb = Framebuffer::new(cam.width, cam.height);
+        let want_stats = rasterize(&fb, &refs[..=i], &scene.grid, &cam, &RasterOptions::default()).unwrap();
+        assert_eq!(compare(&gr.read_keys(&ctx).unwrap(), &fb.into_keys()).1, 0, "after batch {i}, plan on GPU: {plan_on_gpu}");
+        assert_eq!(frame.stats, want_stats, "after batch {i}");
+    }
+    assert!(gs.chunk_count() > 4);
 }

@@ -51,7 +51,8 @@ pub struct Args {
     /// culling), ten (10 bits, no culling).
     #[arg(long, value_delimiter = ',', default_value = "adaptive,brute")]
     variants: Vec<String>,
-    /// View: iso or top (framing the tiles).
+    /// View: iso or top (framing the tiles), or closeup (near the ground in the middle: most
+    /// batches culled).
     #[arg(long, default_value = "iso")]
     view: String,
     /// Draw-pass kernels to measure (`DrawTuning::kernel`: 0 the renderer, 1 plain-load early
@@ -64,6 +65,10 @@ pub struct Args {
     /// Orders of the draw records: scene, or strided:S.
     #[arg(long, value_delimiter = ',', default_value = "scene")]
     orders: Vec<String>,
+    /// Divisions of the draw and plan passes: refined (exact; the default on hardware) or plain
+    /// (WGSL's `/`; measures what exactness costs).
+    #[arg(long, value_delimiter = ',', default_value = "default")]
+    divisions: Vec<String>,
     /// Where the batches are planned: gpu (the plan pass, the default), host, or both in turn.
     #[arg(long, value_delimiter = ',', default_value = "gpu")]
     plans: Vec<String>,
@@ -75,6 +80,9 @@ pub struct Args {
     /// up).
     #[arg(long, default_value_t = 0)]
     warmup_ms: u64,
+    /// Milliseconds of back-to-back frames of each configuration before it is measured.
+    #[arg(long, default_value_t = 0)]
+    config_warmup_ms: u64,
     /// After each GPU measurement, draw the same frame with the CPU rasterizer and count the
     /// pixels whose key differs (exact depth ties apart).
     #[arg(long)]
@@ -195,8 +203,13 @@ pub fn run(a: Args) -> Result<()> {
             c.wait().map_err(|e| anyhow!("{e}"))?;
         }
         upload_seconds += t.elapsed().as_secs_f64();
-        let preset = if a.view == "top" { ViewPreset::Top } else { ViewPreset::Iso };
-        let cam = Camera::frame_perspective(&bounds, preset, 50f64.to_radians(), a.width, a.height).map_err(|e| anyhow!("{e}"))?;
+        let cam = match a.view.as_str() {
+            // Close to the ground in the middle of the tiles: most batches culled.
+            "closeup" => Camera::close_up(&bounds, 50f64.to_radians(), a.width, a.height),
+            "top" => Camera::frame_perspective(&bounds, ViewPreset::Top, 50f64.to_radians(), a.width, a.height),
+            _ => Camera::frame_perspective(&bounds, ViewPreset::Iso, 50f64.to_radians(), a.width, a.height),
+        }
+        .map_err(|e| anyhow!("{e}"))?;
         if let (Some(c), Some(s), Some(r), true) = (&ctx, &mut scene, &mut raster, a.warmup_ms > 0) {
             let t = Instant::now();
             while t.elapsed().as_millis() < a.warmup_ms as u128 {
@@ -215,7 +228,15 @@ pub fn run(a: Args) -> Result<()> {
                                     "host" => false,
                                     p => bail!("--plans {p}: gpu or host"),
                                 };
-                                configs.push((round, variant.clone(), DrawTuning { kernel, workgroup, order: order(o)?, plan_on_gpu }, o.clone()));
+                                for d in &a.divisions {
+                                    let division = match d.as_str() {
+                                        "default" => None,
+                                        "refined" => Some(mortar_core::render::gpu::DIVISION_REFINED),
+                                        "plain" => Some(mortar_core::render::gpu::DIVISION_PLAIN),
+                                        d => bail!("--divisions {d}: default, refined or plain"),
+                                    };
+                                    configs.push((round, variant.clone(), DrawTuning { kernel, workgroup, order: order(o)?, plan_on_gpu, division }, o.clone()));
+                                }
                             }
                         }
                     }
@@ -228,6 +249,14 @@ pub fn run(a: Args) -> Result<()> {
                 r.set_tuning(c, *tuning).map_err(|e| anyhow!("{e}"))?;
             }
             let opts = options(variant)?;
+            // Each configuration drawn back to back for a while first, so that the GPU's clocks
+            // are up whatever ran before (METHOD.md: warm up; the first run did not).
+            if let (Some(c), Some(s), Some(r), true) = (&ctx, &mut scene, &mut raster, a.config_warmup_ms > 0) {
+                let t = Instant::now();
+                while t.elapsed().as_millis() < a.config_warmup_ms as u128 {
+                    r.draw(c, s, &cam, &opts, Some(0xff00_0000)).map_err(|e| anyhow!("{e}"))?;
+                }
+            }
             let (mut draw, mut clear, mut resolve, mut wall, mut plan) = (Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new());
             let mut gpu_plan = Vec::new();
             let mut stats = Default::default();
@@ -309,6 +338,7 @@ pub fn run(a: Args) -> Result<()> {
                 "wall_frame_ms": median(&wall),
                 "plan_ms": median(&plan),
                 "plan_on_gpu": tuning.plan_on_gpu,
+                "division": tuning.division,
                 "gpu_plan_ms": median(&gpu_plan),
                 "gpoints_per_s": points as f64 / (draw_ms * 1e-3) / 1e9,
                 "points_drawn": stats.points_drawn,
@@ -326,7 +356,12 @@ pub fn run(a: Args) -> Result<()> {
                 tuning.kernel,
                 tuning.workgroup,
                 order_name,
-                if tuning.plan_on_gpu { "gpu-plan" } else { "host-plan" },
+                match (tuning.plan_on_gpu, tuning.division) {
+                    (true, Some(0)) => "gpu-plan/plain-div",
+                    (false, Some(0)) => "host-plan/plain-div",
+                    (true, _) => "gpu-plan",
+                    (false, _) => "host-plan",
+                },
                 round,
                 draw_ms,
                 points as f64 / (draw_ms * 1e-3) / 1e9,
