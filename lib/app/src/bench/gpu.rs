@@ -174,7 +174,7 @@ pub fn run(a: Args) -> Result<()> {
                 let t = Instant::now();
                 match (&ctx, &mut scene, &mut raster) {
                     (Some(c), Some(s), Some(r)) => {
-                        let f = r.draw(c, s, &cam, &opts, Some(0xff00_0000)).map_err(|e| anyhow!("{e}"))?;
+                        let f = r.draw(c, s, &cam, &opts, Some(&mortar_core::render::resolve::ResolveOptions::default())).map_err(|e| anyhow!("{e}"))?;
                         stats = f.stats;
                         if let Some(tm) = f.timings {
                             draw.push(tm.draw_ms);
