@@ -81,15 +81,17 @@ impl EyeDome {
 }
 
 /// Coefficients of `q(t) = log2(1 + t) / t` on `[sqrt(1/2) - 1, sqrt(2) - 1]` (degree 8,
-/// interpolated at Chebyshev nodes, rounded to f32; `t q(t)` is within 6e-8 of `log2(1 + t)`).
+/// interpolated at Chebyshev nodes, rounded to f32; `t q(t)` is within 6e-8 of `log2(1 + t)`;
+/// the constant term rounds to the f32 of `log2(e)`).
 /// The GPU gets them in [`crate::render::gpu::EyeDomeUniforms`].
 pub const EDL_LOG2_COEFFS: [f32; 9] =
-    [1.442_695, -0.721_347_45, 0.480_910_75, -0.360_693_28, 0.287_903_25, -0.239_169_88, 0.216_078_22, -0.205_861_88, 0.123_109_68];
+    [std::f32::consts::LOG2_E, -0.721_347_45, 0.480_910_75, -0.360_693_28, 0.287_903_25, -0.239_169_88, 0.216_078_22, -0.205_861_88, 0.123_109_68];
 
 /// Coefficients of `r(f) = (2^f - 1) / f` on `[0, 1]` (degree 6, Chebyshev nodes, f32;
-/// `1 + f r(f)` is within 8e-8 of `2^f`, relative). The GPU gets them in
+/// `1 + f r(f)` is within 8e-8 of `2^f`, relative; the constant term rounds to the f32 of
+/// `ln 2`). The GPU gets them in
 /// [`crate::render::gpu::EyeDomeUniforms`].
-pub const EDL_EXP2_COEFFS: [f32; 7] = [0.693_147_2, 0.240_226_49, 0.055_504_44, 0.009_616_16, 0.001_338_905_3, 0.000_146_096_32, 0.000_020_731_864];
+pub const EDL_EXP2_COEFFS: [f32; 7] = [std::f32::consts::LN_2, 0.240_226_49, 0.055_504_44, 0.009_616_16, 0.001_338_905_3, 0.000_146_096_32, 0.000_020_731_864];
 
 /// `p(t)` of the coefficients `c` (lowest first) by Horner's rule, every multiplication and
 /// addition rounded on its own (no fused multiply-add), as the GPU evaluates it.
