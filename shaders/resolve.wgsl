@@ -1,8 +1,8 @@
 // Pass "resolve" (paper 003 §3.3, visibility buffer): maps each pixel's winning point index to
 // the point's colour. One dispatch per chunk of points; a dispatch colours the pixels whose
 // index falls in its chunk (and, the first one, the empty pixels with the background).
-// Hole filling and eye-dome lighting run on the host on the read-back keys for now
-// (mortar_core::render::resolve).
+// With hole filling it reads the filled keys of hole_fill.wgsl (stride 2, depth offset 1);
+// eye_dome.wgsl shades its image afterwards.
 
 @group(0) @binding(0) var<uniform> params: ResolveUniforms;
 @group(0) @binding(1) var<storage, read> index_words: array<u32>;

@@ -1,5 +1,6 @@
 //! The GPU backend end to end (issue 4): `mortar render --backend gpu` draws the same PNG as the
-//! CPU backend on the sample in every mode, on both atomic paths; on real fixtures and a 1.7 M
+//! CPU backend on the sample in every mode, on both atomic paths, hole filling and eye-dome
+//! lighting included (resolved on the GPU since issue 17); on real fixtures and a 1.7 M
 //! point benchmark set the GPU's visibility buffer equals the CPU's (only exact depth ties may
 //! differ; they are counted); a missing adapter is a clear error for `gpu` and a fallback for
 //! `auto`.
@@ -43,6 +44,11 @@ fn gpu_backend_draws_the_cpu_backends_png() {
         &[],
         &["--view", "top", "--ortho", "--color", "classification"],
         &["--color", "elevation", "--edl", "--hole-fill"],
+        // Hole filling and eye-dome lighting run on the GPU (hole_fill.wgsl, eye_dome.wgsl): the
+        // same bytes as the CPU resolve, at several neighbour counts and strengths.
+        &["--view", "top", "--hole-fill", "1", "--edl", "2.5"],
+        &["--view", "closeup", "--hole-fill", "6", "--color", "intensity"],
+        &["--view", "front", "--edl", "0.5", "--background", "#102030"],
         &["--view", "closeup", "--color", "intensity", "--background", "#203040"],
         &["--view", "inside", "--precision", "10"],
         &["--view", "side", "--precision", "30", "--no-cull"],

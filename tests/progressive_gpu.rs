@@ -188,7 +188,7 @@ fn adaptive_budget_reports_how_it_was_timed() {
             "--probe",
             "10000",
             "--target-ms",
-            "1000",
+            "60000",
         ],
     );
     let timing = if ctx.has_timestamps() {
@@ -203,7 +203,9 @@ fn adaptive_budget_reports_how_it_was_timed() {
     assert!(frames
         .iter()
         .all(|f| f["probe"] == 10_000 && f["filled"].as_u64().unwrap() >= 10_000));
-    // A second of frame time is plenty for the whole sample after the probe.
+    // A minute of frame time is plenty for the whole sample after the probe, even when the
+    // probe was timed on a loaded two-core machine under a software GPU (a one-second target
+    // filled 93,514 of 110,000 points on CI).
     assert_eq!(frames[0]["filled"], 110_000);
     assert_eq!(j["convergence_frame"], 1);
 }

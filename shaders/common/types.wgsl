@@ -9,6 +9,8 @@
 //   ResolveUniforms  (32 bytes)
 //   PlanBatch        (64 bytes)
 //   PlanUniforms     (160 bytes)
+//   HoleFillUniforms (32 bytes)
+//   EyeDomeUniforms  (176 bytes)
 
 struct BatchProjection {
     // Rows X, Y, D, W of pixel_from_local (row-major, as in Rust; not a WGSL matrix).
@@ -87,6 +89,33 @@ struct PlanUniforms {
     slack: f32,
     max_error_px: f32,
     _pad: u32,
+}
+
+struct HoleFillUniforms {
+    width: u32,
+    height: u32,
+    key_stride: u32,
+    depth_offset: u32,
+    min_neighbors: u32,
+    _pad0: u32,
+    _pad1: u32,
+    _pad2: u32,
+}
+
+struct EyeDomeUniforms {
+    width: u32,
+    height: u32,
+    key_stride: u32,
+    depth_offset: u32,
+    scale: f32,
+    zero: u32,
+    _pad0: u32,
+    _pad1: u32,
+    // The 8 neighbour offsets, two (dx, dy) per vector.
+    offsets: array<vec4<i32>, 4>,
+    // The polynomial coefficients of edl_log2 (9) and edl_exp2 (7), lowest first, four per vector.
+    log2_coeffs: array<vec4<f32>, 3>,
+    exp2_coeffs: array<vec4<f32>, 2>,
 }
 
 // The linear index of a workgroup in a dispatch split over x and y (at most 65,535 per dimension).

@@ -234,6 +234,18 @@ impl PointColors {
         self.indices.binary_search(&index).ok().map(|i| self.colors[i])
     }
 
+    /// The colour of every point `0..points` in index order, `missing` for those not visible
+    /// (for a resolve on the GPU, which looks colours up by index).
+    pub fn dense(&self, points: usize, missing: u32) -> Vec<u32> {
+        let mut out = vec![missing; points];
+        for (&i, &c) in self.indices.iter().zip(&self.colors) {
+            if let Some(slot) = out.get_mut(i as usize) {
+                *slot = c;
+            }
+        }
+        out
+    }
+
     /// Number of distinct visible points.
     pub fn len(&self) -> usize {
         self.indices.len()

@@ -2,16 +2,19 @@
 //! batch with the same [`Planner`] as the CPU reference (culling, precision, projection), uploads
 //! one [`DrawRecord`] per drawn batch, and the GPU runs the passes of `shaders/`: clear, draw
 //! batches (one workgroup of 128 threads per batch; 64-bit `atomicMin` or the 32-bit two-pass
-//! path) and, when asked, resolve. The keys it leaves are those of
-//! [`mortar_core::render::rasterize`] for the same view (see `docs/render.md` for where a GPU may
-//! round differently).
+//! path) and, when asked, resolve: depth-aware hole filling into a second key buffer, point index
+//! to colour, eye-dome lighting of the image, as [`mortar_core::render::resolve::resolve`] does
+//! on the host and equal to it byte for byte, without reading the keys back. The keys it leaves
+//! are those of [`mortar_core::render::rasterize`] for the same view (see `docs/render.md` for
+//! where a GPU may round differently).
 
 use crate::context::{AtomicPath, GpuContext, GpuError};
 use crate::pipeline::{batches_group, entry, storage, uniform, PassPipeline, SharedLayouts, Timestamps};
 use crate::scene::GpuScene;
 use crate::shaders::{binding, Pass};
 use mortar_core::render::framebuffer::EMPTY_KEY;
-use mortar_core::render::gpu::{plan_counter, DrawRecord, FrameUniforms, PlanUniforms, ResolveUniforms};
+use mortar_core::render::gpu::{plan_counter, DrawRecord, EyeDomeUniforms, FrameUniforms, HoleFillUniforms, PlanUniforms, ResolveUniforms};
+use mortar_core::render::resolve::ResolveOptions;
 use mortar_core::render::{BatchPlan, Camera, Planner, RasterError, RasterOptions, RasterStats};
 use rayon::prelude::*;
 use std::num::NonZeroU64;
@@ -29,6 +32,18 @@ pub struct GpuTimings {
     pub resolve_ms: Option<f64>,
     /// Planning every batch on the GPU (`None` when planned on the host).
     pub plan_ms: Option<f64>,
+    /// Hole filling (`None` when not run).
+    pub hole_fill_ms: Option<f64>,
+    /// Eye-dome lighting (`None` when not run).
+    pub eye_dome_ms: Option<f64>,
+}
+
+impl GpuTimings {
+    /// The resolve's passes together: hole filling, colours, eye-dome lighting (`None` when the
+    /// frame was not resolved).
+    pub fn post_ms(&self) -> Option<f64> {
+        self.resolve_ms.map(|r| r + self.hole_fill_ms.unwrap_or(0.0) + self.eye_dome_ms.unwrap_or(0.0))
+    }
 }
 
 /// What one frame did.
@@ -120,6 +135,8 @@ struct Passes {
     plan: PassPipeline,
     draw: DrawPasses,
     resolve: PassPipeline,
+    hole_fill: PassPipeline,
+    eye_dome: PassPipeline,
 }
 
 /// The framebuffer of the atomic path.
@@ -138,10 +155,20 @@ impl Keys {
             Keys::TwoPass32 { depths, indices } => vec![depths, indices],
         }
     }
+
+    /// The framebuffer read as 32-bit words: the buffers holding the indices and the depth bits,
+    /// the words per pixel and the depth word's offset (the uniforms' `key_stride`,
+    /// `depth_offset`).
+    fn words(&self) -> (&wgpu::Buffer, &wgpu::Buffer, u32, u32) {
+        match self {
+            Keys::U64(keys) => (keys, keys, 2, 1),
+            Keys::TwoPass32 { depths, indices } => (indices, depths, 1, 0),
+        }
+    }
 }
 
 /// What the rasterizer writes anew every frame: the camera's uniforms, the drawn-point counter,
-/// the draw records and the resolve dispatches' uniforms. The buffers live as long as the
+/// the draw records and the uniforms of the resolve's passes. The buffers live as long as the
 /// rasterizer; the records grow when a frame needs more.
 struct PerFrame {
     frame_uniforms: wgpu::Buffer,
@@ -152,6 +179,10 @@ struct PerFrame {
     plan_counters: wgpu::Buffer,
     /// One per chunk of the last resolved scene (grown, never shrunk).
     resolve_uniforms: Vec<wgpu::Buffer>,
+    /// `HoleFillUniforms`.
+    fill_uniforms: wgpu::Buffer,
+    /// `EyeDomeUniforms`.
+    eye_dome_uniforms: wgpu::Buffer,
 }
 
 /// The framebuffer of one viewport size and the bind groups that use it, made together
@@ -164,8 +195,17 @@ struct Target {
     clear_groups: Vec<(wgpu::BindGroup, u32)>,
     /// Group 0 of each draw step (frame uniforms, framebuffer, counters).
     draw_groups: Vec<wgpu::BindGroup>,
-    /// The resolved image, made by the first frame drawn with `resolve`.
-    image: Option<wgpu::Buffer>,
+    /// The hole-filled keys (two words per pixel, index then depth: a 64-bit key's
+    /// little-endian words, on both atomic paths) with the hole-fill pass's bind group (the
+    /// framebuffer in, these out) and the eye-dome pass's over them; `None` where
+    /// `width * height * 8` bytes exceed the device's largest binding (32-bit path only).
+    filled: Option<(wgpu::Buffer, wgpu::BindGroup, wgpu::BindGroup)>,
+    /// The eye-dome pass's bind group over the framebuffer (no hole filling).
+    eye_dome_group: wgpu::BindGroup,
+    /// The resolved image (`width * height` RGBA8 words).
+    image: wgpu::Buffer,
+    /// Whether a frame was resolved into `image` since it was made.
+    resolved: bool,
 }
 
 impl Target {
@@ -205,8 +245,37 @@ impl Target {
             .into_iter()
             .map(|buf| (passes.clear.bind_group(ctx, 0, &[entry(binding::CLEAR_WORDS, buf.as_entire_binding())]), (buf.size() / 4).div_ceil(256) as u32))
             .collect();
+        let image = storage(ctx, "image", pixels * 4, wgpu::BufferUsages::COPY_SRC);
+        let eye_dome_group = |depths: &wgpu::Buffer| {
+            passes.eye_dome.bind_group(
+                ctx,
+                0,
+                &[
+                    entry(binding::EYE_DOME_PARAMS, per_frame.eye_dome_uniforms.as_entire_binding()),
+                    entry(binding::EYE_DOME_DEPTH_WORDS, depths.as_entire_binding()),
+                    entry(binding::EYE_DOME_IMAGE, image.as_entire_binding()),
+                ],
+            )
+        };
+        let (index_words, depth_words, _, _) = keys.words();
+        let filled = (pixels * 8 <= ctx.max_binding()).then(|| {
+            let filled = storage(ctx, "filled keys", pixels * 8, wgpu::BufferUsages::COPY_SRC);
+            let fill_group = passes.hole_fill.bind_group(
+                ctx,
+                0,
+                &[
+                    entry(binding::FILL_PARAMS, per_frame.fill_uniforms.as_entire_binding()),
+                    entry(binding::FILL_INDEX_WORDS, index_words.as_entire_binding()),
+                    entry(binding::FILL_DEPTH_WORDS, depth_words.as_entire_binding()),
+                    entry(binding::FILL_FILLED, filled.as_entire_binding()),
+                ],
+            );
+            let edl_group = eye_dome_group(&filled);
+            (filled, fill_group, edl_group)
+        });
+        let eye_dome_group = eye_dome_group(depth_words);
         ctx.check()?;
-        Ok(Target { width, height, keys, clear_groups, draw_groups, image: None })
+        Ok(Target { width, height, keys, clear_groups, draw_groups, filled, eye_dome_group, image, resolved: false })
     }
 }
 
@@ -223,8 +292,13 @@ pub struct GpuRasterizer {
     tuning: DrawTuning,
 }
 
-/// Timestamp slots: clear begin/end, draw begin/end, resolve begin/end, plan begin/end.
-const QUERIES: u32 = 8;
+/// Timestamp slots: clear begin/end, draw begin/end, hole fill, resolve and eye-dome lighting
+/// begin/end, plan begin/end.
+const QUERIES: u32 = 12;
+/// The first slot of the resolve's passes (hole fill).
+const RESOLVE_QUERIES: u32 = 4;
+/// The plan pass's slots.
+const PLAN_QUERIES: u32 = 10;
 
 impl GpuRasterizer {
     /// A rasterizer for `width x height` pixels on the context's atomic path.
@@ -235,7 +309,15 @@ impl GpuRasterizer {
             AtomicPath::U64 => DrawPasses::U64(PassPipeline::new(ctx, Pass::Draw64, &shared)),
             AtomicPath::TwoPass32 => DrawPasses::TwoPass32([PassPipeline::new(ctx, Pass::DrawDepth32, &shared), PassPipeline::new(ctx, Pass::DrawIndex32, &shared)]),
         };
-        let passes = Passes { clear: PassPipeline::new(ctx, Pass::Clear, &shared), plan: PassPipeline::new(ctx, Pass::Plan, &shared), draw, resolve: PassPipeline::new(ctx, Pass::Resolve, &shared), shared };
+        let passes = Passes {
+            clear: PassPipeline::new(ctx, Pass::Clear, &shared),
+            plan: PassPipeline::new(ctx, Pass::Plan, &shared),
+            draw,
+            resolve: PassPipeline::new(ctx, Pass::Resolve, &shared),
+            hole_fill: PassPipeline::new(ctx, Pass::HoleFill, &shared),
+            eye_dome: PassPipeline::new(ctx, Pass::EyeDome, &shared),
+            shared,
+        };
         let copy = wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST;
         let per_frame = PerFrame {
             frame_uniforms: uniform::<FrameUniforms>(ctx, "frame uniforms"),
@@ -245,6 +327,8 @@ impl GpuRasterizer {
             plan_uniforms: uniform::<PlanUniforms>(ctx, "plan uniforms"),
             plan_counters: storage(ctx, "plan counters", 4 * plan_counter::WORDS as u64, copy),
             resolve_uniforms: Vec::new(),
+            fill_uniforms: uniform::<HoleFillUniforms>(ctx, "hole fill uniforms"),
+            eye_dome_uniforms: uniform::<EyeDomeUniforms>(ctx, "eye-dome uniforms"),
         };
         let target = Target::new(ctx, &passes, &per_frame, width, height)?;
         let queries = ctx.has_timestamps().then(|| Timestamps::new(ctx, "pass times", QUERIES));
@@ -294,12 +378,13 @@ impl GpuRasterizer {
     /// `r | g << 8 | b << 16 | a << 24`, row-major, `width * height` words; a storage buffer), for
     /// passes that use it on the GPU (the window's present pass).
     pub fn image_buffer(&self) -> Option<&wgpu::Buffer> {
-        self.target.image.as_ref()
+        self.target.resolved.then_some(&self.target.image)
     }
 
-    /// Draws the scene for `camera` into a cleared framebuffer; with `resolve` (a background
-    /// colour) also resolves the image from the scene's colours. Waits for the GPU.
-    pub fn draw(&mut self, ctx: &GpuContext, scene: &mut GpuScene, camera: &Camera, options: &RasterOptions, resolve: Option<u32>) -> Result<GpuFrame, GpuError> {
+    /// Draws the scene for `camera` into a cleared framebuffer; with `resolve` also resolves the
+    /// image from the scene's colours as [`mortar_core::render::resolve::resolve`] does (hole
+    /// filling, colours, eye-dome lighting, background). Waits for the GPU.
+    pub fn draw(&mut self, ctx: &GpuContext, scene: &mut GpuScene, camera: &Camera, options: &RasterOptions, resolve: Option<&ResolveOptions>) -> Result<GpuFrame, GpuError> {
         self.draw_selected(ctx, scene, None, camera, options, resolve)
     }
 
@@ -307,14 +392,22 @@ impl GpuRasterizer {
     /// [`GpuScene::batches`], any order, each at most once; `None`: every batch). The framebuffer
     /// holds the scene's point indices as usual, so the resolve needs no change: this is how a
     /// level-of-detail selection is drawn from a scene holding every node once.
-    pub fn draw_selected(&mut self, ctx: &GpuContext, scene: &mut GpuScene, selected: Option<&[u32]>, camera: &Camera, options: &RasterOptions, resolve: Option<u32>) -> Result<GpuFrame, GpuError> {
+    pub fn draw_selected(
+        &mut self,
+        ctx: &GpuContext,
+        scene: &mut GpuScene,
+        selected: Option<&[u32]>,
+        camera: &Camera,
+        options: &RasterOptions,
+        resolve: Option<&ResolveOptions>,
+    ) -> Result<GpuFrame, GpuError> {
         let start = Instant::now();
         let (width, height) = self.size();
         if camera.width != width || camera.height != height {
             return Err(RasterError::Viewport { fb_width: width, fb_height: height, width: camera.width, height: camera.height }.into());
         }
-        if resolve.is_some() && !scene.has_colors() {
-            return Err(GpuError::Colors("resolve asked for but the scene has no colours".into()));
+        if let Some(r) = resolve {
+            self.check_resolve(ctx, scene, r)?;
         }
         scene.flush(ctx)?;
         let record_size = std::mem::size_of::<DrawRecord>() as u64;
@@ -347,7 +440,7 @@ impl GpuRasterizer {
         ctx.queue.write_buffer(&f.frame_uniforms, 0, bytemuck::bytes_of(&FrameUniforms::new(camera, self.tuning.division.unwrap_or(ctx.division()))));
         ctx.queue.write_buffer(&f.counters, 0, &[0u8; 8]);
         let f = &self.per_frame;
-        let t = &mut self.target;
+        let t = &self.target;
         let passes = &self.passes;
         let queries = self.queries.as_ref();
 
@@ -365,7 +458,7 @@ impl GpuRasterizer {
                     entry(binding::PLAN_COUNTERS, f.plan_counters.as_entire_binding()),
                 ],
             );
-            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("plan"), timestamp_writes: queries.map(|q| q.writes(Some(6), Some(7))) });
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("plan"), timestamp_writes: queries.map(|q| q.writes(Some(PLAN_QUERIES), Some(PLAN_QUERIES + 1))) });
             pass.set_pipeline(passes.plan.pipeline());
             pass.set_bind_group(0, &group, &[]);
             let (x, y) = ctx.split_dispatch((scene.batches.len() as u32).div_ceil(256));
@@ -402,52 +495,12 @@ impl GpuRasterizer {
                 pass.dispatch_workgroups(x, y, 1);
             }
         }
-        // Resolve: one dispatch per chunk.
-        if let Some(background) = resolve {
-            let pixels = width as u64 * height as u64;
-            let image = t.image.get_or_insert_with(|| storage(ctx, "image", pixels * 4, wgpu::BufferUsages::COPY_SRC));
-            let resolve_uniforms = &mut self.per_frame.resolve_uniforms;
-            while resolve_uniforms.len() < scene.chunks.len().max(1) {
-                resolve_uniforms.push(uniform::<ResolveUniforms>(ctx, "resolve uniforms"));
-            }
-            let (index_buf, depth_buf, stride, depth_offset) = match &t.keys {
-                Keys::U64(keys) => (keys, keys, 2, 1),
-                Keys::TwoPass32 { depths, indices } => (indices, depths, 1, 0),
-            };
-            let chunk_list: Vec<(u32, u32, Option<&wgpu::Buffer>)> = if scene.chunks.is_empty() {
-                vec![(0, 0, Some(&self.no_colors))]
-            } else {
-                scene.chunks.iter().map(|c| (c.first_index, c.len, c.colors.as_ref())).collect()
-            };
-            let mut groups = Vec::with_capacity(chunk_list.len());
-            for (i, (first_index, count, colors)) in chunk_list.into_iter().enumerate() {
-                // Checked at the top: a scene with colours has them in every chunk.
-                let Some(colors) = colors else { return Err(GpuError::Colors("a chunk of the scene has no colours".into())) };
-                let u = ResolveUniforms { width, height, key_stride: stride, depth_offset, first_index, count, background, write_background: (i == 0) as u32 };
-                ctx.queue.write_buffer(&resolve_uniforms[i], 0, bytemuck::bytes_of(&u));
-                groups.push(passes.resolve.bind_group(
-                    ctx,
-                    0,
-                    &[
-                        entry(binding::RESOLVE_PARAMS, resolve_uniforms[i].as_entire_binding()),
-                        entry(binding::RESOLVE_INDEX_WORDS, index_buf.as_entire_binding()),
-                        entry(binding::RESOLVE_DEPTH_WORDS, depth_buf.as_entire_binding()),
-                        entry(binding::RESOLVE_COLORS, colors.as_entire_binding()),
-                        entry(binding::RESOLVE_IMAGE, image.as_entire_binding()),
-                    ],
-                ));
-            }
-            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("resolve"), timestamp_writes: queries.map(|q| q.writes(Some(4), Some(5))) });
-            pass.set_pipeline(passes.resolve.pipeline());
-            let (x, y) = ctx.split_dispatch(pixels.div_ceil(256) as u32);
-            for bg in &groups {
-                pass.set_bind_group(0, bg, &[]);
-                pass.dispatch_workgroups(x, y, 1);
-            }
+        if let Some(r) = resolve {
+            self.encode_resolve(ctx, &mut enc, scene, r)?;
         }
         let counters_read = readback(ctx, &mut enc, &self.per_frame.counters, 8);
         let plan_read = on_gpu.then(|| readback(ctx, &mut enc, &self.per_frame.plan_counters, 4 * plan_counter::WORDS as u64));
-        let times_read = queries.map(|q| {
+        let times_read = self.queries.as_ref().map(|q| {
             enc.resolve_query_set(&q.set, 0..QUERIES, &q.buffer, 0);
             readback(ctx, &mut enc, &q.buffer, QUERIES as u64 * 8)
         });
@@ -468,7 +521,15 @@ impl GpuRasterizer {
                 let t: Vec<u64> = bytemuck::pod_collect_to_vec(&map_read(ctx, &buf)?);
                 let period = ctx.queue.get_timestamp_period() as f64 * 1e-6;
                 let ms = |a: usize| t[a + 1].saturating_sub(t[a]) as f64 * period;
-                Some(GpuTimings { clear_ms: ms(0), draw_ms: ms(2), resolve_ms: resolve.map(|_| ms(4)), plan_ms: on_gpu.then(|| ms(6)) })
+                let post = resolve.map(|r| resolve_timings(&t, period, r));
+                Some(GpuTimings {
+                    clear_ms: ms(0),
+                    draw_ms: ms(2),
+                    resolve_ms: post.map(|p| p.1),
+                    hole_fill_ms: post.and_then(|p| p.0),
+                    eye_dome_ms: post.and_then(|p| p.2),
+                    plan_ms: on_gpu.then(|| ms(PLAN_QUERIES as usize)),
+                })
             }
             None => None,
         };
@@ -543,6 +604,138 @@ impl GpuRasterizer {
         Ok(ranges)
     }
 
+    /// Resolves the framebuffer as it is (the last frame drawn) again, with `options` and the
+    /// scene's colours as they are now: for callers that choose colours after seeing the keys
+    /// (`mortar render` colours scalar modes by the visible points' percentiles), then
+    /// [`GpuScene::set_colors`]. Waits for the GPU; returns the passes' times (hole fill,
+    /// resolve, eye-dome lighting) where the device has timestamps.
+    pub fn resolve(&mut self, ctx: &GpuContext, scene: &mut GpuScene, options: &ResolveOptions) -> Result<Option<GpuTimings>, GpuError> {
+        self.check_resolve(ctx, scene, options)?;
+        scene.flush(ctx)?;
+        let mut enc = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("resolve") });
+        self.encode_resolve(ctx, &mut enc, scene, options)?;
+        let times_read = self.queries.as_ref().map(|q| {
+            enc.resolve_query_set(&q.set, 0..QUERIES, &q.buffer, 0);
+            readback(ctx, &mut enc, &q.buffer, QUERIES as u64 * 8)
+        });
+        ctx.queue.submit([enc.finish()]);
+        let timings = match times_read {
+            Some(buf) => {
+                let t: Vec<u64> = bytemuck::pod_collect_to_vec(&map_read(ctx, &buf)?);
+                let period = ctx.queue.get_timestamp_period() as f64 * 1e-6;
+                let (hole_fill_ms, resolve_ms, eye_dome_ms) = resolve_timings(&t, period, options);
+                Some(GpuTimings { clear_ms: 0.0, draw_ms: 0.0, resolve_ms: Some(resolve_ms), hole_fill_ms, eye_dome_ms, plan_ms: None })
+            }
+            None => {
+                ctx.wait()?;
+                None
+            }
+        };
+        ctx.check()?;
+        Ok(timings)
+    }
+
+    /// Whether `scene` and this rasterizer can resolve with `options`.
+    fn check_resolve(&self, ctx: &GpuContext, scene: &GpuScene, options: &ResolveOptions) -> Result<(), GpuError> {
+        if !scene.has_colors() {
+            return Err(GpuError::Colors("resolve asked for but the scene has no colours".into()));
+        }
+        if options.hole_fill.is_some() && self.target.filled.is_none() {
+            let needed = self.target.width as u64 * self.target.height as u64 * 8;
+            return Err(GpuError::TooLarge { what: "the hole-filled keys", needed, limit: ctx.max_binding() });
+        }
+        Ok(())
+    }
+
+    /// Records the resolve's passes into `enc`: hole filling (the framebuffer into the filled
+    /// keys), one colour dispatch per chunk from the filled keys or the framebuffer, eye-dome
+    /// lighting of the image from the same keys' depths.
+    fn encode_resolve(&mut self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, scene: &GpuScene, options: &ResolveOptions) -> Result<(), GpuError> {
+        let (width, height) = self.size();
+        let pixels = width as u64 * height as u64;
+        let t = &mut self.target;
+        let passes = &self.passes;
+        let queries = self.queries.as_ref();
+        let f = &mut self.per_frame;
+        let (split_x, split_y) = ctx.split_dispatch(pixels.div_ceil(256) as u32);
+        let (index_words, depth_words, stride, depth_offset) = t.keys.words();
+        // Where the colours and the eye-dome depths are read from.
+        let (index_buf, depth_buf, stride, depth_offset, eye_dome_group) = match (&options.hole_fill, &t.filled) {
+            (Some(fill), Some((filled, fill_group, edl_group))) => {
+                let u = HoleFillUniforms::new(fill, width, height, stride, depth_offset);
+                ctx.queue.write_buffer(&f.fill_uniforms, 0, bytemuck::bytes_of(&u));
+                let slots = (Some(RESOLVE_QUERIES), Some(RESOLVE_QUERIES + 1));
+                let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("hole fill"), timestamp_writes: queries.map(|q| q.writes(slots.0, slots.1)) });
+                pass.set_pipeline(passes.hole_fill.pipeline());
+                pass.set_bind_group(0, fill_group, &[]);
+                pass.dispatch_workgroups(split_x, split_y, 1);
+                (filled, filled, 2, 1, edl_group)
+            }
+            (Some(_), None) => return Err(GpuError::TooLarge { what: "the hole-filled keys", needed: pixels * 8, limit: ctx.max_binding() }),
+            (None, _) => (index_words, depth_words, stride, depth_offset, &t.eye_dome_group),
+        };
+        // Colours: one dispatch per chunk.
+        while f.resolve_uniforms.len() < scene.chunks.len().max(1) {
+            f.resolve_uniforms.push(uniform::<ResolveUniforms>(ctx, "resolve uniforms"));
+        }
+        let chunk_list: Vec<(u32, u32, Option<&wgpu::Buffer>)> = if scene.chunks.is_empty() {
+            vec![(0, 0, Some(&self.no_colors))]
+        } else {
+            scene.chunks.iter().map(|c| (c.first_index, c.len, c.colors.as_ref())).collect()
+        };
+        let mut groups = Vec::with_capacity(chunk_list.len());
+        for (i, (first_index, count, colors)) in chunk_list.into_iter().enumerate() {
+            // Checked by check_resolve: a scene with colours has them in every chunk.
+            let Some(colors) = colors else { return Err(GpuError::Colors("a chunk of the scene has no colours".into())) };
+            let u = ResolveUniforms { width, height, key_stride: stride, depth_offset, first_index, count, background: options.background, write_background: (i == 0) as u32 };
+            ctx.queue.write_buffer(&f.resolve_uniforms[i], 0, bytemuck::bytes_of(&u));
+            groups.push(passes.resolve.bind_group(
+                ctx,
+                0,
+                &[
+                    entry(binding::RESOLVE_PARAMS, f.resolve_uniforms[i].as_entire_binding()),
+                    entry(binding::RESOLVE_INDEX_WORDS, index_buf.as_entire_binding()),
+                    entry(binding::RESOLVE_DEPTH_WORDS, depth_buf.as_entire_binding()),
+                    entry(binding::RESOLVE_COLORS, colors.as_entire_binding()),
+                    entry(binding::RESOLVE_IMAGE, t.image.as_entire_binding()),
+                ],
+            ));
+        }
+        {
+            let slots = (Some(RESOLVE_QUERIES + 2), Some(RESOLVE_QUERIES + 3));
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("resolve"), timestamp_writes: queries.map(|q| q.writes(slots.0, slots.1)) });
+            pass.set_pipeline(passes.resolve.pipeline());
+            for bg in &groups {
+                pass.set_bind_group(0, bg, &[]);
+                pass.dispatch_workgroups(split_x, split_y, 1);
+            }
+        }
+        if let Some(edl) = &options.eye_dome {
+            let u = EyeDomeUniforms::new(edl, width, height, stride, depth_offset);
+            ctx.queue.write_buffer(&f.eye_dome_uniforms, 0, bytemuck::bytes_of(&u));
+            let slots = (Some(RESOLVE_QUERIES + 4), Some(RESOLVE_QUERIES + 5));
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("eye-dome lighting"), timestamp_writes: queries.map(|q| q.writes(slots.0, slots.1)) });
+            pass.set_pipeline(passes.eye_dome.pipeline());
+            pass.set_bind_group(0, eye_dome_group, &[]);
+            pass.dispatch_workgroups(split_x, split_y, 1);
+        }
+        t.resolved = true;
+        Ok(())
+    }
+
+    /// The hole-filled keys of the last frame resolved with hole filling, as
+    /// [`mortar_core::render::resolve::fill_holes`] returns them (what the resolve's colours and
+    /// eye-dome lighting read).
+    pub fn read_filled_keys(&self, ctx: &GpuContext) -> Result<Vec<u64>, GpuError> {
+        let pixels = self.target.width as u64 * self.target.height as u64;
+        let Some((filled, _, _)) = &self.target.filled else { return Err(GpuError::TooLarge { what: "the hole-filled keys", needed: pixels * 8, limit: ctx.max_binding() }) };
+        let pixels = self.target.width as usize * self.target.height as usize;
+        let mut enc = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("read filled keys") });
+        let buf = readback(ctx, &mut enc, filled, filled.size());
+        ctx.queue.submit([enc.finish()]);
+        Ok(bytemuck::pod_collect_to_vec::<u8, u64>(&map_read(ctx, &buf)?)[..pixels].to_vec())
+    }
+
     /// The framebuffer's keys as the CPU rasterizer writes them (`depth bits << 32 | index`,
     /// [`EMPTY_KEY`] for an empty pixel), row-major from the top-left pixel.
     pub fn read_keys(&self, ctx: &GpuContext) -> Result<Vec<u64>, GpuError> {
@@ -568,7 +761,7 @@ impl GpuRasterizer {
     /// The resolved image (RGBA8 packed `r | g << 8 | b << 16 | a << 24`, row-major) of the last
     /// frame drawn with `resolve`.
     pub fn read_image(&self, ctx: &GpuContext) -> Result<Vec<u32>, GpuError> {
-        let Some(image) = &self.target.image else { return Err(GpuError::Colors("no frame was resolved yet".into())) };
+        let Some(image) = self.image_buffer() else { return Err(GpuError::Colors("no frame was resolved yet".into())) };
         read_image_buffer(ctx, image, self.target.width, self.target.height)
     }
 }
@@ -579,6 +772,13 @@ impl GpuRasterizer {
 pub(crate) fn grown_size(ctx: &GpuContext, old: u64, needed: u64) -> u64 {
     let size = needed.max(old + old / 2).min(ctx.limits().max_buffer_size.max(needed));
     size.div_ceil(256) * 256
+}
+
+/// The resolve's pass times `(hole fill, resolve, eye-dome lighting)` in milliseconds from the
+/// timestamps `t` (ticks of `period` ms), the passes `options` did not run `None`.
+fn resolve_timings(t: &[u64], period: f64, options: &ResolveOptions) -> (Option<f64>, f64, Option<f64>) {
+    let ms = |a: u32| t[a as usize + 1].saturating_sub(t[a as usize]) as f64 * period;
+    (options.hole_fill.map(|_| ms(RESOLVE_QUERIES)), ms(RESOLVE_QUERIES + 2), options.eye_dome.map(|_| ms(RESOLVE_QUERIES + 4)))
 }
 
 /// The first `width * height` RGBA8 pixels of an image buffer (a resolve pass's output).

@@ -107,6 +107,21 @@ pub mod binding {
     pub const PLAN_RECORDS: Binding = bind(0, 2, StorageReadWrite, "out_records");
     /// `plan.wgsl`: culled and drawn batches, points per number of words.
     pub const PLAN_COUNTERS: Binding = bind(0, 3, StorageReadWrite, "plan_counters");
+    /// `hole_fill.wgsl`: the pass's constants (`HoleFillUniforms`).
+    pub const FILL_PARAMS: Binding = bind(0, 0, Uniform, "params");
+    /// `hole_fill.wgsl`: the framebuffer's words holding the point indices.
+    pub const FILL_INDEX_WORDS: Binding = bind(0, 1, StorageRead, "index_words");
+    /// `hole_fill.wgsl`: the framebuffer's words holding the depth bits.
+    pub const FILL_DEPTH_WORDS: Binding = bind(0, 2, StorageRead, "depth_words");
+    /// `hole_fill.wgsl`: the filled keys, two words per pixel (index, depth).
+    pub const FILL_FILLED: Binding = bind(0, 3, StorageReadWrite, "filled");
+
+    /// `eye_dome.wgsl`: the pass's constants (`EyeDomeUniforms`).
+    pub const EYE_DOME_PARAMS: Binding = bind(0, 0, Uniform, "params");
+    /// `eye_dome.wgsl`: the words holding the depth bits (framebuffer or filled keys).
+    pub const EYE_DOME_DEPTH_WORDS: Binding = bind(0, 1, StorageRead, "depth_words");
+    /// `eye_dome.wgsl`: the resolved image, shaded in place.
+    pub const EYE_DOME_IMAGE: Binding = bind(0, 2, StorageReadWrite, "image");
 
     /// `progressive_unload.wgsl`: a chunk's coarse words.
     pub const UNLOAD_COARSE: Binding = bind(0, 0, StorageReadWrite, "coarse_words");
@@ -159,6 +174,11 @@ pub enum Pass {
     Resolve,
     /// Culling, precision and projection of every batch on the GPU (`shaders/plan.wgsl`).
     Plan,
+    /// Depth-aware hole filling of the framebuffer into a second key buffer
+    /// (`shaders/hole_fill.wgsl`).
+    HoleFill,
+    /// Eye-dome lighting of the resolved image from the keys' depths (`shaders/eye_dome.wgsl`).
+    EyeDome,
     /// Progressive renderer: marks a chunk's slots unloaded (`shaders/progressive_unload.wgsl`).
     ProgressiveUnload,
     /// Progressive renderer: staged points into their shuffled slots
@@ -177,13 +197,15 @@ pub enum Pass {
 
 impl Pass {
     /// Every pass.
-    pub const ALL: [Pass; 11] = [
+    pub const ALL: [Pass; 13] = [
         Pass::Clear,
         Pass::Plan,
         Pass::Draw64,
         Pass::DrawDepth32,
         Pass::DrawIndex32,
         Pass::Resolve,
+        Pass::HoleFill,
+        Pass::EyeDome,
         Pass::ProgressiveUnload,
         Pass::ProgressiveScatter,
         Pass::ProgressiveReproject,
@@ -200,6 +222,8 @@ impl Pass {
             Pass::DrawIndex32 => "draw_index.wgsl",
             Pass::Resolve => "resolve.wgsl",
             Pass::Plan => "plan.wgsl",
+            Pass::HoleFill => "hole_fill.wgsl",
+            Pass::EyeDome => "eye_dome.wgsl",
             Pass::ProgressiveUnload => "progressive_unload.wgsl",
             Pass::ProgressiveScatter => "progressive_scatter.wgsl",
             Pass::ProgressiveReproject => "progressive_reproject.wgsl",
@@ -216,6 +240,8 @@ impl Pass {
             Pass::DrawIndex32 => include_str!("../../../shaders/draw_index.wgsl"),
             Pass::Resolve => include_str!("../../../shaders/resolve.wgsl"),
             Pass::Plan => include_str!("../../../shaders/plan.wgsl"),
+            Pass::HoleFill => include_str!("../../../shaders/hole_fill.wgsl"),
+            Pass::EyeDome => include_str!("../../../shaders/eye_dome.wgsl"),
             Pass::ProgressiveUnload => include_str!("../../../shaders/progressive_unload.wgsl"),
             Pass::ProgressiveScatter => include_str!("../../../shaders/progressive_scatter.wgsl"),
             Pass::ProgressiveReproject => include_str!("../../../shaders/progressive_reproject.wgsl"),
@@ -234,6 +260,8 @@ impl Pass {
             Pass::DrawIndex32 => &[FRAME, DEPTHS, COUNTERS, INDICES, RECORDS, COARSE, MEDIUM, FINE],
             Pass::Resolve => &[RESOLVE_PARAMS, RESOLVE_INDEX_WORDS, RESOLVE_DEPTH_WORDS, RESOLVE_COLORS, RESOLVE_IMAGE],
             Pass::Plan => &[PLAN_PARAMS, PLAN_BATCHES, PLAN_RECORDS, PLAN_COUNTERS],
+            Pass::HoleFill => &[FILL_PARAMS, FILL_INDEX_WORDS, FILL_DEPTH_WORDS, FILL_FILLED],
+            Pass::EyeDome => &[EYE_DOME_PARAMS, EYE_DOME_DEPTH_WORDS, EYE_DOME_IMAGE],
             Pass::ProgressiveUnload => &[UNLOAD_COARSE],
             Pass::ProgressiveScatter => &[SCATTER_PARAMS, SCATTER_STAGED, SCATTER_COARSE, SCATTER_MEDIUM, SCATTER_FINE, SCATTER_COLORS],
             Pass::ProgressiveReproject => &[FRAME, KEYS, COUNTERS, VISIBLE, RECORDS, COARSE, MEDIUM, FINE],
@@ -257,7 +285,7 @@ impl Pass {
     pub fn source(self) -> String {
         let mut parts = vec![TYPES];
         match self {
-            Pass::Clear | Pass::Resolve => {}
+            Pass::Clear | Pass::Resolve | Pass::HoleFill | Pass::EyeDome => {}
             // div_rn and opaque of the decode.
             Pass::Plan => parts.push(DECODE),
             Pass::Draw64 | Pass::DrawIndex32 => parts.extend([DECODE, BATCHES, COUNTERS]),

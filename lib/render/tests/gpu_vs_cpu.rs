@@ -1,6 +1,7 @@
 //! The GPU rasterizer against the CPU reference on the same scenes and views: identical keys
 //! (winning point per pixel and its depth) on both atomic paths, with chunked buffers and split
-//! dispatches, and the resolve pass against the CPU resolve.
+//! dispatches, and the resolve passes (hole filling, colours, eye-dome lighting) against the CPU
+//! resolve, byte for byte.
 //!
 //! Runs on any adapter, software ones included (lavapipe in CI). Skips with a printed reason only
 //! where no adapter exists at all, unless `MORTAR_REQUIRE_GPU` is set (CI sets it).
@@ -8,7 +9,7 @@
 use mortar_core::grid::Grid;
 use mortar_core::quantize::Precision;
 use mortar_core::render::framebuffer::{key_depth, key_index, EMPTY_KEY};
-use mortar_core::render::resolve::{resolve_with_colors, ResolveOptions};
+use mortar_core::render::resolve::{fill_holes, resolve_with_colors, EyeDome, HoleFill, ResolveOptions};
 use mortar_core::render::testutil::Scene;
 use mortar_core::render::{rasterize, Camera, Framebuffer, PrecisionMode, RasterOptions, RasterStats, ViewPreset};
 use mortar_render::{AtomicPath, DrawTuning, GpuContext, GpuError, GpuRasterizer, GpuScene, RecordOrder, SceneOptions};
@@ -141,13 +142,91 @@ fn resolve_matches_cpu_resolve() {
         let cam = Camera::frame_perspective(&scene.bounds, ViewPreset::Iso, 0.8, 400, 300).unwrap();
         let mut gr = GpuRasterizer::new(&ctx, cam.width, cam.height).unwrap();
         let background = 0xff20_1008;
-        gr.draw(&ctx, &mut gs, &cam, &RasterOptions::default(), Some(background)).unwrap();
+        gr.draw(&ctx, &mut gs, &cam, &RasterOptions::default(), Some(&ResolveOptions { background, ..Default::default() })).unwrap();
         let keys = gr.read_keys(&ctx).unwrap();
         let image = gr.read_image(&ctx).unwrap();
         let want = resolve_with_colors(&keys, cam.width, cam.height, &scene.colors, &ResolveOptions { background, ..Default::default() });
         assert_eq!(image, want, "{path:?}");
         assert!(image.iter().filter(|&&c| c != background).count() > 10_000);
     }
+}
+
+/// The resolve options the post-processing tests run: hole filling with several
+/// `min_neighbors`, eye-dome lighting at several strengths and radii, and both together.
+fn post_options(background: u32) -> Vec<ResolveOptions> {
+    let fill = |n| Some(HoleFill { min_neighbors: n });
+    let edl = |strength, radius| Some(EyeDome { strength, radius });
+    let o = |hole_fill, eye_dome| ResolveOptions { background, hole_fill, eye_dome };
+    vec![
+        o(fill(1), None),
+        o(fill(3), None),
+        o(fill(6), None),
+        o(None, edl(1.0, 1.4)),
+        o(None, edl(2.5, 3.0)),
+        o(fill(3), edl(1.0, 1.4)),
+        o(fill(2), edl(0.4, 2.2)),
+    ]
+}
+
+#[test]
+fn hole_filling_and_eye_dome_lighting_match_cpu_resolve() {
+    // Sparse enough (about a point per pixel from above) that filling has holes to close, with
+    // depth steps for the eye-dome lighting. Compared with the CPU resolve of the GPU's own keys:
+    // the passes must agree with mortar_core byte for byte, whatever the draw left.
+    let scene = utm_terrain(250_000);
+    let background = 0xff40_2010;
+    let mut shaded_total = 0;
+    let mut filled_total = 0;
+    for path in [AtomicPath::U64, AtomicPath::TwoPass32] {
+        let Some(ctx) = context(path, None) else { continue };
+        let mut gs = upload(&ctx, &scene, Some(60_000));
+        let cams = [
+            ("top ortho", Camera::frame_orthographic(&scene.bounds, ViewPreset::Top, 640, 480).unwrap()),
+            ("iso", Camera::frame_perspective(&scene.bounds, ViewPreset::Iso, 0.8, 600, 400).unwrap()),
+            ("close-up", Camera::close_up(&scene.bounds, 0.8, 500, 350).unwrap()),
+        ];
+        for (cam_name, cam) in cams {
+            let mut gr = GpuRasterizer::new(&ctx, cam.width, cam.height).unwrap();
+            let plain = ResolveOptions { background, ..Default::default() };
+            gr.draw(&ctx, &mut gs, &cam, &RasterOptions::default(), Some(&plain)).unwrap();
+            let keys = gr.read_keys(&ctx).unwrap();
+            let plain_image = gr.read_image(&ctx).unwrap();
+            let holes = keys.iter().filter(|&&k| k == EMPTY_KEY).count();
+            assert!(holes > 1000 && keys.len() - holes > 10_000, "{path:?} {cam_name}: {holes} of {} pixels empty", keys.len());
+            for (n, opts) in post_options(background).into_iter().enumerate() {
+                let what = format!("{path:?} {cam_name} {opts:?}");
+                // Every other case through a fresh draw, the rest through resolve() on the
+                // framebuffer as it is.
+                let frame = if n % 2 == 0 {
+                    gr.draw(&ctx, &mut gs, &cam, &RasterOptions::default(), Some(&opts)).unwrap();
+                    assert_eq!(gr.read_keys(&ctx).unwrap(), keys, "{what}: the draw is deterministic");
+                    None
+                } else {
+                    gr.resolve(&ctx, &mut gs, &opts).unwrap()
+                };
+                if let Some(t) = frame {
+                    assert_eq!(t.hole_fill_ms.is_some(), opts.hole_fill.is_some(), "{what}");
+                    assert_eq!(t.eye_dome_ms.is_some(), opts.eye_dome.is_some(), "{what}");
+                }
+                if let Some(fill) = &opts.hole_fill {
+                    let want = fill_holes(&keys, cam.width, cam.height, fill);
+                    let got = gr.read_filled_keys(&ctx).unwrap();
+                    let differ = got.iter().zip(&want).filter(|(g, w)| g != w).count();
+                    assert_eq!(differ, 0, "{what}: {differ} filled keys differ from fill_holes");
+                    filled_total += want.iter().zip(&keys).filter(|(f, k)| f != k).count();
+                }
+                let want = resolve_with_colors(&keys, cam.width, cam.height, &scene.colors, &opts);
+                let got = gr.read_image(&ctx).unwrap();
+                let differ = got.iter().zip(&want).filter(|(g, w)| g != w).count();
+                assert_eq!(differ, 0, "{what}: {differ} pixels differ from the CPU resolve");
+                if opts.eye_dome.is_some() {
+                    shaded_total += got.iter().zip(&plain_image).filter(|(g, p)| g != p).count();
+                }
+            }
+        }
+    }
+    eprintln!("pixels filled: {filled_total}, pixels the eye-dome lighting changed: {shaded_total}");
+    assert!(filled_total > 10_000 && shaded_total > 10_000, "the scenes do not exercise the passes: {filled_total} filled, {shaded_total} shaded");
 }
 
 #[test]
@@ -164,7 +243,8 @@ fn bad_calls_are_errors_not_panics() {
     let cam = Camera::frame_perspective(&scene.bounds, ViewPreset::Top, 0.8, 64, 48).unwrap();
     let mut gr = GpuRasterizer::new(&ctx, 64, 48).unwrap();
     // Resolve without colours, and a camera of another size.
-    assert!(matches!(gr.draw(&ctx, &mut gs, &cam, &RasterOptions::default(), Some(0)), Err(GpuError::Colors(_))));
+    assert!(matches!(gr.draw(&ctx, &mut gs, &cam, &RasterOptions::default(), Some(&ResolveOptions::default())), Err(GpuError::Colors(_))));
+    assert!(matches!(gr.resolve(&ctx, &mut gs, &ResolveOptions::default()), Err(GpuError::Colors(_))));
     let other = Camera { width: 65, ..cam };
     assert!(matches!(gr.draw(&ctx, &mut gs, &other, &RasterOptions::default(), None), Err(GpuError::Raster(_))));
     // A framebuffer beyond the device's largest binding.

@@ -69,13 +69,13 @@ fn set_colors_recolours_the_resolved_image() {
     let resolve_opts = ResolveOptions { background: bg, ..Default::default() };
 
     let mut gr = GpuRasterizer::new(&ctx, cam.width, cam.height).unwrap();
-    gr.draw(&ctx, &mut gs, &cam, &opts, Some(bg)).unwrap();
+    gr.draw(&ctx, &mut gs, &cam, &opts, Some(&resolve_opts)).unwrap();
     assert_eq!(gr.read_image(&ctx).unwrap(), resolve_with_colors(&keys, cam.width, cam.height, &scene.colors, &resolve_opts));
 
     // Another colour per point (a hash of its index): the image follows, the keys do not move.
     let other: Vec<u32> = (0..scene.points.len() as u32).map(|i| i.wrapping_mul(0x9e37_79b9) | 0xff00_0000).collect();
     gs.set_colors(&ctx, &other).unwrap();
-    gr.draw(&ctx, &mut gs, &cam, &opts, Some(bg)).unwrap();
+    gr.draw(&ctx, &mut gs, &cam, &opts, Some(&resolve_opts)).unwrap();
     let image = gr.read_image(&ctx).unwrap();
     assert_eq!(image, resolve_with_colors(&keys, cam.width, cam.height, &other, &resolve_opts));
     assert_ne!(image, resolve_with_colors(&keys, cam.width, cam.height, &scene.colors, &resolve_opts));
@@ -85,7 +85,7 @@ fn set_colors_recolours_the_resolved_image() {
     assert_eq!(gr.size(), (120, 90));
     assert!(gr.image_buffer().is_none(), "the old image is gone with the old size");
     let small = Camera { width: 120, height: 90, ..cam };
-    gr.draw(&ctx, &mut gs, &small, &opts, Some(bg)).unwrap();
+    gr.draw(&ctx, &mut gs, &small, &opts, Some(&resolve_opts)).unwrap();
     let fb = Framebuffer::new(120, 90);
     rasterize(&fb, &scene.refs(), &scene.grid, &small, &opts).unwrap();
     assert_eq!(gr.read_image(&ctx).unwrap(), resolve_with_colors(&fb.into_keys(), 120, 90, &other, &resolve_opts));

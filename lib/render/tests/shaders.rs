@@ -4,7 +4,8 @@
 //! from), and every struct shared with WGSL has the same size and member offsets as its
 //! `#[repr(C)]` Rust twin.
 
-use mortar_core::render::gpu::{BatchProjection, DrawRecord, FrameUniforms, PlanBatch, PlanUniforms, PrepareUniforms, ResolveUniforms, ScatterUniforms};
+use mortar_core::render::gpu::{BatchProjection, DrawRecord, EyeDomeUniforms, FrameUniforms, HoleFillUniforms, PlanBatch, PlanUniforms, PrepareUniforms, ResolveUniforms, ScatterUniforms};
+use mortar_core::render::resolve::{EDL_EXP2_COEFFS, EDL_LOG2_COEFFS};
 use mortar_core::render::progressive::UNLOADED;
 use mortar_render::progressive::SLOTS_PER_THREAD;
 use mortar_render::shaders::{binding, Binding, BindingKind, Pass, PRESENT, PRESENT_BINDINGS};
@@ -178,6 +179,8 @@ fn shared_structs_have_the_rust_layout() {
     // draw.wgsl and resolve.wgsl together contain every shared struct (types.wgsl is in both).
     let draw = parse(Pass::Draw64);
     let resolve = parse(Pass::Resolve);
+    let fill = parse(Pass::HoleFill);
+    let eye_dome = parse(Pass::EyeDome);
     let scatter = parse(Pass::ProgressiveScatter);
     let prepare = parse(Pass::ProgressivePrepare);
     let plan = parse(Pass::Plan);
@@ -287,6 +290,39 @@ fn shared_structs_have_the_rust_layout() {
             ],
         ),
         (
+            "HoleFillUniforms",
+            &fill,
+            size_of::<HoleFillUniforms>(),
+            vec![
+                ("width", offset_of!(HoleFillUniforms, width)),
+                ("height", offset_of!(HoleFillUniforms, height)),
+                ("key_stride", offset_of!(HoleFillUniforms, key_stride)),
+                ("depth_offset", offset_of!(HoleFillUniforms, depth_offset)),
+                ("min_neighbors", offset_of!(HoleFillUniforms, min_neighbors)),
+                ("_pad0", offset_of!(HoleFillUniforms, _pad0)),
+                ("_pad1", offset_of!(HoleFillUniforms, _pad1)),
+                ("_pad2", offset_of!(HoleFillUniforms, _pad2)),
+            ],
+        ),
+        (
+            "EyeDomeUniforms",
+            &eye_dome,
+            size_of::<EyeDomeUniforms>(),
+            vec![
+                ("width", offset_of!(EyeDomeUniforms, width)),
+                ("height", offset_of!(EyeDomeUniforms, height)),
+                ("key_stride", offset_of!(EyeDomeUniforms, key_stride)),
+                ("depth_offset", offset_of!(EyeDomeUniforms, depth_offset)),
+                ("scale", offset_of!(EyeDomeUniforms, scale)),
+                ("zero", offset_of!(EyeDomeUniforms, zero)),
+                ("_pad0", offset_of!(EyeDomeUniforms, _pad0)),
+                ("_pad1", offset_of!(EyeDomeUniforms, _pad1)),
+                ("offsets", offset_of!(EyeDomeUniforms, offsets)),
+                ("log2_coeffs", offset_of!(EyeDomeUniforms, log2_coeffs)),
+                ("exp2_coeffs", offset_of!(EyeDomeUniforms, exp2_coeffs)),
+            ],
+        ),
+        (
             "ScatterUniforms",
             &scatter,
             size_of::<ScatterUniforms>(),
@@ -338,4 +374,14 @@ fn progressive_constants_have_the_rust_values() {
     assert_eq!(wgsl_u32_constant(&fill, "SLOTS_PER_THREAD"), SLOTS_PER_THREAD, "SLOTS_PER_THREAD: WGSL and Rust differ");
     let unload = parse(Pass::ProgressiveUnload);
     assert_eq!(wgsl_u32_constant(&unload, "UNLOADED"), UNLOADED);
+}
+
+#[test]
+fn eye_dome_polynomial_lengths_have_the_rust_values() {
+    // The coefficients themselves travel in EyeDomeUniforms (one definition, in Rust); the WGSL
+    // loops over as many terms as Rust has, and the uniform arrays hold them.
+    let edl = parse(Pass::EyeDome);
+    assert_eq!(wgsl_u32_constant(&edl, "LOG2_TERMS") as usize, EDL_LOG2_COEFFS.len());
+    assert_eq!(wgsl_u32_constant(&edl, "EXP2_TERMS") as usize, EDL_EXP2_COEFFS.len());
+    assert!(EDL_LOG2_COEFFS.len() <= 4 * 3 && EDL_EXP2_COEFFS.len() <= 4 * 2);
 }

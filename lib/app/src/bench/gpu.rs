@@ -213,7 +213,7 @@ pub fn run(a: Args) -> Result<()> {
         if let (Some(c), Some(s), Some(r), true) = (&ctx, &mut scene, &mut raster, a.warmup_ms > 0) {
             let t = Instant::now();
             while t.elapsed().as_millis() < a.warmup_ms as u128 {
-                r.draw(c, s, &cam, &RasterOptions::default(), Some(0xff00_0000)).map_err(|e| anyhow!("{e}"))?;
+                r.draw(c, s, &cam, &RasterOptions::default(), Some(&mortar_core::render::resolve::ResolveOptions::default())).map_err(|e| anyhow!("{e}"))?;
             }
         }
         let mut configs = Vec::new();
@@ -254,7 +254,7 @@ pub fn run(a: Args) -> Result<()> {
             if let (Some(c), Some(s), Some(r), true) = (&ctx, &mut scene, &mut raster, a.config_warmup_ms > 0) {
                 let t = Instant::now();
                 while t.elapsed().as_millis() < a.config_warmup_ms as u128 {
-                    r.draw(c, s, &cam, &opts, Some(0xff00_0000)).map_err(|e| anyhow!("{e}"))?;
+                    r.draw(c, s, &cam, &opts, Some(&mortar_core::render::resolve::ResolveOptions::default())).map_err(|e| anyhow!("{e}"))?;
                 }
             }
             let (mut draw, mut clear, mut resolve, mut wall, mut plan) = (Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new());
@@ -264,7 +264,7 @@ pub fn run(a: Args) -> Result<()> {
                 let t = Instant::now();
                 match (&ctx, &mut scene, &mut raster) {
                     (Some(c), Some(s), Some(r)) => {
-                        let f = r.draw(c, s, &cam, &opts, Some(0xff00_0000)).map_err(|e| anyhow!("{e}"))?;
+                        let f = r.draw(c, s, &cam, &opts, Some(&mortar_core::render::resolve::ResolveOptions::default())).map_err(|e| anyhow!("{e}"))?;
                         stats = f.stats;
                         if let Some(tm) = f.timings {
                             draw.push(tm.draw_ms);

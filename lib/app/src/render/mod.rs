@@ -1,7 +1,8 @@
 //! `mortar render`: one view of a batch file (or of LAS/LAZ batched on the fly) drawn by the CPU
 //! reference rasterizer or the wgpu compute rasterizer (paper 003 §3.2-3.4) to a PNG. Both leave
-//! the same visibility buffer; the colours, hole filling and eye-dome lighting are then resolved
-//! on the host from the visible points alone.
+//! the same visibility buffer; the colours are chosen from the visible points alone. The CPU
+//! path resolves on the host; the GPU path reads the keys back only to choose the colours, and
+//! hole filling, colours and eye-dome lighting run on the GPU (the same image, byte for byte).
 
 pub mod lod;
 pub mod progressive;
@@ -327,17 +328,23 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
     Ok(())
 }
 
+/// The resolve's choices of `--background`, `--hole-fill [N]` and `--edl [STRENGTH]` (shared by
+/// `mortar render`, `mortar view` and `build --preview`).
+pub fn resolve_options(background: u32, hole_fill: Option<u32>, edl: Option<f32>) -> ResolveOptions {
+    ResolveOptions {
+        background,
+        hole_fill: hole_fill.map(|n| HoleFill { min_neighbors: n }),
+        eye_dome: edl.map(|strength| EyeDome { strength, ..EyeDome::default() }),
+    }
+}
+
 /// The raster and resolve choices of the arguments.
 pub(crate) fn render_settings(a: &Args) -> RenderSettings {
     RenderSettings {
         raster: RasterOptions { precision: a.precision.mode(), cull: !a.no_cull },
         color: a.color,
         range: a.range,
-        resolve: ResolveOptions {
-            background: a.background,
-            hole_fill: a.hole_fill.map(|n| HoleFill { min_neighbors: n }),
-            eye_dome: a.edl.map(|strength| EyeDome { strength, ..EyeDome::default() }),
-        },
+        resolve: resolve_options(a.background, a.hole_fill, a.edl),
     }
 }
 
@@ -450,9 +457,9 @@ pub(crate) fn rendered_json(a: &Args, label: &str, r: &Rendered, gpu_json: &serd
 
 /// Draws `refs` (batches on `grid` holding `points` points, indexed so that the keys' indices
 /// are the points') with the GPU rasterizer: uploads them, draws one frame and reads the keys
-/// back. The one GPU render entry of `mortar render`, for batch files, LAS/LAZ and stores alike:
-/// the caller resolves the keys on the host exactly as its CPU path does. Returns the keys, the
-/// frame and its `gpu` statistics for `--json`.
+/// back, for callers that resolve on the host exactly as their CPU path does (`mortar render`
+/// of a store, whose colours come from the nodes' payloads; batch files and LAS/LAZ resolve on
+/// the GPU, see `render_gpu`). Returns the keys, the frame and its `gpu` statistics for `--json`.
 pub fn draw_keys_gpu(ctx: &GpuContext, grid: Grid, points: u64, refs: &[BatchRef<'_>], camera: &Camera, options: &RasterOptions) -> std::result::Result<(Vec<u64>, GpuFrame, serde_json::Value), GpuError> {
     let t = Instant::now();
     let mut scene = GpuScene::new(ctx, grid, points, SceneOptions::default())?;
@@ -465,8 +472,75 @@ pub fn draw_keys_gpu(ctx: &GpuContext, grid: Grid, points: u64, refs: &[BatchRef
     let mut raster = GpuRasterizer::new(ctx, camera.width, camera.height)?;
     let frame = raster.draw(ctx, &mut scene, camera, options, None)?;
     let keys = raster.read_keys(ctx)?;
+    let j = gpu_json(ctx, &scene, upload_seconds, &frame);
+    Ok((keys, frame, j))
+}
+
+/// A batch file drawn and resolved on the GPU: the batches uploaded (with room for colours),
+/// one frame drawn, its keys read back to choose the colours of the visible points as the CPU
+/// path does, those colours uploaded, and the framebuffer resolved on the GPU (hole filling,
+/// colours, eye-dome lighting: [`GpuRasterizer::resolve`]); only the image comes back. The outer
+/// error is the GPU's, the inner one the input's.
+fn render_gpu(ctx: &GpuContext, file: &BatchFile, refs: &[BatchRef<'_>], camera: &Camera, settings: &RenderSettings) -> std::result::Result<(mortar_io::Result<Rendered>, serde_json::Value), GpuError> {
+    if let Err(e) = render_input::check_color(file, settings.color) {
+        return Ok((Err(e), serde_json::Value::Null));
+    }
+    let points = file.header.point_count;
+    let t = Instant::now();
+    let mut scene = GpuScene::new(ctx, file.grid(), points, SceneOptions { colors: true, ..Default::default() })?;
+    // The colours depend on the visible points: placeholders now, the real ones after the draw.
+    let zeros = vec![0u32; refs.iter().map(BatchRef::len).max().unwrap_or(0)];
+    for b in refs {
+        scene.push(ctx, b, Some(&zeros[..b.len()]))?;
+    }
+    scene.flush(ctx)?;
+    ctx.wait()?;
+    let upload_seconds = t.elapsed().as_secs_f64();
+    let mut raster = GpuRasterizer::new(ctx, camera.width, camera.height)?;
+    let frame = raster.draw(ctx, &mut scene, camera, &settings.raster, None)?;
+    let keys = raster.read_keys(ctx)?;
+    let mut j = gpu_json(ctx, &scene, upload_seconds, &frame);
+    let t = Instant::now();
+    let colors = match render_input::colors_for_keys(file, &keys, settings.color, settings.range) {
+        Ok(c) => c,
+        Err(e) => return Ok((Err(e), j)),
+    };
+    let bg = settings.resolve.background;
+    scene.set_colors(ctx, &colors.dense(points as usize, bg))?;
+    let post = raster.resolve(ctx, &mut scene, &settings.resolve)?;
+    let rgba = raster.read_image(ctx)?;
+    let resolve_seconds = t.elapsed().as_secs_f64();
+    j["timings"] = frame
+        .timings
+        .map(|t| {
+            serde_json::json!({
+                "clear_ms": t.clear_ms,
+                "draw_ms": t.draw_ms,
+                "hole_fill_ms": post.and_then(|p| p.hole_fill_ms),
+                "resolve_ms": post.and_then(|p| p.resolve_ms),
+                "eye_dome_ms": post.and_then(|p| p.eye_dome_ms),
+            })
+        })
+        .into();
+    let covered = keys.iter().filter(|&&k| k != mortar_core::render::EMPTY_KEY).count() as u64;
+    let r = Rendered {
+        width: camera.width,
+        height: camera.height,
+        keys,
+        rgba,
+        stats: frame.stats,
+        covered,
+        raster_seconds: frame.frame_seconds,
+        resolve_seconds,
+        color_range: colors.range,
+    };
+    Ok((Ok(r), j))
+}
+
+/// The `gpu` statistics of `--json`: the adapter, the scene and the frame.
+fn gpu_json(ctx: &GpuContext, scene: &GpuScene, upload_seconds: f64, frame: &GpuFrame) -> serde_json::Value {
     let a = ctx.adapter();
-    let j = serde_json::json!({
+    serde_json::json!({
         "adapter": a.name,
         "api": a.backend,
         "device_type": a.device_type,
@@ -478,17 +552,5 @@ pub fn draw_keys_gpu(ctx: &GpuContext, grid: Grid, points: u64, refs: &[BatchRef
         "plan_seconds": frame.plan_seconds,
         "frame_seconds": frame.frame_seconds,
         "draw_ms": frame.timings.map(|t| t.draw_ms),
-    });
-    Ok((keys, frame, j))
-}
-
-/// [`draw_keys_gpu`] for a batch file, resolved as the CPU path resolves. The outer error is the
-/// GPU's, the inner one the input's.
-fn render_gpu(ctx: &GpuContext, file: &BatchFile, refs: &[BatchRef<'_>], camera: &Camera, settings: &RenderSettings) -> std::result::Result<(mortar_io::Result<Rendered>, serde_json::Value), GpuError> {
-    if let Err(e) = render_input::check_color(file, settings.color) {
-        return Ok((Err(e), serde_json::Value::Null));
-    }
-    let (keys, frame, mut j) = draw_keys_gpu(ctx, file.grid(), file.header.point_count, refs, camera, &settings.raster)?;
-    j["timings"] = frame.timings.map(|t| serde_json::json!({ "clear_ms": t.clear_ms, "draw_ms": t.draw_ms })).into();
-    Ok((render_input::resolve_keys(file, keys, frame.stats, frame.frame_seconds, camera, settings), j))
+    })
 }

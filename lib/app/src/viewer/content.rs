@@ -26,7 +26,7 @@ pub struct GpuDrawn {
     pub points_drawn: u64,
     /// The GPU's drawing passes (timestamp queries), where available.
     pub draw_ms: Option<f64>,
-    /// The GPU's resolve pass.
+    /// The GPU's resolve passes (hole filling, colours, eye-dome lighting).
     pub resolve_ms: Option<f64>,
     /// The image is in the content's own buffer ([`Content::image`]), not in the rasterizer.
     pub own_image: bool,
@@ -35,7 +35,7 @@ pub struct GpuDrawn {
 impl GpuDrawn {
     /// What a frame of the batch rasterizer drew (resolved in the rasterizer).
     pub fn of(f: &GpuFrame) -> GpuDrawn {
-        GpuDrawn { points_drawn: f.stats.points_drawn, draw_ms: f.timings.map(|t| t.draw_ms), resolve_ms: f.timings.and_then(|t| t.resolve_ms), own_image: false }
+        GpuDrawn { points_drawn: f.stats.points_drawn, draw_ms: f.timings.map(|t| t.draw_ms), resolve_ms: f.timings.and_then(|t| t.post_ms()), own_image: false }
     }
 }
 
@@ -68,11 +68,13 @@ pub trait Content {
     }
     /// Makes the GPU state for `ctx`; called once, before the first GPU frame.
     fn use_gpu(&mut self, ctx: &GpuContext) -> Result<(), GpuError>;
-    /// One frame on the CPU: the RGBA8 image of `camera` and the points drawn.
-    fn draw_cpu(&mut self, camera: &Camera, options: &RasterOptions, background: u32) -> Result<(Vec<u32>, u64)>;
-    /// One frame on the GPU, resolved into `raster` (or into [`image`](Self::image) where
-    /// [`GpuDrawn::own_image`]), ready to present.
-    fn draw_gpu(&mut self, ctx: &GpuContext, raster: &mut GpuRasterizer, camera: &Camera, options: &RasterOptions, background: u32) -> Result<GpuDrawn>;
+    /// One frame on the CPU: the RGBA8 image of `camera` resolved with `resolve` (background,
+    /// hole filling, eye-dome lighting) and the points drawn.
+    fn draw_cpu(&mut self, camera: &Camera, options: &RasterOptions, resolve: &ResolveOptions) -> Result<(Vec<u32>, u64)>;
+    /// One frame on the GPU, resolved with `resolve` into `raster` (or into
+    /// [`image`](Self::image) where [`GpuDrawn::own_image`]) without leaving the GPU, ready to
+    /// present; the same image as [`draw_cpu`](Self::draw_cpu).
+    fn draw_gpu(&mut self, ctx: &GpuContext, raster: &mut GpuRasterizer, camera: &Camera, options: &RasterOptions, resolve: &ResolveOptions) -> Result<GpuDrawn>;
     /// The content's own resolved image on the GPU, after [`draw_gpu`](Self::draw_gpu).
     fn image(&self) -> Option<&wgpu::Buffer> {
         None
@@ -170,7 +172,7 @@ impl Content for BatchContent<'_> {
         Ok(())
     }
 
-    fn draw_cpu(&mut self, camera: &Camera, options: &RasterOptions, background: u32) -> Result<(Vec<u32>, u64)> {
+    fn draw_cpu(&mut self, camera: &Camera, options: &RasterOptions, resolve_options: &ResolveOptions) -> Result<(Vec<u32>, u64)> {
         self.colors()?;
         let (w, h) = (camera.width, camera.height);
         let fb = match &mut self.fb {
@@ -182,11 +184,12 @@ impl Content for BatchContent<'_> {
         };
         let s = rasterize(fb, self.refs, &self.file.grid(), camera, options).map_err(|e| anyhow!("{}: {e}", self.label))?;
         let colors = self.colors[self.mode].as_deref().unwrap_or_default();
-        let rgba = resolve(fb.keys_slice(), w, h, |i| colors.get(i as usize).copied().unwrap_or(background), &ResolveOptions { background, ..Default::default() });
+        let background = resolve_options.background;
+        let rgba = resolve(fb.keys_slice(), w, h, |i| colors.get(i as usize).copied().unwrap_or(background), resolve_options);
         Ok((rgba, s.points_drawn))
     }
 
-    fn draw_gpu(&mut self, ctx: &GpuContext, raster: &mut GpuRasterizer, camera: &Camera, options: &RasterOptions, background: u32) -> Result<GpuDrawn> {
+    fn draw_gpu(&mut self, ctx: &GpuContext, raster: &mut GpuRasterizer, camera: &Camera, options: &RasterOptions, resolve: &ResolveOptions) -> Result<GpuDrawn> {
         self.colors()?;
         let label = &self.label;
         let gpu = |e: GpuError| anyhow!("{label}: GPU: {e}");
@@ -205,9 +208,9 @@ impl Content for BatchContent<'_> {
         }
         let frame = if g.next < self.refs.len() {
             let ids: Vec<u32> = (0..g.next as u32).collect();
-            raster.draw_selected(ctx, &mut g.scene, Some(&ids), camera, options, Some(background)).map_err(gpu)?
+            raster.draw_selected(ctx, &mut g.scene, Some(&ids), camera, options, Some(resolve)).map_err(gpu)?
         } else {
-            raster.draw(ctx, &mut g.scene, camera, options, Some(background)).map_err(gpu)?
+            raster.draw(ctx, &mut g.scene, camera, options, Some(resolve)).map_err(gpu)?
         };
         Ok(GpuDrawn::of(&frame))
     }

@@ -21,6 +21,7 @@ use crate::viewer::progressive::ProgressiveView;
 use crate::viewer::store::StoreView;
 use mortar_core::layout::RecordLayout;
 use anyhow::{anyhow, bail, Context as _, Result};
+use mortar_core::render::resolve::ResolveOptions;
 use mortar_core::render::{Aabb, Orbit, RasterOptions};
 use mortar_io::render_input::{self, ColorChoice};
 use mortar_render::{AtomicPath, GpuContext, GpuError, GpuOptions, GpuRasterizer, Overlay, Presented, WindowSurface};
@@ -85,6 +86,14 @@ pub struct Args {
     /// Background colour: black, white, grey, #rrggbb.
     #[arg(long, default_value = "black", value_parser = parse_color)]
     pub background: u32,
+    /// Fill empty pixels from their nearest neighbour where at least N of the 8 neighbours hold a
+    /// point (--hole-fill alone: N = 3). Not yet for raw LAS/LAZ drawn progressively.
+    #[arg(long, value_name = "N", num_args = 0..=1, default_missing_value = "3", value_parser = clap::value_parser!(u32).range(1..=8))]
+    pub hole_fill: Option<u32>,
+    /// Eye-dome lighting (shading from depth differences), with an optional strength. Not yet
+    /// for raw LAS/LAZ drawn progressively.
+    #[arg(long, value_name = "STRENGTH", num_args = 0..=1, default_missing_value = "1.0")]
+    pub edl: Option<f32>,
     /// Write what the window shows after --frames frames to this PNG and exit.
     #[arg(long, value_name = "PNG")]
     pub screenshot: Option<PathBuf>,
@@ -130,6 +139,12 @@ pub struct PreviewArgs {
     /// servers with a GPU but no display).
     #[arg(long, requires = "preview", conflicts_with = "preview_screenshot")]
     pub preview_offscreen: bool,
+    /// The preview's hole filling (as `mortar view --hole-fill [N]`).
+    #[arg(long, value_name = "N", num_args = 0..=1, default_missing_value = "3", value_parser = clap::value_parser!(u32).range(1..=8), requires = "preview")]
+    pub preview_hole_fill: Option<u32>,
+    /// The preview's eye-dome lighting (as `mortar view --edl [STRENGTH]`).
+    #[arg(long, value_name = "STRENGTH", num_args = 0..=1, default_missing_value = "1.0", requires = "preview")]
+    pub preview_edl: Option<f32>,
 }
 
 fn parse_size_wxh(s: &str) -> std::result::Result<(u32, u32), String> {
@@ -152,6 +167,8 @@ impl PreviewArgs {
             backend: self.preview_backend,
             atomics: AtomicsArg::Auto,
             background: 0xff00_0000,
+            hole_fill: self.preview_hole_fill,
+            edl: self.preview_edl,
             screenshot: self.preview_screenshot.clone(),
             frames: 1,
             json: false,
@@ -160,6 +177,13 @@ impl PreviewArgs {
             lod: crate::render::lod::LodArgs::default(),
             no_progressive: false,
         }
+    }
+}
+
+impl Args {
+    /// The resolve's choices: background, hole filling, eye-dome lighting.
+    pub fn resolve_options(&self) -> ResolveOptions {
+        crate::render::resolve_options(self.background, self.hole_fill, self.edl)
     }
 }
 
@@ -215,6 +239,9 @@ pub fn run(a: Args) -> Result<()> {
             && paths.iter().all(|p| p.as_os_str() != "-" && !mortar_io::store::is_store(p) && !(p.is_file() && mortar_io::batchfile::is_batch_file(p)));
         if raw {
             let threads = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
+            if a.hole_fill.is_some() || a.edl.is_some() {
+                eprintln!("mortar view: --hole-fill and --edl do not apply to the progressive renderer yet (raw LAS/LAZ); --no-progressive draws with them");
+            }
             let view = ProgressiveView::open(&paths, a.color, a.range, threads)?;
             let label = paths.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(" ");
             return show(&a, event_loop, Box::new(view), label, None).map(drop);
@@ -347,10 +374,10 @@ where
             }
             let (drawn, gpu_ms) = match (&ctx, &mut raster) {
                 (Some(ctx), Some(raster)) => {
-                    let f = view.draw_gpu(ctx, raster, &camera, &options, a.background)?;
+                    let f = view.draw_gpu(ctx, raster, &camera, &options, &a.resolve_options())?;
                     (f.points_drawn, f.draw_ms.map(|d| d + f.resolve_ms.unwrap_or(0.0)))
                 }
-                _ => view.draw_cpu(&camera, &options, a.background).map(|(_, n)| (n, None))?,
+                _ => view.draw_cpu(&camera, &options, &a.resolve_options()).map(|(_, n)| (n, None))?,
             };
             let frame_ms = t.elapsed().as_secs_f64() * 1e3;
             frames.push(serde_json::json!({
@@ -686,7 +713,7 @@ impl App<'_> {
         let options = RasterOptions { precision: self.args.precision.mode(), cull: true };
         let status = self.status();
         let overlay = (!self.args.no_status).then(|| status_overlay(&status, w));
-        let background = self.args.background;
+        let resolve = self.args.resolve_options();
         let label = self.label.clone();
         let start = Instant::now();
         let renderer = self.renderer.as_mut().ok_or_else(|| anyhow!("no renderer"))?;
@@ -697,7 +724,7 @@ impl App<'_> {
                 let gpu = |e: GpuError| anyhow!("{label}: GPU: {e}");
                 surface.resize(ctx, w, h).map_err(gpu)?;
                 raster.resize(ctx, w, h).map_err(gpu)?;
-                let drawn = self.content.draw_gpu(ctx, raster, &camera, &options, background)?;
+                let drawn = self.content.draw_gpu(ctx, raster, &camera, &options, &resolve)?;
                 stats.raster_ms = start.elapsed().as_secs_f64() * 1e3;
                 stats.points_drawn = drawn.points_drawn;
                 stats.gpu_draw_ms = drawn.draw_ms;
@@ -718,7 +745,7 @@ impl App<'_> {
                 }
             }
             Renderer::Cpu { surface, .. } => {
-                let (mut rgba, drawn) = self.content.draw_cpu(&camera, &options, background)?;
+                let (mut rgba, drawn) = self.content.draw_cpu(&camera, &options, &resolve)?;
                 stats.points_drawn = drawn;
                 stats.raster_ms = start.elapsed().as_secs_f64() * 1e3;
                 if let Some((ow, oh, px)) = &overlay {

@@ -448,14 +448,17 @@ impl Content for ProgressiveView {
         self.start_gpu(ctx).map_err(|e| GpuError::Device(format!("{e:#}")))
     }
 
-    fn draw_cpu(&mut self, camera: &Camera, options: &RasterOptions, background: u32) -> Result<(Vec<u32>, u64)> {
-        let rgba = self.frame_cpu(camera, options, background)?;
+    /// Only the background of `resolve`: the GPU progressive renderer has no hole filling or
+    /// eye-dome lighting yet, and both backends show the same image.
+    fn draw_cpu(&mut self, camera: &Camera, options: &RasterOptions, resolve: &ResolveOptions) -> Result<(Vec<u32>, u64)> {
+        let rgba = self.frame_cpu(camera, options, resolve.background)?;
         Ok((rgba, self.last.raster.points_drawn))
     }
 
-    /// Resolved on the GPU into the progressive renderer's own image buffer.
-    fn draw_gpu(&mut self, ctx: &GpuContext, _raster: &mut GpuRasterizer, camera: &Camera, options: &RasterOptions, background: u32) -> Result<GpuDrawn> {
-        let f = self.frame_gpu(ctx, camera, options, background)?;
+    /// Resolved on the GPU into the progressive renderer's own image buffer (only the background
+    /// of `resolve`, as [`draw_cpu`](Content::draw_cpu)).
+    fn draw_gpu(&mut self, ctx: &GpuContext, _raster: &mut GpuRasterizer, camera: &Camera, options: &RasterOptions, resolve: &ResolveOptions) -> Result<GpuDrawn> {
+        let f = self.frame_gpu(ctx, camera, options, resolve.background)?;
         Ok(GpuDrawn {
             points_drawn: f.stats.raster.points_drawn,
             draw_ms: f.gpu.map(|t| t.reproject_ms + t.probe_ms + t.extra_fill_ms + t.prepare_ms),

@@ -187,8 +187,8 @@ impl StoreView {
         Ok(true)
     }
 
-    fn settings(&self, mode: usize, options: &RasterOptions, background: u32) -> RenderSettings {
-        RenderSettings { raster: *options, color: self.modes[mode], range: self.ranges[mode], resolve: ResolveOptions { background, ..Default::default() } }
+    fn settings(&self, mode: usize, options: &RasterOptions, resolve: &ResolveOptions) -> RenderSettings {
+        RenderSettings { raster: *options, color: self.modes[mode], range: self.ranges[mode], resolve: *resolve }
     }
 }
 
@@ -238,27 +238,27 @@ impl Content for StoreView {
     }
 
     /// The LOD selection of `camera`, drawn by the CPU rasterizer.
-    fn draw_cpu(&mut self, camera: &Camera, options: &RasterOptions, background: u32) -> Result<(Vec<u32>, u64)> {
+    fn draw_cpu(&mut self, camera: &Camera, options: &RasterOptions, resolve: &ResolveOptions) -> Result<(Vec<u32>, u64)> {
         let Some(lod) = &self.lod else {
-            return Ok((vec![background; camera.width as usize * camera.height as usize], 0));
+            return Ok((vec![resolve.background; camera.width as usize * camera.height as usize], 0));
         };
         let sel = lod.select(camera, &self.options)?;
         let batches = lod.batches(&sel.nodes)?;
-        let img = store_lod::render(lod, &batches, camera, &self.settings(self.mode, options, background))?;
+        let img = store_lod::render(lod, &batches, camera, &self.settings(self.mode, options, resolve))?;
         self.selected = Selected { nodes: sel.nodes.len() as u64, samples: batches.samples, uploaded_nodes: 0 };
         Ok((img.rgba, batches.samples))
     }
 
     /// The LOD selection of `camera`, drawn by the GPU rasterizer into `raster` (resolved, ready
     /// to present), uploading the selected nodes the GPU does not hold yet.
-    fn draw_gpu(&mut self, ctx: &GpuContext, raster: &mut GpuRasterizer, camera: &Camera, options: &RasterOptions, background: u32) -> Result<GpuDrawn> {
+    fn draw_gpu(&mut self, ctx: &GpuContext, raster: &mut GpuRasterizer, camera: &Camera, options: &RasterOptions, resolve: &ResolveOptions) -> Result<GpuDrawn> {
         let mode = self.mode;
         let path = self.path.display().to_string();
         let gpu = |e: GpuError| anyhow!("{path}: GPU: {e}");
         let drawn = |f: GpuFrame| GpuDrawn::of(&f);
         let g = self.gpu.as_mut().ok_or_else(|| anyhow!("{path}: GPU: not set up"))?;
         let Some(lod) = &self.lod else {
-            return raster.draw_selected(ctx, &mut g.scene, Some(&[]), camera, options, Some(background)).map(drawn).map_err(gpu);
+            return raster.draw_selected(ctx, &mut g.scene, Some(&[]), camera, options, Some(resolve)).map(drawn).map_err(gpu);
         };
         let sel = lod.select(camera, &self.options)?;
         let samples: u64 = sel.nodes.iter().map(|&id| lod.index().samples(id)).sum();
@@ -298,6 +298,6 @@ impl Content for StoreView {
             uploaded += 1;
         }
         self.selected = Selected { nodes: sel.nodes.len() as u64, samples, uploaded_nodes: uploaded };
-        raster.draw_selected(ctx, &mut g.scene, Some(&ids), camera, options, Some(background)).map(drawn).map_err(gpu)
+        raster.draw_selected(ctx, &mut g.scene, Some(&ids), camera, options, Some(resolve)).map(drawn).map_err(gpu)
     }
 }

@@ -1,12 +1,14 @@
 //! The `#[repr(C)]` records the GPU passes (mortar-render, `shaders/`) read, defined once here:
 //! the rasterizer's [`DrawRecord`], [`FrameUniforms`] and [`ResolveUniforms`] next to the CPU twin
-//! that fills the same fields, the progressive renderer's [`ScatterUniforms`] and
+//! that fills the same fields, its post-processing passes' [`HoleFillUniforms`] and
+//! [`EyeDomeUniforms`], the progressive renderer's [`ScatterUniforms`] and
 //! [`PrepareUniforms`], and the window's [`PresentUniforms`]. [`BatchProjection`] (inside
 //! [`DrawRecord`]) lives with the camera maths that computes it and is re-exported here.
 //!
 //! Every struct has a WGSL mirror (keep both in sync: mortar-render's layout tests compare the
 //! offsets and sizes naga computes for the WGSL structs with these):
-//! - `shaders/common/types.wgsl`: `BatchProjection`, `DrawRecord`, `FrameUniforms`, `ResolveUniforms`;
+//! - `shaders/common/types.wgsl`: `BatchProjection`, `DrawRecord`, `FrameUniforms`, `ResolveUniforms`,
+//!   `HoleFillUniforms`, `EyeDomeUniforms`;
 //! - `shaders/progressive_types.wgsl`: `ScatterUniforms`, `PrepareUniforms`;
 //! - `shaders/present.wgsl`: `PresentUniforms`.
 //!
@@ -14,6 +16,7 @@
 
 pub use super::camera::BatchProjection;
 use super::camera::Camera;
+use super::resolve::{EyeDome, HoleFill, EDL_EXP2_COEFFS, EDL_LOG2_COEFFS};
 
 /// One batch to draw in one frame: its projection and where its points are in the chunk's
 /// word buffers. 128 bytes; WGSL `DrawRecord`.
@@ -207,6 +210,98 @@ pub mod plan_counter {
     pub const POINTS_BY_WORDS: usize = 2;
     /// Number of words.
     pub const WORDS: usize = 8;
+}
+
+/// Constants of the hole-filling pass (`shaders/hole_fill.wgsl`, the twin of
+/// [`crate::render::resolve::fill_holes`]). 32 bytes; WGSL `HoleFillUniforms`.
+///
+/// Reads the framebuffer as [`ResolveUniforms`] does (`key_stride`, `depth_offset`) and writes
+/// the filled keys as two words per pixel (point index, then depth bits: a 64-bit key's
+/// little-endian words), whatever the atomic path.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct HoleFillUniforms {
+    /// Viewport width in pixels.
+    pub width: u32,
+    /// Viewport height in pixels.
+    pub height: u32,
+    /// Words per pixel in the key buffers read (2 or 1).
+    pub key_stride: u32,
+    /// Offset of the depth word within a pixel's words.
+    pub depth_offset: u32,
+    /// An empty pixel is filled where at least this many of its 8 neighbours hold a point
+    /// ([`HoleFill::min_neighbors`], at least 1).
+    pub min_neighbors: u32,
+    /// Padding.
+    pub _pad0: u32,
+    /// Padding.
+    pub _pad1: u32,
+    /// Padding.
+    pub _pad2: u32,
+}
+
+const _: () = assert!(std::mem::size_of::<HoleFillUniforms>() == 32);
+
+impl HoleFillUniforms {
+    /// The uniforms of `fill` over a framebuffer read with `key_stride` and `depth_offset`.
+    pub fn new(fill: &HoleFill, width: u32, height: u32, key_stride: u32, depth_offset: u32) -> HoleFillUniforms {
+        HoleFillUniforms { width, height, key_stride, depth_offset, min_neighbors: fill.min_neighbors.max(1), _pad0: 0, _pad1: 0, _pad2: 0 }
+    }
+}
+
+/// Constants of the eye-dome lighting pass (`shaders/eye_dome.wgsl`, the twin of the CPU
+/// resolve's eye-dome lighting). 176 bytes; WGSL `EyeDomeUniforms`.
+///
+/// Everything the CPU computes with functions a GPU rounds differently comes from here: the
+/// neighbours' integer offsets ([`EyeDome::offsets`]), the exponent's scale ([`EyeDome::scale`])
+/// and the polynomial coefficients of `edl_log2` and `edl_exp2` ([`EDL_LOG2_COEFFS`],
+/// [`EDL_EXP2_COEFFS`]), so that each is defined once, in Rust.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct EyeDomeUniforms {
+    /// Viewport width in pixels.
+    pub width: u32,
+    /// Viewport height in pixels.
+    pub height: u32,
+    /// Words per pixel in the key buffer read (2 or 1).
+    pub key_stride: u32,
+    /// Offset of the depth word within a pixel's words.
+    pub depth_offset: u32,
+    /// [`EyeDome::scale`].
+    pub scale: f32,
+    /// Always 0: the rounding barrier of [`FrameUniforms::zero`].
+    pub zero: u32,
+    /// Padding.
+    pub _pad0: u32,
+    /// Padding.
+    pub _pad1: u32,
+    /// The 8 offsets `(dx, dy)`, two per vector: `[dx0, dy0, dx1, dy1]`, ... (a uniform array's
+    /// elements are 16 bytes apart).
+    pub offsets: [[i32; 4]; 4],
+    /// [`EDL_LOG2_COEFFS`], four per vector, the last three 0.
+    pub log2_coeffs: [[f32; 4]; 3],
+    /// [`EDL_EXP2_COEFFS`], four per vector, the last one 0.
+    pub exp2_coeffs: [[f32; 4]; 2],
+}
+
+const _: () = assert!(std::mem::size_of::<EyeDomeUniforms>() == 176);
+
+impl EyeDomeUniforms {
+    /// The uniforms of `edl` over a framebuffer (or filled keys) read with `key_stride` and
+    /// `depth_offset`.
+    pub fn new(edl: &EyeDome, width: u32, height: u32, key_stride: u32, depth_offset: u32) -> EyeDomeUniforms {
+        let o = edl.offsets();
+        let offsets = std::array::from_fn(|i| [o[2 * i][0], o[2 * i][1], o[2 * i + 1][0], o[2 * i + 1][1]]);
+        let mut log2_coeffs = [[0.0; 4]; 3];
+        for (i, c) in EDL_LOG2_COEFFS.iter().enumerate() {
+            log2_coeffs[i / 4][i % 4] = *c;
+        }
+        let mut exp2_coeffs = [[0.0; 4]; 2];
+        for (i, c) in EDL_EXP2_COEFFS.iter().enumerate() {
+            exp2_coeffs[i / 4][i % 4] = *c;
+        }
+        EyeDomeUniforms { width, height, key_stride, depth_offset, scale: edl.scale(), zero: 0, _pad0: 0, _pad1: 0, offsets, log2_coeffs, exp2_coeffs }
+    }
 }
 
 /// Constants of the progressive renderer's scatter pass. 16 bytes; WGSL `ScatterUniforms` in
