@@ -162,6 +162,22 @@ fn view_draws_the_sample_in_a_window_on_the_gpu_and_the_cpu() {
     assert!(drawn_elev > 5_000, "{drawn_elev} pixels drawn in elevation colours");
     let recoloured = elev[start..].iter().zip(&gpu[start..]).filter(|(a, b)| a[..3] != [0, 0, 0] && a != b).count();
     assert!(recoloured > drawn_elev / 2, "elevation colours look like RGB: {recoloured} of {drawn_elev} differ");
+
+    // Hole filling and eye-dome lighting: passes on the GPU, the CPU resolve on the CPU, the
+    // same window either way; and not the plain picture.
+    let post = ["--hole-fill", "2", "--edl", "2"];
+    let (_, (_, _, cpu_post)) = shoot(&x.display, &dir, "cpu-post.png", &[&post[..], &["--backend", "cpu"]].concat());
+    for atomics in ["64", "32"] {
+        if atomics == "64" && mortar_render::testing::context_or_skip(mortar_render::AtomicPath::U64, None).is_none() {
+            continue;
+        }
+        let name = format!("gpu-post-{atomics}.png");
+        let (_, (_, _, gpu_post)) = shoot(&x.display, &dir, &name, &[&post[..], &["--backend", "gpu", "--atomics", atomics]].concat());
+        let differ = cpu_post[start..].iter().zip(&gpu_post[start..]).filter(|(a, b)| a != b).count();
+        assert_eq!(differ, 0, "--atomics {atomics}: {differ} pixels differ between the CPU and the GPU window with hole filling and EDL");
+    }
+    let changed = cpu_post[start..].iter().zip(&cpu[start..]).filter(|(a, b)| a != b).count();
+    assert!(changed > 1000, "hole filling and EDL changed only {changed} pixels");
 }
 
 #[test]
