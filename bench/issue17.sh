@@ -49,6 +49,46 @@ run atomics32 --millions 500,1000 --frames 10 --atomics 32 --variants adaptive,b
 # Correctness at every size, apart from the timings: the GPU's keys against the CPU's.
 run compare --millions 500,1000,2000,3000 --frames 1 --variants adaptive,brute --compare-cpu
 run compare_closeup --millions 3000 --frames 1 --view closeup --variants adaptive,brute --compare-cpu
+elif [ "$PHASE" = progressive ]; then
+# Run 4: progressive loading against the measured host-to-device bandwidth, the new insert
+# (slots computed by the scatter pass, records staged in parallel) against the old one
+# ($BIN/mortar-bench-progressive-old, built from c581ab0) on the same machine, interleaved; and
+# the WGSL hole filling + EDL against the CPU's, with their pass times.
+python3 - <<'PY' 2>&1 | tee "$OUT/h2d.txt"
+import torch, time
+n = 1 << 30
+dev = torch.empty(n, dtype=torch.uint8, device='cuda')
+for pinned in (True, False):
+    host = torch.empty(n, dtype=torch.uint8, pin_memory=pinned); host.fill_(7)
+    for _ in range(2): dev.copy_(host); torch.cuda.synchronize()
+    ts = []
+    for _ in range(10):
+        t = time.perf_counter(); dev.copy_(host); torch.cuda.synchronize(); ts.append(time.perf_counter() - t)
+    ts.sort(); m = ts[len(ts)//2]
+    print(f"host-to-device {n/2**30:.0f} GiB, {'pinned' if pinned else 'pageable'}: median {m*1e3:.1f} ms, {n/m/1e9:.1f} GB/s")
+PY
+nproc | sed 's/^/host cores: /' | tee -a "$OUT/h2d.txt"
+prog() { local name=$1 bin=$2; shift 2; echo "== $name: $bin $*" | tee -a "$OUT/bench.txt"; timeout 240 "$BIN/$bin" "$@" > "$OUT/$name.jsonl" 2>> "$OUT/bench.txt"; echo "exit $?" >> "$OUT/bench.txt"; }
+for round in $(seq ${ROUNDS:-2}); do
+prog new-$round mortar-bench-progressive --points 1e9 --piece 16000000
+prog old-$round mortar-bench-progressive-old --points 1e9 --piece 16000000
+done
+# From memory (every point generated first): loading alone, then with frames while loading,
+# each piece prepared on another thread while the render thread uploads and draws.
+prog pre-noframes mortar-bench-progressive --points 1e9 --piece 16000000 --pregenerate --no-load-frames --max-frames 5
+prog pre-thread-16m mortar-bench-progressive --points 1e9 --piece 16000000 --pregenerate --prepare-thread --max-frames 5
+prog pre-thread-4m mortar-bench-progressive --points 1e9 --piece 4000000 --pregenerate --prepare-thread --max-frames 5
+prog pre-thread-2m mortar-bench-progressive --points 1e9 --piece 2000000 --pregenerate --prepare-thread --max-frames 5
+prog pre-2e9 mortar-bench-progressive --points 2e9 --piece 16000000 --pregenerate --no-load-frames --max-frames 5
+# Hole filling and EDL: the GPU PNG against the CPU PNG, and the pass times (5 runs each size).
+[ "${POST:-1}" = 1 ] && for size in "1920 1080" "3840 2160"; do
+set -- $size
+for k in 1 2 3 4 5; do
+"$BIN/mortar" render "$DATA"/bcts_*.laz --backend gpu --hole-fill --edl --width $1 --height $2 --json -o /tmp/post-gpu.png >> "$OUT/post-$1.jsonl" 2>> "$OUT/bench.txt"
+done
+"$BIN/mortar" render "$DATA"/bcts_*.laz --backend cpu --hole-fill --edl --width $1 --height $2 --json -o /tmp/post-cpu.png >> "$OUT/post-$1-cpu.jsonl" 2>> "$OUT/bench.txt"
+cmp /tmp/post-gpu.png /tmp/post-cpu.png && echo "post $1x$2: GPU PNG == CPU PNG" | tee -a "$OUT/bench.txt" || echo "post $1x$2: PNGs DIFFER" | tee -a "$OUT/bench.txt"
+done
 else
 # Run 2: the plan pass against host planning, kernel 0 against the prefetch kernel 4, every
 # variant, with the GPU's keys compared to the CPU's after every measurement.

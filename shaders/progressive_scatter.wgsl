@@ -1,9 +1,11 @@
 // Pass "scatter" of the progressive renderer (paper 000 §3.3, the Distribute step): moves points
-// that arrived into their shuffled slots of one chunk. The host computed each point's slot with
-// mortar_core's Shuffle::target and staged one record per point: the slot relative to the chunk,
-// the coarse, medium and fine words and, with colours, the RGBA8 colour. Slots are distinct, so
-// threads need no synchronisation. With `colors_only` the records are (slot, colour) and only the
-// colours are written: a colour-mode switch streamed in piece by piece (§3.5).
+// that arrived into their shuffled slots of one chunk. The host staged the points in input order,
+// one record each: the coarse, medium and fine words and, with colours, the RGBA8 colour; or, with
+// `colors_only`, the colour alone (a colour-mode switch streamed in piece by piece, §3.5). Each
+// thread computes its point's slot, `target(first + i)` (eq. 1-2: twice `i^2 mod P`, mirrored
+// above P/2), the twin of mortar_core's Shuffle::target, and writes the record when that slot is
+// in this dispatch's chunk (one dispatch per chunk). Slots are distinct, so threads need no
+// synchronisation. Needs SHADER_INT64 (the 64-bit square and remainder).
 
 @group(0) @binding(0) var<uniform> params: ScatterUniforms;
 @group(0) @binding(1) var<storage, read> staged: array<u32>;
@@ -12,26 +14,39 @@
 @group(0) @binding(4) var<storage, read_write> fine_out: array<u32>;
 @group(0) @binding(5) var<storage, read_write> colors_out: array<u32>;
 
+// Eq. 1: i^2 mod P for i <= P/2, P - (i^2 mod P) for P/2 < i < P, i from P on.
+fn permute(i: u32) -> u32 {
+    let p = params.prime;
+    if i >= p {
+        return i;
+    }
+    let r = u32((u64(i) * u64(i)) % u64(p));
+    if i <= p / 2u {
+        return r;
+    }
+    return p - r;
+}
+
 @compute @workgroup_size(256)
 fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) groups: vec3<u32>, @builtin(local_invocation_index) lid: u32) {
     let i = workgroup_linear(wg, groups) * 256u + lid;
+    if i >= params.count {
+        return;
+    }
+    // Unsigned: slots below the chunk wrap to large values and fail the test too.
+    let slot = permute(permute(params.first + i)) - params.chunk_first;
+    if slot >= params.chunk_len {
+        return;
+    }
     if params.colors_only != 0u {
-        if i >= arrayLength(&staged) / 2u {
-            return;
-        }
-        colors_out[staged[2u * i]] = staged[2u * i + 1u];
+        colors_out[slot] = staged[i];
         return;
     }
-    let stride = 4u + params.colors;
-    if i >= arrayLength(&staged) / stride {
-        return;
-    }
-    let r = i * stride;
-    let slot = staged[r];
-    coarse_out[slot] = staged[r + 1u];
-    medium_out[slot] = staged[r + 2u];
-    fine_out[slot] = staged[r + 3u];
+    let r = i * (3u + params.colors);
+    coarse_out[slot] = staged[r];
+    medium_out[slot] = staged[r + 1u];
+    fine_out[slot] = staged[r + 2u];
     if params.colors != 0u {
-        colors_out[slot] = staged[r + 4u];
+        colors_out[slot] = staged[r + 3u];
     }
 }

@@ -5,7 +5,7 @@
 // values naga computes here with the Rust ones):
 //   UNLOADED           mortar_core::render::progressive::UNLOADED
 //   SLOTS_PER_THREAD   mortar_render::progressive::SLOTS_PER_THREAD
-//   ScatterUniforms    mortar_core::render::gpu::ScatterUniforms  (16 bytes)
+//   ScatterUniforms    mortar_core::render::gpu::ScatterUniforms  (32 bytes)
 //   PrepareUniforms    mortar_core::render::gpu::PrepareUniforms  (16 bytes)
 
 // The coarse word of a slot whose point has not arrived (bit 31: no real coarse word has it).
@@ -15,15 +15,24 @@ const UNLOADED: u32 = 0x80000000u;
 // 128 * SLOTS_PER_THREAD of them, thread `lid` taking every 128th from the group's first.
 const SLOTS_PER_THREAD: u32 = 8u;
 
-// The constants of the scatter pass (the same for every dispatch of a renderer).
+// The constants of one scatter dispatch: staged points first..first + count of the input, in
+// input order; the dispatch writes those whose shuffled slot falls in its chunk.
 struct ScatterUniforms {
-    // 1 when the staged records carry an RGBA8 colour (5 words per point), 0 when not (4 words).
+    // 1 when the staged records carry an RGBA8 colour (4 words per point), 0 when not (3 words).
     colors: u32,
-    // 1: the records are (slot, colour) only and only the colours are written (a colour switch
+    // 1: the records are one colour each and only the colours are written (a colour switch
     // streamed in, paper 000 §3.5).
     colors_only: u32,
-    _pad1: u32,
-    _pad2: u32,
+    // The shuffle's prime P (eq. 1; 0 below 3 points: nothing moves).
+    prime: u32,
+    // Input index of the first staged record.
+    first: u32,
+    // The chunk's first slot and its number of slots.
+    chunk_first: u32,
+    chunk_len: u32,
+    // Staged records.
+    count: u32,
+    _pad: u32,
 }
 
 // The constants of the Prepare pass.

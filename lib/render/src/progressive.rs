@@ -10,14 +10,18 @@
 //!   points are four chunks on an H100). Every slot starts with the coarse word
 //!   [`UNLOADED`](mortar_core::render::progressive::UNLOADED) (pass `progressive_unload.wgsl`), and Fill skips such slots, as the paper
 //!   discards default-initialized vertices.
-//! - **Insertion** ([`GpuProgressive::insert`], the Distribute step): the host computes each
-//!   point's slot with core's [`Shuffle::target`] (eq. 1-2) and its words, stages one record per
-//!   point (slot, words, colour) and the pass `progressive_scatter.wgsl` writes them into their
-//!   slots. The slots are computed on the host, not in a shader, because the host needs them
-//!   anyway: it keeps a bit per slot of what arrived (duplicates are refused, Fill's point count and
-//!   the convergence test need it, as in the CPU renderer) and, on request, each point's 64-bit
-//!   payload by slot (colour rules that need the visible points' values, as `mortar render` has).
-//!   One definition of the shuffle also stays in core; the cost is 4 more bytes per point uploaded.
+//! - **Insertion** ([`GpuProgressive::insert`], the Distribute step): the host encodes each
+//!   point's words (and colour) and writes them in input order, in parallel, straight into wgpu's
+//!   staging memory (`Queue::write_buffer_with`, no intermediate copy); the pass
+//!   `progressive_scatter.wgsl` computes each point's slot with eq. 1-2 (the WGSL twin of core's
+//!   [`Shuffle::target`], 64-bit square and remainder) and writes the record into its slot, one
+//!   dispatch per chunk. 12 bytes per point uploaded (16 with colours). Uploads are not waited
+//!   for until a GiB of them is in flight, and then only the oldest. The host still computes
+//!   every slot once, for its bit per slot of what arrived (Fill's point count and the
+//!   convergence test need it, as in the CPU renderer) and, on request, each point's payload by
+//!   slot; it sets those bits after sorting the slots by region of the bit array
+//!   (`SortedSlots`), which avoids a locked cache miss per point. Duplicates and recolouring
+//!   are checked against the ranges of input indices that arrived (the shuffle is a bijection).
 //! - **Per frame** (§3.4; [`GpuProgressive::frame`]): clear the 64-bit visibility buffer
 //!   (`clear.wgsl`); **Reproject** (`progressive_reproject.wgsl`): draw the slots the last Prepare
 //!   listed, reading their words from the shuffled buffer by slot; **Fill**
@@ -85,6 +89,9 @@ const SLOTS_PER_GROUP: u64 = 128 * SLOTS_PER_THREAD as u64;
 
 /// Points per scatter upload.
 const STAGING_POINTS: usize = 4 << 20;
+
+/// Bytes of uploads the host may stage before it waits for the oldest to be done.
+const MAX_IN_FLIGHT: u64 = 1 << 30;
 
 /// Why the GPU progressive renderer refused something or failed.
 #[derive(Debug, thiserror::Error)]
@@ -240,6 +247,8 @@ struct SlotBook {
     /// A bit per slot: its point arrived.
     loaded_bits: Vec<AtomicU64>,
     loaded: u64,
+    /// The input indices that arrived, as ranges (duplicates and recolouring are checked here).
+    arrived: Ranges,
     /// A bit per slot: drawn since the view last changed, and how many.
     done: Vec<u64>,
     done_count: u64,
@@ -253,8 +262,10 @@ struct GpuState {
     chunks: Vec<SlotChunk>,
     passes: Passes,
     per_frame: PerFrame,
+    /// One [`ScatterUniforms`] per chunk, `scatter_uniform_stride` bytes apart (rewritten by
+    /// every upload; queue writes are ordered with the submissions that read them).
     scatter_uniforms: wgpu::Buffer,
-    recolor_uniforms: wgpu::Buffer,
+    scatter_uniform_stride: u64,
     /// A 4-byte buffer bound where a pass needs a buffer that is not there (no colours).
     dummy: wgpu::Buffer,
     queries: Option<Timestamps>,
@@ -295,8 +306,12 @@ pub struct GpuProgressive {
     staging: wgpu::Buffer,
     /// Time of the last frame's Prepare and resolve, ms (the adaptive budget's `after_fill_ms`).
     last_after_fill_ms: f64,
-    /// Bytes uploaded since the last wait for the GPU.
-    unwaited: u64,
+    /// Uploads submitted and maybe not done yet (submission, bytes), oldest first, and their
+    /// bytes: wgpu holds a staging copy of each until the GPU has done it.
+    in_flight: std::collections::VecDeque<(wgpu::SubmissionIndex, u64)>,
+    /// Record buffers of prepared inserts, handed back for the next ones.
+    record_pool: RecordPool,
+    in_flight_bytes: u64,
 }
 
 fn round_up(v: u64, to: u64) -> u64 {
@@ -366,10 +381,13 @@ impl GpuProgressive {
         }
         ctx.queue.submit([enc.finish()]);
         let copy = wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST;
-        let scatter_uniforms = uniform::<ScatterUniforms>(ctx, "scatter uniforms");
-        ctx.queue.write_buffer(&scatter_uniforms, 0, bytemuck::bytes_of(&ScatterUniforms { colors: options.colors as u32, colors_only: 0, _pad1: 0, _pad2: 0 }));
-        let recolor_uniforms = uniform::<ScatterUniforms>(ctx, "recolour uniforms");
-        ctx.queue.write_buffer(&recolor_uniforms, 0, bytemuck::bytes_of(&ScatterUniforms { colors: 1, colors_only: 1, _pad1: 0, _pad2: 0 }));
+        let scatter_uniform_stride = round_up(std::mem::size_of::<ScatterUniforms>() as u64, ctx.limits().min_uniform_buffer_offset_alignment.max(4) as u64);
+        let scatter_uniforms = dev.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("scatter uniforms"),
+            size: scatter_uniform_stride * chunks.len().max(1) as u64,
+            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
         let align = ctx.limits().min_storage_buffer_offset_alignment.max(4) as u64;
         let record_size = std::mem::size_of::<DrawRecord>() as u64;
         let record_stride = round_up(record_size, align);
@@ -397,8 +415,8 @@ impl GpuProgressive {
             options,
             chunk_slots,
             list_counts: vec![0; chunks.len()],
-            gpu: GpuState { chunks, passes, per_frame, scatter_uniforms, recolor_uniforms, dummy: storage(ctx, "unused", 4, wgpu::BufferUsages::empty()), queries },
-            slots: SlotBook { loaded_bits: (0..words64).map(|_| AtomicU64::new(0)).collect(), loaded: 0, done: vec![0; words64], done_count: 0, cursor: 0 },
+            gpu: GpuState { chunks, passes, per_frame, scatter_uniforms, scatter_uniform_stride, dummy: storage(ctx, "unused", 4, wgpu::BufferUsages::empty()), queries },
+            slots: SlotBook { loaded_bits: (0..words64).map(|_| AtomicU64::new(0)).collect(), loaded: 0, arrived: Ranges::default(), done: vec![0; words64], done_count: 0, cursor: 0 },
             payload: options.payloads.then(|| (0..n).map(|_| AtomicU64::new(0)).collect()),
             frames: 0,
             view: None,
@@ -406,7 +424,9 @@ impl GpuProgressive {
             resolved: None,
             staging: storage(ctx, "scatter staging", 0, wgpu::BufferUsages::COPY_DST),
             last_after_fill_ms: 0.0,
-            unwaited: 0,
+            in_flight: Default::default(),
+            record_pool: Default::default(),
+            in_flight_bytes: 0,
         };
         ctx.wait()?;
         Ok(r)
@@ -493,80 +513,96 @@ impl GpuProgressive {
     /// at their shuffled slots, with one RGBA8 colour each when the renderer has colours and one
     /// payload each when it keeps payloads. Checks everything before changing anything (the CPU
     /// renderer's errors). The points are on the GPU when this returns (submitted).
+    /// [`preparer`](Self::preparer)`().prepare(..)` then [`insert_prepared`](Self::insert_prepared),
+    /// which lets a caller do the costly half on another thread while frames are drawn.
     pub fn insert(&mut self, ctx: &GpuContext, first: u64, xyz: &[[i32; 3]], colors: Option<&[u32]>, payload: Option<&[u64]>) -> Result<(), ProgressiveGpuError> {
+        let prep = self.preparer();
+        prep.check(first, xyz, colors, payload)?;
         let n = xyz.len();
-        match (self.options.colors, colors) {
-            (true, Some(c)) if c.len() == n => {}
-            (true, Some(c)) => return Err(GpuError::Colors(format!("{} colours for {n} points", c.len())).into()),
-            (true, None) => return Err(GpuError::Colors("the renderer has colours but points came without".into()).into()),
-            (false, Some(_)) => return Err(GpuError::Colors("the renderer was made without colours".into()).into()),
-            (false, None) => {}
+        if let Some(k) = self.slots.arrived.first_in(first, first + n as u64) {
+            return Err(ProgressiveError::Duplicate(k).into());
         }
-        match (self.options.payloads, payload) {
-            (true, Some(p)) if p.len() != n => return Err(ProgressiveError::PayloadCount { points: n, payloads: p.len() }.into()),
-            (true, None) => return Err(ProgressiveError::PayloadCount { points: n, payloads: 0 }.into()),
-            (false, Some(p)) => return Err(ProgressiveError::PayloadCount { points: n, payloads: p.len() }.into()),
-            _ => {}
-        }
-        let end = first.saturating_add(n as u64);
-        if end > self.capacity() {
-            return Err(ProgressiveError::IndexRange { first, end, capacity: self.capacity() }.into());
-        }
-        let (min, max) = (self.frame.min, self.frame_max);
-        if let Some(k) = xyz.par_iter().position_first(|p| (0..3).any(|a| p[a] < min[a] || p[a] > max[a])) {
-            return Err(ProgressiveError::OutsideFrame { index: first + k as u64, point: xyz[k], min, max }.into());
-        }
-        let shuffle = self.shuffle;
-        let targets: Vec<u32> = (0..n).into_par_iter().with_min_len(4096).map(|k| shuffle.target((first + k as u64) as u32)).collect();
-        let bits = &self.slots.loaded_bits;
-        let is_set = |t: u32| bits[t as usize / 64].load(Ordering::Relaxed) >> (t % 64) & 1 == 1;
-        if let Some(k) = targets.par_iter().position_first(|&t| is_set(t)) {
-            return Err(ProgressiveError::Duplicate(first + k as u64).into());
-        }
-        // Host bookkeeping: the loaded bits and the payloads.
-        targets.par_iter().with_min_len(4096).for_each(|&t| {
-            bits[t as usize / 64].fetch_or(1 << (t % 64), Ordering::Relaxed);
-        });
-        if let (Some(store), Some(p)) = (&self.payload, payload) {
-            targets.par_iter().zip(p).with_min_len(4096).for_each(|(&t, &v)| store[t as usize].store(v, Ordering::Relaxed));
-        }
-        self.slots.loaded += n as u64;
-        // The GPU: staged records, scattered per chunk.
+        // The words encoded straight into the staging memory, then the slots for the bits
+        // (the GPU copies and scatters the last uploads meanwhile).
+        let frame = self.frame;
+        let stride = 3 + colors.is_some() as usize;
         let mut s = 0;
         while s < n {
             let e = (s + STAGING_POINTS).min(n);
-            self.scatter(ctx, &targets[s..e], &xyz[s..e], colors.map(|c| &c[s..e]))?;
+            self.upload(ctx, first + s as u64, e - s, stride, false, |k, m, out| {
+                ENCODED.with_borrow_mut(|buf| {
+                    buf.clear();
+                    for i in s + k..s + k + m {
+                        buf.extend_from_slice(&frame.encode(xyz[i]));
+                        if let Some(c) = colors {
+                            buf.push(c[i]);
+                        }
+                    }
+                    out.copy_from_slice(bytemuck::cast_slice(buf));
+                })
+            })?;
             s = e;
         }
+        let slots = SortedSlots::new(prep.bit_words, first as u32, n, |i| prep.shuffle.target(i));
+        self.finish_insert(first, n, &slots, payload);
         Ok(())
     }
 
-    /// Stages records of `targets` / `xyz` / `colors` per chunk and scatters them.
-    fn scatter(&mut self, ctx: &GpuContext, targets: &[u32], xyz: &[[i32; 3]], colors: Option<&[u32]>) -> Result<(), GpuError> {
-        if targets.is_empty() {
+    /// The host's bookkeeping of an insert whose points are on their way: the loaded bits, the
+    /// payloads, the ranges that arrived.
+    fn finish_insert(&mut self, first: u64, n: usize, slots: &SortedSlots, payload: Option<&[u64]>) {
+        slots.apply(&mut self.slots.loaded_bits);
+        if let (Some(store), Some(values)) = (&self.payload, payload) {
+            let shuffle = self.shuffle;
+            values.par_iter().enumerate().with_min_len(4096).for_each(|(k, &v)| store[shuffle.target((first + k as u64) as u32) as usize].store(v, Ordering::Relaxed));
+        }
+        self.slots.loaded += n as u64;
+        self.slots.arrived.insert(first, first + n as u64);
+    }
+
+    /// What [`InsertPreparer::prepare`] needs of this renderer (a few numbers, `Send`).
+    pub fn preparer(&self) -> InsertPreparer {
+        InsertPreparer { frame: self.frame, frame_max: self.frame_max, shuffle: self.shuffle, options: self.options, bit_words: self.slots.loaded_bits.len(), pool: self.record_pool.clone() }
+    }
+
+    /// Inserts points prepared by [`InsertPreparer::prepare`] (from this renderer's
+    /// [`preparer`](Self::preparer)): refuses points that arrived already (nothing changed), then
+    /// uploads the staged words, which the scatter pass puts into their slots (computed on the
+    /// GPU), and sets the host's bit per slot from the prepared, sorted slots. The host's share
+    /// here is a parallel copy into wgpu's staging memory and the bits (about a third of
+    /// [`insert`](Self::insert)'s time on 16 cores).
+    pub fn insert_prepared(&mut self, ctx: &GpuContext, p: PreparedInsert) -> Result<(), ProgressiveGpuError> {
+        let mine = self.preparer();
+        if p.of != (mine.shuffle.len(), mine.options.colors, mine.options.payloads, mine.frame.min, mine.frame_max) {
+            return Err(GpuError::Colors("points prepared for another renderer (capacity, colours, payloads or frame differ)".into()).into());
+        }
+        let (first, n) = (p.first, p.n);
+        let end = first + n as u64;
+        // The shuffle is a bijection: a slot is taken exactly when its input index arrived.
+        if let Some(k) = self.slots.arrived.first_in(first, end) {
+            return Err(ProgressiveError::Duplicate(k).into());
+        }
+        if n == 0 {
             return Ok(());
         }
-        let stride = 4 + colors.is_some() as usize;
-        let cs = self.chunk_slots;
-        let frame = self.frame;
-        // Per chunk its records (slot in the chunk, coarse, medium, fine[, colour]).
-        let mut parts: Vec<(usize, Vec<u32>)> = Vec::new();
-        for (c, chunk) in self.gpu.chunks.iter().enumerate() {
-            let recs: Vec<u32> = (0..targets.len())
-                .into_par_iter()
-                .with_min_len(4096)
-                .filter(|&k| targets[k] / cs == c as u32)
-                .flat_map_iter(|k| {
-                    let w = frame.encode(xyz[k]);
-                    let col = colors.map_or(0, |cl| cl[k]);
-                    [targets[k] - chunk.first, w[0], w[1], w[2], col].into_iter().take(stride)
-                })
-                .collect();
-            if !recs.is_empty() {
-                parts.push((c, recs));
+        // The GPU first: the staged words, scattered by the pass; the GPU copies and scatters
+        // the last uploads while the host sets the bits.
+        let stride = p.stride;
+        let mut s = 0;
+        while s < n {
+            let e = (s + STAGING_POINTS).min(n);
+            let records = &p.records[s * stride..e * stride];
+            self.upload(ctx, first + s as u64, e - s, stride, false, |k, m, out| out.copy_from_slice(bytemuck::cast_slice(&records[k * stride..(k + m) * stride])))?;
+            s = e;
+        }
+        self.finish_insert(first, n, &p.slots, p.payload.as_deref());
+        // The records' memory goes back to the preparers (no page faults for the next piece).
+        if let Ok(mut pool) = self.record_pool.lock() {
+            if pool.len() < 4 {
+                pool.push(p.records);
             }
         }
-        self.submit_scatter(ctx, parts, stride, false)
+        Ok(())
     }
 
     /// Replaces the colours of points `first..first + colors.len()` of the input (already
@@ -582,82 +618,105 @@ impl GpuProgressive {
         if end > self.capacity() {
             return Err(ProgressiveError::IndexRange { first, end, capacity: self.capacity() }.into());
         }
-        let shuffle = self.shuffle;
-        let targets: Vec<u32> = (0..n).into_par_iter().with_min_len(4096).map(|k| shuffle.target((first + k as u64) as u32)).collect();
-        let bits = &self.slots.loaded_bits;
-        if let Some(k) = targets.par_iter().position_first(|&t| bits[t as usize / 64].load(Ordering::Relaxed) >> (t % 64) & 1 == 0) {
-            return Err(ProgressiveError::NotLoaded(first + k as u64).into());
+        if let Some(k) = self.slots.arrived.first_missing(first, end) {
+            return Err(ProgressiveError::NotLoaded(k).into());
         }
-        let cs = self.chunk_slots;
-        for s in (0..n).step_by(STAGING_POINTS) {
+        let mut s = 0;
+        while s < n {
             let e = (s + STAGING_POINTS).min(n);
-            let parts: Vec<(usize, Vec<u32>)> = self
-                .gpu
-                .chunks
-                .iter()
-                .enumerate()
-                .map(|(c, chunk)| {
-                    let recs: Vec<u32> = (s..e).filter(|&k| targets[k] / cs == c as u32).flat_map(|k| [targets[k] - chunk.first, colors[k]]).collect();
-                    (c, recs)
-                })
-                .filter(|(_, r)| !r.is_empty())
-                .collect();
-            self.submit_scatter(ctx, parts, 2, true)?;
+            let part = &colors[s..e];
+            self.upload(ctx, first + s as u64, e - s, 1, true, |k, m, out| out.copy_from_slice(bytemuck::cast_slice(&part[k..k + m])))?;
+            s = e;
         }
         Ok(())
     }
 
-    /// Uploads per-chunk scatter records (`stride` words each) and dispatches the scatter pass
-    /// over them; `colors_only`: (slot, colour) records that only recolour.
-    fn submit_scatter(&mut self, ctx: &GpuContext, parts: Vec<(usize, Vec<u32>)>, stride: usize, colors_only: bool) -> Result<(), GpuError> {
-        let align = ctx.limits().min_storage_buffer_offset_alignment.max(4) as u64;
-        let total: u64 = parts.iter().map(|(_, r)| round_up(r.len() as u64 * 4, align)).sum();
-        if self.staging.size() < total {
-            let size = (STAGING_POINTS as u64 * 20 + self.gpu.chunks.len() as u64 * align).max(total);
+    /// Uploads `count` records of `stride` words for input points `first..`, written in parallel
+    /// straight into wgpu's staging memory (`fill(k, m, out)` writes records `k..k + m` into
+    /// `out`), and dispatches the scatter pass over them once per chunk; `colors_only`: one colour
+    /// per record, only the colours are written.
+    fn upload(&mut self, ctx: &GpuContext, first: u64, count: usize, stride: usize, colors_only: bool, fill: impl Fn(usize, usize, &mut wgpu::WriteOnly<[u8]>) + Sync) -> Result<(), GpuError> {
+        let bytes = (count * stride * 4) as u64;
+        if self.staging.size() < bytes {
+            let size = (STAGING_POINTS as u64 * 16).max(bytes);
             if size > ctx.limits().max_buffer_size {
                 return Err(GpuError::TooLarge { what: "the scatter staging buffer", needed: size, limit: ctx.limits().max_buffer_size });
             }
             self.staging = storage(ctx, "scatter staging", size, wgpu::BufferUsages::COPY_DST);
         }
-        let staging = &self.staging;
-        let dev = &ctx.device;
-        let mut groups = Vec::new();
-        let mut offset = 0u64;
-        for (c, recs) in &parts {
-            let bytes = recs.len() as u64 * 4;
-            ctx.queue.write_buffer(staging, offset, bytemuck::cast_slice(recs));
-            let chunk = &self.gpu.chunks[*c];
-            let bg = self.gpu.passes.scatter.bind_group(
-                ctx,
-                0,
-                &[
-                    entry(binding::SCATTER_PARAMS, if colors_only { &self.gpu.recolor_uniforms } else { &self.gpu.scatter_uniforms }.as_entire_binding()),
-                    entry(binding::SCATTER_STAGED, wgpu::BindingResource::Buffer(wgpu::BufferBinding { buffer: staging, offset, size: NonZeroU64::new(bytes) })),
-                    entry(binding::SCATTER_COARSE, chunk.words[0].as_entire_binding()),
-                    entry(binding::SCATTER_MEDIUM, chunk.words[1].as_entire_binding()),
-                    entry(binding::SCATTER_FINE, chunk.words[2].as_entire_binding()),
-                    entry(binding::SCATTER_COLORS, chunk.colors.as_ref().unwrap_or(&self.gpu.dummy).as_entire_binding()),
-                ],
-            );
-            groups.push((bg, (recs.len() / stride).div_ceil(256) as u32));
-            offset += round_up(bytes, align);
+        let Some(size) = NonZeroU64::new(bytes) else { return Ok(()) };
+        {
+            let mut view = ctx.queue.write_buffer_with(&self.staging, 0, size).ok_or_else(|| GpuError::Device(format!("no staging memory for {bytes} bytes of scatter records")))?;
+            // Pieces of 16 Ki records, written by as many threads.
+            const PIECE: usize = 1 << 14;
+            let mut rest = view.slice(..);
+            let mut pieces: Vec<(usize, usize, SendWrite)> = Vec::with_capacity(count.div_ceil(PIECE));
+            for k in (0..count).step_by(PIECE) {
+                let m = (count - k).min(PIECE);
+                let (head, tail) = rest.split_at(m * stride * 4);
+                pieces.push((k, m, SendWrite(head)));
+                rest = tail;
+            }
+            pieces.into_par_iter().for_each(|(k, m, mut out): (usize, usize, SendWrite)| fill(k, m, &mut out.0));
         }
-        let mut enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("scatter") });
+        // One dispatch per chunk, each with its uniforms at its own aligned offset.
+        let ustride = self.gpu.scatter_uniform_stride;
+        let prime = self.shuffle.prime().unwrap_or(0);
+        for (c, chunk) in self.gpu.chunks.iter().enumerate() {
+            let u = ScatterUniforms {
+                colors: (stride == 4) as u32,
+                colors_only: colors_only as u32,
+                prime,
+                first: first as u32,
+                chunk_first: chunk.first,
+                chunk_len: chunk.len,
+                count: count as u32,
+                _pad: 0,
+            };
+            ctx.queue.write_buffer(&self.gpu.scatter_uniforms, c as u64 * ustride, bytemuck::bytes_of(&u));
+        }
+        let usize_ = NonZeroU64::new(std::mem::size_of::<ScatterUniforms>() as u64);
+        let groups: Vec<wgpu::BindGroup> = self
+            .gpu
+            .chunks
+            .iter()
+            .enumerate()
+            .map(|(c, chunk)| {
+                self.gpu.passes.scatter.bind_group(
+                    ctx,
+                    0,
+                    &[
+                        entry(binding::SCATTER_PARAMS, wgpu::BindingResource::Buffer(wgpu::BufferBinding { buffer: &self.gpu.scatter_uniforms, offset: c as u64 * ustride, size: usize_ })),
+                        entry(binding::SCATTER_STAGED, wgpu::BindingResource::Buffer(wgpu::BufferBinding { buffer: &self.staging, offset: 0, size: Some(size) })),
+                        entry(binding::SCATTER_COARSE, chunk.words[0].as_entire_binding()),
+                        entry(binding::SCATTER_MEDIUM, chunk.words[1].as_entire_binding()),
+                        entry(binding::SCATTER_FINE, chunk.words[2].as_entire_binding()),
+                        entry(binding::SCATTER_COLORS, chunk.colors.as_ref().unwrap_or(&self.gpu.dummy).as_entire_binding()),
+                    ],
+                )
+            })
+            .collect();
+        let mut enc = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("scatter") });
         {
             let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("scatter"), timestamp_writes: None });
             pass.set_pipeline(self.gpu.passes.scatter.pipeline());
-            for (bg, n) in &groups {
-                let (x, y) = ctx.split_dispatch(*n);
+            let (x, y) = ctx.split_dispatch((count as u32).div_ceil(256));
+            for bg in &groups {
                 pass.set_bind_group(0, bg, &[]);
                 pass.dispatch_workgroups(x, y, 1);
             }
         }
-        ctx.queue.submit([enc.finish()]);
-        // wgpu keeps a staging copy of every write until the GPU has done it: wait now and then.
-        self.unwaited += offset;
-        if self.unwaited > 1 << 30 {
-            self.unwaited = 0;
-            return ctx.wait();
+        let index = ctx.queue.submit([enc.finish()]);
+        // wgpu keeps a staging copy of every upload until the GPU has done it: past
+        // MAX_IN_FLIGHT bytes, wait for the oldest uploads only, so that the GPU copies and
+        // scatters while the host stages the next ones (waiting for all of them every GiB cost a
+        // billion-point load a third of its time).
+        self.in_flight.push_back((index, bytes));
+        self.in_flight_bytes += bytes;
+        while self.in_flight_bytes > MAX_IN_FLIGHT {
+            let Some((index, b)) = self.in_flight.pop_front() else { break };
+            ctx.device.poll(wgpu::PollType::Wait { submission_index: Some(index), timeout: None }).map_err(|e| GpuError::Device(e.to_string()))?;
+            self.in_flight_bytes -= b;
         }
         ctx.check()
     }
@@ -884,6 +943,232 @@ impl GpuProgressive {
         }
         out.par_sort_unstable();
         Ok(out)
+    }
+}
+
+/// What [`GpuProgressive::preparer`] hands out: the numbers [`prepare`](Self::prepare) needs
+/// and the renderer's pool of record buffers.
+#[derive(Clone, Debug)]
+pub struct InsertPreparer {
+    frame: BatchGrid,
+    frame_max: [i32; 3],
+    shuffle: Shuffle,
+    options: ProgressiveOptions,
+    bit_words: usize,
+    pool: RecordPool,
+}
+
+/// Record buffers handed back by [`GpuProgressive::insert_prepared`] for reuse.
+type RecordPool = std::sync::Arc<std::sync::Mutex<Vec<Vec<u32>>>>;
+
+thread_local! {
+    /// Each thread's buffer for records encoded before they are copied into staging memory.
+    static ENCODED: std::cell::RefCell<Vec<u32>> = const { std::cell::RefCell::new(Vec::new()) };
+}
+
+/// Points ready for [`GpuProgressive::insert_prepared`]: their words (and colours) staged in
+/// input order and their slots sorted by region of the host's bit array.
+pub struct PreparedInsert {
+    /// The renderer it was prepared for: capacity, colours, payloads, frame.
+    of: (u32, bool, bool, [i32; 3], [i32; 3]),
+    first: u64,
+    n: usize,
+    stride: usize,
+    records: Vec<u32>,
+    slots: SortedSlots,
+    payload: Option<Vec<u64>>,
+}
+
+impl PreparedInsert {
+    /// Number of points.
+    pub fn len(&self) -> usize {
+        self.n
+    }
+
+    /// Whether there are no points.
+    pub fn is_empty(&self) -> bool {
+        self.n == 0
+    }
+
+    /// Input index of the first point.
+    pub fn first(&self) -> u64 {
+        self.first
+    }
+}
+
+impl InsertPreparer {
+    /// The checks of an insert that need no state: colours and payloads as the renderer was
+    /// made, the index range, every point inside the frame.
+    fn check(&self, first: u64, xyz: &[[i32; 3]], colors: Option<&[u32]>, payload: Option<&[u64]>) -> Result<(), ProgressiveGpuError> {
+        let n = xyz.len();
+        match (self.options.colors, colors) {
+            (true, Some(c)) if c.len() == n => {}
+            (true, Some(c)) => return Err(GpuError::Colors(format!("{} colours for {n} points", c.len())).into()),
+            (true, None) => return Err(GpuError::Colors("the renderer has colours but points came without".into()).into()),
+            (false, Some(_)) => return Err(GpuError::Colors("the renderer was made without colours".into()).into()),
+            (false, None) => {}
+        }
+        match (self.options.payloads, payload) {
+            (true, Some(p)) if p.len() != n => return Err(ProgressiveError::PayloadCount { points: n, payloads: p.len() }.into()),
+            (true, None) => return Err(ProgressiveError::PayloadCount { points: n, payloads: 0 }.into()),
+            (false, Some(p)) => return Err(ProgressiveError::PayloadCount { points: n, payloads: p.len() }.into()),
+            _ => {}
+        }
+        let capacity = self.shuffle.len() as u64;
+        let end = first.saturating_add(n as u64);
+        if end > capacity {
+            return Err(ProgressiveError::IndexRange { first, end, capacity }.into());
+        }
+        let (min, max) = (self.frame.min, self.frame_max);
+        if let Some(k) = xyz.par_iter().position_first(|p| (0..3).any(|a| p[a] < min[a] || p[a] > max[a])) {
+            return Err(ProgressiveError::OutsideFrame { index: first + k as u64, point: xyz[k], min, max }.into());
+        }
+        Ok(())
+    }
+
+    /// The costly, stateless half of [`GpuProgressive::insert`], which may run on any thread
+    /// while frames are drawn: checks the points (colours and payloads as the renderer was made,
+    /// index range, inside the frame), encodes their words, computes and sorts their slots.
+    /// Duplicates are checked by [`GpuProgressive::insert_prepared`].
+    pub fn prepare(&self, first: u64, xyz: &[[i32; 3]], colors: Option<&[u32]>, payload: Option<&[u64]>) -> Result<PreparedInsert, ProgressiveGpuError> {
+        self.check(first, xyz, colors, payload)?;
+        let n = xyz.len();
+        let (min, max) = (self.frame.min, self.frame_max);
+        let stride = 3 + colors.is_some() as usize;
+        // A buffer handed back by an earlier insert if there is one (its pages are mapped).
+        let mut records = self.pool.lock().ok().and_then(|mut p| p.pop()).unwrap_or_default();
+        records.resize(n * stride, 0);
+        let frame = self.frame;
+        records.par_chunks_mut(stride).enumerate().with_min_len(4096).for_each(|(k, r)| {
+            r[..3].copy_from_slice(&frame.encode(xyz[k]));
+            if let Some(c) = colors {
+                r[3] = c[k];
+            }
+        });
+        let shuffle = self.shuffle;
+        Ok(PreparedInsert {
+            of: (self.shuffle.len(), self.options.colors, self.options.payloads, min, max),
+            first,
+            n,
+            stride,
+            records,
+            slots: SortedSlots::new(self.bit_words, first as u32, n, |i| shuffle.target(i)),
+            payload: payload.map(<[u64]>::to_vec),
+        })
+    }
+}
+
+/// The slots `target(first + k)`, `k < n`, sorted by region of a bit array of `words` words, per
+/// task (a counting sort), ready to set their bits. The slots are random: one atomic OR per slot
+/// costs a locked cache miss each (55 M points/s on two cores); setting each region's bits from
+/// one thread, which owns its words and keeps them in cache, is about twice as fast with the
+/// sort included, and the sort can run on another thread than the one that owns the bits.
+struct SortedSlots {
+    /// Regions of 2^shift slots (whole words: shift >= 6), at most about 4096 of them.
+    shift: u32,
+    /// Per task: its slots by region, and where each region starts.
+    tasks: Vec<(Vec<u32>, Vec<u32>)>,
+}
+
+impl SortedSlots {
+    fn new(words: usize, first: u32, n: usize, target: impl Fn(u32) -> u32 + Sync) -> SortedSlots {
+        const TASK: usize = 1 << 16;
+        let slots = words as u64 * 64;
+        let shift = (64 - slots.saturating_sub(1).leading_zeros()).saturating_sub(12).max(14);
+        let regions = (slots >> shift) as usize + 1;
+        let tasks = (0..n)
+            .step_by(TASK)
+            .collect::<Vec<_>>()
+            .into_par_iter()
+            .map(|s| {
+                let m = (n - s).min(TASK);
+                let targets: Vec<u32> = (0..m).map(|k| target(first + (s + k) as u32)).collect();
+                let mut starts = vec![0u32; regions + 1];
+                for &t in &targets {
+                    starts[(t >> shift) as usize + 1] += 1;
+                }
+                for r in 0..regions {
+                    starts[r + 1] += starts[r];
+                }
+                let mut next = starts.clone();
+                let mut out = vec![0u32; m];
+                for &t in &targets {
+                    let r = (t >> shift) as usize;
+                    out[next[r] as usize] = t;
+                    next[r] += 1;
+                }
+                (out, starts)
+            })
+            .collect();
+        SortedSlots { shift, tasks }
+    }
+
+    /// Sets the slots' bits in `bits` (the array of `words` words they were sorted for).
+    fn apply(&self, bits: &mut [AtomicU64]) {
+        if self.tasks.is_empty() {
+            return;
+        }
+        let words = 1usize << (self.shift - 6);
+        bits.par_chunks_mut(words).enumerate().for_each(|(r, region)| {
+            let base = r * words;
+            for (out, starts) in &self.tasks {
+                for &t in &out[starts[r] as usize..starts[r + 1] as usize] {
+                    *region[t as usize / 64 - base].get_mut() |= 1 << (t % 64);
+                }
+            }
+        });
+    }
+}
+
+/// A piece of a staging view handed to one thread.
+struct SendWrite<'a>(wgpu::WriteOnly<'a, [u8]>);
+
+// SAFETY: a `WriteOnly<[u8]>` is an exclusive, write-only view of bytes, like `&mut [u8]`, which
+// is `Send`; wgpu implements `Send` for `WriteOnly<T>` only for sized `T: Send` (its impl lacks
+// `?Sized`), not for a slice. The pieces are disjoint (`split_at`).
+unsafe impl Send for SendWrite<'_> {}
+
+/// A set of `u64` indices kept as disjoint, non-adjacent ranges `[start, end)`.
+#[derive(Default)]
+struct Ranges(std::collections::BTreeMap<u64, u64>);
+
+impl Ranges {
+    /// The smallest index of `[s, e)` in the set.
+    fn first_in(&self, s: u64, e: u64) -> Option<u64> {
+        if let Some((_, &end)) = self.0.range(..=s).next_back() {
+            if end > s && s < e {
+                return Some(s);
+            }
+        }
+        self.0.range(s..e).next().map(|(&start, _)| start)
+    }
+
+    /// The smallest index of `[s, e)` not in the set.
+    fn first_missing(&self, s: u64, e: u64) -> Option<u64> {
+        if s >= e {
+            return None;
+        }
+        match self.0.range(..=s).next_back() {
+            Some((_, &end)) if end > s => (end < e).then_some(end),
+            _ => Some(s),
+        }
+    }
+
+    /// Adds `[s, e)` (disjoint from the set), merging with the ranges it touches.
+    fn insert(&mut self, mut s: u64, mut e: u64) {
+        if s >= e {
+            return;
+        }
+        if let Some((&start, &end)) = self.0.range(..=s).next_back() {
+            if end == s {
+                self.0.remove(&start);
+                s = start;
+            }
+        }
+        if let Some(end) = self.0.remove(&e) {
+            e = end;
+        }
+        self.0.insert(s, e);
     }
 }
 
@@ -1184,5 +1469,55 @@ impl GpuState {
             enc.resolve_query_set(&q.set, 0..count, &q.buffer, 0);
             readback(ctx, enc, &q.buffer, count as u64 * 8)
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The bits sorted slots set equal one OR per slot, for one and many tasks and capacities
+    /// that do and do not fill the last region.
+    #[test]
+    fn sorted_slots_set_the_same_bits_as_one_or_per_slot() {
+        for (capacity, first, n) in [(3u32, 0u32, 0usize), (1000, 10, 900), (300_000, 0, 300_000), (1 << 20, 5, 600_000), ((1 << 22) + 77, 123_456, 2_000_000)] {
+            let shuffle = Shuffle::new(capacity);
+            let words = (capacity as usize).div_ceil(64);
+            let mut bits: Vec<AtomicU64> = (0..words).map(|_| AtomicU64::new(0)).collect();
+            SortedSlots::new(words, first, n, |t| shuffle.target(t)).apply(&mut bits);
+            let mut want = vec![0u64; words];
+            for k in 0..n {
+                let t = shuffle.target(first + k as u32);
+                want[t as usize / 64] |= 1 << (t % 64);
+            }
+            let got: Vec<u64> = bits.iter().map(|w| w.load(Ordering::Relaxed)).collect();
+            assert_eq!(got, want, "capacity {capacity}");
+            assert_eq!(got.iter().map(|w| w.count_ones() as usize).sum::<usize>(), n);
+        }
+    }
+
+    #[test]
+    fn ranges_merge_and_answer_first_in_and_first_missing() {
+        let mut r = Ranges::default();
+        assert_eq!(r.first_in(0, 10), None);
+        assert_eq!(r.first_missing(0, 10), Some(0));
+        assert_eq!(r.first_missing(5, 5), None);
+        r.insert(10, 20);
+        r.insert(30, 40);
+        assert_eq!(r.first_in(0, 10), None);
+        assert_eq!(r.first_in(0, 11), Some(10));
+        assert_eq!(r.first_in(15, 16), Some(15));
+        assert_eq!(r.first_in(20, 30), None);
+        assert_eq!(r.first_in(25, 100), Some(30));
+        assert_eq!(r.first_missing(10, 20), None);
+        assert_eq!(r.first_missing(12, 25), Some(20));
+        assert_eq!(r.first_missing(9, 12), Some(9));
+        r.insert(20, 30);
+        assert_eq!(r.0.len(), 1, "touching ranges merge: {:?}", r.0);
+        assert_eq!(r.first_missing(10, 40), None);
+        assert_eq!(r.first_missing(10, 41), Some(40));
+        r.insert(0, 10);
+        r.insert(40, 41);
+        assert_eq!(r.0.iter().map(|(&a, &b)| (a, b)).collect::<Vec<_>>(), vec![(0, 41)]);
     }
 }

@@ -278,7 +278,7 @@ impl Pass {
     /// Whether the pass uses 64-bit integers and atomics (SHADER_INT64 +
     /// SHADER_INT64_ATOMIC_MIN_MAX).
     pub fn needs_int64(self) -> bool {
-        matches!(self, Pass::Draw64 | Pass::ProgressiveReproject | Pass::ProgressiveFill)
+        matches!(self, Pass::Draw64 | Pass::ProgressiveReproject | Pass::ProgressiveFill | Pass::ProgressiveScatter)
     }
 
     /// The complete WGSL module of the pass, as the pipeline compiles it.

@@ -124,6 +124,40 @@ fn still_camera_fixed_budget_equals_cpu_frame_by_frame_and_brute_force() {
     assert!(st.converged && st.reprojected == st.visible);
 }
 
+/// A large insert prepared on another thread (slots sorted for the host's bits, computed again
+/// by the scatter pass across four chunks) then a small one at the end: the frame equals the CPU
+/// renderer's.
+#[test]
+fn a_large_insert_across_chunks_equals_cpu() {
+    let Some(ctx) = context(None) else { return };
+    let scene = terrain(400_000, 21);
+    let (mut gpu, mut cpu) = pair(&ctx, &scene, Some(100_000));
+    assert_eq!(gpu.chunk_count(), 4);
+    // The first 300,000 prepared on another thread (as a loader would), then inserted.
+    let preparer = gpu.preparer();
+    let payload: Vec<u64> = (0..300_000).collect();
+    let prepared = std::thread::scope(|s| s.spawn(|| preparer.prepare(0, &scene.points[..300_000], Some(&scene.colors[..300_000]), Some(&payload))).join().unwrap()).unwrap();
+    assert_eq!((prepared.first(), prepared.len()), (0, 300_000));
+    // Points prepared for another renderer are refused.
+    let (other, _) = pair(&ctx, &terrain(1000, 2), None);
+    let foreign = other.preparer().prepare(0, &terrain(1000, 2).points, Some(&terrain(1000, 2).colors), Some(&vec![0; 1000])).unwrap();
+    assert!(gpu.insert_prepared(&ctx, foreign).is_err());
+    assert_eq!(gpu.loaded(), 0);
+    gpu.insert_prepared(&ctx, prepared).unwrap();
+    cpu.insert(0, &scene.points[..300_000], &payload).unwrap();
+    assert!(matches!(gpu.insert(&ctx, 299_999, &scene.points[299_999..300_001], Some(&scene.colors[299_999..300_001]), Some(&[0, 0])), Err(ProgressiveGpuError::Progressive(ProgressiveError::Duplicate(299_999)))));
+    insert(&ctx, &mut gpu, &mut cpu, &scene, 300_000, 400_000);
+    assert_eq!(gpu.loaded(), 400_000);
+    assert!((0..400_000).all(|s| gpu.is_loaded(s)));
+    let cam = Camera::frame_perspective(&scene.bounds, ViewPreset::Iso, 0.8, 320, 240).unwrap();
+    let st = frame_both(&ctx, &mut gpu, &mut cpu, &cam, 400_000, "large insert");
+    assert!(st.converged && st.fill_points == 400_000);
+    assert_eq!(gpu.read_keys(&ctx).unwrap(), brute_force(&cpu, &cam));
+    for slot in gpu.read_visible(&ctx).unwrap().into_iter().take(5000) {
+        assert_eq!(gpu.payload(slot), cpu.payload(slot));
+    }
+}
+
 #[test]
 fn points_inserted_between_frames_show_up_and_converge() {
     let Some(ctx) = context(None) else { return };

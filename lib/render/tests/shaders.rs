@@ -329,8 +329,12 @@ fn shared_structs_have_the_rust_layout() {
             vec![
                 ("colors", offset_of!(ScatterUniforms, colors)),
                 ("colors_only", offset_of!(ScatterUniforms, colors_only)),
-                ("_pad1", offset_of!(ScatterUniforms, _pad1)),
-                ("_pad2", offset_of!(ScatterUniforms, _pad2)),
+                ("prime", offset_of!(ScatterUniforms, prime)),
+                ("first", offset_of!(ScatterUniforms, first)),
+                ("chunk_first", offset_of!(ScatterUniforms, chunk_first)),
+                ("chunk_len", offset_of!(ScatterUniforms, chunk_len)),
+                ("count", offset_of!(ScatterUniforms, count)),
+                ("_pad", offset_of!(ScatterUniforms, _pad)),
             ],
         ),
         (

@@ -56,6 +56,14 @@ pub struct Args {
     /// Frames at most per phase.
     #[arg(long, default_value_t = 2000)]
     max_frames: u64,
+    /// Generate every point first and load from memory (the loading time then excludes
+    /// generation).
+    #[arg(long)]
+    pregenerate: bool,
+    /// Prepare each piece (checks, words, sorted slots) on another thread, a piece ahead, while
+    /// the render thread uploads and draws.
+    #[arg(long)]
+    prepare_thread: bool,
     /// Do not draw a frame after each inserted piece.
     #[arg(long)]
     no_load_frames: bool,
@@ -221,33 +229,103 @@ pub fn run(a: Args) -> Result<()> {
     let cam = Camera::frame_perspective(&bounds, ViewPreset::Iso, 50f64.to_radians(), a.width, a.height).map_err(|e| anyhow!("{e}"))?;
     let resolve = (!a.no_resolve).then_some(0xff00_0000u32);
 
-    // Generate and insert piece by piece, drawing a frame after each.
+    // Generate and insert piece by piece, drawing a frame after each. With --pregenerate every
+    // point is made first and loading runs from memory; with --prepare-thread the costly half
+    // of each insert (checks, words, sorted slots) runs on another thread, a piece ahead, while
+    // the render thread uploads and draws.
     let piece = a.piece.min(n as usize);
-    let mut xyz = vec![[0i32; 3]; piece];
-    let mut colors = vec![0u32; piece];
-    let (mut gen_s, mut insert_s) = (0.0, 0.0);
+    let pieces: Vec<(u64, usize)> = (0..n).step_by(piece).map(|f| (f, (n - f).min(piece as u64) as usize)).collect();
+    let t = Instant::now();
+    let all = a.pregenerate.then(|| {
+        let mut xyz = vec![[0i32; 3]; n as usize];
+        let mut colors = vec![0u32; n as usize];
+        generate(a.seed, 0, &mut xyz, &mut colors);
+        (xyz, colors)
+    });
+    let pregenerate_s = t.elapsed().as_secs_f64();
+    if a.pregenerate {
+        eprintln!("generated {n} points in memory in {pregenerate_s:.2} s");
+    }
+    let preparer = r.preparer();
+    let colored = !a.no_resolve;
+    // Makes (or takes) piece `(f, m)` and prepares it; returns it and the seconds of each part.
+    let make = |(f, m): (u64, usize)| -> Result<(mortar_render::PreparedInsert, f64, f64)> {
+        let t = Instant::now();
+        let own;
+        let (xyz, colors): (&[[i32; 3]], &[u32]) = match &all {
+            Some((x, c)) => (&x[f as usize..f as usize + m], &c[f as usize..f as usize + m]),
+            None => {
+                let mut x = vec![[0i32; 3]; m];
+                let mut c = vec![0u32; m];
+                generate(a.seed, f, &mut x, &mut c);
+                own = (x, c);
+                (&own.0, &own.1)
+            }
+        };
+        let gen = t.elapsed().as_secs_f64();
+        let t = Instant::now();
+        let p = preparer.prepare(f, xyz, colored.then_some(colors), None).map_err(|e| anyhow!("{e}"))?;
+        Ok((p, gen, t.elapsed().as_secs_f64()))
+    };
+    let (mut gen_s, mut prepare_s, mut insert_s) = (0.0, 0.0, 0.0);
+    let mut insert_ms = Vec::new();
     let mut first_frame_s = None;
     let mut load_frames = Vec::new();
-    let mut first = 0u64;
-    while first < n {
-        let m = (n - first).min(piece as u64) as usize;
+    let mut frame_ends = Vec::new();
+    let load_start = Instant::now();
+    let mut consume = |r: &mut GpuProgressive, (p, g, pr): (mortar_render::PreparedInsert, f64, f64)| -> Result<()> {
+        gen_s += g;
+        prepare_s += pr;
+        let done = p.first() + p.len() as u64;
         let t = Instant::now();
-        generate(a.seed, first, &mut xyz[..m], &mut colors[..m]);
-        gen_s += t.elapsed().as_secs_f64();
-        let t = Instant::now();
-        r.insert(&ctx, first, &xyz[..m], (!a.no_resolve).then_some(&colors[..m]), None).map_err(|e| anyhow!("{e}"))?;
+        r.insert_prepared(&ctx, p).map_err(|e| anyhow!("{e}"))?;
         insert_s += t.elapsed().as_secs_f64();
-        first += m as u64;
-        if !a.no_load_frames && first < n {
+        insert_ms.push(t.elapsed().as_secs_f64() * 1e3);
+        if !a.no_load_frames && done < n {
             let f = r.frame(&ctx, &cam, &RasterOptions::default(), &budget, resolve).map_err(|e| anyhow!("{e}"))?;
             println!("{}", frame_json("load", &f, start.elapsed().as_secs_f64()));
             first_frame_s.get_or_insert(start.elapsed().as_secs_f64());
+            frame_ends.push(load_start.elapsed().as_secs_f64());
             load_frames.push(f);
+        }
+        Ok(())
+    };
+    if a.prepare_thread {
+        std::thread::scope(|sc| -> Result<()> {
+            let (tx, rx) = std::sync::mpsc::sync_channel(1);
+            let producer = sc.spawn(move || {
+                for &pc in &pieces {
+                    if tx.send(make(pc)).is_err() {
+                        break;
+                    }
+                }
+            });
+            for got in rx {
+                consume(&mut r, got?)?;
+            }
+            producer.join().map_err(|_| anyhow!("the preparing thread panicked"))
+        })?;
+    } else {
+        for &pc in &pieces {
+            consume(&mut r, make(pc)?)?;
         }
     }
     ctx.wait().map_err(|e| anyhow!("{e}"))?;
+    let load_s = load_start.elapsed().as_secs_f64();
     let loaded_s = start.elapsed().as_secs_f64();
-    eprintln!("generated in {gen_s:.2} s, inserted in {insert_s:.2} s ({:.0} M points/s), all loaded after {loaded_s:.2} s", n as f64 / insert_s.max(1e-9) / 1e6);
+    let intervals: Vec<f64> = frame_ends.windows(2).map(|w| (w[1] - w[0]) * 1e3).collect();
+    let bpp = if a.no_resolve { 12.0 } else { 16.0 };
+    eprintln!(
+        "loaded in {load_s:.2} s ({:.0} M points/s, {:.1} GB/s of records): generated {gen_s:.2} s, prepared {prepare_s:.2} s{}, inserted {insert_s:.2} s on the render thread (a piece {:.1} ms median); {} frames while loading, wall {:.2} ms median, {:.2} ms max, one every {:.2} ms (median)",
+        n as f64 / load_s / 1e6,
+        n as f64 * bpp / load_s / 1e9,
+        if a.prepare_thread { " on another thread" } else { "" },
+        median(&insert_ms),
+        load_frames.len(),
+        median(&load_frames.iter().map(|f| f.stats.total_ms).collect::<Vec<f64>>()),
+        load_frames.iter().map(|f| f.stats.total_ms).fold(0.0, f64::max),
+        median(&intervals)
+    );
 
     let still = run_phase(&ctx, &mut r, "still", &cam, &budget, resolve, a.max_frames, start)?;
     let first_frame_s = first_frame_s.or(still.first_at_s);
@@ -274,12 +352,24 @@ pub fn run(a: Args) -> Result<()> {
         "probe": a.probe,
         "usable": a.usable,
         "allocate_seconds": alloc_seconds,
+        "pregenerate": a.pregenerate,
+        "pregenerate_seconds": pregenerate_s,
+        "prepare_thread": a.prepare_thread,
         "generate_seconds": gen_s,
+        "prepare_seconds": prepare_s,
         "insert_seconds": insert_s,
-        "insert_points_per_second": n as f64 / insert_s.max(1e-9),
+        "load_seconds": load_s,
+        "load_points_per_second": n as f64 / load_s,
+        "load_frame_interval_ms_median": median(&intervals),
+        "load_frame_interval_ms_max": intervals.iter().copied().fold(0.0, f64::max),
         "loaded_seconds": loaded_s,
         "first_frame_seconds": first_frame_s,
+        "insert_bytes_per_point": bpp,
+        "insert_piece_ms_median": median(&insert_ms),
+        "insert_piece_ms_max": insert_ms.iter().copied().fold(0.0, f64::max),
         "load_frames": load_frames.len(),
+        "load_frame_wall_ms_median": median(&load_frames.iter().map(|f| f.stats.total_ms).collect::<Vec<f64>>()),
+        "load_frame_wall_ms_max": load_frames.iter().map(|f| f.stats.total_ms).fold(0.0, f64::max),
         "still": still.json("still"),
         "moved": moved_phase.json("moved"),
     });

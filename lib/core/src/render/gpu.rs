@@ -304,22 +304,34 @@ impl EyeDomeUniforms {
     }
 }
 
-/// Constants of the progressive renderer's scatter pass. 16 bytes; WGSL `ScatterUniforms` in
+/// Constants of one dispatch of the progressive renderer's scatter pass: staged points
+/// `first..first + count` of the input (in input order), of which the pass writes those whose
+/// shuffled slot (eq. 1-2 of paper 000, computed in the shader with `prime`) falls in the chunk
+/// `[chunk_first, chunk_first + chunk_len)`. 32 bytes; WGSL `ScatterUniforms` in
 /// `shaders/progressive_types.wgsl`.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, PartialEq, Eq, bytemuck::Pod, bytemuck::Zeroable)]
 pub struct ScatterUniforms {
-    /// 1 when the staged records carry a colour (5 words per point), 0 when not (4 words).
+    /// 1 when the staged records carry a colour (4 words per point), 0 when not (3 words).
     pub colors: u32,
-    /// 1 when the records are (slot, colour) and only colours are written (a colour switch).
+    /// 1 when the records are one colour each and only colours are written (a colour switch).
     pub colors_only: u32,
+    /// The shuffle's prime `P` ([`Shuffle::prime`](super::progressive::Shuffle::prime); 0 below
+    /// 3 points: nothing moves).
+    pub prime: u32,
+    /// Input index of the first staged record.
+    pub first: u32,
+    /// First slot of the chunk this dispatch writes.
+    pub chunk_first: u32,
+    /// Slots of the chunk.
+    pub chunk_len: u32,
+    /// Staged records.
+    pub count: u32,
     /// Padding.
-    pub _pad1: u32,
-    /// Padding.
-    pub _pad2: u32,
+    pub _pad: u32,
 }
 
-const _: () = assert!(std::mem::size_of::<ScatterUniforms>() == 16);
+const _: () = assert!(std::mem::size_of::<ScatterUniforms>() == 32);
 
 /// Constants of the progressive renderer's Prepare pass. 16 bytes; WGSL `PrepareUniforms` in
 /// `shaders/progressive_types.wgsl`.
