@@ -513,8 +513,10 @@ impl GpuProgressive {
     /// at their shuffled slots, with one RGBA8 colour each when the renderer has colours and one
     /// payload each when it keeps payloads. Checks everything before changing anything (the CPU
     /// renderer's errors). The points are on the GPU when this returns (submitted).
-    /// [`preparer`](Self::preparer)`().prepare(..)` then [`insert_prepared`](Self::insert_prepared),
-    /// which lets a caller do the costly half on another thread while frames are drawn.
+    /// The same as [`preparer`](Self::preparer)`().prepare(..)` then
+    /// [`insert_prepared`](Self::insert_prepared), in one pass (the words are encoded straight
+    /// into staging memory); the two halves let a caller do the costly one on another thread
+    /// while frames are drawn.
     pub fn insert(&mut self, ctx: &GpuContext, first: u64, xyz: &[[i32; 3]], colors: Option<&[u32]>, payload: Option<&[u64]>) -> Result<(), ProgressiveGpuError> {
         let prep = self.preparer();
         prep.check(first, xyz, colors, payload)?;
