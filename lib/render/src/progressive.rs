@@ -533,13 +533,8 @@ impl GpuProgressive {
             let e = (s + STAGING_POINTS).min(n);
             self.upload(ctx, first + s as u64, e - s, stride, false, |k, m, out| {
                 ENCODED.with_borrow_mut(|buf| {
-                    buf.clear();
-                    for i in s + k..s + k + m {
-                        buf.extend_from_slice(&frame.encode(xyz[i]));
-                        if let Some(c) = colors {
-                            buf.push(c[i]);
-                        }
-                    }
+                    buf.resize(m * stride, 0);
+                    encode_records(&frame, &xyz[s + k..s + k + m], colors.map(|c| &c[s + k..s + k + m]), buf);
                     out.copy_from_slice(bytemuck::cast_slice(buf));
                 })
             })?;
@@ -963,6 +958,18 @@ pub struct InsertPreparer {
 /// Record buffers handed back by [`GpuProgressive::insert_prepared`] for reuse.
 type RecordPool = std::sync::Arc<std::sync::Mutex<Vec<Vec<u32>>>>;
 
+/// The scatter records of `xyz` (and `colors`) into `out`: per point its coarse, medium and fine
+/// words and, with colours, the colour (3 or 4 words).
+fn encode_records(frame: &BatchGrid, xyz: &[[i32; 3]], colors: Option<&[u32]>, out: &mut [u32]) {
+    let stride = 3 + colors.is_some() as usize;
+    for (k, r) in out.chunks_exact_mut(stride).enumerate() {
+        r[..3].copy_from_slice(&frame.encode(xyz[k]));
+        if let Some(c) = colors {
+            r[3] = c[k];
+        }
+    }
+}
+
 thread_local! {
     /// Each thread's buffer for records encoded before they are copied into staging memory.
     static ENCODED: std::cell::RefCell<Vec<u32>> = const { std::cell::RefCell::new(Vec::new()) };
@@ -1041,11 +1048,10 @@ impl InsertPreparer {
         let mut records = self.pool.lock().ok().and_then(|mut p| p.pop()).unwrap_or_default();
         records.resize(n * stride, 0);
         let frame = self.frame;
-        records.par_chunks_mut(stride).enumerate().with_min_len(4096).for_each(|(k, r)| {
-            r[..3].copy_from_slice(&frame.encode(xyz[k]));
-            if let Some(c) = colors {
-                r[3] = c[k];
-            }
+        const PIECE: usize = 1 << 14;
+        records.par_chunks_mut(PIECE * stride).enumerate().for_each(|(j, out)| {
+            let (a, b) = (j * PIECE, (j * PIECE + PIECE).min(n));
+            encode_records(&frame, &xyz[a..b], colors.map(|c| &c[a..b]), out);
         });
         let shuffle = self.shuffle;
         Ok(PreparedInsert {
