@@ -3,15 +3,20 @@
 //! `mortar-gen --points 20000000 --seed 1 -o bench-data/synth-20m.las`
 
 use anyhow::Result;
-use clap::Parser;
-use mortar_io::las::Header;
-use mortar_io::dataset::SourceMeta;
-use mortar_io::sink_las::{LasSink, Target};
-use mortar_io::sort::{OrderedSink, PieceStats};
-use mortar_io::synth::{self, SynthOptions};
+use clap::{Parser, ValueEnum};
+use mortar_io::synth::{self, Shape, SynthOptions};
+
+/// Where the points are (`synth::Shape`).
+#[derive(Clone, Copy, ValueEnum)]
+enum ShapeArg {
+    Airborne,
+    Coincident,
+    Cube,
+    Duplicates,
+}
 
 #[derive(Parser)]
-#[command(name = "mortar-gen", about = "Seeded synthetic airborne-like scan (LAS point format 3)")]
+#[command(name = "mortar-gen", about = "Seeded synthetic airborne-like scan (LAS point format 3), or a hostile shape for memory tests")]
 struct Args {
     #[arg(long, default_value_t = 1_000_000)]
     points: u64,
@@ -25,6 +30,16 @@ struct Args {
     /// World x,y,z of the scene corner, e.g. 6400000,0,0 for ECEF-scale coordinates.
     #[arg(long, default_value = "500000,5000000,0", value_delimiter = ',')]
     origin: Vec<f64>,
+    /// airborne (default), coincident (every point at one position), cube (uniform),
+    /// duplicates (every record eight times).
+    #[arg(long, value_enum, default_value = "airborne")]
+    shape: ShapeArg,
+    /// Extra bytes per point (0-255), described by an Extra Bytes VLR.
+    #[arg(long, default_value_t = 0)]
+    extra_bytes: usize,
+    /// Points per LAZ chunk (default 50,000; the point count gives one chunk for the file).
+    #[arg(long)]
+    laz_chunk: Option<u32>,
     #[arg(short, long)]
     output: String,
 }
@@ -32,30 +47,15 @@ struct Args {
 fn main() -> Result<()> {
     let a = Args::parse();
     anyhow::ensure!(a.origin.len() == 3, "--origin takes x,y,z");
-    let o = SynthOptions { points: a.points, seed: a.seed, extent: a.extent, scale: a.scale, origin: [a.origin[0], a.origin[1], a.origin[2]] };
     anyhow::ensure!(a.extent / a.scale < 2.0e9, "extent / scale must fit a 32-bit LAS integer");
-    let header: Header = synth::header(&o);
-    let layout = mortar_core::layout::RecordLayout::new(3, 34)?;
-    let grid = mortar_core::grid::Grid { scale: header.scale, offset: header.offset };
-    let template = SourceMeta { header, vlrs: Vec::new(), evlrs: Vec::new(), layout, grid };
-    let compressed = a.output.to_ascii_lowercase().ends_with(".laz");
-    let mut sink = LasSink::new(Target::parse(&a.output), compressed, template, &std::env::temp_dir())?;
-    // statistics first (the header needs bounds), then the points
-    let step = 1u64 << 22;
-    let mut total = PieceStats::default();
-    let mut first = 0;
-    while first < o.points {
-        let n = step.min(o.points - first);
-        total.merge(&synth::records(&o, first, n).1);
-        first += n;
-    }
-    sink.begin(&total.summary())?;
-    let mut first = 0;
-    while first < o.points {
-        let n = step.min(o.points - first);
-        sink.write(&synth::records(&o, first, n).0)?;
-        first += n;
-    }
-    sink.finish()?;
+    anyhow::ensure!(a.extra_bytes <= 255, "--extra-bytes takes 0 to 255");
+    let shape = match a.shape {
+        ShapeArg::Airborne => Shape::Airborne,
+        ShapeArg::Coincident => Shape::Coincident,
+        ShapeArg::Cube => Shape::Cube,
+        ShapeArg::Duplicates => Shape::Duplicates,
+    };
+    let o = SynthOptions { points: a.points, seed: a.seed, extent: a.extent, scale: a.scale, origin: [a.origin[0], a.origin[1], a.origin[2]], shape, extra_bytes: a.extra_bytes };
+    synth::write_file(&o, &a.output, a.laz_chunk)?;
     Ok(())
 }

@@ -20,7 +20,7 @@
 # FUZZ_PRINT_ARTIFACTS=1).
 set -euo pipefail
 here="$(cd "$(dirname "$0")" && pwd)"
-all_targets="las_header vlr_records las_input batch_file store lod_index"
+all_targets="las_header vlr_records las_input laz_pointwise batch_file store lod_index"
 
 bin_dir="" mode=run out="" corpus="" targets="$all_targets" pack_dir="" copy_dir=""
 while [ $# -gt 0 ]; do

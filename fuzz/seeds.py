@@ -115,7 +115,7 @@ def main():
     ap.add_argument("--data", default=os.path.join(ROOT, "..", "shared", "data"))
     ap.add_argument("--mortar", default=os.path.join(ROOT, "target", "release", "mortar"))
     a = ap.parse_args()
-    for t in ["las_header", "vlr_records", "las_input", "batch_file", "store", "lod_index"]:
+    for t in ["las_header", "vlr_records", "las_input", "laz_pointwise", "batch_file", "store", "lod_index"]:
         shutil.rmtree(os.path.join(HERE, "corpus", t), ignore_errors=True)
     sources = []
     for rel in LAS_FILES:
@@ -123,6 +123,13 @@ def main():
         put("las_input", seed_name(rel), b)
         put("las_header", seed_name(rel), header_part(b))
         sources.append(f"{rel}  {len(b)} bytes")
+    # laz_pointwise: the stream of the one pointwise (compressor 1) fixture, as its flags and
+    # point count say (mortar_fuzz::pointwise_file), and with a chunk size of u32::MAX.
+    pw = "PDAL/test/data/apps/simple-laszip-compressor-version-1.2r0.laz"
+    b = open(os.path.join(a.data, pw), "rb").read()
+    off, count = struct.unpack_from("<I", b, 96)[0], struct.unpack_from("<I", b, 107)[0]
+    for flags in (3, 3 | 8, 3 | 16):
+        put("laz_pointwise", f"{seed_name(pw)}.flags{flags}", bytes([flags]) + struct.pack("<I", count) + b[off:])
     # vlr_records: format, record length, then the extra-bytes and CRS payloads of real files.
     for rel in LAS_FILES:
         b = open(os.path.join(a.data, rel), "rb").read()

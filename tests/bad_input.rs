@@ -53,7 +53,6 @@ bad_fixture!(broken_coder, "LASzip/data/broken_coder.laz");
 bad_fixture!(broken_compressor, "LASzip/data/broken_compressor.laz");
 bad_fixture!(broken_size, "LASzip/data/broken_size.laz");
 bad_fixture!(broken_type, "LASzip/data/broken_type.laz");
-bad_fixture!(laszip_without_chunk_table, "PDAL/test/data/apps/simple-laszip-compressor-version-1.2r0.laz");
 bad_fixture!(invalid_header_strings, "copc-validator/src/test/data/bad-ellipsoid.copc.laz");
 bad_fixture!(header_count_larger_than_file, "PDAL/test/data/las/1.2-with-color-clipped.las");
 bad_fixture!(header_count_no_points, "PDAL/test/data/las/permutations/1.2-no-points.las");

@@ -302,3 +302,71 @@ fn store_dir() -> PathBuf {
     }
     DIR.with(|d| d.0.clone())
 }
+
+/// Target `laz_pointwise`: LAZ files of LASzip's compressor 1 (pointwise: one arithmetic stream
+/// from the first byte of the point data, no chunk table), as LASzip 1.x and early LAStools
+/// wrote them, through `LasInput::from_bytes` and every piece's decode. The input is
+/// `[flags u8][point count u32][stream...]`: flags bits 0-1 the point format (0-3), bit 2 items
+/// of version 2 instead of 1, bit 3 a chunk size of u32::MAX in the VLR (as some writers left
+/// it), bit 4 a second file of the same stream with a header count of 1,048,577 (more than one
+/// piece); the stream is the compressed points.
+pub fn laz_pointwise(data: &[u8]) {
+    let Some(file) = pointwise_file(data) else { return };
+    let Some(input) = ok(LasInput::from_bytes(PathBuf::from("fuzz.laz"), Bytes::Owned(file))) else { return };
+    read_some(&input, 3);
+    let _ = ok(info::describe(&input, "laz", input.pieces().len() <= 2, None));
+}
+
+/// The LAZ file a [`laz_pointwise`] input stands for (`None` for inputs too short to say).
+pub fn pointwise_file(data: &[u8]) -> Option<Vec<u8>> {
+    let (&flags, rest) = data.split_first()?;
+    let count = u32::from_le_bytes(rest.get(..4)?.try_into().ok()?) as u64;
+    let count = if flags & 16 != 0 { 1_048_577 } else { count };
+    let stream = &rest[4..];
+    let format = flags & 3;
+    let version: u16 = if flags & 4 != 0 { 2 } else { 1 };
+    // (type, size): Point10, GpsTime, RGB12
+    let mut items: Vec<(u16, u16)> = vec![(6, 20)];
+    if format == 1 || format == 3 {
+        items.push((7, 8));
+    }
+    if format >= 2 {
+        items.push((8, 6));
+    }
+    let record_len: u16 = items.iter().map(|i| i.1).sum();
+    let mut v = Vec::new();
+    v.extend_from_slice(&1u16.to_le_bytes()); // compressor: pointwise
+    v.extend_from_slice(&0u16.to_le_bytes()); // coder: arithmetic
+    v.extend_from_slice(&[1, 2]); // LASzip 1.2
+    v.extend_from_slice(&0u16.to_le_bytes()); // revision
+    v.extend_from_slice(&0u32.to_le_bytes()); // options
+    v.extend_from_slice(&(if flags & 8 != 0 { u32::MAX } else { 0 }).to_le_bytes()); // chunk size
+    v.extend_from_slice(&(-1i64).to_le_bytes());
+    v.extend_from_slice(&(-1i64).to_le_bytes());
+    v.extend_from_slice(&(items.len() as u16).to_le_bytes());
+    for (t, s) in &items {
+        v.extend_from_slice(&t.to_le_bytes());
+        v.extend_from_slice(&s.to_le_bytes());
+        v.extend_from_slice(&version.to_le_bytes());
+    }
+    let laszip = vlr("laszip encoded", 22204, &v);
+    let template = mortar_io::synth::header(&mortar_io::synth::SynthOptions::default());
+    let h = las::HeaderOut {
+        template: &template,
+        point_format: format,
+        compressed: true,
+        record_len,
+        point_count: count,
+        points_by_return: [0; 15],
+        scale: [0.01; 3],
+        offset: [0.0; 3],
+        min: [0.0; 3],
+        max: [1000.0; 3],
+        vlrs: std::slice::from_ref(&laszip),
+        evlr_start: 0,
+        evlr_count: 0,
+    };
+    let mut file = las::write_header(&h).ok()?;
+    file.extend_from_slice(stream);
+    Some(file)
+}

@@ -238,9 +238,6 @@ pub enum LazError {
     /// The chunk table does not parse (or its reader gave up: `error` is `None`).
     #[error("LAZ chunk table is corrupt{}", error.as_ref().map(|e| format!(": {e}")).unwrap_or_default())]
     BadTable { error: Option<std::io::Error> },
-    /// A chunk claims more points than mortar accepts per chunk.
-    #[error("LAZ chunk {chunk} claims {points} points, more than mortar accepts per chunk")]
-    ChunkTooLarge { chunk: usize, points: u64 },
     /// A chunk claims more points than its bytes can hold.
     #[error("LAZ chunk {chunk} claims {points} points in {bytes} bytes (corrupt chunk table)")]
     ChunkPoints { chunk: usize, points: u64, bytes: u64 },

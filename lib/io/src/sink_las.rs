@@ -49,6 +49,8 @@ pub struct LasSink {
     out: Option<Out>,
     summary: Option<Summary>,
     written: u64,
+    /// Points per LAZ chunk (`None`: laz-rs's default, 50,000).
+    laz_chunk: Option<u32>,
 }
 
 fn io_err(t: &Path) -> impl Fn(std::io::Error) -> Error + '_ {
@@ -66,18 +68,29 @@ impl LasSink {
             }
             Target::Stdout => None,
         };
-        Ok(LasSink { target, compressed, t: template, tmp, out: None, summary: None, written: 0 })
+        Ok(LasSink { target, compressed, t: template, tmp, out: None, summary: None, written: 0, laz_chunk: None })
+    }
+
+    /// Writes LAZ chunks of `points` points (synthetic inputs with huge chunks).
+    pub fn laz_chunk_size(&mut self, points: u32) {
+        self.laz_chunk = Some(points.max(1));
+    }
+
+    /// The LASzip VLR of the output.
+    fn laz_vlr(&self) -> Result<laz::LazVlr> {
+        let extra = (self.t.layout.record_len - mortar_core::layout::base_len(self.t.layout.format).unwrap()) as u16;
+        let mut b = laz::LazVlrBuilder::default().with_point_format(self.t.layout.format, extra).map_err(|error| Error::LazFormat { format: self.t.layout.format, error })?;
+        if let Some(n) = self.laz_chunk {
+            b = b.with_fixed_chunk_size(n);
+        }
+        Ok(b.build())
     }
 
     fn header_bytes(&self, s: &Summary, evlr_start: u64) -> Result<Vec<u8>> {
         let g = &self.t.grid;
         let mut vlrs = self.t.vlrs.clone();
         if self.compressed {
-            let extra = (self.t.layout.record_len - mortar_core::layout::base_len(self.t.layout.format).unwrap()) as u16;
-            let v = laz::LazVlrBuilder::default()
-                .with_point_format(self.t.layout.format, extra)
-                .map_err(|error| Error::LazFormat { format: self.t.layout.format, error })?
-                .build();
+            let v = self.laz_vlr()?;
             let mut data = Vec::new();
             v.write_to(&mut data).map_err(|error| Error::LazSetup { error })?;
             let mut user_id = [0u8; 16];
@@ -192,11 +205,7 @@ impl OrderedSink for LasSink {
                 let hb = self.header_bytes(s, 0)?;
                 w.write_all(&hb).map_err(io_err(&p))?;
                 if self.compressed {
-                    let extra = (self.t.layout.record_len - mortar_core::layout::base_len(self.t.layout.format).unwrap()) as u16;
-                    let vlr = laz::LazVlrBuilder::default()
-                        .with_point_format(self.t.layout.format, extra)
-                        .map_err(|e| Error::LazSetup { error: std::io::Error::other(e) })?
-                        .build();
+                    let vlr = self.laz_vlr()?;
                     let c = laz::ParLasZipCompressor::new(w, vlr).map_err(|e| Error::LazSetup { error: std::io::Error::other(e) })?;
                     self.out = Some(Out::Laz(Box::new(c)));
                 } else {

@@ -5,19 +5,36 @@
 //! is read chunk by chunk (LASzip compresses independent chunks, usually 50,000 points), each
 //! chunk decoded on its own thread by laz-rs. Nothing is allocated from a header's claims before
 //! it has been checked against the bytes that exist.
+//!
+//! The LASzip VLR's compressor says how the point data is laid out, and it is read first:
+//! - compressor 2 (pointwise chunked) and 3 (layered chunked, LAS 1.4): chunks, found through the
+//!   chunk table whose offset the first 8 bytes of the point data hold;
+//! - compressor 1 (pointwise, LASzip 1.x and early LAStools): one arithmetic stream from the first
+//!   byte of the point data, no chunk table and no offset. It is read as one chunk.
+//!
+//! A chunk of more than [`LAZ_PIECE_POINTS`] points (a pointwise file, a writer that put millions
+//! of points in one chunk) is not decoded whole: it is cut into pieces of that many points, read
+//! by decoders that go through the chunk in order and are kept between pieces ([`Streams`]), so
+//! the memory a piece needs is bounded whatever the chunk's size. The same holds for fixed-size
+//! chunks without a chunk table, decoded as one stream.
 
 use crate::error::{Error, LazError, Result};
 use crate::las::{self, LasMeta};
 use memmap2::Mmap;
 use mortar_core::layout::RecordLayout;
 use std::borrow::Cow;
-use std::io::Read;
+use std::io::{Read, Seek, SeekFrom};
 use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex};
 
 /// Points per piece of a LAS file.
 pub const LAS_PIECE_POINTS: u64 = 1 << 20;
-/// Largest LAZ chunk mortar decodes (points); real files use 50,000.
-pub const MAX_LAZ_CHUNK_POINTS: u64 = 1 << 24;
+/// Points per piece of a LAZ chunk larger than that (and of a LAZ stream without a chunk
+/// table): what bounds the memory one piece needs. Real chunks hold 50,000 points.
+pub const LAZ_PIECE_POINTS: u64 = 1 << 20;
+
+/// Most decoders part-way through a chunk that a file keeps for its next pieces.
+const MAX_IDLE_STREAMS: usize = 64;
 
 /// Most points a LAZ chunk may claim per compressed byte: what bounds the buffer a chunk
 /// decodes into (100 points per byte is a compression ratio over 3,000:1 for 34-byte records;
@@ -124,9 +141,109 @@ struct LazChunk {
 
 enum Kind {
     Las { start: usize },
+    /// LAZ in chunks (a pointwise file is one chunk: its whole point data).
     Laz { vlr: laz::LazVlr, chunks: Vec<LazChunk> },
-    /// LAZ without a chunk table (fixed-size chunks): decoded sequentially as one piece.
-    LazSequential { vlr: laz::LazVlr, start: usize },
+    /// LAZ with fixed-size chunks but no chunk table: one stream over `start..end`, decoded in
+    /// order (laz-rs finds the chunk boundaries from the chunk size).
+    LazSequential { vlr: laz::LazVlr, start: usize, end: usize },
+}
+
+/// Where the points of a LAZ piece are.
+#[derive(Clone, Copy, Debug)]
+struct PieceAt {
+    /// The chunk (0 for a [`Kind::LazSequential`] stream).
+    chunk: usize,
+    /// Points of the chunk before the piece's first.
+    skip: u64,
+    /// The piece is the whole chunk (decoded on its own, no stream kept).
+    whole: bool,
+}
+
+/// A decoder part-way through a chunk (or a sequential stream): the next point it gives is
+/// point `next` of chunk `chunk`.
+struct Cursor {
+    chunk: usize,
+    next: u64,
+    dec: laz::LasZipDecompressor<'static, Chain>,
+}
+
+/// Decoders kept between the pieces of large chunks: a piece takes the one furthest along
+/// that is not past its first point (or starts a new one), and gives it back after. Pieces
+/// read in order (one thread, or the threads of a parallel pass taking pieces in turn) thus
+/// decode every point once.
+#[derive(Default)]
+struct Streams {
+    idle: Mutex<Vec<Cursor>>,
+}
+
+impl Streams {
+    fn take(&self, chunk: usize, skip: u64) -> Option<Cursor> {
+        let mut idle = self.idle.lock().unwrap_or_else(|e| e.into_inner());
+        let best = idle.iter().enumerate().filter(|(_, c)| c.chunk == chunk && c.next <= skip).max_by_key(|(_, c)| c.next).map(|(i, _)| i)?;
+        Some(idle.swap_remove(best))
+    }
+
+    fn put(&self, c: Cursor) {
+        let mut idle = self.idle.lock().unwrap_or_else(|e| e.into_inner());
+        if idle.len() >= MAX_IDLE_STREAMS {
+            idle.remove(0);
+        }
+        idle.push(c);
+    }
+
+    fn clear(&self) {
+        self.idle.lock().unwrap_or_else(|e| e.into_inner()).clear();
+    }
+}
+
+/// The bytes a stream decoder reads: `head`, then `body` of the file's bytes, then `tail` (a
+/// chunk of a chunked file is given the offset and chunk table laz-rs's stream decoder looks
+/// for; borrowed from the file's map, no copy).
+struct Chain {
+    head: Vec<u8>,
+    bytes: Arc<Bytes>,
+    body: std::ops::Range<usize>,
+    tail: Vec<u8>,
+    pos: u64,
+}
+
+impl Chain {
+    fn len(&self) -> u64 {
+        (self.head.len() + self.body.len() + self.tail.len()) as u64
+    }
+}
+
+impl Read for Chain {
+    fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+        let (h, b) = (self.head.len() as u64, self.body.len() as u64);
+        let p = self.pos;
+        let src: &[u8] = if p < h {
+            &self.head[p as usize..]
+        } else if p < h + b {
+            &self.bytes[self.body.start + (p - h) as usize..self.body.end]
+        } else if p < self.len() {
+            &self.tail[(p - h - b) as usize..]
+        } else {
+            &[]
+        };
+        let n = src.len().min(buf.len());
+        buf[..n].copy_from_slice(&src[..n]);
+        self.pos += n as u64;
+        Ok(n)
+    }
+}
+
+impl Seek for Chain {
+    fn seek(&mut self, to: SeekFrom) -> std::io::Result<u64> {
+        let p = match to {
+            SeekFrom::Start(o) => Some(o),
+            SeekFrom::End(d) => self.len().checked_add_signed(d),
+            SeekFrom::Current(d) => self.pos.checked_add_signed(d),
+        };
+        let p = p.ok_or_else(|| std::io::Error::new(std::io::ErrorKind::InvalidInput, "seek before the start of the LAZ data"))?;
+        self.pos = p;
+        Ok(p)
+    }
 }
 
 /// A range of points of one input that is read as a unit.
@@ -140,12 +257,16 @@ pub struct Piece {
 /// An opened LAS/LAZ input.
 pub struct LasInput {
     pub path: PathBuf,
-    bytes: Bytes,
+    bytes: Arc<Bytes>,
     pub meta: LasMeta,
     pub layout: RecordLayout,
     pub point_count: u64,
     kind: Kind,
     pieces: Vec<Piece>,
+    /// Where each LAZ piece is (empty for LAS).
+    at: Vec<PieceAt>,
+    /// Decoders part-way through large chunks.
+    streams: Streams,
     /// The fields to decode ([`decode_only`](Self::decode_only)); `None`: all of them.
     skip: Option<Skip>,
 }
@@ -237,6 +358,7 @@ impl LasInput {
         let laszip = meta.vlrs.iter().find(|v| v.is_laszip());
         let kind;
         let mut pieces = Vec::new();
+        let mut at = Vec::new();
         let point_count = h.point_count;
         if h.compressed || laszip.is_some() {
             let Some(lv) = laszip else {
@@ -253,30 +375,62 @@ impl LasInput {
             if let Err(e) = check_laz_items(&vlr) {
                 return Err(err(e));
             }
-            let data_end = if h.evlr_start > 0 && h.evlr_count > 0 { h.evlr_start as usize } else { bytes.len() };
-            match read_chunk_table(&bytes, start, data_end, &vlr, point_count) {
-                Ok(Some(chunks)) => {
-                    let mut first = 0;
-                    for (i, c) in chunks.iter().enumerate() {
-                        pieces.push(Piece { index: i, first_point: first, points: c.points });
-                        first += c.points;
-                    }
-                    kind = Kind::Laz { vlr, chunks };
+            let data_end = if h.evlr_start > 0 && h.evlr_count > 0 && (h.evlr_start as usize) >= start { (h.evlr_start as usize).min(bytes.len()) } else { bytes.len() };
+            let plausible = |points: u64| -> std::result::Result<(), LazError> {
+                let room = data_end.saturating_sub(start);
+                if points > (room as u64).saturating_mul(MAX_LAZ_POINTS_PER_BYTE) {
+                    return Err(LazError::Implausible { points, bytes: room });
                 }
-                Ok(None) => {
-                    if vlr.uses_variable_size_chunks() {
-                        return Err(err(LazError::NoChunkTable));
-                    }
-                    if point_count > 0 {
-                        let max = (data_end - start) as u64 * MAX_LAZ_POINTS_PER_BYTE;
-                        if point_count > max {
-                            return Err(err(LazError::Implausible { points: point_count, bytes: data_end - start }));
+                Ok(())
+            };
+            // The compressor first: a pointwise file has no chunk table and no offset to one,
+            // and its first 8 bytes are compressed points.
+            let compressor = lv.data.get(..2).map_or(0, |b| u16::from_le_bytes([b[0], b[1]]));
+            if compressor == POINTWISE {
+                if point_count > 0 && data_end <= start {
+                    return Err(err(LazError::NoPointData));
+                }
+                plausible(point_count).map_err(err)?;
+                let chunks = if point_count > 0 { vec![LazChunk { offset: start, len: data_end - start, points: point_count }] } else { Vec::new() };
+                kind = Kind::Laz { vlr, chunks };
+            } else {
+                match read_chunk_table(&bytes, start, data_end, &vlr, point_count) {
+                    Ok(Some(chunks)) => kind = Kind::Laz { vlr, chunks },
+                    Ok(None) => {
+                        if vlr.uses_variable_size_chunks() {
+                            return Err(err(LazError::NoChunkTable));
                         }
-                        pieces.push(Piece { index: 0, first_point: 0, points: point_count });
+                        plausible(point_count).map_err(err)?;
+                        kind = Kind::LazSequential { vlr, start, end: data_end };
                     }
-                    kind = Kind::LazSequential { vlr, start };
+                    Err(e) => return Err(err(e)),
                 }
-                Err(e) => return Err(err(e)),
+            }
+            let pointwise = compressor == POINTWISE;
+            let mut first = 0;
+            let mut add = |chunk: usize, skip: u64, points: u64, whole: bool| {
+                pieces.push(Piece { index: pieces.len(), first_point: first, points });
+                at.push(PieceAt { chunk, skip, whole });
+                first += points;
+            };
+            match &kind {
+                Kind::Laz { chunks, .. } => {
+                    for (i, c) in chunks.iter().enumerate() {
+                        // a pointwise stream is read as a stream, which reports where it ends
+                        if c.points <= LAZ_PIECE_POINTS && !pointwise {
+                            add(i, 0, c.points, true);
+                        } else {
+                            for skip in (0..c.points).step_by(LAZ_PIECE_POINTS as usize) {
+                                add(i, skip, LAZ_PIECE_POINTS.min(c.points - skip), false);
+                            }
+                        }
+                    }
+                }
+                _ => {
+                    for skip in (0..point_count).step_by(LAZ_PIECE_POINTS as usize) {
+                        add(0, skip, LAZ_PIECE_POINTS.min(point_count - skip), false);
+                    }
+                }
             }
             meta.vlrs.retain(|v| !v.is_laszip());
         } else {
@@ -307,7 +461,7 @@ impl LasInput {
             }
             kind = Kind::Las { start };
         }
-        Ok(LasInput { path, bytes, meta, layout, point_count, kind, pieces, skip: None })
+        Ok(LasInput { path, bytes: Arc::new(bytes), meta, layout, point_count, kind, pieces, at, streams: Streams::default(), skip: None })
     }
 
     /// Decodes only the named attributes (positions always) from now on: a LAS 1.4 layered
@@ -318,6 +472,8 @@ impl LasInput {
             Kind::Las { .. } => None,
             _ => Skip::of(&self.layout, attributes),
         };
+        // kept decoders decode the old selection
+        self.streams.clear();
     }
 
     pub fn is_laz(&self) -> bool {
@@ -331,7 +487,7 @@ impl LasInput {
     /// Maps every page of the point data now, in one system call instead of a page fault per
     /// 4 KiB later (for the in-memory sort, which reads all of it; Linux 5.14+, else a no-op).
     pub fn prefetch(&self) {
-        if let (Kind::Las { .. }, Bytes::Map(m)) = (&self.kind, &self.bytes) {
+        if let (Kind::Las { .. }, Bytes::Map(m)) = (&self.kind, &*self.bytes) {
             const MADV_POPULATE_READ: libc::c_int = 22;
             // SAFETY: advice on a mapping this input owns; it changes no contents.
             unsafe { libc::madvise(m.as_ptr() as *mut libc::c_void, m.len(), MADV_POPULATE_READ) };
@@ -341,7 +497,7 @@ impl LasInput {
     /// Drops the pages of a LAS piece from this process's mapping (they stay in the page cache),
     /// so that a pass over a file larger than the memory budget keeps a bounded resident size.
     pub fn release_piece(&self, piece: &Piece) {
-        if let (Kind::Las { start }, Bytes::Map(m)) = (&self.kind, &self.bytes) {
+        if let (Kind::Las { start }, Bytes::Map(m)) = (&self.kind, &*self.bytes) {
             let rl = self.layout.record_len;
             let s = start + piece.first_point as usize * rl;
             let page = 4096;
@@ -361,37 +517,121 @@ impl LasInput {
         if out.len() != piece.points as usize * rl {
             return Err(Error::Internal { path: self.path.clone(), what: "piece buffer of the wrong size" });
         }
+        let laz_err = |error: LazError| Error::Laz { path: self.path.clone(), error };
+        let at = match (&self.kind, self.at.get(piece.index)) {
+            (Kind::Las { .. }, _) => {
+                out.copy_from_slice(&self.read_piece(piece)?);
+                return Ok(());
+            }
+            (_, Some(at)) => *at,
+            (_, None) => return Err(Error::Internal { path: self.path.clone(), what: "a piece of another file" }),
+        };
+        let selection = self.skip.as_ref().map_or(laz::DecompressionSelection::all(), |s| s.selection);
         match &self.kind {
-            Kind::Laz { vlr, chunks } => {
-                let c = &chunks[piece.index];
+            Kind::Laz { vlr, chunks } if at.whole => {
+                let c = &chunks[at.chunk];
                 let entry = laz::laszip::ChunkTableEntry { point_count: c.points, byte_count: c.len as u64 };
                 let src = &self.bytes[c.offset..c.offset + c.len];
                 if c.points > 0 {
-                    check_layer_sizes(vlr, src, piece.index).map_err(|error| Error::Laz { path: self.path.clone(), error })?;
+                    check_layer_sizes(vlr, src, at.chunk).map_err(laz_err)?;
                 }
-                let selection = self.skip.as_ref().map_or(laz::DecompressionSelection::all(), |s| s.selection);
                 let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
                     laz::par_decompress_selective(src, out, vlr, std::slice::from_ref(&entry), selection)
                 }));
                 match r {
-                    Ok(Ok(())) => {
-                        if let Some(s) = &self.skip {
-                            s.clear(out, rl);
-                        }
-                        Ok(())
-                    }
-                    Ok(Err(error)) => Err(Error::Laz { path: self.path.clone(), error: LazError::ChunkCorrupt { chunk: piece.index, error } }),
-                    Err(_) => Err(Error::Laz { path: self.path.clone(), error: LazError::ChunkGaveUp { chunk: piece.index } }),
+                    Ok(Ok(())) => {}
+                    Ok(Err(error)) => return Err(laz_err(LazError::ChunkCorrupt { chunk: at.chunk, error })),
+                    Err(_) => return Err(laz_err(LazError::ChunkGaveUp { chunk: at.chunk })),
                 }
             }
-            _ => {
-                let r = self.read_piece(piece)?;
-                if r.len() != out.len() {
-                    return Err(Error::Laz { path: self.path.clone(), error: LazError::EndsEarly { got: r.len() / rl, expected: piece.points } });
-                }
-                out.copy_from_slice(&r);
+            _ => self.read_stream(at, out, selection).map_err(laz_err)?,
+        }
+        if let Some(s) = &self.skip {
+            s.clear(out, rl);
+        }
+        Ok(())
+    }
+
+    /// Decodes a piece of a large chunk or of a sequential stream with a kept decoder.
+    fn read_stream(&self, at: PieceAt, out: &mut [u8], selection: laz::DecompressionSelection) -> std::result::Result<(), LazError> {
+        let rl = self.layout.record_len;
+        let mut cur = match self.streams.take(at.chunk, at.skip) {
+            Some(c) => c,
+            None => self.new_cursor(at.chunk, selection)?,
+        };
+        let points = (out.len() / rl) as u64;
+        let mut done = 0u64;
+        let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| -> std::io::Result<()> {
+            let mut scratch = Vec::new();
+            while cur.next < at.skip {
+                let n = (at.skip - cur.next).min(65_536) as usize;
+                scratch.resize(n * rl, 0);
+                cur.dec.decompress_many(&mut scratch)?;
+                cur.next += n as u64;
+            }
+            for part in out.chunks_mut(65_536 * rl) {
+                cur.dec.decompress_many(part)?;
+                done += (part.len() / rl) as u64;
+            }
+            Ok(())
+        }));
+        let chunk = at.chunk;
+        let sequential = matches!(self.kind, Kind::LazSequential { .. });
+        match r {
+            Ok(Ok(())) => {
+                cur.next = at.skip + points;
+                self.streams.put(cur);
                 Ok(())
             }
+            Ok(Err(error)) if error.kind() == std::io::ErrorKind::UnexpectedEof => {
+                Err(LazError::EndsEarly { got: (cur.next.min(at.skip) + done) as usize, expected: self.chunk_points(chunk) })
+            }
+            Ok(Err(error)) if sequential => Err(LazError::DataCorrupt { error }),
+            Ok(Err(error)) => Err(LazError::ChunkCorrupt { chunk, error: laz::LasZipError::IoError(error) }),
+            Err(_) if sequential => Err(LazError::DataGaveUp),
+            Err(_) => Err(LazError::ChunkGaveUp { chunk }),
+        }
+    }
+
+    /// Points of chunk `chunk` (of the whole stream for a sequential file).
+    fn chunk_points(&self, chunk: usize) -> u64 {
+        match &self.kind {
+            Kind::Laz { chunks, .. } => chunks.get(chunk).map_or(0, |c| c.points),
+            _ => self.point_count,
+        }
+    }
+
+    /// A decoder at the first point of `chunk` (of the stream, for a sequential file).
+    fn new_cursor(&self, chunk: usize, selection: laz::DecompressionSelection) -> std::result::Result<Cursor, LazError> {
+        let (source, vlr) = match &self.kind {
+            Kind::LazSequential { vlr, start, end } => {
+                check_sequential_table(&self.bytes[*start..*end])?;
+                (Chain { head: Vec::new(), bytes: self.bytes.clone(), body: *start..*end, tail: Vec::new(), pos: 0 }, vlr.clone())
+            }
+            Kind::Laz { vlr, chunks } => {
+                let c = &chunks[chunk];
+                check_layer_sizes(vlr, &self.bytes[c.offset..c.offset + c.len], chunk)?;
+                // The chunk as a file of one variable-size chunk: the offset of its table, its
+                // bytes, a table of one entry (laz-rs's stream decoder needs the table to know
+                // the chunk's points; a pointwise stream is such a chunk).
+                let one = laz::LazVlrBuilder::new(vlr.items().clone()).with_variable_chunk_size().build();
+                let mut table = laz::laszip::ChunkTable::with_capacity(1);
+                table.push(laz::laszip::ChunkTableEntry { point_count: c.points, byte_count: c.len as u64 });
+                let mut tail = Vec::new();
+                table.write_to(&mut tail, &one).map_err(|error| LazError::ChunkCorrupt { chunk, error: laz::LasZipError::IoError(error) })?;
+                let head = (8 + c.len as i64).to_le_bytes().to_vec();
+                (Chain { head, bytes: self.bytes.clone(), body: c.offset..c.offset + c.len, tail, pos: 0 }, one)
+            }
+            Kind::Las { .. } => unreachable!("LAS pieces are read in place"),
+        };
+        let sequential = matches!(self.kind, Kind::LazSequential { .. });
+        let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| laz::LasZipDecompressor::selective(source, vlr, selection)));
+        match r {
+            Ok(Ok(dec)) => Ok(Cursor { chunk, next: 0, dec }),
+            Ok(Err(laz::LasZipError::IoError(error))) if sequential => Err(LazError::DataCorrupt { error }),
+            Ok(Err(error)) => Err(LazError::ChunkCorrupt { chunk, error }),
+            Err(_) if sequential => Err(LazError::DataGaveUp),
+            Err(_) => Err(LazError::ChunkGaveUp { chunk }),
         }
     }
 
@@ -403,42 +643,17 @@ impl LasInput {
                 let s = start + piece.first_point as usize * rl;
                 Ok(Cow::Borrowed(&self.bytes[s..s + piece.points as usize * rl]))
             }
-            Kind::Laz { chunks, .. } => {
-                let mut out = vec![0u8; chunks[piece.index].points as usize * rl];
+            _ => {
+                let mut out = vec![0u8; piece.points as usize * rl];
                 self.read_piece_into(piece, &mut out)?;
                 Ok(Cow::Owned(out))
-            }
-            Kind::LazSequential { vlr, start } => {
-                let mut out = Vec::new();
-                let src = std::io::Cursor::new(&self.bytes[*start..]);
-                check_sequential_table(&self.bytes[*start..]).map_err(|error| Error::Laz { path: self.path.clone(), error })?;
-                let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| -> std::io::Result<()> {
-                    let selection = self.skip.as_ref().map_or(laz::DecompressionSelection::all(), |s| s.selection);
-                    let mut d = laz::LasZipDecompressor::selective(src, vlr.clone(), selection).map_err(std::io::Error::other)?;
-                    // grow as points decode, never by the header's claim alone
-                    let step = 65_536usize;
-                    let mut done = 0u64;
-                    while done < piece.points {
-                        let n = (piece.points - done).min(step as u64) as usize;
-                        let at = out.len();
-                        out.resize(at + n * rl, 0);
-                        d.decompress_many(&mut out[at..])?;
-                        done += n as u64;
-                    }
-                    Ok(())
-                }));
-                if let (Ok(Ok(())), Some(s)) = (&r, &self.skip) {
-                    s.clear(&mut out, rl);
-                }
-                match r {
-                    Ok(Ok(())) => Ok(Cow::Owned(out)),
-                    Ok(Err(error)) => Err(Error::Laz { path: self.path.clone(), error: LazError::DataCorrupt { error } }),
-                    Err(_) => Err(Error::Laz { path: self.path.clone(), error: LazError::DataGaveUp }),
-                }
             }
         }
     }
 }
+
+/// LASzip's compressor 1: one pointwise stream, no chunks.
+const POINTWISE: u16 = 1;
 
 fn check_laz_items(vlr: &laz::LazVlr) -> std::result::Result<(), LazError> {
     use laz::LazItemType as T;
@@ -561,9 +776,6 @@ fn read_chunk_table(
         } else {
             vlr.chunk_size() as u64
         };
-        if points > MAX_LAZ_CHUNK_POINTS {
-            return Err(LazError::ChunkTooLarge { chunk: i, points });
-        }
         // The decoded chunk is allocated from this claim: bound it by the chunk's bytes (fuzz
         // regression laz-chunk-points).
         if points > e.byte_count.saturating_mul(MAX_LAZ_POINTS_PER_BYTE).max(1) {

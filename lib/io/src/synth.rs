@@ -4,11 +4,34 @@
 //! The scene: rolling terrain (sum of sines) with blocky buildings and round tree crowns, sampled
 //! along zig-zag scan lines like an airborne strip, with GPS time increasing along the scan,
 //! intensity and RGB derived from height and class. Points are LAS point format 3 records.
+//!
+//! Hostile shapes for the memory budget's tests and benchmarks (the stress cases of
+//! copc_converter's CI): every point at one position ([`Shape::Coincident`]), a uniform cube
+//! ([`Shape::Cube`]), every record eight times ([`Shape::Duplicates`]), wide extra bytes
+//! ([`SynthOptions::extra_bytes`], described by an Extra Bytes VLR) and LAZ chunks of any size
+//! ([`write_file`]'s `laz_chunk`, e.g. one chunk for the whole file).
 
-use crate::las::Header;
-use crate::sort::PieceStats;
+use crate::dataset::SourceMeta;
+use crate::error::Result;
+use crate::las::{Header, Vlr};
+use crate::sink_las::{LasSink, Target};
+use crate::sort::{OrderedSink, PieceStats};
 use mortar_core::layout::RecordLayout;
 use rayon::prelude::*;
+
+/// Where the points are.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Shape {
+    /// The airborne-like scene (terrain, buildings, trees along scan lines).
+    #[default]
+    Airborne,
+    /// Every point at the scene's centre (attributes still differ from point to point).
+    Coincident,
+    /// Uniform in a cube of the extent's side.
+    Cube,
+    /// The airborne scene with every record written eight times in a row, byte for byte.
+    Duplicates,
+}
 
 /// What to generate.
 #[derive(Clone, Debug)]
@@ -20,6 +43,69 @@ pub struct SynthOptions {
     pub scale: f64,
     /// World position of the scene's corner (e.g. 6.4e6 for ECEF-scale coordinates).
     pub origin: [f64; 3],
+    pub shape: Shape,
+    /// Extra bytes per record (after the 34 of point format 3), at most 255: one undocumented
+    /// extra-bytes field, filled with bytes that differ from point to point.
+    pub extra_bytes: usize,
+}
+
+impl Default for SynthOptions {
+    fn default() -> Self {
+        SynthOptions { points: 1_000_000, seed: 1, extent: 1000.0, scale: 0.001, origin: [500_000.0, 5_000_000.0, 0.0], shape: Shape::Airborne, extra_bytes: 0 }
+    }
+}
+
+impl SynthOptions {
+    /// The record layout of the generated points.
+    pub fn layout(&self) -> RecordLayout {
+        RecordLayout::new(3, 34 + self.extra_bytes).expect("point format 3 with extra bytes")
+    }
+}
+
+/// The Extra Bytes VLR (LAS 1.4 R15 §2.5) of `n` undocumented bytes (data type 0, options: size).
+fn extra_bytes_vlr(n: usize) -> Vlr {
+    let mut d = vec![0u8; 192];
+    d[2] = 0;
+    d[3] = n as u8;
+    d[4..4 + 5].copy_from_slice(b"synth");
+    d[160..160 + 17].copy_from_slice(b"mortar-gen filler");
+    let mut user_id = [0u8; 16];
+    user_id[..9].copy_from_slice(b"LASF_Spec");
+    Vlr { reserved: 0, user_id, record_id: 4, description: [0; 32], data: d }
+}
+
+/// Writes the generated points to `output` (LAS, or LAZ by the extension; `laz_chunk` points
+/// per LAZ chunk, default 50,000), through the LAS writer (temporary name, then rename).
+pub fn write_file(o: &SynthOptions, output: &str, laz_chunk: Option<u32>) -> Result<()> {
+    let mut header = header(o);
+    let layout = o.layout();
+    header.record_len = layout.record_len as u16;
+    let grid = mortar_core::grid::Grid { scale: header.scale, offset: header.offset };
+    let vlrs = if o.extra_bytes > 0 { vec![extra_bytes_vlr(o.extra_bytes)] } else { Vec::new() };
+    let template = SourceMeta { header, vlrs, evlrs: Vec::new(), layout, grid };
+    let compressed = output.to_ascii_lowercase().ends_with(".laz");
+    let mut sink = LasSink::new(Target::parse(output), compressed, template, &std::env::temp_dir())?;
+    if let Some(n) = laz_chunk {
+        sink.laz_chunk_size(n);
+    }
+    // statistics first (the header needs bounds), then the points
+    let step = 1u64 << 22;
+    let mut total = PieceStats::default();
+    let mut first = 0;
+    while first < o.points {
+        let n = step.min(o.points - first);
+        total.merge(&records(o, first, n).1);
+        first += n;
+    }
+    sink.begin(&total.summary())?;
+    let mut first = 0;
+    while first < o.points {
+        let n = step.min(o.points - first);
+        sink.write(&records(o, first, n).0)?;
+        first += n;
+    }
+    sink.finish()?;
+    Ok(())
 }
 
 fn mix(mut z: u64) -> u64 {
@@ -92,15 +178,17 @@ fn line_len(o: &SynthOptions) -> u64 {
     ((o.points as f64).sqrt() as u64).max(1)
 }
 
-/// Generates points `first..first + n` as point format 3 records (in scan order).
+/// Generates points `first..first + n` as point format 3 records (in scan order), with
+/// [`SynthOptions::extra_bytes`] after each.
 pub fn records(o: &SynthOptions, first: u64, n: u64) -> (Vec<u8>, PieceStats) {
-    let rl = 34;
+    let rl = 34 + o.extra_bytes;
     let mut out = vec![0u8; n as usize * rl];
     let per_line = line_len(o);
     let lines = o.points.div_ceil(per_line).max(1);
     out.par_chunks_mut(rl * 4096).enumerate().for_each(|(c, chunk)| {
         for (k, r) in chunk.chunks_exact_mut(rl).enumerate() {
-            let i = first + (c * 4096 + k) as u64;
+            let at = first + (c * 4096 + k) as u64;
+            let i = if o.shape == Shape::Duplicates { at / 8 } else { at };
             let h = mix(o.seed.wrapping_mul(0x2545_f491_4f6c_dd1d) ^ i);
             let line = i / per_line;
             let mut t = (i % per_line) as f64 / per_line as f64;
@@ -111,6 +199,11 @@ pub fn records(o: &SynthOptions, first: u64, n: u64) -> (Vec<u8>, PieceStats) {
             let y = (t + 0.5 * unit(h >> 9) / per_line as f64) * o.extent;
             let (mut z, class) = surface(x, y, o.seed);
             z += 0.05 * (unit(h >> 17) - 0.5);
+            let (x, y, z) = match o.shape {
+                Shape::Airborne | Shape::Duplicates => (x, y, z),
+                Shape::Coincident => (o.extent / 2.0, o.extent / 2.0, 50.0),
+                Shape::Cube => (unit(mix(h ^ 0x1b87_3593)) * o.extent, unit(mix(h ^ 0xcc9e_2d51)) * o.extent, unit(mix(h ^ 0x5bd1_e995)) * o.extent),
+            };
             let xi = (x / o.scale).round() as i32;
             let yi = (y / o.scale).round() as i32;
             let zi = (z / o.scale).round() as i32;
@@ -134,8 +227,13 @@ pub fn records(o: &SynthOptions, first: u64, n: u64) -> (Vec<u8>, PieceStats) {
             for (j, c) in [cr, cg, cb].iter().enumerate() {
                 r[28 + 2 * j..30 + 2 * j].copy_from_slice(&(c * 256).to_le_bytes());
             }
+            let mut e = h;
+            for b in r[34..].iter_mut() {
+                e = e.rotate_left(8);
+                *b = e as u8;
+            }
         }
     });
-    let s = PieceStats::of(&out, &RecordLayout::new(3, 34).unwrap());
+    let s = PieceStats::of(&out, &o.layout());
     (out, s)
 }

@@ -9,7 +9,7 @@ use mortar_io::sort::{sort, OrderedSink, SortOptions};
 use mortar_io::synth::{self, SynthOptions};
 
 fn make_batch_file(dir: &std::path::Path, compression: Compression) -> (std::path::PathBuf, Vec<u8>) {
-    let o = SynthOptions { points: 50_000, seed: 7, extent: 300.0, scale: 0.001, origin: [500_000.0, 5_000_000.0, 0.0] };
+    let o = SynthOptions { points: 50_000, seed: 7, extent: 300.0, scale: 0.001, origin: [500_000.0, 5_000_000.0, 0.0], ..SynthOptions::default() };
     let layout = RecordLayout::new(3, 34).unwrap();
     let header = synth::header(&o);
     let grid = mortar_core::grid::Grid { scale: header.scale, offset: header.offset };
