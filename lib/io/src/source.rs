@@ -12,7 +12,7 @@
 //! - compressor 1 (pointwise, LASzip 1.x and early LAStools): one arithmetic stream from the first
 //!   byte of the point data, no chunk table and no offset. It is read as one chunk.
 //!
-//! A chunk of more than [`LAZ_PIECE_POINTS`] points (a pointwise file, a writer that put millions
+//! A chunk of more than [`piece_points`] points (a pointwise file, a writer that put millions
 //! of points in one chunk) is not decoded whole: it is cut into pieces of that many points, read
 //! by decoders that go through the chunk in order and are kept between pieces ([`Streams`]), so
 //! the memory a piece needs is bounded whatever the chunk's size. The same holds for fixed-size
@@ -27,11 +27,20 @@ use std::io::{Read, Seek, SeekFrom};
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 
-/// Points per piece of a LAS file.
+/// Most points per piece of a LAS file.
 pub const LAS_PIECE_POINTS: u64 = 1 << 20;
-/// Points per piece of a LAZ chunk larger than that (and of a LAZ stream without a chunk
+/// Most points per piece of a LAZ chunk larger than that (and of a LAZ stream without a chunk
 /// table): what bounds the memory one piece needs. Real chunks hold 50,000 points.
 pub const LAZ_PIECE_POINTS: u64 = 1 << 20;
+/// Most bytes of records per piece: wide records (extra bytes) make pieces of fewer points, so
+/// that a piece stays a small part of a memory budget (`--memory`).
+pub const PIECE_BYTES: u64 = 36 << 20;
+
+/// Points per piece for records of `record_len` bytes: [`LAS_PIECE_POINTS`] (1 Mi), fewer where
+/// that would be more than [`PIECE_BYTES`] (records over 36 bytes).
+pub fn piece_points(record_len: usize) -> u64 {
+    (PIECE_BYTES / record_len.max(1) as u64).clamp(4096, LAS_PIECE_POINTS)
+}
 
 /// Most decoders part-way through a chunk that a file keeps for its next pieces.
 const MAX_IDLE_STREAMS: usize = 64;
@@ -407,6 +416,7 @@ impl LasInput {
                 }
             }
             let pointwise = compressor == POINTWISE;
+            let per_piece = piece_points(h.record_len as usize);
             let mut first = 0;
             let mut add = |chunk: usize, skip: u64, points: u64, whole: bool| {
                 pieces.push(Piece { index: pieces.len(), first_point: first, points });
@@ -417,18 +427,18 @@ impl LasInput {
                 Kind::Laz { chunks, .. } => {
                     for (i, c) in chunks.iter().enumerate() {
                         // a pointwise stream is read as a stream, which reports where it ends
-                        if c.points <= LAZ_PIECE_POINTS && !pointwise {
+                        if c.points <= per_piece && !pointwise {
                             add(i, 0, c.points, true);
                         } else {
-                            for skip in (0..c.points).step_by(LAZ_PIECE_POINTS as usize) {
-                                add(i, skip, LAZ_PIECE_POINTS.min(c.points - skip), false);
+                            for skip in (0..c.points).step_by(per_piece as usize) {
+                                add(i, skip, per_piece.min(c.points - skip), false);
                             }
                         }
                     }
                 }
                 _ => {
-                    for skip in (0..point_count).step_by(LAZ_PIECE_POINTS as usize) {
-                        add(0, skip, LAZ_PIECE_POINTS.min(point_count - skip), false);
+                    for skip in (0..point_count).step_by(per_piece as usize) {
+                        add(0, skip, per_piece.min(point_count - skip), false);
                     }
                 }
             }
@@ -454,7 +464,7 @@ impl LasInput {
             let mut first = 0;
             let mut i = 0;
             while first < point_count {
-                let n = LAS_PIECE_POINTS.min(point_count - first);
+                let n = piece_points(rl as usize).min(point_count - first);
                 pieces.push(Piece { index: i, first_point: first, points: n });
                 first += n;
                 i += 1;

@@ -265,6 +265,37 @@ impl NodeWriter for CopcWriter<'_> {
         Ok(())
     }
 
+    fn write_node_slices(&mut self, key: NodeKey, points: usize, slice: usize, records: &(dyn Fn(std::ops::Range<usize>) -> Vec<u8> + Sync)) -> Result<()> {
+        sort::check_interrupted()?;
+        let rl = self.frame.out.record_len;
+        let path = self.tmp.path().to_path_buf();
+        let io = |e: std::io::Error| Error::io(&path, e);
+        // One chunk, compressed slice by slice (the same bytes as `encode_chunk` of all).
+        let mut c = LayeredPointRecordCompressor::new(Cursor::new(Vec::new()));
+        c.set_fields_from(&self.items).map_err(|e| io(std::io::Error::other(e)))?;
+        let mut t = (f64::INFINITY, f64::NEG_INFINITY);
+        for s in (0..points).step_by(slice) {
+            sort::check_interrupted()?;
+            let recs = records(s..(s + slice).min(points));
+            c.compress_many(&recs).map_err(io)?;
+            for r in recs.chunks_exact(rl) {
+                let g = f64::from_le_bytes(r[22..30].try_into().expect("8 bytes"));
+                t = (t.0.min(g), t.1.max(g));
+            }
+            self.ds.progress.add((recs.len() / rl) as u64);
+        }
+        c.done().map_err(io)?;
+        let chunk = c.into_inner().into_inner();
+        self.w.write_all(&chunk).map_err(io)?;
+        let n = points as u64;
+        self.placed.insert(key, Placed { offset: self.pos, bytes: chunk.len() as u64, points: n });
+        self.table.push(ChunkTableEntry { point_count: n, byte_count: chunk.len() as u64 });
+        self.pos += chunk.len() as u64;
+        self.points += n;
+        self.gps = (self.gps.0.min(t.0), self.gps.1.max(t.1));
+        Ok(())
+    }
+
     fn finish(mut self: Box<Self>, tree: &[OutNode], stats: &PieceStats, report: &mut ExportReport) -> Result<()> {
         let path = self.tmp.path().to_path_buf();
         let io = |e| Error::io(&path, e);

@@ -116,7 +116,7 @@ pub fn export(ds: &Dataset, out: &Path, opts: &ExportOptions) -> Result<ExportRe
         ExportFormat::Copc => "copc",
         ExportFormat::Potree => "potree",
     };
-    let tree = if eng::in_memory_need(ds) <= opts.memory && ds.declared_points() < u32::MAX as u64 {
+    let tree = if in_memory_need(ds, opts.memory) <= opts.memory && ds.declared_points() < u32::MAX as u64 {
         report.engine = "memory";
         in_memory(ds, out, opts, &mut report)?
     } else {
@@ -137,10 +137,7 @@ fn in_memory(ds: &Dataset, out: &Path, opts: &ExportOptions, report: &mut Export
     let mut w = open_writer(ds, prep.frame.clone(), out, opts.format, report)?;
     let points: u64 = prep.nodes.iter().map(|n| n.points.len() as u64).sum();
     ds.progress.stage("writing", points, "points");
-    for grp in groups(&prep.nodes, prep.frame.out.record_len, GROUP_BYTES) {
-        let batch: Vec<(NodeKey, Vec<u8>)> = prep.nodes[grp].par_iter().filter(|n| !n.points.is_empty()).map(|n| (n.key, prep.node_records(n))).collect();
-        w.write_nodes(batch)?;
-    }
+    write_grouped(&mut *w, &prep.nodes, prep.frame.out.record_len, group_bytes(opts.memory), &|n, r| prep.node_records(n, r))?;
     let shape: Vec<OutNode> = prep.nodes.iter().map(OutNode::shape).collect();
     w.finish(&shape, &prep.stats, report)?;
     report.write_seconds = tw.elapsed().as_secs_f64();
@@ -177,6 +174,11 @@ pub(crate) trait NodeWriter {
     /// Encodes `nodes` (each its key and its output records, in order; none empty) in
     /// parallel and appends them in order.
     fn write_nodes(&mut self, nodes: Vec<(NodeKey, Vec<u8>)>) -> Result<()>;
+    /// Appends one node of `points` points (not none) whose output records come in slices,
+    /// `records(range)` giving those of the points `range`: a node larger than a group (points
+    /// at one position, beyond the depth limit) is encoded without all its records in memory.
+    /// The bytes written are those [`write_nodes`](Self::write_nodes) writes for the node.
+    fn write_node_slices(&mut self, key: NodeKey, points: usize, slice: usize, records: &(dyn Fn(std::ops::Range<usize>) -> Vec<u8> + Sync)) -> Result<()>;
     /// Writes the hierarchy of `tree` (every node that holds points or has such nodes below,
     /// with its children mask; its points are not looked at) and the metadata, and moves the
     /// output into place; sets `report.points` and `report.bytes`.
@@ -242,9 +244,10 @@ pub(crate) struct Prepared {
 }
 
 impl Prepared {
-    /// The output records of a node, in its order.
-    pub(crate) fn node_records(&self, n: &OutNode) -> Vec<u8> {
-        output_records(n.points.iter().map(|&i| self.sorted.record(i as usize)), n.points.len(), self.sorted.rl, self.out.record_len, &self.conv, &self.stretch)
+    /// The output records of the points `range` of a node, in its order.
+    pub(crate) fn node_records(&self, n: &OutNode, range: std::ops::Range<usize>) -> Vec<u8> {
+        let pts = &n.points[range];
+        output_records(pts.iter().map(|&i| self.sorted.record(i as usize)), pts.len(), self.sorted.rl, self.out.record_len, &self.conv, &self.stretch)
     }
 }
 
@@ -448,8 +451,40 @@ pub(crate) fn groups(nodes: &[OutNode], record_len: usize, bytes: u64) -> Vec<st
     out
 }
 
+/// Writes the nodes `nodes` in groups of about `bytes` of output records: the nodes of a group
+/// converted (`records(node, range)`: the output records of the node's points `range`) and
+/// encoded in parallel, a node larger than a group alone and in slices, so the records held
+/// at once stay within about `bytes` whatever the density.
+pub(crate) fn write_grouped(w: &mut dyn NodeWriter, nodes: &[OutNode], record_len: usize, bytes: u64, records: &(dyn Fn(&OutNode, std::ops::Range<usize>) -> Vec<u8> + Sync)) -> Result<()> {
+    let slice = (bytes / record_len.max(1) as u64).max(1) as usize;
+    for grp in groups(nodes, record_len, bytes) {
+        let big = grp.len() == 1 && nodes[grp.start].points.len() > slice;
+        if big {
+            let n = &nodes[grp.start];
+            w.write_node_slices(n.key, n.points.len(), slice, &|r| records(n, r))?;
+        } else {
+            let batch: Vec<(NodeKey, Vec<u8>)> = nodes[grp].par_iter().filter(|n| !n.points.is_empty()).map(|n| (n.key, records(n, 0..n.points.len()))).collect();
+            w.write_nodes(batch)?;
+        }
+    }
+    Ok(())
+}
+
 /// Bytes of output records encoded per group.
 pub(crate) const GROUP_BYTES: u64 = 64 << 20;
+
+/// Memory the in-memory export needs for `ds` under the budget `memory` (resident pages): what
+/// the sorted build engine holds (the records as read and sorted, 16 bytes per point), each
+/// point's place in its node (4 bytes and a bit), and two groups of output records.
+pub(crate) fn in_memory_need(ds: &Dataset, memory: u64) -> u64 {
+    eng::held_in_memory(ds, 16 + 5).saturating_add(2 * group_bytes(memory))
+}
+
+/// The output records converted and encoded at once under the budget `memory`: a sixteenth of
+/// it, between 4 MiB and [`GROUP_BYTES`] (node order and output bytes do not depend on it).
+pub(crate) fn group_bytes(memory: u64) -> u64 {
+    (memory / 16).clamp(4 << 20, GROUP_BYTES)
+}
 
 #[cfg(test)]
 mod tests {

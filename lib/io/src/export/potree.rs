@@ -154,6 +154,31 @@ pub(crate) struct PotreeWriter<'a> {
     points: u64,
 }
 
+/// The DEFAULT encoding of output records `recs` (`rl` bytes each): the attributes of each
+/// point in turn, and each value's range.
+fn encode_records(attrs: &[Attr], nvals: usize, recs: &[u8], rl: usize) -> (Vec<u8>, Vec<f64>, Vec<f64>) {
+    let bpp: usize = attrs.iter().map(|a| a.elem * a.num).sum();
+    let mut b = Vec::with_capacity(recs.len() / rl * bpp);
+    let mut l = vec![f64::INFINITY; nvals];
+    let mut h = vec![f64::NEG_INFINITY; nvals];
+    for r in recs.chunks_exact(rl) {
+        let mut v = 0;
+        for a in attrs {
+            match a.bits {
+                Some((s, m)) => b.push((r[a.at] >> s) & m),
+                None => b.extend_from_slice(&r[a.at..a.at + a.elem * a.num]),
+            }
+            for e in 0..a.num {
+                let x = value(a, r, e);
+                l[v] = l[v].min(x);
+                h[v] = h[v].max(x);
+                v += 1;
+            }
+        }
+    }
+    (b, l, h)
+}
+
 impl<'a> PotreeWriter<'a> {
     /// Makes the temporary directory and opens `octree.bin` in it.
     pub(crate) fn create(ds: &'a Dataset, frame: Frame, out: &Path) -> Result<PotreeWriter<'a>> {
@@ -186,31 +211,12 @@ impl NodeWriter for PotreeWriter<'_> {
     fn write_nodes(&mut self, nodes: Vec<(NodeKey, Vec<u8>)>) -> Result<()> {
         sort::check_interrupted()?;
         let rl = self.frame.out.record_len;
-        let bpp: usize = self.attrs.iter().map(|a| a.elem * a.num).sum();
         let (attrs, nvals, progress) = (&self.attrs, self.nvals, &self.ds.progress);
         let enc: Vec<(Vec<u8>, Vec<f64>, Vec<f64>)> = nodes
             .par_iter()
             .map(|(_, recs)| {
-                let mut b = Vec::with_capacity(recs.len() / rl * bpp);
-                let mut l = vec![f64::INFINITY; nvals];
-                let mut h = vec![f64::NEG_INFINITY; nvals];
-                for r in recs.chunks_exact(rl) {
-                    let mut v = 0;
-                    for a in attrs {
-                        match a.bits {
-                            Some((s, m)) => b.push((r[a.at] >> s) & m),
-                            None => b.extend_from_slice(&r[a.at..a.at + a.elem * a.num]),
-                        }
-                        for e in 0..a.num {
-                            let x = value(a, r, e);
-                            l[v] = l[v].min(x);
-                            h[v] = h[v].max(x);
-                            v += 1;
-                        }
-                    }
-                }
                 progress.add((recs.len() / rl) as u64);
-                (b, l, h)
+                encode_records(attrs, nvals, recs, rl)
             })
             .collect();
         for ((key, recs), (b, l, h)) in nodes.iter().zip(enc) {
@@ -224,6 +230,26 @@ impl NodeWriter for PotreeWriter<'_> {
                 self.hi[v] = self.hi[v].max(h[v]);
             }
         }
+        Ok(())
+    }
+
+    fn write_node_slices(&mut self, key: NodeKey, points: usize, slice: usize, records: &(dyn Fn(std::ops::Range<usize>) -> Vec<u8> + Sync)) -> Result<()> {
+        let rl = self.frame.out.record_len;
+        let at = self.pos;
+        for s in (0..points).step_by(slice) {
+            sort::check_interrupted()?;
+            let recs = records(s..(s + slice).min(points));
+            let (b, l, h) = encode_records(&self.attrs, self.nvals, &recs, rl);
+            self.w.write_all(&b).map_err(|e| Error::io(&self.octree_path, e))?;
+            self.pos += b.len() as u64;
+            for v in 0..self.nvals {
+                self.lo[v] = self.lo[v].min(l[v]);
+                self.hi[v] = self.hi[v].max(h[v]);
+            }
+            self.ds.progress.add((recs.len() / rl) as u64);
+        }
+        self.placed.insert(key, (at, self.pos - at, points as u32));
+        self.points += points as u64;
         Ok(())
     }
 

@@ -19,7 +19,7 @@
 //! stretched positions (base: the points' smallest position, so such inputs are read twice).
 //! Refused: a partition cell denser than one unit's budget.
 
-use super::{assign, open_writer, output_layout, stretch_factors, ExportOptions, ExportReport, Frame, NodeWriter, OutNode, PointOrder, Stretch, GROUP_BYTES};
+use super::{assign, open_writer, output_layout, stretch_factors, ExportOptions, ExportReport, Frame, NodeWriter, OutNode, PointOrder, Stretch};
 use crate::cleanup::TempPath;
 use crate::dataset::Dataset;
 use crate::error::{Error, Result};
@@ -27,7 +27,6 @@ use crate::sort;
 use crate::store::partitioned::{cell_depth, partition_all, read_unit, unit_bytes_per_point, Cands, Run};
 use mortar_core::layout::{read_xyz, Conversion};
 use mortar_core::octree::{build_subtree, Cube, NodeKey};
-use rayon::prelude::*;
 use std::path::Path;
 use std::time::Instant;
 
@@ -180,14 +179,12 @@ impl Walk<'_, '_> {
         drop(nodes);
         self.report.tree_seconds += tt.elapsed().as_secs_f64();
         let tw = Instant::now();
-        for grp in super::groups(&assigned, self.out_rl, GROUP_BYTES) {
-            let batch: Vec<(NodeKey, Vec<u8>)> = assigned[grp]
-                .par_iter()
-                .filter(|x| !x.points.is_empty())
-                .map(|x| (x.key, super::output_records(x.points.iter().map(|&i| sorted.record(i as usize)), x.points.len(), rl, self.out_rl, &self.conv, &self.stretch)))
-                .collect();
-            self.writer.write_nodes(batch)?;
-        }
+        let (conv, stretch, out_rl) = (&self.conv, &self.stretch, self.out_rl);
+        let records = |x: &OutNode, r: std::ops::Range<usize>| {
+            let pts = &x.points[r];
+            super::output_records(pts.iter().map(|&i| sorted.record(i as usize)), pts.len(), rl, out_rl, conv, stretch)
+        };
+        super::write_grouped(&mut *self.writer, &assigned, self.out_rl, super::group_bytes(self.opts.memory), &records)?;
         self.report.write_seconds += tw.elapsed().as_secs_f64();
         let kept = assigned.iter().any(|x| x.key == key);
         self.tree.extend(assigned.iter().map(OutNode::shape));

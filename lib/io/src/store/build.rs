@@ -211,6 +211,7 @@ pub fn build(ds: &Dataset, dir: &Path, opts: &BuildOptions, progress: &mut dyn F
             w
         }
     };
+    writer.group_bytes = super::writer::group_bytes(opts.memory);
     // Continued from a commit, or from a partitioned build's state (no commit yet).
     let resumed = writer.commits() > 0 || (opts.resume && writer.guard.is_none());
     let run = |writer: &mut StoreWriter, progress: &mut dyn FnMut(&BuildProgress)| -> Result<BuildReport> {

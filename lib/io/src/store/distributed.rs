@@ -410,6 +410,7 @@ pub fn build_job(ds: &Dataset, plan: &Plan, job: usize, out: &Path, memory: u64)
     remove_stale_attempts(out);
     let tmp = TempPath::beside(out);
     let mut writer = StoreWriter::create(tmp.path(), &ds.source_meta())?;
+    writer.group_bytes = super::writer::group_bytes(memory);
     let state = tmp.path().join(".partition");
     std::fs::create_dir_all(&state).map_err(|e| Error::io(&state, e))?;
     ds.progress.stage("reading", pj.inputs.iter().map(|&i| plan.inputs[i].points).sum(), "points");
@@ -609,7 +610,7 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> Result<MergeReport> {
     let np = dir.join(NODES_FILE);
     let nodes_file = std::fs::File::create(&np).map_err(|e| Error::io(&np, e))?;
     let reader = std::fs::File::open(&np).map_err(|e| Error::io(&np, e))?;
-    let mut writer = StoreWriter { dir: dir.clone(), nodes: nodes_file, reader, nodes_len: 0, entries: Vec::new(), commit: 0, last_revision: None, record_len: rl, guard: None };
+    let mut writer = StoreWriter { dir: dir.clone(), nodes: nodes_file, reader, nodes_len: 0, entries: Vec::new(), commit: 0, last_revision: None, record_len: rl, guard: None, group_bytes: super::writer::COMMIT_GROUP_BYTES };
     // The subtrees' candidates and counts.
     let mut subtrees: HashMap<NodeKey, (u64, Cands, usize)> = HashMap::new();
     for (pi, p) in parts.iter().enumerate() {

@@ -34,19 +34,43 @@ const PER_POINT: u64 = 16;
 /// points at 20 M points, sorted in cache.
 pub(super) const BUCKET_BITS: u32 = 11;
 
-/// Memory the sorted engine needs for `ds`: the records sorted (and, for compressed inputs,
-/// decoded: mapped LAS is read in place), 16 bytes per point, and two groups of encoded
-/// payloads.
-pub fn in_memory_need(ds: &Dataset) -> u64 {
+/// Memory the sorted engine needs for `ds` under the budget `memory`, as the OS counts it
+/// (resident pages): the records as read (decoded LAZ, converted records, or the pages of a
+/// mapped LAS file, resident once read), the records sorted, 16 bytes per point, and two
+/// groups of encoded payloads ([`group_bytes`]).
+pub fn in_memory_need(ds: &Dataset, memory: u64) -> u64 {
+    held_in_memory(ds, PER_POINT).saturating_add(2 * group_bytes(memory))
+}
+
+/// The records as read and as sorted, and `per_point` bytes more per point.
+pub(crate) fn held_in_memory(ds: &Dataset, per_point: u64) -> u64 {
     let rl = ds.layout.record_len as u64;
     let points = ds.declared_points();
-    let buffered: u64 = ds.inputs.iter().enumerate().filter(|(i, _)| ds.needs_buffer(*i)).map(|(_, s)| s.point_count().saturating_mul(rl)).sum();
-    buffered.saturating_add(points.saturating_mul(rl + PER_POINT)).saturating_add(2 * COMMIT_GROUP_BYTES)
+    let read: u64 = ds.inputs.iter().map(|s| s.point_count().saturating_mul(s.layout().record_len as u64)).sum();
+    // a mapped LAS file whose records are converted is held mapped and converted
+    let converted: u64 = ds.inputs.iter().enumerate().filter(|(i, s)| ds.needs_buffer(*i) && !s.is_compressed()).map(|(_, s)| s.point_count().saturating_mul(rl)).sum();
+    read.saturating_add(converted).saturating_add(points.saturating_mul(rl + per_point))
+}
+
+/// Writes the payload of node `n` (of the records `sorted`) at `off` in slices of about the
+/// writer's group: a node larger than a group (points at one position, beyond the depth limit)
+/// is never encoded whole in memory. The same bytes as [`encode_payload`].
+pub(crate) fn write_sliced(w: &StoreWriter, off: u64, n: &SortedNode, attr_len: usize, sorted: &Sorted, color: &ColorSource) -> Result<NodeEntry> {
+    let (kind, idx): (u32, Box<dyn Fn(usize) -> usize + Sync>) = match &n.content {
+        SortedContent::Leaf(r) => {
+            let s = r.start;
+            (LEAF, Box::new(move |i| s + i))
+        }
+        SortedContent::Inner(v) => (INNER, Box::new(move |i| v[i] as usize)),
+    };
+    let slice = (w.group_bytes / (16 + attr_len as u64)).max(1) as usize;
+    let r = write_payload_sliced(n.key, kind, n.count(), attr_len, slice, |i| read_xyz(sorted.record(idx(i))), |i| color.rgba(sorted.record(idx(i))), |i| &sorted.record(idx(i))[12..], |at, b| w.write_at(off + at, b))?;
+    r.map_err(|error| Error::Payload { path: w.dir.clone(), error })
 }
 
 /// Whether the sorted engine builds `ds` with `opts`.
 pub fn applies(ds: &Dataset, opts: &BuildOptions) -> bool {
-    opts.config.color_mode == ColorMode::FirstCome && in_memory_need(ds) <= opts.memory && ds.declared_points() < u32::MAX as u64
+    opts.config.color_mode == ColorMode::FirstCome && in_memory_need(ds, opts.memory) <= opts.memory && ds.declared_points() < u32::MAX as u64
 }
 
 /// The Morton grid whose codes order points as the octree over `root` needs: origin at the
@@ -360,7 +384,7 @@ fn write_tree(
             sort::check_interrupted()?;
             let mut end = start;
             let mut bytes = 0u64;
-            while end < level.end && (end == start || bytes < COMMIT_GROUP_BYTES) {
+            while end < level.end && (end == start || bytes < writer.group_bytes) {
                 bytes += payload_len(tree.nodes[end].count() as u64, attr_len as u64);
                 end += 1;
             }
@@ -371,8 +395,14 @@ fn write_tree(
                 .into_par_iter()
                 .zip(offsets.into_par_iter())
                 .map(|(i, off)| {
-                    let (_, mut e, b) = encode(i, &tree.nodes[i])?;
-                    w.write_at(off, &b)?;
+                    let n = &tree.nodes[i];
+                    let mut e = if payload_len(n.count() as u64, attr_len as u64) > w.group_bytes {
+                        write_sliced(w, off, n, attr_len, &sorted, &color)?
+                    } else {
+                        let (_, e, b) = encode(i, n)?;
+                        w.write_at(off, &b)?;
+                        e
+                    };
                     prog.add(1);
                     e.offset = off;
                     Ok(e)

@@ -261,3 +261,77 @@ pub(crate) fn encode_payload<'r>(
     let entry = NodeEntry { level: key.level as u32, kind, index: key.index, _pad: 0, count: count as u64, offset: 0, length: len as u64 };
     Ok((entry, out))
 }
+
+/// [`encode_payload`] for a node too large to hold encoded in memory (points at one position,
+/// beyond the depth limit): the same bytes, written by `write(offset in the payload, bytes)`
+/// column by column in slices of `slice` points, each slice encoded in parallel. Returns the
+/// entry (its `offset` left 0).
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn write_payload_sliced<'r, E>(
+    key: NodeKey,
+    kind: u32,
+    count: usize,
+    attr_len: usize,
+    slice: usize,
+    pos: impl Fn(usize) -> [i32; 3] + Sync,
+    color: impl Fn(usize) -> u32 + Sync,
+    attrs: impl Fn(usize) -> &'r [u8] + Sync,
+    mut write: impl FnMut(u64, &[u8]) -> std::result::Result<(), E>,
+) -> std::result::Result<std::result::Result<NodeEntry, PayloadError>, E> {
+    use rayon::prelude::*;
+    if count > u32::MAX as usize {
+        return Ok(Err(PayloadError::TooManyPoints { node: key.name(), count }));
+    }
+    let (lo, hi) = (0..count).into_par_iter().fold(
+        || ([i32::MAX; 3], [i32::MIN; 3]),
+        |(mut lo, mut hi), i| {
+            let p = pos(i);
+            for a in 0..3 {
+                lo[a] = lo[a].min(p[a]);
+                hi[a] = hi[a].max(p[a]);
+            }
+            (lo, hi)
+        },
+    ).reduce(|| ([i32::MAX; 3], [i32::MIN; 3]), |a, b| ([0, 1, 2].map(|k| a.0[k].min(b.0[k])), [0, 1, 2].map(|k| a.1[k].max(b.1[k]))));
+    let (lo, hi) = if count == 0 { ([0; 3], [0; 3]) } else { (lo, hi) };
+    let Some(grid) = BatchGrid::for_bounds(lo, hi) else { return Ok(Err(PayloadError::TooWide { node: key.name() })) };
+    let len = payload_len(count as u64, attr_len as u64);
+    let header = NodeHeader {
+        magic: NODE_MAGIC,
+        level: key.level as u32,
+        kind,
+        index: key.index,
+        count: count as u32,
+        min: grid.min,
+        bits: [grid.bits[0], grid.bits[1], grid.bits[2], 0],
+        attr_len: attr_len as u32,
+        _pad: [0; 3],
+    };
+    write(0, bytemuck::bytes_of(&header))?;
+    let n = count as u64;
+    let slice = slice.max(1);
+    for s in (0..count).step_by(slice) {
+        let e = (s + slice).min(count);
+        let m = e - s;
+        let mut cols = vec![0u8; 16 * m];
+        let mut at = vec![0u8; attr_len * m];
+        cols.par_chunks_mut(4).zip(0..4 * m).for_each(|(c, j)| {
+            let (col, i) = (j / m, s + j % m);
+            let v = if col < 3 { grid.encode(pos(i))[col] } else { color(i) };
+            c.copy_from_slice(&v.to_le_bytes());
+        });
+        if attr_len > 0 {
+            at.par_chunks_mut(attr_len).enumerate().for_each(|(k, a)| a.copy_from_slice(attrs(s + k)));
+        }
+        for col in 0..4u64 {
+            let c = col as usize;
+            write(64 + col * 4 * n + 4 * s as u64, &cols[4 * m * c..4 * m * (c + 1)])?;
+        }
+        write(64 + 16 * n + (s * attr_len) as u64, &at)?;
+    }
+    let end = 64 + n * (16 + attr_len as u64);
+    if len > end {
+        write(end, &vec![0u8; (len - end) as usize])?;
+    }
+    Ok(Ok(NodeEntry { level: key.level as u32, kind, index: key.index, _pad: 0, count: n, offset: 0, length: len }))
+}

@@ -277,23 +277,41 @@ pub(crate) struct Run {
 }
 
 /// A fast 64-bit checksum (8 bytes per step), in parallel over 1 MiB blocks for large inputs.
+/// [`checksum`] of the `len` bytes of `nodes.bin` at `off` (a payload written in slices), read
+/// back a block at a time.
+fn checksum_at(w: &StoreWriter, off: u64, len: u64) -> Result<u64> {
+    use std::os::unix::fs::FileExt;
+    let path = w.dir.join(NODES_FILE);
+    let read = |at: u64, n: usize| -> Result<Vec<u8>> {
+        let mut b = vec![0u8; n];
+        w.reader.read_exact_at(&mut b, off + at).map_err(|e| Error::io(&path, e))?;
+        Ok(b)
+    };
+    if len <= 1 << 20 {
+        return Ok(checksum(&read(0, len as usize)?));
+    }
+    let parts: Vec<u64> = (0..len.div_ceil(1 << 20)).into_par_iter().map(|k| Ok(checksum_block(&read(k << 20, ((len - (k << 20)).min(1 << 20)) as usize)?))).collect::<Result<_>>()?;
+    Ok(checksum_block(bytemuck::cast_slice(&parts)))
+}
+
+fn checksum_block(b: &[u8]) -> u64 {
+    let mut h = 0x243f_6a88_85a3_08d3u64 ^ b.len() as u64;
+    let mut words = b.chunks_exact(8);
+    for w in &mut words {
+        h = (h ^ u64::from_le_bytes(w.try_into().expect("8 bytes"))).wrapping_mul(0x9e37_79b9_7f4a_7c15).rotate_left(29);
+    }
+    for &x in words.remainder() {
+        h = (h ^ x as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15).rotate_left(29);
+    }
+    h
+}
+
 fn checksum(b: &[u8]) -> u64 {
-    fn block(b: &[u8]) -> u64 {
-        let mut h = 0x243f_6a88_85a3_08d3u64 ^ b.len() as u64;
-        let mut words = b.chunks_exact(8);
-        for w in &mut words {
-            h = (h ^ u64::from_le_bytes(w.try_into().expect("8 bytes"))).wrapping_mul(0x9e37_79b9_7f4a_7c15).rotate_left(29);
-        }
-        for &x in words.remainder() {
-            h = (h ^ x as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15).rotate_left(29);
-        }
-        h
-    }
     if b.len() <= 1 << 20 {
-        return block(b);
+        return checksum_block(b);
     }
-    let parts: Vec<u64> = b.par_chunks(1 << 20).map(block).collect();
-    block(bytemuck::cast_slice(&parts))
+    let parts: Vec<u64> = b.par_chunks(1 << 20).map(checksum_block).collect();
+    checksum_block(bytemuck::cast_slice(&parts))
 }
 
 /// Points taken from a finished unit or node for its parent: positions, arrival numbers and
@@ -719,7 +737,7 @@ impl Walk<'_, '_> {
         while start < sub.nodes.len() {
             let mut end = start;
             let mut bytes = 0u64;
-            while end < sub.nodes.len() && (end == start || bytes < COMMIT_GROUP_BYTES) {
+            while end < sub.nodes.len() && (end == start || bytes < self.writer.group_bytes) {
                 bytes += payload_len(sub.nodes[end].count() as u64, attr_len as u64);
                 end += 1;
             }
@@ -731,6 +749,11 @@ impl Walk<'_, '_> {
                 .zip(offsets.into_par_iter())
                 .map(|(i, off)| {
                     let nd = &sub.nodes[i];
+                    if payload_len(nd.count() as u64, attr_len as u64) > w.group_bytes {
+                        let mut e = super::engine::write_sliced(w, off, nd, attr_len, &sorted, color)?;
+                        e.offset = off;
+                        return Ok((e, checksum_at(w, off, e.length)?));
+                    }
                     let (kind, idx): (u32, Box<dyn Fn(usize) -> usize + Sync>) = match &nd.content {
                         SortedContent::Leaf(r) => {
                             let s = r.start;

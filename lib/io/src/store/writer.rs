@@ -34,6 +34,8 @@ pub struct StoreWriter {
     pub(crate) record_len: usize,
     /// Registered for removal until the first commit.
     pub(crate) guard: Option<TempPath>,
+    /// Payload bytes encoded at once ([`group_bytes`] of the build's budget).
+    pub(crate) group_bytes: u64,
 }
 
 impl StoreWriter {
@@ -65,6 +67,7 @@ impl StoreWriter {
             last_revision: None,
             record_len: meta.layout.record_len,
             guard: Some(guard),
+            group_bytes: COMMIT_GROUP_BYTES,
         })
     }
 
@@ -99,6 +102,7 @@ impl StoreWriter {
             last_revision: None,
             record_len: meta.layout.record_len,
             guard: None,
+            group_bytes: COMMIT_GROUP_BYTES,
         };
         Ok(Some((w, store.header)))
     }
@@ -120,7 +124,7 @@ impl StoreWriter {
         let nodes = std::fs::OpenOptions::new().write(true).open(&np).map_err(|e| Error::io(&np, e))?;
         let nodes_len = nodes.metadata().map_err(|e| Error::io(&np, e))?.len();
         let reader = File::open(&np).map_err(|e| Error::io(&np, e))?;
-        Ok(Some(StoreWriter { dir: dir.to_path_buf(), nodes, reader, nodes_len, entries: Vec::new(), commit: 0, last_revision: None, record_len: meta.layout.record_len, guard: None }))
+        Ok(Some(StoreWriter { dir: dir.to_path_buf(), nodes, reader, nodes_len, entries: Vec::new(), commit: 0, last_revision: None, record_len: meta.layout.record_len, guard: None, group_bytes: COMMIT_GROUP_BYTES }))
     }
 
     /// Cuts `nodes.bin` to `len` bytes (what a resumed build keeps of it).
@@ -142,7 +146,7 @@ impl StoreWriter {
     /// replaces the hierarchy atomically. `record(h)` returns the full record of the point whose
     /// [`Point::record`] is `h`. A changed leaf with paged-out points ([`NodeView::paged_points`])
     /// is written whole: its last payload is read back and the new points appended. Payloads are
-    /// encoded in parallel in groups of at most [`COMMIT_GROUP_BYTES`], so a commit needs little
+    /// encoded in parallel in groups of at most `group_bytes`, so a commit needs little
     /// memory beyond the nodes themselves. `bounds` are the integer bounds of the points so far.
     pub fn commit<'r>(&mut self, snap: &Snapshot, bounds: ([i32; 3], [i32; 3]), record: &(dyn Fn(u64) -> &'r [u8] + Sync)) -> Result<CommitStats> {
         let changed: Vec<(usize, &NodeView)> = match self.last_revision {
@@ -155,7 +159,7 @@ impl StoreWriter {
         while start < changed.len() {
             let mut end = start;
             let mut bytes = 0u64;
-            while end < changed.len() && (end == start || bytes < COMMIT_GROUP_BYTES) {
+            while end < changed.len() && (end == start || bytes < self.group_bytes) {
                 let n = changed[end].1;
                 bytes += payload_len(n.total_points() + n.voxel_count(), attr_len);
                 end += 1;
@@ -329,6 +333,13 @@ pub const PAGED: u64 = 1 << 63;
 
 /// Most bytes of payloads one commit encodes at once.
 pub const COMMIT_GROUP_BYTES: u64 = 128 << 20;
+
+/// The payload bytes encoded at once under the memory budget `memory`: a sixteenth of it,
+/// between 4 MiB and [`COMMIT_GROUP_BYTES`] (the groups change no output byte: payloads are
+/// placed in the same order whatever their grouping).
+pub fn group_bytes(memory: u64) -> u64 {
+    (memory / 16).clamp(4 << 20, COMMIT_GROUP_BYTES)
+}
 
 
 /// attributes are taken from it; positions and colours from the voxels in memory).
