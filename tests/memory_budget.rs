@@ -26,6 +26,8 @@ fn s(p: &Path) -> &str {
 }
 
 /// Runs `c` to its end; its exit status and peak RSS in bytes, as the kernel counted it.
+// The child is reaped by `wait4`, which clippy does not see.
+#[allow(clippy::zombie_processes)]
 fn peak_rss(mut c: Command) -> (i32, u64, String) {
     c.stdout(std::process::Stdio::null()).stderr(std::process::Stdio::piped());
     let child = c.spawn().expect("spawn");

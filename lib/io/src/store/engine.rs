@@ -397,7 +397,7 @@ fn write_tree(
                 .map(|(i, off)| {
                     let n = &tree.nodes[i];
                     let mut e = if payload_len(n.count() as u64, attr_len as u64) > w.group_bytes {
-                        write_sliced(w, off, n, attr_len, &sorted, &color)?
+                        write_sliced(w, off, n, attr_len, sorted, color)?
                     } else {
                         let (_, e, b) = encode(i, n)?;
                         w.write_at(off, &b)?;
