@@ -49,6 +49,18 @@ pub const BAD_INPUTS: &[&str] = &[
     "PDAL/test/data/las/garbage_nVariableLength.las",
 ];
 
+/// The file an independent reader reads in place of fixture `p`: laspy's lazrs (laz-rs 0.12)
+/// panics on LAZ of LASzip's pointwise compressor ("Variable-size chunks, but no chunk table"),
+/// so checks that read inputs with laspy read its uncompressed twin, which holds the same
+/// points (`tests/old_laz.rs` checks that through mortar and the las crate).
+pub fn laspy_twin(p: &Path) -> PathBuf {
+    let s = p.to_string_lossy();
+    match s.strip_suffix("PDAL/test/data/apps/simple-laszip-compressor-version-1.2r0.laz") {
+        Some(dir) => PathBuf::from(format!("{dir}PDAL/test/data/apps/simple.las")),
+        None => p.to_path_buf(),
+    }
+}
+
 /// Every readable LAS/LAZ fixture (every 8th file of the 290-file EPT set).
 pub fn readable_fixtures(data: &Path) -> Vec<PathBuf> {
     let mut out = Vec::new();
