@@ -175,6 +175,13 @@ pub(crate) fn sort_records(slabs: &[&[u8]], hist: &[Vec<u32>], rl: usize, g: &Mo
             if m < 2 {
                 return;
             }
+            // Every point at one position (a dense bucket of coincident points): the bucket is
+            // already in its order (arrival), and the keys and copies below would cost 74
+            // bytes per point of it.
+            let first = read_xyz(recs);
+            if recs.chunks_exact(rl).all(|r| read_xyz(r) == first) {
+                return;
+            }
             keys.clear();
             keys.extend(recs.chunks_exact(rl).enumerate().map(|(i, r)| Key { code: code_of(r, g), slab: i as u32, idx: 0 }));
             sort::sort_bucket(keys, shift, scratch);
