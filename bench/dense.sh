@@ -30,7 +30,7 @@ input() {  # the input file of a shape
 
 count() {  # points in a COPC file (laspy) or a store (mortar info)
   if [ -d "$1" ]; then "$mortar" info --json "$1" | grep -o '"point_count": *[0-9]*' | head -1 | grep -o '[0-9]*$'
-  elif [ -f "$1" ]; then "$py" -c "import laspy,sys; print(len(laspy.read(sys.argv[1]).points))" "$1"
+  elif [ -f "$1" ]; then "$py" -c "import laspy,sys; print(len(laspy.read(sys.argv[1]).points))" "$1" 2>/dev/null || echo "laspy cannot read it"
   else echo "-"; fi
 }
 

@@ -25,6 +25,8 @@ use crate::sort::{self, PieceStats};
 use laz::laszip::{ChunkTable, ChunkTableEntry};
 use laz::record::{LayeredPointRecordCompressor, RecordCompressor};
 use laz::{LazItem, LazVlr, LazVlrBuilder};
+#[cfg(test)]
+use laz::LazItemRecordBuilder;
 use mortar_core::octree::NodeKey;
 use rayon::prelude::*;
 use std::collections::HashMap;
@@ -72,6 +74,27 @@ pub(crate) fn encode_chunk(items: &Vec<LazItem>, records: &[u8]) -> std::io::Res
     c.compress_many(records)?;
     c.done()?;
     Ok(c.into_inner().into_inner())
+}
+
+/// [`encode_chunk`] of a node's `points` records (`rl` bytes each) given in slices of `slice`
+/// points by `records(range)`, and the range of their GPS times (PDRF 6-8: at byte 22): the same
+/// bytes, with one slice of records in memory at a time.
+pub(crate) fn encode_chunk_slices(path: &Path, items: &Vec<LazItem>, rl: usize, points: usize, slice: usize, records: &dyn Fn(std::ops::Range<usize>) -> Vec<u8>) -> Result<(Vec<u8>, (f64, f64))> {
+    let io = |e: std::io::Error| Error::io(path, e);
+    let mut c = LayeredPointRecordCompressor::new(Cursor::new(Vec::new()));
+    c.set_fields_from(items).map_err(|e| io(std::io::Error::other(e)))?;
+    let mut t = (f64::INFINITY, f64::NEG_INFINITY);
+    for s in (0..points).step_by(slice.max(1)) {
+        sort::check_interrupted()?;
+        let recs = records(s..(s + slice.max(1)).min(points));
+        c.compress_many(&recs).map_err(io)?;
+        for r in recs.chunks_exact(rl) {
+            let g = f64::from_le_bytes(r[22..30].try_into().expect("8 bytes"));
+            t = (t.0.min(g), t.1.max(g));
+        }
+    }
+    c.done().map_err(io)?;
+    Ok((c.into_inner().into_inner(), t))
 }
 
 /// Where a node's chunk is.
@@ -270,22 +293,12 @@ impl NodeWriter for CopcWriter<'_> {
         let rl = self.frame.out.record_len;
         let path = self.tmp.path().to_path_buf();
         let io = |e: std::io::Error| Error::io(&path, e);
-        // One chunk, compressed slice by slice (the same bytes as `encode_chunk` of all).
-        let mut c = LayeredPointRecordCompressor::new(Cursor::new(Vec::new()));
-        c.set_fields_from(&self.items).map_err(|e| io(std::io::Error::other(e)))?;
-        let mut t = (f64::INFINITY, f64::NEG_INFINITY);
-        for s in (0..points).step_by(slice) {
-            sort::check_interrupted()?;
-            let recs = records(s..(s + slice).min(points));
-            c.compress_many(&recs).map_err(io)?;
-            for r in recs.chunks_exact(rl) {
-                let g = f64::from_le_bytes(r[22..30].try_into().expect("8 bytes"));
-                t = (t.0.min(g), t.1.max(g));
-            }
-            self.ds.progress.add((recs.len() / rl) as u64);
-        }
-        c.done().map_err(io)?;
-        let chunk = c.into_inner().into_inner();
+        let progress = &self.ds.progress;
+        let (chunk, t) = encode_chunk_slices(&path, &self.items, rl, points, slice, &|r| {
+            let recs = records(r);
+            progress.add((recs.len() / rl) as u64);
+            recs
+        })?;
         self.w.write_all(&chunk).map_err(io)?;
         let n = points as u64;
         self.placed.insert(key, Placed { offset: self.pos, bytes: chunk.len() as u64, points: n });
@@ -359,6 +372,31 @@ impl NodeWriter for CopcWriter<'_> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A chunk compressed slice by slice is the chunk compressed whole (PDRF 7, real-looking
+    /// records), whatever the slice.
+    #[test]
+    fn chunk_in_slices_equals_whole_chunk() {
+        let rl = 36;
+        let items = LazItemRecordBuilder::default_for_point_format_id(7, 0).unwrap();
+        let n = 3000;
+        let mut recs = vec![0u8; n * rl];
+        for (i, r) in recs.chunks_exact_mut(rl).enumerate() {
+            r[0..4].copy_from_slice(&(i as i32 * 7).to_le_bytes());
+            r[4..8].copy_from_slice(&(i as i32 % 91).to_le_bytes());
+            r[8..12].copy_from_slice(&(1000 - i as i32 % 13).to_le_bytes());
+            r[12] = (i % 200) as u8;
+            r[14] = 0x11;
+            r[22..30].copy_from_slice(&(i as f64 * 0.5).to_le_bytes());
+            r[30] = (i % 256) as u8;
+        }
+        let whole = encode_chunk(&items, &recs).unwrap();
+        for slice in [1, 7, 1000, 3000, 10_000] {
+            let (got, t) = encode_chunk_slices(Path::new("t"), &items, rl, n, slice, &|r| recs[r.start * rl..r.end * rl].to_vec()).unwrap();
+            assert!(got == whole, "slice {slice}");
+            assert_eq!(t, (0.0, (n - 1) as f64 * 0.5));
+        }
+    }
 
     fn node(level: u8, index: [u32; 3], children: u8) -> OutNode {
         OutNode { key: NodeKey { level, index }, points: vec![0], children }

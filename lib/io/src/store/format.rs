@@ -232,17 +232,7 @@ pub(crate) fn encode_payload<'r>(
     let grid = BatchGrid::for_bounds(lo, hi).ok_or_else(|| PayloadError::TooWide { node: key.name() })?;
     let len = payload_len(count as u64, attr_len as u64) as usize;
     let mut out = vec![0u8; len];
-    let header = NodeHeader {
-        magic: NODE_MAGIC,
-        level: key.level as u32,
-        kind,
-        index: key.index,
-        count: count as u32,
-        min: grid.min,
-        bits: [grid.bits[0], grid.bits[1], grid.bits[2], 0],
-        attr_len: attr_len as u32,
-        _pad: [0; 3],
-    };
+    let header = node_header(key, kind, count, &grid, attr_len);
     out[..64].copy_from_slice(bytemuck::bytes_of(&header));
     let (head, rest) = out[64..].split_at_mut(16 * count);
     let (w0, r) = head.split_at_mut(4 * count);
@@ -260,6 +250,21 @@ pub(crate) fn encode_payload<'r>(
     }
     let entry = NodeEntry { level: key.level as u32, kind, index: key.index, _pad: 0, count: count as u64, offset: 0, length: len as u64 };
     Ok((entry, out))
+}
+
+/// The 64-byte header of a payload.
+fn node_header(key: NodeKey, kind: u32, count: usize, grid: &BatchGrid, attr_len: usize) -> NodeHeader {
+    NodeHeader {
+        magic: NODE_MAGIC,
+        level: key.level as u32,
+        kind,
+        index: key.index,
+        count: count as u32,
+        min: grid.min,
+        bits: [grid.bits[0], grid.bits[1], grid.bits[2], 0],
+        attr_len: attr_len as u32,
+        _pad: [0; 3],
+    }
 }
 
 /// [`encode_payload`] for a node too large to hold encoded in memory (points at one position,
@@ -296,17 +301,7 @@ pub(crate) fn write_payload_sliced<'r, E>(
     let (lo, hi) = if count == 0 { ([0; 3], [0; 3]) } else { (lo, hi) };
     let Some(grid) = BatchGrid::for_bounds(lo, hi) else { return Ok(Err(PayloadError::TooWide { node: key.name() })) };
     let len = payload_len(count as u64, attr_len as u64);
-    let header = NodeHeader {
-        magic: NODE_MAGIC,
-        level: key.level as u32,
-        kind,
-        index: key.index,
-        count: count as u32,
-        min: grid.min,
-        bits: [grid.bits[0], grid.bits[1], grid.bits[2], 0],
-        attr_len: attr_len as u32,
-        _pad: [0; 3],
-    };
+    let header = node_header(key, kind, count, &grid, attr_len);
     write(0, bytemuck::bytes_of(&header))?;
     let n = count as u64;
     let slice = slice.max(1);
@@ -334,4 +329,34 @@ pub(crate) fn write_payload_sliced<'r, E>(
         write(end, &vec![0u8; (len - end) as usize])?;
     }
     Ok(Ok(NodeEntry { level: key.level as u32, kind, index: key.index, _pad: 0, count: n, offset: 0, length: len }))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A payload written in slices is the payload encoded whole, byte for byte, whatever the
+    /// slice (one point, a few, more than the node).
+    #[test]
+    fn sliced_payload_equals_whole_payload() {
+        let attr_len = 7;
+        let n = 1000;
+        let pos = |i: usize| [(i as i32 * 37) % 1001 - 500, (i as i32 * 11) % 97, 123_456 + (i as i32 % 5)];
+        let color = |i: usize| 0x0102_0304u32.wrapping_mul(i as u32 + 1);
+        let attrs: Vec<u8> = (0..n * attr_len).map(|b| (b * 31 % 251) as u8).collect();
+        let attr = |i: usize| &attrs[i * attr_len..(i + 1) * attr_len];
+        let key = NodeKey { level: 3, index: [1, 2, 3] };
+        let (want_entry, want) = encode_payload(key, LEAF, n, attr_len, pos, color, attr).unwrap();
+        for slice in [1, 3, 64, 999, 1000, 5000] {
+            let mut got = vec![0xAAu8; want.len()];
+            let entry = write_payload_sliced::<()>(key, LEAF, n, attr_len, slice, pos, color, attr, |at, b| {
+                got[at as usize..at as usize + b.len()].copy_from_slice(b);
+                Ok(())
+            })
+            .unwrap()
+            .unwrap();
+            assert!(got == want, "slice {slice}: the bytes differ");
+            assert_eq!((entry.count, entry.length, entry.kind), (want_entry.count, want_entry.length, want_entry.kind));
+        }
+    }
 }
