@@ -10,6 +10,10 @@
 @group(0) @binding(2) var<storage, read_write> out_records: array<DrawRecord>;
 @group(0) @binding(3) var<storage, read_write> plan_counters: array<atomic<u32>, 8>;
 
+// Grid units from the eye beyond which a batch keeps a batch-local anchor: 2^30.
+// KEEP IN SYNC with mortar_core::render::plan::FAR_UNITS (tested by mortar-render's shader test).
+const FAR_UNITS: f32 = 1073741824.0;
+
 fn o(v: f32) -> f32 {
     return opaque(v, u.zero);
 }
@@ -155,39 +159,55 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(num_workgroups) groups: v
             }
         }
     }
+    // The anchor: the eye's grid position for every batch (a point's local coordinate is p - eye,
+    // whatever batch holds it), or for a batch reaching FAR_UNITS from the eye its own grid point
+    // nearest to the eye (plan.rs: plan_batch).
+    var far = false;
+    for (var a = 0u; a < 3u; a++) {
+        let lo = abs(eye_offset(b.min[a] + i32(b.lo[a]), er[a]));
+        let hi = abs(eye_offset(b.min[a] + i32(b.hi[a]), er[a]));
+        far = far || max(lo, hi) >= FAR_UNITS;
+    }
     var anchor: vec3<i32>;
     var shift: vec3<u32>;
     var rel: vec3<f32>;
     for (var a = 0u; a < 3u; a++) {
-        let lo = b.min[a] + i32(b.lo[a]);
-        let hi = b.min[a] + i32(b.hi[a]);
-        var an = b.lo[a];
-        if er[a] <= lo {
-            an = b.lo[a];
-        } else if er[a] >= hi {
-            an = b.hi[a];
-        } else {
-            an = u32(er[a] - b.min[a]);
+        var base = er[a];
+        if far {
+            let lo = b.min[a] + i32(b.lo[a]);
+            let hi = b.min[a] + i32(b.hi[a]);
+            var an = b.lo[a];
+            if er[a] <= lo {
+                an = b.lo[a];
+            } else if er[a] >= hi {
+                an = b.hi[a];
+            } else {
+                an = u32(er[a] - b.min[a]);
+            }
+            base = b.min[a] + i32(an);
         }
-        anchor[a] = i32(an);
+        anchor[a] = base - b.min[a];
         shift[a] = 30u - min(b.bits[a], 30u);
         let missing = select(0u, b.bits[a] - words * 10u, b.bits[a] > words * 10u);
         let mid = f32((1u << missing) - 1u) * 0.5;
-        rel[a] = o(o(eye_offset(b.min[a] + i32(an), u.eye_int[a]) - u.eye_frac[a]) + mid);
+        rel[a] = o(o(eye_offset(base, u.eye_int[a]) - u.eye_frac[a]) + mid);
     }
     let wx = dot3(u.right, rel);
     let wy = dot3(u.up, rel);
     let wz = dot3(u.forward, rel);
+    // The pixel origin: the viewport's centre, or where a far batch's anchor projects.
     var px = u.cx;
     var py = u.cy;
-    if u.perspective != 0u {
-        if wz >= u.near {
-            px = o(div_plan(o(u.sx * wx), wz) + u.cx);
-            py = o(u.cy - div_plan(o(u.sy * wy), wz));
+    if far {
+        if u.perspective != 0u {
+            if wz >= u.near {
+                px = o(div_plan(o(u.sx * wx), wz) + u.cx);
+                py = o(u.cy - div_plan(o(u.sy * wy), wz));
+            }
+        } else {
+            px = o(o(u.sx * wx) + u.cx);
+            py = o(u.cy - o(u.sy * wy));
         }
-    } else {
-        px = o(o(u.sx * wx) + u.cx);
-        py = o(u.cy - o(u.sy * wy));
     }
     let ox = floor(o(min(max(px, 0.0), u.width) + 0.5));
     let oy = floor(o(min(max(py, 0.0), u.height) + 0.5));

@@ -370,6 +370,21 @@ fn wgsl_u32_constant(module: &naga::Module, name: &str) -> u32 {
     }
 }
 
+/// The value of the WGSL `f32` constant `name` of `module`.
+fn wgsl_f32_constant(module: &naga::Module, name: &str) -> f32 {
+    let c = module.constants.iter().find(|(_, c)| c.name.as_deref() == Some(name)).unwrap_or_else(|| panic!("constant {name} not found in the WGSL")).1;
+    match module.global_expressions[c.init] {
+        naga::Expression::Literal(naga::Literal::F32(v)) => v,
+        ref e => panic!("constant {name}: {e:?} is not an f32 literal"),
+    }
+}
+
+#[test]
+fn plan_constants_have_the_rust_values() {
+    let plan = parse(Pass::Plan);
+    assert_eq!(wgsl_f32_constant(&plan, "FAR_UNITS"), mortar_core::render::plan::FAR_UNITS, "FAR_UNITS: WGSL and mortar_core differ");
+}
+
 #[test]
 fn progressive_constants_have_the_rust_values() {
     // The progressive passes share progressive_types.wgsl; Fill uses both constants.

@@ -5,15 +5,20 @@
 //! absolute world coordinate ever reaches f32. For each batch, [`Camera::batch_projection`] builds
 //! in f64 the transform from the batch's quantized integer offsets to pixels, relative to the eye,
 //! and rounds only that transform to f32 ([`BatchProjection`]); per point the rasterizer then does
-//! only integer and f32 math. Two refinements keep the f32 error proportional to what is on screen:
+//! only integer and f32 math. Two choices keep the f32 error small and the result independent of
+//! the batch a point is stored in:
 //!
-//! - an integer `anchor` (the point of the batch's quantization box nearest to the eye) is
-//!   subtracted from each point's integer offset before it becomes an f32, so the f32 values are
-//!   at most about twice the distance from the eye and never suffer from the batch's absolute
-//!   position or, for a huge batch, from its size;
-//! - the pixel coordinate is computed relative to an integer `pixel_origin` near the batch's
-//!   projected centre, so its rounding error scales with the batch's size on screen rather than
-//!   with the viewport (a pixel coordinate near 2000 has an f32 spacing of 1.2e-4 px).
+//! - an integer `anchor`, the eye's position on the grid, is subtracted from each point's integer
+//!   offset before it becomes an f32 (in i32, exact), so the f32 values are the point's distance
+//!   from the eye and never suffer from the batch's absolute position or size; being the same for
+//!   every batch, it also makes a point's projection independent of the batch that holds it
+//!   (the progressive renderer's one frame and the batch file's many give the same keys);
+//! - the pixel coordinate is computed relative to an integer `pixel_origin`, the viewport's
+//!   centre (for the same reason the same for every batch), so its f32 spacing is that of half
+//!   the viewport (6e-5 px at 960 px).
+//!
+//! A batch reaching 2^30 grid units from the eye keeps the batch-local numerics (anchor at its
+//! point nearest to the eye, pixel origin at its projected centre): `p - eye` must stay in i32.
 //!
 //! Conventions: right-handed world with z up (LAS); the view looks down its -z axis; view depth is
 //! the distance along the viewing direction, positive in front; pixel (0, 0) is the top-left pixel,
@@ -641,22 +646,38 @@ impl Camera {
     }
 
     /// The f32 transform of one batch for points decoded at `precision` (paper 003 §3.2-3.3),
-    /// built relative to the eye in f64; see [`BatchProjection`]. `bounds` are the world bounds of
-    /// the batch's points: they only steer the numerics (the anchor is their point nearest to the
-    /// eye, the pixel origin the centre of their on-screen rectangle), never the result's meaning.
+    /// built relative to the eye in f64; see [`BatchProjection`]. The anchor is the eye's grid
+    /// position and the pixel origin the viewport's centre, whatever the batch, so a point's
+    /// local coordinate is `p - eye` in integers and its projection does not depend on the batch
+    /// holding it; only a batch whose `bounds` (the world bounds of its points) reach
+    /// [`FAR_UNITS`](super::plan::FAR_UNITS) grid units from the eye is anchored at its point
+    /// nearest to the eye, with the pixel origin at the centre of its on-screen rectangle. The
+    /// f32 twin the rasterizers run is [`super::plan::plan_batch`].
     pub fn batch_projection(&self, grid: &Grid, batch: &BatchGrid, bounds: &Aabb, precision: Precision) -> BatchProjection {
         let axes = self.axes_or_panic();
         let mut anchor = [0i32; 3];
         let mut shift = [0u32; 3];
+        let eye_units = |a: usize| (self.eye[a] - grid.offset[a]) / grid.scale[a];
+        let limit = super::plan::FAR_UNITS as f64;
+        let far = bounds.is_empty()
+            || (0..3).any(|a| {
+                let e = eye_units(a);
+                let (lo, hi) = ((bounds.min[a] - grid.offset[a]) / grid.scale[a], (bounds.max[a] - grid.offset[a]) / grid.scale[a]);
+                !((e - lo).abs() < limit && (e - hi).abs() < limit)
+            });
         // Eye-relative world position of the local origin (anchor plus the centre of the unloaded bits).
         let mut rel = [0f64; 3];
         for a in 0..3 {
             let bits = batch.bits[a] as u32;
             shift[a] = MAX_BITS - bits;
-            let span = ((1u64 << bits) - 1) as f64;
-            let nearest = if bounds.is_empty() { self.eye[a] } else { self.eye[a].clamp(bounds.min[a], bounds.max[a]) };
-            let units = (nearest - grid.offset[a]) / grid.scale[a] - batch.min[a] as f64;
-            let an = if units.is_nan() { 0.0 } else { units.round().clamp(0.0, span) };
+            let an = if far {
+                let span = ((1u64 << bits) - 1) as f64;
+                let nearest = if bounds.is_empty() { self.eye[a] } else { self.eye[a].clamp(bounds.min[a], bounds.max[a]) };
+                let units = (nearest - grid.offset[a]) / grid.scale[a] - batch.min[a] as f64;
+                if units.is_nan() { 0.0 } else { units.round().clamp(0.0, span) }
+            } else {
+                (eye_units(a) + 0.5).floor() - batch.min[a] as f64
+            };
             anchor[a] = an as i32;
             let missing = bits.saturating_sub(precision.bits());
             let mid = ((1u64 << missing) - 1) as f64 * 0.5;
@@ -668,16 +689,17 @@ impl Camera {
         let row = |ax: DVec3| [ax[0] * s[0], ax[1] * s[1], ax[2] * s[2], dot(ax, rel)];
         let view_from_local = DMat4 { rows: [row(axes.right), row(axes.up), row(axes.forward), [0.0, 0.0, 0.0, 1.0]] };
 
-        // Pixel origin: the centre of the batch's on-screen rectangle, so that |pixel - origin| of
-        // every drawn point is at most half the batch's visible size.
+        // Pixel origin: the viewport's centre; for a far batch the centre of its on-screen
+        // rectangle, so that |pixel - origin| of every drawn point is at most half its visible size.
         let (w, h) = (self.width as f64, self.height as f64);
+        let centre = ((w * 0.5 + 0.5).floor(), (h * 0.5 + 0.5).floor());
         let (ox, oy) = match self.screen_rect(bounds) {
-            Some((lo, hi)) => {
+            Some((lo, hi)) if far => {
                 let cx = 0.5 * (lo[0].clamp(0.0, w) + hi[0].clamp(0.0, w));
                 let cy = 0.5 * (lo[1].clamp(0.0, h) + hi[1].clamp(0.0, h));
                 (cx.round(), cy.round())
             }
-            None => ((w * 0.5).round(), (h * 0.5).round()),
+            _ => centre,
         };
 
         // pixel_from_view on (x, y, depth, 1): rows X, Y, D, W.

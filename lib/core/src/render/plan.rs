@@ -24,9 +24,13 @@
 //!   (a bound that needs no division per corner). A batch that reaches the near plane takes every
 //!   word it has. This bound also implies the paper's 500 px rule (a quarter pixel of decode
 //!   error is at most half a pixel per cell), so it is the only rule here.
-//! - Projection: as [`Camera::batch_projection`], anchored at the point of the batch nearest to
-//!   the eye, with the pixel origin where that anchor projects (the viewport's centre when it is
-//!   behind the near plane).
+//! - Projection: as [`Camera::batch_projection`], anchored at the eye's grid position with the
+//!   pixel origin at the viewport's centre, for every batch alike: a point's local coordinate is
+//!   `p - eye` in integers, so its pixel and depth are a function of the point and the camera
+//!   alone, whatever batch or quantization frame holds it (the progressive renderer's one frame,
+//!   the batch file's 10,240-point batches, a store's nodes). Only a batch reaching
+//!   [`FAR_UNITS`] from the eye on an axis is anchored at its own point nearest to the eye, with
+//!   the pixel origin where that projects.
 //!
 //! The WGSL twin rounds every operation on its own (`opaque` in `shaders/common/decode.wgsl`);
 //! Rust never fuses, so the two agree where the GPU's add and multiply are IEEE (Vulkan requires
@@ -43,6 +47,10 @@ use crate::quantize::{BatchGrid, Precision, MAX_BITS};
 /// Relative slack of culling, in units of (distance to the batch + batch size): covers the f32
 /// rounding of the per-point depth and pixel against the planes.
 pub const CULL_SLACK: f32 = 1e-5;
+
+/// Grid units from the eye beyond which a batch is anchored at its own point nearest to the eye
+/// rather than at the eye (`p - eye` must stay far inside i32 for the per-point local coordinate).
+pub const FAR_UNITS: f32 = (1u32 << 30) as f32;
 
 /// The eye's grid units are clamped to this magnitude (a camera 2^31 units from the origin of
 /// the grid is drawn as if it were here).
@@ -266,32 +274,49 @@ pub fn plan_batch(b: &PlanBatch, u: &PlanUniforms) -> BatchPlan {
             }
         }
     }
-    // The anchor: the batch's grid point nearest to the eye; the local origin adds the centre of
-    // the unloaded bits.
+    // The anchor: the eye's grid position (rounded), the same for every batch, so that a point's
+    // local coordinate `p - eye` and with it its pixel and depth do not depend on which batch (or
+    // quantization frame) holds it: the batch rasterizer and the progressive renderer (one frame
+    // over everything) give a point the same key. The local origin adds the centre of the
+    // unloaded bits. Only a batch reaching 2^30 grid units from the eye on an axis (where `p -
+    // eye` could leave i32) is anchored at its own grid point nearest to the eye instead.
+    let far = (0..3).any(|a| {
+        let lo = eye_offset(b.min[a].wrapping_add(b.lo[a] as i32), er[a]).abs();
+        let hi = eye_offset(b.min[a].wrapping_add(b.hi[a] as i32), er[a]).abs();
+        lo.max(hi) >= FAR_UNITS
+    });
     let mut anchor = [0i32; 3];
     let mut shift = [0u32; 3];
     let mut rel = [0f32; 3];
     for a in 0..3 {
-        let lo = b.min[a].wrapping_add(b.lo[a] as i32);
-        let hi = b.min[a].wrapping_add(b.hi[a] as i32);
-        let an = if er[a] <= lo {
-            b.lo[a]
-        } else if er[a] >= hi {
-            b.hi[a]
+        let base = if far {
+            let lo = b.min[a].wrapping_add(b.lo[a] as i32);
+            let hi = b.min[a].wrapping_add(b.hi[a] as i32);
+            let an = if er[a] <= lo {
+                b.lo[a]
+            } else if er[a] >= hi {
+                b.hi[a]
+            } else {
+                er[a].wrapping_sub(b.min[a]) as u32
+            };
+            b.min[a].wrapping_add(an as i32)
         } else {
-            er[a].wrapping_sub(b.min[a]) as u32
+            er[a]
         };
-        anchor[a] = an as i32;
+        anchor[a] = base.wrapping_sub(b.min[a]);
         shift[a] = MAX_BITS - b.bits[a].min(MAX_BITS);
         let missing = b.bits[a].saturating_sub(words * 10);
         let mid = ((1u32 << missing) - 1) as f32 * 0.5;
-        rel[a] = (eye_offset(b.min[a].wrapping_add(an as i32), u.eye_int[a]) - u.eye_frac[a]) + mid;
+        rel[a] = (eye_offset(base, u.eye_int[a]) - u.eye_frac[a]) + mid;
     }
     let wx = dot3(&u.right, rel);
     let wy = dot3(&u.up, rel);
     let wz = dot3(&u.forward, rel);
-    // The pixel origin: where the anchor projects, clamped to the viewport.
-    let (px, py) = if u.perspective != 0 {
+    // The pixel origin: the viewport's centre (eye anchor: the same for every batch), or where a
+    // far batch's anchor projects, clamped to the viewport.
+    let (px, py) = if !far {
+        (u.cx, u.cy)
+    } else if u.perspective != 0 {
         if wz >= u.near {
             (divide(u.sx * wx, wz) + u.cx, u.cy - divide(u.sy * wy, wz))
         } else {
