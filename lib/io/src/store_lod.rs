@@ -21,8 +21,10 @@
 //!   point with its record (leaf points, and the point each voxel stands for), so every colour
 //!   mode works under LOD: the source's RGB (the payload's colour), elevation from the exact
 //!   decoded height, and intensity, classification, return number and GPS time from the
-//!   record's attributes, with scalar modes mapped over the 1st to 99th percentile of the
-//!   visible samples (or a given range) exactly as raw and batch renders map them. `auto` is RGB
+//!   record's attributes, with scalar modes mapped over a given range or a view-independent one
+//!   ([`StoreLod::color_range`]: the 1st to 99th percentile of the top levels' samples, spread
+//!   over the whole cloud; a store does not record the range of all its points, which raw and
+//!   batch renders take), the same in `mortar render` and the window. `auto` is RGB
 //!   where the source has colours, else intensity. Hole filling and eye-dome lighting work as
 //!   for batch files: they read only the keys.
 
@@ -419,8 +421,8 @@ pub fn render(lod: &StoreLod, batches: &LodBatches<'_>, camera: &Camera, setting
 
 /// Resolves a visibility buffer of `batches`' samples (drawn by either rasterizer with `stats`
 /// in `raster_seconds`) into the image: stored colours or elevation (over `settings.range`, or
-/// the 1st to 99th percentile of the visible samples' heights), then hole filling and eye-dome
-/// lighting as asked.
+/// the view-independent [`StoreLod::color_range`] that the store's window uses too), then hole
+/// filling and eye-dome lighting as asked.
 pub fn resolve_keys(
     lod: &StoreLod,
     batches: &LodBatches<'_>,
@@ -441,14 +443,16 @@ pub fn resolve_keys(
     idx.par_sort_unstable();
     idx.dedup();
     let values: Vec<u64> = idx.par_iter().map(|&i| sample_value(&lod.store, &lod.grid, batches, color, i).unwrap_or(0)).collect();
+    // Scalar modes over the view-independent range the store's window uses as well.
+    let range = settings.range.or_else(|| lod.color_range(color));
     let (colors, color_range) = match color {
         LodColor::Stored | LodColor::Attribute(ColorMode::Classification | ColorMode::ReturnNumber) => (values.iter().map(|&c| c as u32).collect::<Vec<u32>>(), None),
         LodColor::Elevation => {
-            let (c, r) = scalar_colors(ColorMode::Elevation, &values, settings.range);
+            let (c, r) = scalar_colors(ColorMode::Elevation, &values, range);
             (c, Some(r))
         }
         LodColor::Attribute(m) => {
-            let (c, r) = scalar_colors(m, &values, settings.range);
+            let (c, r) = scalar_colors(m, &values, range);
             (c, Some(r))
         }
     };
