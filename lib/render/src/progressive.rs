@@ -27,8 +27,9 @@
 //!   listed, reading their words from the shuffled buffer by slot; **Fill**
 //!   (`progressive_fill.wgsl`): draw slots `[cursor, cursor + budget)`, wrapping around;
 //!   **Prepare** (`progressive_prepare.wgsl`): append each pixel's winning slot to the visible
-//!   list of its chunk with an atomic counter; then, with colours, **resolve** (`resolve.wgsl`,
-//!   one dispatch per chunk, as the batch rasterizer resolves) into an RGBA8 image buffer that
+//!   list of its chunk with an atomic counter; then, with colours, **resolve** (the batch
+//!   rasterizer's `hole_fill.wgsl`, `resolve.wgsl` one dispatch per chunk, `eye_dome.wgsl`, as
+//!   [`ResolveOptions`] asks: the CPU resolve's bytes) into an RGBA8 image buffer that
 //!   [`WindowSurface::present_image`](crate::present::WindowSurface::present_image) can show.
 //!   The key is `depth_bits << 32 | slot`.
 //! - **Exactness**: every slot shares one frame and one set of bounds, so core's
@@ -47,6 +48,10 @@
 //!   time covers the round trip.
 //! - **Convergence** as in the CPU renderer: a bit per slot drawn since the view (camera and
 //!   options) last changed; converged once every slot is loaded and drawn.
+//! - **The frame grows** as the CPU renderer's ([`ProgressiveFrame`]): points inserted outside it
+//!   grow it, and `progressive_reframe.wgsl` re-encodes every loaded slot in the new frame.
+//! - **Depth ties** ([`GpuProgressive::depth_ties`], `progressive_ties.wgsl`): the pixels whose
+//!   winner has a twin in depth, counted as the CPU's `count_depth_ties` counts them.
 //!
 //! GPU state, as in the batch rasterizer: the passes (pipelines with explicit bind-group layouts
 //! from the tables of [`crate::shaders`]), the shuffled buffer and the per-frame buffers are made

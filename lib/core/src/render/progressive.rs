@@ -16,6 +16,8 @@
 //!   whose point has not arrived yet are skipped, as the paper discards default-initialized
 //!   vertices) and **Prepare** (collect the indices of the points that won a pixel: the next
 //!   frame's Reproject buffer).
+//! - [`ProgressiveFrame`]: the one quantization frame of the shuffled buffer, which grows when
+//!   points arrive outside it (headers lie) instead of refusing them.
 //! - [`AdaptiveBudget`]: the adaptive fill budget of §3.4.1: fill a fixed number of points first,
 //!   measure how long that took, and fill as many more as fit in the time left in the frame. The
 //!   timings are plain numbers ([`ProbeTimings`]), so a GPU renderer can feed it timestamp-query
@@ -28,7 +30,11 @@
 //! every point drawn since the camera stopped, and once every slot was filled the framebuffer
 //! equals the brute-force [`rasterize`] of all points in this frame, key for key
 //! ([`ProgressiveRenderer::all_points`] gives that reference). [`FrameStats::converged`] says when
-//! that is the case (a bitmap of the slots drawn since the view last changed).
+//! that is the case (a bitmap of the slots drawn since the view last changed). Since a point's key
+//! depends on the point and the camera alone (`plan::plan_batch` anchors every batch at the eye),
+//! it is also the brute force of a batch file of the same points, but where two points tie in
+//! depth and the two numberings pick differently ([`ProgressiveRenderer::depth_ties`] counts the
+//! pixels with a tie).
 //!
 //! The GPU twin is `mortar_render::progressive::GpuProgressive` (the same passes as compute
 //! shaders, the same [`Shuffle`] and [`UNLOADED`] sentinel, one plan for all slots, GPU timestamps
