@@ -7,6 +7,7 @@
 //   SLOTS_PER_THREAD   mortar_render::progressive::SLOTS_PER_THREAD
 //   ScatterUniforms    mortar_core::render::gpu::ScatterUniforms  (32 bytes)
 //   PrepareUniforms    mortar_core::render::gpu::PrepareUniforms  (16 bytes)
+//   ReframeUniforms    mortar_core::render::gpu::ReframeUniforms  (64 bytes)
 
 // The coarse word of a slot whose point has not arrived (bit 31: no real coarse word has it).
 const UNLOADED: u32 = 0x80000000u;
@@ -45,4 +46,18 @@ struct PrepareUniforms {
     list_stride: u32,
     // Number of chunks.
     chunks: u32,
+}
+
+// The constants of the reframe pass: one chunk's loaded slots from frame `from` to frame `to`.
+struct ReframeUniforms {
+    from_min: vec3<i32>,
+    // Slots of the chunk.
+    count: u32,
+    to_min: vec3<i32>,
+    _pad0: u32,
+    // 30 - bits per axis of the old and the new frame.
+    from_shift: vec3<u32>,
+    _pad1: u32,
+    to_shift: vec3<u32>,
+    _pad2: u32,
 }

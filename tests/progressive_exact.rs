@@ -18,7 +18,9 @@ use mortar_core::render::{rasterize, Camera, Framebuffer, PrecisionMode, RasterO
 use mortar_core::quantize::Precision;
 use mortar_io::batchfile::AttributeSelection;
 use mortar_io::dataset::Dataset;
-use mortar_io::progressive::{header_frame, load_pieces, HeaderFrame, LoadedPiece, Payload};
+use mortar_core::render::framing::{IntBox, ViewBox};
+use mortar_core::render::progressive::ProgressiveFrame;
+use mortar_io::progressive::{load_pieces, LoadedPiece, Payload};
 use mortar_io::render_input::{self, RenderSource};
 use mortar_io::sort::SortOptions;
 use mortar_render::{AtomicPath, GpuProgressive, ProgressiveOptions};
@@ -29,13 +31,17 @@ use std::sync::Mutex;
 /// A raw file read the way the progressive renderers read it.
 struct Raw {
     ds: Dataset,
-    frame: HeaderFrame,
+    /// The progressive renderers' first frame: around the box the framing rule frames.
+    frame: ProgressiveFrame,
+    /// What framed views frame (the one framing rule).
+    bounds: mortar_core::render::Aabb,
+    points: u64,
     pieces: Vec<LoadedPiece>,
 }
 
 fn read(path: &Path) -> Raw {
     let ds = Dataset::open(&[path.to_path_buf()]).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
-    let frame = header_frame(&ds).unwrap();
+    let view = mortar_io::framing::view_box(&ds).unwrap();
     let pieces = Mutex::new(Vec::new());
     load_pieces(&ds, Payload::Intensity, 2, &AtomicBool::new(false), |p| {
         pieces.lock().unwrap().push(p.unwrap());
@@ -44,7 +50,15 @@ fn read(path: &Path) -> Raw {
     .unwrap();
     let mut pieces = pieces.into_inner().unwrap();
     pieces.sort_by_key(|p| p.first);
-    Raw { ds, frame, pieces }
+    let all = pieces.iter().filter_map(|p| IntBox::of(&p.xyz)).reduce(IntBox::union).unwrap();
+    let start = match view {
+        ViewBox::Header(h) => h,
+        ViewBox::Points => all,
+    };
+    let frame = ProgressiveFrame::around(ds.grid, start).unwrap();
+    let bounds = view.bounds(&ds.grid, || all);
+    let points = pieces.iter().map(|p| p.xyz.len() as u64).sum();
+    Raw { ds, frame, bounds, points, pieces }
 }
 
 /// Every pixel's key and, for covered pixels, the integer position of the winning point.
@@ -75,31 +89,30 @@ fn brute_force(raw: &Raw, cam: &Camera, tmp: &Path) -> Image {
     Image { keys, positions }
 }
 
-/// Converged keys of the CPU progressive renderer.
-fn progressive_cpu(raw: &Raw, cam: &Camera) -> Image {
-    let f = &raw.frame;
-    let mut r = ProgressiveRenderer::new(raw.ds.grid, f.min, f.max, f.points).unwrap();
+/// Converged keys of the CPU progressive renderer, and its count of tied pixels.
+fn progressive_cpu(raw: &Raw, cam: &Camera) -> (Image, u64, u32) {
+    let mut r = ProgressiveRenderer::with_frame(raw.frame, raw.points).unwrap();
     for p in &raw.pieces {
         r.insert(p.first, &p.xyz, &p.payload).unwrap();
     }
-    let budget = FillBudget::Fixed(f.points.div_ceil(3));
+    let budget = FillBudget::Fixed(raw.points.div_ceil(3));
     while !r.frame(cam, &FULL, &budget).unwrap().converged {}
     let keys = r.keys();
     let positions = keys.iter().map(|&k| (k != EMPTY_KEY).then(|| r.position(key_index(k)).unwrap())).collect();
-    Image { keys, positions }
+    (Image { keys, positions }, r.depth_ties().unwrap().unwrap(), r.growths())
 }
 
-/// Converged keys of the GPU progressive renderer (`None` without a 64-bit GPU).
-fn progressive_gpu(raw: &Raw, cam: &Camera) -> Option<Vec<u64>> {
+/// Converged keys of the GPU progressive renderer and its count of tied pixels (`None` without a
+/// 64-bit GPU).
+fn progressive_gpu(raw: &Raw, cam: &Camera) -> Option<(Vec<u64>, u64)> {
     let ctx = mortar_render::testing::context_or_skip(AtomicPath::U64, None)?;
-    let f = &raw.frame;
-    let mut r = GpuProgressive::new(&ctx, raw.ds.grid, f.min, f.max, f.points, ProgressiveOptions::default()).unwrap();
+    let mut r = GpuProgressive::with_frame(&ctx, raw.frame, raw.points, ProgressiveOptions::default()).unwrap();
     for p in &raw.pieces {
         r.insert(&ctx, p.first, &p.xyz, None, None).unwrap();
     }
-    let budget = FillBudget::Fixed(f.points.div_ceil(3));
+    let budget = FillBudget::Fixed(raw.points.div_ceil(3));
     while !r.frame(&ctx, cam, &FULL, &budget, None).unwrap().stats.converged {}
-    Some(r.read_keys(&ctx).unwrap())
+    Some((r.read_keys(&ctx).unwrap(), r.depth_ties(&ctx).unwrap().unwrap()))
 }
 
 /// How two images of the same points differ.
@@ -135,7 +148,7 @@ fn compare(a: &Image, b: &Image) -> Comparison {
 
 /// The views compared: framed overviews (perspective and orthographic) and a close-up.
 fn cameras(raw: &Raw, w: u32, h: u32) -> Vec<(&'static str, Camera)> {
-    let b = raw.frame.bounds;
+    let b = raw.bounds;
     let fov = 50f64.to_radians();
     vec![
         ("iso", Camera::frame_perspective(&b, ViewPreset::Iso, fov, w, h).unwrap()),
@@ -169,29 +182,57 @@ fn lying_copy(path: &Path, dir: &Path) -> PathBuf {
     out
 }
 
+/// `path` (LAZ) copied to `dir` with its header's box shrunk to `lo..hi`.
+fn with_header_box(path: &Path, dir: &Path, name: &str, lo: [f64; 3], hi: [f64; 3]) -> PathBuf {
+    let mut bytes = std::fs::read(path).unwrap();
+    for a in 0..3 {
+        bytes[187 + 16 * a..195 + 16 * a].copy_from_slice(&lo[a].to_le_bytes());
+        bytes[179 + 16 * a..187 + 16 * a].copy_from_slice(&hi[a].to_le_bytes());
+    }
+    let out = dir.join(name);
+    std::fs::write(&out, bytes).unwrap();
+    out
+}
+
 #[test]
 fn converged_progressive_equals_the_brute_force_up_to_counted_ties() {
     let tmp = tempdir("progressive-exact");
-    let mut files = scans();
-    files.push(lying_copy(&files[0], &tmp));
-    let (mut pixels, mut tied) = (0, 0);
-    for path in files {
+    let mut files: Vec<(PathBuf, &str)> = scans().into_iter().map(|p| (p, "as is")).collect();
+    let sample = files[0].0.clone();
+    files.push((lying_copy(&sample, &tmp), "lying"));
+    // Half the points 10 km from the header's box (the first LAZ chunk's): the frame grows.
+    let las = tmp.join("x.las");
+    run_ok(mortar().arg("sort").arg(&sample).arg("-o").arg(&las));
+    let far = tmp.join("far.laz");
+    run_ok(mortar().arg("sort").arg(twice_apart(&las, &tmp.join("twice.las"))).arg("-o").arg(&far));
+    let (lo, hi) = first_piece_box(&far);
+    files.push((with_header_box(&far, &tmp, "grows.laz", lo, hi), "grows"));
+    // A header a metre wide, away from the points: the points' box is framed.
+    let (lo, _) = first_piece_box(&sample);
+    let off = [lo[0] - 5000.0, lo[1], lo[2]];
+    files.push((with_header_box(&sample, &tmp, "nowhere.laz", off, [off[0] + 1.0, off[1] + 1.0, off[2] + 1.0]), "points"));
+    let (mut pixels, mut tied, mut counted) = (0, 0, 0);
+    for (path, what) in files {
         let raw = read(&path);
         for (name, cam) in cameras(&raw, 480, 360) {
             let want = brute_force(&raw, &cam, &tmp);
-            let got = progressive_cpu(&raw, &cam);
+            let (got, ties, growths) = progressive_cpu(&raw, &cam);
             let c = compare(&got, &want);
-            eprintln!("{} {name}: {} covered pixels, {} exact depth ties", path.display(), c.covered, c.ties);
+            eprintln!("{} ({what}) {name}: {} covered pixels, {} differ, all exact depth ties; {ties} tied pixels counted", path.display(), c.covered, c.ties);
             assert!(c.covered > 2_000, "{} {name}: {c:?}", path.display());
             assert_eq!(c.moved, 0, "{} {name}: pixels differ beyond exact depth ties: {c:?}", path.display());
             assert_eq!(c.other_point, c.ties);
-            // The GPU twin leaves the CPU renderer's keys.
-            if let Some(keys) = progressive_gpu(&raw, &cam) {
+            assert!(c.ties as u64 <= ties, "{} {name}: {} ties seen, {ties} counted", path.display(), c.ties);
+            assert_eq!(growths >= 1, what == "grows", "{} {name}: {growths} growths", path.display());
+            // The GPU twin leaves the CPU renderer's keys and counts the same ties.
+            if let Some((keys, gpu_ties)) = progressive_gpu(&raw, &cam) {
                 assert!(keys == got.keys, "{} {name}: GPU keys differ from the CPU's in {} pixels", path.display(), keys.iter().zip(&got.keys).filter(|(a, b)| a != b).count());
+                assert_eq!(gpu_ties, ties, "{} {name}", path.display());
             }
             pixels += c.covered;
             tied += c.ties;
+            counted += ties;
         }
     }
-    eprintln!("{tied} exact depth ties in {pixels} covered pixels");
+    eprintln!("{tied} pixels differ, all of them exact depth ties ({counted} tied pixels counted), in {pixels} covered pixels");
 }

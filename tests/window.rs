@@ -396,3 +396,45 @@ fn a_failing_build_closes_its_preview_and_reports_the_error() {
         assert!(!store.exists(), "no half-written store");
     }
 }
+
+#[test]
+fn progressive_and_no_progressive_windows_show_the_same_picture() {
+    // The one framing rule and the one colour-range rule: `mortar view` of raw LAS/LAZ draws the
+    // same picture whether it draws progressively or batches the file first (CPU and GPU), with
+    // hole filling and eye-dome lighting, intensity over the range of all points; only pixels
+    // whose winner ties in depth with another point may show another one (the two renderers
+    // number points otherwise), and hole filling may carry such a pixel into its neighbours.
+    // At full precision: the batch rasterizer's adaptive 10-bit batches move points by up to a
+    // quarter pixel.
+    let Some(x) = xvfb_or_skip() else { return };
+    let dir = tempdir("window-same");
+    let input = sample();
+    let common = ["--width", "320", "--height", "240", "--precision", "30", "--color", "intensity", "--hole-fill", "--edl"];
+    let shot = |name: &str, extra: &[&str]| {
+        let png = dir.join(name);
+        let mut args = vec![input.to_str().unwrap(), "--no-status", "--screenshot", png.to_str().unwrap(), "--frames", "2"];
+        args.extend_from_slice(&common);
+        args.extend_from_slice(extra);
+        let o = view(&x.display, &args);
+        assert!(o.status.success(), "mortar view {args:?}: {}", String::from_utf8_lossy(&o.stderr));
+        read_png(&png).2
+    };
+    let png = dir.join("render.png");
+    let o = run_ok(mortar().arg("render").arg(&input).args(["--progressive", "converge", "--json", "-o"]).arg(&png).args(common));
+    let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let ties = j["depth_ties"].as_u64().unwrap() as usize;
+    let progressive = shot("p-cpu.png", &["--backend", "cpu"]);
+    let batched = shot("b-cpu.png", &["--backend", "cpu", "--no-progressive"]);
+    let drawn = batched.iter().filter(|p| p[..3] != [0, 0, 0]).count();
+    assert!(drawn > 5_000, "{drawn}");
+    let differ = |a: &[[u8; 4]], b: &[[u8; 4]]| a.iter().zip(b).filter(|(p, q)| p != q).count();
+    let d = differ(&progressive, &batched);
+    eprintln!("{d} of {drawn} pixels differ, {ties} tied pixels");
+    assert!(d <= 9 * ties, "{d} of {drawn} pixels differ between --progressive and --no-progressive ({ties} ties)");
+    if mortar_render::testing::context_or_skip(mortar_render::AtomicPath::U64, None).is_some() {
+        let gpu_progressive = shot("p-gpu.png", &["--backend", "gpu"]);
+        let gpu_batched = shot("b-gpu.png", &["--backend", "gpu", "--no-progressive"]);
+        assert_eq!(differ(&gpu_progressive, &progressive), 0, "GPU and CPU progressive windows");
+        assert_eq!(differ(&gpu_batched, &batched), 0, "GPU and CPU batch windows");
+    }
+}

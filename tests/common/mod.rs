@@ -174,3 +174,38 @@ pub fn laspy_python() -> Option<PathBuf> {
     eprintln!("SKIP: no Python with laspy and lazrs (set MORTAR_PYTHON)");
     None
 }
+
+/// `las` (LAS 1.2, as `mortar sort` writes the sample) with its points twice, the second time
+/// 10 km east (10^6 grid units of 1 cm), written to `out` with a true header.
+pub fn twice_apart(las: &Path, out: &Path) -> PathBuf {
+    let b = std::fs::read(las).unwrap();
+    let u32_at = |at: usize| u32::from_le_bytes(b[at..at + 4].try_into().unwrap());
+    let (start, rl, n) = (u32_at(96) as usize, u16::from_le_bytes([b[105], b[106]]) as usize, u32_at(107));
+    let mut h = b[..start].to_vec();
+    h[107..111].copy_from_slice(&(2 * n).to_le_bytes());
+    for k in 0..5 {
+        let at = 111 + 4 * k;
+        h[at..at + 4].copy_from_slice(&(2 * u32_at(at)).to_le_bytes());
+    }
+    let scale_x = f64::from_le_bytes(b[131..139].try_into().unwrap());
+    let max_x = f64::from_le_bytes(b[179..187].try_into().unwrap());
+    h[179..187].copy_from_slice(&(max_x + 1e6 * scale_x).to_le_bytes());
+    let records = &b[start..start + n as usize * rl];
+    let mut moved = records.to_vec();
+    for r in moved.chunks_exact_mut(rl) {
+        let x = i32::from_le_bytes(r[..4].try_into().unwrap()) + 1_000_000;
+        r[..4].copy_from_slice(&x.to_le_bytes());
+    }
+    std::fs::write(out, [&h[..], records, &moved].concat()).unwrap();
+    out.to_path_buf()
+}
+
+/// The box of the points of the first piece of `las` (world coordinates), as the framing rule
+/// reads it.
+pub fn first_piece_box(las: &Path) -> ([f64; 3], [f64; 3]) {
+    let ds = mortar_io::dataset::Dataset::open(&[las.to_path_buf()]).unwrap();
+    let first = mortar_io::framing::first_points(&ds).unwrap();
+    let b = mortar_core::render::framing::IntBox::of(&first).unwrap().world(&ds.grid);
+    (b.min, b.max)
+}
+

@@ -554,9 +554,6 @@ pub enum RenderError {
     /// The camera cannot select nodes.
     #[error("{error}")]
     Camera { error: CameraError },
-    /// The header's bounds cannot frame the points for the progressive renderer.
-    #[error("the header's bounds {min:?}..{max:?} are not usable, and the progressive renderer frames the points with them before reading them")]
-    UnusableBounds { min: [f64; 3], max: [f64; 3] },
 }
 
 /// `Some(path)` for the variants whose message begins with the file they concern (`path: ...`),

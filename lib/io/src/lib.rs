@@ -59,6 +59,7 @@ pub mod crs;
 pub mod info;
 pub mod synth;
 pub mod render_input;
+pub mod framing;
 pub mod progressive;
 pub mod progress;
 pub mod store;

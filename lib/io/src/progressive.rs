@@ -1,5 +1,5 @@
 //! Raw LAS/LAZ for the progressive renderer of paper 000 ([`mortar_core::render::progressive`]):
-//! the frame from the headers, parallel loading that hands over points as they are decoded
+//! parallel loading that hands over points as they are decoded
 //! (§3.2: "files are loaded and transformed to GPU-ready buffers in parallel, and the task of the
 //! main thread is simplified to sending batches that are ready"), and the colours of the visible
 //! points.
@@ -20,85 +20,14 @@ use mortar_core::render::resolve::{
     classification_color, elevation_color, gps_time_color, intensity_color, return_number_color,
     rgb_color, ColorMode,
 };
-use mortar_core::render::Aabb;
 use rayon::prelude::*;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
-/// The integer frame of all points and the world bounds the camera frames, from the headers
-/// (the paper allocates its buffers from the header too: points arrive later).
-///
-/// Headers lie (older files often declare a z range a few metres short), so the frame reaches
-/// past the headers' box by [`FRAME_MARGIN`] times its largest extent on every side (less where
-/// the frame would need more than 30 bits on an axis): points there are drawn exactly like the
-/// others. Only a point beyond that margin is refused.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct HeaderFrame {
-    /// Smallest integer coordinate on the merged grid (the header's, less the margin).
-    pub min: [i32; 3],
-    /// Largest integer coordinate (the header's, plus the margin).
-    pub max: [i32; 3],
-    /// World bounds from the headers, snapped to the grid (as `mortar render` frames the points).
-    pub bounds: Aabb,
-    /// Points of all pieces of all inputs.
-    pub points: u64,
+/// Points of all pieces of all inputs (what the progressive renderers allocate for).
+pub fn point_count(ds: &Dataset) -> u64 {
+    ds.inputs.iter().flat_map(|s| s.pieces()).map(|p| p.points).sum()
 }
-
-/// The frame of `ds` from its headers. Fails when a header's bounds are not finite or empty
-/// (nothing else places the points before they are read).
-pub fn header_frame(ds: &Dataset) -> Result<HeaderFrame> {
-    let grid = ds.grid;
-    let mut lo = [i64::MAX; 3];
-    let mut hi = [i64::MIN; 3];
-    let mut points = 0u64;
-    for src in &ds.inputs {
-        let h = src.header();
-        let n: u64 = src.pieces().iter().map(|p| p.points).sum();
-        points += n;
-        if n == 0 {
-            continue;
-        }
-        if (0..3).any(|a| !(h.min[a].is_finite() && h.max[a].is_finite() && h.min[a] <= h.max[a])) {
-            return Err(Error::Render { path: src.path().to_path_buf(), error: RenderError::UnusableBounds { min: h.min, max: h.max } });
-        }
-        for a in 0..3 {
-            // Either end may be the smaller integer when a scale is negative.
-            let (x, y) = (grid.to_int(a, h.min[a]), grid.to_int(a, h.max[a]));
-            lo[a] = lo[a].min(x.min(y));
-            hi[a] = hi[a].max(x.max(y));
-        }
-    }
-    if points == 0 {
-        return Ok(HeaderFrame {
-            min: [0; 3],
-            max: [0; 3],
-            bounds: Aabb::new([0.0; 3], [0.0; 3]),
-            points,
-        });
-    }
-    let clamp = |v: i64| v.clamp(i32::MIN as i64, i32::MAX as i64) as i32;
-    let mut bounds = Aabb::EMPTY;
-    for a in 0..3 {
-        let (x, y) = (grid.world(a, lo[a]), grid.world(a, hi[a]));
-        bounds.min[a] = x.min(y);
-        bounds.max[a] = x.max(y);
-    }
-    // The margin: FRAME_MARGIN extents, while the frame needs at most 30 bits on every axis.
-    let extent = (0..3).map(|a| hi[a] - lo[a]).max().unwrap_or(0).max(0);
-    let widest = extent + 2;
-    let room = ((1i64 << 30) - 1 - widest).max(0) / 2;
-    let margin = (extent.saturating_mul(FRAME_MARGIN) + 1).min(room);
-    Ok(HeaderFrame {
-        min: lo.map(|v| clamp(v - 1 - margin)),
-        max: hi.map(|v| clamp(v + 1 + margin)),
-        bounds,
-        points,
-    })
-}
-
-/// How far (in extents of the headers' box) the progressive renderer's frame reaches past the
-/// box on every side (see [`HeaderFrame`]).
-pub const FRAME_MARGIN: i64 = 1;
 
 /// What each point's payload holds.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -292,8 +221,34 @@ pub fn resolve_choice(choice: ColorChoice, payload: Payload, stats: &ColorStats)
     }
 }
 
+/// The range scalar colour modes map over when none is given, for points with payloads
+/// `payloads` (all the points: the rule of every renderer, view-independent, as
+/// [`crate::render_input::color_range`] takes it for a batch file): the 1st to 99th percentile
+/// of their values; `None` for modes without a range.
+pub fn payload_range(payloads: &[u64], choice: ColorChoice, payload: Payload, stats: &ColorStats, grid: &Grid) -> Option<[f64; 2]> {
+    let choice = resolve_choice(choice, payload, stats);
+    if !matches!(choice, ColorChoice::Mode(ColorMode::Intensity | ColorMode::Elevation | ColorMode::GpsTime)) {
+        return None;
+    }
+    let mut v: Vec<f64> = payloads.par_iter().map(|&p| scalar_value(p, choice, payload, grid)).filter(|x| x.is_finite()).collect();
+    Some([quantile(&mut v, 0.01).unwrap_or(0.0), quantile(&mut v, 0.99).unwrap_or(1.0)])
+}
+
+/// The scalar a payload stands for in a scalar colour mode (intensity, elevation, GPS time).
+fn scalar_value(v: u64, choice: ColorChoice, payload: Payload, grid: &Grid) -> f64 {
+    match choice {
+        ColorChoice::Mode(ColorMode::Intensity) => match payload {
+            Payload::RgbIntensity { .. } => (v >> 48) as u16 as f64,
+            _ => v as u16 as f64,
+        },
+        ColorChoice::Mode(ColorMode::Elevation) => grid.world(2, v as u32 as i32 as i64),
+        _ => f64::from_bits(v),
+    }
+}
+
 /// The colours of the points with payloads `payloads` (the visible ones), in colour mode `choice`
-/// (resolved with [`resolve_choice`]); scalar modes over `range` or the 1st to 99th percentile of
+/// (resolved with [`resolve_choice`]); scalar modes over `range` (the renderers pass
+/// [`payload_range`] of all the points when none is given) or the 1st to 99th percentile of
 /// these points. Returns the colours and the range used.
 pub fn payload_colors(
     payloads: &[u64],
@@ -310,13 +265,7 @@ pub fn payload_colors(
         Payload::RgbIntensity { .. } => (v >> 48) as u16,
         _ => v as u16,
     };
-    let scalar = |v: u64| -> f64 {
-        match choice {
-            ColorChoice::Mode(ColorMode::Intensity) => intensity(v) as f64,
-            ColorChoice::Mode(ColorMode::Elevation) => grid.world(2, v as u32 as i32 as i64),
-            _ => f64::from_bits(v),
-        }
-    };
+    let scalar = |v: u64| scalar_value(v, choice, payload, grid);
     match choice {
         ColorChoice::Mode(ColorMode::Intensity | ColorMode::Elevation | ColorMode::GpsTime) => {
             let range = range.unwrap_or_else(|| {

@@ -2,7 +2,8 @@
 //! §3.2-3.3): the adapter from a [`BatchFile`] to the rasterizer's [`BatchRef`]s, LAS/LAZ inputs
 //! batched on the fly into a temporary batch file ([`RenderSource`]), and the colours of the
 //! visibility-buffer resolve ([`colors_for_keys`]): only the points that won a pixel are looked
-//! up, batch by batch, in the colour mode asked for (§3.3: "transform the point indices to vertex
+//! up, batch by batch, in the colour mode asked for (scalar modes over the range of all the
+//! points, [`color_range`]) (§3.3: "transform the point indices to vertex
 //! colors in a post-processing step").
 //!
 //! Uncompressed batch files are used in place: the rasterizer reads the memory map, so the pages of
@@ -267,16 +268,38 @@ pub(crate) fn quantile(v: &mut [f64], q: f64) -> Option<f64> {
 }
 
 /// Looks up the colours of the points that won a pixel in `keys` (point indices of `file`), in
-/// the colour mode `choice`. Scalar modes map over `range`, or when it is `None` over the 1st to
-/// 99th percentile of the visible points' values (robust against outliers; it depends on the view,
-/// but not on anything else). Only the batches holding visible points are read.
+/// the colour mode `choice`. Scalar modes map over `range`, or when it is `None` over
+/// [`color_range`]: the 1st to 99th percentile of all the points' values, the one colour-range
+/// rule of every renderer (view-independent, so that a renderer that only knows the points it
+/// draws and one that draws all of them colour alike). Only the batches holding visible points
+/// are read for the colours.
 pub fn colors_for_keys(file: &BatchFile, keys: &[u64], choice: ColorChoice, range: Option<[f64; 2]>) -> Result<PointColors> {
     let choice = choice.resolved(file);
     let source = source_of(file, choice)?;
+    let range = match range {
+        Some(r) => Some(r),
+        None => color_range(file, choice)?,
+    };
     let mut indices: Vec<u32> = keys.par_iter().filter(|&&k| k != EMPTY_KEY).map(|&k| key_index(k)).collect();
     indices.par_sort_unstable();
     indices.dedup();
     colors_for_indices(file, indices, choice, source, range)
+}
+
+/// The range scalar colour mode `choice` maps over when none is given: the 1st to 99th
+/// percentile of the values of every point of `file` (robust against outliers, independent of
+/// the view); `None` for the modes without a range.
+pub fn color_range(file: &BatchFile, choice: ColorChoice) -> Result<Option<[f64; 2]>> {
+    let choice = choice.resolved(file);
+    if !choice.uses_range() {
+        return Ok(None);
+    }
+    let source = source_of(file, choice)?;
+    if file.header.point_count > 1u64 << 32 {
+        return Err(Error::Render { path: file.path.clone(), error: RenderError::TooManyToColour { points: file.header.point_count } });
+    }
+    let indices: Vec<u32> = (0..file.header.point_count).map(|i| i as u32).collect();
+    Ok(Some(percentile_range(&values_for_indices(file, &indices, choice, source)?)))
 }
 
 /// The colour of every point of `file` (index order) in the mode `choice`, for renderers that
@@ -296,6 +319,21 @@ pub fn point_colors(file: &BatchFile, choice: ColorChoice, range: Option<[f64; 2
 
 /// The colours of the points `indices` (sorted, distinct) of `file`.
 fn colors_for_indices(file: &BatchFile, indices: Vec<u32>, choice: ColorChoice, source: Source, range: Option<[f64; 2]>) -> Result<PointColors> {
+    let out = values_for_indices(file, &indices, choice, source)?;
+    let mode = match choice {
+        ColorChoice::Auto | ColorChoice::Stored | ColorChoice::Mode(ColorMode::Rgb) => None,
+        ColorChoice::Mode(m) => Some(m),
+    };
+    if !choice.uses_range() {
+        return Ok(PointColors { indices, colors: out.into_iter().map(|c| c as u32).collect(), range: None });
+    }
+    let (colors, range) = scalar_colors(mode.expect("scalar modes are attribute or elevation modes"), &out, range);
+    Ok(PointColors { indices, colors, range: Some(range) })
+}
+
+/// Per point of `indices` (sorted, distinct) of `file`: its colour, or in scalar modes the
+/// value's `f64` bits.
+fn values_for_indices(file: &BatchFile, indices: &[u32], choice: ColorChoice, source: Source) -> Result<Vec<u64>> {
     let entries = file.entries();
     let total = file.header.point_count;
     if indices.last().is_some_and(|&i| i as u64 >= total) {
@@ -316,7 +354,6 @@ fn colors_for_indices(file: &BatchFile, indices: Vec<u32>, choice: ColorChoice, 
         Source::Elevation => WORD_SECTIONS.to_vec(),
         Source::Attribute { index } => vec![FIRST_ATTRIBUTE_SECTION + index],
     };
-    let scalar = choice.uses_range();
     let mode = match choice {
         ColorChoice::Auto | ColorChoice::Stored | ColorChoice::Mode(ColorMode::Rgb) => None,
         ColorChoice::Mode(m) => Some(m),
@@ -362,11 +399,7 @@ fn colors_for_indices(file: &BatchFile, indices: Vec<u32>, choice: ColorChoice, 
         }
         Ok(())
     })?;
-    if !scalar {
-        return Ok(PointColors { indices, colors: out.into_iter().map(|c| c as u32).collect(), range: None });
-    }
-    let (colors, range) = scalar_colors(mode.expect("scalar modes are attribute or elevation modes"), &out, range);
-    Ok(PointColors { indices, colors, range: Some(range) })
+    Ok(out)
 }
 
 /// The value of attribute colour mode `mode` from the bytes `v` of its field (as

@@ -21,8 +21,9 @@
 //!   point with its record (leaf points, and the point each voxel stands for), so every colour
 //!   mode works under LOD: the source's RGB (the payload's colour), elevation from the exact
 //!   decoded height, and intensity, classification, return number and GPS time from the
-//!   record's attributes, with scalar modes mapped over the 1st to 99th percentile of the
-//!   visible samples (or a given range) exactly as raw and batch renders map them. `auto` is RGB
+//!   record's attributes, with scalar modes mapped over a given range or that of all the points
+//!   ([`StoreLod::color_range`], over the leaves: the rule of every renderer, so LOD and
+//!   `--no-lod` colour alike), the same in `mortar render` and the window. `auto` is RGB
 //!   where the source has colours, else intensity. Hole filling and eye-dome lighting work as
 //!   for batch files: they read only the keys.
 
@@ -379,29 +380,22 @@ impl StoreLod {
         })
     }
 
-    /// A view-independent range for scalar colour mode `color`: the 1st to 99th percentile of
-    /// the values of the samples in the top levels of the tree (the root and the levels below it
-    /// down to about 100,000 samples: voxels are real points spread over the whole cloud).
+    /// The range scalar colour mode `color` maps over when none is given: the 1st to 99th
+    /// percentile of the values of every point of the store (the samples of the nodes without
+    /// children: the leaves, which hold every point, and in a commit of a build under way the
+    /// frontier whose levels below are not written yet), the one colour-range rule of every
+    /// renderer, so that LOD, `--no-lod` and the raw file colour alike. Reads every leaf once.
     /// `None` for the other modes.
     pub fn color_range(&self, color: LodColor) -> Option<[f64; 2]> {
         if !color.uses_range() || self.store.entries.is_empty() {
             return None;
         }
-        let root = NodeId(0);
-        let mut nodes = vec![root];
-        let mut level = vec![root];
-        let mut total = self.index.samples(root);
-        while total < 100_000 {
-            let next: Vec<NodeId> = level.iter().filter_map(|&id| self.index.children(id)).flatten().collect();
-            if next.is_empty() {
-                break;
-            }
-            total += next.iter().map(|&id| self.index.samples(id)).sum::<u64>();
-            nodes.extend_from_slice(&next);
-            level = next;
+        let leaves: Vec<NodeId> = (0..self.index.node_count() as u32).map(NodeId).filter(|&id| self.index.children(id).is_none()).collect();
+        let mut v = Vec::with_capacity(self.index.point_count() as usize);
+        for group in leaves.chunks(4096) {
+            let b = self.batches(group).ok()?;
+            v.par_extend((0..b.samples as u32).into_par_iter().filter_map(|i| sample_value(&self.store, &self.grid, &b, color, i)));
         }
-        let b = self.batches(&nodes).ok()?;
-        let v: Vec<u64> = (0..b.samples as u32).filter_map(|i| sample_value(&self.store, &self.grid, &b, color, i)).collect();
         Some(percentile_range(&v))
     }
 }
@@ -419,8 +413,8 @@ pub fn render(lod: &StoreLod, batches: &LodBatches<'_>, camera: &Camera, setting
 
 /// Resolves a visibility buffer of `batches`' samples (drawn by either rasterizer with `stats`
 /// in `raster_seconds`) into the image: stored colours or elevation (over `settings.range`, or
-/// the 1st to 99th percentile of the visible samples' heights), then hole filling and eye-dome
-/// lighting as asked.
+/// the range of all points, [`StoreLod::color_range`], that the store's window uses too), then hole
+/// filling and eye-dome lighting as asked.
 pub fn resolve_keys(
     lod: &StoreLod,
     batches: &LodBatches<'_>,
@@ -441,14 +435,16 @@ pub fn resolve_keys(
     idx.par_sort_unstable();
     idx.dedup();
     let values: Vec<u64> = idx.par_iter().map(|&i| sample_value(&lod.store, &lod.grid, batches, color, i).unwrap_or(0)).collect();
+    // Scalar modes over the range of all the store's points, as its window and `--no-lod` map them.
+    let range = settings.range.or_else(|| lod.color_range(color));
     let (colors, color_range) = match color {
         LodColor::Stored | LodColor::Attribute(ColorMode::Classification | ColorMode::ReturnNumber) => (values.iter().map(|&c| c as u32).collect::<Vec<u32>>(), None),
         LodColor::Elevation => {
-            let (c, r) = scalar_colors(ColorMode::Elevation, &values, settings.range);
+            let (c, r) = scalar_colors(ColorMode::Elevation, &values, range);
             (c, Some(r))
         }
         LodColor::Attribute(m) => {
-            let (c, r) = scalar_colors(m, &values, settings.range);
+            let (c, r) = scalar_colors(m, &values, range);
             (c, Some(r))
         }
     };

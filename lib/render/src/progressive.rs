@@ -27,8 +27,9 @@
 //!   listed, reading their words from the shuffled buffer by slot; **Fill**
 //!   (`progressive_fill.wgsl`): draw slots `[cursor, cursor + budget)`, wrapping around;
 //!   **Prepare** (`progressive_prepare.wgsl`): append each pixel's winning slot to the visible
-//!   list of its chunk with an atomic counter; then, with colours, **resolve** (`resolve.wgsl`,
-//!   one dispatch per chunk, as the batch rasterizer resolves) into an RGBA8 image buffer that
+//!   list of its chunk with an atomic counter; then, with colours, **resolve** (the batch
+//!   rasterizer's `hole_fill.wgsl`, `resolve.wgsl` one dispatch per chunk, `eye_dome.wgsl`, as
+//!   [`ResolveOptions`] asks: the CPU resolve's bytes) into an RGBA8 image buffer that
 //!   [`WindowSurface::present_image`](crate::present::WindowSurface::present_image) can show.
 //!   The key is `depth_bits << 32 | slot`.
 //! - **Exactness**: every slot shares one frame and one set of bounds, so core's
@@ -47,6 +48,10 @@
 //!   time covers the round trip.
 //! - **Convergence** as in the CPU renderer: a bit per slot drawn since the view (camera and
 //!   options) last changed; converged once every slot is loaded and drawn.
+//! - **The frame grows** as the CPU renderer's ([`ProgressiveFrame`]): points inserted outside it
+//!   grow it, and `progressive_reframe.wgsl` re-encodes every loaded slot in the new frame.
+//! - **Depth ties** ([`GpuProgressive::depth_ties`], `progressive_ties.wgsl`): the pixels whose
+//!   winner has a twin in depth, counted as the CPU's `count_depth_ties` counts them.
 //!
 //! GPU state, as in the batch rasterizer: the passes (pipelines with explicit bind-group layouts
 //! from the tables of [`crate::shaders`]), the shuffled buffer and the per-frame buffers are made
@@ -68,8 +73,9 @@ use crate::scene::MAX_CHUNK_POINTS;
 use crate::shaders::{binding, Pass};
 use mortar_core::grid::Grid;
 use mortar_core::quantize::BatchGrid;
-use mortar_core::render::gpu::{DrawRecord, FrameUniforms, ResolveUniforms};
-use mortar_core::render::progressive::{AdaptiveBudget, FillBudget, FrameStats, ProbeTimings, ProgressiveError, Shuffle};
+use mortar_core::render::gpu::{DrawRecord, EyeDomeUniforms, FrameUniforms, HoleFillUniforms, ReframeUniforms, ResolveUniforms};
+use mortar_core::render::resolve::ResolveOptions;
+use mortar_core::render::progressive::{piece_box, AdaptiveBudget, FillBudget, FrameStats, ProbeTimings, ProgressiveError, ProgressiveFrame, Shuffle};
 use mortar_core::render::{Aabb, BatchPlan, BatchProjection, Camera, Planner, RasterError, RasterOptions, RasterStats};
 use rayon::prelude::*;
 use std::num::NonZeroU64;
@@ -201,6 +207,10 @@ struct Passes {
     fill: PassPipeline,
     prepare: PassPipeline,
     resolve: PassPipeline,
+    reframe: PassPipeline,
+    hole_fill: PassPipeline,
+    eye_dome: PassPipeline,
+    ties: PassPipeline,
 }
 
 /// What the renderer writes anew every frame: the camera's uniforms, the drawn-point counter,
@@ -217,6 +227,9 @@ struct PerFrame {
     list_counts: wgpu::Buffer,
     /// One per chunk (at least one), with colours only.
     resolve_uniforms: Vec<wgpu::Buffer>,
+    /// `HoleFillUniforms` and `EyeDomeUniforms` of the resolve.
+    fill_uniforms: wgpu::Buffer,
+    eye_dome_uniforms: wgpu::Buffer,
 }
 
 /// The framebuffer of one viewport size, the visible lists, and the bind groups that use them,
@@ -235,11 +248,20 @@ struct Target {
     prepare_group: wgpu::BindGroup,
 }
 
-/// The resolved image of a [`Target`] and the resolve pass's bind groups (one per chunk), made by
-/// the first frame of that target drawn with `resolve`.
+/// The resolved image of a [`Target`], the hole-filled keys, and the bind groups of the resolve
+/// (one per chunk, from the framebuffer or from the filled keys), hole filling and eye-dome
+/// lighting, made by the first frame of that target drawn with `resolve`.
 struct Resolved {
     image: wgpu::Buffer,
+    /// The colour dispatches reading the framebuffer, and reading the filled keys.
     groups: Vec<wgpu::BindGroup>,
+    groups_filled: Vec<wgpu::BindGroup>,
+    /// Hole filling: the framebuffer into the filled keys (two words per pixel: index, depth,
+    /// the 64-bit keys' layout).
+    fill_group: wgpu::BindGroup,
+    /// Eye-dome lighting from the framebuffer's depths, and from the filled keys' depths.
+    eye_dome_group: wgpu::BindGroup,
+    eye_dome_group_filled: wgpu::BindGroup,
 }
 
 /// The host's bookkeeping of the slots, as the CPU renderer keeps it.
@@ -284,10 +306,9 @@ const QUERIES: u32 = 10;
 
 /// The progressive renderer of paper 000 on the GPU (see the module documentation).
 pub struct GpuProgressive {
-    grid: Grid,
-    frame: BatchGrid,
-    frame_max: [i32; 3],
-    bounds: Aabb,
+    frame: ProgressiveFrame,
+    /// Times the frame grew.
+    grown: u32,
     shuffle: Shuffle,
     options: ProgressiveOptions,
     chunk_slots: u32,
@@ -322,23 +343,19 @@ impl GpuProgressive {
     /// A renderer for `capacity` points whose integer coordinates (on `grid`) lie in `[min, max]`
     /// (the quantization frame and the planner's bounds, as
     /// [`ProgressiveRenderer::new`](mortar_core::render::progressive::ProgressiveRenderer::new)
-    /// takes them). Allocates the whole shuffled buffer on the GPU and marks every slot unloaded.
+    /// takes them; points outside grow it). Allocates the whole shuffled buffer on the GPU and
+    /// marks every slot unloaded.
     pub fn new(ctx: &GpuContext, grid: Grid, min: [i32; 3], max: [i32; 3], capacity: u64, options: ProgressiveOptions) -> Result<GpuProgressive, ProgressiveGpuError> {
+        GpuProgressive::with_frame(ctx, ProgressiveFrame::exact(grid, min, max)?, capacity, options)
+    }
+
+    /// A renderer for `capacity` points in `frame` (e.g. [`ProgressiveFrame::around`] the
+    /// headers' box), as [`ProgressiveRenderer::with_frame`](mortar_core::render::progressive::ProgressiveRenderer::with_frame).
+    pub fn with_frame(ctx: &GpuContext, frame: ProgressiveFrame, capacity: u64, options: ProgressiveOptions) -> Result<GpuProgressive, ProgressiveGpuError> {
         if ctx.atomic_path() != AtomicPath::U64 {
             return Err(ProgressiveGpuError::Needs64BitAtomics { adapter: ctx.adapter().name.clone() });
         }
         let len = u32::try_from(capacity).map_err(|_| ProgressiveError::TooManyPoints(capacity))?;
-        if (0..3).any(|a| min[a] > max[a]) {
-            return Err(ProgressiveError::Frame { min, max }.into());
-        }
-        let frame = BatchGrid::for_bounds(min, max).ok_or(ProgressiveError::Frame { min, max })?;
-        // The bounds exactly as the CPU renderer computes them (the planner sees these).
-        let mut bounds = Aabb::EMPTY;
-        for a in 0..3 {
-            let (lo, hi) = (grid.world(a, min[a] as i64), grid.world(a, max[a] as i64));
-            bounds.min[a] = lo.min(hi);
-            bounds.max[a] = lo.max(hi);
-        }
         let by_device = ((ctx.max_binding() / 4).min(MAX_CHUNK_POINTS as u64) as u32 & !255).max(256);
         let chunk_slots = options.chunk_slots.unwrap_or(by_device).clamp(1, by_device);
         let shared = SharedLayouts::new(ctx);
@@ -350,6 +367,10 @@ impl GpuProgressive {
             fill: PassPipeline::new(ctx, Pass::ProgressiveFill, &shared),
             prepare: PassPipeline::new(ctx, Pass::ProgressivePrepare, &shared),
             resolve: PassPipeline::new(ctx, Pass::Resolve, &shared),
+            reframe: PassPipeline::new(ctx, Pass::ProgressiveReframe, &shared),
+            hole_fill: PassPipeline::new(ctx, Pass::HoleFill, &shared),
+            eye_dome: PassPipeline::new(ctx, Pass::EyeDome, &shared),
+            ties: PassPipeline::new(ctx, Pass::ProgressiveTies, &shared),
             shared,
         };
         let dev = &ctx.device;
@@ -402,15 +423,15 @@ impl GpuProgressive {
             prepare_uniforms: uniform::<PrepareUniforms>(ctx, "prepare uniforms"),
             list_counts: storage(ctx, "visible list counts", chunks.len().max(1) as u64 * 4, copy),
             resolve_uniforms: if options.colors { (0..chunks.len().max(1)).map(|_| uniform::<ResolveUniforms>(ctx, "resolve uniforms")).collect() } else { Vec::new() },
+            fill_uniforms: uniform::<HoleFillUniforms>(ctx, "hole fill uniforms"),
+            eye_dome_uniforms: uniform::<EyeDomeUniforms>(ctx, "eye-dome uniforms"),
         };
         let queries = (ctx.has_timestamps() && !options.host_clock).then(|| Timestamps::new(ctx, "progressive pass times", QUERIES));
         let n = len as usize;
         let words64 = n.div_ceil(64);
         let r = GpuProgressive {
-            grid,
             frame,
-            frame_max: max,
-            bounds,
+            grown: 0,
             shuffle: Shuffle::new(len),
             options,
             chunk_slots,
@@ -448,12 +469,22 @@ impl GpuProgressive {
 
     /// The quantization frame of the words.
     pub fn quantization(&self) -> &BatchGrid {
+        &self.frame.quant
+    }
+
+    /// The frame: quantization, bounds, and the box of the points expected and arrived.
+    pub fn frame_state(&self) -> &ProgressiveFrame {
         &self.frame
     }
 
     /// World bounds of the frame.
     pub fn bounds(&self) -> &Aabb {
-        &self.bounds
+        &self.frame.bounds
+    }
+
+    /// How often the frame grew to hold points outside it.
+    pub fn growths(&self) -> u32 {
+        self.grown
     }
 
     /// Frames drawn so far.
@@ -497,6 +528,14 @@ impl GpuProgressive {
         self.slots.converged(self.capacity())
     }
 
+    /// The payloads of every point inserted so far, in slot order (empty when the renderer keeps
+    /// no payloads), as the CPU renderer's
+    /// [`loaded_payloads`](mortar_core::render::progressive::ProgressiveRenderer::loaded_payloads).
+    pub fn loaded_payloads(&self) -> Vec<u64> {
+        let Some(p) = &self.payload else { return Vec::new() };
+        p.par_iter().enumerate().filter(|(s, _)| self.is_loaded(*s as u32)).map(|(_, v)| v.load(Ordering::Relaxed)).collect()
+    }
+
     /// The viewport size `(width, height)` of the last frame (`(0, 0)` before the first).
     pub fn size(&self) -> (u32, u32) {
         self.target.as_ref().map_or((0, 0), |t| (t.width, t.height))
@@ -518,15 +557,22 @@ impl GpuProgressive {
     /// into staging memory); the two halves let a caller do the costly one on another thread
     /// while frames are drawn.
     pub fn insert(&mut self, ctx: &GpuContext, first: u64, xyz: &[[i32; 3]], colors: Option<&[u32]>, payload: Option<&[u64]>) -> Result<(), ProgressiveGpuError> {
-        let prep = self.preparer();
-        prep.check(first, xyz, colors, payload)?;
+        self.preparer().check(first, xyz, colors, payload, false)?;
         let n = xyz.len();
         if let Some(k) = self.slots.arrived.first_in(first, first + n as u64) {
             return Err(ProgressiveError::Duplicate(k).into());
         }
+        // Points outside the frame grow it: the slots held are re-encoded on the GPU first.
+        if let Some(b) = piece_box(xyz) {
+            if let Some(grown) = self.frame.grown(b)? {
+                self.reframe(ctx, grown)?;
+            }
+            self.frame.data = self.frame.data.union(b);
+        }
+        let prep = self.preparer();
         // The words encoded straight into the staging memory, then the slots for the bits
         // (the GPU copies and scatters the last uploads meanwhile).
-        let frame = self.frame;
+        let frame = self.frame.quant;
         let stride = 3 + colors.is_some() as usize;
         let mut s = 0;
         while s < n {
@@ -559,7 +605,7 @@ impl GpuProgressive {
 
     /// What [`InsertPreparer::prepare`] needs of this renderer (a few numbers, `Send`).
     pub fn preparer(&self) -> InsertPreparer {
-        InsertPreparer { frame: self.frame, frame_max: self.frame_max, shuffle: self.shuffle, options: self.options, bit_words: self.slots.loaded_bits.len(), pool: self.record_pool.clone() }
+        InsertPreparer { frame: self.frame.quant, frame_max: self.frame.max, shuffle: self.shuffle, options: self.options, bit_words: self.slots.loaded_bits.len(), pool: self.record_pool.clone() }
     }
 
     /// Inserts points prepared by [`InsertPreparer::prepare`] (from this renderer's
@@ -718,6 +764,48 @@ impl GpuProgressive {
         ctx.check()
     }
 
+    /// Re-encodes every loaded slot in the frame `to` (the reframe pass, one dispatch per chunk,
+    /// after the uploads in flight) and starts convergence over, as the CPU renderer does.
+    fn reframe(&mut self, ctx: &GpuContext, to: ProgressiveFrame) -> Result<(), GpuError> {
+        let from = self.frame.quant;
+        let buffers: Vec<(wgpu::Buffer, wgpu::BindGroup, u32)> = self
+            .gpu
+            .chunks
+            .iter()
+            .map(|c| {
+                let u = uniform::<ReframeUniforms>(ctx, "reframe uniforms");
+                ctx.queue.write_buffer(&u, 0, bytemuck::bytes_of(&ReframeUniforms::new(&from, &to.quant, c.len)));
+                let g = self.gpu.passes.reframe.bind_group(
+                    ctx,
+                    0,
+                    &[
+                        entry(binding::REFRAME_PARAMS, u.as_entire_binding()),
+                        entry(binding::REFRAME_COARSE, c.words[0].as_entire_binding()),
+                        entry(binding::REFRAME_MEDIUM, c.words[1].as_entire_binding()),
+                        entry(binding::REFRAME_FINE, c.words[2].as_entire_binding()),
+                    ],
+                );
+                (u, g, c.len.div_ceil(256))
+            })
+            .collect();
+        let mut enc = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("reframe") });
+        {
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("reframe"), timestamp_writes: None });
+            pass.set_pipeline(self.gpu.passes.reframe.pipeline());
+            for (_, g, n) in &buffers {
+                let (x, y) = ctx.split_dispatch(*n);
+                pass.set_bind_group(0, g, &[]);
+                pass.dispatch_workgroups(x, y, 1);
+            }
+        }
+        ctx.queue.submit([enc.finish()]);
+        ctx.check()?;
+        self.frame = to;
+        self.view = None;
+        self.grown += 1;
+        Ok(())
+    }
+
     fn read_queries(ctx: &GpuContext, buf: &wgpu::Buffer) -> Result<Vec<f64>, GpuError> {
         let t = map_read(ctx, buf)?;
         let period = ctx.queue.get_timestamp_period() as f64 * 1e-6;
@@ -726,21 +814,22 @@ impl GpuProgressive {
     }
 
     /// Draws one frame for `camera`: clear, Reproject, Fill with `budget`, Prepare and, with
-    /// `resolve` (a background colour; the renderer must have colours), the resolve into
-    /// [`image_buffer`](Self::image_buffer). Waits for the GPU. A change of camera or options
+    /// `resolve` (background, hole filling, eye-dome lighting; the renderer must have colours),
+    /// the resolve into [`image_buffer`](Self::image_buffer): the passes of the batch rasterizer
+    /// (`hole_fill.wgsl`, `resolve.wgsl`, `eye_dome.wgsl`), the CPU resolve's bytes. Waits for the GPU. A change of camera or options
     /// keeps the visible lists (that is what they are for) but starts convergence over.
-    pub fn frame(&mut self, ctx: &GpuContext, camera: &Camera, options: &RasterOptions, budget: &FillBudget, resolve: Option<u32>) -> Result<GpuProgressiveFrame, ProgressiveGpuError> {
+    pub fn frame(&mut self, ctx: &GpuContext, camera: &Camera, options: &RasterOptions, budget: &FillBudget, resolve: Option<&ResolveOptions>) -> Result<GpuProgressiveFrame, ProgressiveGpuError> {
         let start = Instant::now();
         camera.validate().map_err(RasterError::from)?;
         if resolve.is_some() && !self.options.colors {
             return Err(GpuError::Colors("resolve asked for but the renderer has no colours".into()).into());
         }
-        let planner = Planner::new(camera, &self.grid, options)?;
+        let planner = Planner::new(camera, &self.frame.grid, options)?;
         let n = self.capacity();
         let gpu = &self.gpu;
         let t = Target::ensure(&mut self.target, &mut self.resolved, ctx, gpu, &self.list_counts, camera.width, camera.height)?;
         let resolving = match resolve {
-            Some(background) => Some((background, Resolved::ensure(&mut self.resolved, ctx, gpu, t)?)),
+            Some(post) => Some((post, Resolved::ensure(&mut self.resolved, ctx, gpu, t)?)),
             None => None,
         };
         if self.view != Some((*camera, *options)) {
@@ -751,7 +840,7 @@ impl GpuProgressive {
         self.frames += 1;
         let mut st = FrameStats { frame: self.frames, loaded: self.slots.loaded, ..FrameStats::default() };
         // One plan for every slot: one frame, one set of bounds.
-        let plan = planner.plan(&self.frame, &self.bounds, n as usize);
+        let plan = planner.plan(&self.frame.quant, &self.frame.bounds, n as usize);
         let projection = match plan {
             BatchPlan::Draw { precision, projection } => Some((precision, projection)),
             _ => None,
@@ -856,8 +945,8 @@ impl GpuProgressive {
             enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("progressive frame") });
         }
         let t_resolve = Instant::now();
-        if let Some((background, r)) = resolving {
-            gpu.encode_resolve(ctx, &mut enc, t, r, background, (Some(8), Some(9)));
+        if let Some((post, r)) = resolving {
+            gpu.encode_resolve(ctx, &mut enc, t, r, post, (Some(8), Some(9)));
         }
         let stamps = if resolve.is_some() { 10 } else { 8 };
         let queries = gpu.resolve_queries(ctx, &mut enc, stamps);
@@ -904,6 +993,55 @@ impl GpuProgressive {
         st.converged = self.slots.converged(n);
         ctx.check()?;
         Ok(GpuProgressiveFrame { stats: st, timing: gpu.timing(), gpu: gpu_times })
+    }
+
+    /// The pixels of the last frame in which another point has exactly the winner's depth (the
+    /// ties pass over every slot, with the last frame's camera and options; the twin of the CPU
+    /// renderer's
+    /// [`depth_ties`](mortar_core::render::progressive::ProgressiveRenderer::depth_ties)).
+    /// `None` until every point arrived and a frame was drawn.
+    pub fn depth_ties(&mut self, ctx: &GpuContext) -> Result<Option<u64>, ProgressiveGpuError> {
+        let (Some((camera, options)), Some(t)) = (self.view, &self.target) else { return Ok(None) };
+        if self.slots.loaded != self.capacity() {
+            return Ok(None);
+        }
+        let planner = Planner::new(&camera, &self.frame.grid, &options)?;
+        let BatchPlan::Draw { projection, .. } = planner.plan(&self.frame.quant, &self.frame.bounds, self.capacity() as usize) else { return Ok(Some(0)) };
+        let gpu = &self.gpu;
+        let pixels = t.width as u64 * t.height as u64;
+        let flags = storage(ctx, "tie flags", pixels * 4, wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST);
+        // The frame uniforms are still the last frame's (its camera).
+        let g0 = gpu.passes.ties.bind_group(
+            ctx,
+            0,
+            &[
+                entry(binding::FRAME, gpu.per_frame.frame_uniforms.as_entire_binding()),
+                entry(binding::TIES_KEY_WORDS, t.keys.as_entire_binding()),
+                entry(binding::TIES_FLAGS, flags.as_entire_binding()),
+            ],
+        );
+        let runs: Vec<(usize, u32, u32)> = gpu.chunks.iter().enumerate().map(|(c, ch)| (c, 0, ch.len)).collect();
+        let groups = gpu.draw_groups(ctx, t, &gpu.fill_dispatches(&runs, &projection), 0, false);
+        let mut enc = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("ties") });
+        enc.clear_buffer(&flags, 0, None);
+        {
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("ties"), timestamp_writes: None });
+            pass.set_pipeline(gpu.passes.ties.pipeline());
+            for (_, g1, n) in &groups {
+                if *n == 0 {
+                    continue;
+                }
+                pass.set_bind_group(0, &g0, &[]);
+                pass.set_bind_group(1, g1, &[]);
+                let (x, y) = ctx.split_dispatch(*n);
+                pass.dispatch_workgroups(x, y, 1);
+            }
+        }
+        let read = readback(ctx, &mut enc, &flags, flags.size());
+        ctx.queue.submit([enc.finish()]);
+        let marks: Vec<u32> = bytemuck::pod_collect_to_vec(&map_read(ctx, &read)?);
+        ctx.check()?;
+        Ok(Some(marks.iter().filter(|&&m| m != 0).count() as u64))
     }
 
     /// The visibility buffer of the last frame (row-major depth|index keys; indices are slots, as
@@ -1008,7 +1146,7 @@ impl PreparedInsert {
 impl InsertPreparer {
     /// The checks of an insert that need no state: colours and payloads as the renderer was
     /// made, the index range, every point inside the frame.
-    fn check(&self, first: u64, xyz: &[[i32; 3]], colors: Option<&[u32]>, payload: Option<&[u64]>) -> Result<(), ProgressiveGpuError> {
+    fn check(&self, first: u64, xyz: &[[i32; 3]], colors: Option<&[u32]>, payload: Option<&[u64]>, in_frame: bool) -> Result<(), ProgressiveGpuError> {
         let n = xyz.len();
         match (self.options.colors, colors) {
             (true, Some(c)) if c.len() == n => {}
@@ -1029,6 +1167,9 @@ impl InsertPreparer {
             return Err(ProgressiveError::IndexRange { first, end, capacity }.into());
         }
         let (min, max) = (self.frame.min, self.frame_max);
+        if !in_frame {
+            return Ok(());
+        }
         if let Some(k) = xyz.par_iter().position_first(|p| (0..3).any(|a| p[a] < min[a] || p[a] > max[a])) {
             return Err(ProgressiveError::OutsideFrame { index: first + k as u64, point: xyz[k], min, max }.into());
         }
@@ -1040,7 +1181,7 @@ impl InsertPreparer {
     /// index range, inside the frame), encodes their words, computes and sorts their slots.
     /// Duplicates are checked by [`GpuProgressive::insert_prepared`].
     pub fn prepare(&self, first: u64, xyz: &[[i32; 3]], colors: Option<&[u32]>, payload: Option<&[u64]>) -> Result<PreparedInsert, ProgressiveGpuError> {
-        self.check(first, xyz, colors, payload)?;
+        self.check(first, xyz, colors, payload, true)?;
         let n = xyz.len();
         let (min, max) = (self.frame.min, self.frame_max);
         let stride = 3 + colors.is_some() as usize;
@@ -1324,41 +1465,78 @@ impl Resolved {
         Ok(slot.insert(r))
     }
 
-    /// The image of `t` and one resolve bind group per chunk (the dummy colours when there is
-    /// no chunk).
+    /// The image of `t`, the filled keys, one resolve bind group per chunk for each source of
+    /// keys (the dummy colours when there is no chunk), and the hole-fill and eye-dome groups.
     fn new(ctx: &GpuContext, gpu: &GpuState, t: &Target) -> Result<Resolved, GpuError> {
-        let image = storage(ctx, "progressive image", t.width as u64 * t.height as u64 * 4, wgpu::BufferUsages::COPY_SRC);
+        let pixels = t.width as u64 * t.height as u64;
+        let image = storage(ctx, "progressive image", pixels * 4, wgpu::BufferUsages::COPY_SRC);
+        let filled = storage(ctx, "progressive filled keys", pixels * 8, wgpu::BufferUsages::COPY_SRC);
         let colors: Vec<&wgpu::Buffer> = if gpu.chunks.is_empty() {
             vec![&gpu.dummy]
         } else {
             // A renderer with colours (checked by `frame`) has them in every chunk.
             gpu.chunks.iter().map(|c| c.colors.as_ref().ok_or_else(|| GpuError::Colors("resolve asked for but the renderer has no colours".into()))).collect::<Result<_, _>>()?
         };
-        let groups = colors
-            .iter()
-            .zip(&gpu.per_frame.resolve_uniforms)
-            .map(|(colors, u)| {
-                // The 64-bit keys read as words: index at 2p, depth bits at 2p + 1.
-                gpu.passes.resolve.bind_group(
-                    ctx,
-                    0,
-                    &[
-                        entry(binding::RESOLVE_PARAMS, u.as_entire_binding()),
-                        entry(binding::RESOLVE_INDEX_WORDS, t.keys.as_entire_binding()),
-                        entry(binding::RESOLVE_DEPTH_WORDS, t.keys.as_entire_binding()),
-                        entry(binding::RESOLVE_COLORS, colors.as_entire_binding()),
-                        entry(binding::RESOLVE_IMAGE, image.as_entire_binding()),
-                    ],
-                )
-            })
-            .collect();
+        let f = &gpu.per_frame;
+        // The 64-bit keys read as words: index at 2p, depth bits at 2p + 1; the filled keys alike.
+        let groups_of = |keys: &wgpu::Buffer| -> Vec<wgpu::BindGroup> {
+            colors
+                .iter()
+                .zip(&f.resolve_uniforms)
+                .map(|(colors, u)| {
+                    gpu.passes.resolve.bind_group(
+                        ctx,
+                        0,
+                        &[
+                            entry(binding::RESOLVE_PARAMS, u.as_entire_binding()),
+                            entry(binding::RESOLVE_INDEX_WORDS, keys.as_entire_binding()),
+                            entry(binding::RESOLVE_DEPTH_WORDS, keys.as_entire_binding()),
+                            entry(binding::RESOLVE_COLORS, colors.as_entire_binding()),
+                            entry(binding::RESOLVE_IMAGE, image.as_entire_binding()),
+                        ],
+                    )
+                })
+                .collect()
+        };
+        let eye_dome_of = |keys: &wgpu::Buffer| {
+            gpu.passes.eye_dome.bind_group(
+                ctx,
+                0,
+                &[
+                    entry(binding::EYE_DOME_PARAMS, f.eye_dome_uniforms.as_entire_binding()),
+                    entry(binding::EYE_DOME_DEPTH_WORDS, keys.as_entire_binding()),
+                    entry(binding::EYE_DOME_IMAGE, image.as_entire_binding()),
+                ],
+            )
+        };
+        let fill_group = gpu.passes.hole_fill.bind_group(
+            ctx,
+            0,
+            &[
+                entry(binding::FILL_PARAMS, f.fill_uniforms.as_entire_binding()),
+                entry(binding::FILL_INDEX_WORDS, t.keys.as_entire_binding()),
+                entry(binding::FILL_DEPTH_WORDS, t.keys.as_entire_binding()),
+                entry(binding::FILL_FILLED, filled.as_entire_binding()),
+            ],
+        );
+        let r = Resolved {
+            groups: groups_of(&t.keys),
+            groups_filled: groups_of(&filled),
+            fill_group,
+            eye_dome_group: eye_dome_of(&t.keys),
+            eye_dome_group_filled: eye_dome_of(&filled),
+            image,
+        };
         ctx.check()?;
-        Ok(Resolved { image, groups })
+        Ok(r)
     }
 }
 
 impl GpuState {
     fn timestamps(&self, begin: Option<u32>, end: Option<u32>) -> Option<wgpu::ComputePassTimestampWrites<'_>> {
+        if begin.is_none() && end.is_none() {
+            return None;
+        }
         self.queries.as_ref().map(|q| q.writes(begin, end))
     }
 
@@ -1447,19 +1625,45 @@ impl GpuState {
         pass.dispatch_workgroups(x, y, 1);
     }
 
-    /// Records the resolve into `r`'s image, one dispatch per chunk.
-    fn encode_resolve(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, t: &Target, r: &Resolved, background: u32, ts: (Option<u32>, Option<u32>)) {
+    /// Records the resolve into `r`'s image: hole filling (the framebuffer into the filled keys),
+    /// the colours (one dispatch per chunk, from the filled keys or the framebuffer) and eye-dome
+    /// lighting of the image from the same keys' depths, as the batch rasterizer resolves; the
+    /// timestamps `ts` around all of them.
+    fn encode_resolve(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, t: &Target, r: &Resolved, post: &ResolveOptions, ts: (Option<u32>, Option<u32>)) {
+        let (x, y) = ctx.split_dispatch((t.width as u64 * t.height as u64).div_ceil(256) as u32);
+        // Both key buffers hold two words per pixel: the index, then the depth bits.
+        let (stride, depth_offset) = (2, 1);
+        let last_is_resolve = post.eye_dome.is_none();
+        if let Some(fill) = &post.hole_fill {
+            let u = HoleFillUniforms::new(fill, t.width, t.height, stride, depth_offset);
+            ctx.queue.write_buffer(&self.per_frame.fill_uniforms, 0, bytemuck::bytes_of(&u));
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("hole fill"), timestamp_writes: self.timestamps(ts.0, None) });
+            pass.set_pipeline(self.passes.hole_fill.pipeline());
+            pass.set_bind_group(0, &r.fill_group, &[]);
+            pass.dispatch_workgroups(x, y, 1);
+        }
         for (i, u) in self.per_frame.resolve_uniforms.iter().enumerate().take(r.groups.len()) {
             let (first_index, count) = self.chunks.get(i).map_or((0, 0), |c| (c.first, c.len));
-            // The 64-bit keys read as words: index at 2p, depth bits at 2p + 1.
-            let u_val = ResolveUniforms { width: t.width, height: t.height, key_stride: 2, depth_offset: 1, first_index, count, background, write_background: (i == 0) as u32 };
+            let u_val = ResolveUniforms { width: t.width, height: t.height, key_stride: stride, depth_offset, first_index, count, background: post.background, write_background: (i == 0) as u32 };
             ctx.queue.write_buffer(u, 0, bytemuck::bytes_of(&u_val));
         }
-        let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("resolve"), timestamp_writes: self.timestamps(ts.0, ts.1) });
-        pass.set_pipeline(self.passes.resolve.pipeline());
-        let (x, y) = ctx.split_dispatch((t.width as u64 * t.height as u64).div_ceil(256) as u32);
-        for bg in &r.groups {
-            pass.set_bind_group(0, bg, &[]);
+        {
+            let begin = if post.hole_fill.is_some() { None } else { ts.0 };
+            let end = if last_is_resolve { ts.1 } else { None };
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("resolve"), timestamp_writes: self.timestamps(begin, end) });
+            pass.set_pipeline(self.passes.resolve.pipeline());
+            let groups = if post.hole_fill.is_some() { &r.groups_filled } else { &r.groups };
+            for bg in groups {
+                pass.set_bind_group(0, bg, &[]);
+                pass.dispatch_workgroups(x, y, 1);
+            }
+        }
+        if let Some(edl) = &post.eye_dome {
+            let u = EyeDomeUniforms::new(edl, t.width, t.height, stride, depth_offset);
+            ctx.queue.write_buffer(&self.per_frame.eye_dome_uniforms, 0, bytemuck::bytes_of(&u));
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("eye-dome lighting"), timestamp_writes: self.timestamps(None, ts.1) });
+            pass.set_pipeline(self.passes.eye_dome.pipeline());
+            pass.set_bind_group(0, if post.hole_fill.is_some() { &r.eye_dome_group_filled } else { &r.eye_dome_group }, &[]);
             pass.dispatch_workgroups(x, y, 1);
         }
     }

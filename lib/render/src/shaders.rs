@@ -139,6 +139,20 @@ pub mod binding {
     /// `progressive_scatter.wgsl`: the chunk's colours.
     pub const SCATTER_COLORS: Binding = bind(0, 5, StorageReadWrite, "colors_out");
 
+    /// `progressive_reframe.wgsl`: the pass's constants (`ReframeUniforms`).
+    pub const REFRAME_PARAMS: Binding = bind(0, 0, Uniform, "params");
+    /// `progressive_reframe.wgsl`: a chunk's coarse words.
+    pub const REFRAME_COARSE: Binding = bind(0, 1, StorageReadWrite, "coarse_words");
+    /// `progressive_reframe.wgsl`: a chunk's medium words.
+    pub const REFRAME_MEDIUM: Binding = bind(0, 2, StorageReadWrite, "medium_words");
+    /// `progressive_reframe.wgsl`: a chunk's fine words.
+    pub const REFRAME_FINE: Binding = bind(0, 3, StorageReadWrite, "fine_words");
+
+    /// `progressive_ties.wgsl`: the framebuffer's keys as words.
+    pub const TIES_KEY_WORDS: Binding = bind(0, 1, StorageRead, "key_words");
+    /// `progressive_ties.wgsl`: a flag per pixel, set where the winner ties in depth.
+    pub const TIES_FLAGS: Binding = bind(0, 2, StorageReadWrite, "ties");
+
     /// `progressive_prepare.wgsl`: the pass's constants (`PrepareUniforms`).
     pub const PREPARE_PARAMS: Binding = bind(0, 0, Uniform, "params");
     /// `progressive_prepare.wgsl`: the 64-bit keys read as words.
@@ -193,11 +207,17 @@ pub enum Pass {
     /// Progressive renderer: the visible slots into the next Reproject lists
     /// (`shaders/progressive_prepare.wgsl`).
     ProgressivePrepare,
+    /// Progressive renderer: a chunk's loaded slots re-encoded in a grown frame
+    /// (`shaders/progressive_reframe.wgsl`).
+    ProgressiveReframe,
+    /// Progressive renderer: marks the pixels whose winner ties in depth with another point
+    /// (`shaders/progressive_ties.wgsl`).
+    ProgressiveTies,
 }
 
 impl Pass {
     /// Every pass.
-    pub const ALL: [Pass; 13] = [
+    pub const ALL: [Pass; 15] = [
         Pass::Clear,
         Pass::Plan,
         Pass::Draw64,
@@ -211,6 +231,8 @@ impl Pass {
         Pass::ProgressiveReproject,
         Pass::ProgressiveFill,
         Pass::ProgressivePrepare,
+        Pass::ProgressiveReframe,
+        Pass::ProgressiveTies,
     ];
 
     /// The pass's file under `shaders/`.
@@ -229,6 +251,8 @@ impl Pass {
             Pass::ProgressiveReproject => "progressive_reproject.wgsl",
             Pass::ProgressiveFill => "progressive_fill.wgsl",
             Pass::ProgressivePrepare => "progressive_prepare.wgsl",
+            Pass::ProgressiveReframe => "progressive_reframe.wgsl",
+            Pass::ProgressiveTies => "progressive_ties.wgsl",
         }
     }
 
@@ -247,6 +271,8 @@ impl Pass {
             Pass::ProgressiveReproject => include_str!("../../../shaders/progressive_reproject.wgsl"),
             Pass::ProgressiveFill => include_str!("../../../shaders/progressive_fill.wgsl"),
             Pass::ProgressivePrepare => include_str!("../../../shaders/progressive_prepare.wgsl"),
+            Pass::ProgressiveReframe => include_str!("../../../shaders/progressive_reframe.wgsl"),
+            Pass::ProgressiveTies => include_str!("../../../shaders/progressive_ties.wgsl"),
         }
     }
 
@@ -267,12 +293,14 @@ impl Pass {
             Pass::ProgressiveReproject => &[FRAME, KEYS, COUNTERS, VISIBLE, RECORDS, COARSE, MEDIUM, FINE],
             Pass::ProgressiveFill => &[FRAME, KEYS, COUNTERS, RECORDS, COARSE, MEDIUM, FINE],
             Pass::ProgressivePrepare => &[PREPARE_PARAMS, PREPARE_KEY_WORDS, PREPARE_LIST_COUNTS, PREPARE_LISTS],
+            Pass::ProgressiveReframe => &[REFRAME_PARAMS, REFRAME_COARSE, REFRAME_MEDIUM, REFRAME_FINE],
+            Pass::ProgressiveTies => &[FRAME, TIES_KEY_WORDS, TIES_FLAGS, RECORDS, COARSE, MEDIUM, FINE],
         }
     }
 
     /// Whether the pass draws batches: its group 1 is [`binding::BATCHES`] (`common/batches.wgsl`).
     pub fn draws_batches(self) -> bool {
-        matches!(self, Pass::Draw64 | Pass::DrawDepth32 | Pass::DrawIndex32 | Pass::ProgressiveReproject | Pass::ProgressiveFill)
+        matches!(self, Pass::Draw64 | Pass::DrawDepth32 | Pass::DrawIndex32 | Pass::ProgressiveReproject | Pass::ProgressiveFill | Pass::ProgressiveTies)
     }
 
     /// Whether the pass uses 64-bit integers and atomics (SHADER_INT64 +
@@ -290,8 +318,9 @@ impl Pass {
             Pass::Plan => parts.push(DECODE),
             Pass::Draw64 | Pass::DrawIndex32 => parts.extend([DECODE, BATCHES, COUNTERS]),
             Pass::DrawDepth32 => parts.extend([DECODE, BATCHES]),
-            Pass::ProgressiveUnload | Pass::ProgressiveScatter | Pass::ProgressivePrepare => parts.push(PROGRESSIVE),
+            Pass::ProgressiveUnload | Pass::ProgressiveScatter | Pass::ProgressivePrepare | Pass::ProgressiveReframe => parts.push(PROGRESSIVE),
             Pass::ProgressiveReproject | Pass::ProgressiveFill => parts.extend([PROGRESSIVE, DECODE, BATCHES, COUNTERS]),
+            Pass::ProgressiveTies => parts.extend([PROGRESSIVE, DECODE, BATCHES]),
         }
         parts.push(self.own_source());
         parts.join("\n")

@@ -17,6 +17,11 @@ use mortar_core::render::testutil::{Rng, Scene};
 use mortar_core::render::{rasterize, Aabb, Camera, Framebuffer, RasterOptions, ViewPreset};
 use mortar_render::{AtomicPath, BudgetTiming, GpuContext, GpuError, GpuProgressive, ProgressiveGpuError, ProgressiveOptions};
 
+/// A resolve onto `background` without post-processing.
+fn bg(background: u32) -> ResolveOptions {
+    ResolveOptions { background, ..Default::default() }
+}
+
 fn context(max_dispatch: Option<u32>) -> Option<GpuContext> {
     mortar_render::testing::context_or_skip(AtomicPath::U64, max_dispatch)
 }
@@ -61,7 +66,7 @@ fn comparable(s: &FrameStats) -> (u64, u64, u64, u64, u64, u64, u64, bool, u64, 
 /// One frame on both; asserts equal keys, visible slots and statistics.
 fn frame_both(ctx: &GpuContext, gpu: &mut GpuProgressive, cpu: &mut ProgressiveRenderer, cam: &Camera, budget: u64, what: &str) -> FrameStats {
     let opts = RasterOptions::default();
-    let g = gpu.frame(ctx, cam, &opts, &FillBudget::Fixed(budget), Some(0xff00_0000)).unwrap();
+    let g = gpu.frame(ctx, cam, &opts, &FillBudget::Fixed(budget), Some(&bg(0xff00_0000))).unwrap();
     let c = cpu.frame(cam, &opts, &FillBudget::Fixed(budget)).unwrap();
     assert_eq!(comparable(&g.stats), comparable(&c), "{what}: frame statistics");
     assert_eq!(gpu.read_keys(ctx).unwrap(), cpu.keys(), "{what}: keys of frame {}", c.frame);
@@ -263,7 +268,7 @@ fn adaptive_budget_with(ctx: &GpuContext, scene: &Scene, host_clock: bool) {
     // A generous target: the probe, then the rest of the buffer in the same frame.
     let mut g = make();
     let lots = FillBudget::Adaptive(AdaptiveBudget { target_ms: 1e6, probe_points: 1_000, usable: 0.9 });
-    let f = g.frame(ctx, &cam, &RasterOptions::default(), &lots, Some(0)).unwrap();
+    let f = g.frame(ctx, &cam, &RasterOptions::default(), &lots, Some(&bg(0))).unwrap();
     assert_eq!((f.stats.probe, f.stats.filled, f.stats.fill_points), (1_000, 80_000, 80_000));
     assert!(f.stats.converged);
     assert_eq!(g.read_keys(ctx).unwrap(), want);
@@ -308,7 +313,11 @@ fn bad_input_is_refused_without_changes() {
     let p = [[1, 2, 3], [4, 5, 6]];
     let red = [0xff00_00ffu32; 2];
     assert!(matches!(progressive(r.insert(&ctx, 9, &p, Some(&red), None)), ProgressiveError::IndexRange { .. }));
-    assert!(matches!(progressive(r.insert(&ctx, 0, &[[1, 2, 3], [4, 101, 6]], Some(&red), None)), ProgressiveError::OutsideFrame { index: 1, .. }));
+    // Points outside the frame grow it (`a_frame_that_grows_...`), except past 30 bits; a
+    // prepared insert, encoded off the renderer's thread, must lie in the frame it was prepared for.
+    assert!(matches!(progressive(r.insert(&ctx, 0, &[[1, 2, 3], [4, 1 << 30, 6]], Some(&red), None)), ProgressiveError::Frame { .. }));
+    assert!(matches!(progressive(r.preparer().prepare(0, &[[1, 2, 3], [4, 101, 6]], Some(&red), None).map(|_| ())), ProgressiveError::OutsideFrame { index: 1, .. }));
+    assert_eq!(r.growths(), 0);
     assert!(matches!(progressive(r.insert(&ctx, 0, &p, Some(&red), Some(&[1, 2]))), ProgressiveError::PayloadCount { .. }));
     assert!(matches!(r.insert(&ctx, 0, &p, None, None), Err(ProgressiveGpuError::Gpu(GpuError::Colors(_)))));
     assert!(matches!(r.insert(&ctx, 0, &p, Some(&red[..1]), None), Err(ProgressiveGpuError::Gpu(GpuError::Colors(_)))));
@@ -324,11 +333,11 @@ fn bad_input_is_refused_without_changes() {
     let huge = Camera { width: 16384, height: 16384, ..cam };
     assert!(matches!(r.frame(&ctx, &huge, &RasterOptions::default(), &FillBudget::Fixed(4), None), Err(ProgressiveGpuError::Gpu(GpuError::TooLarge { .. }))) || ctx.max_binding() >= 16384 * 16384 * 8);
     let mut plain = GpuProgressive::new(&ctx, grid, [0; 3], [100; 3], 10, ProgressiveOptions::default()).unwrap();
-    assert!(matches!(plain.frame(&ctx, &cam, &RasterOptions::default(), &FillBudget::Fixed(4), Some(0)), Err(ProgressiveGpuError::Gpu(GpuError::Colors(_)))));
+    assert!(matches!(plain.frame(&ctx, &cam, &RasterOptions::default(), &FillBudget::Fixed(4), Some(&bg(0))), Err(ProgressiveGpuError::Gpu(GpuError::Colors(_)))));
     assert!(plain.read_image(&ctx).is_err());
     // An empty renderer draws empty frames and is converged.
     let mut e = GpuProgressive::new(&ctx, grid, [0; 3], [0; 3], 0, opts).unwrap();
-    let f = e.frame(&ctx, &cam, &RasterOptions::default(), &FillBudget::Fixed(100), Some(0xff11_2233)).unwrap();
+    let f = e.frame(&ctx, &cam, &RasterOptions::default(), &FillBudget::Fixed(100), Some(&bg(0xff11_2233))).unwrap();
     assert!(f.stats.converged && f.stats.visible == 0);
     assert!(e.read_keys(&ctx).unwrap().iter().all(|&k| k == EMPTY_KEY));
     assert!(e.read_image(&ctx).unwrap().iter().all(|&c| c == 0xff11_2233));
@@ -365,4 +374,79 @@ fn recolor_streams_new_colours_in_and_keeps_the_positions() {
     let (mut fresh, _) = pair(&ctx, &scene, None);
     assert!(fresh.recolor(&ctx, 0, &new_colors[..10]).is_err());
     assert!(gpu.recolor(&ctx, 59_990, &new_colors[..20]).is_err());
+}
+
+#[test]
+fn a_frame_that_grows_for_points_outside_it_equals_cpu_frame_by_frame() {
+    // Framed for a tenth of the scene (a header that lies); pieces arrive between frames, most of
+    // them outside: both renderers grow their frame alike (the GPU re-encodes its slots with the
+    // reframe pass, three chunks), and keys, visible slots and statistics stay equal; converged,
+    // the keys are the brute force of all points.
+    let Some(ctx) = context(None) else { return };
+    let scene = terrain(90_000, 31);
+    let (lo, hi) = int_bounds(&scene.points);
+    let small = mortar_core::render::framing::IntBox { min: lo, max: [0, 1, 2].map(|a| lo[a] + (hi[a] - lo[a]) / 10) };
+    let frame = mortar_core::render::progressive::ProgressiveFrame::around(scene.grid, small).unwrap();
+    let n = scene.points.len() as u64;
+    let mut gpu = GpuProgressive::with_frame(&ctx, frame, n, ProgressiveOptions { chunk_slots: Some(32_768), colors: true, payloads: true, host_clock: false }).unwrap();
+    let mut cpu = ProgressiveRenderer::with_frame(frame, n).unwrap();
+    let cam = Camera::frame_perspective(&scene.bounds, ViewPreset::Iso, 0.8, 256, 192).unwrap();
+    for s in (0..scene.points.len()).step_by(15_000) {
+        insert(&ctx, &mut gpu, &mut cpu, &scene, s, (s + 15_000).min(scene.points.len()));
+        assert_eq!(gpu.frame_state(), cpu.frame_state());
+        frame_both(&ctx, &mut gpu, &mut cpu, &cam, 20_000, "growing");
+    }
+    assert!(gpu.growths() >= 1 && gpu.growths() == cpu.growths(), "{} growths", gpu.growths());
+    while !frame_both(&ctx, &mut gpu, &mut cpu, &cam, 20_000, "grown").converged {}
+    assert_eq!(gpu.read_keys(&ctx).unwrap(), brute_force(&cpu, &cam));
+    assert_eq!(gpu.depth_ties(&ctx).unwrap(), cpu.depth_ties().unwrap());
+}
+
+#[test]
+fn the_ties_pass_counts_what_the_cpu_counts() {
+    // Pixels whose winner has a twin in depth, in a perspective view and a top view (where the
+    // depth is the height, 1 mm steps here, and many points of a pixel share it).
+    let Some(ctx) = context(None) else { return };
+    let scene = terrain(80_000, 12);
+    let (mut gpu, mut cpu) = pair(&ctx, &scene, Some(32_768));
+    assert_eq!(gpu.depth_ties(&ctx).unwrap(), None, "nothing drawn yet");
+    insert(&ctx, &mut gpu, &mut cpu, &scene, 0, scene.points.len());
+    for cam in [Camera::frame_perspective(&scene.bounds, ViewPreset::Iso, 0.8, 320, 240).unwrap(), Camera::frame_orthographic(&scene.bounds, ViewPreset::Top, 320, 240).unwrap()] {
+        while !frame_both(&ctx, &mut gpu, &mut cpu, &cam, 40_000, "ties").converged {}
+        let ties = cpu.depth_ties().unwrap().unwrap();
+        assert_eq!(gpu.depth_ties(&ctx).unwrap(), Some(ties));
+        eprintln!("{ties} ties");
+    }
+    assert!(cpu.depth_ties().unwrap().unwrap() > 0, "the top view has ties");
+}
+
+#[test]
+fn hole_filling_and_eye_dome_lighting_equal_the_cpu_resolve() {
+    // The GPU renderer's resolve runs the batch rasterizer's hole-fill and eye-dome passes on its
+    // own keys: its image equals the CPU resolve of the same keys, alone and together, with the
+    // colours by slot (two chunks).
+    use mortar_core::render::resolve::{EyeDome, HoleFill};
+    let Some(ctx) = context(None) else { return };
+    let scene = terrain(60_000, 8);
+    let (mut gpu, mut cpu) = pair(&ctx, &scene, Some(32_768));
+    insert(&ctx, &mut gpu, &mut cpu, &scene, 0, scene.points.len());
+    let cam = Camera::frame_perspective(&scene.bounds, ViewPreset::Iso, 0.8, 300, 200).unwrap();
+    let colors = slot_colors(&gpu, &scene);
+    let cases = [
+        ResolveOptions { background: 0xff20_3040, hole_fill: Some(HoleFill { min_neighbors: 3 }), eye_dome: None },
+        ResolveOptions { background: 0xff00_0000, hole_fill: None, eye_dome: Some(EyeDome { strength: 1.5, ..EyeDome::default() }) },
+        ResolveOptions { background: 0, hole_fill: Some(HoleFill { min_neighbors: 1 }), eye_dome: Some(EyeDome::default()) },
+    ];
+    for post in &cases {
+        let f = gpu.frame(&ctx, &cam, &RasterOptions::default(), &FillBudget::Fixed(60_000), Some(post)).unwrap();
+        assert!(f.stats.converged);
+        let keys = gpu.read_keys(&ctx).unwrap();
+        let want = resolve_with_colors(&keys, cam.width, cam.height, &colors, post);
+        let got = gpu.read_image(&ctx).unwrap();
+        let differ = got.iter().zip(&want).filter(|(a, b)| a != b).count();
+        assert_eq!(differ, 0, "{post:?}: {differ} pixels differ from the CPU resolve");
+        // Not a no-op: the post-processing changed the image.
+        let plain = resolve_with_colors(&keys, cam.width, cam.height, &colors, &bg(post.background));
+        assert!(plain.iter().zip(&want).filter(|(a, b)| a != b).count() > 100, "{post:?}");
+    }
 }

@@ -4,7 +4,7 @@
 //! from), and every struct shared with WGSL has the same size and member offsets as its
 //! `#[repr(C)]` Rust twin.
 
-use mortar_core::render::gpu::{BatchProjection, DrawRecord, EyeDomeUniforms, FrameUniforms, HoleFillUniforms, PlanBatch, PlanUniforms, PrepareUniforms, ResolveUniforms, ScatterUniforms};
+use mortar_core::render::gpu::{BatchProjection, DrawRecord, EyeDomeUniforms, FrameUniforms, HoleFillUniforms, PlanBatch, PlanUniforms, PrepareUniforms, ReframeUniforms, ResolveUniforms, ScatterUniforms};
 use mortar_core::render::resolve::{EDL_EXP2_COEFFS, EDL_LOG2_COEFFS};
 use mortar_core::render::progressive::UNLOADED;
 use mortar_render::progressive::SLOTS_PER_THREAD;
@@ -183,6 +183,7 @@ fn shared_structs_have_the_rust_layout() {
     let eye_dome = parse(Pass::EyeDome);
     let scatter = parse(Pass::ProgressiveScatter);
     let prepare = parse(Pass::ProgressivePrepare);
+    let reframe = parse(Pass::ProgressiveReframe);
     let plan = parse(Pass::Plan);
     // (struct, module holding it, Rust size, Rust members with their offsets)
     type Case<'a> = (&'a str, &'a naga::Module, usize, Vec<(&'a str, usize)>);
@@ -346,6 +347,21 @@ fn shared_structs_have_the_rust_layout() {
                 ("chunk_slots", offset_of!(PrepareUniforms, chunk_slots)),
                 ("list_stride", offset_of!(PrepareUniforms, list_stride)),
                 ("chunks", offset_of!(PrepareUniforms, chunks)),
+            ],
+        ),
+        (
+            "ReframeUniforms",
+            &reframe,
+            size_of::<ReframeUniforms>(),
+            vec![
+                ("from_min", offset_of!(ReframeUniforms, from_min)),
+                ("count", offset_of!(ReframeUniforms, count)),
+                ("to_min", offset_of!(ReframeUniforms, to_min)),
+                ("_pad0", offset_of!(ReframeUniforms, _pad0)),
+                ("from_shift", offset_of!(ReframeUniforms, from_shift)),
+                ("_pad1", offset_of!(ReframeUniforms, _pad1)),
+                ("to_shift", offset_of!(ReframeUniforms, to_shift)),
+                ("_pad2", offset_of!(ReframeUniforms, _pad2)),
             ],
         ),
     ];

@@ -15,6 +15,7 @@
 //! time, time to the first frame, frames and time to converge per phase, median frame times and
 //! budgets); a short table on stderr.
 
+use mortar_core::render::resolve::ResolveOptions;
 use mortar_core::metrics::median;
 use anyhow::{anyhow, bail, Result};
 use clap::Parser;
@@ -166,7 +167,7 @@ impl Phase {
 }
 
 #[allow(clippy::too_many_arguments)]
-fn run_phase(ctx: &GpuContext, r: &mut GpuProgressive, name: &str, cam: &Camera, budget: &FillBudget, resolve: Option<u32>, max_frames: u64, start: Instant) -> Result<Phase> {
+fn run_phase(ctx: &GpuContext, r: &mut GpuProgressive, name: &str, cam: &Camera, budget: &FillBudget, resolve: Option<&ResolveOptions>, max_frames: u64, start: Instant) -> Result<Phase> {
     let t = Instant::now();
     let mut frames = Vec::new();
     let mut converged_after = None;
@@ -227,7 +228,8 @@ pub fn run(a: Args) -> Result<()> {
         Aabb::new([w(0, 0), w(1, 0), w(2, 20_000)], [w(0, max[0]), w(1, max[1]), w(2, 100_000)])
     };
     let cam = Camera::frame_perspective(&bounds, ViewPreset::Iso, 50f64.to_radians(), a.width, a.height).map_err(|e| anyhow!("{e}"))?;
-    let resolve = (!a.no_resolve).then_some(0xff00_0000u32);
+    let post = ResolveOptions { background: 0xff00_0000, ..Default::default() };
+    let resolve = (!a.no_resolve).then_some(&post);
 
     // Generate and insert piece by piece, drawing a frame after each. With --pregenerate every
     // point is made first and loading runs from memory; with --prepare-thread the costly half

@@ -212,7 +212,7 @@ pub fn run(a: Args) -> Result<()> {
     let Some(color) = ColorChoice::from_name(&a.color) else {
         bail!("--color {}: not a colour mode (one of {})", a.color, ColorChoice::names().join(", "));
     };
-    let source = render::open_source(&a.inputs, &common::SortArgs::default(), None)?;
+    let (source, bounds) = render::open_source(&a.inputs, &common::SortArgs::default(), None)?;
     let file = &source.file;
     if file.header.point_count == 0 {
         bail!("{}: no points to draw", a.inputs.join(" "));
@@ -223,7 +223,6 @@ pub fn run(a: Args) -> Result<()> {
     });
     let views = render_input::load_words(file)?;
     let refs = render_input::batch_refs(file, &views)?;
-    let bounds = render_input::file_bounds(file);
     let threads = rayon::current_num_threads();
     let mut md = String::new();
     writeln!(

@@ -17,6 +17,7 @@ use mortar_core::render::BatchRef;
 use mortar_io::batchfile::{AttributeSelection, BatchFile};
 use mortar_io::render_input::{self, ColorChoice, RenderSettings, RenderSource, Rendered};
 use mortar_core::grid::Grid;
+use mortar_core::render::framing::{IntBox, ViewBox};
 use mortar_render::{AtomicPath, GpuContext, GpuError, GpuFrame, GpuOptions, GpuRasterizer, GpuScene, SceneOptions};
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -244,16 +245,22 @@ pub struct Args {
 
 /// Opens the inputs: a single batch file as it is, anything else batched into a temporary file,
 /// with every attribute, or (`colour` given) only what drawing in that colour reads, so that
-/// layered LAZ skips the rest.
-pub fn open_source(inputs: &[String], sort: &common::SortArgs, colour: Option<ColorChoice>) -> Result<RenderSource> {
+/// layered LAZ skips the rest. Also returns the box framed views frame, by the one framing rule
+/// of every renderer ([`mortar_core::render::framing`]): for LAS/LAZ the headers' box unless the
+/// first piece lies farther than its extent outside it, else (and for a batch file, whose
+/// header records it) the points' box.
+pub fn open_source(inputs: &[String], sort: &common::SortArgs, colour: Option<ColorChoice>) -> Result<(RenderSource, Aabb)> {
     if let [one] = inputs {
         let p = Path::new(one);
         if one != "-" && p.is_file() && mortar_io::batchfile::is_batch_file(p) {
-            return Ok(RenderSource::open_batch_file(p)?);
+            let source = RenderSource::open_batch_file(p)?;
+            let bounds = render_input::file_bounds(&source.file);
+            return Ok((source, bounds));
         }
     }
     let mut ds = common::open_dataset(inputs, &sort.crs)?;
     common::print_warnings(&ds.warnings);
+    let view = mortar_io::framing::view_box(&ds)?;
     let attributes = match colour {
         Some(c) => {
             let keep = c.attributes(&ds.layout);
@@ -262,7 +269,35 @@ pub fn open_source(inputs: &[String], sort: &common::SortArgs, colour: Option<Co
         }
         None => AttributeSelection::All,
     };
-    Ok(RenderSource::batch_dataset(&ds, &sort.options(), &attributes)?)
+    let source = RenderSource::batch_dataset(&ds, &sort.options(), &attributes)?;
+    let points = render_input::file_bounds(&source.file);
+    let label = source.name.display().to_string();
+    let bounds = match view {
+        ViewBox::Header(h) => {
+            if let Some(p) = IntBox::from_world(&ds.grid, points.min, points.max) {
+                warn_outside_header(&label, &h, &p, &ds.grid);
+            }
+            h.world(&ds.grid)
+        }
+        ViewBox::Points => {
+            common::warn(&format!("{label}: the header's bounds do not hold the first points; framing the points' own box"));
+            points
+        }
+    };
+    Ok((source, bounds))
+}
+
+/// Warns when points lie outside the headers' box `header` (the box every renderer frames): they
+/// are drawn, but framed views and the window's F key show the header's box.
+pub(crate) fn warn_outside_header(label: &str, header: &IntBox, points: &IntBox, grid: &Grid) {
+    if header.contains(&points.min) && header.contains(&points.max) {
+        return;
+    }
+    let (h, p) = (header.world(grid), points.world(grid));
+    common::warn(&format!(
+        "{label}: points lie outside the header's bounds (points {:?}..{:?}, header {:?}..{:?}); they are drawn, but framed views show the header's box (`mortar sort` writes the true bounds)",
+        p.min, p.max, h.min, h.max
+    ));
 }
 
 /// The camera the arguments ask for, framing `bounds` where a view is asked for.
@@ -387,7 +422,7 @@ pub fn run(a: Args) -> Result<()> {
         return crate::render::lod::run(&a, &store);
     }
     let start = Instant::now();
-    let source = open_source(&a.inputs, &a.sort, Some(a.color))?;
+    let (source, bounds) = open_source(&a.inputs, &a.sort, Some(a.color))?;
     let batch_seconds = start.elapsed().as_secs_f64();
     let file = &source.file;
     let own = |e| source.own_error(e);
@@ -396,7 +431,6 @@ pub fn run(a: Args) -> Result<()> {
         bail!("{label}: no points to draw");
     }
     render_input::check_color(file, a.color).map_err(own)?;
-    let bounds = render_input::file_bounds(file);
     let camera = build_camera(&a.camera, &bounds, a.width, a.height).map_err(|e| anyhow!("{label}: {e:#}"))?;
     let views = render_input::load_words(file).map_err(own)?;
     let refs = render_input::batch_refs(file, &views).map_err(own)?;
@@ -416,6 +450,13 @@ pub fn run(a: Args) -> Result<()> {
     if a.json {
         let projected = r.stats.points_projected() as f64;
         let mut j = rendered_json(&a, &label, &r, &gpu_json, a.color.resolved(file).name(), &camera, file.header.point_count, png_seconds);
+        // Pixels whose winner ties in depth with another point (where a renderer numbering the
+        // points otherwise may show another of them): a second pass over the points on the CPU,
+        // on the CPU backend only.
+        j["depth_ties"] = serde_json::json!(match &gpu {
+            None => Some(mortar_core::render::count_depth_ties(&r.keys, &refs, &file.grid(), &camera, &settings.raster).map_err(|e| anyhow!("{label}: {e}"))?),
+            Some(_) => None,
+        });
         j["batch_seconds"] = serde_json::json!(if source.is_temporary() { Some(batch_seconds) } else { None });
         j["gpu_points_per_second"] = serde_json::json!(gpu_json.get("draw_ms").and_then(|v| v.as_f64()).map(|ms| projected / (ms * 1e-3).max(1e-12)));
         print_json(&a, &j)?;

@@ -18,14 +18,15 @@ use crate::render::{
     build_camera, camera_json, encode_png, gpu_context, write_atomic, Args, Backend,
 };
 use anyhow::{anyhow, bail, Result};
+use mortar_core::render::framing::{IntBox, ViewBox};
 use mortar_core::render::progressive::{
-    AdaptiveBudget, FillBudget, FrameStats, ProgressiveRenderer, Shuffle,
+    AdaptiveBudget, FillBudget, FrameStats, ProgressiveFrame, ProgressiveRenderer, Shuffle,
 };
 use mortar_core::render::resolve::{resolve, ColorMode, EyeDome, HoleFill, ResolveOptions};
 use mortar_core::render::{Camera, RasterOptions};
 use mortar_io::dataset::Dataset;
 use mortar_io::progressive::{
-    header_frame, load_pieces, payload_colors, payload_for, resolve_choice, ColorStats, LoadedPiece,
+    load_pieces, payload_colors, payload_for, payload_range, point_count, resolve_choice, ColorStats, LoadedPiece,
 };
 use mortar_io::render_input::ColorChoice;
 use mortar_render::{
@@ -161,6 +162,15 @@ pub trait ProgressiveEngine {
     fn keys_and_visible(&self) -> Result<(Vec<u64>, Vec<u32>)>;
     /// The payload in `slot`, once loaded.
     fn payload(&self, slot: u32) -> Option<u64>;
+    /// The payloads of every point loaded.
+    fn loaded_payloads(&self) -> Vec<u64>;
+    /// The quantization frame (which grows for points outside it).
+    fn frame_state(&self) -> ProgressiveFrame;
+    /// How often the frame grew.
+    fn growths(&self) -> u32;
+    /// Pixels of the last frame whose winner ties in depth with another point (`None` before
+    /// every point arrived).
+    fn depth_ties(&mut self) -> Result<Option<u64>>;
     /// The backend for `--json` (`null` for the CPU).
     fn backend_json(&self) -> serde_json::Value {
         serde_json::Value::Null
@@ -196,6 +206,22 @@ impl ProgressiveEngine for ProgressiveRenderer {
 
     fn payload(&self, slot: u32) -> Option<u64> {
         ProgressiveRenderer::payload(self, slot)
+    }
+
+    fn loaded_payloads(&self) -> Vec<u64> {
+        ProgressiveRenderer::loaded_payloads(self)
+    }
+
+    fn frame_state(&self) -> ProgressiveFrame {
+        *ProgressiveRenderer::frame_state(self)
+    }
+
+    fn growths(&self) -> u32 {
+        ProgressiveRenderer::growths(self)
+    }
+
+    fn depth_ties(&mut self) -> Result<Option<u64>> {
+        Ok(ProgressiveRenderer::depth_ties(self)?)
     }
 }
 
@@ -234,6 +260,22 @@ impl ProgressiveEngine for OnGpu<'_> {
         self.r.payload(slot)
     }
 
+    fn loaded_payloads(&self) -> Vec<u64> {
+        self.r.loaded_payloads()
+    }
+
+    fn frame_state(&self) -> ProgressiveFrame {
+        *self.r.frame_state()
+    }
+
+    fn growths(&self) -> u32 {
+        self.r.growths()
+    }
+
+    fn depth_ties(&mut self) -> Result<Option<u64>> {
+        self.r.depth_ties(self.ctx).map_err(|e| anyhow!("GPU: {e}"))
+    }
+
     fn backend_json(&self) -> serde_json::Value {
         let (ctx, r) = (self.ctx, &self.r);
         let ad = ctx.adapter();
@@ -265,6 +307,8 @@ struct FrameRecord {
 
 /// What the render loop produced.
 struct Outcome {
+    /// The camera every frame was drawn with.
+    camera: Camera,
     frames: Vec<FrameRecord>,
     colors: ColorStats,
     /// When every point was in the buffer, ms since the start.
@@ -274,7 +318,16 @@ struct Outcome {
     decode_seconds: f64,
 }
 
-/// Draws frames until `frames` says stop, taking pieces from `rx` as they arrive.
+/// Takes a decoded piece into the renderer.
+fn take(r: &mut dyn ProgressiveEngine, piece: mortar_io::Result<LoadedPiece>, colors: &mut ColorStats, decode_seconds: &mut f64, label: &str) -> Result<()> {
+    let piece = piece?;
+    colors.add(&piece);
+    *decode_seconds += piece.seconds;
+    r.insert(&piece).map_err(|e| anyhow!("{label}: {e}"))
+}
+
+/// Draws frames until `frames` says stop, taking pieces from `rx` as they arrive; the camera is
+/// made by `camera` once the first frame's points are in (after all of them with `preload`).
 #[allow(clippy::too_many_arguments)]
 fn render_loop(
     r: &mut dyn ProgressiveEngine,
@@ -282,49 +335,35 @@ fn render_loop(
     frames: Frames,
     preload: bool,
     pace: Option<f64>,
-    camera: &mortar_core::render::Camera,
+    camera: impl FnOnce(&dyn ProgressiveEngine) -> Result<Camera>,
     options: &RasterOptions,
     budget: &FillBudget,
     start: Instant,
     label: &str,
 ) -> Result<Outcome> {
-    let mut out = Outcome {
-        frames: Vec::new(),
-        colors: ColorStats::default(),
-        loaded_ms: None,
-        first_frame_ms: 0.0,
-        decode_seconds: 0.0,
-    };
+    let mut colors = ColorStats::default();
+    let mut decode_seconds = 0.0;
     let mut open = true;
-    let take = |r: &mut dyn ProgressiveEngine,
-                piece: mortar_io::Result<LoadedPiece>,
-                out: &mut Outcome|
-     -> Result<()> {
-        let piece = piece?;
-        out.colors.add(&piece);
-        out.decode_seconds += piece.seconds;
-        r.insert(&piece).map_err(|e| {
-            anyhow!("{label}: {e} (the progressive renderer frames the points with the header's bounds and a margin of their extent on every side; rewrite the file with `mortar sort` for true bounds)")
-        })
-    };
     if preload {
         for piece in rx.iter() {
-            take(r, piece, &mut out)?;
+            take(r, piece, &mut colors, &mut decode_seconds, label)?;
         }
         open = false;
     }
+    let camera = camera(&*r)?;
+    let mut out = Outcome { camera, frames: Vec::new(), colors, loaded_ms: None, first_frame_ms: 0.0, decode_seconds };
     loop {
         let t = Instant::now();
         // The first frame waits for the first points, so that it shows something.
         if r.loaded() == 0 && open {
             match rx.recv() {
-                Ok(piece) => take(r, piece, &mut out)?,
+                Ok(piece) => take(r, piece, &mut out.colors, &mut out.decode_seconds, label)?,
                 Err(_) => open = false,
             }
         }
         while open {
             match rx.try_recv() {
-                Ok(piece) => take(r, piece, &mut out)?,
+                Ok(piece) => take(r, piece, &mut out.colors, &mut out.decode_seconds, label)?,
                 Err(TryRecvError::Empty) => break,
                 Err(TryRecvError::Disconnected) => open = false,
             }
@@ -344,7 +383,7 @@ fn render_loop(
             out.first_frame_ms = ms(start);
         }
         let (stats, gpu) = r
-            .frame(camera, options, budget)
+            .frame(&out.camera, options, budget)
             .map_err(|e| anyhow!("{label}: {e}"))?;
         out.frames.push(FrameRecord {
             stats,
@@ -400,14 +439,31 @@ pub fn run(a: &Args) -> Result<()> {
         .map(|p| p.display().to_string())
         .collect::<Vec<_>>()
         .join(" ");
-    let frame = header_frame(&ds)?;
-    if frame.points == 0 {
+    let points = point_count(&ds);
+    if points == 0 {
         bail!("{label}: no points to draw");
     }
     let first_path = ds.inputs[0].path().to_path_buf();
     let payload = payload_for(&ds.layout, a.color, &first_path)?;
-    let camera = build_camera(&a.camera, &frame.bounds, a.width, a.height)
-        .map_err(|e| anyhow!("{label}: {e:#}"))?;
+    // The one framing rule: the headers' box, or (when the first piece lies far outside it)
+    // the points' box, which needs every point before the first frame.
+    let view = mortar_io::framing::view_box(&ds)?;
+    let (frame, preload) = match view {
+        ViewBox::Header(h) => (ProgressiveFrame::around(ds.grid, h), p.preload),
+        ViewBox::Points => {
+            common::warn(&format!("{label}: the header's bounds do not hold the first points; reading every point before the first frame to frame them"));
+            let first = IntBox::of(&mortar_io::framing::first_points(&ds)?).ok_or_else(|| anyhow!("{label}: the first piece holds no point"))?;
+            (ProgressiveFrame::around(ds.grid, first), true)
+        }
+    };
+    let frame = frame.map_err(|e| anyhow!("{label}: {e}"))?;
+    let (width, height, grid) = (a.width, a.height, ds.grid);
+    let make_camera = |r: &dyn ProgressiveEngine| -> Result<Camera> {
+        let bounds = view.bounds(&grid, || r.frame_state().data);
+        build_camera(&a.camera, &bounds, width, height).map_err(|e| anyhow!("{label}: {e:#}"))
+    };
+    // Checked before anything is loaded.
+    build_camera(&a.camera, &frame.data.world(&grid), width, height).map_err(|e| anyhow!("{label}: {e:#}"))?;
     let options = RasterOptions {
         precision: a.precision.mode(),
         cull: !a.no_cull,
@@ -419,7 +475,7 @@ pub fn run(a: &Args) -> Result<()> {
     };
     let mut renderer: Box<dyn ProgressiveEngine> = match &gpu {
         None => Box::new(
-            ProgressiveRenderer::new(ds.grid, frame.min, frame.max, frame.points)
+            ProgressiveRenderer::with_frame(frame, points)
                 .map_err(|e| anyhow!("{label}: {e}"))?,
         ),
         Some(ctx) => {
@@ -427,7 +483,7 @@ pub fn run(a: &Args) -> Result<()> {
                 payloads: true,
                 ..ProgressiveOptions::default()
             };
-            let r = GpuProgressive::new(ctx, ds.grid, frame.min, frame.max, frame.points, options)
+            let r = GpuProgressive::with_frame(ctx, frame, points, options)
                 .map_err(|e| anyhow!("{label}: --backend {}: {e}", backend_name(a.backend)))?;
             Box::new(OnGpu { ctx, r })
         }
@@ -453,9 +509,9 @@ pub fn run(a: &Args) -> Result<()> {
             &mut *renderer,
             rx,
             frames,
-            p.preload,
+            preload,
             frame_period(p),
-            &camera,
+            make_camera,
             &options,
             &budget,
             start,
@@ -471,8 +527,17 @@ pub fn run(a: &Args) -> Result<()> {
         Ok(out)
     })?;
 
-    // Resolve the last frame: colours of the visible points only, as `mortar render` does.
+    // Resolve the last frame: colours of the visible points only, as `mortar render` does, scalar
+    // modes over the range of every point loaded (all of them once loaded: the rule of every
+    // renderer, view-independent).
+    let camera = outcome.camera;
     let t = Instant::now();
+    let state = renderer.frame_state();
+    if let ViewBox::Header(h) = view {
+        if renderer.loaded() == renderer.capacity() {
+            crate::render::warn_outside_header(&label, &h, &state.data, &ds.grid);
+        }
+    }
     let loaded_all = renderer.loaded() == renderer.capacity();
     if loaded_all && a.color == ColorChoice::Mode(ColorMode::Rgb) && outcome.colors.max_rgb == 0 {
         bail!("{}: --color rgb: the points have no colour (every RGB value is zero, point format {}); try --color intensity", first_path.display(), ds.layout.format);
@@ -484,13 +549,14 @@ pub fn run(a: &Args) -> Result<()> {
         .iter()
         .map(|&s| renderer.payload(s).expect("visible points are loaded"))
         .collect();
+    let range = a.range.or_else(|| payload_range(&renderer.loaded_payloads(), a.color, payload, &outcome.colors, &ds.grid));
     let (colors, color_range) = payload_colors(
         &payloads,
         a.color,
         payload,
         &outcome.colors,
         &ds.grid,
-        a.range,
+        range,
     );
     let resolve_options = ResolveOptions {
         background: a.background,
@@ -528,6 +594,11 @@ pub fn run(a: &Args) -> Result<()> {
         return Ok(());
     }
     let converged_at = outcome.frames.iter().find(|f| f.stats.converged);
+    // Where the converged image may show another point than a renderer that numbers the points
+    // otherwise (the batch rasterizer: Morton order): pixels whose winner ties in depth.
+    let t = Instant::now();
+    let depth_ties = if last.converged { renderer.depth_ties().map_err(|e| anyhow!("{label}: {e:#}"))? } else { None };
+    let ties_seconds = t.elapsed().as_secs_f64();
     let gpu_json = renderer.backend_json();
     let budget_json = match budget {
         FillBudget::Fixed(b) => {
@@ -587,6 +658,10 @@ pub fn run(a: &Args) -> Result<()> {
         "camera": camera_json(&camera),
         "points": renderer.capacity(),
         "loaded": renderer.loaded(),
+        // The framing rule's choice: the headers' box, or the points' (read before the first frame).
+        "framing": match view { ViewBox::Header(_) => "header", ViewBox::Points => "points" },
+        // Times the quantization frame grew for points outside it (a header that lies).
+        "frame_growths": renderer.growths(),
         "shuffle": { "prime": renderer.shuffle().prime(), "unshuffled": renderer.shuffle().unshuffled() },
         "load_threads": threads,
         "preload": p.preload,
@@ -613,6 +688,8 @@ pub fn run(a: &Args) -> Result<()> {
             "prepare_ms_median": median(&loaded_frames.iter().map(|f| f.stats.prepare_ms).collect::<Vec<f64>>()),
         },
         "pixels_covered": last.visible,
+        "depth_ties": depth_ties,
+        "ties_seconds": ties_seconds,
         "resolve_seconds": resolve_seconds,
         "png_seconds": png_seconds,
         "frames": frame_json,

@@ -95,6 +95,8 @@ pub struct BatchContent<'a> {
     label: String,
     file: &'a BatchFile,
     refs: &'a [BatchRef<'a>],
+    /// The box framed views frame (`render::open_source`: the one framing rule).
+    bounds: Aabb,
     range: Option<[f64; 2]>,
     modes: Vec<ColorChoice>,
     mode: usize,
@@ -107,9 +109,9 @@ pub struct BatchContent<'a> {
 
 impl<'a> BatchContent<'a> {
     /// The batches `refs` of `file` (named `label` in errors), first shown in colour mode
-    /// `color`; the other modes are those the file's attributes serve. `range`: of the scalar
-    /// modes (default: the 1st to 99th percentile).
-    pub fn new(label: String, file: &'a BatchFile, refs: &'a [BatchRef<'a>], color: ColorChoice, range: Option<[f64; 2]>) -> mortar_io::Result<BatchContent<'a>> {
+    /// `color`; the other modes are those the file's attributes serve; `bounds` what framed views
+    /// frame. `range`: of the scalar modes (default: the 1st to 99th percentile of all points).
+    pub fn new(label: String, file: &'a BatchFile, refs: &'a [BatchRef<'a>], bounds: Aabb, color: ColorChoice, range: Option<[f64; 2]>) -> mortar_io::Result<BatchContent<'a>> {
         let initial = color.resolved(file);
         render_input::check_color(file, initial)?;
         let mut modes: Vec<ColorChoice> = ColorMode::ALL.iter().map(|&m| ColorChoice::Mode(m)).filter(|&c| render_input::check_color(file, c).is_ok()).collect();
@@ -118,7 +120,7 @@ impl<'a> BatchContent<'a> {
         }
         let mode = modes.iter().position(|&m| m == initial).unwrap_or(0);
         let colors = vec![None; modes.len()];
-        Ok(BatchContent { label, file, refs, range, modes, mode, colors, fb: None, gpu: None })
+        Ok(BatchContent { label, file, refs, bounds, range, modes, mode, colors, fb: None, gpu: None })
     }
 
     /// Every point's colour in the current mode (computed once per mode).
@@ -133,7 +135,7 @@ impl<'a> BatchContent<'a> {
 
 impl Content for BatchContent<'_> {
     fn bounds(&self) -> Aabb {
-        render_input::file_bounds(self.file)
+        self.bounds
     }
 
     fn points(&self) -> u64 {

@@ -87,11 +87,10 @@ pub struct Args {
     #[arg(long, default_value = "black", value_parser = parse_color)]
     pub background: u32,
     /// Fill empty pixels from their nearest neighbour where at least N of the 8 neighbours hold a
-    /// point (--hole-fill alone: N = 3). Not yet for raw LAS/LAZ drawn progressively.
+    /// point (--hole-fill alone: N = 3).
     #[arg(long, value_name = "N", num_args = 0..=1, default_missing_value = "3", value_parser = clap::value_parser!(u32).range(1..=8))]
     pub hole_fill: Option<u32>,
-    /// Eye-dome lighting (shading from depth differences), with an optional strength. Not yet
-    /// for raw LAS/LAZ drawn progressively.
+    /// Eye-dome lighting (shading from depth differences), with an optional strength.
     #[arg(long, value_name = "STRENGTH", num_args = 0..=1, default_missing_value = "1.0")]
     pub edl: Option<f32>,
     /// Write what the window shows after --frames frames to this PNG and exit.
@@ -239,15 +238,12 @@ pub fn run(a: Args) -> Result<()> {
             && paths.iter().all(|p| p.as_os_str() != "-" && !mortar_io::store::is_store(p) && !(p.is_file() && mortar_io::batchfile::is_batch_file(p)));
         if raw {
             let threads = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
-            if a.hole_fill.is_some() || a.edl.is_some() {
-                eprintln!("mortar view: --hole-fill and --edl do not apply to the progressive renderer yet (raw LAS/LAZ); --no-progressive draws with them");
-            }
             let view = ProgressiveView::open(&paths, a.color, a.range, threads)?;
             let label = paths.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(" ");
             return show(&a, event_loop, Box::new(view), label, None).map(drop);
         }
     }
-    let source = crate::render::open_source(&a.inputs, &a.sort, None)?;
+    let (source, bounds) = crate::render::open_source(&a.inputs, &a.sort, None)?;
     let file = &source.file;
     let own = |e| source.own_error(e);
     let label = source.name.display().to_string();
@@ -257,7 +253,7 @@ pub fn run(a: Args) -> Result<()> {
     render_input::check_color(file, a.color.resolved(file)).map_err(own)?;
     let views = render_input::load_words(file).map_err(own)?;
     let refs = render_input::batch_refs(file, &views).map_err(own)?;
-    let content = BatchContent::new(label.clone(), file, &refs, a.color, a.range).map_err(own)?;
+    let content = BatchContent::new(label.clone(), file, &refs, bounds, a.color, a.range).map_err(own)?;
     show(&a, event_loop, Box::new(content), label, None).map(drop)
 }
 

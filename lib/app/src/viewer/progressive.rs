@@ -30,7 +30,9 @@ use mortar_render::{wgpu, AtomicPath, GpuContext, GpuError, GpuProgressive, GpuR
 use mortar_core::render::resolve::{resolve, ColorMode, ResolveOptions};
 use mortar_core::render::{Aabb, Camera, RasterOptions};
 use mortar_io::dataset::Dataset;
-use mortar_io::progressive::{header_frame, load_pieces, payload_colors, payload_for, ColorStats, LoadedPiece, Payload};
+use mortar_core::render::framing::{IntBox, ViewBox};
+use mortar_core::render::progressive::ProgressiveFrame;
+use mortar_io::progressive::{load_pieces, payload_colors, payload_for, payload_range, point_count, ColorStats, LoadedPiece, Payload};
 use mortar_io::render_input::ColorChoice;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -40,6 +42,9 @@ use std::thread::JoinHandle;
 
 /// Loader threads delivering pieces of the dataset with one kind of payload.
 struct Loader {
+    /// Pieces read before the window opened (every piece, where the framing rule needs the
+    /// points' box), handed over first.
+    pending: Vec<LoadedPiece>,
     rx: Receiver<mortar_io::Result<LoadedPiece>>,
     cancel: Arc<AtomicBool>,
     thread: Option<JoinHandle<mortar_io::Result<()>>>,
@@ -56,12 +61,28 @@ impl Loader {
             .name("mortar-view-load".into())
             .spawn(move || load_pieces(&ds, payload, threads, &c, move |piece| tx.send(piece).is_ok()))
             .ok();
-        Loader { rx, cancel, thread, finished: false }
+        Loader { pending: Vec::new(), rx, cancel, thread, finished: false }
+    }
+
+    /// Waits for every piece (kept for [`arrived`](Self::arrived)).
+    fn preload(&mut self) -> Result<()> {
+        while !self.finished {
+            match self.rx.recv() {
+                Ok(p) => self.pending.push(p?),
+                Err(_) => {
+                    self.finished = true;
+                    if let Some(t) = self.thread.take() {
+                        t.join().map_err(|_| anyhow!("a loader thread panicked"))??;
+                    }
+                }
+            }
+        }
+        Ok(())
     }
 
     /// The pieces that arrived, without waiting.
     fn arrived(&mut self) -> Result<Vec<LoadedPiece>> {
-        let mut out = Vec::new();
+        let mut out = std::mem::take(&mut self.pending);
         while !self.finished {
             match self.rx.try_recv() {
                 Ok(p) => out.push(p?),
@@ -98,16 +119,33 @@ struct Switch {
     /// Per slot, whether its payload is the new one (CPU path).
     done: Vec<u64>,
     points: u64,
-    /// GPU path: the new mode's colour rules, fixed by the switch's first piece.
+    /// GPU path: the new mode's colour rules, fixed by the switch's first piece until every
+    /// point switched.
     rules: Option<(ColorStats, Option<[f64; 2]>)>,
+    /// GPU path, scalar modes without `--range`: every point's new payload in input order (for
+    /// the range of all points once every one arrived).
+    values: Vec<u64>,
 }
 
-/// The GPU renderer and its fixed colour rules.
+/// The GPU renderer and its colour rules.
 pub struct GpuState {
     renderer: GpuProgressive,
-    /// The colour decisions, fixed by the first piece.
+    /// The colour decisions: fixed by the first piece while loading, then (scalar modes without
+    /// `--range`) the range of all points, with every colour rewritten if it differs.
     rules: Option<(ColorStats, Option<[f64; 2]>)>,
+    /// Scalar modes without `--range`: every point's payload in input order, while loading.
+    values: Vec<u64>,
     loaded: u64,
+}
+
+/// The range of scalar colours over the points holding a mode's payload, recomputed as their
+/// number doubles and once they are all there (CPU path).
+#[derive(Clone, Copy, Debug, Default)]
+struct RangeCache {
+    mode: usize,
+    /// Points the range was computed over.
+    count: u64,
+    range: Option<[f64; 2]>,
 }
 
 /// A raw LAS/LAZ shown progressively.
@@ -118,8 +156,16 @@ pub struct ProgressiveView {
     renderer: ProgressiveRenderer,
     /// The GPU renderer, which replaces `renderer` once [`use_gpu`](Self::use_gpu) is called.
     gpu: Option<GpuState>,
-    frame: mortar_io::progressive::HeaderFrame,
+    /// The quantization frame the renderers start with.
+    frame: ProgressiveFrame,
+    /// Points of all inputs.
+    points: u64,
+    /// What framed views frame: the one framing rule (`mortar_core::render::framing`).
     bounds: Aabb,
+    /// The headers' box when the rule took it (for the warning about points outside it).
+    header: Option<IntBox>,
+    /// Scalar ranges over all points (CPU path): the shown mode's and a switch's target's.
+    ranges: [RangeCache; 2],
     threads: usize,
     loader: Option<Loader>,
     /// Colour modes offered (C cycles them) and the payload each needs.
@@ -137,12 +183,14 @@ pub struct ProgressiveView {
 
 impl ProgressiveView {
     /// Opens `paths` (raw LAS/LAZ) and starts loading them; `color` is the first colour mode.
+    /// Where the framing rule needs the points' box (the headers' box misses the first piece),
+    /// every point is read first.
     pub fn open(paths: &[PathBuf], color: ColorChoice, range: Option<[f64; 2]>, threads: usize) -> Result<ProgressiveView> {
         let ds = Dataset::open(paths)?;
         crate::cli::print_warnings(&ds.warnings);
         let label = paths.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(" ");
-        let frame = header_frame(&ds)?;
-        if frame.points == 0 {
+        let points = point_count(&ds);
+        if points == 0 {
             bail!("{label}: no points to draw");
         }
         let first_path = ds.inputs[0].path().to_path_buf();
@@ -159,9 +207,21 @@ impl ProgressiveView {
                 payloads.push(p);
             }
         }
-        let renderer = ProgressiveRenderer::new(ds.grid, frame.min, frame.max, frame.points).map_err(|e| anyhow!("{label}: {e}"))?;
+        let view = mortar_io::framing::view_box(&ds)?;
+        let grid = ds.grid;
         let ds = Arc::new(ds);
-        let loader = Some(Loader::start(&ds, first, threads));
+        let mut loader = Loader::start(&ds, first, threads);
+        let (frame, bounds, header) = match view {
+            ViewBox::Header(h) => (ProgressiveFrame::around(grid, h), h.world(&grid), Some(h)),
+            ViewBox::Points => {
+                crate::cli::warn(&format!("{label}: the header's bounds do not hold the first points; reading every point before the first frame to frame them"));
+                loader.preload().map_err(|e| anyhow!("{label}: {e:#}"))?;
+                let b = loader.pending.iter().filter_map(|p| mortar_core::render::progressive::piece_box(&p.xyz)).reduce(IntBox::union).ok_or_else(|| anyhow!("{label}: no points could be read"))?;
+                (ProgressiveFrame::around(grid, b), b.world(&grid), None)
+            }
+        };
+        let frame = frame.map_err(|e| anyhow!("{label}: {e}"))?;
+        let renderer = ProgressiveRenderer::with_frame(frame, points).map_err(|e| anyhow!("{label}: {e}"))?;
         Ok(ProgressiveView {
             label,
             first_path,
@@ -169,9 +229,12 @@ impl ProgressiveView {
             renderer,
             gpu: None,
             frame,
-            bounds: frame.bounds,
+            points,
+            bounds,
+            header,
+            ranges: [RangeCache::default(); 2],
             threads,
-            loader,
+            loader: Some(loader),
             modes,
             payloads,
             mode: 0,
@@ -184,7 +247,7 @@ impl ProgressiveView {
     }
 
     pub fn capacity(&self) -> u64 {
-        self.frame.points
+        self.points
     }
 
     pub fn loaded(&self) -> u64 {
@@ -209,11 +272,10 @@ impl ProgressiveView {
     /// Draws with the GPU progressive renderer from now on (before the first frame). Fails
     /// (and the view stays on the CPU) where the context cannot run it (32-bit atomics).
     pub fn start_gpu(&mut self, ctx: &GpuContext) -> Result<()> {
-        let f = &self.frame;
-        let renderer = GpuProgressive::new(ctx, self.ds.grid, f.min, f.max, f.points, ProgressiveOptions { colors: true, ..Default::default() }).map_err(|e| anyhow!("{}: {e}", self.label))?;
-        self.gpu = Some(GpuState { renderer, rules: None, loaded: 0 });
+        let renderer = GpuProgressive::with_frame(ctx, self.frame, self.points, ProgressiveOptions { colors: true, ..Default::default() }).map_err(|e| anyhow!("{}: {e}", self.label))?;
+        self.gpu = Some(GpuState { renderer, rules: None, values: Vec::new(), loaded: 0 });
         // The CPU renderer's buffers are not needed any more.
-        self.renderer = ProgressiveRenderer::new(self.ds.grid, f.min, f.max, 0).map_err(|e| anyhow!("{}: {e}", self.label))?;
+        self.renderer = ProgressiveRenderer::with_frame(self.frame, 0).map_err(|e| anyhow!("{}: {e}", self.label))?;
         Ok(())
     }
 
@@ -250,7 +312,7 @@ impl ProgressiveView {
             if self.loader.is_some() {
                 return Ok(false);
             }
-            self.switch = Some(Switch { loader: Loader::start(&self.ds, self.payloads[to], self.threads), to, payload: self.payloads[to], done: Vec::new(), points: 0, rules: None });
+            self.switch = Some(Switch { loader: Loader::start(&self.ds, self.payloads[to], self.threads), to, payload: self.payloads[to], done: Vec::new(), points: 0, rules: None, values: Vec::new() });
             return Ok(true);
         }
         Ok(self.switch_cpu(to))
@@ -265,53 +327,70 @@ impl ProgressiveView {
             return false;
         }
         let n = self.capacity() as usize;
-        self.switch = Some(Switch { loader: Loader::start(&self.ds, self.payloads[to], self.threads), to, payload: self.payloads[to], done: vec![0; n.div_ceil(64)], points: 0, rules: None });
+        self.switch = Some(Switch { loader: Loader::start(&self.ds, self.payloads[to], self.threads), to, payload: self.payloads[to], done: vec![0; n.div_ceil(64)], points: 0, rules: None, values: Vec::new() });
         true
     }
 
     /// Takes what the loader delivered since the last call into the GPU renderer, each point
-    /// with its colour by the rules fixed at the first piece.
+    /// with its colour by the rules fixed at the first piece; once every point arrived, the rules
+    /// of all points (the RGB depth and scalar range every renderer of the file uses), and where
+    /// they differ from the first piece's every colour is written again.
     fn take_arrived_gpu(&mut self, ctx: &GpuContext) -> Result<()> {
+        let n = self.points as usize;
+        let grid = self.ds.grid;
         if let (Some(w), Some(g)) = (&mut self.switch, &mut self.gpu) {
             let (choice, payload) = (self.modes[w.to], w.payload);
+            if w.values.is_empty() {
+                w.values = vec![0; n];
+            }
             for piece in w.loader.arrived().map_err(|e| anyhow!("{}: {e:#}", self.label))? {
                 let (stats, range) = *w.rules.get_or_insert_with(|| {
                     let mut st = ColorStats::default();
                     st.add(&piece);
-                    let (_, r) = payload_colors(&piece.payload, choice, payload, &st, &self.ds.grid, self.range);
+                    let (_, r) = payload_colors(&piece.payload, choice, payload, &st, &grid, self.range);
                     (st, r)
                 });
-                let (colors, _) = payload_colors(&piece.payload, choice, payload, &stats, &self.ds.grid, range);
+                let (colors, _) = payload_colors(&piece.payload, choice, payload, &stats, &grid, range);
                 g.renderer.recolor(ctx, piece.first, &colors).map_err(|e| anyhow!("{}: GPU: {e}", self.label))?;
+                let f = piece.first as usize;
+                w.values[f..f + piece.payload.len()].copy_from_slice(&piece.payload);
                 w.points += piece.payload.len() as u64;
             }
             if w.loader.finished {
-                if w.points < self.frame.points {
-                    bail!("{}: only {} of {} points could be read again for the new colours", self.label, w.points, self.frame.points);
+                if w.points < self.points {
+                    bail!("{}: only {} of {} points could be read again for the new colours", self.label, w.points, self.points);
                 }
+                g.rules = Some(final_rules(ctx, &mut g.renderer, w.rules, self.stats, &w.values, choice, payload, &grid, self.range).map_err(|e| anyhow!("{}: GPU: {e}", self.label))?);
                 self.mode = w.to;
-                g.rules = w.rules;
                 self.switch = None;
             }
         }
         let (Some(l), Some(g)) = (&mut self.loader, &mut self.gpu) else { return Ok(()) };
         let (choice, payload) = (self.modes[self.mode], self.payloads[self.mode]);
+        if g.values.is_empty() {
+            g.values = vec![0; n];
+        }
         for piece in l.arrived().map_err(|e| anyhow!("{}: {e:#}", self.label))? {
             self.stats.add(&piece);
             let (stats, range) = *g.rules.get_or_insert_with(|| {
-                let (_, r) = payload_colors(&piece.payload, choice, payload, &self.stats, &self.ds.grid, self.range);
+                let (_, r) = payload_colors(&piece.payload, choice, payload, &self.stats, &grid, self.range);
                 (self.stats, r)
             });
-            let (colors, _) = payload_colors(&piece.payload, choice, payload, &stats, &self.ds.grid, range);
-            g.renderer.insert(ctx, piece.first, &piece.xyz, Some(&colors), None).map_err(|e| {
-                anyhow!("{}: {e} (the progressive renderer frames the points with the header's bounds and a margin of their extent on every side; rewrite the file with `mortar sort` for true bounds)", self.label)
-            })?;
+            let (colors, _) = payload_colors(&piece.payload, choice, payload, &stats, &grid, range);
+            g.renderer.insert(ctx, piece.first, &piece.xyz, Some(&colors), None).map_err(|e| anyhow!("{}: {e}", self.label))?;
+            let f = piece.first as usize;
+            g.values[f..f + piece.payload.len()].copy_from_slice(&piece.payload);
             g.loaded += piece.xyz.len() as u64;
         }
         if l.finished {
             self.loader = None;
-            if g.loaded < self.frame.points {
-                bail!("{}: only {} of {} points could be read", self.label, g.loaded, self.frame.points);
+            if g.loaded < self.points {
+                bail!("{}: only {} of {} points could be read", self.label, g.loaded, self.points);
+            }
+            let values = std::mem::take(&mut g.values);
+            g.rules = Some(final_rules(ctx, &mut g.renderer, g.rules, self.stats, &values, choice, payload, &grid, self.range).map_err(|e| anyhow!("{}: GPU: {e}", self.label))?);
+            if let Some(h) = self.header {
+                crate::render::warn_outside_header(&self.label, &h, &g.renderer.frame_state().data, &grid);
             }
         }
         Ok(())
@@ -319,10 +398,10 @@ impl ProgressiveView {
 
     /// Draws one progressive frame with the GPU renderer, resolved on the GPU into its image
     /// buffer (for the window's present pass): the image buffer and the frame's statistics.
-    pub fn frame_gpu(&mut self, ctx: &GpuContext, camera: &Camera, options: &RasterOptions, background: u32) -> Result<mortar_render::GpuProgressiveFrame> {
+    pub fn frame_gpu(&mut self, ctx: &GpuContext, camera: &Camera, options: &RasterOptions, resolve: &ResolveOptions) -> Result<mortar_render::GpuProgressiveFrame> {
         self.take_arrived_gpu(ctx)?;
         let g = self.gpu.as_mut().ok_or_else(|| anyhow!("the view is not on the GPU"))?;
-        let f = g.renderer.frame(ctx, camera, options, &self.budget, Some(background)).map_err(|e| anyhow!("{}: GPU: {e}", self.label))?;
+        let f = g.renderer.frame(ctx, camera, options, &self.budget, Some(resolve)).map_err(|e| anyhow!("{}: GPU: {e}", self.label))?;
         self.last = f.stats;
         Ok(f)
     }
@@ -337,14 +416,15 @@ impl ProgressiveView {
         if let Some(l) = &mut self.loader {
             for piece in l.arrived().map_err(|e| anyhow!("{}: {e:#}", self.label))? {
                 self.stats.add(&piece);
-                self.renderer.insert(piece.first, &piece.xyz, &piece.payload).map_err(|e| {
-                    anyhow!("{}: {e} (the progressive renderer frames the points with the header's bounds and a margin of their extent on every side; rewrite the file with `mortar sort` for true bounds)", self.label)
-                })?;
+                self.renderer.insert(piece.first, &piece.xyz, &piece.payload).map_err(|e| anyhow!("{}: {e}", self.label))?;
             }
             if l.finished {
                 self.loader = None;
                 if self.loaded() < self.capacity() {
                     bail!("{}: only {} of {} points could be read", self.label, self.loaded(), self.capacity());
+                }
+                if let Some(h) = self.header {
+                    crate::render::warn_outside_header(&self.label, &h, &self.renderer.frame_state().data, &self.ds.grid);
                 }
             }
         }
@@ -366,13 +446,40 @@ impl ProgressiveView {
                 }
                 self.mode = w.to;
                 self.switch = None;
+                self.ranges[0] = self.ranges[1];
             }
         }
         Ok(())
     }
 
-    /// Draws one progressive frame with the CPU renderer and resolves it: the RGBA8 image.
-    pub fn frame_cpu(&mut self, camera: &Camera, options: &RasterOptions, background: u32) -> Result<Vec<u32>> {
+    /// The range of scalar colours in mode `mode` over the `held` points holding its payload
+    /// (`values()` gives theirs), cached in `self.ranges[k]` and computed again when their number
+    /// doubled or they are all there: `--range`, else the range of every point once all of them
+    /// are in, the rule of every renderer.
+    fn range_of(&mut self, k: usize, mode: usize, held: u64, values: impl FnOnce(&Self) -> Vec<u64>) -> Option<[f64; 2]> {
+        if self.range.is_some() {
+            return self.range;
+        }
+        let c = self.ranges[k];
+        let all = self.capacity();
+        let stale = c.mode != mode || c.count == 0 || held >= 2 * c.count || (held == all && c.count != all);
+        if stale && held > 0 {
+            let v = values(self);
+            let range = payload_range(&v, self.modes[mode], self.payloads_of(mode), &self.stats, &self.ds.grid);
+            self.ranges[k] = RangeCache { mode, count: held, range };
+        }
+        self.ranges[k].range
+    }
+
+    /// The payload kind of mode `mode` (a switch's target may use another than the list's).
+    fn payloads_of(&self, mode: usize) -> Payload {
+        self.payloads[mode]
+    }
+
+    /// Draws one progressive frame with the CPU renderer and resolves it (hole filling and
+    /// eye-dome lighting as `resolve` asks, like every renderer): the RGBA8 image.
+    pub fn frame_cpu(&mut self, camera: &Camera, options: &RasterOptions, resolve_options: &ResolveOptions) -> Result<Vec<u32>> {
+        let background = resolve_options.background;
         self.take_arrived()?;
         self.last = self.renderer.frame(camera, options, &self.budget).map_err(|e| anyhow!("{}: {e}", self.label))?;
         let keys = self.renderer.keys();
@@ -383,29 +490,49 @@ impl ProgressiveView {
             bail!("{}: --color rgb: the points have no colour (every RGB value is zero); try --color intensity", self.first_path.display());
         }
         let color_of = |i: u32| slots.binary_search(&i).map(|k| colors[k]).unwrap_or(background);
-        Ok(resolve(&keys, camera.width, camera.height, color_of, &ResolveOptions { background, ..Default::default() }))
+        Ok(resolve(&keys, camera.width, camera.height, color_of, resolve_options))
     }
 
-    /// The colours of the visible `slots` (sorted): each in the mode its payload holds.
-    fn colors(&self, slots: &[u32]) -> Vec<u32> {
-        let payload_of = |s: u32| self.renderer.payload(s).expect("visible points are loaded");
+    /// The colours of the visible `slots` (sorted): each in the mode its payload holds, scalar
+    /// modes over the range of all points holding that mode's payload.
+    fn colors(&mut self, slots: &[u32]) -> Vec<u32> {
         let grid = self.ds.grid;
-        let Some(w) = &self.switch else {
-            let payloads: Vec<u64> = slots.iter().map(|&s| payload_of(s)).collect();
-            return payload_colors(&payloads, self.modes[self.mode], self.payloads[self.mode], &self.stats, &grid, self.range).0;
+        let Some((to, to_payload, switched_points)) = self.switch.as_ref().map(|w| (w.to, w.payload, w.points)) else {
+            let range = self.range_of(0, self.mode, self.renderer.loaded(), |v| v.renderer.loaded_payloads());
+            let payloads: Vec<u64> = slots.iter().map(|&s| self.renderer.payload(s).expect("visible points are loaded")).collect();
+            return payload_colors(&payloads, self.modes[self.mode], self.payloads[self.mode], &self.stats, &grid, range).0;
         };
-        let switched = |s: u32| w.done[s as usize / 64] >> (s % 64) & 1 == 1;
-        let (new, old): (Vec<usize>, Vec<usize>) = (0..slots.len()).partition(|&k| switched(slots[k]));
+        let switched = |w: &Switch, s: u32| w.done[s as usize / 64] >> (s % 64) & 1 == 1;
+        let new_range = self.range_of(1, to, switched_points, |v| {
+            let w = v.switch.as_ref().expect("a switch");
+            (0..v.capacity() as u32).filter(|&s| switched(w, s)).filter_map(|s| v.renderer.payload(s)).collect()
+        });
+        let old_range = if self.ranges[0].mode == self.mode { self.ranges[0].range } else { None }.or(self.range);
+        let w = self.switch.as_ref().expect("a switch");
+        let (new, old): (Vec<usize>, Vec<usize>) = (0..slots.len()).partition(|&k| switched(w, slots[k]));
         let mut out = vec![0u32; slots.len()];
-        for (ks, mode, payload) in [(&new, w.to, w.payload), (&old, self.mode, self.payloads[self.mode])] {
-            let payloads: Vec<u64> = ks.iter().map(|&k| payload_of(slots[k])).collect();
-            let c = payload_colors(&payloads, self.modes[mode], payload, &self.stats, &grid, self.range).0;
+        for (ks, mode, payload, range) in [(&new, to, to_payload, new_range), (&old, self.mode, self.payloads[self.mode], old_range)] {
+            let payloads: Vec<u64> = ks.iter().map(|&k| self.renderer.payload(slots[k]).expect("visible points are loaded")).collect();
+            let c = payload_colors(&payloads, self.modes[mode], payload, &self.stats, &grid, range).0;
             for (&k, c) in ks.iter().zip(c) {
                 out[k] = c;
             }
         }
         out
     }
+}
+
+/// The colour rules of all points for `choice`: the dataset's statistics `stats` and the range of
+/// all points (`values`: every point's payload in input order), or `range`. Where they differ
+/// from `provisional` (the first piece's), every point's colour is written again.
+#[allow(clippy::too_many_arguments)]
+fn final_rules(ctx: &GpuContext, r: &mut GpuProgressive, provisional: Option<(ColorStats, Option<[f64; 2]>)>, stats: ColorStats, values: &[u64], choice: ColorChoice, payload: Payload, grid: &mortar_core::grid::Grid, range: Option<[f64; 2]>) -> Result<(ColorStats, Option<[f64; 2]>), mortar_render::ProgressiveGpuError> {
+    let rules = (stats, range.or_else(|| payload_range(values, choice, payload, &stats, grid)));
+    if provisional != Some(rules) {
+        let (colors, _) = payload_colors(values, choice, payload, &rules.0, grid, rules.1);
+        r.recolor(ctx, 0, &colors)?;
+    }
+    Ok(rules)
 }
 
 impl Content for ProgressiveView {
@@ -448,17 +575,16 @@ impl Content for ProgressiveView {
         self.start_gpu(ctx).map_err(|e| GpuError::Device(format!("{e:#}")))
     }
 
-    /// Only the background of `resolve`: the GPU progressive renderer has no hole filling or
-    /// eye-dome lighting yet, and both backends show the same image.
+    /// Resolved with hole filling and eye-dome lighting as `resolve` asks (the GPU path's bytes).
     fn draw_cpu(&mut self, camera: &Camera, options: &RasterOptions, resolve: &ResolveOptions) -> Result<(Vec<u32>, u64)> {
-        let rgba = self.frame_cpu(camera, options, resolve.background)?;
+        let rgba = self.frame_cpu(camera, options, resolve)?;
         Ok((rgba, self.last.raster.points_drawn))
     }
 
-    /// Resolved on the GPU into the progressive renderer's own image buffer (only the background
-    /// of `resolve`, as [`draw_cpu`](Content::draw_cpu)).
+    /// Resolved on the GPU into the progressive renderer's own image buffer, with hole filling
+    /// and eye-dome lighting as `resolve` asks ([`draw_cpu`](Content::draw_cpu)'s bytes).
     fn draw_gpu(&mut self, ctx: &GpuContext, _raster: &mut GpuRasterizer, camera: &Camera, options: &RasterOptions, resolve: &ResolveOptions) -> Result<GpuDrawn> {
-        let f = self.frame_gpu(ctx, camera, options, resolve.background)?;
+        let f = self.frame_gpu(ctx, camera, options, resolve)?;
         Ok(GpuDrawn {
             points_drawn: f.stats.raster.points_drawn,
             draw_ms: f.gpu.map(|t| t.reproject_ms + t.probe_ms + t.extra_fill_ms + t.prepare_ms),
@@ -484,7 +610,7 @@ mod tests {
     /// Frames until the image is final; the last image.
     fn settle(v: &mut ProgressiveView, camera: &Camera) -> Vec<u32> {
         for _ in 0..10_000 {
-            let img = v.frame_cpu(camera, &RasterOptions::default(), 0xff00_0000).unwrap();
+            let img = v.frame_cpu(camera, &RasterOptions::default(), &ResolveOptions { background: 0xff00_0000, ..Default::default() }).unwrap();
             if !v.busy() {
                 return img;
             }
@@ -521,7 +647,7 @@ mod tests {
     /// GPU frames until the image is final; the last image.
     fn settle_gpu(v: &mut ProgressiveView, ctx: &GpuContext, camera: &Camera) -> Vec<u32> {
         for _ in 0..10_000 {
-            v.frame_gpu(ctx, camera, &RasterOptions::default(), 0xff00_0000).unwrap();
+            v.frame_gpu(ctx, camera, &RasterOptions::default(), &ResolveOptions { background: 0xff00_0000, ..Default::default() }).unwrap();
             if !v.busy() {
                 return v.gpu.as_ref().unwrap().renderer.read_image(ctx).unwrap();
             }

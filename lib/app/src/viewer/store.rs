@@ -12,9 +12,10 @@
 //! - Colours: every sample is a real source point with its record, so a store view has every
 //!   colour mode its point format has (C cycles them): `auto` (RGB where the source has it, else
 //!   intensity), elevation, intensity, classification, return number, GPS time. Scalar modes map
-//!   over a range fixed when the store's first commit is opened (`--range`, else the store's
-//!   height bounds for elevation and the 1st to 99th percentile of the top levels' samples for
-//!   intensity and GPS time, [`StoreLod::color_range`]), so that both rasterizers colour a sample
+//!   over a range fixed when the store's first commit is opened (`--range`, else the 1st to 99th
+//!   percentile of all its points' values, [`StoreLod::color_range`], the rule of every renderer:
+//!   `mortar render` of the store, with or without LOD, colours alike; for a store a build is
+//!   still writing, the points of that first commit), so that both rasterizers colour a sample
 //!   alike and a growing store's colours do not shift from frame to frame.
 
 use anyhow::{anyhow, Result};
@@ -77,7 +78,7 @@ pub struct StoreView {
     modes: Vec<ColorChoice>,
     /// The range given with `--range`.
     given: Option<[f64; 2]>,
-    /// Elevation colour range (given, else the height bounds).
+    /// Elevation colour range before a commit was seen (given, else the height bounds).
     range: [f64; 2],
     /// Per mode, the range of scalar modes, fixed at the first commit (see the module docs).
     ranges: Vec<Option<[f64; 2]>>,
@@ -118,8 +119,7 @@ impl StoreView {
     fn set_ranges(&mut self, lod: &StoreLod) {
         for (m, r) in self.modes.iter().zip(self.ranges.iter_mut()) {
             *r = match LodColor::of(lod.store(), *m) {
-                Ok(LodColor::Elevation) => Some(self.range),
-                Ok(c) if c.uses_range() => self.given.or_else(|| lod.color_range(c)),
+                Ok(c) if c.uses_range() => self.given.or_else(|| lod.color_range(c)).or(matches!(c, LodColor::Elevation).then_some(self.range)),
                 _ => None,
             };
         }

@@ -1,15 +1,15 @@
 //! The `#[repr(C)]` records the GPU passes (mortar-render, `shaders/`) read, defined once here:
 //! the rasterizer's [`DrawRecord`], [`FrameUniforms`] and [`ResolveUniforms`] next to the CPU twin
 //! that fills the same fields, its post-processing passes' [`HoleFillUniforms`] and
-//! [`EyeDomeUniforms`], the progressive renderer's [`ScatterUniforms`] and
-//! [`PrepareUniforms`], and the window's [`PresentUniforms`]. [`BatchProjection`] (inside
+//! [`EyeDomeUniforms`], the progressive renderer's [`ScatterUniforms`], [`PrepareUniforms`] and
+//! [`ReframeUniforms`], and the window's [`PresentUniforms`]. [`BatchProjection`] (inside
 //! [`DrawRecord`]) lives with the camera maths that computes it and is re-exported here.
 //!
 //! Every struct has a WGSL mirror (keep both in sync: mortar-render's layout tests compare the
 //! offsets and sizes naga computes for the WGSL structs with these):
 //! - `shaders/common/types.wgsl`: `BatchProjection`, `DrawRecord`, `FrameUniforms`, `ResolveUniforms`,
 //!   `HoleFillUniforms`, `EyeDomeUniforms`;
-//! - `shaders/progressive_types.wgsl`: `ScatterUniforms`, `PrepareUniforms`;
+//! - `shaders/progressive_types.wgsl`: `ScatterUniforms`, `PrepareUniforms`, `ReframeUniforms`;
 //! - `shaders/present.wgsl`: `PresentUniforms`.
 //!
 //! Only bytemuck layouts here: no GPU API (the crate graph keeps core free of wgpu).
@@ -349,6 +349,41 @@ pub struct PrepareUniforms {
 }
 
 const _: () = assert!(std::mem::size_of::<PrepareUniforms>() == 16);
+
+/// Constants of the progressive renderer's reframe pass: every loaded slot of a chunk (`count`
+/// slots) re-encoded from the quantization frame `from` to `to` when the frame grows
+/// ([`ProgressiveFrame::grown`](super::progressive::ProgressiveFrame::grown)). 64 bytes; WGSL
+/// `ReframeUniforms` in `shaders/progressive_types.wgsl`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct ReframeUniforms {
+    /// Integer minimum of the old frame.
+    pub from_min: [i32; 3],
+    /// Slots of the chunk.
+    pub count: u32,
+    /// Integer minimum of the new frame.
+    pub to_min: [i32; 3],
+    /// Padding (WGSL aligns vec3 to 16 bytes).
+    pub _pad0: u32,
+    /// `30 - bits` per axis of the old frame: the right shift from a 30-bit number to the offset.
+    pub from_shift: [u32; 3],
+    /// Padding.
+    pub _pad1: u32,
+    /// `30 - bits` per axis of the new frame: the left shift from the offset to a 30-bit number.
+    pub to_shift: [u32; 3],
+    /// Padding.
+    pub _pad2: u32,
+}
+
+const _: () = assert!(std::mem::size_of::<ReframeUniforms>() == 64);
+
+impl ReframeUniforms {
+    /// The constants of a chunk of `count` slots moving from frame `from` to `to`.
+    pub fn new(from: &crate::quantize::BatchGrid, to: &crate::quantize::BatchGrid, count: u32) -> ReframeUniforms {
+        let shift = |g: &crate::quantize::BatchGrid| g.bits.map(|b| crate::quantize::MAX_BITS - (b as u32).min(crate::quantize::MAX_BITS));
+        ReframeUniforms { from_min: from.min, count, to_min: to.min, _pad0: 0, from_shift: shift(from), _pad1: 0, to_shift: shift(to), _pad2: 0 }
+    }
+}
 
 /// Constants of the window's present pass. 32 bytes; WGSL `PresentUniforms` in
 /// `shaders/present.wgsl`.

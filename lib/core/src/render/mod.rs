@@ -1,5 +1,5 @@
 //! Rendering logic shared by the CPU reference rasterizer and the GPU one (paper 003 §3.2-3.4):
-//! camera and per-batch f32 projection ([`camera`]), frustum culling ([`frustum`]), adaptive
+//! camera and per-batch f32 projection ([`camera`]), the one framing rule of every renderer ([`framing`]), frustum culling ([`frustum`]), adaptive
 //! precision with the 500 px rule and a bound on the decode error on screen ([`precision`]), the 64-bit depth|index visibility buffer
 //! ([`framebuffer`]), the records the GPU rasterizer reads ([`gpu`]), the CPU rasterizer ([`raster`]) and the resolve from point indices to colours
 //! with hole filling, eye-dome lighting and attribute colour modes ([`resolve`]); the orbit camera
@@ -9,6 +9,7 @@
 
 pub mod camera;
 pub mod framebuffer;
+pub mod framing;
 pub mod gpu;
 pub mod frustum;
 pub mod math;
@@ -27,4 +28,4 @@ pub use frustum::{Containment, Frustum, Plane};
 pub use math::{Aabb, DMat4, DVec3};
 pub use orbit::Orbit;
 pub use precision::{choose_precision, precision_for_pixels, PrecisionMode};
-pub use raster::{rasterize, rasterize_gathered, validate_batches, BatchPlan, BatchRef, GatheredRef, Planner, RasterError, RasterOptions, RasterStats, RasterUniforms};
+pub use raster::{count_depth_ties, rasterize, rasterize_gathered, validate_batches, BatchPlan, BatchRef, GatheredRef, Planner, RasterError, RasterOptions, RasterStats, RasterUniforms};

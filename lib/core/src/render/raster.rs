@@ -280,11 +280,11 @@ fn check_view(fb: &Framebuffer, camera: &Camera) -> Result<(), RasterError> {
 }
 
 /// Culls, chooses the precision and draws one batch.
-fn draw_batch(fb: &Framebuffer, b: &BatchRef<'_>, planner: &Planner, uniforms: &RasterUniforms) -> RasterStats {
+fn draw_batch<S: Sink>(fb: &S, b: &BatchRef<'_>, planner: &Planner, uniforms: &RasterUniforms) -> RasterStats {
     plan_and_draw(planner, &b.grid, &b.bounds(), b.len(), |precision, bp, perspective| match precision {
-        Precision::Bits10 => draw_points::<1>(fb, bp, b, uniforms, perspective),
-        Precision::Bits20 => draw_points::<2>(fb, bp, b, uniforms, perspective),
-        Precision::Bits30 => draw_points::<3>(fb, bp, b, uniforms, perspective),
+        Precision::Bits10 => draw_points::<1, S>(fb, bp, b, uniforms, perspective),
+        Precision::Bits20 => draw_points::<2, S>(fb, bp, b, uniforms, perspective),
+        Precision::Bits30 => draw_points::<3, S>(fb, bp, b, uniforms, perspective),
     })
 }
 
@@ -372,12 +372,63 @@ pub fn rasterize_gathered(
 }
 
 /// [`draw_batch`] for a [`GatheredRef`].
-fn draw_gathered_batch(fb: &Framebuffer, b: &GatheredRef<'_>, planner: &Planner, uniforms: &RasterUniforms) -> RasterStats {
+fn draw_gathered_batch<S: Sink>(fb: &S, b: &GatheredRef<'_>, planner: &Planner, uniforms: &RasterUniforms) -> RasterStats {
     plan_and_draw(planner, &b.grid, &b.bounds(), b.len(), |precision, bp, perspective| match precision {
-        Precision::Bits10 => draw_listed::<1>(fb, bp, b, uniforms, perspective),
-        Precision::Bits20 => draw_listed::<2>(fb, bp, b, uniforms, perspective),
-        Precision::Bits30 => draw_listed::<3>(fb, bp, b, uniforms, perspective),
+        Precision::Bits10 => draw_listed::<1, S>(fb, bp, b, uniforms, perspective),
+        Precision::Bits20 => draw_listed::<2, S>(fb, bp, b, uniforms, perspective),
+        Precision::Bits30 => draw_listed::<3, S>(fb, bp, b, uniforms, perspective),
     })
+}
+
+/// Where the per-point loop puts each drawn point's key: the framebuffer's depth test, or the
+/// tie pass of [`count_depth_ties`].
+trait Sink: Sync {
+    /// Point key `key` landed in `pixel`.
+    fn put(&self, pixel: usize, key: u64);
+}
+
+impl Sink for Framebuffer {
+    #[inline(always)]
+    fn put(&self, pixel: usize, key: u64) {
+        self.depth_test(pixel, key);
+    }
+}
+
+/// The tie pass: marks the pixels in which a point other than the winner has the winner's very
+/// depth.
+struct TieMarks<'a> {
+    keys: &'a [u64],
+    marks: Vec<std::sync::atomic::AtomicU64>,
+}
+
+impl Sink for TieMarks<'_> {
+    #[inline(always)]
+    fn put(&self, pixel: usize, key: u64) {
+        let won = self.keys[pixel];
+        if key >> 32 == won >> 32 && key != won {
+            self.marks[pixel / 64].fetch_or(1 << (pixel % 64), std::sync::atomic::Ordering::Relaxed);
+        }
+    }
+}
+
+/// The pixels of `keys` (the converged or brute-force keys of drawing every point of `batches`
+/// for `camera` with `options`) in which another point has exactly the winner's depth: there the
+/// smaller point index decides, so a renderer that numbers the same points otherwise (the batch
+/// file in Morton order, the progressive renderer by shuffled slot) may show another of them.
+/// A second pass over every point; paper 000's "z-fighting" caveat, counted.
+pub fn count_depth_ties(keys: &[u64], batches: &[BatchRef<'_>], grid: &Grid, camera: &Camera, options: &RasterOptions) -> Result<u64, RasterError> {
+    camera.validate()?;
+    if keys.len() != camera.width as usize * camera.height as usize {
+        return Err(RasterError::Viewport { fb_width: keys.len() as u32, fb_height: 1, width: camera.width, height: camera.height });
+    }
+    validate_batches(batches)?;
+    let planner = Planner::new(camera, grid, options)?;
+    let uniforms = RasterUniforms::new(camera);
+    let marks = TieMarks { keys, marks: (0..keys.len().div_ceil(64)).map(|_| std::sync::atomic::AtomicU64::new(0)).collect() };
+    batches.par_iter().for_each(|b| {
+        draw_batch(&marks, b, &planner, &uniforms);
+    });
+    Ok(marks.marks.iter().map(|m| m.load(std::sync::atomic::Ordering::Relaxed).count_ones() as u64).sum())
 }
 
 /// Points per block of the two-phase per-point loop.
@@ -493,8 +544,8 @@ fn project_block<const WORDS: usize, const PERSPECTIVE: bool>(
 /// test and the atomic minimum one by one. The result is the same as projecting each point with
 /// [`BatchProjection::local`] and [`BatchProjection::transform`] and flooring `(X / W, Y / W)`.
 #[inline(always)]
-fn draw_points_impl<const WORDS: usize, const PERSPECTIVE: bool>(fb: &Framebuffer, k: &Kernel, b: &BatchRef<'_>) -> u64 {
-    draw_loop::<WORDS, PERSPECTIVE, _>(fb, k, b.words, Consecutive(b.first_index))
+fn draw_points_impl<const WORDS: usize, const PERSPECTIVE: bool, S: Sink>(fb: &S, k: &Kernel, b: &BatchRef<'_>) -> u64 {
+    draw_loop::<WORDS, PERSPECTIVE, _, S>(fb, k, b.words, Consecutive(b.first_index))
 }
 
 /// Where the per-point loop takes each point's global index from.
@@ -527,7 +578,7 @@ impl PointIndices for Listed<'_> {
 
 /// The body of [`draw_points_impl`], for either source of point indices.
 #[inline(always)]
-fn draw_loop<const WORDS: usize, const PERSPECTIVE: bool, I: PointIndices>(fb: &Framebuffer, k: &Kernel, words: [&[u32]; 3], idx: I) -> u64 {
+fn draw_loop<const WORDS: usize, const PERSPECTIVE: bool, I: PointIndices, S: Sink>(fb: &S, k: &Kernel, words: [&[u32]; 3], idx: I) -> u64 {
     let n = words[0].len();
     let mut pixels = [0u32; BLOCK];
     let mut depths = [0u32; BLOCK];
@@ -542,7 +593,7 @@ fn draw_loop<const WORDS: usize, const PERSPECTIVE: bool, I: PointIndices>(fb: &
             let p = pixels[i];
             if p != SKIP {
                 drawn += 1;
-                fb.depth_test(p as usize, ((depths[i] as u64) << 32) | idx.at(start + i) as u64);
+                fb.put(p as usize, ((depths[i] as u64) << 32) | idx.at(start + i) as u64);
             }
         }
         start = end;
@@ -555,15 +606,15 @@ fn draw_loop<const WORDS: usize, const PERSPECTIVE: bool, I: PointIndices>(fb: &
 /// are bit for bit those of the baseline build.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-unsafe fn draw_points_avx2<const WORDS: usize, const PERSPECTIVE: bool>(fb: &Framebuffer, k: &Kernel, b: &BatchRef<'_>) -> u64 {
-    draw_points_impl::<WORDS, PERSPECTIVE>(fb, k, b)
+unsafe fn draw_points_avx2<const WORDS: usize, const PERSPECTIVE: bool, S: Sink>(fb: &S, k: &Kernel, b: &BatchRef<'_>) -> u64 {
+    draw_points_impl::<WORDS, PERSPECTIVE, S>(fb, k, b)
 }
 
 /// [`draw_loop`] over a [`GatheredRef`], compiled for AVX2 (see [`draw_points_avx2`]).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-unsafe fn draw_listed_avx2<const WORDS: usize, const PERSPECTIVE: bool>(fb: &Framebuffer, k: &Kernel, b: &GatheredRef<'_>) -> u64 {
-    draw_loop::<WORDS, PERSPECTIVE, _>(fb, k, b.words, Listed(b.indices))
+unsafe fn draw_listed_avx2<const WORDS: usize, const PERSPECTIVE: bool, S: Sink>(fb: &S, k: &Kernel, b: &GatheredRef<'_>) -> u64 {
+    draw_loop::<WORDS, PERSPECTIVE, _, S>(fb, k, b.words, Listed(b.indices))
 }
 
 /// Whether the AVX2 build of the per-point loop can run here (checked once).
@@ -581,44 +632,44 @@ fn use_avx2() -> bool {
 
 /// [`draw_points`] for a [`GatheredRef`].
 #[inline(never)]
-fn draw_listed<const WORDS: usize>(fb: &Framebuffer, bp: &BatchProjection, b: &GatheredRef<'_>, u: &RasterUniforms, perspective: bool) -> u64 {
+fn draw_listed<const WORDS: usize, S: Sink>(fb: &S, bp: &BatchProjection, b: &GatheredRef<'_>, u: &RasterUniforms, perspective: bool) -> u64 {
     let k = Kernel::new(bp, u);
     #[cfg(target_arch = "x86_64")]
     if use_avx2() {
         // SAFETY: the CPU supports AVX2 (checked at run time by use_avx2).
         return unsafe {
             if perspective {
-                draw_listed_avx2::<WORDS, true>(fb, &k, b)
+                draw_listed_avx2::<WORDS, true, S>(fb, &k, b)
             } else {
-                draw_listed_avx2::<WORDS, false>(fb, &k, b)
+                draw_listed_avx2::<WORDS, false, S>(fb, &k, b)
             }
         };
     }
     if perspective {
-        draw_loop::<WORDS, true, _>(fb, &k, b.words, Listed(b.indices))
+        draw_loop::<WORDS, true, _, S>(fb, &k, b.words, Listed(b.indices))
     } else {
-        draw_loop::<WORDS, false, _>(fb, &k, b.words, Listed(b.indices))
+        draw_loop::<WORDS, false, _, S>(fb, &k, b.words, Listed(b.indices))
     }
 }
 
 #[inline(never)]
-fn draw_points<const WORDS: usize>(fb: &Framebuffer, bp: &BatchProjection, b: &BatchRef<'_>, u: &RasterUniforms, perspective: bool) -> u64 {
+fn draw_points<const WORDS: usize, S: Sink>(fb: &S, bp: &BatchProjection, b: &BatchRef<'_>, u: &RasterUniforms, perspective: bool) -> u64 {
     let k = Kernel::new(bp, u);
     #[cfg(target_arch = "x86_64")]
     if use_avx2() {
         // SAFETY: the CPU supports AVX2 (checked at run time by use_avx2).
         return unsafe {
             if perspective {
-                draw_points_avx2::<WORDS, true>(fb, &k, b)
+                draw_points_avx2::<WORDS, true, S>(fb, &k, b)
             } else {
-                draw_points_avx2::<WORDS, false>(fb, &k, b)
+                draw_points_avx2::<WORDS, false, S>(fb, &k, b)
             }
         };
     }
     if perspective {
-        draw_points_impl::<WORDS, true>(fb, &k, b)
+        draw_points_impl::<WORDS, true, S>(fb, &k, b)
     } else {
-        draw_points_impl::<WORDS, false>(fb, &k, b)
+        draw_points_impl::<WORDS, false, S>(fb, &k, b)
     }
 }
 
@@ -829,23 +880,23 @@ mod tests {
             // SAFETY: AVX2 is present (asserted just above).
             return unsafe {
                 match (p, persp) {
-                    (Precision::Bits10, true) => draw_points_avx2::<1, true>(fb, k, b),
-                    (Precision::Bits10, false) => draw_points_avx2::<1, false>(fb, k, b),
-                    (Precision::Bits20, true) => draw_points_avx2::<2, true>(fb, k, b),
-                    (Precision::Bits20, false) => draw_points_avx2::<2, false>(fb, k, b),
-                    (Precision::Bits30, true) => draw_points_avx2::<3, true>(fb, k, b),
-                    (Precision::Bits30, false) => draw_points_avx2::<3, false>(fb, k, b),
+                    (Precision::Bits10, true) => draw_points_avx2::<1, true, Framebuffer>(fb, k, b),
+                    (Precision::Bits10, false) => draw_points_avx2::<1, false, Framebuffer>(fb, k, b),
+                    (Precision::Bits20, true) => draw_points_avx2::<2, true, Framebuffer>(fb, k, b),
+                    (Precision::Bits20, false) => draw_points_avx2::<2, false, Framebuffer>(fb, k, b),
+                    (Precision::Bits30, true) => draw_points_avx2::<3, true, Framebuffer>(fb, k, b),
+                    (Precision::Bits30, false) => draw_points_avx2::<3, false, Framebuffer>(fb, k, b),
                 }
             };
         }
         assert!(!avx2, "no AVX2 build on this architecture");
         match (p, persp) {
-            (Precision::Bits10, true) => draw_points_impl::<1, true>(fb, k, b),
-            (Precision::Bits10, false) => draw_points_impl::<1, false>(fb, k, b),
-            (Precision::Bits20, true) => draw_points_impl::<2, true>(fb, k, b),
-            (Precision::Bits20, false) => draw_points_impl::<2, false>(fb, k, b),
-            (Precision::Bits30, true) => draw_points_impl::<3, true>(fb, k, b),
-            (Precision::Bits30, false) => draw_points_impl::<3, false>(fb, k, b),
+            (Precision::Bits10, true) => draw_points_impl::<1, true, Framebuffer>(fb, k, b),
+            (Precision::Bits10, false) => draw_points_impl::<1, false, Framebuffer>(fb, k, b),
+            (Precision::Bits20, true) => draw_points_impl::<2, true, Framebuffer>(fb, k, b),
+            (Precision::Bits20, false) => draw_points_impl::<2, false, Framebuffer>(fb, k, b),
+            (Precision::Bits30, true) => draw_points_impl::<3, true, Framebuffer>(fb, k, b),
+            (Precision::Bits30, false) => draw_points_impl::<3, false, Framebuffer>(fb, k, b),
         }
     }
 
