@@ -237,7 +237,7 @@ fn the_partitioned_engine_writes_the_sorted_engines_store_on_merged_tiles() {
 }
 
 #[test]
-fn auto_takes_the_partitioned_engine_above_the_budget_and_the_incremental_one_for_dense_cells() {
+fn auto_takes_the_partitioned_engine_above_the_budget_even_for_dense_cells() {
     let dir = tempdir("part-auto");
     let input = dir.join("g.las");
     run_ok(gen().args(["--points", "400000", "--seed", "9", "-o"]).arg(&input));
@@ -247,15 +247,27 @@ fn auto_takes_the_partitioned_engine_above_the_budget_and_the_incremental_one_fo
     let o = run_ok(mortar().arg("build").arg(&input).arg("-o").arg(&s).args(["--json", "--memory", "16M"]));
     let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!(j["engine"], "partitioned", "{j}");
-    // A budget too small for one cell: the incremental engine builds it, and says why.
+    // A budget too small for one cell of the partition: the cells are partitioned again, and the
+    // store is the sorted engine's all the same.
+    let j = partitioned_equals_sorted(std::slice::from_ref(&input), "20K", "part-auto-dense");
+    assert_eq!(j["engine"], "partitioned", "{j}");
     let s2 = dir.join("dense");
     let o = run_ok(mortar().arg("build").arg(&input).arg("-o").arg(&s2).args(["--json", "--memory", "20K", "--leaf-capacity", "100"]));
     let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
-    assert_eq!(j["engine"], "incremental", "{j}");
-    assert!(j["warnings"].to_string().contains("partitioned"), "{j}");
+    assert_eq!(j["engine"], "partitioned", "{j}");
     let (a, b) = (dir.join("a.las"), dir.join("b.las"));
     run_ok(mortar().arg("sort").arg(&s).arg("-o").arg(&a));
     run_ok(mortar().arg("sort").arg(&s2).arg("-o").arg(&b));
     assert!(std::fs::read(&a).unwrap() == std::fs::read(&b).unwrap());
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn cells_denser_than_a_unit_give_the_sorted_engines_store() {
+    let dir = tempdir("part-dense");
+    for (i, set) in dense_sets(&dir).iter().enumerate() {
+        let j = partitioned_equals_sorted(set, "1M", &format!("part-dense-{i}"));
+        assert_eq!(j["engine"], "partitioned", "{set:?}: {j}");
+    }
     let _ = std::fs::remove_dir_all(&dir);
 }

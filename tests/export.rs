@@ -219,7 +219,7 @@ fn larger_than_memory_gives_the_same_export() {
         sets.extend(files.into_iter().map(|f| vec![f]));
         sets.push(bcts);
     }
-    let (mut jobs, mut refused, mut streamed) = (Vec::new(), Vec::new(), 0);
+    let (mut jobs, mut streamed) = (Vec::new(), 0);
     for (i, set) in sets.iter().enumerate() {
         let refs: Vec<&Path> = set.iter().map(|p| p.as_path()).collect();
         for (kind, a, b) in [("copc", format!("{i}-mem.copc.laz"), format!("{i}-part.copc.laz")), ("potree", format!("{i}-mem"), format!("{i}-part"))] {
@@ -228,7 +228,7 @@ fn larger_than_memory_gives_the_same_export() {
             if export_json(&refs, &a, &common).is_err() {
                 continue; // refused in memory too: every_real_file_alone_and_merged checks why
             }
-            // small enough for many units, large enough for the densest cells of most files
+            // small enough for many units (and dense cells partitioned again in most files)
             let memory = if set.len() > 1 { "16M" } else { "4M" };
             match export_json(&refs, &b, &[&common[..], &["--memory", memory]].concat()) {
                 Ok(j) => {
@@ -239,15 +239,38 @@ fn larger_than_memory_gives_the_same_export() {
                         jobs.push(serde_json::json!({"kind": kind, "out": b, "inputs": set}));
                     }
                 }
-                Err(e) => {
-                    assert!(e.contains("one cell of the partition"), "{set:?}: {e}");
-                    refused.push((set.clone(), e));
-                }
+                // No cell is too dense any more (`store/dense.rs`).
+                Err(e) => panic!("{set:?} --memory {memory}: {e}"),
             }
         }
     }
-    eprintln!("{streamed} exports through run files; refused: {refused:?}");
-    assert!(streamed >= 4 * (streamed + refused.len()) / 5, "most exports go through: {streamed}, refused {refused:?}");
+    eprintln!("{streamed} exports through run files");
+    check(&py, &d, &jobs);
+    let left: Vec<_> = std::fs::read_dir(&d).unwrap().filter_map(|e| e.ok()).map(|e| e.file_name().to_string_lossy().to_string()).filter(|n| n.starts_with('.')).collect();
+    assert!(left.is_empty(), "left behind: {left:?}");
+    std::fs::remove_dir_all(&d).unwrap();
+}
+
+/// Partition cells denser than a unit (`tests/common::dense_sets`): the export through run files
+/// under 1 MiB equals the one in memory node by node, read by laspy (and copclib), in both point
+/// orders (by GPS time, the default: leaves larger than a unit are merge-sorted on disk).
+#[test]
+fn cells_denser_than_a_unit_give_the_same_export() {
+    let Some(py) = python() else { return };
+    let d = tempdir("export-dense");
+    let mut jobs = Vec::new();
+    for (i, set) in dense_sets(&d).iter().enumerate() {
+        let refs: Vec<&Path> = set.iter().map(|p| p.as_path()).collect();
+        for (kind, order, a, b) in [("copc", "gps-time", format!("{i}-mem.copc.laz"), format!("{i}-part.copc.laz")), ("copc", "morton", format!("{i}-mem-m.copc.laz"), format!("{i}-part-m.copc.laz")), ("potree", "gps-time", format!("{i}-mem"), format!("{i}-part"))] {
+            let (a, b) = (d.join(a), d.join(b));
+            let common = ["--format", kind, "--leaf-capacity", "3000", "--order", order];
+            export_json(&refs, &a, &common).unwrap_or_else(|e| panic!("{set:?} in memory: {e}"));
+            let j = export_json(&refs, &b, &[&common[..], &["--memory", "1M"]].concat()).unwrap_or_else(|e| panic!("{set:?} --memory 1M: {e}"));
+            assert_eq!(j["engine"], "partitioned", "{set:?}");
+            jobs.push(serde_json::json!({"kind": "same", "format": kind, "a": a, "b": b}));
+            jobs.push(serde_json::json!({"kind": kind, "out": b, "inputs": set}));
+        }
+    }
     check(&py, &d, &jobs);
     let left: Vec<_> = std::fs::read_dir(&d).unwrap().filter_map(|e| e.ok()).map(|e| e.file_name().to_string_lossy().to_string()).filter(|n| n.starts_with('.')).collect();
     assert!(left.is_empty(), "left behind: {left:?}");

@@ -209,3 +209,22 @@ pub fn first_piece_box(las: &Path) -> ([f64; 3], [f64; 3]) {
     (b.min, b.max)
 }
 
+
+/// Generated inputs whose partition cells are denser than a unit under 1 MiB (units of about
+/// 4,500 points; leaves of 3,000): points at one position (alone: the root is one leaf; and
+/// merged into a scan: a chain of inner nodes down to a leaf beyond the size limit), a cube of
+/// 30 units (many positions in leaves too narrow to split, sorted in parts) alone and merged
+/// into a scan on the same grid.
+pub fn dense_sets(dir: &Path) -> Vec<Vec<PathBuf>> {
+    let g = |name: &str, args: &[&str]| {
+        let p = dir.join(name);
+        run_ok(gen().args(args).arg("-o").arg(&p));
+        p
+    };
+    let coincident = g("coincident.las", &["--points", "60000", "--shape", "coincident"]);
+    let scan = g("scan.las", &["--points", "40000", "--seed", "3"]);
+    let cube = g("cube30.las", &["--points", "80000", "--shape", "cube", "--scale", "1", "--extent", "30"]);
+    let scan1 = g("scan1.las", &["--points", "40000", "--seed", "4", "--scale", "1"]);
+    let dups = g("dups.las", &["--points", "80000", "--shape", "duplicates", "--scale", "1", "--extent", "200"]);
+    vec![vec![coincident.clone()], vec![scan, coincident], vec![cube.clone()], vec![scan1, cube], vec![dups]]
+}

@@ -137,9 +137,6 @@ pub enum Error {
     /// A piece of an input is too large to hold in memory.
     #[error("a piece of {points} points does not fit in memory")]
     PieceTooLarge { points: u64 },
-    /// One cell of the partition holds more points than `--memory` lets one unit hold.
-    #[error("one cell of the partition holds {points} points, more than --memory ({memory_mib} MiB) lets one unit hold ({unit_points}); give more --memory")]
-    CellTooLarge { points: u64, memory_mib: u64, unit_points: u64 },
     /// An input's axes have different scales and its extent on the finest does not fit the
     /// octree's grid.
     #[error("{path}: its axes' scales {scale:?} differ, and its extent on axis {axis} on the finest of them does not fit the octree's grid (2^31 units); re-scale it to one scale on all axes (e.g. `las2las -rescale`)")]
@@ -606,7 +603,6 @@ macro_rules! leading_path {
             | Error::AssignCrsCode { .. }
             | Error::TooManyPoints { .. }
             | Error::PieceTooLarge { .. }
-            | Error::CellTooLarge { .. }
             | Error::Octree { .. }
             | Error::ThreadPanicked { .. }
             | Error::ThreadPool { .. }

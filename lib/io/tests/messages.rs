@@ -72,10 +72,6 @@ fn messages_begin_with_the_path_and_keep_their_wording() {
             Error::Render { path: p("f.mbat"), error: RenderError::MissingAttribute { mode: "intensity", attribute: "intensity", format: 0, not_kept: true } },
             "f.mbat: --color intensity: needs the attribute 'intensity', but it was not kept when the batch file was written (batch again with --attributes all)",
         ),
-        (
-            Error::CellTooLarge { points: 9, memory_mib: 1, unit_points: 4 },
-            "one cell of the partition holds 9 points, more than --memory (1 MiB) lets one unit hold (4); give more --memory",
-        ),
         (Error::ThreadPanicked { thread: "a page-in" }, "a page-in thread panicked"),
         (Error::TooManyPoints { what: "sort" }, "too many points for one in-memory sort"),
     ];

@@ -17,16 +17,18 @@
 //! engine's; `tests/export.rs` compares both node by node); the nodes come in another order in
 //! the file. Axes with different scales are stretched as in memory: the run files hold the
 //! stretched positions (base: the points' smallest position, so such inputs are read twice).
-//! Refused: a partition cell denser than one unit's budget.
+//! A partition cell denser than one unit's budget is partitioned again, or is a leaf written in
+//! slices, as the build does (`store/dense.rs`).
 
 use super::{assign, open_writer, output_layout, stretch_factors, ExportOptions, ExportReport, Frame, NodeWriter, OutNode, PointOrder, Stretch};
 use crate::cleanup::TempPath;
 use crate::dataset::Dataset;
 use crate::error::{Error, Result};
 use crate::sort;
-use crate::store::partitioned::{cell_depth, partition_all, read_unit, unit_bytes_per_point, Cands, Run};
+use crate::store::dense::{self, Level};
+use crate::store::partitioned::{cell_depth, partition_all, read_unit, unit_bytes_per_point, Cands};
 use mortar_core::layout::{read_xyz, Conversion};
-use mortar_core::octree::{build_subtree, Cube, NodeKey};
+use mortar_core::octree::{build_subtree, splits, Cube, NodeKey};
 use std::path::Path;
 use std::time::Instant;
 
@@ -49,9 +51,6 @@ pub(crate) fn export(ds: &Dataset, out: &Path, opts: &ExportOptions, report: &mu
     }
     let rl = ds.layout.record_len;
     let unit_points = ((opts.memory / 2) / unit_bytes_per_point(rl as u64)).max(opts.config.leaf_capacity as u64 + 1);
-    if let Some(c) = part.hist.iter().max().filter(|&&c| c > unit_points) {
-        return Err(Error::CellTooLarge { points: *c, memory_mib: opts.memory >> 20, unit_points });
-    }
     let stretch = Stretch { base: part.base, m };
     let frame = Frame::of(ds, layout, &stretch, part.root);
     report.point_format = frame.out.format;
@@ -62,12 +61,11 @@ pub(crate) fn export(ds: &Dataset, out: &Path, opts: &ExportOptions, report: &mu
         PointOrder::GpsTime => ds.layout.attribute("gps_time").map(|a| a.offset),
         PointOrder::Morton => None,
     };
+    let cells = part.hist.len();
+    let lv = Level::new(part.runs, part.hist, cell_depth(part.root, opts.config.max_level));
     let mut w = Walk {
         ds,
         opts,
-        runs: &part.runs,
-        hist: &part.hist,
-        depth: cell_depth(part.root, opts.config.max_level),
         root: part.root,
         unit_points,
         rl,
@@ -80,7 +78,7 @@ pub(crate) fn export(ds: &Dataset, out: &Path, opts: &ExportOptions, report: &mu
         dir: state.path().to_path_buf(),
         report: &mut *report,
     };
-    w.visit(NodeKey::ROOT, part.root, 0, 0..part.hist.len())?;
+    w.visit(&lv, NodeKey::ROOT, part.root, 0, 0..cells)?;
     let tree = std::mem::take(&mut w.tree);
     let tw = Instant::now();
     writer.finish(&tree, &part.all, report)?;
@@ -93,10 +91,6 @@ pub(crate) fn export(ds: &Dataset, out: &Path, opts: &ExportOptions, report: &mu
 struct Walk<'a, 'w> {
     ds: &'a Dataset,
     opts: &'a ExportOptions,
-    runs: &'a [Run],
-    hist: &'a [u64],
-    /// Depth of the partition cells.
-    depth: u8,
     root: Cube,
     unit_points: u64,
     rl: usize,
@@ -113,28 +107,35 @@ struct Walk<'a, 'w> {
 }
 
 impl Walk<'_, '_> {
-    /// Exports node `key` (cube `cube`, at `depth`, over the partition cells `cells`) and
+    /// Exports node `key` (cube `cube`, at `depth`, over the cells `cells` of `lv`) and
     /// everything under it; returns its candidates for its parent and whether it is kept.
-    fn visit(&mut self, key: NodeKey, cube: Cube, depth: u8, cells: std::ops::Range<usize>) -> Result<(Cands, bool)> {
+    fn visit(&mut self, lv: &Level, key: NodeKey, cube: Cube, depth: u8, cells: std::ops::Range<usize>) -> Result<(Cands, bool)> {
         sort::check_interrupted()?;
-        let count: u64 = self.hist[cells.clone()].iter().sum();
+        let count: u64 = lv.hist[cells.clone()].iter().sum();
         if count == 0 {
             return Ok((Cands::default(), false));
         }
-        if depth == self.depth || count <= self.unit_points {
-            return self.unit(key, cube, cells, count);
+        if depth == lv.depth || count <= self.unit_points {
+            if count > self.unit_points {
+                return self.dense(lv, key, cube, cells, count, None);
+            }
+            return self.unit(lv, key, cube, cells, count);
         }
         // More points than a unit, so more than a leaf, in a cube that may split: inner.
         let step = cells.len() / 8;
+        self.inner(key, cube, |w, o| w.visit(lv, key.child(o), cube.child(o), depth + 1, cells.start + o * step..cells.start + (o + 1) * step))
+    }
+
+    /// Exports the inner node `key` (cube `cube`) whose children `kid(o)` exports.
+    fn inner(&mut self, key: NodeKey, cube: Cube, mut kid: impl FnMut(&mut Self, usize) -> Result<(Cands, bool)>) -> Result<(Cands, bool)> {
         let mut voxels = Cands::default();
         let mut children = 0u8;
         for o in 0..8 {
-            let c = cells.start + o * step..cells.start + (o + 1) * step;
-            let (kid, kept) = self.visit(key.child(o), cube.child(o), depth + 1, c)?;
+            let (c, kept) = kid(self, o)?;
             if kept {
                 children |= 1 << o;
             }
-            voxels.append(kid);
+            voxels.append(c);
         }
         let rl = self.rl;
         let n = voxels.pos.len();
@@ -161,12 +162,76 @@ impl Walk<'_, '_> {
         Ok((voxels.pick(&up, rl), kept))
     }
 
+    /// Exports node `key` over the `count` points of `cells` of `lv`, more than a unit holds
+    /// (bounds `known` where known), as the build does (`store/dense.rs`).
+    fn dense(&mut self, lv: &Level, key: NodeKey, cube: Cube, cells: std::ops::Range<usize>, count: u64, known: Option<dense::Bounds>) -> Result<(Cands, bool)> {
+        let rl = self.rl;
+        let block = dense::block_points(self.opts.memory, rl);
+        let b = match known {
+            Some(b) => b,
+            None => lv.bounds(&cells, rl, block)?,
+        };
+        if splits(count, key, cube, &self.opts.config) {
+            if let Some(o) = dense::one_octant(cube, b) {
+                let c0 = cells.start;
+                return self.inner(key, cube, |w, k| {
+                    if k == o {
+                        w.dense(lv, key.child(o), cube.child(o), cells.clone(), count, Some(b))
+                    } else {
+                        w.visit(lv, key.child(k), cube.child(k), key.level + 1, c0..c0)
+                    }
+                });
+            }
+            let d = dense::tree_split_depth(key, cube, self.opts.config.max_level);
+            let dir = self.dir.clone();
+            let sub = dense::split(&lv.runs, cells, rl, cube, key.level, d, block, &dir)?;
+            let n = sub.hist.len();
+            return self.visit(&sub, key, cube, key.level, 0..n);
+        }
+        // A leaf larger than a unit: its points less the candidates it hands up, in slices.
+        let ts = Instant::now();
+        let leaf = dense::big_leaf(lv, cells, count, key, cube, b, rl, self.unit_points, block, &self.dir)?;
+        self.report.sort_seconds += ts.elapsed().as_secs_f64();
+        let kept = count - leaf.cand_index.len() as u64;
+        if kept > 0 {
+            let tw = Instant::now();
+            let (conv, stretch, out_rl) = (&self.conv, &self.stretch, self.out_rl);
+            let slice = (super::group_bytes(self.opts.memory) / out_rl.max(1) as u64).max(1) as usize;
+            let failed: std::sync::Mutex<Option<Error>> = std::sync::Mutex::new(None);
+            // By GPS time: parts sorted and merged as the writer reads them (in order).
+            let timed = match self.gps {
+                Some(o) => Some(std::sync::Mutex::new(leaf.time_order(kept, o, self.unit_points, block, &self.dir)?)),
+                None => None,
+            };
+            let records = |r: std::ops::Range<usize>| -> Vec<u8> {
+                let recs = match &timed {
+                    Some(t) => t.lock().unwrap_or_else(|p| p.into_inner()).next(r.len()),
+                    None => leaf.read_kept(r.start as u64..r.end as u64),
+                };
+                match recs {
+                    Ok(recs) => super::output_records(recs.chunks_exact(rl), r.len(), rl, out_rl, conv, stretch),
+                    Err(e) => {
+                        failed.lock().unwrap_or_else(|p| p.into_inner()).get_or_insert(e);
+                        vec![0u8; r.len() * out_rl]
+                    }
+                }
+            };
+            self.writer.write_node_slices(key, kept as usize, slice, &records)?;
+            if let Some(e) = failed.into_inner().unwrap_or_else(|p| p.into_inner()) {
+                return Err(e);
+            }
+            self.report.write_seconds += tw.elapsed().as_secs_f64();
+            self.tree.push(OutNode { key, points: Vec::new(), children: 0 });
+        }
+        Ok((leaf.cands, kept > 0))
+    }
+
     /// Reads a unit's points back, builds, assigns and writes its subtree.
-    fn unit(&mut self, key: NodeKey, cube: Cube, cells: std::ops::Range<usize>, count: u64) -> Result<(Cands, bool)> {
+    fn unit(&mut self, lv: &Level, key: NodeKey, cube: Cube, cells: std::ops::Range<usize>, count: u64) -> Result<(Cands, bool)> {
         let rl = self.rl;
         let n = count as usize;
         let ts = Instant::now();
-        let sorted = read_unit(self.runs, self.root, key, cells, count, rl, &self.dir)?;
+        let sorted = read_unit(&lv.runs, self.root, key, cells, count, rl, &self.dir)?;
         self.report.sort_seconds += ts.elapsed().as_secs_f64();
         let tt = Instant::now();
         let pos = |i: usize| read_xyz(sorted.record(i));

@@ -217,13 +217,7 @@ pub fn build(ds: &Dataset, dir: &Path, opts: &BuildOptions, progress: &mut dyn F
     let run = |writer: &mut StoreWriter, progress: &mut dyn FnMut(&BuildProgress)| -> Result<BuildReport> {
         match engine {
             Engine::Sorted => super::engine::build_into(ds, writer, opts, progress, bounds, t0),
-            Engine::Partitioned => match super::partitioned::build_into(ds, writer, opts, progress, bounds, t0)? {
-                Some(r) => Ok(r),
-                None => build_into(ds, writer, opts, progress, bounds, t0).map(|mut r| {
-                    r.warnings.push("a cell of the partitioned engine holds more points than --memory allows for one unit; the incremental engine built the store".into());
-                    r
-                }),
-            },
+            Engine::Partitioned => super::partitioned::build_into(ds, writer, opts, progress, bounds, t0),
             _ => build_into(ds, writer, opts, progress, bounds, t0),
         }
     };

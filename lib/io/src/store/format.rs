@@ -307,22 +307,79 @@ pub(crate) fn write_payload_sliced<'r, E>(
     let slice = slice.max(1);
     for s in (0..count).step_by(slice) {
         let e = (s + slice).min(count);
-        let m = e - s;
-        let mut cols = vec![0u8; 16 * m];
-        let mut at = vec![0u8; attr_len * m];
-        cols.par_chunks_mut(4).zip(0..4 * m).for_each(|(c, j)| {
-            let (col, i) = (j / m, s + j % m);
-            let v = if col < 3 { grid.encode(pos(i))[col] } else { color(i) };
-            c.copy_from_slice(&v.to_le_bytes());
-        });
-        if attr_len > 0 {
-            at.par_chunks_mut(attr_len).enumerate().for_each(|(k, a)| a.copy_from_slice(attrs(s + k)));
-        }
-        for col in 0..4u64 {
-            let c = col as usize;
-            write(64 + col * 4 * n + 4 * s as u64, &cols[4 * m * c..4 * m * (c + 1)])?;
-        }
-        write(64 + 16 * n + (s * attr_len) as u64, &at)?;
+        write_slice(&grid, n, s, e - s, attr_len, |k| pos(s + k), |k| color(s + k), |k| attrs(s + k), &mut write)?;
+    }
+    let end = 64 + n * (16 + attr_len as u64);
+    if len > end {
+        write(end, &vec![0u8; (len - end) as usize])?;
+    }
+    Ok(Ok(NodeEntry { level: key.level as u32, kind, index: key.index, _pad: 0, count: n, offset: 0, length: len }))
+}
+
+/// Writes the columns of the points `s..s + m` of a payload of `n` points on `grid` (`pos`,
+/// `color` and `attrs` of the slice's point `k`).
+#[allow(clippy::too_many_arguments)]
+fn write_slice<'r, E>(
+    grid: &BatchGrid,
+    n: u64,
+    s: usize,
+    m: usize,
+    attr_len: usize,
+    pos: impl Fn(usize) -> [i32; 3] + Sync,
+    color: impl Fn(usize) -> u32 + Sync,
+    attrs: impl Fn(usize) -> &'r [u8] + Sync,
+    write: &mut impl FnMut(u64, &[u8]) -> std::result::Result<(), E>,
+) -> std::result::Result<(), E> {
+    use rayon::prelude::*;
+    let mut cols = vec![0u8; 16 * m];
+    let mut at = vec![0u8; attr_len * m];
+    cols.par_chunks_mut(4).zip(0..4 * m).for_each(|(c, j)| {
+        let (col, k) = (j / m, j % m);
+        let v = if col < 3 { grid.encode(pos(k))[col] } else { color(k) };
+        c.copy_from_slice(&v.to_le_bytes());
+    });
+    if attr_len > 0 {
+        at.par_chunks_mut(attr_len).enumerate().for_each(|(k, a)| a.copy_from_slice(attrs(k)));
+    }
+    for col in 0..4u64 {
+        let c = col as usize;
+        write(64 + col * 4 * n + 4 * s as u64, &cols[4 * m * c..4 * m * (c + 1)])?;
+    }
+    write(64 + 16 * n + (s * attr_len) as u64, &at)
+}
+
+/// The payload [`encode_payload`] makes of a node of `count` points inside `bounds` (their
+/// smallest and largest position) whose records (`12 + attr_len` bytes: position, then the
+/// attributes) `records(range)` reads, `slice` points at a time, in order: a leaf larger than
+/// memory (`dense.rs`). `color` gives a record's packed colour.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn write_payload_blocks<E>(
+    key: NodeKey,
+    kind: u32,
+    count: usize,
+    attr_len: usize,
+    bounds: ([i32; 3], [i32; 3]),
+    slice: usize,
+    mut records: impl FnMut(std::ops::Range<usize>) -> std::result::Result<Vec<u8>, E>,
+    color: impl Fn(&[u8]) -> u32 + Sync,
+    mut write: impl FnMut(u64, &[u8]) -> std::result::Result<(), E>,
+) -> std::result::Result<std::result::Result<NodeEntry, PayloadError>, E> {
+    if count > u32::MAX as usize {
+        return Ok(Err(PayloadError::TooManyPoints { node: key.name(), count }));
+    }
+    let (lo, hi) = if count == 0 { ([0; 3], [0; 3]) } else { bounds };
+    let Some(grid) = BatchGrid::for_bounds(lo, hi) else { return Ok(Err(PayloadError::TooWide { node: key.name() })) };
+    let len = payload_len(count as u64, attr_len as u64);
+    let header = node_header(key, kind, count, &grid, attr_len);
+    write(0, bytemuck::bytes_of(&header))?;
+    let n = count as u64;
+    let rl = 12 + attr_len;
+    let slice = slice.max(1);
+    for s in (0..count).step_by(slice) {
+        let e = (s + slice).min(count);
+        let recs = records(s..e)?;
+        let rec = |k: usize| &recs[k * rl..(k + 1) * rl];
+        write_slice(&grid, n, s, e - s, attr_len, |k| mortar_core::layout::read_xyz(rec(k)), |k| color(rec(k)), |k| &rec(k)[12..], &mut write)?;
     }
     let end = 64 + n * (16 + attr_len as u64);
     if len > end {

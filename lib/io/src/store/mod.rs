@@ -27,6 +27,7 @@
 
 mod build;
 mod compact;
+pub(crate) mod dense;
 pub(crate) mod engine;
 pub(crate) mod partitioned;
 pub mod distributed;

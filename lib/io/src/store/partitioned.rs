@@ -17,9 +17,8 @@
 //!    level) and committed once.
 //!
 //! The tree is the one the sorted engine makes (a subtree depends on the points in its cube
-//! alone; `tests/build_engine.rs` compares them node by node). Where one cell of depth `D`
-//! holds more points than a unit may, the engine gives up before writing a node and the build
-//! falls back to the incremental engine.
+//! alone; `tests/build_engine.rs` compares them node by node). A cell of depth `D` holding more
+//! points than a unit may is partitioned again, or is a leaf read in slices (`dense.rs`).
 //!
 //! Resume: the run files, a manifest of the partition (with a checksum of every run) and a log
 //! of finished visits (each node's entry and payload checksum, the points it added and its
@@ -33,6 +32,7 @@
 //! parallel with one another (each unit's tree and encoding are parallel inside).
 
 use super::build::{BuildOptions, BuildProgress, BuildReport};
+use super::dense::{self, Level};
 use super::engine::{grid_of, histogram, sort_records, Sorted, BUCKET_BITS};
 use super::format::*;
 use super::writer::*;
@@ -42,7 +42,7 @@ use crate::sort::{self, PieceStats};
 use mortar_core::color::{ColorSource, RgbDepth};
 use mortar_core::layout::read_xyz;
 use mortar_core::morton::MortonGrid;
-use mortar_core::octree::{build_subtree, earliest_in_parent_cells, Cube, NodeKey, SortedContent, MIN_INNER_SIZE_LOG2};
+use mortar_core::octree::{build_subtree, earliest_in_parent_cells, splits, Cube, NodeKey, SortedContent, MIN_INNER_SIZE_LOG2};
 use rayon::prelude::*;
 use std::io::{Read, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
@@ -268,12 +268,20 @@ fn read_log(path: &Path, nodes: &Path, rl: usize) -> Result<LogState> {
 /// One run file: the records of a group of pieces grouped by cell, then their arrival numbers
 /// (8 bytes each, native order) in the same order, so that a range of cells is one contiguous
 /// read of records and one of arrival numbers, straight into the unit's buffers.
+#[derive(Clone)]
 pub(crate) struct Run {
-    path: PathBuf,
+    pub(crate) path: PathBuf,
     /// Index of the first record of cell `c` (one more than the cells: the end).
-    starts: Vec<u64>,
+    pub(crate) starts: Vec<u64>,
     /// [`checksum`] of the file.
     hash: u64,
+}
+
+impl Run {
+    /// A run of a finer partition of a dense cell (not in the manifest: no checksum).
+    pub(crate) fn new(path: PathBuf, starts: Vec<u64>) -> Run {
+        Run { path, starts, hash: 0 }
+    }
 }
 
 /// A fast 64-bit checksum (8 bytes per step), in parallel over 1 MiB blocks for large inputs.
@@ -367,9 +375,8 @@ pub(crate) fn cell_depth(root: Cube, max_level: u8) -> u8 {
     MAX_CELL_DEPTH.min(room).min(max_level).min(mortar_core::morton::BITS_PER_AXIS as u8)
 }
 
-/// Builds the store in `writer` from `ds`; `None` (before any node is written) when a cell is
-/// too dense for the budget, and the incremental engine must build it.
-pub(crate) fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOptions, progress: &mut dyn FnMut(&BuildProgress), header: Option<([i32; 3], [i32; 3])>, t0: Instant) -> Result<Option<BuildReport>> {
+/// Builds the store in `writer` from `ds` (a cell denser than a unit: [`dense`]).
+pub(crate) fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOptions, progress: &mut dyn FnMut(&BuildProgress), header: Option<([i32; 3], [i32; 3])>, t0: Instant) -> Result<BuildReport> {
     let rl = ds.layout.record_len;
     let total = ds.declared_points();
     let mut report = BuildReport { engine: "partitioned", ..BuildReport::default() };
@@ -395,11 +402,6 @@ pub(crate) fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOpt
     sort::trace("partitioned", t0);
     let (lo, hi) = if all.count == 0 { ([0; 3], [0; 3]) } else { (all.min, all.max) };
     let unit_points = ((opts.memory / 2) / unit_bytes_per_point(rl as u64)).max(opts.config.leaf_capacity as u64 + 1);
-    if hist.iter().any(|&c| c > unit_points) {
-        writer.cut_nodes(0)?;
-        let _ = std::fs::remove_dir_all(&state);
-        return Ok(None);
-    }
     // A resumed walk: what the log holds is taken as it is; nodes.bin is cut after it.
     let log_path = state.join(LOG);
     let (replay, logged, logged_hashes, logged_points, nodes_end) = if resumed { read_log(&log_path, &writer.dir.join(NODES_FILE), rl)? } else { Default::default() };
@@ -414,8 +416,10 @@ pub(crate) fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOpt
     };
     ds.progress.stage("building", all.count, "points");
     let depth = cell_depth(root, opts.config.max_level);
-    let mut w = Walk { ds, writer, opts, runs: &runs, hist: &hist, depth, root, unit_points, color, rl, entries: logged, hashes: logged_hashes, seq: 0, points: logged_points, report: &mut report, replay, log, log_path };
-    w.visit(NodeKey::ROOT, root, 0, 0..hist.len())?;
+    let cells = hist.len();
+    let lv = Level::new(runs, hist, depth);
+    let mut w = Walk { ds, writer, opts, root, unit_points, color, rl, entries: logged, hashes: logged_hashes, seq: 0, points: logged_points, report: &mut report, replay, log, log_path, state: state.clone() };
+    w.visit(&lv, NodeKey::ROOT, root, 0, 0..cells)?;
     let Walk { mut entries, points, .. } = w;
     // The sorted engine's order: level by level, depth-first (= Morton) order in a level.
     entries.sort_by_key(|&(level, seq, _)| (level, seq));
@@ -435,7 +439,7 @@ pub(crate) fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOpt
     report.resumed = resumed;
     let _ = std::fs::remove_dir_all(&state);
     report.seconds = t0.elapsed().as_secs_f64();
-    Ok(Some(report))
+    Ok(report)
 }
 
 /// Pass 1 with the root the sorted engine takes (the headers' box when it holds every point,
@@ -637,9 +641,6 @@ struct Walk<'a, 'w> {
     ds: &'a Dataset,
     writer: &'w mut StoreWriter,
     opts: &'a BuildOptions,
-    runs: &'a [Run],
-    hist: &'a [u64],
-    depth: u8,
     root: Cube,
     unit_points: u64,
     color: ColorSource,
@@ -656,34 +657,44 @@ struct Walk<'a, 'w> {
     log_path: PathBuf,
     /// [`checksum`] of each payload in `entries`.
     hashes: Vec<u64>,
+    /// Where finer partitions of dense cells go.
+    state: PathBuf,
 }
 
 impl Walk<'_, '_> {
-    /// Builds the node `key` (cube `cube`, at `depth`, over the partition cells `cells`) and
+    /// Builds the node `key` (cube `cube`, at `depth`, over the cells `cells` of `lv`) and
     /// everything under it; returns its candidates for its parent.
-    fn visit(&mut self, key: NodeKey, cube: Cube, depth: u8, cells: std::ops::Range<usize>) -> Result<Cands> {
+    fn visit(&mut self, lv: &Level, key: NodeKey, cube: Cube, depth: u8, cells: std::ops::Range<usize>) -> Result<Cands> {
         sort::check_interrupted()?;
         if let Some(l) = self.replay.remove(&(key.level as u32, key.index)) {
             self.seq = l.seq_after;
             return Ok(l.cands);
         }
-        let count: u64 = self.hist[cells.clone()].iter().sum();
-        if depth == self.depth || count <= self.unit_points {
+        let count: u64 = lv.hist[cells.clone()].iter().sum();
+        if depth == lv.depth || count <= self.unit_points {
+            if count > self.unit_points {
+                return self.dense(lv, key, cube, cells, count, None);
+            }
             let before = self.entries.len();
             let points_before = self.points;
-            let out = self.unit(key, cube, cells, count)?;
+            let out = self.unit(lv, key, cube, cells, count)?;
             self.logged(key, before, self.points - points_before, &out)?;
             return Ok(out);
         }
         // More points than a unit, so more than a leaf, in a cube that may split: inner.
+        let step = cells.len() / 8;
+        self.inner(key, cube, |w, o| w.visit(lv, key.child(o), cube.child(o), depth + 1, cells.start + o * step..cells.start + (o + 1) * step))
+    }
+
+    /// Builds the inner node `key` (cube `cube`) whose children `kid(o)` builds; returns its
+    /// candidates for its parent.
+    fn inner(&mut self, key: NodeKey, cube: Cube, mut kid: impl FnMut(&mut Self, usize) -> Result<Cands>) -> Result<Cands> {
         let seq = self.seq;
         self.seq += 1;
-        let step = cells.len() / 8;
         let mut voxels = Cands::default();
         for o in 0..8 {
-            let c = cells.start + o * step..cells.start + (o + 1) * step;
-            let kid = self.visit(key.child(o), cube.child(o), depth + 1, c)?;
-            voxels.append(kid);
+            let c = kid(self, o)?;
+            voxels.append(c);
         }
         let rl = self.rl;
         let color = &self.color;
@@ -695,6 +706,55 @@ impl Walk<'_, '_> {
         if key.level > 0 {
             self.logged(key, before, 0, &out)?;
         }
+        Ok(out)
+    }
+
+    /// Builds the node `key` over the `count` points of `cells` of `lv`, more than a unit holds
+    /// (bounds `known` where known): see [`dense`].
+    fn dense(&mut self, lv: &Level, key: NodeKey, cube: Cube, cells: std::ops::Range<usize>, count: u64, known: Option<dense::Bounds>) -> Result<Cands> {
+        let rl = self.rl;
+        let block = dense::block_points(self.opts.memory, rl);
+        let b = match known {
+            Some(b) => b,
+            None => lv.bounds(&cells, rl, block)?,
+        };
+        if splits(count, key, cube, &self.opts.config) {
+            if let Some(o) = dense::one_octant(cube, b) {
+                let c0 = cells.start;
+                return self.inner(key, cube, |w, k| {
+                    if k == o {
+                        w.dense(lv, key.child(o), cube.child(o), cells.clone(), count, Some(b))
+                    } else {
+                        w.visit(lv, key.child(k), cube.child(k), key.level + 1, c0..c0)
+                    }
+                });
+            }
+            let d = dense::tree_split_depth(key, cube, self.opts.config.max_level);
+            let sub = dense::split(&lv.runs, cells, rl, cube, key.level, d, block, &self.state)?;
+            let n = sub.hist.len();
+            return self.visit(&sub, key, cube, key.level, 0..n);
+        }
+        // A leaf larger than a unit.
+        let before = self.entries.len();
+        let leaf = dense::big_leaf(lv, cells, count, key, cube, b, rl, self.unit_points, block, &self.state)?;
+        let seq = self.seq;
+        self.seq += 1;
+        let tw = Instant::now();
+        let attr_len = rl - 12;
+        let off = self.writer.reserve(&[payload_len(count, attr_len as u64)])[0];
+        let slice = (self.writer.group_bytes / (16 + attr_len as u64)).max(1) as usize;
+        let (w, color) = (&*self.writer, &self.color);
+        let r = write_payload_blocks(key, LEAF, count as usize, attr_len, leaf.bounds, slice, |r| leaf.read(r.start as u64..r.end as u64, false).map(|x| x.0), |rec| color.rgba(rec), |at, bytes| w.write_at(off + at, bytes))?;
+        let mut e = r.map_err(|error| Error::Payload { path: w.dir.clone(), error })?;
+        e.offset = off;
+        let h = checksum_at(w, off, e.length)?;
+        self.entries.push((e.level, seq, e));
+        self.hashes.push(h);
+        self.points += count;
+        self.ds.progress.add(count);
+        self.report.write_seconds += tw.elapsed().as_secs_f64();
+        let out = leaf.cands;
+        self.logged(key, before, count, &out)?;
         Ok(out)
     }
 
@@ -715,11 +775,11 @@ impl Walk<'_, '_> {
     }
 
     /// Reads the points of `cells` back, sorts them and builds their subtree.
-    fn unit(&mut self, key: NodeKey, cube: Cube, cells: std::ops::Range<usize>, count: u64) -> Result<Cands> {
+    fn unit(&mut self, lv: &Level, key: NodeKey, cube: Cube, cells: std::ops::Range<usize>, count: u64) -> Result<Cands> {
         let rl = self.rl;
         let n = count as usize;
         let ts = Instant::now();
-        let sorted = read_unit(self.runs, self.root, key, cells, count, rl, &self.writer.dir)?;
+        let sorted = read_unit(&lv.runs, self.root, key, cells, count, rl, &self.writer.dir)?;
         self.ds.progress.add(count);
         self.report.sort_seconds += ts.elapsed().as_secs_f64();
         let tt = Instant::now();
@@ -873,18 +933,16 @@ pub(crate) fn build_units(ds: &Dataset, writer: &mut StoreWriter, config: mortar
     let rl = ds.layout.record_len;
     let opts = BuildOptions { config, batch_points: 0, commit_every: f64::INFINITY, first_commit_after: None, memory, engine: super::build::Engine::Partitioned, resume: false };
     let unit_points = ((memory / 2) / unit_bytes_per_point(rl as u64)).max(config.leaf_capacity as u64 + 1);
-    if let Some(c) = hist.iter().max().filter(|&&c| c > unit_points) {
-        return Err(Error::CellTooLarge { points: *c, memory_mib: memory >> 20, unit_points });
-    }
     let log_path = state.join(LOG);
     let log = std::fs::OpenOptions::new().create(true).append(true).open(&log_path).map_err(|e| Error::io(&log_path, e))?;
     let mut report = BuildReport::default();
     let depth = cell_depth(root, config.max_level);
-    let mut w = Walk { ds, writer, opts: &opts, runs, hist, depth, root, unit_points, color, rl, entries: Vec::new(), hashes: Vec::new(), seq: 0, points: 0, report: &mut report, replay: Default::default(), log, log_path };
+    let lv = Level::new(runs.to_vec(), hist.to_vec(), depth);
+    let mut w = Walk { ds, writer, opts: &opts, root, unit_points, color, rl, entries: Vec::new(), hashes: Vec::new(), seq: 0, points: 0, report: &mut report, replay: Default::default(), log, log_path, state: state.to_path_buf() };
     let mut cands = Vec::with_capacity(units.len());
     for (key, cube, cells) in units {
         // An empty subtree too: it is an empty leaf where its parent is inner.
-        cands.push(w.visit(*key, *cube, key.level, cells.clone())?);
+        cands.push(w.visit(&lv, *key, *cube, key.level, cells.clone())?);
     }
     let Walk { entries, points, .. } = w;
     Ok((entries, cands, points))
