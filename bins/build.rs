@@ -187,6 +187,8 @@ pub fn run(a: Args) -> Result<()> {
             "engine": r.engine,
             "resumed": r.resumed,
             "kept_nodes": r.kept_nodes,
+            "dense_cells": r.dense_cells,
+            "large_leaves": r.large_leaves,
             "sort_seconds": r.sort_seconds,
             "tree_seconds": r.tree_seconds,
             "write_seconds": r.write_seconds,

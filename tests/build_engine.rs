@@ -255,6 +255,7 @@ fn auto_takes_the_partitioned_engine_above_the_budget_even_for_dense_cells() {
     let o = run_ok(mortar().arg("build").arg(&input).arg("-o").arg(&s2).args(["--json", "--memory", "20K", "--leaf-capacity", "100"]));
     let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!(j["engine"], "partitioned", "{j}");
+    assert!(j["dense_cells"].as_u64().unwrap() >= 1, "{j}");
     let (a, b) = (dir.join("a.las"), dir.join("b.las"));
     run_ok(mortar().arg("sort").arg(&s).arg("-o").arg(&a));
     run_ok(mortar().arg("sort").arg(&s2).arg("-o").arg(&b));
@@ -268,6 +269,8 @@ fn cells_denser_than_a_unit_give_the_sorted_engines_store() {
     for (i, set) in dense_sets(&dir).iter().enumerate() {
         let j = partitioned_equals_sorted(set, "1M", &format!("part-dense-{i}"));
         assert_eq!(j["engine"], "partitioned", "{set:?}: {j}");
+        eprintln!("{set:?}: {} cells partitioned again, {} leaves larger than a unit", j["dense_cells"], j["large_leaves"]);
+        assert!(j["large_leaves"].as_u64().unwrap() >= 1, "{set:?}: {j}");
     }
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -267,6 +267,7 @@ fn cells_denser_than_a_unit_give_the_same_export() {
             export_json(&refs, &a, &common).unwrap_or_else(|e| panic!("{set:?} in memory: {e}"));
             let j = export_json(&refs, &b, &[&common[..], &["--memory", "1M"]].concat()).unwrap_or_else(|e| panic!("{set:?} --memory 1M: {e}"));
             assert_eq!(j["engine"], "partitioned", "{set:?}");
+            assert!(j["large_leaves"].as_u64().unwrap() >= 1, "{set:?}: {j}");
             jobs.push(serde_json::json!({"kind": "same", "format": kind, "a": a, "b": b}));
             jobs.push(serde_json::json!({"kind": kind, "out": b, "inputs": set}));
         }

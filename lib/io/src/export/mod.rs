@@ -106,6 +106,10 @@ pub struct ExportReport {
     /// `--memory`: through run files on disk, one unit at a time).
     pub engine: &'static str,
     pub warnings: Vec<String>,
+    /// Partition cells denser than a unit that were partitioned again on disk.
+    pub dense_cells: u64,
+    /// Leaves larger than a unit, ordered on disk and written in slices.
+    pub large_leaves: u64,
 }
 
 /// Writes `ds` to `out` as `opts.format` says; `out` appears whole or not at all.

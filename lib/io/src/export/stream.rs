@@ -185,12 +185,14 @@ impl Walk<'_, '_> {
             let d = dense::tree_split_depth(key, cube, self.opts.config.max_level);
             let dir = self.dir.clone();
             let sub = dense::split(&lv.runs, cells, rl, cube, key.level, d, block, &dir)?;
+            self.report.dense_cells += 1;
             let n = sub.hist.len();
             return self.visit(&sub, key, cube, key.level, 0..n);
         }
         // A leaf larger than a unit: its points less the candidates it hands up, in slices.
         let ts = Instant::now();
         let leaf = dense::big_leaf(lv, cells, count, key, cube, b, rl, self.unit_points, block, &self.dir)?;
+        self.report.large_leaves += 1;
         self.report.sort_seconds += ts.elapsed().as_secs_f64();
         let kept = count - leaf.cand_index.len() as u64;
         if kept > 0 {

@@ -107,6 +107,11 @@ pub struct BuildReport {
     pub resumed: bool,
     /// Nodes the resumed build found committed and kept.
     pub kept_nodes: u64,
+    /// Partition cells denser than a unit that were partitioned again on disk (partitioned
+    /// engine).
+    pub dense_cells: u64,
+    /// Leaves larger than a unit, ordered on disk and written in slices (partitioned engine).
+    pub large_leaves: u64,
 }
 
 /// The integer bounds the inputs' headers declare (one unit of margin), on the merged grid, with

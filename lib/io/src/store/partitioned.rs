@@ -731,12 +731,14 @@ impl Walk<'_, '_> {
             }
             let d = dense::tree_split_depth(key, cube, self.opts.config.max_level);
             let sub = dense::split(&lv.runs, cells, rl, cube, key.level, d, block, &self.state)?;
+            self.report.dense_cells += 1;
             let n = sub.hist.len();
             return self.visit(&sub, key, cube, key.level, 0..n);
         }
         // A leaf larger than a unit.
         let before = self.entries.len();
         let leaf = dense::big_leaf(lv, cells, count, key, cube, b, rl, self.unit_points, block, &self.state)?;
+        self.report.large_leaves += 1;
         let seq = self.seq;
         self.seq += 1;
         let tw = Instant::now();
