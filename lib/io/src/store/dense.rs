@@ -158,6 +158,7 @@ fn stream(runs: &[Run], cells: Range<usize>, rl: usize, block: usize, mut f: imp
 /// `cube` (`d` at most 5), into run files in a new directory in `dir`: a block of points at a
 /// time, each block one run, so that arrival order is kept. The new partition's cells are at
 /// level `level + d`.
+#[allow(clippy::too_many_arguments)]
 pub(crate) fn split(runs: &[Run], cells: Range<usize>, rl: usize, cube: Cube, level: u8, d: u8, block: usize, dir: &Path) -> Result<Level> {
     debug_assert!((1..=5).contains(&d) && d <= cube.size_log2);
     let tmp = TempPath::dir_in(dir, "dense").map_err(|e| Error::io(dir, e))?;
@@ -228,6 +229,10 @@ pub(crate) struct Leaf {
     _file: Option<TempPath>,
 }
 
+/// The earliest point of a cell of the parent's grid so far: the cell, its place in the leaf,
+/// its arrival number, its position and its record.
+type Earliest = ([u64; 3], u64, u64, [i32; 3], Vec<u8>);
+
 /// What [`big_leaf`] needs while it orders a leaf.
 struct Order<'a> {
     rl: usize,
@@ -261,7 +266,8 @@ pub(crate) fn big_leaf(lv: &Level, cells: Range<usize>, count: u64, key: NodeKey
         // The earliest point in each cell of the parent's grid: cells are ranges of the order.
         let cell_log2 = cube.size_log2 - (GRID_LOG2 - 1);
         let cell = |p: [i32; 3]| [0, 1, 2].map(|a| ((p[a] as i64 - cube.min[a]) as u64) >> cell_log2);
-        let mut current: Option<([u64; 3], u64, u64, [i32; 3], Vec<u8>)> = None;
+        // (cell, place in the leaf, arrival, position, record) of the earliest point so far
+        let mut current: Option<Earliest> = None;
         let mut at = 0u64;
         let mut cands = Cands::default();
         let mut index = Vec::new();
