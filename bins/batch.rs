@@ -1,7 +1,7 @@
 //! `mortar batch`: the batch file of paper 003.
 
-use mortar_app::cli as common;
 use anyhow::{bail, Result};
+use mortar_app::cli as common;
 use mortar_io::batchfile::{AttributeSelection, BatchSink, Compression};
 use mortar_io::sort::sort;
 use std::path::PathBuf;
@@ -41,7 +41,8 @@ pub fn run(a: Args) -> Result<()> {
     let mut ds = common::open_dataset(&a.inputs, &a.sort.crs)?;
     common::print_warnings(&ds.warnings);
     let selection = AttributeSelection::parse(&a.attributes);
-    let attributes = selection.resolve(&ds.layout).map_err(|e| anyhow::anyhow!("--attributes: {e}"))?;
+    let attributes =
+        selection.resolve(&ds.layout).map_err(|e| anyhow::anyhow!("--attributes: {e}"))?;
     if let AttributeSelection::Only(_) = selection {
         // The stored colour is RGB, or intensity where RGB is zero: both are read whatever is kept.
         let mut keep: Vec<&str> = attributes.iter().map(|a| a.name.as_str()).collect();

@@ -20,7 +20,8 @@ fn main() -> anyhow::Result<()> {
             }
             total += n;
             // touch the data so the decode cannot be skipped
-            checksum = checksum.wrapping_add(pd.raw_bytes().iter().step_by(4096).map(|&b| b as u64).sum::<u64>());
+            checksum = checksum
+                .wrapping_add(pd.raw_bytes().iter().step_by(4096).map(|&b| b as u64).sum::<u64>());
         }
     }
     let secs = start.elapsed().as_secs_f64();

@@ -1,7 +1,7 @@
 //! `mortar build`: the octree LOD store of paper 004 (`lib/io/STORE_FORMAT.md`).
 
-use mortar_app::cli as common;
 use anyhow::Result;
+use mortar_app::cli as common;
 use mortar_core::octree::{BuilderConfig, ColorMode, DEFAULT_LEAF_CAPACITY};
 use mortar_io::store::{build, BuildOptions, BuildProgress, Engine};
 use std::path::PathBuf;
@@ -75,9 +75,20 @@ pub fn run(a: Args) -> Result<()> {
     if let Some(dir) = &a.compact {
         let r = mortar_io::store::compact(dir)?;
         if a.json {
-            println!("{}", serde_json::to_string_pretty(&serde_json::json!({"store": dir, "nodes": r.nodes, "bytes_before": r.before, "bytes_after": r.after}))?);
+            println!(
+                "{}",
+                serde_json::to_string_pretty(
+                    &serde_json::json!({"store": dir, "nodes": r.nodes, "bytes_before": r.before, "bytes_after": r.after})
+                )?
+            );
         } else {
-            eprintln!("mortar: {}: nodes.bin {} -> {} bytes ({} nodes)", dir.display(), r.before, r.after, r.nodes);
+            eprintln!(
+                "mortar: {}: nodes.bin {} -> {} bytes ({} nodes)",
+                dir.display(),
+                r.before,
+                r.after,
+                r.nodes
+            );
         }
         return Ok(());
     }

@@ -1,7 +1,7 @@
 //! `mortar export`: the octree as COPC 1.0 or Potree 2.0 for other tools (`lib/io/src/export`).
 
-use mortar_app::cli as common;
 use anyhow::Result;
+use mortar_app::cli as common;
 use mortar_core::octree::{BuilderConfig, DEFAULT_LEAF_CAPACITY};
 use mortar_io::export::{export, ExportFormat, ExportOptions, PointOrder};
 use std::path::{Path, PathBuf};
@@ -46,7 +46,9 @@ fn format_of(a: &Args) -> Result<ExportFormat> {
     Ok(match a.format.as_str() {
         "copc" => ExportFormat::Copc,
         "potree" => ExportFormat::Potree,
-        "auto" if a.output.to_string_lossy().to_ascii_lowercase().ends_with(".laz") => ExportFormat::Copc,
+        "auto" if a.output.to_string_lossy().to_ascii_lowercase().ends_with(".laz") => {
+            ExportFormat::Copc
+        }
         "auto" => ExportFormat::Potree,
         f => anyhow::bail!("--format {f}: give copc, potree or auto"),
     })
@@ -59,8 +61,12 @@ fn check_output(out: &Path, format: ExportFormat) -> Result<()> {
         anyhow::bail!("{}: its directory {} does not exist", out.display(), parent.display());
     }
     match format {
-        ExportFormat::Copc if out.is_dir() => anyhow::bail!("{}: is a directory; a COPC output is a file", out.display()),
-        ExportFormat::Potree if out.exists() && !out.is_dir() => anyhow::bail!("{}: exists and is not a directory", out.display()),
+        ExportFormat::Copc if out.is_dir() => {
+            anyhow::bail!("{}: is a directory; a COPC output is a file", out.display())
+        }
+        ExportFormat::Potree if out.exists() && !out.is_dir() => {
+            anyhow::bail!("{}: exists and is not a directory", out.display())
+        }
         ExportFormat::Potree if out.is_dir() && std::fs::read_dir(out)?.next().is_some() => {
             anyhow::bail!("{}: the directory is not empty; give a new or empty one", out.display())
         }
@@ -85,7 +91,12 @@ pub fn run(a: Args) -> Result<()> {
     check_output(&a.output, format)?;
     let ds = common::open_dataset(&a.inputs, &a.crs)?;
     common::print_warnings(&ds.warnings);
-    let opts = ExportOptions { format, memory: a.memory, config: BuilderConfig { leaf_capacity, ..BuilderConfig::default() }, order };
+    let opts = ExportOptions {
+        format,
+        memory: a.memory,
+        config: BuilderConfig { leaf_capacity, ..BuilderConfig::default() },
+        order,
+    };
     let bar = common::progress_bar("mortar export", &ds.progress);
     let r = export(&ds, &a.output, &opts)?;
     drop(bar);

@@ -16,7 +16,10 @@ enum ShapeArg {
 }
 
 #[derive(Parser)]
-#[command(name = "mortar-gen", about = "Seeded synthetic airborne-like scan (LAS point format 3), or a hostile shape for memory tests")]
+#[command(
+    name = "mortar-gen",
+    about = "Seeded synthetic airborne-like scan (LAS point format 3), or a hostile shape for memory tests"
+)]
 struct Args {
     #[arg(long, default_value_t = 1_000_000)]
     points: u64,
@@ -55,7 +58,15 @@ fn main() -> Result<()> {
         ShapeArg::Cube => Shape::Cube,
         ShapeArg::Duplicates => Shape::Duplicates,
     };
-    let o = SynthOptions { points: a.points, seed: a.seed, extent: a.extent, scale: a.scale, origin: [a.origin[0], a.origin[1], a.origin[2]], shape, extra_bytes: a.extra_bytes };
+    let o = SynthOptions {
+        points: a.points,
+        seed: a.seed,
+        extent: a.extent,
+        scale: a.scale,
+        origin: [a.origin[0], a.origin[1], a.origin[2]],
+        shape,
+        extra_bytes: a.extra_bytes,
+    };
     synth::write_file(&o, &a.output, a.laz_chunk)?;
     Ok(())
 }

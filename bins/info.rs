@@ -1,7 +1,7 @@
 //! `mortar info`: describe inputs, as text or as JSON (`docs/info-json.md`).
 
-use mortar_app::cli as common;
 use anyhow::Result;
+use mortar_app::cli as common;
 use mortar_io::batchfile::{is_batch_file, BatchFile};
 use mortar_io::info::{describe, FileInfo};
 use mortar_io::source::{expand_inputs, LasInput};
@@ -60,9 +60,14 @@ pub fn run(a: Args) -> Result<()> {
 
 fn print_text(o: &mut impl Write, i: &FileInfo) -> std::io::Result<()> {
     writeln!(o, "{}", i.path)?;
-    writeln!(o, "  kind            {} (LAS {}, point format {}, {} bytes per point)", i.kind, i.version, i.point_format, i.record_length)?;
+    writeln!(
+        o,
+        "  kind            {} (LAS {}, point format {}, {} bytes per point)",
+        i.kind, i.version, i.point_format, i.record_length
+    )?;
     writeln!(o, "  points          {}", i.point_count)?;
-    let by_ret: Vec<String> = i.points_by_return.iter().take_while(|&&c| c > 0).map(|c| c.to_string()).collect();
+    let by_ret: Vec<String> =
+        i.points_by_return.iter().take_while(|&&c| c > 0).map(|c| c.to_string()).collect();
     if !by_ret.is_empty() {
         writeln!(o, "  by return       {}", by_ret.join(" "))?;
     }
@@ -77,30 +82,53 @@ fn print_text(o: &mut impl Write, i: &FileInfo) -> std::io::Result<()> {
         writeln!(o, "  extra bytes     {} ({}) {}", e.name, e.data_type, e.description)?;
     }
     for v in &i.vlrs {
-        writeln!(o, "  vlr             {} {} ({} bytes) {}", v.user_id, v.record_id, v.length, v.description)?;
+        writeln!(
+            o,
+            "  vlr             {} {} ({} bytes) {}",
+            v.user_id, v.record_id, v.length, v.description
+        )?;
     }
     for v in &i.evlrs {
-        writeln!(o, "  evlr            {} {} ({} bytes) {}", v.user_id, v.record_id, v.length, v.description)?;
+        writeln!(
+            o,
+            "  evlr            {} {} ({} bytes) {}",
+            v.user_id, v.record_id, v.length, v.description
+        )?;
     }
     if let Some(b) = &i.batch {
-        writeln!(o, "  batches         {} ({} to {} points), compression {}", b.batch_count, b.smallest_batch, b.largest_batch, b.compression)?;
-        let h: Vec<String> = b.bits_histogram.iter().map(|(k, v)| format!("{k} bits: {v}")).collect();
+        writeln!(
+            o,
+            "  batches         {} ({} to {} points), compression {}",
+            b.batch_count, b.smallest_batch, b.largest_batch, b.compression
+        )?;
+        let h: Vec<String> =
+            b.bits_histogram.iter().map(|(k, v)| format!("{k} bits: {v}")).collect();
         writeln!(o, "  batch bits      {}", h.join(", "))?;
-        writeln!(o, "  colour          {}{}", b.color_source, b.rgb_bits.map(|x| format!(" ({x}-bit)")).unwrap_or_default())?;
+        writeln!(
+            o,
+            "  colour          {}{}",
+            b.color_source,
+            b.rgb_bits.map(|x| format!(" ({x}-bit)")).unwrap_or_default()
+        )?;
         if !b.dropped_attributes.is_empty() {
             writeln!(o, "  dropped         {}", b.dropped_attributes.join(", "))?;
         }
     }
     if let Some(s) = &i.store {
         writeln!(o, "  octree          {} nodes: {} leaves ({} empty, largest {} points, capacity {}), {} inner nodes with {} voxels, depth {}", s.nodes, s.leaves, s.empty_leaves, s.largest_leaf, s.leaf_capacity, s.inner_nodes, s.voxels, s.depth)?;
-        writeln!(o, "  store           commit {}, {} bytes of node payloads", s.commit, s.nodes_bytes)?;
+        writeln!(
+            o,
+            "  store           commit {}, {} bytes of node payloads",
+            s.commit, s.nodes_bytes
+        )?;
     }
     if let Some(s) = &i.stats {
         writeln!(o, "  real bounds     {}", bounds_text(&s.bounds, i.scale))?;
         for (k, r) in &s.ranges {
             writeln!(o, "  {:<15} [{}, {}]", k, r.min, r.max)?;
         }
-        let c: Vec<String> = s.classification_counts.iter().map(|(k, v)| format!("{k}: {v}")).collect();
+        let c: Vec<String> =
+            s.classification_counts.iter().map(|(k, v)| format!("{k}: {v}")).collect();
         writeln!(o, "  classes         {}", c.join(", "))?;
         let r: Vec<String> = s.return_counts.iter().map(|(k, v)| format!("{k}: {v}")).collect();
         writeln!(o, "  returns         {}", r.join(", "))?;

@@ -13,7 +13,11 @@ use clap::{Parser, Subcommand};
 use mortar_app::{cli as common, render, viewer as view};
 
 #[derive(Parser)]
-#[command(name = "mortar", version, about = "LAS/LAZ to GPU-ready Morton-sorted batch files, sorted LAS/LAZ, and more")]
+#[command(
+    name = "mortar",
+    version,
+    about = "LAS/LAZ to GPU-ready Morton-sorted batch files, sorted LAS/LAZ, and more"
+)]
 struct Cli {
     /// Worker threads (default: all cores).
     #[arg(long, global = true)]

@@ -1,7 +1,7 @@
 //! `mortar plan`: splits a build into independent jobs (`lib/io/src/store/distributed.rs`).
 
-use mortar_app::cli as common;
 use anyhow::Result;
+use mortar_app::cli as common;
 use mortar_core::octree::{BuilderConfig, DEFAULT_LEAF_CAPACITY};
 use mortar_io::store::distributed::{plan, PlanOptions};
 use std::path::PathBuf;
@@ -35,7 +35,14 @@ pub fn run(a: Args) -> Result<()> {
     }
     let ds = common::open_dataset(&a.inputs, &common::CrsArgs::default())?;
     common::print_warnings(&ds.warnings);
-    let p = plan(&ds, &PlanOptions { jobs: a.jobs, config: BuilderConfig { leaf_capacity: a.leaf_capacity, ..BuilderConfig::default() }, scan: a.scan })?;
+    let p = plan(
+        &ds,
+        &PlanOptions {
+            jobs: a.jobs,
+            config: BuilderConfig { leaf_capacity: a.leaf_capacity, ..BuilderConfig::default() },
+            scan: a.scan,
+        },
+    )?;
     common::print_warnings(&p.warnings);
     p.write(&a.output)?;
     if a.json {

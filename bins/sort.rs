@@ -1,7 +1,7 @@
 //! `mortar sort`: Morton-ordered LAS/LAZ.
 
-use mortar_app::cli as common;
 use anyhow::Result;
+use mortar_app::cli as common;
 use mortar_io::sink_las::{LasSink, Target};
 use mortar_io::sort::sort;
 

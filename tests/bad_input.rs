@@ -34,8 +34,25 @@ fn check_all_commands(f: &Path) {
     expect_clean_failure(&["sort", fs, "-o", laz.to_str().unwrap()], f, &dir);
     expect_clean_failure(&["batch", fs, "-o", mbat.to_str().unwrap()], f, &dir);
     let png = dir.join("out.png");
-    expect_clean_failure(&["render", fs, "-o", png.to_str().unwrap(), "--tmp-dir", dir.to_str().unwrap()], f, &dir);
-    expect_clean_failure(&["batch", fs, "-o", mbat.to_str().unwrap(), "--memory", "64K", "--tmp-dir", dir.to_str().unwrap()], f, &dir);
+    expect_clean_failure(
+        &["render", fs, "-o", png.to_str().unwrap(), "--tmp-dir", dir.to_str().unwrap()],
+        f,
+        &dir,
+    );
+    expect_clean_failure(
+        &[
+            "batch",
+            fs,
+            "-o",
+            mbat.to_str().unwrap(),
+            "--memory",
+            "64K",
+            "--tmp-dir",
+            dir.to_str().unwrap(),
+        ],
+        f,
+        &dir,
+    );
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
@@ -87,12 +104,40 @@ fn hostile_headers() {
     let cases: Vec<(&str, Damage)> = vec![
         ("not-las", Box::new(|b: &mut Vec<u8>| b[0] = b'X')),
         ("truncated-header", Box::new(|b: &mut Vec<u8>| b.truncate(100))),
-        ("huge-count", Box::new(|b: &mut Vec<u8>| b[107..111].copy_from_slice(&u32::MAX.to_le_bytes()))),
+        (
+            "huge-count",
+            Box::new(|b: &mut Vec<u8>| b[107..111].copy_from_slice(&u32::MAX.to_le_bytes())),
+        ),
         ("bad-format", Box::new(|b: &mut Vec<u8>| b[104] = 0x80 | 42)),
-        ("zero-scale", Box::new(|b: &mut Vec<u8>| b[131..139].copy_from_slice(&0f64.to_le_bytes()))),
-        ("truncated-points", Box::new(|b: &mut Vec<u8>| { let n = b.len() / 2; b.truncate(n) })),
-        ("chunk-table-garbage", Box::new(|b: &mut Vec<u8>| { let n = b.len(); b[n - 8..].copy_from_slice(&[0xff; 8]); let o = u32::from_le_bytes(b[96..100].try_into().unwrap()) as usize; b[o..o + 8].copy_from_slice(&[0xff; 8]); })),
-        ("corrupt-chunk", Box::new(|b: &mut Vec<u8>| { let o = u32::from_le_bytes(b[96..100].try_into().unwrap()) as usize; for x in &mut b[o + 100..o + 5000] { *x ^= 0x5a; } })),
+        (
+            "zero-scale",
+            Box::new(|b: &mut Vec<u8>| b[131..139].copy_from_slice(&0f64.to_le_bytes())),
+        ),
+        (
+            "truncated-points",
+            Box::new(|b: &mut Vec<u8>| {
+                let n = b.len() / 2;
+                b.truncate(n)
+            }),
+        ),
+        (
+            "chunk-table-garbage",
+            Box::new(|b: &mut Vec<u8>| {
+                let n = b.len();
+                b[n - 8..].copy_from_slice(&[0xff; 8]);
+                let o = u32::from_le_bytes(b[96..100].try_into().unwrap()) as usize;
+                b[o..o + 8].copy_from_slice(&[0xff; 8]);
+            }),
+        ),
+        (
+            "corrupt-chunk",
+            Box::new(|b: &mut Vec<u8>| {
+                let o = u32::from_le_bytes(b[96..100].try_into().unwrap()) as usize;
+                for x in &mut b[o + 100..o + 5000] {
+                    *x ^= 0x5a;
+                }
+            }),
+        ),
     ];
     for (tag, patch) in cases {
         let p = hostile(tag, patch);
@@ -121,10 +166,19 @@ fn hostile_headers() {
 #[test]
 fn missing_input_and_bad_arguments() {
     let dir = tempdir("args");
-    let o = mortar().args(["batch", "/nonexistent/x.laz", "-o"]).arg(dir.join("o.mbat")).output().unwrap();
+    let o = mortar()
+        .args(["batch", "/nonexistent/x.laz", "-o"])
+        .arg(dir.join("o.mbat"))
+        .output()
+        .unwrap();
     assert_eq!(o.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&o.stderr).contains("/nonexistent/x.laz"));
-    let o = mortar().args(["batch", "data-samples/autzen_trim.laz", "--attributes", "nope", "-o"]).arg(dir.join("o.mbat")).current_dir(root()).output().unwrap();
+    let o = mortar()
+        .args(["batch", "data-samples/autzen_trim.laz", "--attributes", "nope", "-o"])
+        .arg(dir.join("o.mbat"))
+        .current_dir(root())
+        .output()
+        .unwrap();
     assert_eq!(o.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&o.stderr).contains("nope"));
     assert!(entries(&dir).is_empty());

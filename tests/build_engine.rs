@@ -40,9 +40,19 @@ fn nodes_of(dir: &Path) -> (mortar_core::octree::Cube, Nodes) {
     (s.root_cube(), out)
 }
 
-fn build(inputs: &[PathBuf], out: &Path, engine: &str, extra: &[&str]) -> Result<serde_json::Value, String> {
+fn build(
+    inputs: &[PathBuf],
+    out: &Path,
+    engine: &str,
+    extra: &[&str],
+) -> Result<serde_json::Value, String> {
     let mut c = mortar();
-    c.arg("build").args(inputs).arg("-o").arg(out).args(["--engine", engine, "--json", "--leaf-capacity", "3000", "--batch-points", "20000"]).args(extra);
+    c.arg("build")
+        .args(inputs)
+        .arg("-o")
+        .arg(out)
+        .args(["--engine", engine, "--json", "--leaf-capacity", "3000", "--batch-points", "20000"])
+        .args(extra);
     let o = c.output().unwrap();
     if o.status.success() {
         Ok(serde_json::from_slice(&o.stdout).unwrap())
@@ -59,14 +69,21 @@ fn same_tree(inputs: &[PathBuf], tag: &str) -> bool {
     let (a, b) = (dir.join("sorted"), dir.join("incremental"));
     let ra = build(inputs, &a, "sorted", &[]);
     let rb = build(inputs, &b, "incremental", &[]);
-    let name = inputs.iter().map(|p| p.file_name().unwrap().to_string_lossy().to_string()).collect::<Vec<_>>().join(" + ");
+    let name = inputs
+        .iter()
+        .map(|p| p.file_name().unwrap().to_string_lossy().to_string())
+        .collect::<Vec<_>>()
+        .join(" + ");
     match (&ra, &rb) {
         (Err(x), Err(y)) => {
             // Refused alike (same one-line error).
             // The message names the first node that failed, which depends on the order of work.
             let last = |e: &str, d: &Path| {
                 let l = e.lines().last().unwrap_or("").replace(&d.display().to_string(), "STORE");
-                l.split(' ').filter(|w| !(w.starts_with('r') && w[1..].chars().all(|c| c.is_ascii_digit()))).collect::<Vec<_>>().join(" ")
+                l.split(' ')
+                    .filter(|w| !(w.starts_with('r') && w[1..].chars().all(|c| c.is_ascii_digit())))
+                    .collect::<Vec<_>>()
+                    .join(" ")
             };
             assert_eq!(last(x, &a), last(y, &b), "{name}");
             let _ = std::fs::remove_dir_all(&dir);
@@ -85,9 +102,15 @@ fn same_tree(inputs: &[PathBuf], tag: &str) -> bool {
     if compared {
         assert_eq!(na.len(), nb.len(), "{name}: node count");
         for (k, (leaf, recs)) in &na {
-            let (leaf_b, recs_b) = nb.get(k).unwrap_or_else(|| panic!("{name}: node {k:?} only in the sorted store"));
+            let (leaf_b, recs_b) =
+                nb.get(k).unwrap_or_else(|| panic!("{name}: node {k:?} only in the sorted store"));
             assert_eq!(leaf, leaf_b, "{name}: kind of {k:?}");
-            assert!(recs == recs_b, "{name}: points of node {k:?} ({} vs {})", recs.len(), recs_b.len());
+            assert!(
+                recs == recs_b,
+                "{name}: points of node {k:?} ({} vs {})",
+                recs.len(),
+                recs_b.len()
+            );
         }
         // The sorted engine writes every node once.
         let s = Store::open(&a).unwrap();
@@ -98,7 +121,10 @@ fn same_tree(inputs: &[PathBuf], tag: &str) -> bool {
     let (sa, sb) = (dir.join("a.las"), dir.join("b.las"));
     run_ok(mortar().arg("sort").arg(&a).arg("-o").arg(&sa));
     run_ok(mortar().arg("sort").arg(&b).arg("-o").arg(&sb));
-    assert!(std::fs::read(&sa).unwrap() == std::fs::read(&sb).unwrap(), "{name}: sort of the two stores differs");
+    assert!(
+        std::fs::read(&sa).unwrap() == std::fs::read(&sb).unwrap(),
+        "{name}: sort of the two stores differs"
+    );
     let _ = std::fs::remove_dir_all(&dir);
     compared
 }
@@ -115,17 +141,25 @@ fn both_engines_build_the_same_tree_on_every_real_file() {
         }
     }
     // Most files have honest headers.
-    assert!(compared * 10 >= files.len() * 8, "{compared} of {} compared node by node", files.len());
+    assert!(
+        compared * 10 >= files.len() * 8,
+        "{compared} of {} compared node by node",
+        files.len()
+    );
 }
 
 #[test]
 fn both_engines_build_the_same_tree_on_merged_tiles() {
     let Some(data) = shared_data() else { return };
-    let bcts: Vec<PathBuf> = (1..=4).map(|i| data.join(format!("lasR/inst/extdata/bcts/bcts_{i}.laz"))).filter(|p| p.exists()).collect();
+    let bcts: Vec<PathBuf> = (1..=4)
+        .map(|i| data.join(format!("lasR/inst/extdata/bcts/bcts_{i}.laz")))
+        .filter(|p| p.exists())
+        .collect();
     assert!(bcts.len() >= 2);
     assert!(same_tree(&bcts, "engines-bcts"));
     let ept_dir = data.join("PyForestScan/example_data/ept/ept-data");
-    let mut ept: Vec<PathBuf> = std::fs::read_dir(&ept_dir).unwrap().map(|e| e.unwrap().path()).collect();
+    let mut ept: Vec<PathBuf> =
+        std::fs::read_dir(&ept_dir).unwrap().map(|e| e.unwrap().path()).collect();
     ept.sort();
     ept.truncate(60);
     assert!(same_tree(&ept, "engines-ept"));
@@ -137,9 +171,14 @@ fn a_sorted_build_is_readable_at_every_commit_coarse_first() {
     use mortar_io::store::{build, BuildOptions, Engine};
     let dir = tempdir("sorted-commits");
     let store = dir.join("s");
-    let ds = mortar_io::dataset::Dataset::open(&[root().join("data-samples/autzen_trim.laz")]).unwrap();
+    let ds =
+        mortar_io::dataset::Dataset::open(&[root().join("data-samples/autzen_trim.laz")]).unwrap();
     let opts = BuildOptions {
-        config: BuilderConfig { leaf_capacity: 2000, color_mode: ColorMode::FirstCome, ..BuilderConfig::default() },
+        config: BuilderConfig {
+            leaf_capacity: 2000,
+            color_mode: ColorMode::FirstCome,
+            ..BuilderConfig::default()
+        },
         batch_points: 10_000,
         first_commit_after: None,
         commit_every: 0.0,
@@ -164,7 +203,10 @@ fn a_sorted_build_is_readable_at_every_commit_coarse_first() {
     // One level per commit, from the root down; the points arrive with the levels of leaves.
     assert!(seen.len() >= 4, "{seen:?}");
     assert_eq!(seen[0].3, 0, "the first commit holds the root: {seen:?}");
-    assert!(seen.windows(2).all(|w| w[1].3 == w[0].3 + 1 && w[1].2 > w[0].2 && w[1].1 >= w[0].1), "{seen:?}");
+    assert!(
+        seen.windows(2).all(|w| w[1].3 == w[0].3 + 1 && w[1].2 > w[0].2 && w[1].1 >= w[0].1),
+        "{seen:?}"
+    );
     assert_eq!(seen.last().unwrap().1, 110_000);
     let _ = std::fs::remove_dir_all(&dir);
 }
@@ -175,7 +217,11 @@ fn a_sorted_build_is_readable_at_every_commit_coarse_first() {
 fn partitioned_equals_sorted(inputs: &[PathBuf], memory: &str, tag: &str) -> serde_json::Value {
     let dir = tempdir(tag);
     let (a, b) = (dir.join("sorted"), dir.join("partitioned"));
-    let name = inputs.iter().map(|p| p.file_name().unwrap().to_string_lossy().to_string()).collect::<Vec<_>>().join(" + ");
+    let name = inputs
+        .iter()
+        .map(|p| p.file_name().unwrap().to_string_lossy().to_string())
+        .collect::<Vec<_>>()
+        .join(" + ");
     let ra = build(inputs, &a, "sorted", &[]);
     let rb = build(inputs, &b, "partitioned", &["--memory", memory]);
     let jb = match (&ra, &rb) {
@@ -192,13 +238,25 @@ fn partitioned_equals_sorted(inputs: &[PathBuf], memory: &str, tag: &str) -> ser
     assert_eq!(sa.entries.len(), sb.entries.len(), "{name}: node count");
     if jb["engine"] == "partitioned" {
         for (i, (x, y)) in sa.entries.iter().zip(&sb.entries).enumerate() {
-            assert_eq!((x.level, x.kind, x.index, x.count, x.length), (y.level, y.kind, y.index, y.count, y.length), "{name}: entry {i}");
-            assert!(sa.node_bytes(i) == sb.node_bytes(i), "{name}: payload of node {i} ({:?})", (x.level, x.index));
+            assert_eq!(
+                (x.level, x.kind, x.index, x.count, x.length),
+                (y.level, y.kind, y.index, y.count, y.length),
+                "{name}: entry {i}"
+            );
+            assert!(
+                sa.node_bytes(i) == sb.node_bytes(i),
+                "{name}: payload of node {i} ({:?})",
+                (x.level, x.index)
+            );
         }
         let live: u64 = sb.entries.iter().map(|e| e.length).sum();
         assert_eq!(live, sb.header.nodes_len, "{name}: nodes.bin holds only live payloads");
         // No run files are left in the store.
-        let left: Vec<String> = std::fs::read_dir(&b).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().to_string()).filter(|n| n.starts_with('.')).collect();
+        let left: Vec<String> = std::fs::read_dir(&b)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().to_string())
+            .filter(|n| n.starts_with('.'))
+            .collect();
         assert!(left.is_empty(), "{name}: left in the store: {left:?}");
     }
     let _ = std::fs::remove_dir_all(&dir);
@@ -217,19 +275,27 @@ fn the_partitioned_engine_writes_the_sorted_engines_store_on_every_real_file() {
             partitioned += 1;
         }
     }
-    assert!(partitioned * 10 >= files.len() * 8, "{partitioned} of {} built by the partitioned engine", files.len());
+    assert!(
+        partitioned * 10 >= files.len() * 8,
+        "{partitioned} of {} built by the partitioned engine",
+        files.len()
+    );
 }
 
 #[test]
 fn the_partitioned_engine_writes_the_sorted_engines_store_on_merged_tiles() {
     let Some(data) = shared_data() else { return };
-    let bcts: Vec<PathBuf> = (1..=4).map(|i| data.join(format!("lasR/inst/extdata/bcts/bcts_{i}.laz"))).filter(|p| p.exists()).collect();
+    let bcts: Vec<PathBuf> = (1..=4)
+        .map(|i| data.join(format!("lasR/inst/extdata/bcts/bcts_{i}.laz")))
+        .filter(|p| p.exists())
+        .collect();
     for memory in ["16M", "64M"] {
         let j = partitioned_equals_sorted(&bcts, memory, &format!("part-bcts-{memory}"));
         assert_eq!(j["engine"], "partitioned", "{j}");
     }
     let ept_dir = data.join("PyForestScan/example_data/ept/ept-data");
-    let mut ept: Vec<PathBuf> = std::fs::read_dir(&ept_dir).unwrap().map(|e| e.unwrap().path()).collect();
+    let mut ept: Vec<PathBuf> =
+        std::fs::read_dir(&ept_dir).unwrap().map(|e| e.unwrap().path()).collect();
     ept.sort();
     ept.truncate(60);
     let j = partitioned_equals_sorted(&ept, "16M", "part-ept");
@@ -244,7 +310,9 @@ fn auto_takes_the_partitioned_engine_above_the_budget_even_for_dense_cells() {
     let j = partitioned_equals_sorted(std::slice::from_ref(&input), "16M", "part-auto-a");
     assert_eq!(j["engine"], "partitioned", "{j}");
     let s = dir.join("auto");
-    let o = run_ok(mortar().arg("build").arg(&input).arg("-o").arg(&s).args(["--json", "--memory", "16M"]));
+    let o = run_ok(
+        mortar().arg("build").arg(&input).arg("-o").arg(&s).args(["--json", "--memory", "16M"]),
+    );
     let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!(j["engine"], "partitioned", "{j}");
     // A budget too small for one cell of the partition: the cells are partitioned again, and the
@@ -252,7 +320,13 @@ fn auto_takes_the_partitioned_engine_above_the_budget_even_for_dense_cells() {
     let j = partitioned_equals_sorted(std::slice::from_ref(&input), "20K", "part-auto-dense");
     assert_eq!(j["engine"], "partitioned", "{j}");
     let s2 = dir.join("dense");
-    let o = run_ok(mortar().arg("build").arg(&input).arg("-o").arg(&s2).args(["--json", "--memory", "20K", "--leaf-capacity", "100"]));
+    let o = run_ok(mortar().arg("build").arg(&input).arg("-o").arg(&s2).args([
+        "--json",
+        "--memory",
+        "20K",
+        "--leaf-capacity",
+        "100",
+    ]));
     let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!(j["engine"], "partitioned", "{j}");
     assert!(j["dense_cells"].as_u64().unwrap() >= 1, "{j}");
@@ -269,7 +343,10 @@ fn cells_denser_than_a_unit_give_the_sorted_engines_store() {
     for (i, set) in dense_sets(&dir).iter().enumerate() {
         let j = partitioned_equals_sorted(set, "1M", &format!("part-dense-{i}"));
         assert_eq!(j["engine"], "partitioned", "{set:?}: {j}");
-        eprintln!("{set:?}: {} cells partitioned again, {} leaves larger than a unit", j["dense_cells"], j["large_leaves"]);
+        eprintln!(
+            "{set:?}: {} cells partitioned again, {} leaves larger than a unit",
+            j["dense_cells"], j["large_leaves"]
+        );
         assert!(j["large_leaves"].as_u64().unwrap() >= 1, "{set:?}: {j}");
     }
     let _ = std::fs::remove_dir_all(&dir);

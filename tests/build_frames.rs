@@ -8,7 +8,9 @@ use std::path::Path;
 
 /// (width, height, RGBA pixels) of a PNG.
 fn read_png(p: &Path) -> (u32, u32, Vec<[u8; 4]>) {
-    let mut dec = png::Decoder::new(std::io::Cursor::new(std::fs::read(p).unwrap_or_else(|e| panic!("{}: {e}", p.display()))));
+    let mut dec = png::Decoder::new(std::io::Cursor::new(
+        std::fs::read(p).unwrap_or_else(|e| panic!("{}: {e}", p.display())),
+    ));
     dec.set_transformations(png::Transformations::EXPAND);
     let mut r = dec.read_info().expect("PNG header");
     let mut buf = vec![0; r.output_buffer_size()];
@@ -36,7 +38,17 @@ fn frames_show_the_store_growing_and_end_in_a_contact_sheet() {
             .arg(&store)
             .args(["--engine", "incremental", "--batch-points", "10000", "--frames"])
             .arg(&frames)
-            .args(["--every", "0", "--frame-width", "320", "--frame-height", "200", "--view", "top", "--json"]),
+            .args([
+                "--every",
+                "0",
+                "--frame-width",
+                "320",
+                "--frame-height",
+                "200",
+                "--view",
+                "top",
+                "--json",
+            ]),
     );
     let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     let f = &j["frames"];
@@ -57,8 +69,17 @@ fn frames_show_the_store_growing_and_end_in_a_contact_sheet() {
     }
     assert!(counts[0] > 0 && counts[n - 1] > 3 * counts[0], "{counts:?}");
     let last = dir.join("last.png");
-    run_ok(mortar().arg("render").arg(&store).args(["--width", "320", "--height", "200", "--view", "top", "-o"]).arg(&last));
-    assert!(read_png(&last).2 == read_png(&frames.join(format!("frame-{n:04}.png"))).2, "the last frame is the render of the finished store");
+    run_ok(
+        mortar()
+            .arg("render")
+            .arg(&store)
+            .args(["--width", "320", "--height", "200", "--view", "top", "-o"])
+            .arg(&last),
+    );
+    assert!(
+        read_png(&last).2 == read_png(&frames.join(format!("frame-{n:04}.png"))).2,
+        "the last frame is the render of the finished store"
+    );
     // The contact sheet holds every frame scaled into a grid.
     let (sw, sh, sheet) = read_png(&frames.join("contact-sheet.png"));
     let cols = (n as f64).sqrt().ceil() as u32;
@@ -85,14 +106,22 @@ fn bad_frame_options_are_clear_errors() {
     assert!(String::from_utf8_lossy(&o.stderr).contains("--frame-width"));
     assert!(!dir.join("s").exists());
     // --every without --frames is refused by the argument parser.
-    let o = mortar().arg("build").arg(root().join("data-samples/autzen_trim.laz")).arg("-o").arg(dir.join("s")).args(["--every", "1"]).output().unwrap();
+    let o = mortar()
+        .arg("build")
+        .arg(root().join("data-samples/autzen_trim.laz"))
+        .arg("-o")
+        .arg(dir.join("s"))
+        .args(["--every", "1"])
+        .output()
+        .unwrap();
     assert_ne!(o.status.code(), Some(0));
     let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
 fn frames_on_the_gpu_equal_the_cpu_frames_and_the_offscreen_preview_reports_its_frames() {
-    if mortar_render::testing::context_or_skip(mortar_render::AtomicPath::TwoPass32, None).is_none() {
+    if mortar_render::testing::context_or_skip(mortar_render::AtomicPath::TwoPass32, None).is_none()
+    {
         return;
     }
     let dir = tempdir("frames-gpu");
@@ -102,17 +131,24 @@ fn frames_on_the_gpu_equal_the_cpu_frames_and_the_offscreen_preview_reports_its_
         let frames = dir.join(format!("frames-{backend}"));
         let store = dir.join(format!("s-{backend}"));
         let o = run_ok(
-            mortar().arg("build").arg(&input).arg("-o").arg(&store).args(["--engine", "incremental", "--batch-points", "20000", "--frames"]).arg(&frames).args([
-                "--every",
-                "0",
-                "--frame-width",
-                "240",
-                "--frame-height",
-                "160",
-                "--frame-backend",
-                backend,
-                "--json",
-            ]),
+            mortar()
+                .arg("build")
+                .arg(&input)
+                .arg("-o")
+                .arg(&store)
+                .args(["--engine", "incremental", "--batch-points", "20000", "--frames"])
+                .arg(&frames)
+                .args([
+                    "--every",
+                    "0",
+                    "--frame-width",
+                    "240",
+                    "--frame-height",
+                    "160",
+                    "--frame-backend",
+                    backend,
+                    "--json",
+                ]),
         );
         let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
         outs.push((frames, j["frames"]["count"].as_u64().unwrap()));
@@ -127,21 +163,19 @@ fn frames_on_the_gpu_equal_the_cpu_frames_and_the_offscreen_preview_reports_its_
 
     // The preview off screen (no display needed): frames while the store grows, on the GPU.
     let store = dir.join("s-preview");
-    let o = run_ok(
-        mortar().arg("build").arg(&input).arg("-o").arg(&store).args([
-            "--batch-points",
-            "5000",
-            "--commit-every",
-            "0",
-            "--preview",
-            "--preview-offscreen",
-            "--preview-backend",
-            "gpu",
-            "--preview-size",
-            "320x240",
-            "--json",
-        ]),
-    );
+    let o = run_ok(mortar().arg("build").arg(&input).arg("-o").arg(&store).args([
+        "--batch-points",
+        "5000",
+        "--commit-every",
+        "0",
+        "--preview",
+        "--preview-offscreen",
+        "--preview-backend",
+        "gpu",
+        "--preview-size",
+        "320x240",
+        "--json",
+    ]));
     let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!(j["points"], 110_000);
     let p = &j["preview"];

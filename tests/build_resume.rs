@@ -15,11 +15,7 @@ use std::time::{Duration, Instant};
 
 fn input(dir: &Path, points: u64) -> PathBuf {
     let p = dir.join("in.las");
-    run_ok(
-        gen()
-            .args(["--points", &points.to_string(), "--seed", "7", "-o"])
-            .arg(&p),
-    );
+    run_ok(gen().args(["--points", &points.to_string(), "--seed", "7", "-o"]).arg(&p));
     p
 }
 
@@ -120,14 +116,8 @@ fn resume_after_sigkill_at_20_moments_gives_the_uninterrupted_store() {
     assert!(String::from_utf8_lossy(&o.stderr).contains("complete"));
     assert!(snapshot(&reference) == want);
     let other = dir.join("other.las");
-    run_ok(
-        gen()
-            .args(["--points", "1000", "--seed", "8", "-o"])
-            .arg(&other),
-    );
-    let o = resume(&other, &reference)
-        .output()
-        .unwrap();
+    run_ok(gen().args(["--points", "1000", "--seed", "8", "-o"]).arg(&other));
+    let o = resume(&other, &reference).output().unwrap();
     assert_eq!(o.status.code(), Some(1));
     assert!(
         String::from_utf8_lossy(&o.stderr).contains("was built from"),
@@ -151,9 +141,7 @@ fn a_build_out_of_file_size_keeps_its_last_commit_and_resumes() {
     let limit = total / 2 / 1024;
     let o = Command::new("bash")
         .arg("-c")
-        .arg(format!(
-            "ulimit -f {limit}; exec \"$0\" build \"$1\" -o \"$2\"",
-        ))
+        .arg(format!("ulimit -f {limit}; exec \"$0\" build \"$1\" -o \"$2\"",))
         .arg(env!("CARGO_BIN_EXE_mortar"))
         .arg(&inp)
         .arg(&out)
@@ -225,10 +213,7 @@ fn readers_never_see_a_torn_commit() {
             assert!(Instant::now() < deadline, "{engine}: the build did not end");
         }
         assert!(child.wait().unwrap().success());
-        assert!(
-            opened >= 2 && commits.len() >= 2,
-            "{engine}: {opened} opens, commits {commits:?}"
-        );
+        assert!(opened >= 2 && commits.len() >= 2, "{engine}: {opened} opens, commits {commits:?}");
     }
     let _ = std::fs::remove_dir_all(&dir);
 }
@@ -239,10 +224,21 @@ fn compact_keeps_the_store_and_drops_superseded_payloads() {
     let inp = input(&dir, 400_000);
     let store = dir.join("s");
     // Small batches with a commit after each: leaves are rewritten many times.
-    run_ok(mortar().arg("build").arg(&inp).arg("-o").arg(&store).args(["--engine", "incremental", "--batch-points", "20000", "--commit-every", "0"]));
+    run_ok(mortar().arg("build").arg(&inp).arg("-o").arg(&store).args([
+        "--engine",
+        "incremental",
+        "--batch-points",
+        "20000",
+        "--commit-every",
+        "0",
+    ]));
     let before = Store::open(&store).unwrap();
     let live: u64 = before.entries.iter().map(|e| e.length).sum();
-    assert!(before.header.nodes_len as f64 > 1.5 * live as f64, "{} of {live}", before.header.nodes_len);
+    assert!(
+        before.header.nodes_len as f64 > 1.5 * live as f64,
+        "{} of {live}",
+        before.header.nodes_len
+    );
     let sorted_before = dir.join("a.las");
     run_ok(mortar().arg("sort").arg(&store).arg("-o").arg(&sorted_before));
     drop(before);
@@ -256,7 +252,11 @@ fn compact_keeps_the_store_and_drops_superseded_payloads() {
     run_ok(mortar().arg("sort").arg(&store).arg("-o").arg(&sorted_after));
     assert!(std::fs::read(&sorted_before).unwrap() == std::fs::read(&sorted_after).unwrap());
     check_stopped(&store, true);
-    assert!(entries(&dir).iter().all(|e| !e.contains("compacting") && !e.ends_with(".old")), "{:?}", entries(&dir));
+    assert!(
+        entries(&dir).iter().all(|e| !e.contains("compacting") && !e.ends_with(".old")),
+        "{:?}",
+        entries(&dir)
+    );
     // Not a store: a clear error.
     let o = mortar().arg("build").arg("--compact").arg(&inp).output().unwrap();
     assert_eq!(o.status.code(), Some(1));
@@ -275,7 +275,8 @@ fn a_partitioned_build_resumes_after_sigkill_to_the_uninterrupted_store() {
     let args = ["--memory", "16M", "--engine", "partitioned"];
     let reference = dir.join("ref");
     let t = Instant::now();
-    let o = run_ok(mortar().arg("build").arg(&inp).arg("-o").arg(&reference).args(args).arg("--json"));
+    let o =
+        run_ok(mortar().arg("build").arg(&inp).arg("-o").arg(&reference).args(args).arg("--json"));
     let full = t.elapsed();
     let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!(j["engine"], "partitioned", "{j}");
@@ -289,7 +290,16 @@ fn a_partitioned_build_resumes_after_sigkill_to_the_uninterrupted_store() {
         seed ^= seed << 17;
         let at = full.mul_f64((seed % 1000) as f64 / 1000.0);
         let out = dir.join(format!("p{k}"));
-        let mut child = mortar().arg("build").arg(&inp).arg("-o").arg(&out).args(args).stdout(Stdio::null()).stderr(Stdio::null()).spawn().unwrap();
+        let mut child = mortar()
+            .arg("build")
+            .arg(&inp)
+            .arg("-o")
+            .arg(&out)
+            .args(args)
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap();
         std::thread::sleep(at);
         let _ = child.kill(); // SIGKILL
         let _ = child.wait();
@@ -313,7 +323,11 @@ fn a_partitioned_build_resumes_after_sigkill_to_the_uninterrupted_store() {
             _ if out.join("hierarchy.bin").exists() || !state.exists() => {} // finished, or nothing kept
             1 => flip(&state.join("run-0.bin")),
             2 => flip(&out.join("nodes.bin")),
-            3 => std::fs::write(state.join("manifest.json"), b"{\"cells\": 18446744073709551615, \"runs\": [\"../../x\"]}").unwrap(),
+            3 => std::fs::write(
+                state.join("manifest.json"),
+                b"{\"cells\": 18446744073709551615, \"runs\": [\"../../x\"]}",
+            )
+            .unwrap(),
             4 => std::fs::write(state.join("tables.bin"), [1u8; 24]).unwrap(),
             5 => {
                 // A record header claiming 2^32 - 1 entries, then the end of the file.
@@ -330,7 +344,10 @@ fn a_partitioned_build_resumes_after_sigkill_to_the_uninterrupted_store() {
         if j["kept_nodes"].as_u64().unwrap_or(0) > 0 {
             kept_units += 1;
         }
-        assert!(snapshot(&out) == want, "kill {k} at {at:?}: the resumed store differs from the uninterrupted one ({j})");
+        assert!(
+            snapshot(&out) == want,
+            "kill {k} at {at:?}: the resumed store differs from the uninterrupted one ({j})"
+        );
         assert!(!out.join(".partition").exists());
         let _ = std::fs::remove_dir_all(&out);
     }

@@ -25,7 +25,14 @@ fn external_sort_equals_in_memory_and_cleans_up() {
     let a = dir.join("a.mbat");
     let b = dir.join("b.mbat");
     run_ok(mortar().args(["batch"]).arg(sample()).arg("-o").arg(&a));
-    let o = run_ok(mortar().args(["batch", "--json", "--memory", "1M", "--tmp-dir"]).arg(&tmp).arg(sample()).arg("-o").arg(&b));
+    let o = run_ok(
+        mortar()
+            .args(["batch", "--json", "--memory", "1M", "--tmp-dir"])
+            .arg(&tmp)
+            .arg(sample())
+            .arg("-o")
+            .arg(&b),
+    );
     let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!(j["external_sort"], true);
     assert_eq!(std::fs::read(&a).unwrap(), std::fs::read(&b).unwrap());
@@ -76,7 +83,14 @@ fn stdin_stdout_directories_and_globs() {
 
 #[test]
 fn closed_pipe_exits_zero() {
-    let mut child = mortar().args(["sort"]).arg(sample()).args(["-o", "-"]).stdout(Stdio::piped()).stderr(Stdio::piped()).spawn().unwrap();
+    let mut child = mortar()
+        .args(["sort"])
+        .arg(sample())
+        .args(["-o", "-"])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
     let mut so = child.stdout.take().unwrap();
     let mut buf = [0u8; 100];
     std::io::Read::read_exact(&mut so, &mut buf).unwrap();
@@ -112,7 +126,12 @@ fn world_points(p: &Path) -> Vec<[i64; 3]> {
     // world coordinates in micrometres, exact for these grids
     let mut r = las::Reader::from_path(p).unwrap();
     let pd = r.read_all().unwrap();
-    let mut v: Vec<[i64; 3]> = pd.x().zip(pd.y()).zip(pd.z()).map(|((x, y), z)| [x, y, z].map(|c| (c * 1e6).round() as i64)).collect();
+    let mut v: Vec<[i64; 3]> = pd
+        .x()
+        .zip(pd.y())
+        .zip(pd.z())
+        .map(|((x, y), z)| [x, y, z].map(|c| (c * 1e6).round() as i64))
+        .collect();
     v.sort();
     v
 }
@@ -126,7 +145,10 @@ fn inputs_on_different_grids_merge_exactly() {
     regrid(&a, &b);
     let out = dir.join("merged.las");
     let o = sort_to(&[&a, &b], &out, &[]);
-    assert!(String::from_utf8_lossy(&o.stderr).contains("merged exactly"), "a message says the grids were merged");
+    assert!(
+        String::from_utf8_lossy(&o.stderr).contains("merged exactly"),
+        "a message says the grids were merged"
+    );
     let mut expect = world_points(&a);
     expect.extend(world_points(&b));
     expect.sort();
@@ -144,7 +166,14 @@ fn inputs_on_different_grids_merge_exactly() {
     assert!(zero_rgb >= p1.len() / rl1);
     // legacy and LAS 1.4 formats merge now (tests/real_scans.rs); test1_4.las has a scale that
     // autzen's is no multiple of: a clear error before any work
-    let o = mortar().args(["sort"]).arg(&a).arg(data.join("PDAL/test/data/las/test1_4.las")).arg("-o").arg(dir.join("x.las")).output().unwrap();
+    let o = mortar()
+        .args(["sort"])
+        .arg(&a)
+        .arg(data.join("PDAL/test/data/las/test1_4.las"))
+        .arg("-o")
+        .arg(dir.join("x.las"))
+        .output()
+        .unwrap();
     assert_eq!(o.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&o.stderr).contains("cannot be merged exactly"));
     assert!(!dir.join("x.las").exists());
@@ -167,10 +196,17 @@ fn split_tiles_merge_into_the_whole() {
 fn attribute_selection_drops_only_what_was_asked() {
     let dir = tempdir("attrs");
     let m = dir.join("a.mbat");
-    run_ok(mortar().args(["batch", "--attributes", "intensity,classification"]).arg(sample()).arg("-o").arg(&m));
+    run_ok(
+        mortar()
+            .args(["batch", "--attributes", "intensity,classification"])
+            .arg(sample())
+            .arg("-o")
+            .arg(&m),
+    );
     let o = run_ok(mortar().args(["info", "--json"]).arg(&m));
     let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
-    let kept: Vec<String> = serde_json::from_value(j[0]["batch"]["kept_attributes"].clone()).unwrap();
+    let kept: Vec<String> =
+        serde_json::from_value(j[0]["batch"]["kept_attributes"].clone()).unwrap();
     assert_eq!(kept, ["intensity", "classification"]);
     let back = dir.join("back.las");
     let full = dir.join("full.las");
@@ -191,9 +227,25 @@ fn attribute_selection_drops_only_what_was_asked() {
 fn georeferenced_extremes_round_trip_exactly() {
     let dir = tempdir("geo");
     // ECEF-scale coordinates with scale 0.0001, and geographic degrees with scale 1e-7
-    for (tag, origin, scale, extent) in [("ecef", "6400000,0,6000000", "0.0001", "150"), ("degrees", "-123.1,44.05,0", "0.0000001", "0.01")] {
+    for (tag, origin, scale, extent) in [
+        ("ecef", "6400000,0,6000000", "0.0001", "150"),
+        ("degrees", "-123.1,44.05,0", "0.0000001", "0.01"),
+    ] {
         let las = dir.join(format!("{tag}.las"));
-        run_ok(gen().args(["--points", "200000", &format!("--origin={origin}"), "--scale", scale, "--extent", extent, "-o"]).arg(&las));
+        run_ok(
+            gen()
+                .args([
+                    "--points",
+                    "200000",
+                    &format!("--origin={origin}"),
+                    "--scale",
+                    scale,
+                    "--extent",
+                    extent,
+                    "-o",
+                ])
+                .arg(&las),
+        );
         let s = dir.join(format!("{tag}-s.las"));
         let m = dir.join(format!("{tag}.mbat"));
         let back = dir.join(format!("{tag}-back.las"));
@@ -219,11 +271,19 @@ fn wrong_header_bounds_give_a_warning_and_computed_values() {
     let bad = dir.join("bad.las");
     std::fs::write(&bad, &b).unwrap();
     let o = run_ok(mortar().args(["info", "--stats"]).arg(&bad));
-    assert!(String::from_utf8_lossy(&o.stderr).contains("header bounds on x"), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(
+        String::from_utf8_lossy(&o.stderr).contains("header bounds on x"),
+        "{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
     let out = dir.join("out.las");
     sort_to(&[&bad], &out, &[]);
     let o = std::fs::read(&out).unwrap();
-    assert_eq!(f64::from_le_bytes(o[179..187].try_into().unwrap()), max_x, "the output header has the real bounds");
+    assert_eq!(
+        f64::from_le_bytes(o[179..187].try_into().unwrap()),
+        max_x,
+        "the output header has the real bounds"
+    );
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
@@ -232,7 +292,25 @@ fn info_json_is_stable() {
     let o = run_ok(mortar().args(["info", "--json", "--stats"]).arg(sample()));
     let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     let f = &j[0];
-    for key in ["path", "kind", "version", "point_format", "record_length", "point_count", "points_by_return", "scale", "offset", "header_bounds", "crs", "attributes", "extra_bytes", "vlrs", "evlrs", "stats", "warnings"] {
+    for key in [
+        "path",
+        "kind",
+        "version",
+        "point_format",
+        "record_length",
+        "point_count",
+        "points_by_return",
+        "scale",
+        "offset",
+        "header_bounds",
+        "crs",
+        "attributes",
+        "extra_bytes",
+        "vlrs",
+        "evlrs",
+        "stats",
+        "warnings",
+    ] {
         assert!(f.get(key).is_some(), "missing {key}");
     }
     assert_eq!(f["kind"], "laz");

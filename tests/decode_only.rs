@@ -26,28 +26,65 @@ fn kept_fields_equal_a_full_decode_and_skipped_ones_are_zero() {
         return;
     }
     assert!(files.len() >= 4, "expected several layered LAZ files, found {}", files.len());
-    let keeps: &[&[&str]] = &[&[], &["rgb"], &["intensity", "gps_time"], &["classification", "flags", "extra_bytes"], &["nir", "scan_angle", "user_data", "point_source_id"]];
+    let keeps: &[&[&str]] = &[
+        &[],
+        &["rgb"],
+        &["intensity", "gps_time"],
+        &["classification", "flags", "extra_bytes"],
+        &["nir", "scan_angle", "user_data", "point_source_id"],
+    ];
     for (path, mut input) in files {
         let rl = input.layout.record_len;
-        let full: Vec<Vec<u8>> = input.pieces().to_vec().iter().map(|p| input.read_piece(p).unwrap().into_owned()).collect();
+        let full: Vec<Vec<u8>> = input
+            .pieces()
+            .to_vec()
+            .iter()
+            .map(|p| input.read_piece(p).unwrap().into_owned())
+            .collect();
         for keep in keeps {
             input.decode_only(keep);
             for (p, want) in input.pieces().to_vec().iter().zip(&full) {
                 let mut got = vec![0u8; want.len()];
                 input.read_piece_into(p, &mut got).unwrap();
                 let cow = input.read_piece(p).unwrap();
-                assert_eq!(&got[..], &cow[..], "{}: read_piece and read_piece_into disagree", path.display());
+                assert_eq!(
+                    &got[..],
+                    &cow[..],
+                    "{}: read_piece and read_piece_into disagree",
+                    path.display()
+                );
                 for (g, w) in got.chunks_exact(rl).zip(want.chunks_exact(rl)) {
-                    assert_eq!(g[..12], w[..12], "{}: positions differ (keep {keep:?})", path.display());
+                    assert_eq!(
+                        g[..12],
+                        w[..12],
+                        "{}: positions differ (keep {keep:?})",
+                        path.display()
+                    );
                     for a in &input.layout.attributes {
                         let (o, n) = (a.offset, a.width);
                         if keep.contains(&a.name.as_str()) {
-                            assert_eq!(g[o..o + n], w[o..o + n], "{}: kept {} differs", path.display(), a.name);
+                            assert_eq!(
+                                g[o..o + n],
+                                w[o..o + n],
+                                "{}: kept {} differs",
+                                path.display(),
+                                a.name
+                            );
                         } else if a.name == "flags" {
                             assert_eq!(g[o], w[o], "{}: the returns byte differs", path.display());
-                            assert_eq!(g[o + 1], w[o + 1] & 0b0011_0000, "{}: skipped flags (scanner channel kept)", path.display());
+                            assert_eq!(
+                                g[o + 1],
+                                w[o + 1] & 0b0011_0000,
+                                "{}: skipped flags (scanner channel kept)",
+                                path.display()
+                            );
                         } else {
-                            assert!(g[o..o + n].iter().all(|&b| b == 0), "{}: skipped {} is not zero", path.display(), a.name);
+                            assert!(
+                                g[o..o + n].iter().all(|&b| b == 0),
+                                "{}: skipped {} is not zero",
+                                path.display(),
+                                a.name
+                            );
                         }
                     }
                 }
@@ -71,17 +108,59 @@ fn batch_and_render_from_layered_laz_equal_those_from_las() {
             continue;
         }
         for attributes in ["none", "intensity", "gps_time,classification"] {
-            let attributes = if attributes == "gps_time,classification" && !LasInput::open(path).unwrap().layout.has_gps_time() { "classification" } else { attributes };
+            let attributes = if attributes == "gps_time,classification"
+                && !LasInput::open(path).unwrap().layout.has_gps_time()
+            {
+                "classification"
+            } else {
+                attributes
+            };
             let (a, b) = (dir.join(format!("{i}-laz.mbat")), dir.join(format!("{i}-las.mbat")));
-            run_ok(mortar().arg("batch").arg(path).arg("-o").arg(&a).args(["--attributes", attributes]));
-            run_ok(mortar().arg("batch").arg(&las).arg("-o").arg(&b).args(["--attributes", attributes]));
-            assert!(std::fs::read(&a).unwrap() == std::fs::read(&b).unwrap(), "{} --attributes {attributes}: LAZ and LAS batch files differ", path.display());
+            run_ok(
+                mortar()
+                    .arg("batch")
+                    .arg(path)
+                    .arg("-o")
+                    .arg(&a)
+                    .args(["--attributes", attributes]),
+            );
+            run_ok(
+                mortar()
+                    .arg("batch")
+                    .arg(&las)
+                    .arg("-o")
+                    .arg(&b)
+                    .args(["--attributes", attributes]),
+            );
+            assert!(
+                std::fs::read(&a).unwrap() == std::fs::read(&b).unwrap(),
+                "{} --attributes {attributes}: LAZ and LAS batch files differ",
+                path.display()
+            );
         }
         for color in ["auto", "intensity", "classification"] {
             let (a, b) = (dir.join(format!("{i}-laz.png")), dir.join(format!("{i}-las.png")));
-            run_ok(mortar().arg("render").arg(path).arg("-o").arg(&a).args(["--color", color, "--width", "96", "--height", "64"]));
-            run_ok(mortar().arg("render").arg(&las).arg("-o").arg(&b).args(["--color", color, "--width", "96", "--height", "64"]));
-            assert!(std::fs::read(&a).unwrap() == std::fs::read(&b).unwrap(), "{} --color {color}: renders differ", path.display());
+            run_ok(
+                mortar()
+                    .arg("render")
+                    .arg(path)
+                    .arg("-o")
+                    .arg(&a)
+                    .args(["--color", color, "--width", "96", "--height", "64"]),
+            );
+            run_ok(
+                mortar()
+                    .arg("render")
+                    .arg(&las)
+                    .arg("-o")
+                    .arg(&b)
+                    .args(["--color", color, "--width", "96", "--height", "64"]),
+            );
+            assert!(
+                std::fs::read(&a).unwrap() == std::fs::read(&b).unwrap(),
+                "{} --color {color}: renders differ",
+                path.display()
+            );
         }
         checked += 1;
     }

@@ -21,7 +21,13 @@ const LEAF: &str = "3000";
 
 /// The one-machine store of `inputs`.
 fn one_machine(inputs: &[PathBuf], out: &Path) {
-    run_ok(mortar().arg("build").args(inputs).args(["-o", s(out), "--quiet", "--leaf-capacity", LEAF]));
+    run_ok(mortar().arg("build").args(inputs).args([
+        "-o",
+        s(out),
+        "--quiet",
+        "--leaf-capacity",
+        LEAF,
+    ]));
 }
 
 /// Plans `inputs` in `n` jobs, runs every job (with a memory budget that splits them into
@@ -29,7 +35,15 @@ fn one_machine(inputs: &[PathBuf], out: &Path) {
 fn distributed(inputs: &[PathBuf], n: usize, dir: &Path, scan: bool) -> Result<PathBuf, String> {
     let plan = dir.join(format!("plan{n}.json"));
     let mut c = mortar();
-    c.arg("plan").args(inputs).args(["--jobs", &n.to_string(), "-o", s(&plan), "--quiet", "--leaf-capacity", LEAF]);
+    c.arg("plan").args(inputs).args([
+        "--jobs",
+        &n.to_string(),
+        "-o",
+        s(&plan),
+        "--quiet",
+        "--leaf-capacity",
+        LEAF,
+    ]);
     if scan {
         c.arg("--scan");
     }
@@ -40,7 +54,21 @@ fn distributed(inputs: &[PathBuf], n: usize, dir: &Path, scan: bool) -> Result<P
     let mut parts = Vec::new();
     for i in 0..n {
         let part = dir.join(format!("n{n}-part{i:02}"));
-        let o = mortar().args(["build", "--plan", s(&plan), "--job", &i.to_string(), "-o", s(&part), "--quiet", "--memory", "32M"]).output().unwrap();
+        let o = mortar()
+            .args([
+                "build",
+                "--plan",
+                s(&plan),
+                "--job",
+                &i.to_string(),
+                "-o",
+                s(&part),
+                "--quiet",
+                "--memory",
+                "32M",
+            ])
+            .output()
+            .unwrap();
         if !o.status.success() {
             assert_eq!(o.status.code(), Some(1));
             return Err(String::from_utf8_lossy(&o.stderr).into());
@@ -66,8 +94,16 @@ fn assert_same_store(a: &Path, b: &Path, name: &str) {
     assert_eq!((sa.header.min, sa.header.max), (sb.header.min, sb.header.max), "{name}: bounds");
     assert_eq!(sa.entries.len(), sb.entries.len(), "{name}: node count");
     for (i, (x, y)) in sa.entries.iter().zip(&sb.entries).enumerate() {
-        assert_eq!((x.level, x.kind, x.index, x.count, x.length), (y.level, y.kind, y.index, y.count, y.length), "{name}: entry {i}");
-        assert!(sa.node_bytes(i) == sb.node_bytes(i), "{name}: payload of node {i} ({:?})", (x.level, x.index));
+        assert_eq!(
+            (x.level, x.kind, x.index, x.count, x.length),
+            (y.level, y.kind, y.index, y.count, y.length),
+            "{name}: entry {i}"
+        );
+        assert!(
+            sa.node_bytes(i) == sb.node_bytes(i),
+            "{name}: payload of node {i} ({:?})",
+            (x.level, x.index)
+        );
     }
     let live: u64 = sb.entries.iter().map(|e| e.length).sum();
     assert_eq!(live, sb.header.nodes_len, "{name}: nodes.bin holds only live payloads");
@@ -82,12 +118,21 @@ fn sets() -> Vec<(String, Vec<PathBuf>)> {
         .collect();
     if let Some(data) = shared_data() {
         let files = readable_fixtures(&data);
-        let bcts: Vec<PathBuf> = files.iter().filter(|f| f.to_string_lossy().contains("bcts_")).cloned().collect();
-        let ept: Vec<PathBuf> = files.iter().filter(|f| f.to_string_lossy().contains("ept-data/")).take(8).cloned().collect();
+        let bcts: Vec<PathBuf> =
+            files.iter().filter(|f| f.to_string_lossy().contains("bcts_")).cloned().collect();
+        let ept: Vec<PathBuf> = files
+            .iter()
+            .filter(|f| f.to_string_lossy().contains("ept-data/"))
+            .take(8)
+            .cloned()
+            .collect();
         out.push(("bcts merged".into(), bcts));
         out.push(("8 EPT tiles merged".into(), ept));
         // every 12th real file alone, the larger ones first
-        let mut big: Vec<PathBuf> = files.into_iter().filter(|f| std::fs::metadata(f).map(|m| m.len()).unwrap_or(0) > 20_000).collect();
+        let mut big: Vec<PathBuf> = files
+            .into_iter()
+            .filter(|f| std::fs::metadata(f).map(|m| m.len()).unwrap_or(0) > 20_000)
+            .collect();
         big.sort();
         out.extend(big.into_iter().step_by(12).map(|f| (f.display().to_string(), vec![f])));
     }
@@ -108,7 +153,12 @@ fn merged_stores_equal_the_one_machine_store() {
         }
         let one = d.join("one");
         let _ = std::fs::remove_dir_all(&one);
-        let o = mortar().arg("build").args(inputs).args(["-o", s(&one), "--quiet", "--leaf-capacity", LEAF]).output().unwrap();
+        let o = mortar()
+            .arg("build")
+            .args(inputs)
+            .args(["-o", s(&one), "--quiet", "--leaf-capacity", LEAF])
+            .output()
+            .unwrap();
         if !o.status.success() {
             continue; // not buildable on one machine either (e.g. no points)
         }
@@ -121,14 +171,18 @@ fn merged_stores_equal_the_one_machine_store() {
                         let (a, b) = (d.join("a.las"), d.join("b.las"));
                         run_ok(mortar().args(["sort", s(&one), "-o", s(&a), "--quiet"]));
                         run_ok(mortar().args(["sort", s(&store), "-o", s(&b), "--quiet"]));
-                        assert!(std::fs::read(&a).unwrap() == std::fs::read(&b).unwrap(), "{name}: mortar sort differs");
+                        assert!(
+                            std::fs::read(&a).unwrap() == std::fs::read(&b).unwrap(),
+                            "{name}: mortar sort differs"
+                        );
                     }
                     std::fs::remove_dir_all(&store).unwrap();
                     compared += 1;
                 }
                 // headers that lie: refused by a job, and planned with --scan
                 Err(e) if e.contains("--scan") => {
-                    let store = distributed(inputs, n, &d, true).unwrap_or_else(|e| panic!("{name}, {n} jobs, --scan: {e}"));
+                    let store = distributed(inputs, n, &d, true)
+                        .unwrap_or_else(|e| panic!("{name}, {n} jobs, --scan: {e}"));
                     assert_same_store(&one, &store, &format!("{name}, {n} jobs, --scan"));
                     std::fs::remove_dir_all(&store).unwrap();
                     compared += 1;
@@ -158,7 +212,16 @@ fn lying_headers_and_bad_parts_are_refused() {
     let d = tempdir("dist-faults");
     let f = lying(&d);
     let other = d.join("other.las");
-    run_ok(gen().args(["--points", "150000", "--seed", "4", "--origin", "500600,5000000,0", "-o", s(&other)]));
+    run_ok(gen().args([
+        "--points",
+        "150000",
+        "--seed",
+        "4",
+        "--origin",
+        "500600,5000000,0",
+        "-o",
+        s(&other),
+    ]));
     let inputs = vec![f.clone(), other.clone()];
     // the jobs that read the lying file refuse it, naming it and --scan
     let e = distributed(&inputs, 4, &d, false).unwrap_err();
@@ -171,15 +234,45 @@ fn lying_headers_and_bad_parts_are_refused() {
     std::fs::remove_dir_all(&store).unwrap();
     // parts: a complete set of 3 jobs, and one of another plan
     let plan = d.join("p3.json");
-    run_ok(mortar().args(["plan", s(&other), s(&f), "--scan", "--jobs", "3", "-o", s(&plan), "--quiet", "--leaf-capacity", LEAF]));
+    run_ok(mortar().args([
+        "plan",
+        s(&other),
+        s(&f),
+        "--scan",
+        "--jobs",
+        "3",
+        "-o",
+        s(&plan),
+        "--quiet",
+        "--leaf-capacity",
+        LEAF,
+    ]));
     let part = |i: usize| d.join(format!("q{i}"));
     for i in 0..3 {
-        run_ok(mortar().args(["build", "--plan", s(&plan), "--job", &i.to_string(), "-o", s(&part(i)), "--quiet"]));
+        run_ok(mortar().args([
+            "build",
+            "--plan",
+            s(&plan),
+            "--job",
+            &i.to_string(),
+            "-o",
+            s(&part(i)),
+            "--quiet",
+        ]));
     }
     let plan2 = d.join("p2.json");
     run_ok(mortar().args(["plan", s(&other), "--jobs", "2", "-o", s(&plan2), "--quiet"]));
     let foreign = d.join("foreign");
-    run_ok(mortar().args(["build", "--plan", s(&plan2), "--job", "0", "-o", s(&foreign), "--quiet"]));
+    run_ok(mortar().args([
+        "build",
+        "--plan",
+        s(&plan2),
+        "--job",
+        "0",
+        "-o",
+        s(&foreign),
+        "--quiet",
+    ]));
     let out = d.join("merged");
     for (parts, want) in [
         (vec![part(0), part(1)], "missing"),
@@ -196,43 +289,105 @@ fn lying_headers_and_bad_parts_are_refused() {
     // a plan edited by hand, and a damaged part: clear errors
     let text = std::fs::read_to_string(&plan).unwrap();
     let edited = d.join("edited.json");
-    std::fs::write(&edited, text.replacen("\"leaf_capacity\": 3000", "\"leaf_capacity\": 7", 1)).unwrap();
-    let o = mortar().args(["build", "--plan", s(&edited), "--job", "0", "-o", s(&d.join("e0"))]).output().unwrap();
+    std::fs::write(&edited, text.replacen("\"leaf_capacity\": 3000", "\"leaf_capacity\": 7", 1))
+        .unwrap();
+    let o = mortar()
+        .args(["build", "--plan", s(&edited), "--job", "0", "-o", s(&d.join("e0"))])
+        .output()
+        .unwrap();
     assert_eq!(o.status.code(), Some(1));
-    assert!(String::from_utf8_lossy(&o.stderr).contains("edited.json"), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(
+        String::from_utf8_lossy(&o.stderr).contains("edited.json"),
+        "{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
     assert!(!d.join("e0").exists());
-    let o = mortar().args(["build", "--plan", s(&plan), "--job", "3", "-o", s(&d.join("e0"))]).output().unwrap();
+    let o = mortar()
+        .args(["build", "--plan", s(&plan), "--job", "3", "-o", s(&d.join("e0"))])
+        .output()
+        .unwrap();
     assert_eq!(o.status.code(), Some(1), "job 3 of 3 jobs");
     let broken = d.join("broken");
     run_ok(mortar().args(["build", "--plan", s(&plan), "--job", "2", "-o", s(&broken), "--quiet"]));
     let eb = std::fs::read(broken.join("entries.bin")).unwrap();
     std::fs::write(broken.join("entries.bin"), &eb[..eb.len() / 2]).unwrap();
-    let o = mortar().arg("merge").args([part(0), part(1), broken.clone()]).args(["-o", s(&out)]).output().unwrap();
+    let o = mortar()
+        .arg("merge")
+        .args([part(0), part(1), broken.clone()])
+        .args(["-o", s(&out)])
+        .output()
+        .unwrap();
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(1), "{err}");
     assert!(err.contains("broken") && err.contains("damaged"), "{err}");
     assert!(!out.exists());
     // a job run again gives the same part; one killed half-way and run again too
-    let snapshot = |p: &Path| -> Vec<Vec<u8>> { ["nodes.bin", "entries.bin", "candidates.bin", "part.json"].iter().map(|n| std::fs::read(p.join(n)).unwrap()).collect() };
+    let snapshot = |p: &Path| -> Vec<Vec<u8>> {
+        ["nodes.bin", "entries.bin", "candidates.bin", "part.json"]
+            .iter()
+            .map(|n| std::fs::read(p.join(n)).unwrap())
+            .collect()
+    };
     let before = snapshot(&part(1));
-    run_ok(mortar().args(["build", "--plan", s(&plan), "--job", "1", "-o", s(&part(1)), "--quiet"]));
+    run_ok(mortar().args([
+        "build",
+        "--plan",
+        s(&plan),
+        "--job",
+        "1",
+        "-o",
+        s(&part(1)),
+        "--quiet",
+    ]));
     assert!(snapshot(&part(1)) == before, "a repeated job gives another part");
     std::fs::remove_dir_all(part(1)).unwrap();
-    let mut child = mortar().args(["build", "--plan", s(&plan), "--job", "1", "-o", s(&part(1)), "--quiet", "--threads", "1"]).spawn().unwrap();
+    let mut child = mortar()
+        .args([
+            "build",
+            "--plan",
+            s(&plan),
+            "--job",
+            "1",
+            "-o",
+            s(&part(1)),
+            "--quiet",
+            "--threads",
+            "1",
+        ])
+        .spawn()
+        .unwrap();
     std::thread::sleep(std::time::Duration::from_millis(150));
     child.kill().unwrap();
     let _ = child.wait();
     // merging now fails (or the job had finished)
     if !part(1).join("part.json").exists() {
-        let o = mortar().arg("merge").args([part(0), part(1), part(2)]).args(["-o", s(&out)]).output().unwrap();
+        let o = mortar()
+            .arg("merge")
+            .args([part(0), part(1), part(2)])
+            .args(["-o", s(&out)])
+            .output()
+            .unwrap();
         assert_eq!(o.status.code(), Some(1));
         assert!(!out.exists());
     }
-    run_ok(mortar().args(["build", "--plan", s(&plan), "--job", "1", "-o", s(&part(1)), "--quiet"]));
+    run_ok(mortar().args([
+        "build",
+        "--plan",
+        s(&plan),
+        "--job",
+        "1",
+        "-o",
+        s(&part(1)),
+        "--quiet",
+    ]));
     assert!(snapshot(&part(1)) == before, "a job run again after a kill gives another part");
     let stale: Vec<String> = entries(&d).into_iter().filter(|n| n.starts_with(".q1.")).collect();
     assert!(stale.is_empty(), "the killed attempt's files stay: {stale:?}");
-    run_ok(mortar().arg("merge").args([part(0), part(1), part(2)]).args(["-o", s(&out), "--quiet"]));
+    run_ok(mortar().arg("merge").args([part(0), part(1), part(2)]).args([
+        "-o",
+        s(&out),
+        "--quiet",
+    ]));
     let one = d.join("one-b");
     one_machine(&[other, f], &one);
     assert_same_store(&one, &out, "after a kill");
@@ -242,11 +397,14 @@ fn lying_headers_and_bad_parts_are_refused() {
 #[test]
 fn a_slurm_job_array_builds_the_one_machine_store() {
     if std::env::var("MORTAR_SLURM").as_deref() != Ok("1") {
-        eprintln!("SKIP: no Slurm cluster (MORTAR_SLURM=1 after deploy/slurm/localhost-cluster.sh)");
+        eprintln!(
+            "SKIP: no Slurm cluster (MORTAR_SLURM=1 after deploy/slurm/localhost-cluster.sh)"
+        );
         return;
     }
     let d = tempdir("dist-slurm");
-    let mut all: Vec<(String, Vec<PathBuf>)> = sets().into_iter().filter(|(n, _)| n == "autzen_trim.laz" || n == "bcts merged").collect();
+    let mut all: Vec<(String, Vec<PathBuf>)> =
+        sets().into_iter().filter(|(n, _)| n == "autzen_trim.laz" || n == "bcts merged").collect();
     all.retain(|(_, i)| !i.is_empty());
     let bin = PathBuf::from(env!("CARGO_BIN_EXE_mortar"));
     for (k, (name, inputs)) in all.iter().enumerate() {
@@ -263,8 +421,25 @@ fn a_slurm_job_array_builds_the_one_machine_store() {
             .env("MEMORY", "64M")
             .output()
             .unwrap();
-        let logs = std::fs::read_dir(out.join("logs")).map(|r| r.filter_map(|e| e.ok()).map(|e| format!("{}: {}", e.path().display(), std::fs::read_to_string(e.path()).unwrap_or_default())).collect::<Vec<_>>().join("\n")).unwrap_or_default();
-        assert!(o.status.success(), "{name}: submit.sh failed: {}\n{logs}", String::from_utf8_lossy(&o.stderr));
+        let logs = std::fs::read_dir(out.join("logs"))
+            .map(|r| {
+                r.filter_map(|e| e.ok())
+                    .map(|e| {
+                        format!(
+                            "{}: {}",
+                            e.path().display(),
+                            std::fs::read_to_string(e.path()).unwrap_or_default()
+                        )
+                    })
+                    .collect::<Vec<_>>()
+                    .join("\n")
+            })
+            .unwrap_or_default();
+        assert!(
+            o.status.success(),
+            "{name}: submit.sh failed: {}\n{logs}",
+            String::from_utf8_lossy(&o.stderr)
+        );
         let one = d.join(format!("one{k}"));
         one_machine(inputs, &one);
         assert_same_store(&one, &out.join("store"), &format!("{name} on Slurm"));

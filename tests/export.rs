@@ -28,9 +28,14 @@ fn python() -> Option<PathBuf> {
 /// `MORTAR_REQUIRE_WEB=1` a missing piece fails the test.
 fn web() -> bool {
     let w = root().join("tests/web");
-    let ok = w.join("node_modules/copc").is_dir() && w.join("node_modules/potree-core").is_dir() && Command::new("node").arg("--version").output().is_ok_and(|o| o.status.success());
+    let ok = w.join("node_modules/copc").is_dir()
+        && w.join("node_modules/potree-core").is_dir()
+        && Command::new("node").arg("--version").output().is_ok_and(|o| o.status.success());
     if !ok {
-        assert!(std::env::var("MORTAR_REQUIRE_WEB").as_deref() != Ok("1"), "MORTAR_REQUIRE_WEB=1 but tests/web is not installed (tests/web/install.sh)");
+        assert!(
+            std::env::var("MORTAR_REQUIRE_WEB").as_deref() != Ok("1"),
+            "MORTAR_REQUIRE_WEB=1 but tests/web is not installed (tests/web/install.sh)"
+        );
         eprintln!("SKIP: tests/web not installed (tests/web/install.sh)");
     }
     ok
@@ -52,15 +57,25 @@ fn check(py: &Path, dir: &Path, jobs: &[serde_json::Value]) -> Vec<serde_json::V
     std::fs::write(&m, serde_json::to_vec(jobs).unwrap()).unwrap();
     let o = Command::new(py).arg(root().join("tests/export_check.py")).arg(&m).output().unwrap();
     let text = String::from_utf8_lossy(&o.stdout);
-    let results: Vec<serde_json::Value> = text.lines().filter_map(|l| serde_json::from_str(l).ok()).collect();
+    let results: Vec<serde_json::Value> =
+        text.lines().filter_map(|l| serde_json::from_str(l).ok()).collect();
     let bad: Vec<&serde_json::Value> = results.iter().filter(|r| r["ok"] != true).collect();
-    assert!(bad.is_empty() && results.len() == jobs.len(), "failed checks: {bad:#?}\nstderr: {}", String::from_utf8_lossy(&o.stderr));
+    assert!(
+        bad.is_empty() && results.len() == jobs.len(),
+        "failed checks: {bad:#?}\nstderr: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
     results
 }
 
 fn copc_js_try(file: &Path) -> Result<serde_json::Value, serde_json::Value> {
-    let o = Command::new("node").arg(root().join("tests/web/copc_check.mjs")).arg(file).output().unwrap();
-    let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap_or_else(|_| panic!("copc.js: {}", String::from_utf8_lossy(&o.stderr)));
+    let o = Command::new("node")
+        .arg(root().join("tests/web/copc_check.mjs"))
+        .arg(file)
+        .output()
+        .unwrap();
+    let v: serde_json::Value = serde_json::from_slice(&o.stdout)
+        .unwrap_or_else(|_| panic!("copc.js: {}", String::from_utf8_lossy(&o.stderr)));
     if o.status.success() && v["ok"] == true {
         Ok(v)
     } else {
@@ -80,7 +95,10 @@ fn copc_js_limit(v: &serde_json::Value) -> bool {
 }
 
 fn samples() -> Vec<PathBuf> {
-    vec![root().join("data-samples/autzen_trim.laz"), root().join("data-samples/point-time-color.laz")]
+    vec![
+        root().join("data-samples/autzen_trim.laz"),
+        root().join("data-samples/point-time-color.laz"),
+    ]
 }
 
 #[test]
@@ -111,7 +129,10 @@ fn samples_read_back_by_independent_readers() {
         jobs.push(serde_json::json!({"kind": fmt, "out": d.join(name), "inputs": [samples()[0]]}));
     }
     let r = check(&py, &d, &jobs);
-    assert!(r.iter().any(|r| r["depth"].as_u64().unwrap_or(0) >= 3), "a deep tree was checked: {r:?}");
+    assert!(
+        r.iter().any(|r| r["depth"].as_u64().unwrap_or(0) >= 3),
+        "a deep tree was checked: {r:?}"
+    );
     // a check that can fail: the wrong input
     let m = d.join("wrong.json");
     std::fs::write(&m, serde_json::to_vec(&serde_json::json!([{"kind": "copc", "out": d.join("0-500.copc.laz"), "inputs": [samples()[1]]}])).unwrap()).unwrap();
@@ -138,7 +159,20 @@ fn every_real_file_alone_and_merged() {
     for (i, f) in files.iter().enumerate() {
         for (kind, name) in [("copc", format!("{i}.copc.laz")), ("potree", format!("{i}-potree"))] {
             let out = d.join(&name);
-            let o = mortar().args(["export", s(f), "-o", s(&out), "--quiet", "--leaf-capacity", "2000", "--format", kind]).output().unwrap();
+            let o = mortar()
+                .args([
+                    "export",
+                    s(f),
+                    "-o",
+                    s(&out),
+                    "--quiet",
+                    "--leaf-capacity",
+                    "2000",
+                    "--format",
+                    kind,
+                ])
+                .output()
+                .unwrap();
             if o.status.success() {
                 jobs.push(serde_json::json!({"kind": kind, "out": out, "inputs": [laspy_twin(f)]}));
             } else {
@@ -153,12 +187,27 @@ fn every_real_file_alone_and_merged() {
     // Refusals are the documented ones only: waveforms, scales that share no cube, files that
     // are not readable as points.
     for (f, e) in &refused {
-        assert!(e.contains("waveform") || e.contains("scales") || e.contains("no points"), "{}: {e}", f.display());
+        assert!(
+            e.contains("waveform") || e.contains("scales") || e.contains("no points"),
+            "{}: {e}",
+            f.display()
+        );
     }
-    assert!(jobs.len() >= files.len(), "most real files export: {} jobs of {} files; refused {refused:?}", jobs.len(), files.len());
+    assert!(
+        jobs.len() >= files.len(),
+        "most real files export: {} jobs of {} files; refused {refused:?}",
+        jobs.len(),
+        files.len()
+    );
     // merged: the bcts tiles, and 8 EPT tiles
-    let bcts: Vec<PathBuf> = files.iter().filter(|f| f.to_string_lossy().contains("bcts_")).cloned().collect();
-    let ept: Vec<PathBuf> = files.iter().filter(|f| f.to_string_lossy().contains("ept-data/")).take(8).cloned().collect();
+    let bcts: Vec<PathBuf> =
+        files.iter().filter(|f| f.to_string_lossy().contains("bcts_")).cloned().collect();
+    let ept: Vec<PathBuf> = files
+        .iter()
+        .filter(|f| f.to_string_lossy().contains("ept-data/"))
+        .take(8)
+        .cloned()
+        .collect();
     for (tag, set) in [("bcts", &bcts), ("ept", &ept)] {
         if set.len() < 2 {
             continue;
@@ -181,8 +230,15 @@ fn every_real_file_alone_and_merged() {
                 Err(v) => panic!("copc.js: {v}"),
             }
         }
-        eprintln!("copc.js read {ok} COPC files; {} hit its extra-bytes limit: {limits:?}", limits.len());
-        assert!(ok >= 9 * (ok + limits.len()) / 10, "copc.js read {ok}, {} hit its limit", limits.len());
+        eprintln!(
+            "copc.js read {ok} COPC files; {} hit its extra-bytes limit: {limits:?}",
+            limits.len()
+        );
+        assert!(
+            ok >= 9 * (ok + limits.len()) / 10,
+            "copc.js read {ok}, {} hit its limit",
+            limits.len()
+        );
     }
     std::fs::remove_dir_all(&d).unwrap();
 }
@@ -215,14 +271,18 @@ fn larger_than_memory_gives_the_same_export() {
     let mut sets: Vec<Vec<PathBuf>> = samples().into_iter().map(|p| vec![p]).collect();
     if let Some(data) = shared_data() {
         let files = readable_fixtures(&data);
-        let bcts: Vec<PathBuf> = files.iter().filter(|f| f.to_string_lossy().contains("bcts_")).cloned().collect();
+        let bcts: Vec<PathBuf> =
+            files.iter().filter(|f| f.to_string_lossy().contains("bcts_")).cloned().collect();
         sets.extend(files.into_iter().map(|f| vec![f]));
         sets.push(bcts);
     }
     let (mut jobs, mut streamed) = (Vec::new(), 0);
     for (i, set) in sets.iter().enumerate() {
         let refs: Vec<&Path> = set.iter().map(|p| p.as_path()).collect();
-        for (kind, a, b) in [("copc", format!("{i}-mem.copc.laz"), format!("{i}-part.copc.laz")), ("potree", format!("{i}-mem"), format!("{i}-part"))] {
+        for (kind, a, b) in [
+            ("copc", format!("{i}-mem.copc.laz"), format!("{i}-part.copc.laz")),
+            ("potree", format!("{i}-mem"), format!("{i}-part")),
+        ] {
             let (a, b) = (d.join(a), d.join(b));
             let common = ["--format", kind, "--leaf-capacity", "2000"];
             if export_json(&refs, &a, &common).is_err() {
@@ -246,7 +306,12 @@ fn larger_than_memory_gives_the_same_export() {
     }
     eprintln!("{streamed} exports through run files");
     check(&py, &d, &jobs);
-    let left: Vec<_> = std::fs::read_dir(&d).unwrap().filter_map(|e| e.ok()).map(|e| e.file_name().to_string_lossy().to_string()).filter(|n| n.starts_with('.')).collect();
+    let left: Vec<_> = std::fs::read_dir(&d)
+        .unwrap()
+        .filter_map(|e| e.ok())
+        .map(|e| e.file_name().to_string_lossy().to_string())
+        .filter(|n| n.starts_with('.'))
+        .collect();
     assert!(left.is_empty(), "left behind: {left:?}");
     std::fs::remove_dir_all(&d).unwrap();
 }
@@ -261,11 +326,16 @@ fn cells_denser_than_a_unit_give_the_same_export() {
     let mut jobs = Vec::new();
     for (i, set) in dense_sets(&d).iter().enumerate() {
         let refs: Vec<&Path> = set.iter().map(|p| p.as_path()).collect();
-        for (kind, order, a, b) in [("copc", "gps-time", format!("{i}-mem.copc.laz"), format!("{i}-part.copc.laz")), ("copc", "morton", format!("{i}-mem-m.copc.laz"), format!("{i}-part-m.copc.laz")), ("potree", "gps-time", format!("{i}-mem"), format!("{i}-part"))] {
+        for (kind, order, a, b) in [
+            ("copc", "gps-time", format!("{i}-mem.copc.laz"), format!("{i}-part.copc.laz")),
+            ("copc", "morton", format!("{i}-mem-m.copc.laz"), format!("{i}-part-m.copc.laz")),
+            ("potree", "gps-time", format!("{i}-mem"), format!("{i}-part")),
+        ] {
             let (a, b) = (d.join(a), d.join(b));
             let common = ["--format", kind, "--leaf-capacity", "3000", "--order", order];
             export_json(&refs, &a, &common).unwrap_or_else(|e| panic!("{set:?} in memory: {e}"));
-            let j = export_json(&refs, &b, &[&common[..], &["--memory", "1M"]].concat()).unwrap_or_else(|e| panic!("{set:?} --memory 1M: {e}"));
+            let j = export_json(&refs, &b, &[&common[..], &["--memory", "1M"]].concat())
+                .unwrap_or_else(|e| panic!("{set:?} --memory 1M: {e}"));
             assert_eq!(j["engine"], "partitioned", "{set:?}");
             assert!(j["large_leaves"].as_u64().unwrap() >= 1, "{set:?}: {j}");
             jobs.push(serde_json::json!({"kind": "same", "format": kind, "a": a, "b": b}));
@@ -273,7 +343,12 @@ fn cells_denser_than_a_unit_give_the_same_export() {
         }
     }
     check(&py, &d, &jobs);
-    let left: Vec<_> = std::fs::read_dir(&d).unwrap().filter_map(|e| e.ok()).map(|e| e.file_name().to_string_lossy().to_string()).filter(|n| n.starts_with('.')).collect();
+    let left: Vec<_> = std::fs::read_dir(&d)
+        .unwrap()
+        .filter_map(|e| e.ok())
+        .map(|e| e.file_name().to_string_lossy().to_string())
+        .filter(|n| n.starts_with('.'))
+        .collect();
     assert!(left.is_empty(), "left behind: {left:?}");
     std::fs::remove_dir_all(&d).unwrap();
 }
@@ -283,7 +358,12 @@ fn sort_of_the_copc_gives_the_points_back() {
     let d = tempdir("export-sort");
     let mut files = samples();
     if let Some(data) = shared_data() {
-        files.extend(readable_fixtures(&data).into_iter().filter(|f| f.to_string_lossy().contains("bcts_")).take(2));
+        files.extend(
+            readable_fixtures(&data)
+                .into_iter()
+                .filter(|f| f.to_string_lossy().contains("bcts_"))
+                .take(2),
+        );
     }
     for f in &files {
         let c = d.join("x.copc.laz");
@@ -301,7 +381,8 @@ fn sort_of_the_copc_gives_the_points_back() {
         } else {
             // legacy input: positions, intensity and GPS time compared (every field: laspy's check)
             let gps_b = hb.point_format().has_gps_time.then_some(20);
-            let key = |r: &[u8], g: Option<usize>| (r[..14].to_vec(), g.map(|g| r[g..g + 8].to_vec()));
+            let key =
+                |r: &[u8], g: Option<usize>| (r[..14].to_vec(), g.map(|g| r[g..g + 8].to_vec()));
             let mut ka: Vec<_> = ra.chunks_exact(la).map(|r| key(r, gps_b.map(|_| 22))).collect();
             let mut kb: Vec<_> = rb.chunks_exact(lb).map(|r| key(r, gps_b)).collect();
             ka.sort();
@@ -326,8 +407,15 @@ fn potree_in_a_real_browser() {
     let p = d.join("autzen-potree");
     export(&[&f], &p, &["--leaf-capacity", "5000"]);
     let report = d.join("report.json");
-    let o = Command::new("bash").arg(root().join("tests/web/potree_check.sh")).arg(&p).arg(&report).arg(d.join("shot.png")).output().unwrap();
-    let r: serde_json::Value = serde_json::from_slice(&std::fs::read(&report).unwrap_or_default()).unwrap_or_else(|_| panic!("no report: {}", String::from_utf8_lossy(&o.stderr)));
+    let o = Command::new("bash")
+        .arg(root().join("tests/web/potree_check.sh"))
+        .arg(&p)
+        .arg(&report)
+        .arg(d.join("shot.png"))
+        .output()
+        .unwrap();
+    let r: serde_json::Value = serde_json::from_slice(&std::fs::read(&report).unwrap_or_default())
+        .unwrap_or_else(|_| panic!("no report: {}", String::from_utf8_lossy(&o.stderr)));
     assert!(o.status.success() && r["loaded"] == true, "{r}");
     assert_eq!(r["points"], 110_000, "every point decoded by the loader: {r}");
     assert_eq!(r["points"], r["node_points_sum"], "{r}");
@@ -336,7 +424,10 @@ fn potree_in_a_real_browser() {
     let x = check(&py, &d, &[serde_json::json!({"kind": "raster", "inputs": [f]})]);
     let want = x[0]["covered_pixels"].as_f64().unwrap();
     let got = r["covered_pixels"].as_f64().unwrap();
-    assert!((got - want).abs() / want < 0.03, "covered pixels {got} in the browser, {want} expected");
+    assert!(
+        (got - want).abs() / want < 0.03,
+        "covered pixels {got} in the browser, {want} expected"
+    );
     std::fs::remove_dir_all(&d).unwrap();
 }
 
@@ -344,7 +435,10 @@ fn potree_in_a_real_browser() {
 fn bad_input_and_interruptions_leave_nothing() {
     let d = tempdir("export-bad");
     // no such input
-    let o = mortar().args(["export", s(&d.join("missing.laz")), "-o", s(&d.join("x.copc.laz"))]).output().unwrap();
+    let o = mortar()
+        .args(["export", s(&d.join("missing.laz")), "-o", s(&d.join("x.copc.laz"))])
+        .output()
+        .unwrap();
     assert_eq!(o.status.code(), Some(1));
     assert!(String::from_utf8_lossy(&o.stderr).contains("missing.laz"));
     // a truncated LAZ: an error naming it, nothing left
@@ -354,14 +448,21 @@ fn bad_input_and_interruptions_leave_nothing() {
     for out in ["t.copc.laz", "t-potree"] {
         let o = mortar().args(["export", s(&t), "-o", s(&d.join(out))]).output().unwrap();
         assert_eq!(o.status.code(), Some(1), "{}", String::from_utf8_lossy(&o.stderr));
-        assert!(String::from_utf8_lossy(&o.stderr).contains("trunc.laz"), "{}", String::from_utf8_lossy(&o.stderr));
+        assert!(
+            String::from_utf8_lossy(&o.stderr).contains("trunc.laz"),
+            "{}",
+            String::from_utf8_lossy(&o.stderr)
+        );
     }
     assert_eq!(entries(&d), vec!["trunc.laz".to_string()]);
     // a Potree directory that is not empty is refused before any work
     let full = d.join("full");
     std::fs::create_dir(&full).unwrap();
     std::fs::write(full.join("keep.txt"), b"x").unwrap();
-    let o = mortar().args(["export", s(&samples()[0]), "-o", s(&full), "--format", "potree"]).output().unwrap();
+    let o = mortar()
+        .args(["export", s(&samples()[0]), "-o", s(&full), "--format", "potree"])
+        .output()
+        .unwrap();
     assert_eq!(o.status.code(), Some(1));
     assert_eq!(entries(&full), vec!["keep.txt".to_string()]);
     // a budget far below the densest cell of the partition (all points of one tile in one cell
@@ -369,9 +470,29 @@ fn bad_input_and_interruptions_leave_nothing() {
     // is written, and nothing else is left
     let (near, far) = (d.join("near.las"), d.join("far.las"));
     run_ok(gen().args(["--points", "200000", "--extent", "1", "-o", s(&near)]));
-    run_ok(gen().args(["--points", "10", "--extent", "1", "--origin", "600000,5000000,0", "-o", s(&far)]));
+    run_ok(gen().args([
+        "--points",
+        "10",
+        "--extent",
+        "1",
+        "--origin",
+        "600000,5000000,0",
+        "-o",
+        s(&far),
+    ]));
     let m = d.join("m.copc.laz");
-    let o = run_ok(mortar().args(["export", s(&near), s(&far), "-o", s(&m), "--memory", "1M", "--leaf-capacity", "1000", "--json"]));
+    let o = run_ok(mortar().args([
+        "export",
+        s(&near),
+        s(&far),
+        "-o",
+        s(&m),
+        "--memory",
+        "1M",
+        "--leaf-capacity",
+        "1000",
+        "--json",
+    ]));
     let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!(j["points"], 200_010, "{j}");
     assert!(j["dense_cells"].as_u64().unwrap() >= 1, "{j}");
@@ -384,7 +505,11 @@ fn bad_input_and_interruptions_leave_nothing() {
     let big = d.join("big.las");
     run_ok(gen().args(["--points", "4000000", "-o", s(&big)]));
     for (out, memory) in [("i.copc.laz", "2G"), ("i-potree", "2G"), ("j.copc.laz", "32M")] {
-        let child = mortar().args(["export", s(&big), "-o", s(&d.join(out)), "--threads", "1", "--memory", memory]).stderr(std::process::Stdio::piped()).spawn().unwrap();
+        let child = mortar()
+            .args(["export", s(&big), "-o", s(&d.join(out)), "--threads", "1", "--memory", memory])
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
         std::thread::sleep(std::time::Duration::from_millis(700));
         unsafe {
             libc::kill(child.id() as i32, libc::SIGINT);
@@ -394,9 +519,14 @@ fn bad_input_and_interruptions_leave_nothing() {
         if o.status.code() == Some(130) {
             assert!(!d.join(out).exists());
         } else {
-            std::fs::remove_dir_all(d.join(out)).or_else(|_| std::fs::remove_file(d.join(out))).unwrap();
+            std::fs::remove_dir_all(d.join(out))
+                .or_else(|_| std::fs::remove_file(d.join(out)))
+                .unwrap();
         }
     }
-    assert_eq!(entries(&d), vec!["big.las".to_string(), "full".to_string(), "trunc.laz".to_string()]);
+    assert_eq!(
+        entries(&d),
+        vec!["big.las".to_string(), "full".to_string(), "trunc.laz".to_string()]
+    );
     std::fs::remove_dir_all(&d).unwrap();
 }

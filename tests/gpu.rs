@@ -13,7 +13,9 @@ mod common;
 use common::*;
 use mortar_core::quantize::Precision;
 use mortar_core::render::framebuffer::{key_depth, EMPTY_KEY};
-use mortar_core::render::{rasterize, Camera, Framebuffer, PrecisionMode, RasterOptions, ViewPreset};
+use mortar_core::render::{
+    rasterize, Camera, Framebuffer, PrecisionMode, RasterOptions, ViewPreset,
+};
 use mortar_io::render_input::{self, RenderSource};
 use mortar_render::{AtomicPath, GpuContext, GpuRasterizer, GpuScene, SceneOptions};
 use std::path::{Path, PathBuf};
@@ -68,7 +70,11 @@ fn gpu_backend_draws_the_cpu_backends_png() {
                 continue;
             }
             let gpu_png = dir.join(format!("gpu{i}-{atomics}.png"));
-            let o = render(&mbat, &gpu_png, &[&args[..], &["--backend", "gpu", "--atomics", atomics]].concat());
+            let o = render(
+                &mbat,
+                &gpu_png,
+                &[&args[..], &["--backend", "gpu", "--atomics", atomics]].concat(),
+            );
             assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
             let gpu: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
             assert_eq!(gpu["backend"], "gpu");
@@ -77,7 +83,11 @@ fn gpu_backend_draws_the_cpu_backends_png() {
                 assert_eq!(gpu[k], cpu[k], "case {extra:?} --atomics {atomics}: {k}");
             }
             assert!(gpu["gpu"]["adapter"].as_str().is_some_and(|s| !s.is_empty()));
-            assert_eq!(std::fs::read(&gpu_png).unwrap(), std::fs::read(&cpu_png).unwrap(), "case {extra:?} --atomics {atomics}: PNGs differ");
+            assert_eq!(
+                std::fs::read(&gpu_png).unwrap(),
+                std::fs::read(&cpu_png).unwrap(),
+                "case {extra:?} --atomics {atomics}: PNGs differ"
+            );
         }
     }
 }
@@ -90,12 +100,28 @@ fn missing_adapter_is_an_error_for_gpu_and_a_fallback_for_auto() {
         return;
     }
     let out = dir.join("x.png");
-    let o = mortar().env("WGPU_BACKEND", "dx12").arg("render").arg(sample()).arg("-o").arg(&out).args(["--backend", "gpu"]).output().unwrap();
+    let o = mortar()
+        .env("WGPU_BACKEND", "dx12")
+        .arg("render")
+        .arg(sample())
+        .arg("-o")
+        .arg(&out)
+        .args(["--backend", "gpu"])
+        .output()
+        .unwrap();
     assert_eq!(o.status.code(), Some(1));
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("--backend gpu") && err.contains("no GPU adapter"), "{err}");
     assert!(!out.exists());
-    let o = mortar().env("WGPU_BACKEND", "dx12").arg("render").arg(sample()).arg("-o").arg(&out).args(["--backend", "auto", "--json", "--width", "64", "--height", "48"]).output().unwrap();
+    let o = mortar()
+        .env("WGPU_BACKEND", "dx12")
+        .arg("render")
+        .arg(sample())
+        .arg("-o")
+        .arg(&out)
+        .args(["--backend", "auto", "--json", "--width", "64", "--height", "48"])
+        .output()
+        .unwrap();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!(j["backend"], "cpu");
@@ -108,7 +134,8 @@ fn compare_keys(name: &str, src: &RenderSource, ctx: &GpuContext) -> usize {
     let file = &src.file;
     let views = render_input::load_words(file).unwrap();
     let refs = render_input::batch_refs(file, &views).unwrap();
-    let mut scene = GpuScene::new(ctx, file.grid(), file.header.point_count, SceneOptions::default()).unwrap();
+    let mut scene =
+        GpuScene::new(ctx, file.grid(), file.header.point_count, SceneOptions::default()).unwrap();
     for b in &refs {
         scene.push(ctx, b, None).unwrap();
     }
@@ -142,7 +169,12 @@ fn compare_keys(name: &str, src: &RenderSource, ctx: &GpuContext) -> usize {
                 }
             }
             let covered = cpu.iter().filter(|&&k| k != EMPTY_KEY).count();
-            assert_eq!(other, 0, "{name} {view} {precision:?} {:?}: {other} of {covered} pixels differ", ctx.atomic_path());
+            assert_eq!(
+                other,
+                0,
+                "{name} {view} {precision:?} {:?}: {other} of {covered} pixels differ",
+                ctx.atomic_path()
+            );
             assert_eq!(frame.stats, cpu_stats, "{name} {view} {precision:?}");
             assert!(covered > 1000, "{name} {view}: {covered} pixels covered");
         }
@@ -155,12 +187,19 @@ fn gpu_keys_equal_cpu_keys_on_real_fixtures_and_a_benchmark_set() {
     let Some(data) = shared_data() else { return };
     let sets: &[(&str, &[&str])] = &[
         ("Megaplot (805 k, PDRF 1)", &["lidR/inst/extdata/Megaplot@39ac7951.laz"]),
-        ("extra bytes (698 k, PDRF 8)", &["PDAL/test/data/laz/las_with_several_extra_byte_bloc.laz"]),
+        (
+            "extra bytes (698 k, PDRF 8)",
+            &["PDAL/test/data/laz/las_with_several_extra_byte_bloc.laz"],
+        ),
         ("lion (COPC)", &["potree/pointclouds/lion_takanawa.copc.laz"]),
-        ("bcts 2+3 (1.71 M, two airborne strips)", &["lasR/inst/extdata/bcts/bcts_2.laz", "lasR/inst/extdata/bcts/bcts_3.laz"]),
+        (
+            "bcts 2+3 (1.71 M, two airborne strips)",
+            &["lasR/inst/extdata/bcts/bcts_2.laz", "lasR/inst/extdata/bcts/bcts_3.laz"],
+        ),
     ];
     let tmp = tempdir("gpu-fixtures");
-    let contexts: Vec<GpuContext> = [AtomicPath::U64, AtomicPath::TwoPass32].into_iter().filter_map(context).collect();
+    let contexts: Vec<GpuContext> =
+        [AtomicPath::U64, AtomicPath::TwoPass32].into_iter().filter_map(context).collect();
     if contexts.is_empty() {
         return;
     }
@@ -168,10 +207,16 @@ fn gpu_keys_equal_cpu_keys_on_real_fixtures_and_a_benchmark_set() {
         let paths: Vec<PathBuf> = files.iter().map(|f| data.join(f)).collect();
         let ds = mortar_io::dataset::Dataset::open(&paths).unwrap();
         let opts = mortar_io::sort::SortOptions::with_memory(1 << 30, tmp.clone());
-        let src = RenderSource::batch_dataset(&ds, &opts, &mortar_io::batchfile::AttributeSelection::All).unwrap();
+        let src =
+            RenderSource::batch_dataset(&ds, &opts, &mortar_io::batchfile::AttributeSelection::All)
+                .unwrap();
         for ctx in &contexts {
             let ties = compare_keys(name, &src, ctx);
-            eprintln!("{name}, {:?} path on {}: identical keys except {ties} exact depth ties", ctx.atomic_path(), ctx.adapter().name);
+            eprintln!(
+                "{name}, {:?} path on {}: identical keys except {ties} exact depth ties",
+                ctx.atomic_path(),
+                ctx.adapter().name
+            );
         }
     }
 }

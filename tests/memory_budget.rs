@@ -75,10 +75,15 @@ fn canonical(input: &Path, out: &Path) -> u64 {
 
 fn copc_points(p: &Path) -> u64 {
     if let Some(py) = laspy_python() {
-        let o = run_ok(Command::new(py).args(["-c", "import laspy,sys; f=laspy.read(sys.argv[1]); print(len(f.points))", s(p)]));
+        let o = run_ok(Command::new(py).args([
+            "-c",
+            "import laspy,sys; f=laspy.read(sys.argv[1]); print(len(f.points))",
+            s(p),
+        ]));
         return String::from_utf8_lossy(&o.stdout).trim().parse().unwrap();
     }
-    let j: serde_json::Value = serde_json::from_slice(&run_ok(mortar().args(["info", "--json", s(p)])).stdout).unwrap();
+    let j: serde_json::Value =
+        serde_json::from_slice(&run_ok(mortar().args(["info", "--json", s(p)])).stdout).unwrap();
     j[0]["point_count"].as_u64().unwrap()
 }
 
@@ -91,8 +96,17 @@ fn check(dir: &Path, input: &Path, memory: &str, bytes: u64, points: u64, want: 
     let name = input.file_name().unwrap().to_string_lossy().to_string();
     assert_eq!(code, 0, "build {name} --memory {memory}: {err}");
     eprintln!("build  {name} --memory {memory}: peak RSS {} MiB", peak >> 20);
-    assert!(peak <= bytes + SLACK, "build {name} --memory {memory}: peak RSS {} MiB over the budget ({} MiB + {} MiB)", peak >> 20, bytes >> 20, SLACK >> 20);
-    assert!(canonical(&store, &dir.join("back.las")) == want, "build {name} --memory {memory}: the store does not give every record back");
+    assert!(
+        peak <= bytes + SLACK,
+        "build {name} --memory {memory}: peak RSS {} MiB over the budget ({} MiB + {} MiB)",
+        peak >> 20,
+        bytes >> 20,
+        SLACK >> 20
+    );
+    assert!(
+        canonical(&store, &dir.join("back.las")) == want,
+        "build {name} --memory {memory}: the store does not give every record back"
+    );
     std::fs::remove_dir_all(&store).unwrap();
     let copc = dir.join("out.copc.laz");
     let mut c = mortar();
@@ -100,7 +114,13 @@ fn check(dir: &Path, input: &Path, memory: &str, bytes: u64, points: u64, want: 
     let (code, peak, err) = peak_rss(c);
     assert_eq!(code, 0, "export {name} --memory {memory}: {err}");
     eprintln!("export {name} --memory {memory}: peak RSS {} MiB", peak >> 20);
-    assert!(peak <= bytes + SLACK, "export {name} --memory {memory}: peak RSS {} MiB over the budget ({} MiB + {} MiB)", peak >> 20, bytes >> 20, SLACK >> 20);
+    assert!(
+        peak <= bytes + SLACK,
+        "export {name} --memory {memory}: peak RSS {} MiB over the budget ({} MiB + {} MiB)",
+        peak >> 20,
+        bytes >> 20,
+        SLACK >> 20
+    );
     assert_eq!(copc_points(&copc), points, "export {name} --memory {memory}");
     std::fs::remove_file(&copc).unwrap();
 }

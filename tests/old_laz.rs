@@ -37,7 +37,11 @@ fn offset_to_points(b: &[u8]) -> usize {
 /// Where the LASzip VLR's data begins (the first VLR of the fixture).
 fn laszip_vlr_data(b: &[u8]) -> usize {
     let header = u16::from_le_bytes(b[94..96].try_into().unwrap()) as usize;
-    assert_eq!(u16::from_le_bytes(b[header + 18..header + 20].try_into().unwrap()), 22204, "the fixture's first VLR is LASzip's");
+    assert_eq!(
+        u16::from_le_bytes(b[header + 18..header + 20].try_into().unwrap()),
+        22204,
+        "the fixture's first VLR is LASzip's"
+    );
     header + 54
 }
 
@@ -51,11 +55,20 @@ fn pointwise_laz_reads_as_its_uncompressed_twin_in_every_command() {
     let v = laszip_vlr_data(&b);
     assert_eq!(u16::from_le_bytes(b[v..v + 2].try_into().unwrap()), 1);
     let want = sorted(&data.join(TWIN), &dir.join("twin.las"));
-    assert_eq!(sorted(&pw, &dir.join("pw.las")), want, "the pointwise file sorts to its twin's bytes");
+    assert_eq!(
+        sorted(&pw, &dir.join("pw.las")),
+        want,
+        "the pointwise file sorts to its twin's bytes"
+    );
     // a chunk size of u32::MAX in the VLR (laz-rs takes it for variable-size chunks and panics)
-    let max = patched(&pw, &dir, "chunk-max.laz", |b| b[v + 12..v + 16].copy_from_slice(&u32::MAX.to_le_bytes()));
+    let max = patched(&pw, &dir, "chunk-max.laz", |b| {
+        b[v + 12..v + 16].copy_from_slice(&u32::MAX.to_le_bytes())
+    });
     assert_eq!(sorted(&max, &dir.join("max.las")), want);
-    let j: serde_json::Value = serde_json::from_slice(&run_ok(mortar().args(["info", "--json", "--stats", s(&pw)])).stdout).unwrap();
+    let j: serde_json::Value = serde_json::from_slice(
+        &run_ok(mortar().args(["info", "--json", "--stats", s(&pw)])).stdout,
+    )
+    .unwrap();
     assert_eq!(j[0]["point_count"].as_u64(), Some(1065), "{j}");
     assert_eq!(j[0]["stats"]["point_count"].as_u64(), Some(1065), "{j}");
     // the other commands: batch, store, exports, render; every record back from batch and store
@@ -97,8 +110,11 @@ fn truncated_and_lying_pointwise_files_are_refused_cleanly() {
     let b = std::fs::read(&pw).unwrap();
     let start = offset_to_points(&b);
     let cut = patched(&pw, &dir, "cut.laz", |b| b.truncate(start + (b.len() - start) / 2));
-    let more = patched(&pw, &dir, "more.laz", |b| b[107..111].copy_from_slice(&1200u32.to_le_bytes()));
-    let huge = patched(&pw, &dir, "huge.laz", |b| b[107..111].copy_from_slice(&4_000_000_000u32.to_le_bytes()));
+    let more =
+        patched(&pw, &dir, "more.laz", |b| b[107..111].copy_from_slice(&1200u32.to_le_bytes()));
+    let huge = patched(&pw, &dir, "huge.laz", |b| {
+        b[107..111].copy_from_slice(&4_000_000_000u32.to_le_bytes())
+    });
     let out = dir.join("out.las");
     expect_refusal(&["sort", s(&cut), "-o", s(&out)], &cut, "ends early");
     expect_refusal(&["sort", s(&more), "-o", s(&out)], &more, "ends early");
@@ -112,7 +128,16 @@ fn one_laz_chunk_of_more_than_a_piece_reads_as_its_las_twin() {
     let dir = tempdir("big-chunk");
     let (las, laz) = (dir.join("twin.las"), dir.join("one-chunk.laz"));
     run_ok(gen().args(["--points", "1100000", "--seed", "5", "-o", s(&las)]));
-    run_ok(gen().args(["--points", "1100000", "--seed", "5", "--laz-chunk", "1100000", "-o", s(&laz)]));
+    run_ok(gen().args([
+        "--points",
+        "1100000",
+        "--seed",
+        "5",
+        "--laz-chunk",
+        "1100000",
+        "-o",
+        s(&laz),
+    ]));
     let want = sorted(&las, &dir.join("a.las"));
     assert_eq!(sorted(&laz, &dir.join("b.las")), want);
     let store = dir.join("store");

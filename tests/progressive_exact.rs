@@ -12,14 +12,16 @@
 mod common;
 
 use common::*;
-use mortar_core::render::framebuffer::{key_depth, key_index};
-use mortar_core::render::progressive::{FillBudget, ProgressiveRenderer};
-use mortar_core::render::{rasterize, Camera, Framebuffer, PrecisionMode, RasterOptions, ViewPreset, EMPTY_KEY};
 use mortar_core::quantize::Precision;
-use mortar_io::batchfile::AttributeSelection;
-use mortar_io::dataset::Dataset;
+use mortar_core::render::framebuffer::{key_depth, key_index};
 use mortar_core::render::framing::{IntBox, ViewBox};
 use mortar_core::render::progressive::ProgressiveFrame;
+use mortar_core::render::progressive::{FillBudget, ProgressiveRenderer};
+use mortar_core::render::{
+    rasterize, Camera, Framebuffer, PrecisionMode, RasterOptions, ViewPreset, EMPTY_KEY,
+};
+use mortar_io::batchfile::AttributeSelection;
+use mortar_io::dataset::Dataset;
 use mortar_io::progressive::{load_pieces, LoadedPiece, Payload};
 use mortar_io::render_input::{self, RenderSource};
 use mortar_io::sort::SortOptions;
@@ -40,7 +42,8 @@ struct Raw {
 }
 
 fn read(path: &Path) -> Raw {
-    let ds = Dataset::open(&[path.to_path_buf()]).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    let ds =
+        Dataset::open(&[path.to_path_buf()]).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
     let view = mortar_io::framing::view_box(&ds).unwrap();
     let pieces = Mutex::new(Vec::new());
     load_pieces(&ds, Payload::Intensity, 2, &AtomicBool::new(false), |p| {
@@ -67,12 +70,14 @@ struct Image {
     positions: Vec<Option<[i32; 3]>>,
 }
 
-const FULL: RasterOptions = RasterOptions { precision: PrecisionMode::Fixed(Precision::Bits30), cull: true };
+const FULL: RasterOptions =
+    RasterOptions { precision: PrecisionMode::Fixed(Precision::Bits30), cull: true };
 
 /// The brute force of `mortar render`: a temporary batch file, drawn at 30 bits.
 fn brute_force(raw: &Raw, cam: &Camera, tmp: &Path) -> Image {
     let opts = SortOptions::with_memory(1 << 30, tmp.to_path_buf());
-    let source = RenderSource::batch_dataset(&raw.ds, &opts, &AttributeSelection::Only(vec![])).unwrap();
+    let source =
+        RenderSource::batch_dataset(&raw.ds, &opts, &AttributeSelection::Only(vec![])).unwrap();
     let file = &source.file;
     let views = render_input::load_words(file).unwrap();
     let refs = render_input::batch_refs(file, &views).unwrap();
@@ -82,10 +87,12 @@ fn brute_force(raw: &Raw, cam: &Camera, tmp: &Path) -> Image {
     let mut by_index = vec![[0i32; 3]; file.header.point_count as usize];
     for b in &refs {
         for k in 0..b.len() {
-            by_index[b.first_index as usize + k] = b.grid.decode_exact([b.words[0][k], b.words[1][k], b.words[2][k]]);
+            by_index[b.first_index as usize + k] =
+                b.grid.decode_exact([b.words[0][k], b.words[1][k], b.words[2][k]]);
         }
     }
-    let positions = keys.iter().map(|&k| (k != EMPTY_KEY).then(|| by_index[key_index(k) as usize])).collect();
+    let positions =
+        keys.iter().map(|&k| (k != EMPTY_KEY).then(|| by_index[key_index(k) as usize])).collect();
     Image { keys, positions }
 }
 
@@ -98,7 +105,8 @@ fn progressive_cpu(raw: &Raw, cam: &Camera) -> (Image, u64, u32) {
     let budget = FillBudget::Fixed(raw.points.div_ceil(3));
     while !r.frame(cam, &FULL, &budget).unwrap().converged {}
     let keys = r.keys();
-    let positions = keys.iter().map(|&k| (k != EMPTY_KEY).then(|| r.position(key_index(k)).unwrap())).collect();
+    let positions =
+        keys.iter().map(|&k| (k != EMPTY_KEY).then(|| r.position(key_index(k)).unwrap())).collect();
     (Image { keys, positions }, r.depth_ties().unwrap().unwrap(), r.growths())
 }
 
@@ -106,7 +114,9 @@ fn progressive_cpu(raw: &Raw, cam: &Camera) -> (Image, u64, u32) {
 /// 64-bit GPU).
 fn progressive_gpu(raw: &Raw, cam: &Camera) -> Option<(Vec<u64>, u64)> {
     let ctx = mortar_render::testing::context_or_skip(AtomicPath::U64, None)?;
-    let mut r = GpuProgressive::with_frame(&ctx, raw.frame, raw.points, ProgressiveOptions::default()).unwrap();
+    let mut r =
+        GpuProgressive::with_frame(&ctx, raw.frame, raw.points, ProgressiveOptions::default())
+            .unwrap();
     for p in &raw.pieces {
         r.insert(&ctx, p.first, &p.xyz, None, None).unwrap();
     }
@@ -137,7 +147,9 @@ fn compare(a: &Image, b: &Image) -> Comparison {
         if a.positions[p] != b.positions[p] {
             c.other_point += 1;
         }
-        if (ka == EMPTY_KEY) != (kb == EMPTY_KEY) || (ka != EMPTY_KEY && key_depth(ka) != key_depth(kb)) {
+        if (ka == EMPTY_KEY) != (kb == EMPTY_KEY)
+            || (ka != EMPTY_KEY && key_depth(ka) != key_depth(kb))
+        {
             c.moved += 1;
         } else if a.positions[p] != b.positions[p] {
             c.ties += 1;
@@ -162,7 +174,12 @@ fn cameras(raw: &Raw, w: u32, h: u32) -> Vec<(&'static str, Camera)> {
 fn scans() -> Vec<PathBuf> {
     let mut v = vec![root().join("data-samples/autzen_trim.laz")];
     if let Some(d) = shared_data() {
-        for f in ["lidR/inst/extdata/Megaplot.laz", "laserchicken/testdata/AHN3.laz", "potree/pointclouds/lion_takanawa.copc.laz", "PDAL/test/data/ept/source/lone-star.laz"] {
+        for f in [
+            "lidR/inst/extdata/Megaplot.laz",
+            "laserchicken/testdata/AHN3.laz",
+            "potree/pointclouds/lion_takanawa.copc.laz",
+            "PDAL/test/data/ept/source/lone-star.laz",
+        ] {
             v.push(d.join(f));
         }
     }
@@ -210,7 +227,16 @@ fn converged_progressive_equals_the_brute_force_up_to_counted_ties() {
     // A header a metre wide, away from the points: the points' box is framed.
     let (lo, _) = first_piece_box(&sample);
     let off = [lo[0] - 5000.0, lo[1], lo[2]];
-    files.push((with_header_box(&sample, &tmp, "nowhere.laz", off, [off[0] + 1.0, off[1] + 1.0, off[2] + 1.0]), "points"));
+    files.push((
+        with_header_box(
+            &sample,
+            &tmp,
+            "nowhere.laz",
+            off,
+            [off[0] + 1.0, off[1] + 1.0, off[2] + 1.0],
+        ),
+        "points",
+    ));
     let (mut pixels, mut tied, mut counted) = (0, 0, 0);
     for (path, what) in files {
         let raw = read(&path);
@@ -220,13 +246,33 @@ fn converged_progressive_equals_the_brute_force_up_to_counted_ties() {
             let c = compare(&got, &want);
             eprintln!("{} ({what}) {name}: {} covered pixels, {} differ, all exact depth ties; {ties} tied pixels counted", path.display(), c.covered, c.ties);
             assert!(c.covered > 2_000, "{} {name}: {c:?}", path.display());
-            assert_eq!(c.moved, 0, "{} {name}: pixels differ beyond exact depth ties: {c:?}", path.display());
+            assert_eq!(
+                c.moved,
+                0,
+                "{} {name}: pixels differ beyond exact depth ties: {c:?}",
+                path.display()
+            );
             assert_eq!(c.other_point, c.ties);
-            assert!(c.ties as u64 <= ties, "{} {name}: {} ties seen, {ties} counted", path.display(), c.ties);
-            assert_eq!(growths >= 1, what == "grows", "{} {name}: {growths} growths", path.display());
+            assert!(
+                c.ties as u64 <= ties,
+                "{} {name}: {} ties seen, {ties} counted",
+                path.display(),
+                c.ties
+            );
+            assert_eq!(
+                growths >= 1,
+                what == "grows",
+                "{} {name}: {growths} growths",
+                path.display()
+            );
             // The GPU twin leaves the CPU renderer's keys and counts the same ties.
             if let Some((keys, gpu_ties)) = progressive_gpu(&raw, &cam) {
-                assert!(keys == got.keys, "{} {name}: GPU keys differ from the CPU's in {} pixels", path.display(), keys.iter().zip(&got.keys).filter(|(a, b)| a != b).count());
+                assert!(
+                    keys == got.keys,
+                    "{} {name}: GPU keys differ from the CPU's in {} pixels",
+                    path.display(),
+                    keys.iter().zip(&got.keys).filter(|(a, b)| a != b).count()
+                );
                 assert_eq!(gpu_ties, ties, "{} {name}", path.display());
             }
             pixels += c.covered;

@@ -58,23 +58,8 @@ fn converged_gpu_png_equals_the_cpu_png() {
         &[],
         &["--budget", "20000"],
         &["--budget", "auto", "--probe", "5000"],
-        &[
-            "--view",
-            "top",
-            "--ortho",
-            "--color",
-            "classification",
-            "--budget",
-            "50000",
-        ],
-        &[
-            "--color",
-            "elevation",
-            "--edl",
-            "--hole-fill",
-            "--precision",
-            "30",
-        ],
+        &["--view", "top", "--ortho", "--color", "classification", "--budget", "50000"],
+        &["--color", "elevation", "--edl", "--hole-fill", "--precision", "30"],
         &[
             "--view",
             "closeup",
@@ -92,27 +77,16 @@ fn converged_gpu_png_equals_the_cpu_png() {
         let gpu_png = dir.join(format!("gpu{i}.png"));
         let cpu = render(&cpu_png, "cpu", &args);
         let gpu = render(&gpu_png, "gpu", &args);
-        assert_eq!(
-            (cpu["backend"].as_str(), gpu["backend"].as_str()),
-            (Some("cpu"), Some("gpu"))
-        );
+        assert_eq!((cpu["backend"].as_str(), gpu["backend"].as_str()), (Some("cpu"), Some("gpu")));
         assert!(cpu["gpu"].is_null());
-        assert!(gpu["gpu"]["adapter"]
-            .as_str()
-            .is_some_and(|s| !s.is_empty()));
+        assert!(gpu["gpu"]["adapter"].as_str().is_some_and(|s| !s.is_empty()));
         assert_eq!(gpu["gpu"]["atomics"], "64");
         assert_eq!(
             (cpu["converged"].as_bool(), gpu["converged"].as_bool()),
             (Some(true), Some(true)),
             "case {extra:?}"
         );
-        for k in [
-            "points",
-            "pixels_covered",
-            "color",
-            "color_range",
-            "shuffle",
-        ] {
+        for k in ["points", "pixels_covered", "color", "color_range", "shuffle"] {
             assert_eq!(gpu[k], cpu[k], "case {extra:?}: {k}");
         }
         assert!(
@@ -136,10 +110,7 @@ fn preloaded_frames_equal_the_cpu_frames() {
         let cpu = render(&cpu_png, "cpu", &args);
         let gpu = render(&gpu_png, "gpu", &args);
         assert_eq!(gpu["converged"].as_bool(), Some(converged));
-        let (cf, gf) = (
-            cpu["frames"].as_array().unwrap(),
-            gpu["frames"].as_array().unwrap(),
-        );
+        let (cf, gf) = (cpu["frames"].as_array().unwrap(), gpu["frames"].as_array().unwrap());
         assert_eq!(cf.len(), gf.len());
         for (c, g) in cf.iter().zip(gf) {
             for k in [
@@ -152,20 +123,13 @@ fn preloaded_frames_equal_the_cpu_frames() {
                 "points_drawn",
                 "converged",
             ] {
-                assert_eq!(
-                    g[k], c[k],
-                    "--progressive {frames}, frame {}: {k}",
-                    c["frame"]
-                );
+                assert_eq!(g[k], c[k], "--progressive {frames}, frame {}: {k}", c["frame"]);
             }
             assert!(c["gpu_frame_ms"].is_null());
             assert_eq!(g["gpu_frame_ms"].is_f64(), gpu["gpu"]["timestamps"] == true);
         }
         assert_eq!(gpu["convergence_frame"], cpu["convergence_frame"]);
-        assert!(
-            same_png(&cpu_png, &gpu_png),
-            "--progressive {frames}: PNGs differ"
-        );
+        assert!(same_png(&cpu_png, &gpu_png), "--progressive {frames}: PNGs differ");
     }
 }
 
@@ -191,18 +155,12 @@ fn adaptive_budget_reports_how_it_was_timed() {
             "60000",
         ],
     );
-    let timing = if ctx.has_timestamps() {
-        "gpu-timestamps"
-    } else {
-        "host-clock"
-    };
+    let timing = if ctx.has_timestamps() { "gpu-timestamps" } else { "host-clock" };
     assert_eq!(j["gpu"]["timing"], timing);
     assert_eq!(j["gpu"]["timestamps"], ctx.has_timestamps());
     assert!(j["budget"]["auto"].is_object());
     let frames = j["frames"].as_array().unwrap();
-    assert!(frames
-        .iter()
-        .all(|f| f["probe"] == 10_000 && f["filled"].as_u64().unwrap() >= 10_000));
+    assert!(frames.iter().all(|f| f["probe"] == 10_000 && f["filled"].as_u64().unwrap() >= 10_000));
     // A minute of frame time is plenty for the whole sample after the probe, even when the
     // probe was timed on a loaded two-core machine under a software GPU (a one-second target
     // filled 93,514 of 110,000 points on CI).
@@ -222,21 +180,11 @@ fn the_32_bit_path_is_refused_with_a_clear_message() {
         .arg(sample())
         .arg("-o")
         .arg(&out)
-        .args([
-            "--progressive",
-            "converge",
-            "--backend",
-            "gpu",
-            "--atomics",
-            "32",
-        ])
+        .args(["--progressive", "converge", "--backend", "gpu", "--atomics", "32"])
         .output()
         .unwrap();
     assert_eq!(o.status.code(), Some(1));
     let err = String::from_utf8_lossy(&o.stderr);
-    assert!(
-        err.contains("needs 64-bit atomics") && err.contains("--backend gpu"),
-        "{err}"
-    );
+    assert!(err.contains("needs 64-bit atomics") && err.contains("--backend gpu"), "{err}");
     assert!(!out.exists());
 }

@@ -22,7 +22,9 @@ fn geotiff(code: u16) -> Vlr {
 }
 
 fn wkt_vlr(name: &str, code: u32) -> Vlr {
-    let w = format!(r#"PROJCS["{name}",GEOGCS["WGS 84",AUTHORITY["EPSG","4326"]],AUTHORITY["EPSG","{code}"]]"#);
+    let w = format!(
+        r#"PROJCS["{name}",GEOGCS["WGS 84",AUTHORITY["EPSG","4326"]],AUTHORITY["EPSG","{code}"]]"#
+    );
     let mut data = w.into_bytes();
     data.push(0);
     projection_vlr(2112, data)
@@ -42,7 +44,16 @@ struct Fixture {
 
 impl Fixture {
     fn new(version: (u8, u8), format: u8, x0: f64) -> Fixture {
-        Fixture { version, format, vlrs: Vec::new(), evlrs: Vec::new(), x0, n: 300, seed: format as u64 + 1, laz: false }
+        Fixture {
+            version,
+            format,
+            vlrs: Vec::new(),
+            evlrs: Vec::new(),
+            x0,
+            n: 300,
+            seed: format as u64 + 1,
+            laz: false,
+        }
     }
 }
 
@@ -59,7 +70,11 @@ fn write_fixture(path: &Path, f: &Fixture) {
     };
     b.vlrs = f.vlrs.clone();
     b.evlrs = f.evlrs.clone();
-    b.has_wkt_crs = f.vlrs.iter().chain(&f.evlrs).any(|v| v.user_id == "LASF_Projection" && v.record_id == 2112);
+    b.has_wkt_crs = f
+        .vlrs
+        .iter()
+        .chain(&f.evlrs)
+        .any(|v| v.user_id == "LASF_Projection" && v.record_id == 2112);
     let header = b.into_header().unwrap();
     let mut w = las::Writer::from_path(path, header).unwrap();
     let mut s = f.seed.wrapping_mul(0x9e37_79b9_7f4a_7c15) | 1;
@@ -82,7 +97,11 @@ fn write_fixture(path: &Path, f: &Fixture) {
             intensity: next(65536) as u16,
             return_number: 1 + next(nret as u64) as u8,
             number_of_returns: nret,
-            scan_direction: if next(2) == 0 { las::point::ScanDirection::LeftToRight } else { las::point::ScanDirection::RightToLeft },
+            scan_direction: if next(2) == 0 {
+                las::point::ScanDirection::LeftToRight
+            } else {
+                las::point::ScanDirection::RightToLeft
+            },
             is_edge_of_flight_line: next(2) == 0,
             classification: las::point::Classification::new(class).unwrap(),
             is_synthetic: next(2) == 0,
@@ -90,11 +109,17 @@ fn write_fixture(path: &Path, f: &Fixture) {
             is_withheld: next(2) == 0,
             is_overlap: extended && next(2) == 0,
             scanner_channel: if extended { next(4) as u8 } else { 0 },
-            scan_angle: if extended { (next(30001) as i32 - 15000) as f32 * 0.006 } else { (next(181) as i32 - 90) as f32 },
+            scan_angle: if extended {
+                (next(30001) as i32 - 15000) as f32 * 0.006
+            } else {
+                (next(181) as i32 - 90) as f32
+            },
             user_data: next(256) as u8,
             point_source_id: next(65536) as u16,
             gps_time: fmt.has_gps_time.then(|| 1.0e8 + next(1 << 30) as f64 * 1e-3),
-            color: fmt.has_color.then(|| las::Color::new(next(65536) as u16, next(65536) as u16, next(65536) as u16)),
+            color: fmt.has_color.then(|| {
+                las::Color::new(next(65536) as u16, next(65536) as u16, next(65536) as u16)
+            }),
             nir: fmt.has_nir.then(|| next(65536) as u16),
             waveform: fmt.has_waveform.then(las::raw::point::Waveform::default),
             ..Default::default()
@@ -133,14 +158,17 @@ fn check_converted(out: &Path, inputs: &[&Path], format: u8) {
     let (h, got) = points_of(out);
     assert_eq!(h.version(), las::Version::new(1, 4), "a converted output is LAS 1.4");
     assert_eq!(h.point_format().to_u8().unwrap(), format);
-    let mut by_key: HashMap<(i64, i64, i64), Point> = got.into_iter().map(|p| (key(&p), p)).collect();
+    let mut by_key: HashMap<(i64, i64, i64), Point> =
+        got.into_iter().map(|p| (key(&p), p)).collect();
     let mut total = 0;
     for i in inputs {
         let (ih, pts) = points_of(i);
         let legacy = !ih.point_format().is_extended;
         for p in pts {
             total += 1;
-            let o = by_key.remove(&key(&p)).unwrap_or_else(|| panic!("{}: point {:?} missing from the output", i.display(), key(&p)));
+            let o = by_key.remove(&key(&p)).unwrap_or_else(|| {
+                panic!("{}: point {:?} missing from the output", i.display(), key(&p))
+            });
             let ctx = format!("{} point {:?}", i.display(), key(&p));
             assert_eq!(o.intensity, p.intensity, "{ctx}");
             assert_eq!(o.return_number, p.return_number, "{ctx}");
@@ -148,7 +176,11 @@ fn check_converted(out: &Path, inputs: &[&Path], format: u8) {
             assert_eq!(o.scan_direction, p.scan_direction, "{ctx}");
             assert_eq!(o.is_edge_of_flight_line, p.is_edge_of_flight_line, "{ctx}");
             assert_eq!(u8::from(o.classification), u8::from(p.classification), "{ctx}");
-            assert_eq!((o.is_synthetic, o.is_key_point, o.is_withheld), (p.is_synthetic, p.is_key_point, p.is_withheld), "{ctx}");
+            assert_eq!(
+                (o.is_synthetic, o.is_key_point, o.is_withheld),
+                (p.is_synthetic, p.is_key_point, p.is_withheld),
+                "{ctx}"
+            );
             assert_eq!(o.user_data, p.user_data, "{ctx}");
             assert_eq!(o.point_source_id, p.point_source_id, "{ctx}");
             if legacy {
@@ -156,13 +188,21 @@ fn check_converted(out: &Path, inputs: &[&Path], format: u8) {
                 assert_eq!(o.scanner_channel, 0, "{ctx}");
                 let units = (o.scan_angle as f64 / 0.006).round() as i16;
                 assert_eq!(units, expected_scan_angle(p.scan_angle), "{ctx}: scan angle");
-                assert_eq!(o.scan_angle.round(), p.scan_angle, "{ctx}: the rank comes back by rounding");
+                assert_eq!(
+                    o.scan_angle.round(),
+                    p.scan_angle,
+                    "{ctx}: the rank comes back by rounding"
+                );
             } else {
                 assert_eq!(o.is_overlap, p.is_overlap, "{ctx}");
                 assert_eq!(o.scanner_channel, p.scanner_channel, "{ctx}");
                 assert_eq!(o.scan_angle, p.scan_angle, "{ctx}");
             }
-            assert_eq!(o.gps_time, Some(p.gps_time.unwrap_or(0.0)), "{ctx}: gps time (0 where absent)");
+            assert_eq!(
+                o.gps_time,
+                Some(p.gps_time.unwrap_or(0.0)),
+                "{ctx}: gps time (0 where absent)"
+            );
             let zero = las::Color::new(0, 0, 0);
             if h.point_format().has_color {
                 assert_eq!(o.color, Some(p.color.unwrap_or(zero)), "{ctx}: rgb (0 where absent)");
@@ -181,7 +221,11 @@ fn mixed_formats_merge_onto_one_las14_format_point_by_point() {
     let d = tempdir("mixed");
     let crs = || vec![geotiff(32610)];
     let mut inputs = Vec::new();
-    for (i, (version, format)) in [((1, 2), 0u8), ((1, 2), 1), ((1, 3), 2), ((1, 2), 3), ((1, 4), 6), ((1, 4), 7)].into_iter().enumerate() {
+    for (i, (version, format)) in
+        [((1, 2), 0u8), ((1, 2), 1), ((1, 3), 2), ((1, 2), 3), ((1, 4), 6), ((1, 4), 7)]
+            .into_iter()
+            .enumerate()
+    {
         let p = d.join(format!("f{format}.las"));
         let mut f = Fixture::new(version, format, 1000.0 * (i + 1) as f64);
         f.vlrs = crs();
@@ -189,13 +233,23 @@ fn mixed_formats_merge_onto_one_las14_format_point_by_point() {
         inputs.push(p);
     }
     let all: Vec<&str> = inputs.iter().map(|p| s(p)).collect();
-    for (names, format) in [(vec![0usize, 4], 6u8), (vec![1, 4], 6), (vec![0, 1, 2, 3, 4, 5], 7), (vec![3, 5], 7), (vec![2, 4], 7)] {
+    for (names, format) in [
+        (vec![0usize, 4], 6u8),
+        (vec![1, 4], 6),
+        (vec![0, 1, 2, 3, 4, 5], 7),
+        (vec![3, 5], 7),
+        (vec![2, 4], 7),
+    ] {
         let ins: Vec<&str> = names.iter().map(|&i| all[i]).collect();
         let paths: Vec<&Path> = names.iter().map(|&i| inputs[i].as_path()).collect();
         for ext in ["las", "laz"] {
             let out = d.join(format!("out-{format}-{}.{ext}", names.len()));
             let o = run_ok(mortar().arg("sort").args(&ins).args(["-o", s(&out)]));
-            assert!(stderr_of(&o).contains(&format!("merged into point format {format}")), "{}", stderr_of(&o));
+            assert!(
+                stderr_of(&o).contains(&format!("merged into point format {format}")),
+                "{}",
+                stderr_of(&o)
+            );
             check_converted(&out, &paths, format);
         }
     }
@@ -278,7 +332,13 @@ fn inputs_whose_crss_disagree_are_refused_naming_both() {
         assert_eq!(o.status.code(), Some(1), "{args:?}: {err}");
         let lines: Vec<&str> = err.lines().collect();
         assert_eq!(lines.len(), 1, "{args:?}: one line: {err}");
-        for want in ["utm10.las", "utm11.las", "WGS 84 / UTM zone 10N (EPSG:32610, geotiff)", "WGS 84 / UTM zone 11N (EPSG:32611, geotiff)", "--assign-crs"] {
+        for want in [
+            "utm10.las",
+            "utm11.las",
+            "WGS 84 / UTM zone 10N (EPSG:32610, geotiff)",
+            "WGS 84 / UTM zone 11N (EPSG:32611, geotiff)",
+            "--assign-crs",
+        ] {
             assert!(lines[0].contains(want), "{args:?}: '{want}' missing from: {err}");
         }
         assert!(entries(&out_dir).is_empty(), "{args:?} left {:?}", entries(&out_dir));
@@ -332,7 +392,13 @@ fn assign_crs_from_a_file_or_an_epsg_code() {
     let out = d.join("geo.las");
     run_ok(mortar().args(["sort", s(&a), "-o", s(&out), "--assign-crs", "epsg:4326"]));
     let keys = info_json(&out)["crs"]["geokeys"].clone();
-    assert!(keys.as_array().unwrap().iter().any(|k| k["name"] == "GeographicTypeGeoKey" && k["value"] == "4326"), "{keys}");
+    assert!(
+        keys.as_array()
+            .unwrap()
+            .iter()
+            .any(|k| k["name"] == "GeographicTypeGeoKey" && k["value"] == "4326"),
+        "{keys}"
+    );
     // batch files and stores carry it too
     let mbat = d.join("o.mbat");
     run_ok(mortar().args(["batch", s(&a), s(&b), "-o", s(&mbat), "--assign-crs", "EPSG:32633"]));
@@ -343,21 +409,33 @@ fn assign_crs_from_a_file_or_an_epsg_code() {
     // bad values: one line naming the problem, nothing written
     let bad_out = d.join("bad.las");
     let missing = d.join("missing.las");
-    for (v, want) in [(s(&missing), "missing.las"), (s(&a.with_file_name("nocrs.las")), "no CRS records")] {
-        let o = mortar().args(["sort", s(&a), "-o", s(&bad_out), "--assign-crs", v]).output().unwrap();
+    for (v, want) in
+        [(s(&missing), "missing.las"), (s(&a.with_file_name("nocrs.las")), "no CRS records")]
+    {
+        let o =
+            mortar().args(["sort", s(&a), "-o", s(&bad_out), "--assign-crs", v]).output().unwrap();
         assert_eq!(o.status.code(), Some(1), "{}", stderr_of(&o));
-        assert!(stderr_of(&o).contains(want) && stderr_of(&o).lines().count() == 1, "{}", stderr_of(&o));
+        assert!(
+            stderr_of(&o).contains(want) && stderr_of(&o).lines().count() == 1,
+            "{}",
+            stderr_of(&o)
+        );
         assert!(!bad_out.exists());
     }
-    let o = mortar().args(["sort", s(&a), "-o", s(&bad_out), "--assign-crs", "EPSG:4978"]).output().unwrap();
+    let o = mortar()
+        .args(["sort", s(&a), "-o", s(&bad_out), "--assign-crs", "EPSG:4978"])
+        .output()
+        .unwrap();
     assert_eq!(o.status.code(), Some(1));
     assert!(stderr_of(&o).contains("geocentric"), "{}", stderr_of(&o));
-    let o = mortar().args(["sort", s(&a), "-o", s(&bad_out), "--assign-crs", "EPSG:x"]).output().unwrap();
+    let o = mortar()
+        .args(["sort", s(&a), "-o", s(&bad_out), "--assign-crs", "EPSG:x"])
+        .output()
+        .unwrap();
     assert!(!o.status.success());
     assert!(!bad_out.exists());
     std::fs::remove_dir_all(&d).unwrap();
 }
-
 
 /// What laspy reads of a file: point count, (E)VLR ids, and the sorted X/Y/Z integers' digest.
 fn laspy_read(py: &Path, f: &Path) -> serde_json::Value {
@@ -381,7 +459,12 @@ print(json.dumps({
 }
 
 fn has_copc(j: &serde_json::Value) -> bool {
-    j["vlrs"].as_array().unwrap().iter().chain(j["evlrs"].as_array().unwrap()).any(|v| v[0] == "copc" || (v[0] == "LAStools" && v[1] == 30))
+    j["vlrs"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .chain(j["evlrs"].as_array().unwrap())
+        .any(|v| v[0] == "copc" || (v[0] == "LAStools" && v[1] == 30))
 }
 
 #[test]
@@ -393,13 +476,33 @@ fn sorted_copc_has_no_copc_records_and_laspy_reads_it_in_full() {
     f.n = 5000;
     f.laz = true;
     f.vlrs = vec![
-        Vlr { user_id: "copc".into(), record_id: 1, description: "copc info".into(), data: vec![7; 160] },
+        Vlr {
+            user_id: "copc".into(),
+            record_id: 1,
+            description: "copc info".into(),
+            data: vec![7; 160],
+        },
         wkt_vlr("WGS 84 / UTM zone 10N", 32610),
-        Vlr { user_id: "LAStools".into(), record_id: 10, description: "tile without buffer".into(), data: vec![3; 28] },
+        Vlr {
+            user_id: "LAStools".into(),
+            record_id: 10,
+            description: "tile without buffer".into(),
+            data: vec![3; 28],
+        },
     ];
     f.evlrs = vec![
-        Vlr { user_id: "copc".into(), record_id: 1000, description: "EPT hierarchy".into(), data: vec![9; 32] },
-        Vlr { user_id: "LAStools".into(), record_id: 30, description: "LAX spatial indexing (LASindex)".into(), data: vec![1; 64] },
+        Vlr {
+            user_id: "copc".into(),
+            record_id: 1000,
+            description: "EPT hierarchy".into(),
+            data: vec![9; 32],
+        },
+        Vlr {
+            user_id: "LAStools".into(),
+            record_id: 30,
+            description: "LAX spatial indexing (LASindex)".into(),
+            data: vec![1; 64],
+        },
     ];
     write_fixture(&src, &f);
     let input = laspy_read(&py, &src);
@@ -418,8 +521,14 @@ fn sorted_copc_has_no_copc_records_and_laspy_reads_it_in_full() {
         assert_eq!(got["points"], 5000);
         assert_eq!(got["header_points"], 5000);
         assert_eq!(got["xyz"], input["xyz"], "the same points");
-        assert!(got["vlrs"].as_array().unwrap().iter().any(|v| v[0] == "LASF_Projection"), "the CRS stays");
-        assert!(got["vlrs"].as_array().unwrap().iter().any(|v| v[0] == "LAStools" && v[1] == 10), "the tiling VLR stays");
+        assert!(
+            got["vlrs"].as_array().unwrap().iter().any(|v| v[0] == "LASF_Projection"),
+            "the CRS stays"
+        );
+        assert!(
+            got["vlrs"].as_array().unwrap().iter().any(|v| v[0] == "LAStools" && v[1] == 10),
+            "the tiling VLR stays"
+        );
     }
     let mbat = d.join("o.mbat");
     run_ok(mortar().args(["batch", s(&src), "-o", s(&mbat)]));
@@ -427,9 +536,20 @@ fn sorted_copc_has_no_copc_records_and_laspy_reads_it_in_full() {
     run_ok(mortar().args(["build", s(&src), "-o", s(&store)]));
     for p in [&mbat, &store] {
         let j = info_json(p);
-        let ids: Vec<String> = j["vlrs"].as_array().unwrap().iter().chain(j["evlrs"].as_array().unwrap()).map(|v| v["user_id"].as_str().unwrap().to_string()).collect();
+        let ids: Vec<String> = j["vlrs"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .chain(j["evlrs"].as_array().unwrap())
+            .map(|v| v["user_id"].as_str().unwrap().to_string())
+            .collect();
         assert!(!ids.iter().any(|i| i == "copc"), "{}: {ids:?}", p.display());
-        assert_eq!(ids.iter().filter(|i| *i == "LAStools").count(), 1, "{}: only the tiling record: {ids:?}", p.display());
+        assert_eq!(
+            ids.iter().filter(|i| *i == "LAStools").count(),
+            1,
+            "{}: only the tiling record: {ids:?}",
+            p.display()
+        );
     }
     std::fs::remove_dir_all(&d).unwrap();
 }
@@ -439,7 +559,11 @@ fn real_copc_files_sort_into_files_laspy_reads_in_full() {
     let Some(data) = shared_data() else { return };
     let Some(py) = laspy_python() else { return };
     let d = tempdir("copc-real");
-    for rel in ["PDAL/test/data/copc/1.2-with-color.copc.laz", "laspy/tests/data/simple_with_page.copc.laz", "las-rs/tests/data/autzen.copc.laz"] {
+    for rel in [
+        "PDAL/test/data/copc/1.2-with-color.copc.laz",
+        "laspy/tests/data/simple_with_page.copc.laz",
+        "las-rs/tests/data/autzen.copc.laz",
+    ] {
         let src = data.join(rel);
         if !src.exists() {
             continue;
@@ -504,7 +628,10 @@ fn info_on_truncated_files_and_lying_counts() {
             let o = c.arg(s(&cut)).output().unwrap();
             let err = stderr_of(&o);
             assert_eq!(o.status.code(), Some(1), "{ext} stats={stats}: {err}");
-            assert!(err.contains("cut.") && err.contains("truncated") && err.lines().count() == 1, "{ext} stats={stats}: {err}");
+            assert!(
+                err.contains("cut.") && err.contains("truncated") && err.lines().count() == 1,
+                "{ext} stats={stats}: {err}"
+            );
         }
     }
     // a header that claims fewer points than the file holds: a warning, exit 0
@@ -512,7 +639,11 @@ fn info_on_truncated_files_and_lying_counts() {
     write_fixture(&p, &Fixture::new((1, 2), 1, 1000.0));
     patch(&p, 107, &200u32.to_le_bytes());
     let o = run_ok(mortar().args(["info", s(&p)]));
-    assert!(stderr_of(&o).contains("holds 300 points of data but the header says 200"), "{}", stderr_of(&o));
+    assert!(
+        stderr_of(&o).contains("holds 300 points of data but the header says 200"),
+        "{}",
+        stderr_of(&o)
+    );
     std::fs::remove_dir_all(&d).unwrap();
 }
 
@@ -529,7 +660,10 @@ fn sort_warns_when_the_headers_points_by_return_lie() {
     patch(&p, 111, &(truth[0] as u32 + 5).to_le_bytes());
     let o = run_ok(mortar().args(["sort", s(&p), "-o", s(&out)]));
     let err = stderr_of(&o);
-    assert!(err.contains("points by return") && err.contains(&format!("{}", truth[0] + 5)), "{err}");
+    assert!(
+        err.contains("points by return") && err.contains(&format!("{}", truth[0] + 5)),
+        "{err}"
+    );
     let mbat = d.join("o.mbat");
     let o = run_ok(mortar().args(["batch", s(&p), "-o", s(&mbat)]));
     assert!(stderr_of(&o).contains("points by return"), "{}", stderr_of(&o));
@@ -552,7 +686,10 @@ fn real_mixed_formats_and_crss_merge() {
     } else {
         // the two tiles name their CRS differently: refused, or merged when the user says so
         let err = stderr_of(&o);
-        assert!(err.contains("autzen-point-format-3.las") && err.contains("autzen-bmx-2010.las"), "{err}");
+        assert!(
+            err.contains("autzen-point-format-3.las") && err.contains("autzen-bmx-2010.las"),
+            "{err}"
+        );
         run_ok(mortar().args(["sort", s(&a), s(&b), "-o", s(&out), "--assign-crs", s(&b)]));
         check_converted(&out, &[&a, &b], 7);
     }

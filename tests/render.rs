@@ -6,9 +6,9 @@
 mod common;
 
 use common::*;
+use mortar_core::quantize::Precision;
 use mortar_core::render::framebuffer::{key_index, EMPTY_KEY};
 use mortar_core::render::{Camera, PrecisionMode, RasterOptions, ViewPreset};
-use mortar_core::quantize::Precision;
 use mortar_io::render_input::{self, RenderSettings, RenderSource};
 use std::path::{Path, PathBuf};
 use std::process::Output;
@@ -34,8 +34,13 @@ impl Image {
         let info = reader.next_frame(&mut buf).expect("PNG data");
         let bytes = &buf[..info.buffer_size()];
         let px = match info.color_type {
-            png::ColorType::Rgba => bytes.chunks_exact(4).map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect(),
-            png::ColorType::Rgb => bytes.chunks_exact(3).map(|c| u32::from_le_bytes([c[0], c[1], c[2], 255])).collect(),
+            png::ColorType::Rgba => bytes
+                .chunks_exact(4)
+                .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+                .collect(),
+            png::ColorType::Rgb => {
+                bytes.chunks_exact(3).map(|c| u32::from_le_bytes([c[0], c[1], c[2], 255])).collect()
+            }
             t => panic!("unexpected PNG colour type {t:?}"),
         };
         Image { width: info.width, height: info.height, px }
@@ -78,9 +83,15 @@ fn render_json(input: &Path, out: &Path, extra: &[&str]) -> serde_json::Value {
 /// The golden images: (file name, arguments), all at 160x120 from the shipped sample.
 const GOLDEN: &[(&str, &[&str])] = &[
     ("autzen-iso.png", &[]),
-    ("autzen-top-ortho-classification.png", &["--view", "top", "--ortho", "--color", "classification"]),
+    (
+        "autzen-top-ortho-classification.png",
+        &["--view", "top", "--ortho", "--color", "classification"],
+    ),
     ("autzen-iso-elevation-edl-holefill.png", &["--color", "elevation", "--edl", "--hole-fill"]),
-    ("autzen-closeup-intensity.png", &["--view", "closeup", "--color", "intensity", "--background", "#203040"]),
+    (
+        "autzen-closeup-intensity.png",
+        &["--view", "closeup", "--color", "intensity", "--background", "#203040"],
+    ),
 ];
 
 /// Share of pixels a golden comparison tolerates: the image is deterministic on one platform, but
@@ -106,7 +117,11 @@ fn golden_images_of_the_sample() {
             eprintln!("blessed {}", golden.display());
             continue;
         }
-        assert!(golden.exists(), "{} is missing: run with MORTAR_BLESS=1 to create it", golden.display());
+        assert!(
+            golden.exists(),
+            "{} is missing: run with MORTAR_BLESS=1 to create it",
+            golden.display()
+        );
         let want = Image::read(&golden);
         assert_eq!((got.width, got.height), (160, 120));
         let diff = got.differing(&want);
@@ -116,7 +131,10 @@ fn golden_images_of_the_sample() {
             got.px.len()
         );
         // Not an empty picture: most goldens cover thousands of pixels.
-        assert!(want.px.iter().filter(|&&c| c != want.px[0]).count() > 2000, "{name} is nearly uniform");
+        assert!(
+            want.px.iter().filter(|&&c| c != want.px[0]).count() > 2000,
+            "{name} is nearly uniform"
+        );
     }
 }
 
@@ -132,8 +150,16 @@ fn laz_and_batch_file_render_the_same_and_deterministically() {
     one.args(["--threads", "1", "render"]).arg(&mbat).arg("-o").arg(dir.join("one.png")).args(args);
     run_ok(&mut one);
     let laz = std::fs::read(dir.join("laz.png")).unwrap();
-    assert_eq!(laz, std::fs::read(dir.join("mbat.png")).unwrap(), "LAZ and batch file input differ");
-    assert_eq!(laz, std::fs::read(dir.join("one.png")).unwrap(), "one thread and all threads differ");
+    assert_eq!(
+        laz,
+        std::fs::read(dir.join("mbat.png")).unwrap(),
+        "LAZ and batch file input differ"
+    );
+    assert_eq!(
+        laz,
+        std::fs::read(dir.join("one.png")).unwrap(),
+        "one thread and all threads differ"
+    );
     render_ok(&mbat, &dir.join("again.png"), &args);
     assert_eq!(laz, std::fs::read(dir.join("again.png")).unwrap(), "a second run differs");
     // A zstd batch file (decompressed sections) draws the same, in every colour mode that reads attributes.
@@ -160,11 +186,19 @@ fn temporary_batch_file_is_removed() {
     let dir = tempdir("render-tmp");
     let tmp = dir.join("tmp");
     std::fs::create_dir_all(&tmp).unwrap();
-    render_ok(&sample(), &dir.join("x.png"), &["--width", "64", "--height", "48", "--tmp-dir", tmp.to_str().unwrap()]);
+    render_ok(
+        &sample(),
+        &dir.join("x.png"),
+        &["--width", "64", "--height", "48", "--tmp-dir", tmp.to_str().unwrap()],
+    );
     assert!(entries(&tmp).is_empty(), "left behind: {:?}", entries(&tmp));
     // Also on an error after the batch file was made.
     let same = "636500,848700,700";
-    let o = render(&sample(), &dir.join("y.png"), &["--tmp-dir", tmp.to_str().unwrap(), "--eye", same, "--target", same]);
+    let o = render(
+        &sample(),
+        &dir.join("y.png"),
+        &["--tmp-dir", tmp.to_str().unwrap(), "--eye", same, "--target", same],
+    );
     assert_eq!(o.status.code(), Some(1));
     assert!(entries(&tmp).is_empty(), "left behind: {:?}", entries(&tmp));
     assert_eq!(entries(&dir), ["tmp", "x.png"]);
@@ -173,20 +207,27 @@ fn temporary_batch_file_is_removed() {
 #[test]
 fn statistics_add_up_and_culling_changes_nothing_visible() {
     let dir = tempdir("render-stats");
-    let common = ["--width", "320", "--height", "240", "--view", "closeup", "--background", "transparent"];
+    let common =
+        ["--width", "320", "--height", "240", "--view", "closeup", "--background", "transparent"];
     let on = render_json(&sample(), &dir.join("on.png"), &common);
     let mut args = common.to_vec();
     args.push("--no-cull");
     let off = render_json(&sample(), &dir.join("off.png"), &args);
-    let n = |j: &serde_json::Value, k: &str| j[k].as_u64().unwrap_or_else(|| panic!("{k} missing in {j}"));
+    let n = |j: &serde_json::Value, k: &str| {
+        j[k].as_u64().unwrap_or_else(|| panic!("{k} missing in {j}"))
+    };
     for j in [&on, &off] {
         assert_eq!(n(j, "points"), 110_000);
         assert_eq!(n(j, "batches_culled") + n(j, "batches_drawn"), n(j, "batches"));
-        let by: u64 = ["10", "20", "30"].iter().map(|p| j["points_by_precision"][p].as_u64().unwrap()).sum();
+        let by: u64 =
+            ["10", "20", "30"].iter().map(|p| j["points_by_precision"][p].as_u64().unwrap()).sum();
         assert_eq!(by, n(j, "points_projected"));
         assert!(n(j, "points_drawn") <= n(j, "points_projected"));
         assert!(n(j, "pixels_covered") <= n(j, "points_drawn"));
-        assert!(j["raster_seconds"].as_f64().unwrap() >= 0.0 && j["resolve_seconds"].as_f64().unwrap() >= 0.0);
+        assert!(
+            j["raster_seconds"].as_f64().unwrap() >= 0.0
+                && j["resolve_seconds"].as_f64().unwrap() >= 0.0
+        );
         // auto: a hardware GPU where there is one (tests/gpu.rs checks that both agree).
         assert!(j["backend"] == "cpu" || j["backend"] == "gpu", "{j}");
         assert_eq!(j["color"], "rgb", "auto is rgb for a file with colours");
@@ -196,7 +237,11 @@ fn statistics_add_up_and_culling_changes_nothing_visible() {
     assert_eq!(n(&off, "batches_culled"), 0);
     assert_eq!(n(&off, "points_projected"), 110_000);
     assert_eq!(n(&on, "points_drawn"), n(&off, "points_drawn"));
-    assert_eq!(Image::read(&dir.join("on.png")), Image::read(&dir.join("off.png")), "culling changed the image");
+    assert_eq!(
+        Image::read(&dir.join("on.png")),
+        Image::read(&dir.join("off.png")),
+        "culling changed the image"
+    );
     assert_eq!(Image::read(&dir.join("on.png")).opaque() as u64, n(&on, "pixels_covered"));
     // Forced precisions load what they say (batches that need fewer bits load fewer words).
     let mut args = common.to_vec();
@@ -206,23 +251,43 @@ fn statistics_add_up_and_culling_changes_nothing_visible() {
     let mut args = common.to_vec();
     args.extend(["--precision", "30"]);
     let full = render_json(&sample(), &dir.join("full.png"), &args);
-    assert_eq!(full["points_by_precision"]["10"].as_u64().unwrap(), 0, "every autzen batch needs more than 10 bits");
+    assert_eq!(
+        full["points_by_precision"]["10"].as_u64().unwrap(),
+        0,
+        "every autzen batch needs more than 10 bits"
+    );
 }
 
 #[test]
 fn colour_modes_differ_and_share_coverage() {
     let dir = tempdir("render-colours");
     let mut images = Vec::new();
-    for mode in ["auto", "stored", "rgb", "intensity", "classification", "elevation", "return-number", "gps-time"] {
+    for mode in [
+        "auto",
+        "stored",
+        "rgb",
+        "intensity",
+        "classification",
+        "elevation",
+        "return-number",
+        "gps-time",
+    ] {
         let out = dir.join(format!("{mode}.png"));
-        let j = render_json(&sample(), &out, &["--width", "200", "--height", "150", "--color", mode, "--background", "transparent"]);
+        let j = render_json(
+            &sample(),
+            &out,
+            &["--width", "200", "--height", "150", "--color", mode, "--background", "transparent"],
+        );
         let range = &j["color_range"];
         match mode {
             "intensity" | "elevation" | "gps-time" => {
                 let (lo, hi) = (range[0].as_f64().unwrap(), range[1].as_f64().unwrap());
                 assert!(lo < hi, "{mode}: range {range}");
                 if mode == "elevation" {
-                    assert!((406.0..=521.0).contains(&lo) && (406.0..=521.0).contains(&hi), "elevation range {range}");
+                    assert!(
+                        (406.0..=521.0).contains(&lo) && (406.0..=521.0).contains(&hi),
+                        "elevation range {range}"
+                    );
                 }
             }
             _ => assert!(range.is_null(), "{mode}: {range}"),
@@ -232,7 +297,11 @@ fn colour_modes_differ_and_share_coverage() {
     let covered = images[0].1.opaque();
     assert!(covered > 3000, "{covered}");
     for (mode, img) in &images {
-        assert_eq!(img.opaque(), covered, "{mode}: the colour mode changed which pixels are covered");
+        assert_eq!(
+            img.opaque(),
+            covered,
+            "{mode}: the colour mode changed which pixels are covered"
+        );
     }
     // auto, stored and rgb are the same picture on this file; every other pair differs a lot.
     assert_eq!(images[0].1, images[2].1);
@@ -240,7 +309,12 @@ fn colour_modes_differ_and_share_coverage() {
     for i in 2..images.len() {
         for j in 2..i {
             let d = images[i].1.differing(&images[j].1);
-            assert!(d * 4 > covered, "{} and {} differ in only {d} pixels", images[i].0, images[j].0);
+            assert!(
+                d * 4 > covered,
+                "{} and {} differ in only {d} pixels",
+                images[i].0,
+                images[j].0
+            );
         }
     }
     // Classification uses the ASPRS palette: ground (class 2) is in this file.
@@ -248,7 +322,22 @@ fn colour_modes_differ_and_share_coverage() {
     assert!(images[4].1.px.contains(&ground), "no ground-coloured pixel");
     // A fixed range: everything above it saturates to the ramp's top colour.
     let out = dir.join("fixed.png");
-    render_ok(&sample(), &out, &["--width", "200", "--height", "150", "--color", "elevation", "--range", "0,1", "--background", "transparent"]);
+    render_ok(
+        &sample(),
+        &out,
+        &[
+            "--width",
+            "200",
+            "--height",
+            "150",
+            "--color",
+            "elevation",
+            "--range",
+            "0,1",
+            "--background",
+            "transparent",
+        ],
+    );
     let top = mortar_core::render::resolve::elevation_color(1.0, [0.0, 1.0]);
     let img = Image::read(&out);
     assert_eq!(img.px.iter().filter(|&&c| c == top).count(), covered);
@@ -259,13 +348,21 @@ fn missing_attributes_are_errors_naming_the_file() {
     let dir = tempdir("render-missing");
     let lean = dir.join("lean.mbat");
     run_ok(mortar().args(["batch", "--attributes", "none"]).arg(sample()).arg("-o").arg(&lean));
-    for (mode, want) in [("intensity", "not kept"), ("gps-time", "not kept"), ("classification", "not kept"), ("return-number", "not kept")] {
+    for (mode, want) in [
+        ("intensity", "not kept"),
+        ("gps-time", "not kept"),
+        ("classification", "not kept"),
+        ("return-number", "not kept"),
+    ] {
         let out = dir.join(format!("{mode}.png"));
         let o = render(&lean, &out, &["--color", mode]);
         assert_eq!(o.status.code(), Some(1), "{mode}");
         let err = String::from_utf8_lossy(&o.stderr);
         assert_eq!(err.lines().count(), 1, "{err}");
-        assert!(err.contains("lean.mbat") && err.contains(want) && err.contains(mode), "{mode}: {err}");
+        assert!(
+            err.contains("lean.mbat") && err.contains(want) && err.contains(mode),
+            "{mode}: {err}"
+        );
         assert!(!out.exists(), "{mode}: output written despite the error");
     }
     // The coordinates and the stored colour are always there.
@@ -325,7 +422,10 @@ fn options_and_their_errors() {
     // Orthographic and perspective views differ; explicit cameras work.
     let ortho = run("ortho.png", &["--view", "iso", "--ortho"]);
     assert!(ortho.differing(&iso) > 1000);
-    let cam = run("cam.png", &["--eye", "636500,848700,700", "--target", "636590,849216,463", "--fov", "40"]);
+    let cam = run(
+        "cam.png",
+        &["--eye", "636500,848700,700", "--target", "636590,849216,463", "--fov", "40"],
+    );
     assert!(cam.opaque() > 1000, "{}", cam.opaque());
     let inside = run("inside.png", &["--view", "inside"]);
     assert!(inside.opaque() > 500);
@@ -362,7 +462,11 @@ fn options_and_their_errors() {
     assert!(String::from_utf8_lossy(&o.stderr).contains("nope.laz"));
     let o = render(&sample(), &dir.join("no/such/dir/x.png"), &["--width", "32", "--height", "32"]);
     assert_eq!(o.status.code(), Some(1));
-    assert!(String::from_utf8_lossy(&o.stderr).contains("x.png"), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(
+        String::from_utf8_lossy(&o.stderr).contains("x.png"),
+        "{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
 }
 
 #[test]
@@ -395,17 +499,38 @@ struct Accuracy {
     psnr: f64,
 }
 
-fn compare(file: &mortar_io::batchfile::BatchFile, cam: &Camera, precision: PrecisionMode, cull: bool) -> Accuracy {
+fn compare(
+    file: &mortar_io::batchfile::BatchFile,
+    cam: &Camera,
+    precision: PrecisionMode,
+    cull: bool,
+) -> Accuracy {
     let views = render_input::load_words(file).unwrap();
     let refs = render_input::batch_refs(file, &views).unwrap();
-    let settings = |precision, cull| RenderSettings { raster: RasterOptions { precision, cull }, ..RenderSettings::default() };
-    let full = render_input::render(file, &refs, cam, &settings(PrecisionMode::Fixed(Precision::Bits30), false)).unwrap();
+    let settings = |precision, cull| RenderSettings {
+        raster: RasterOptions { precision, cull },
+        ..RenderSettings::default()
+    };
+    let full = render_input::render(
+        file,
+        &refs,
+        cam,
+        &settings(PrecisionMode::Fixed(Precision::Bits30), false),
+    )
+    .unwrap();
     // The same colour range for both, so that only the points differ.
     let mut s = settings(precision, cull);
     s.range = full.color_range;
     let test = render_input::render(file, &refs, cam, &s).unwrap();
     let covered = full.keys.iter().filter(|&&k| k != EMPTY_KEY).count();
-    let mut a = Accuracy { covered, winner: 0, coverage: 0, net: test.covered as i64 - full.covered as i64, color: 0, psnr: 0.0 };
+    let mut a = Accuracy {
+        covered,
+        winner: 0,
+        coverage: 0,
+        net: test.covered as i64 - full.covered as i64,
+        color: 0,
+        psnr: 0.0,
+    };
     for i in 0..full.keys.len() {
         let (k, r) = (test.keys[i], full.keys[i]);
         let empty_differs = (k == EMPTY_KEY) != (r == EMPTY_KEY);
@@ -433,7 +558,9 @@ fn adaptive_precision_against_full_precision_on_benchmark_sets() {
         let path = data.join(set);
         let ds = mortar_io::dataset::Dataset::open(std::slice::from_ref(&path)).unwrap();
         let opts = mortar_io::sort::SortOptions::with_memory(1 << 30, tmp.clone());
-        let src = RenderSource::batch_dataset(&ds, &opts, &mortar_io::batchfile::AttributeSelection::All).unwrap();
+        let src =
+            RenderSource::batch_dataset(&ds, &opts, &mortar_io::batchfile::AttributeSelection::All)
+                .unwrap();
         let file = &src.file;
         let bounds = render_input::file_bounds(file);
         let fov = 50f64.to_radians();
@@ -460,7 +587,10 @@ fn adaptive_precision_against_full_precision_on_benchmark_sets() {
             );
             assert!(ad.covered > 2000, "{set} {name}: only {} pixels covered", ad.covered);
             // No holes: the net coverage changes by at most 0.5 % of the covered pixels.
-            assert!(ad.net.unsigned_abs() as f64 <= 0.005 * ad.covered as f64, "{set} {name}: {ad:?}");
+            assert!(
+                ad.net.unsigned_abs() as f64 <= 0.005 * ad.covered as f64,
+                "{set} {name}: {ad:?}"
+            );
             // Points move by less than half a pixel, so at most a few % of pixels change hands
             // between covered and empty (sparse regions), and the picture stays close (PSNR).
             assert!(pct(ad.coverage) <= 8.0, "{set} {name}: {ad:?}");
@@ -471,14 +601,20 @@ fn adaptive_precision_against_full_precision_on_benchmark_sets() {
                 // Control: forcing 10 bits where the rule asks for more is visibly worse, unless
                 // 10 bits hold every batch exactly (then both are exact).
                 if ten.winner > 0 {
-                    assert!(ten.winner > 5 * ad.winner.max(1), "{set} {name}: forced {ten:?} vs adaptive {ad:?}");
+                    assert!(
+                        ten.winner > 5 * ad.winner.max(1),
+                        "{set} {name}: forced {ten:?} vs adaptive {ad:?}"
+                    );
                 }
             }
             // Culling never changes a pixel.
             let views = render_input::load_words(file).unwrap();
             let refs = render_input::batch_refs(file, &views).unwrap();
             let keys = |cull| {
-                let s = RenderSettings { raster: RasterOptions { precision: PrecisionMode::Adaptive, cull }, ..RenderSettings::default() };
+                let s = RenderSettings {
+                    raster: RasterOptions { precision: PrecisionMode::Adaptive, cull },
+                    ..RenderSettings::default()
+                };
                 render_input::render(file, &refs, cam, &s).unwrap().keys
             };
             assert!(keys(true) == keys(false), "{set} {name}: culling changed the image");

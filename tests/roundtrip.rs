@@ -37,7 +37,8 @@ fn check_fixture(f: &Path, dir: &Path, zstd: bool) -> Result<(), String> {
             Err(format!("{args:?}: {}", String::from_utf8_lossy(&o.stderr)))
         }
     };
-    let (fs, ss, bs, backs) = (f.to_str().unwrap(), s.to_str().unwrap(), b.to_str().unwrap(), back.to_str().unwrap());
+    let (fs, ss, bs, backs) =
+        (f.to_str().unwrap(), s.to_str().unwrap(), b.to_str().unwrap(), back.to_str().unwrap());
     run(&["-q", "sort", fs, "-o", ss])?;
     let mut batch_args = vec!["-q", "batch", fs, "-o", bs];
     if zstd {
@@ -49,7 +50,8 @@ fn check_fixture(f: &Path, dir: &Path, zstd: bool) -> Result<(), String> {
     if std::fs::read(&back).unwrap() != sorted {
         return Err("batch -> sort differs from sort".into());
     }
-    let (out, rl, oh) = las_records(&s).map_err(|e| format!("las crate cannot read mortar's output: {e}"))?;
+    let (out, rl, oh) =
+        las_records(&s).map_err(|e| format!("las crate cannot read mortar's output: {e}"))?;
     if !morton_sorted(&out, rl) {
         return Err("output is not in Morton order".into());
     }
@@ -63,7 +65,11 @@ fn check_fixture(f: &Path, dir: &Path, zstd: bool) -> Result<(), String> {
             }
             let key = |v: &las::Vlr| (v.user_id.clone(), v.record_id, v.data.clone());
             // records that point into the input's byte layout are dropped (docs/formats.md)
-            let kept = |v: &&las::Vlr| v.user_id != "laszip encoded" && v.user_id != "copc" && !(v.user_id == "LAStools" && v.record_id == 30);
+            let kept = |v: &&las::Vlr| {
+                v.user_id != "laszip encoded"
+                    && v.user_id != "copc"
+                    && !(v.user_id == "LAStools" && v.record_id == 30)
+            };
             let iv: Vec<_> = ih.vlrs().iter().filter(kept).map(key).collect();
             let ov: Vec<_> = oh.vlrs().iter().map(key).collect();
             if iv != ov {
@@ -73,7 +79,10 @@ fn check_fixture(f: &Path, dir: &Path, zstd: bool) -> Result<(), String> {
                 return Err("EVLR count differs".into());
             }
         }
-        Err(e) => eprintln!("note: las crate cannot read {} ({e}); checked against mortar only", f.display()),
+        Err(e) => eprintln!(
+            "note: las crate cannot read {} ({e}); checked against mortar only",
+            f.display()
+        ),
     }
     Ok(())
 }
@@ -91,7 +100,13 @@ fn every_readable_fixture_round_trips_exactly() {
         }
     }
     std::fs::remove_dir_all(&dir).unwrap();
-    assert!(failures.is_empty(), "{} of {} fixtures failed:\n{}", failures.len(), files.len(), failures.join("\n"));
+    assert!(
+        failures.is_empty(),
+        "{} of {} fixtures failed:\n{}",
+        failures.len(),
+        files.len(),
+        failures.join("\n")
+    );
 }
 
 #[test]

@@ -26,7 +26,13 @@ fn round_trip(input: &Path, extra: &[&str], tag: &str) -> serde_json::Value {
     run_ok(mortar().arg("sort").arg(input).arg("-o").arg(dir.join("b.las")));
     let a = std::fs::read(dir.join("a.las")).unwrap();
     let b = std::fs::read(dir.join("b.las")).unwrap();
-    assert!(a == b, "{}: sorting the store differs from sorting the input ({} vs {} bytes)", input.display(), a.len(), b.len());
+    assert!(
+        a == b,
+        "{}: sorting the store differs from sorting the input ({} vs {} bytes)",
+        input.display(),
+        a.len(),
+        b.len()
+    );
     // And the las crate reads the same multiset of records from the input and the store's sort.
     let (ra, rl, _) = las_records(&dir.join("a.las")).unwrap();
     let (rb, _, _) = las_records(input).unwrap();
@@ -40,7 +46,20 @@ fn store_round_trip_is_exact_on_the_sample() {
     let j = round_trip(&sample(), &[], "store-sample");
     assert_eq!(j["points"], 110_000);
     // A small leaf capacity makes a deep tree, and small batches with a commit after each one.
-    let j = round_trip(&sample(), &["--engine", "incremental", "--leaf-capacity", "1000", "--batch-points", "7000", "--commit-every", "0"], "store-deep");
+    let j = round_trip(
+        &sample(),
+        &[
+            "--engine",
+            "incremental",
+            "--leaf-capacity",
+            "1000",
+            "--batch-points",
+            "7000",
+            "--commit-every",
+            "0",
+        ],
+        "store-deep",
+    );
     assert_eq!(j["points"], 110_000);
     assert!(j["commits"].as_u64().unwrap() >= 15, "{j}");
     assert!(j["leaves"].as_u64().unwrap() >= 110, "{j}");
@@ -80,7 +99,11 @@ fn store_is_readable_at_every_commit_while_it_grows() {
     let store = dir.join("s");
     let ds = mortar_io::dataset::Dataset::open(&[sample()]).unwrap();
     let opts = BuildOptions {
-        config: BuilderConfig { leaf_capacity: 2000, color_mode: ColorMode::FirstCome, ..BuilderConfig::default() },
+        config: BuilderConfig {
+            leaf_capacity: 2000,
+            color_mode: ColorMode::FirstCome,
+            ..BuilderConfig::default()
+        },
         batch_points: 10_000,
         first_commit_after: None,
         commit_every: 0.0,
@@ -105,7 +128,10 @@ fn store_is_readable_at_every_commit_while_it_grows() {
     assert_eq!(r.points, 110_000);
     assert!(seen.len() >= 9, "{seen:?}");
     // A later commit holds more points; between commits the store does not change.
-    assert!(seen.windows(2).all(|w| (w[0].0 < w[1].0 && w[0].1 < w[1].1) || w[0] == w[1]), "commits must only grow: {seen:?}");
+    assert!(
+        seen.windows(2).all(|w| (w[0].0 < w[1].0 && w[0].1 < w[1].1) || w[0] == w[1]),
+        "commits must only grow: {seen:?}"
+    );
     let s = Store::open(&store).unwrap();
     assert_eq!(s.header.points, 110_000);
     assert_eq!(s.header.commit, r.commits);
@@ -117,7 +143,22 @@ fn store_is_readable_at_every_commit_while_it_grows() {
 /// batch), and the store is still exact.
 #[test]
 fn a_small_memory_budget_bounds_what_is_held() {
-    let j = round_trip(&sample(), &["--engine", "incremental", "--memory", "3M", "--commit-every", "100000", "--batch-points", "5000", "--leaf-capacity", "2000"], "store-mem");
+    let j = round_trip(
+        &sample(),
+        &[
+            "--engine",
+            "incremental",
+            "--memory",
+            "3M",
+            "--commit-every",
+            "100000",
+            "--batch-points",
+            "5000",
+            "--leaf-capacity",
+            "2000",
+        ],
+        "store-mem",
+    );
     assert_eq!(j["points"], 110_000);
     assert!(j["commits"].as_u64().unwrap() >= 5, "{j}");
     assert!(j["paged_in_leaves"].as_u64().unwrap() > 0, "{j}");
@@ -130,7 +171,9 @@ fn a_small_memory_budget_bounds_what_is_held() {
 fn info_describes_a_store() {
     let dir = tempdir("store-info");
     let store = dir.join("s");
-    run_ok(mortar().arg("build").arg(sample()).arg("-o").arg(&store).args(["--leaf-capacity", "5000"]));
+    run_ok(
+        mortar().arg("build").arg(sample()).arg("-o").arg(&store).args(["--leaf-capacity", "5000"]),
+    );
     let o = run_ok(mortar().arg("info").arg(&store).arg("--json"));
     let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     let i = &j[0];
@@ -159,7 +202,14 @@ fn bad_input_and_damaged_stores_are_clear_errors() {
     if let Some(data) = shared_data() {
         for bad in BAD_INPUTS {
             let out = dir.join("bad-store");
-            let o = run_limited({ let mut c = mortar(); c.arg("build").arg(data.join(bad)).arg("-o").arg(&out); c }, std::time::Duration::from_secs(30));
+            let o = run_limited(
+                {
+                    let mut c = mortar();
+                    c.arg("build").arg(data.join(bad)).arg("-o").arg(&out);
+                    c
+                },
+                std::time::Duration::from_secs(30),
+            );
             assert_eq!(o.status.code(), Some(1), "{bad}: {}", String::from_utf8_lossy(&o.stderr));
             assert!(!out.exists(), "{bad}: a store was left behind");
         }
@@ -171,21 +221,36 @@ fn bad_input_and_damaged_stores_are_clear_errors() {
     let n = std::fs::read(store.join("nodes.bin")).unwrap();
     type Damage<'a> = Box<dyn Fn() + 'a>;
     let cases: Vec<(&str, Damage)> = vec![
-        ("truncated hierarchy", Box::new(|| std::fs::write(store.join("hierarchy.bin"), &h[..50]).unwrap())),
-        ("hierarchy cut mid-entry", Box::new(|| std::fs::write(store.join("hierarchy.bin"), &h[..h.len() - 7]).unwrap())),
-        ("truncated nodes", Box::new(|| std::fs::write(store.join("nodes.bin"), &n[..n.len() / 2]).unwrap())),
-        ("garbage node payload", Box::new(|| {
-            let mut m = n.clone();
-            for b in m.iter_mut().take(64) {
-                *b = 0xab;
-            }
-            std::fs::write(store.join("nodes.bin"), &m).unwrap()
-        })),
-        ("huge node count", Box::new(|| {
-            let mut m = h.clone();
-            m[24..32].copy_from_slice(&u64::MAX.to_le_bytes());
-            std::fs::write(store.join("hierarchy.bin"), &m).unwrap()
-        })),
+        (
+            "truncated hierarchy",
+            Box::new(|| std::fs::write(store.join("hierarchy.bin"), &h[..50]).unwrap()),
+        ),
+        (
+            "hierarchy cut mid-entry",
+            Box::new(|| std::fs::write(store.join("hierarchy.bin"), &h[..h.len() - 7]).unwrap()),
+        ),
+        (
+            "truncated nodes",
+            Box::new(|| std::fs::write(store.join("nodes.bin"), &n[..n.len() / 2]).unwrap()),
+        ),
+        (
+            "garbage node payload",
+            Box::new(|| {
+                let mut m = n.clone();
+                for b in m.iter_mut().take(64) {
+                    *b = 0xab;
+                }
+                std::fs::write(store.join("nodes.bin"), &m).unwrap()
+            }),
+        ),
+        (
+            "huge node count",
+            Box::new(|| {
+                let mut m = h.clone();
+                m[24..32].copy_from_slice(&u64::MAX.to_le_bytes());
+                std::fs::write(store.join("hierarchy.bin"), &m).unwrap()
+            }),
+        ),
     ];
     for (name, damage) in cases {
         damage();
@@ -196,9 +261,17 @@ fn bad_input_and_damaged_stores_are_clear_errors() {
                 c.arg("-o").arg(dir.join("out.las"));
             }
             let o = run_limited(c, std::time::Duration::from_secs(30));
-            assert_eq!(o.status.code(), Some(1), "{name} / {cmd}: {}", String::from_utf8_lossy(&o.stderr));
+            assert_eq!(
+                o.status.code(),
+                Some(1),
+                "{name} / {cmd}: {}",
+                String::from_utf8_lossy(&o.stderr)
+            );
             let err = String::from_utf8_lossy(&o.stderr);
-            assert!(err.lines().count() == 1 && err.contains(store.to_str().unwrap()), "{name} / {cmd}: {err}");
+            assert!(
+                err.lines().count() == 1 && err.contains(store.to_str().unwrap()),
+                "{name} / {cmd}: {err}"
+            );
             assert!(!dir.join("out.las").exists());
         }
         std::fs::write(store.join("hierarchy.bin"), &h).unwrap();
@@ -218,13 +291,24 @@ fn ctrl_c_leaves_the_last_commit_readable() {
         .arg(&las)
         .arg("-o")
         .arg(&store)
-        .args(["--engine", "incremental", "--batch-points", "50000", "--commit-every", "0", "--leaf-capacity", "20000"])
+        .args([
+            "--engine",
+            "incremental",
+            "--batch-points",
+            "50000",
+            "--commit-every",
+            "0",
+            "--leaf-capacity",
+            "20000",
+        ])
         .stderr(std::process::Stdio::piped())
         .spawn()
         .unwrap();
     // Wait for the first commit, then interrupt.
     let start = std::time::Instant::now();
-    while !store.join("hierarchy.bin").exists() && start.elapsed() < std::time::Duration::from_secs(60) {
+    while !store.join("hierarchy.bin").exists()
+        && start.elapsed() < std::time::Duration::from_secs(60)
+    {
         std::thread::sleep(std::time::Duration::from_millis(5));
     }
     assert!(store.join("hierarchy.bin").exists(), "no commit within 60 s");
@@ -232,7 +316,11 @@ fn ctrl_c_leaves_the_last_commit_readable() {
     let out = child.wait_with_output().unwrap();
     let code = out.status.code();
     // Interrupted (130), or it finished just before the signal (0): either way a readable store.
-    assert!(code == Some(130) || code == Some(0), "stderr: {}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        code == Some(130) || code == Some(0),
+        "stderr: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let s = Store::open(&store).expect("the last commit stays readable");
     assert!(s.header.points > 0 && s.header.points <= 3_000_000);
     let o = run_ok(mortar().arg("info").arg(&store).arg("--json"));

@@ -60,7 +60,15 @@ fn mean_brightness(px: &[[u8; 4]]) -> (f64, usize) {
 }
 
 fn render(input: &Path, out: &Path, extra: &[&str]) -> serde_json::Value {
-    let o = run_ok(mortar().arg("render").arg(input).arg("-o").arg(out).args(["--width", "320", "--height", "240", "--json"]).args(extra));
+    let o = run_ok(
+        mortar()
+            .arg("render")
+            .arg(input)
+            .arg("-o")
+            .arg(out)
+            .args(["--width", "320", "--height", "240", "--json"])
+            .args(extra),
+    );
     serde_json::from_slice(&o.stdout).unwrap()
 }
 
@@ -70,24 +78,35 @@ fn intensity_only_stores_look_like_their_raw_render() {
     // Median intensity ~45, one point in 500 at 62,000 (the outliers that darkened the baked
     // colours), and a file of all-zero intensity.
     type Intensity = Box<dyn Fn(usize) -> u16>;
-    let cases: [(&str, Intensity); 2] =
-        [("outliers.las", Box::new(|i| if i % 500 == 7 { 62_000 } else { 30 + ((i * 7919) % 31) as u16 })), ("zero.las", Box::new(|_| 0))];
+    let cases: [(&str, Intensity); 2] = [
+        (
+            "outliers.las",
+            Box::new(|i| if i % 500 == 7 { 62_000 } else { 30 + ((i * 7919) % 31) as u16 }),
+        ),
+        ("zero.las", Box::new(|_| 0)),
+    ];
     for (name, f) in cases {
         let las = dir.join(name);
         intensity_cloud(&las, 60_000, f);
         let store = dir.join(format!("{name}.store"));
-        run_ok(mortar().arg("build").arg(&las).arg("-o").arg(&store).args(["--leaf-capacity", "3000"]));
+        run_ok(
+            mortar().arg("build").arg(&las).arg("-o").arg(&store).args(["--leaf-capacity", "3000"]),
+        );
         let raw_png = dir.join("raw.png");
         let raw = render(&las, &raw_png, &["--backend", "cpu"]);
         for threshold in ["0", "128", "100000"] {
             let store_png = dir.join("store.png");
-            let st = render(&store, &store_png, &["--backend", "cpu", "--lod-threshold", threshold]);
+            let st =
+                render(&store, &store_png, &["--backend", "cpu", "--lod-threshold", threshold]);
             assert_eq!(st["color"], "intensity", "{name}: {st}");
             let (a, na) = mean_brightness(&pixels(&raw_png));
             let (b, nb) = mean_brightness(&pixels(&store_png));
             assert!(na > 1000 && nb > 200, "{name} {threshold}: {na} / {nb} pixels covered");
             // Within a few percent of the raw render's mean brightness (of the grey range).
-            assert!((a - b).abs() <= 0.04 * 255.0, "{name} threshold {threshold}: raw mean {a:.1}, store mean {b:.1} ({raw} / {st})");
+            assert!(
+                (a - b).abs() <= 0.04 * 255.0,
+                "{name} threshold {threshold}: raw mean {a:.1}, store mean {b:.1} ({raw} / {st})"
+            );
             if name == "zero.las" {
                 assert_eq!(st["color_range"], raw["color_range"], "{name}");
             }
@@ -103,13 +122,26 @@ fn intensity_only_stores_look_like_their_raw_render() {
 fn every_colour_mode_works_under_lod() {
     let dir = tempdir("store-modes");
     let store = dir.join("store");
-    run_ok(mortar().arg("build").arg(sample()).arg("-o").arg(&store).args(["--leaf-capacity", "2000"]));
-    let gpu = mortar_render::testing::context_or_skip(mortar_render::AtomicPath::TwoPass32, None).is_some();
-    for mode in ["auto", "rgb", "intensity", "classification", "return-number", "gps-time", "elevation"] {
+    run_ok(
+        mortar().arg("build").arg(sample()).arg("-o").arg(&store).args(["--leaf-capacity", "2000"]),
+    );
+    let gpu = mortar_render::testing::context_or_skip(mortar_render::AtomicPath::TwoPass32, None)
+        .is_some();
+    for mode in
+        ["auto", "rgb", "intensity", "classification", "return-number", "gps-time", "elevation"]
+    {
         let full = dir.join("full.png");
         let lod0 = dir.join("lod0.png");
-        render(&store, &full, &["--no-lod", "--color", mode, "--precision", "30", "--backend", "cpu"]);
-        let b = render(&store, &lod0, &["--lod-threshold", "0", "--color", mode, "--precision", "30", "--backend", "cpu"]);
+        render(
+            &store,
+            &full,
+            &["--no-lod", "--color", mode, "--precision", "30", "--backend", "cpu"],
+        );
+        let b = render(
+            &store,
+            &lod0,
+            &["--lod-threshold", "0", "--color", mode, "--precision", "30", "--backend", "cpu"],
+        );
         assert_eq!(b["lod"]["voxels"], 0, "{b}");
         if mode != "auto" && mode != "rgb" {
             assert_eq!(b["color"], mode, "{b}");
@@ -117,17 +149,27 @@ fn every_colour_mode_works_under_lod() {
         let (pa, pb) = (pixels(&full), pixels(&lod0));
         let covered = pb.iter().filter(|p| **p != [0, 0, 0, 255]).count();
         let differ = pa.iter().zip(&pb).filter(|(x, y)| x != y).count();
-        assert!(covered > 3_000 && differ * 100 <= covered, "{mode}: {differ} of {covered} pixels differ from --no-lod");
+        assert!(
+            covered > 3_000 && differ * 100 <= covered,
+            "{mode}: {differ} of {covered} pixels differ from --no-lod"
+        );
         // A coarse threshold draws voxels, coloured from their records.
         let coarse = dir.join("coarse.png");
-        let c = render(&store, &coarse, &["--lod-threshold", "256", "--color", mode, "--backend", "cpu"]);
+        let c = render(
+            &store,
+            &coarse,
+            &["--lod-threshold", "256", "--color", mode, "--backend", "cpu"],
+        );
         assert!(c["lod"]["voxels"].as_u64().unwrap() > 0, "{c}");
         let (m, n) = mean_brightness(&pixels(&coarse));
         assert!(n > 1000 && m > 10.0, "{mode}: coarse render mean {m:.1} over {n} pixels");
         if gpu {
             let g = dir.join("gpu.png");
             render(&store, &g, &["--lod-threshold", "256", "--color", mode, "--backend", "gpu"]);
-            assert!(std::fs::read(&g).unwrap() == std::fs::read(&coarse).unwrap(), "{mode}: GPU and CPU LOD PNGs differ");
+            assert!(
+                std::fs::read(&g).unwrap() == std::fs::read(&coarse).unwrap(),
+                "{mode}: GPU and CPU LOD PNGs differ"
+            );
         }
     }
     let _ = std::fs::remove_dir_all(&dir);
@@ -142,10 +184,20 @@ fn modes_a_store_lacks_are_refused() {
     let store = dir.join("s");
     run_ok(mortar().arg("build").arg(&las).arg("-o").arg(&store));
     let out = dir.join("x.png");
-    let o = mortar().arg("render").arg(&store).arg("-o").arg(&out).args(["--color", "rgb"]).output().unwrap();
+    let o = mortar()
+        .arg("render")
+        .arg(&store)
+        .arg("-o")
+        .arg(&out)
+        .args(["--color", "rgb"])
+        .output()
+        .unwrap();
     assert_eq!(o.status.code(), Some(1));
     let e = String::from_utf8_lossy(&o.stderr);
-    assert!(e.contains(store.to_str().unwrap()) && e.contains("rgb") && e.lines().count() == 1, "{e}");
+    assert!(
+        e.contains(store.to_str().unwrap()) && e.contains("rgb") && e.lines().count() == 1,
+        "{e}"
+    );
     assert!(!out.exists());
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -91,7 +91,20 @@ fn store_round_trip_is_exact_after_a_merge_that_needs_a_shift() {
     let o = run_ok(mortar().arg("info").arg(&a).arg(&b).arg("--json"));
     let _: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     for threads in ["1", "2"] {
-        let (j, _) = assert_exact(&[&a, &b], &["--leaf-capacity", "500", "--batch-points", "20000", "--commit-every", "0", "--threads", threads], &dir);
+        let (j, _) = assert_exact(
+            &[&a, &b],
+            &[
+                "--leaf-capacity",
+                "500",
+                "--batch-points",
+                "20000",
+                "--commit-every",
+                "0",
+                "--threads",
+                threads,
+            ],
+            &dir,
+        );
         assert_eq!(j["points"], 220_000);
         assert!(j["leaves"].as_u64().unwrap() > 400, "{j}");
     }
@@ -108,7 +121,20 @@ fn store_round_trip_is_exact_on_shuffled_input() {
     let s = dir.join("shuffled.las");
     shuffled_copy(&a, &s, 7);
     for threads in ["1", "2"] {
-        assert_exact(&[&s], &["--leaf-capacity", "300", "--batch-points", "9000", "--commit-every", "0", "--threads", threads], &dir);
+        assert_exact(
+            &[&s],
+            &[
+                "--leaf-capacity",
+                "300",
+                "--batch-points",
+                "9000",
+                "--commit-every",
+                "0",
+                "--threads",
+                threads,
+            ],
+            &dir,
+        );
     }
     // Shuffled and moved far away: shift and shuffle together, merged with the original.
     let m = dir.join("moved-shuffled.las");
@@ -122,7 +148,11 @@ fn store_round_trip_is_exact_on_shuffled_input() {
 fn store_round_trip_is_exact_on_merged_real_tiles() {
     let Some(data) = shared_data() else { return };
     let d = data.join("lasR/inst/extdata/bcts");
-    let mut tiles: Vec<PathBuf> = std::fs::read_dir(&d).unwrap().map(|e| e.unwrap().path()).filter(|p| p.extension().is_some_and(|e| e == "laz")).collect();
+    let mut tiles: Vec<PathBuf> = std::fs::read_dir(&d)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|e| e == "laz"))
+        .collect();
     tiles.sort();
     assert!(tiles.len() >= 2, "bcts tiles missing");
     let dir = tempdir("exact-bcts");
@@ -142,27 +172,39 @@ fn a_header_narrower_than_its_points_grows_the_root() {
     type Lie = Box<dyn Fn(&mut Vec<u8>)>;
     let cases: Vec<(&str, Lie)> = vec![
         // max Z (211) lowered by 5 m, min Z (219) raised by 3 m
-        ("z-short.las", Box::new(|b: &mut Vec<u8>| {
-            let (hi, lo) = (f64_at(b, 211), f64_at(b, 219));
-            set_f64(b, 211, hi - 5.0);
-            set_f64(b, 219, lo + 3.0);
-        })),
+        (
+            "z-short.las",
+            Box::new(|b: &mut Vec<u8>| {
+                let (hi, lo) = (f64_at(b, 211), f64_at(b, 219));
+                set_f64(b, 211, hi - 5.0);
+                set_f64(b, 219, lo + 3.0);
+            }),
+        ),
         // max X (179) := min X (187) + 1 m: every point but a few lies outside
-        ("x-narrow.las", Box::new(|b: &mut Vec<u8>| {
-            let lo = f64_at(b, 187);
-            set_f64(b, 179, lo + 1.0);
-        })),
+        (
+            "x-narrow.las",
+            Box::new(|b: &mut Vec<u8>| {
+                let lo = f64_at(b, 187);
+                set_f64(b, 179, lo + 1.0);
+            }),
+        ),
         // min X := max X - 1 m: the root must grow downwards
-        ("x-narrow-low.las", Box::new(|b: &mut Vec<u8>| {
-            let hi = f64_at(b, 179);
-            set_f64(b, 187, hi - 1.0);
-        })),
+        (
+            "x-narrow-low.las",
+            Box::new(|b: &mut Vec<u8>| {
+                let hi = f64_at(b, 179);
+                set_f64(b, 187, hi - 1.0);
+            }),
+        ),
         // all bounds zero
-        ("zero.las", Box::new(|b: &mut Vec<u8>| {
-            for at in (179..227).step_by(8) {
-                set_f64(b, at, 0.0);
-            }
-        })),
+        (
+            "zero.las",
+            Box::new(|b: &mut Vec<u8>| {
+                for at in (179..227).step_by(8) {
+                    set_f64(b, at, 0.0);
+                }
+            }),
+        ),
     ];
     for (name, lie) in &cases {
         let mut b = std::fs::read(&a).unwrap();
@@ -170,19 +212,47 @@ fn a_header_narrower_than_its_points_grows_the_root() {
         let p = dir.join(name);
         std::fs::write(&p, &b).unwrap();
         // The sorted engine places the root from the points; the incremental one grows it.
-        let (j, err) = assert_exact(&[&p], &["--leaf-capacity", "2000", "--engine", "sorted"], &dir);
+        let (j, err) =
+            assert_exact(&[&p], &["--leaf-capacity", "2000", "--engine", "sorted"], &dir);
         assert_eq!(j["points"], 110_000, "{name}");
-        assert!(err.contains(name) && err.contains("outside the bounds its header declares"), "{name}: {err}");
-        let (j, err) = assert_exact(&[&p], &["--leaf-capacity", "2000", "--batch-points", "10000", "--commit-every", "0", "--engine", "incremental"], &dir);
+        assert!(
+            err.contains(name) && err.contains("outside the bounds its header declares"),
+            "{name}: {err}"
+        );
+        let (j, err) = assert_exact(
+            &[&p],
+            &[
+                "--leaf-capacity",
+                "2000",
+                "--batch-points",
+                "10000",
+                "--commit-every",
+                "0",
+                "--engine",
+                "incremental",
+            ],
+            &dir,
+        );
         assert_eq!(j["points"], 110_000, "{name}");
-        assert!(err.contains(name) && err.contains("outside the bounds its header declares") && err.contains("root holds them"), "{name}: {err}");
-        assert!(j["warnings"].as_array().unwrap().iter().any(|w| w.as_str().unwrap().contains(name)), "{name}: {j}");
+        assert!(
+            err.contains(name)
+                && err.contains("outside the bounds its header declares")
+                && err.contains("root holds them"),
+            "{name}: {err}"
+        );
+        assert!(
+            j["warnings"].as_array().unwrap().iter().any(|w| w.as_str().unwrap().contains(name)),
+            "{name}: {j}"
+        );
         // The warning reports the whole range of the file's points, not a partial one.
         let o = run_ok(mortar().arg("info").arg(&a).arg("--json"));
         let info: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
         let min_x = info[0]["header_bounds"]["min"][0].as_f64().unwrap();
         let max_x = info[0]["header_bounds"]["max"][0].as_f64().unwrap();
-        assert!(err.contains(&format!("x [{min_x:.2}, {max_x:.2}]")), "{name}: {err} (x {min_x}..{max_x})");
+        assert!(
+            err.contains(&format!("x [{min_x:.2}, {max_x:.2}]")),
+            "{name}: {err} (x {min_x}..{max_x})"
+        );
     }
     // Merged after an honest tile: the root is placed from the first file and grows when the
     // lying file's points arrive, after commits that saved the inner root's voxels (so the
@@ -192,10 +262,27 @@ fn a_header_narrower_than_its_points_grows_the_root() {
     for lie in ["x-narrow-low.las", "zero.las"] {
         let lie = dir.join(lie);
         for inputs in [[&moved, &lie], [&lie, &moved]] {
-            let (j, _) = assert_exact(&[inputs[0].as_path(), inputs[1].as_path()], &["--leaf-capacity", "3000", "--batch-points", "20000", "--commit-every", "0", "--engine", "incremental"], &dir);
+            let (j, _) = assert_exact(
+                &[inputs[0].as_path(), inputs[1].as_path()],
+                &[
+                    "--leaf-capacity",
+                    "3000",
+                    "--batch-points",
+                    "20000",
+                    "--commit-every",
+                    "0",
+                    "--engine",
+                    "incremental",
+                ],
+                &dir,
+            );
             assert!(j["root_growths"].as_u64().unwrap() > 0, "{inputs:?}: {j}");
             assert_eq!(j["points"], 220_000);
-            let (j, _) = assert_exact(&[inputs[0].as_path(), inputs[1].as_path()], &["--leaf-capacity", "3000"], &dir);
+            let (j, _) = assert_exact(
+                &[inputs[0].as_path(), inputs[1].as_path()],
+                &["--leaf-capacity", "3000"],
+                &dir,
+            );
             assert_eq!(j["engine"], "sorted");
             assert_eq!(j["points"], 220_000);
         }

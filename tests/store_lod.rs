@@ -10,7 +10,9 @@ use common::*;
 use mortar_core::octree::{LodOptions, LodTree, NodeId};
 use mortar_core::quantize::Precision;
 use mortar_core::render::framebuffer::{key_depth, key_index, EMPTY_KEY};
-use mortar_core::render::{rasterize, BatchRef, Camera, Framebuffer, PrecisionMode, RasterOptions, ViewPreset};
+use mortar_core::render::{
+    rasterize, BatchRef, Camera, Framebuffer, PrecisionMode, RasterOptions, ViewPreset,
+};
 use mortar_io::render_input::{self, RenderSource};
 use mortar_io::store_lod::{LodBatches, StoreLod};
 use mortar_render::{AtomicPath, GpuContext, GpuRasterizer, GpuScene, SceneOptions};
@@ -37,7 +39,9 @@ impl Drop for Fixture {
 fn fixture(tag: &str) -> Fixture {
     let dir = tempdir(tag);
     let store = dir.join("store");
-    run_ok(mortar().arg("build").arg(sample()).arg("-o").arg(&store).args(["--leaf-capacity", "2000"]));
+    run_ok(
+        mortar().arg("build").arg(sample()).arg("-o").arg(&store).args(["--leaf-capacity", "2000"]),
+    );
     let mbat = dir.join("all.mbat");
     run_ok(mortar().arg("batch").arg(&store).arg("-o").arg(&mbat));
     Fixture { dir, store, mbat }
@@ -90,13 +94,18 @@ fn lod_threshold_zero_is_the_full_detail_render() {
     let src = RenderSource::open_batch_file(&f.mbat).unwrap();
     let views = render_input::load_words(&src.file).unwrap();
     let file_refs = render_input::batch_refs(&src.file, &views).unwrap();
-    let leaves: Vec<NodeId> = (0..lod.node_count() as u32).map(NodeId).filter(|&id| lod.is_leaf(id) && lod.samples(id) > 0).collect();
+    let leaves: Vec<NodeId> = (0..lod.node_count() as u32)
+        .map(NodeId)
+        .filter(|&id| lod.is_leaf(id) && lod.samples(id) > 0)
+        .collect();
     assert!(leaves.len() > 50, "{} leaves", leaves.len());
     let all = lod.batches(&leaves).unwrap();
     assert_eq!(all.samples, 110_000);
     let (mut covered, mut differ, mut culled) = (0usize, 0usize, 0u64);
     for (name, cam) in cameras(&lod, 400, 250) {
-        let sel = lod.select(&cam, &LodOptions { threshold_px: 0.0, point_budget: None, cull: true }).unwrap();
+        let sel = lod
+            .select(&cam, &LodOptions { threshold_px: 0.0, point_budget: None, cull: true })
+            .unwrap();
         assert_eq!(sel.stats.voxels, 0, "{name}");
         assert!(sel.nodes.iter().all(|&id| lod.is_leaf(id)), "{name}");
         culled += sel.stats.culled;
@@ -109,7 +118,10 @@ fn lod_threshold_zero_is_the_full_detail_render() {
             let want = keys(&all.refs, &lod, &cam, &RasterOptions { cull: false, ..opts });
             let c = got.iter().filter(|&&k| k != EMPTY_KEY).count();
             assert!(c > 1_000, "{name}: {c} pixels");
-            assert!(winners(&got, &batches) == winners(&want, &all), "{name} {precision:?}: winners differ from drawing every leaf");
+            assert!(
+                winners(&got, &batches) == winners(&want, &all),
+                "{name} {precision:?}: winners differ from drawing every leaf"
+            );
             if precision != PrecisionMode::Fixed(Precision::Bits30) {
                 continue;
             }
@@ -128,7 +140,10 @@ fn lod_threshold_zero_is_the_full_detail_render() {
                     moved += 1;
                     continue;
                 }
-                if a == EMPTY_KEY || batches.position(key_index(a)) == Some(file_position(&file_refs, key_index(b))) {
+                if a == EMPTY_KEY
+                    || batches.position(key_index(a))
+                        == Some(file_position(&file_refs, key_index(b)))
+                {
                     continue;
                 }
                 d += 1;
@@ -142,7 +157,10 @@ fn lod_threshold_zero_is_the_full_detail_render() {
     }
     assert!(culled > 0, "some view culls nodes");
     // Ties aside, the same points win: most pixels agree on the point.
-    assert!(differ * 10 <= covered, "{differ} of {covered} pixels have another winner than the brute-force render");
+    assert!(
+        differ * 10 <= covered,
+        "{differ} of {covered} pixels have another winner than the brute-force render"
+    );
     eprintln!("threshold 0 against brute force: {differ} of {covered} covered pixels won by another point at the same depth");
 }
 
@@ -171,7 +189,8 @@ fn node_batches_are_the_payloads_with_bounds_that_hold_their_samples() {
             for a in 0..3 {
                 hi[a] = hi[a].max(p[a]);
                 assert!(
-                    r.bounds_min[a] <= g.world(a, p[a] as i64) && g.world(a, p[a] as i64) <= r.bounds_max[a],
+                    r.bounds_min[a] <= g.world(a, p[a] as i64)
+                        && g.world(a, p[a] as i64) <= r.bounds_max[a],
                     "node {k}: sample outside its bounds"
                 );
             }
@@ -181,7 +200,10 @@ fn node_batches_are_the_payloads_with_bounds_that_hold_their_samples() {
         for (a, &max) in hi.iter().enumerate() {
             let bound = g.to_int(a, r.bounds_max[a]);
             let step = 1i64 << (r.grid.bits[a] as i64 - 10).max(0);
-            assert!(bound >= max as i64 && bound < max as i64 + step, "node {k} axis {a}: bound {bound}, max {max}");
+            assert!(
+                bound >= max as i64 && bound < max as i64 + step,
+                "node {k} axis {a}: bound {bound}, max {max}"
+            );
             wide += (bound > max as i64) as usize;
         }
     }
@@ -191,7 +213,15 @@ fn node_batches_are_the_payloads_with_bounds_that_hold_their_samples() {
 }
 
 fn render_json(input: &Path, out: &Path, extra: &[&str]) -> serde_json::Value {
-    let o = run_ok(mortar().arg("render").arg(input).arg("-o").arg(out).args(["--width", "320", "--height", "200", "--json"]).args(extra));
+    let o = run_ok(
+        mortar()
+            .arg("render")
+            .arg(input)
+            .arg("-o")
+            .arg(out)
+            .args(["--width", "320", "--height", "200", "--json"])
+            .args(extra),
+    );
     serde_json::from_slice(&o.stdout).expect("JSON")
 }
 
@@ -203,7 +233,10 @@ fn pixels(p: &Path) -> Vec<u32> {
     let mut buf = vec![0; reader.output_buffer_size()];
     let info = reader.next_frame(&mut buf).unwrap();
     assert_eq!(info.color_type, png::ColorType::Rgba);
-    buf[..info.buffer_size()].chunks_exact(4).map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect()
+    buf[..info.buffer_size()]
+        .chunks_exact(4)
+        .map(|c| u32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+        .collect()
 }
 
 #[test]
@@ -213,10 +246,28 @@ fn render_cli_draws_a_store_with_lod() {
     for view in ["iso", "side", "closeup"] {
         // Full detail through LOD against the brute-force path (--no-lod) with the same colours.
         let full = f.dir.join(format!("full-{view}.png"));
-        let j = render_json(&f.store, &full, &["--view", view, "--no-lod", "--color", "stored", "--precision", "30", "--backend", "cpu"]);
+        let j = render_json(
+            &f.store,
+            &full,
+            &[
+                "--view",
+                view,
+                "--no-lod",
+                "--color",
+                "stored",
+                "--precision",
+                "30",
+                "--backend",
+                "cpu",
+            ],
+        );
         assert!(j.get("lod").is_none(), "{j}");
         let lod0 = f.dir.join(format!("lod0-{view}.png"));
-        let j0 = render_json(&f.store, &lod0, &["--view", view, "--lod-threshold", "0", "--precision", "30", "--backend", "cpu"]);
+        let j0 = render_json(
+            &f.store,
+            &lod0,
+            &["--view", view, "--lod-threshold", "0", "--precision", "30", "--backend", "cpu"],
+        );
         assert_eq!(j0["color"], "stored");
         assert_eq!(j0["lod"]["voxels"], 0, "{j0}");
         assert_eq!(j0["points"], 110_000);
@@ -226,7 +277,10 @@ fn render_cli_draws_a_store_with_lod() {
         let differ = a.iter().zip(&b).filter(|(x, y)| x != y).count();
         // Only pixels where points tie in depth may take another colour (see
         // lod_threshold_zero_is_the_full_detail_render); few in these views.
-        assert!(covered > 3_000 && differ * 100 <= covered, "{view}: {differ} of {covered} pixels differ from --no-lod");
+        assert!(
+            covered > 3_000 && differ * 100 <= covered,
+            "{view}: {differ} of {covered} pixels differ from --no-lod"
+        );
         if view == "iso" {
             // In a framed view nothing is culled: every point is drawn.
             assert_eq!(j0["lod"]["points"], 110_000);
@@ -238,14 +292,24 @@ fn render_cli_draws_a_store_with_lod() {
         // huge threshold draws the root's voxels alone.
         let mut last = u64::MAX;
         for t in ["0", "16", "64", "128", "512", "1e12"] {
-            let j = render_json(&f.store, &out, &["--view", view, "--lod-threshold", t, "--backend", "cpu"]);
+            let j = render_json(
+                &f.store,
+                &out,
+                &["--view", view, "--lod-threshold", t, "--backend", "cpu"],
+            );
             let l = &j["lod"];
             let s = l["samples"].as_u64().unwrap();
-            assert!(s <= last || view == "closeup", "{view} threshold {t}: {s} samples after {last}");
+            assert!(
+                s <= last || view == "closeup",
+                "{view} threshold {t}: {s} samples after {last}"
+            );
             assert_eq!(s, l["points"].as_u64().unwrap() + l["voxels"].as_u64().unwrap());
             assert!(j["points_projected"].as_u64().unwrap() <= s);
             assert!(j["pixels_covered"].as_u64().unwrap() > 500, "{view} {t}: {j}");
-            assert!(l["selection_seconds"].as_f64().is_some() && l["nodes_selected"].as_u64().unwrap() >= 1);
+            assert!(
+                l["selection_seconds"].as_f64().is_some()
+                    && l["nodes_selected"].as_u64().unwrap() >= 1
+            );
             if t == "1e12" {
                 assert_eq!(l["nodes_selected"], 1);
                 assert_eq!(l["points"], 0);
@@ -273,19 +337,30 @@ fn point_budget_is_respected() {
     let unlimited = render_json(&f.store, &out, &["--lod-threshold", "0", "--backend", "cpu"]);
     let all = unlimited["lod"]["samples"].as_u64().unwrap();
     assert_eq!(unlimited["lod"]["budget_reached"], false);
-    let root = render_json(&f.store, &out, &["--lod-threshold", "1e12", "--backend", "cpu"])["lod"]["samples"].as_u64().unwrap();
+    let root = render_json(&f.store, &out, &["--lod-threshold", "1e12", "--backend", "cpu"])["lod"]
+        ["samples"]
+        .as_u64()
+        .unwrap();
     let mut last = 0;
     let mut bound = 0;
     for budget in [1, root, 20_000, 40_000, 60_000, 90_000, all, 1 << 40] {
         let b = budget.to_string();
-        let j = render_json(&f.store, &out, &["--lod-threshold", "0", "--point-budget", &b, "--backend", "cpu"]);
+        let j = render_json(
+            &f.store,
+            &out,
+            &["--lod-threshold", "0", "--point-budget", &b, "--backend", "cpu"],
+        );
         let l = &j["lod"];
         let s = l["samples"].as_u64().unwrap();
         assert!(s <= budget || l["nodes_selected"] == 1, "budget {budget}: {s} samples");
         assert!(s >= last, "budget {budget}: {s} samples, fewer than a smaller budget's {last}");
         assert_eq!(l["budget_reached"], budget < all, "budget {budget}: {l}");
         assert_eq!(l["point_budget"], budget);
-        assert_eq!(j["points_projected"].as_u64().unwrap(), s, "a framed view draws every selected sample");
+        assert_eq!(
+            j["points_projected"].as_u64().unwrap(),
+            s,
+            "a framed view draws every selected sample"
+        );
         bound += (budget < all && s > 0) as usize;
         last = s;
     }
@@ -299,7 +374,8 @@ fn gpu_context(path: AtomicPath) -> Option<GpuContext> {
 
 #[test]
 fn gpu_keys_equal_cpu_keys_for_lod_renders() {
-    let contexts: Vec<GpuContext> = [AtomicPath::U64, AtomicPath::TwoPass32].into_iter().filter_map(gpu_context).collect();
+    let contexts: Vec<GpuContext> =
+        [AtomicPath::U64, AtomicPath::TwoPass32].into_iter().filter_map(gpu_context).collect();
     if contexts.is_empty() {
         return;
     }
@@ -311,16 +387,26 @@ fn gpu_keys_equal_cpu_keys_for_lod_renders() {
         let mut raster = GpuRasterizer::new(ctx, 400, 250).unwrap();
         for (name, cam) in cameras(&lod, 400, 250).into_iter().step_by(3) {
             for (threshold_px, point_budget) in [(0.0, None), (128.0, None), (16.0, Some(30_000))] {
-                let sel = lod.select(&cam, &LodOptions { threshold_px, point_budget, cull: true }).unwrap();
+                let sel = lod
+                    .select(&cam, &LodOptions { threshold_px, point_budget, cull: true })
+                    .unwrap();
                 let batches = lod.batches(&sel.nodes).unwrap();
-                let mut scene = GpuScene::new(ctx, lod.grid(), batches.samples, SceneOptions { chunk_points: Some(40_000), colors: false }).unwrap();
+                let mut scene = GpuScene::new(
+                    ctx,
+                    lod.grid(),
+                    batches.samples,
+                    SceneOptions { chunk_points: Some(40_000), colors: false },
+                )
+                .unwrap();
                 for b in &batches.refs {
                     scene.push(ctx, b, None).unwrap();
                 }
-                for precision in [PrecisionMode::Adaptive, PrecisionMode::Fixed(Precision::Bits10)] {
+                for precision in [PrecisionMode::Adaptive, PrecisionMode::Fixed(Precision::Bits10)]
+                {
                     let opts = RasterOptions { precision, cull: true };
                     let fb = Framebuffer::new(cam.width, cam.height);
-                    let cpu_stats = rasterize(&fb, &batches.refs, &lod.grid(), &cam, &opts).unwrap();
+                    let cpu_stats =
+                        rasterize(&fb, &batches.refs, &lod.grid(), &cam, &opts).unwrap();
                     let cpu = fb.into_keys();
                     let frame = raster.draw(ctx, &mut scene, &cam, &opts, None).unwrap();
                     let gpu = raster.read_keys(ctx).unwrap();
@@ -328,7 +414,8 @@ fn gpu_keys_equal_cpu_keys_for_lod_renders() {
                     let mut other = 0;
                     for (g, c) in gpu.iter().zip(&cpu) {
                         if g != c {
-                            if *g != EMPTY_KEY && *c != EMPTY_KEY && key_depth(*g) == key_depth(*c) {
+                            if *g != EMPTY_KEY && *c != EMPTY_KEY && key_depth(*g) == key_depth(*c)
+                            {
                                 ties += 1;
                             } else {
                                 other += 1;
@@ -346,8 +433,11 @@ fn gpu_keys_equal_cpu_keys_for_lod_renders() {
     assert!(compared >= 12);
     eprintln!("LOD renders: GPU keys equal the CPU's except {ties} exact depth ties");
     // The command line: the same PNG from both backends.
-    let args: &[&[&str]] =
-        &[&[], &["--color", "elevation", "--edl", "--hole-fill", "--view", "top", "--ortho"], &["--point-budget", "20000", "--view", "closeup"]];
+    let args: &[&[&str]] = &[
+        &[],
+        &["--color", "elevation", "--edl", "--hole-fill", "--view", "top", "--ortho"],
+        &["--point-budget", "20000", "--view", "closeup"],
+    ];
     for (i, extra) in args.iter().enumerate() {
         let cpu_png = f.dir.join(format!("cpu{i}.png"));
         let gpu_png = f.dir.join(format!("gpu{i}.png"));
@@ -361,7 +451,10 @@ fn gpu_keys_equal_cpu_keys_for_lod_renders() {
                 assert_eq!(g[k], c[k], "{extra:?}: {k}");
             }
         }
-        assert!(std::fs::read(&gpu_png).unwrap() == std::fs::read(&cpu_png).unwrap(), "{extra:?}: PNGs differ");
+        assert!(
+            std::fs::read(&gpu_png).unwrap() == std::fs::read(&cpu_png).unwrap(),
+            "{extra:?}: PNGs differ"
+        );
     }
 }
 
@@ -434,5 +527,12 @@ fn colour_modes_and_bad_stores_are_clear_errors() {
     let e = fail(&f.store, &[]);
     assert!(e.contains(store), "{e}");
     std::fs::write(&hp, &h).unwrap();
-    run_ok(mortar().arg("render").arg(&f.store).arg("-o").arg(&out).args(["--width", "64", "--height", "48", "--backend", "cpu"]));
+    run_ok(mortar().arg("render").arg(&f.store).arg("-o").arg(&out).args([
+        "--width",
+        "64",
+        "--height",
+        "48",
+        "--backend",
+        "cpu",
+    ]));
 }

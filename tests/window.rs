@@ -60,7 +60,9 @@ impl Xvfb {
             let _ = tx.send(line);
         });
         match rx.recv_timeout(Duration::from_secs(30)) {
-            Ok(line) if line.trim().parse::<u32>().is_ok() => Ok(Xvfb { child, display: format!(":{}", line.trim()) }),
+            Ok(line) if line.trim().parse::<u32>().is_ok() => {
+                Ok(Xvfb { child, display: format!(":{}", line.trim()) })
+            }
             other => {
                 let _ = child.kill();
                 let _ = child.wait();
@@ -111,14 +113,32 @@ fn drawn_below_status(w: u32, px: &[[u8; 4]]) -> usize {
     px[STATUS_ROWS * w as usize..].iter().filter(|p| p[..3] != [0, 0, 0]).count()
 }
 
-fn shoot(display: &str, dir: &Path, name: &str, extra: &[&str]) -> (serde_json::Value, (u32, u32, Vec<[u8; 4]>)) {
+fn shoot(
+    display: &str,
+    dir: &Path,
+    name: &str,
+    extra: &[&str],
+) -> (serde_json::Value, (u32, u32, Vec<[u8; 4]>)) {
     let png = dir.join(name);
     let input = sample();
-    let mut args = vec![input.to_str().unwrap(), "--no-progressive", "--width", "320", "--height", "240", "--screenshot", png.to_str().unwrap(), "--frames", "3", "--json"];
+    let mut args = vec![
+        input.to_str().unwrap(),
+        "--no-progressive",
+        "--width",
+        "320",
+        "--height",
+        "240",
+        "--screenshot",
+        png.to_str().unwrap(),
+        "--frames",
+        "3",
+        "--json",
+    ];
     args.extend_from_slice(extra);
     let o = view(display, &args);
     assert!(o.status.success(), "mortar view {args:?}: {}", String::from_utf8_lossy(&o.stderr));
-    let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap_or_else(|e| panic!("{e}: {}", String::from_utf8_lossy(&o.stdout)));
+    let j: serde_json::Value = serde_json::from_slice(&o.stdout)
+        .unwrap_or_else(|e| panic!("{e}: {}", String::from_utf8_lossy(&o.stdout)));
     assert_eq!(j["frames"].as_array().map(Vec::len), Some(3), "{j}");
     assert_eq!(j["points"], 110_000);
     (j, read_png(&png))
@@ -136,10 +156,12 @@ fn view_draws_the_sample_in_a_window_on_the_gpu_and_the_cpu() {
     // The iso view of the 110,000 point sample covers about 14 % of a 320x240 window.
     assert!(drawn > 5_000 && drawn < 30_000, "{drawn} pixels drawn by the CPU");
     // The status line: a dark bar with white text over the top-left corner.
-    let white = cpu[..STATUS_ROWS * w as usize].iter().filter(|p| **p == [255, 255, 255, 255]).count();
+    let white =
+        cpu[..STATUS_ROWS * w as usize].iter().filter(|p| **p == [255, 255, 255, 255]).count();
     assert!(white > 100, "{white} white pixels in the status line");
 
-    if mortar_render::testing::context_or_skip(mortar_render::AtomicPath::TwoPass32, None).is_none() {
+    if mortar_render::testing::context_or_skip(mortar_render::AtomicPath::TwoPass32, None).is_none()
+    {
         return;
     }
     let (gj, (gw, gh, gpu)) = shoot(&x.display, &dir, "gpu.png", &["--backend", "gpu"]);
@@ -147,7 +169,10 @@ fn view_draws_the_sample_in_a_window_on_the_gpu_and_the_cpu() {
     let r = &gj["renderer"];
     assert_eq!(r["backend"], "gpu", "{gj}");
     assert!(r["read_back"] == "surface texture" || r["read_back"] == "resolved image", "{gj}");
-    eprintln!("gpu: {} on {}, surface {}, read back from the {}", r["atomics"], r["adapter"], r["surface_format"], r["read_back"]);
+    eprintln!(
+        "gpu: {} on {}, surface {}, read back from the {}",
+        r["atomics"], r["adapter"], r["surface_format"], r["read_back"]
+    );
     let drawn_gpu = drawn_below_status(gw, &gpu);
     assert!(drawn_gpu > 5_000 && drawn_gpu < 30_000, "{drawn_gpu} pixels drawn by the GPU");
     // Same view, same colours: the GPU's keys equal the CPU's (tests/gpu.rs), so the pictures
@@ -157,23 +182,45 @@ fn view_draws_the_sample_in_a_window_on_the_gpu_and_the_cpu() {
     assert_eq!(differ, 0, "{differ} pixels differ between the CPU and the GPU window");
 
     // Another colour mode and the 32-bit path, through the same present pass.
-    let (_, (_, _, elev)) = shoot(&x.display, &dir, "elevation.png", &["--backend", "gpu", "--atomics", "32", "--color", "elevation", "--no-status"]);
+    let (_, (_, _, elev)) = shoot(
+        &x.display,
+        &dir,
+        "elevation.png",
+        &["--backend", "gpu", "--atomics", "32", "--color", "elevation", "--no-status"],
+    );
     let drawn_elev = elev.iter().filter(|p| p[..3] != [0, 0, 0]).count();
     assert!(drawn_elev > 5_000, "{drawn_elev} pixels drawn in elevation colours");
-    let recoloured = elev[start..].iter().zip(&gpu[start..]).filter(|(a, b)| a[..3] != [0, 0, 0] && a != b).count();
-    assert!(recoloured > drawn_elev / 2, "elevation colours look like RGB: {recoloured} of {drawn_elev} differ");
+    let recoloured = elev[start..]
+        .iter()
+        .zip(&gpu[start..])
+        .filter(|(a, b)| a[..3] != [0, 0, 0] && a != b)
+        .count();
+    assert!(
+        recoloured > drawn_elev / 2,
+        "elevation colours look like RGB: {recoloured} of {drawn_elev} differ"
+    );
 
     // Hole filling and eye-dome lighting: passes on the GPU, the CPU resolve on the CPU, the
     // same window either way; and not the plain picture.
     let post = ["--hole-fill", "2", "--edl", "2"];
-    let (_, (_, _, cpu_post)) = shoot(&x.display, &dir, "cpu-post.png", &[&post[..], &["--backend", "cpu"]].concat());
+    let (_, (_, _, cpu_post)) =
+        shoot(&x.display, &dir, "cpu-post.png", &[&post[..], &["--backend", "cpu"]].concat());
     for atomics in ["64", "32"] {
-        if atomics == "64" && mortar_render::testing::context_or_skip(mortar_render::AtomicPath::U64, None).is_none() {
+        if atomics == "64"
+            && mortar_render::testing::context_or_skip(mortar_render::AtomicPath::U64, None)
+                .is_none()
+        {
             continue;
         }
         let name = format!("gpu-post-{atomics}.png");
-        let (_, (_, _, gpu_post)) = shoot(&x.display, &dir, &name, &[&post[..], &["--backend", "gpu", "--atomics", atomics]].concat());
-        let differ = cpu_post[start..].iter().zip(&gpu_post[start..]).filter(|(a, b)| a != b).count();
+        let (_, (_, _, gpu_post)) = shoot(
+            &x.display,
+            &dir,
+            &name,
+            &[&post[..], &["--backend", "gpu", "--atomics", atomics]].concat(),
+        );
+        let differ =
+            cpu_post[start..].iter().zip(&gpu_post[start..]).filter(|(a, b)| a != b).count();
         assert_eq!(differ, 0, "--atomics {atomics}: {differ} pixels differ between the CPU and the GPU window with hole filling and EDL");
     }
     let changed = cpu_post[start..].iter().zip(&cpu[start..]).filter(|(a, b)| a != b).count();
@@ -185,13 +232,19 @@ fn view_fails_clearly_on_bad_input_under_a_display() {
     let Some(x) = xvfb_or_skip() else { return };
     let dir = tempdir("window-bad");
     let missing = dir.join("missing.mbat");
-    let o = view(&x.display, &[missing.to_str().unwrap(), "--screenshot", dir.join("x.png").to_str().unwrap()]);
+    let o = view(
+        &x.display,
+        &[missing.to_str().unwrap(), "--screenshot", dir.join("x.png").to_str().unwrap()],
+    );
     assert_eq!(o.status.code(), Some(1));
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("missing.mbat"), "{err}");
     let bad = dir.join("bad.laz");
     std::fs::write(&bad, b"LASF not really").unwrap();
-    let o = view(&x.display, &[bad.to_str().unwrap(), "--screenshot", dir.join("y.png").to_str().unwrap()]);
+    let o = view(
+        &x.display,
+        &[bad.to_str().unwrap(), "--screenshot", dir.join("y.png").to_str().unwrap()],
+    );
     assert_eq!(o.status.code(), Some(1));
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("bad.laz") && !err.contains("panicked"), "{err}");
@@ -228,7 +281,18 @@ fn view_draws_a_store_with_lod_on_the_cpu_and_the_gpu() {
     let store = build_store(&dir, "store");
     let shot = |name: &str, extra: &[&str]| {
         let png = dir.join(name);
-        let mut args = vec![store.to_str().unwrap(), "--width", "320", "--height", "240", "--screenshot", png.to_str().unwrap(), "--frames", "2", "--json"];
+        let mut args = vec![
+            store.to_str().unwrap(),
+            "--width",
+            "320",
+            "--height",
+            "240",
+            "--screenshot",
+            png.to_str().unwrap(),
+            "--frames",
+            "2",
+            "--json",
+        ];
         args.extend_from_slice(extra);
         let o = view(&x.display, &args);
         assert!(o.status.success(), "mortar view {args:?}: {}", String::from_utf8_lossy(&o.stderr));
@@ -245,30 +309,58 @@ fn view_draws_a_store_with_lod_on_the_cpu_and_the_gpu() {
     let (full, _) = shot("full.png", &["--backend", "cpu", "--lod-threshold", "0"]);
     let (coarse, _) = shot("coarse.png", &["--backend", "cpu", "--lod-threshold", "2000"]);
     let samples = |j: &serde_json::Value| j["frames"][1]["points_drawn"].as_u64().unwrap();
-    assert!(samples(&coarse) < samples(&full), "coarse {} vs full {}", samples(&coarse), samples(&full));
+    assert!(
+        samples(&coarse) < samples(&full),
+        "coarse {} vs full {}",
+        samples(&coarse),
+        samples(&full)
+    );
     // Attribute colours work under LOD: every sample is a real point with its record.
-    let (kj, (_, _, cclass)) = shot("cpu-class.png", &["--backend", "cpu", "--color", "classification", "--no-status"]);
+    let (kj, (_, _, cclass)) =
+        shot("cpu-class.png", &["--backend", "cpu", "--color", "classification", "--no-status"]);
     assert_eq!(kj["color"], "classification");
     // A mode the format lacks is refused, naming the store.
-    let o = view(&x.display, &[store.to_str().unwrap(), "--color", "no-such-mode", "--screenshot", dir.join("no.png").to_str().unwrap()]);
+    let o = view(
+        &x.display,
+        &[
+            store.to_str().unwrap(),
+            "--color",
+            "no-such-mode",
+            "--screenshot",
+            dir.join("no.png").to_str().unwrap(),
+        ],
+    );
     assert_ne!(o.status.code(), Some(0));
 
-    if mortar_render::testing::context_or_skip(mortar_render::AtomicPath::TwoPass32, None).is_none() {
+    if mortar_render::testing::context_or_skip(mortar_render::AtomicPath::TwoPass32, None).is_none()
+    {
         return;
     }
     // The GPU uploads the selected nodes and draws them from one scene: the same picture.
     let (gj, (_, _, gpu)) = shot("gpu.png", &["--backend", "gpu"]);
     assert_eq!(gj["renderer"]["backend"], "gpu", "{gj}");
     assert_eq!(differ_below_status(w, &cpu, &gpu), 0, "CPU and GPU store views differ");
-    let (_, (_, _, ce)) = shot("cpu-elev.png", &["--backend", "cpu", "--color", "elevation", "--no-status"]);
-    let (_, (_, _, ge)) = shot("gpu-elev.png", &["--backend", "gpu", "--color", "elevation", "--no-status"]);
+    let (_, (_, _, ce)) =
+        shot("cpu-elev.png", &["--backend", "cpu", "--color", "elevation", "--no-status"]);
+    let (_, (_, _, ge)) =
+        shot("gpu-elev.png", &["--backend", "gpu", "--color", "elevation", "--no-status"]);
     assert_eq!(differ_below_status(w, &ce, &ge), 0, "CPU and GPU elevation store views differ");
-    assert!(differ_below_status(w, &ce, &cpu) > drawn / 2, "elevation looks like the stored colours");
-    let (_, (_, _, gclass)) = shot("gpu-class.png", &["--backend", "gpu", "--color", "classification", "--no-status"]);
-    assert_eq!(differ_below_status(w, &cclass, &gclass), 0, "CPU and GPU classification store views differ");
+    assert!(
+        differ_below_status(w, &ce, &cpu) > drawn / 2,
+        "elevation looks like the stored colours"
+    );
+    let (_, (_, _, gclass)) =
+        shot("gpu-class.png", &["--backend", "gpu", "--color", "classification", "--no-status"]);
+    assert_eq!(
+        differ_below_status(w, &cclass, &gclass),
+        0,
+        "CPU and GPU classification store views differ"
+    );
     for mode in ["intensity", "gps-time", "return-number"] {
-        let (_, (_, _, c)) = shot(&format!("cpu-{mode}.png"), &["--backend", "cpu", "--color", mode, "--no-status"]);
-        let (_, (_, _, g)) = shot(&format!("gpu-{mode}.png"), &["--backend", "gpu", "--color", mode, "--no-status"]);
+        let (_, (_, _, c)) =
+            shot(&format!("cpu-{mode}.png"), &["--backend", "cpu", "--color", mode, "--no-status"]);
+        let (_, (_, _, g)) =
+            shot(&format!("gpu-{mode}.png"), &["--backend", "gpu", "--color", mode, "--no-status"]);
         assert_eq!(differ_below_status(w, &c, &g), 0, "CPU and GPU {mode} store views differ");
     }
 }
@@ -280,13 +372,35 @@ fn build_preview_shows_the_store_while_it_grows() {
     // The preview below builds with the incremental engine (a commit per update), so the
     // reference does too: the same hierarchy bytes and the same baked colours.
     let reference = dir.join("reference");
-    run_ok(mortar().arg("build").arg(sample()).arg("-o").arg(&reference).args(["--engine", "incremental"]));
+    run_ok(
+        mortar()
+            .arg("build")
+            .arg(sample())
+            .arg("-o")
+            .arg(&reference)
+            .args(["--engine", "incremental"]),
+    );
     let mut backends = vec!["cpu"];
-    if mortar_render::testing::context_or_skip(mortar_render::AtomicPath::TwoPass32, None).is_some() {
+    if mortar_render::testing::context_or_skip(mortar_render::AtomicPath::TwoPass32, None).is_some()
+    {
         backends.push("gpu");
     }
     let view_png = dir.join("view.png");
-    let o = view(&x.display, &[reference.to_str().unwrap(), "--width", "320", "--height", "240", "--backend", "cpu", "--no-status", "--screenshot", view_png.to_str().unwrap()]);
+    let o = view(
+        &x.display,
+        &[
+            reference.to_str().unwrap(),
+            "--width",
+            "320",
+            "--height",
+            "240",
+            "--backend",
+            "cpu",
+            "--no-status",
+            "--screenshot",
+            view_png.to_str().unwrap(),
+        ],
+    );
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let (_, _, expected) = read_png(&view_png);
     for backend in backends {
@@ -294,12 +408,32 @@ fn build_preview_shows_the_store_while_it_grows() {
         let png = dir.join(format!("preview-{backend}.png"));
         let mut c = mortar();
         c.arg("build").arg(sample()).arg("-o").arg(&store);
-        c.args(["--preview", "--preview-backend", backend, "--preview-size", "320x240", "--preview-screenshot"]).arg(&png);
+        c.args([
+            "--preview",
+            "--preview-backend",
+            backend,
+            "--preview-size",
+            "320x240",
+            "--preview-screenshot",
+        ])
+        .arg(&png);
         // A commit after every 5,000-point update: the window sees the store grow.
-        c.args(["--engine", "incremental", "--commit-every", "0", "--batch-points", "5000", "--json"]);
+        c.args([
+            "--engine",
+            "incremental",
+            "--commit-every",
+            "0",
+            "--batch-points",
+            "5000",
+            "--json",
+        ]);
         c.env("DISPLAY", &x.display).env_remove("WAYLAND_DISPLAY");
         let o = run_limited(c, Duration::from_secs(300));
-        assert!(o.status.success(), "build --preview {backend}: {}", String::from_utf8_lossy(&o.stderr));
+        assert!(
+            o.status.success(),
+            "build --preview {backend}: {}",
+            String::from_utf8_lossy(&o.stderr)
+        );
         let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
         assert_eq!(j["points"], 110_000);
         assert!(j["commits"].as_u64().unwrap() >= 20, "{}", j["commits"]);
@@ -309,11 +443,18 @@ fn build_preview_shows_the_store_while_it_grows() {
         // Frames were drawn while the store grew, not only at the end.
         assert!(frames.len() >= 3, "{} preview frames", frames.len());
         let drawn: Vec<u64> = frames.iter().map(|f| f["points_drawn"].as_u64().unwrap()).collect();
-        assert!(drawn.iter().any(|&d| d > 0 && d < *drawn.last().unwrap()), "no partial store was shown: {drawn:?}");
+        assert!(
+            drawn.iter().any(|&d| d > 0 && d < *drawn.last().unwrap()),
+            "no partial store was shown: {drawn:?}"
+        );
         // The last frame shows the finished store as `mortar view` shows it.
         let (w, h, shown) = read_png(&png);
         assert_eq!((w, h), (320, 240));
-        assert_eq!(differ_below_status(w, &shown, &expected), 0, "{backend}: the preview's last frame is not the finished store");
+        assert_eq!(
+            differ_below_status(w, &shown, &expected),
+            0,
+            "{backend}: the preview's last frame is not the finished store"
+        );
         // The store itself is the same as one built without a window.
         let a = std::fs::read(store.join("hierarchy.bin")).unwrap();
         let b = std::fs::read(reference.join("hierarchy.bin")).unwrap();
@@ -328,7 +469,17 @@ fn view_draws_raw_las_progressively_until_the_image_is_final() {
     let input = sample();
     let shot = |name: &str, extra: &[&str]| {
         let png = dir.join(name);
-        let mut args = vec![input.to_str().unwrap(), "--width", "320", "--height", "240", "--no-status", "--screenshot", png.to_str().unwrap(), "--json"];
+        let mut args = vec![
+            input.to_str().unwrap(),
+            "--width",
+            "320",
+            "--height",
+            "240",
+            "--no-status",
+            "--screenshot",
+            png.to_str().unwrap(),
+            "--json",
+        ];
         args.extend_from_slice(extra);
         let o = view(&x.display, &args);
         assert!(o.status.success(), "mortar view {args:?}: {}", String::from_utf8_lossy(&o.stderr));
@@ -344,7 +495,13 @@ fn view_draws_raw_las_progressively_until_the_image_is_final() {
     // The final image is the headless progressive render's once converged (which
     // tests/progressive.rs checks against the brute-force render), pixel for pixel.
     let png = dir.join("render.png");
-    run_ok(mortar().arg("render").arg(&input).args(["--progressive", "converge", "--width", "320", "--height", "240", "-o"]).arg(&png));
+    run_ok(
+        mortar()
+            .arg("render")
+            .arg(&input)
+            .args(["--progressive", "converge", "--width", "320", "--height", "240", "-o"])
+            .arg(&png),
+    );
     let (_, _, rendered) = read_png(&png);
     let differ = progressive.iter().zip(&rendered).filter(|(a, b)| a != b).count();
     let drawn = rendered.iter().filter(|p| p[..3] != [0, 0, 0]).count();
@@ -359,7 +516,10 @@ fn view_draws_raw_las_progressively_until_the_image_is_final() {
         let (gj, (_, _, gpu)) = shot("progressive-gpu.png", &["--backend", "gpu"]);
         assert_eq!(gj["renderer"]["backend"], "gpu", "{gj}");
         let differ = gpu.iter().zip(&progressive).filter(|(a, b)| a != b).count();
-        assert_eq!(differ, 0, "{differ} pixels differ between the GPU and the CPU progressive window");
+        assert_eq!(
+            differ, 0,
+            "{differ} pixels differ between the GPU and the CPU progressive window"
+        );
         // With 32-bit atomics the progressive view falls back to the CPU renderer.
         let (cj, _) = shot("progressive-32.png", &["--backend", "gpu", "--atomics", "32"]);
         assert_eq!(cj["renderer"]["backend"], "cpu", "{cj}");
@@ -384,15 +544,27 @@ fn a_failing_build_closes_its_preview_and_reports_the_error() {
         *x = x.wrapping_mul(7).wrapping_add(13);
     }
     std::fs::write(&las, &b).unwrap();
-    for extra in [&["--preview-backend", "cpu"][..], &["--preview-backend", "cpu", "--preview-offscreen"][..]] {
+    for extra in [
+        &["--preview-backend", "cpu"][..],
+        &["--preview-backend", "cpu", "--preview-offscreen"][..],
+    ] {
         let store = dir.join("s");
         let mut c = mortar();
-        c.arg("build").arg(&las).arg("-o").arg(&store).args(["--batch-points", "50000"]).arg("--preview").args(extra);
+        c.arg("build")
+            .arg(&las)
+            .arg("-o")
+            .arg(&store)
+            .args(["--batch-points", "50000"])
+            .arg("--preview")
+            .args(extra);
         c.env("DISPLAY", &x.display).env_remove("WAYLAND_DISPLAY");
         let o = run_limited(c, Duration::from_secs(120));
         assert_eq!(o.status.code(), Some(1), "{extra:?}");
         let err = String::from_utf8_lossy(&o.stderr);
-        assert!(err.contains("bad.laz") && err.contains("corrupt") && !err.contains("panicked"), "{extra:?}: {err}");
+        assert!(
+            err.contains("bad.laz") && err.contains("corrupt") && !err.contains("panicked"),
+            "{extra:?}: {err}"
+        );
         assert!(!store.exists(), "no half-written store");
     }
 }
@@ -409,10 +581,28 @@ fn progressive_and_no_progressive_windows_show_the_same_picture() {
     let Some(x) = xvfb_or_skip() else { return };
     let dir = tempdir("window-same");
     let input = sample();
-    let common = ["--width", "320", "--height", "240", "--precision", "30", "--color", "intensity", "--hole-fill", "--edl"];
+    let common = [
+        "--width",
+        "320",
+        "--height",
+        "240",
+        "--precision",
+        "30",
+        "--color",
+        "intensity",
+        "--hole-fill",
+        "--edl",
+    ];
     let shot = |name: &str, extra: &[&str]| {
         let png = dir.join(name);
-        let mut args = vec![input.to_str().unwrap(), "--no-status", "--screenshot", png.to_str().unwrap(), "--frames", "2"];
+        let mut args = vec![
+            input.to_str().unwrap(),
+            "--no-status",
+            "--screenshot",
+            png.to_str().unwrap(),
+            "--frames",
+            "2",
+        ];
         args.extend_from_slice(&common);
         args.extend_from_slice(extra);
         let o = view(&x.display, &args);
@@ -420,7 +610,14 @@ fn progressive_and_no_progressive_windows_show_the_same_picture() {
         read_png(&png).2
     };
     let png = dir.join("render.png");
-    let o = run_ok(mortar().arg("render").arg(&input).args(["--progressive", "converge", "--json", "-o"]).arg(&png).args(common));
+    let o = run_ok(
+        mortar()
+            .arg("render")
+            .arg(&input)
+            .args(["--progressive", "converge", "--json", "-o"])
+            .arg(&png)
+            .args(common),
+    );
     let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     let ties = j["depth_ties"].as_u64().unwrap() as usize;
     let progressive = shot("p-cpu.png", &["--backend", "cpu"]);
@@ -430,7 +627,10 @@ fn progressive_and_no_progressive_windows_show_the_same_picture() {
     let differ = |a: &[[u8; 4]], b: &[[u8; 4]]| a.iter().zip(b).filter(|(p, q)| p != q).count();
     let d = differ(&progressive, &batched);
     eprintln!("{d} of {drawn} pixels differ, {ties} tied pixels");
-    assert!(d <= 9 * ties, "{d} of {drawn} pixels differ between --progressive and --no-progressive ({ties} ties)");
+    assert!(
+        d <= 9 * ties,
+        "{d} of {drawn} pixels differ between --progressive and --no-progressive ({ties} ties)"
+    );
     if mortar_render::testing::context_or_skip(mortar_render::AtomicPath::U64, None).is_some() {
         let gpu_progressive = shot("p-gpu.png", &["--backend", "gpu"]);
         let gpu_batched = shot("b-gpu.png", &["--backend", "gpu", "--no-progressive"]);

@@ -11,7 +11,9 @@
 //! compiling with nothing but `mortar_io` and `mortar_core`.
 
 use mortar_core::layout::RecordLayout;
-use mortar_core::octree::{select_nodes, Cube, IndexEntry, LodIndex, LodOptions, LodTree, NodeId, NodeKey};
+use mortar_core::octree::{
+    select_nodes, Cube, IndexEntry, LodIndex, LodOptions, LodTree, NodeId, NodeKey,
+};
 use mortar_core::render::{Aabb, Camera, ViewPreset};
 use mortar_io::batchfile::BatchFile;
 use mortar_io::dataset::RecordSource;
@@ -69,7 +71,10 @@ unsafe impl std::alloc::GlobalAlloc for LimitAlloc {
 
 fn check_size(size: usize) {
     if size > HUGE_ALLOCATION {
-        eprintln!("==mortar-fuzz== huge allocation: {size} bytes\n{}", std::backtrace::Backtrace::force_capture());
+        eprintln!(
+            "==mortar-fuzz== huge allocation: {size} bytes\n{}",
+            std::backtrace::Backtrace::force_capture()
+        );
         std::process::abort();
     }
 }
@@ -120,7 +125,11 @@ pub fn vlr_records(data: &[u8]) {
 /// VLRs, the LASzip VLR, the LAZ chunk table), then every piece decoded (laz-rs for LAZ chunks)
 /// and `mortar info --stats` over it.
 pub fn las_input(data: &[u8]) {
-    let Some(input) = ok(LasInput::from_bytes(PathBuf::from("fuzz.las"), Bytes::Owned(data.to_vec()))) else { return };
+    let Some(input) =
+        ok(LasInput::from_bytes(PathBuf::from("fuzz.las"), Bytes::Owned(data.to_vec())))
+    else {
+        return;
+    };
     // Setting up laz-rs's decoder for a chunk costs ~10 ms in the instrumented build, and every
     // chunk goes through the same code: the first pieces and the last one are decoded, and the
     // stats pass (all pieces again) only runs for files of a few pieces.
@@ -132,7 +141,10 @@ pub fn las_input(data: &[u8]) {
 /// Target `batch_file`: a batch file (`BatchFile::from_bytes`: header, JSON metadata, stored LAS
 /// header and EVLRs, batch table), then every batch's sections and every record rebuilt.
 pub fn batch_file(data: &[u8]) {
-    let Some(f) = ok(BatchFile::from_bytes(Path::new("fuzz.mbat"), Bytes::Owned(data.to_vec()))) else { return };
+    let Some(f) = ok(BatchFile::from_bytes(Path::new("fuzz.mbat"), Bytes::Owned(data.to_vec())))
+    else {
+        return;
+    };
     for i in 0..f.batch_count() {
         if let Some(b) = ok(f.batch(i)) {
             let _ = (b.words(0).len(), b.colors().len(), b.len());
@@ -146,7 +158,9 @@ pub fn batch_file(data: &[u8]) {
 /// length][source.las][hierarchy.bin][nodes.bin]` (little-endian; lengths are cut to the bytes
 /// that exist).
 pub fn split_store(data: &[u8]) -> [&[u8]; 3] {
-    let len = |at: usize| data.get(at..at + 4).map_or(0, |b| u32::from_le_bytes(b.try_into().unwrap()) as usize);
+    let len = |at: usize| {
+        data.get(at..at + 4).map_or(0, |b| u32::from_le_bytes(b.try_into().unwrap()) as usize)
+    };
     let rest = data.get(8..).unwrap_or(&[]);
     let a = len(0).min(rest.len());
     let (src, rest) = rest.split_at(a);
@@ -173,7 +187,11 @@ pub fn pack_store(source: &[u8], hierarchy: &[u8], nodes: &[u8]) -> Vec<u8> {
 pub fn store(data: &[u8]) {
     let dir = store_dir();
     let [src, hier, nodes] = split_store(data);
-    for (name, bytes) in [(mortar_io::store::SOURCE_FILE, src), (mortar_io::store::HIERARCHY_FILE, hier), (mortar_io::store::NODES_FILE, nodes)] {
+    for (name, bytes) in [
+        (mortar_io::store::SOURCE_FILE, src),
+        (mortar_io::store::HIERARCHY_FILE, hier),
+        (mortar_io::store::NODES_FILE, nodes),
+    ] {
         std::fs::write(dir.join(name), bytes).expect("write the store's files");
     }
     let Some(s) = ok(Store::open(&dir)) else { return };
@@ -185,8 +203,11 @@ pub fn store(data: &[u8]) {
     walk(lod.index());
     let bounds = lod.bounds();
     for (preset, threshold) in [(ViewPreset::Iso, 64.0), (ViewPreset::Top, 0.0)] {
-        let Some(cam) = ok(Camera::frame_perspective(&bounds, preset, 0.8, 64, 48)) else { continue };
-        let options = LodOptions { threshold_px: threshold, point_budget: Some(1 << 20), cull: true };
+        let Some(cam) = ok(Camera::frame_perspective(&bounds, preset, 0.8, 64, 48)) else {
+            continue;
+        };
+        let options =
+            LodOptions { threshold_px: threshold, point_budget: Some(1 << 20), cull: true };
         if let Some(sel) = ok(lod.select(&cam, &options)) {
             if let Some(b) = ok(lod.batches(&sel.nodes)) {
                 for i in 0..b.refs.len().min(64) as u32 {
@@ -208,7 +229,11 @@ pub fn lod_index(data: &[u8]) {
         .chunks_exact(16)
         .map(|c| {
             let u = |o: usize| u32::from_le_bytes(c[o..o + 4].try_into().unwrap());
-            IndexEntry { key: NodeKey { level: c[0], index: [u(4), u(8), u(12)] }, leaf: c[1] & 1 == 1, samples: u16::from_le_bytes([c[2], c[3]]) as u64 }
+            IndexEntry {
+                key: NodeKey { level: c[0], index: [u(4), u(8), u(12)] },
+                leaf: c[1] & 1 == 1,
+                samples: u16::from_le_bytes([c[2], c[3]]) as u64,
+            }
         })
         .collect();
     let Some(index) = ok(LodIndex::new(root, &entries)) else { return };
@@ -219,7 +244,12 @@ pub fn lod_index(data: &[u8]) {
     let bounds = Aabb::new(lo, [lo[0] + edge, lo[1] + edge, lo[2] + edge]);
     if let Some(cam) = ok(Camera::frame_perspective(&bounds, ViewPreset::Iso, 0.8, 64, 48)) {
         for threshold in [0.0, 32.0] {
-            let _ = ok(select_nodes(&index, &grid, &cam, &LodOptions { threshold_px: threshold, point_budget: Some(1000), cull: true }));
+            let _ = ok(select_nodes(
+                &index,
+                &grid,
+                &cam,
+                &LodOptions { threshold_px: threshold, point_budget: Some(1000), cull: true },
+            ));
         }
     }
 }
@@ -244,7 +274,14 @@ fn read_some(src: &dyn RecordSource, n: usize) {
     let last = pieces.len().saturating_sub(1);
     for p in pieces.into_iter().enumerate().filter(|&(i, _)| i < n || i == last).map(|(_, p)| p) {
         if let Some(r) = ok(src.read_piece(&p)) {
-            assert_eq!(r.len(), p.points as usize * rl, "piece {} of {} points holds {} bytes", p.index, p.points, r.len());
+            assert_eq!(
+                r.len(),
+                p.points as usize * rl,
+                "piece {} of {} points holds {} bytes",
+                p.index,
+                p.points,
+                r.len()
+            );
         }
     }
 }
@@ -312,7 +349,10 @@ fn store_dir() -> PathBuf {
 /// piece); the stream is the compressed points.
 pub fn laz_pointwise(data: &[u8]) {
     let Some(file) = pointwise_file(data) else { return };
-    let Some(input) = ok(LasInput::from_bytes(PathBuf::from("fuzz.laz"), Bytes::Owned(file))) else { return };
+    let Some(input) = ok(LasInput::from_bytes(PathBuf::from("fuzz.laz"), Bytes::Owned(file)))
+    else {
+        return;
+    };
     read_some(&input, 3);
     let _ = ok(info::describe(&input, "laz", input.pieces().len() <= 2, None));
 }

@@ -26,10 +26,7 @@ pub fn shared_data() -> Option<PathBuf> {
     if p.is_dir() {
         Some(p)
     } else {
-        eprintln!(
-            "SKIP: no shared fixtures at {} (set MORTAR_TEST_DATA)",
-            p.display()
-        );
+        eprintln!("SKIP: no shared fixtures at {} (set MORTAR_TEST_DATA)", p.display());
         None
     }
 }
@@ -111,11 +108,7 @@ pub fn run_limited(mut c: Command, limit: Duration) -> Output {
 
 pub fn run_ok(c: &mut Command) -> Output {
     let o = c.output().expect("spawn");
-    assert!(
-        o.status.success(),
-        "{c:?} failed: {}",
-        String::from_utf8_lossy(&o.stderr)
-    );
+    assert!(o.status.success(), "{c:?} failed: {}", String::from_utf8_lossy(&o.stderr));
     o
 }
 
@@ -164,7 +157,11 @@ pub fn laspy_python() -> Option<PathBuf> {
             PathBuf::from("python3")
         }
     });
-    let ok = std::process::Command::new(&py).args(["-c", "import laspy, lazrs"]).output().map(|o| o.status.success()).unwrap_or(false);
+    let ok = std::process::Command::new(&py)
+        .args(["-c", "import laspy, lazrs"])
+        .output()
+        .map(|o| o.status.success())
+        .unwrap_or(false);
     if ok {
         return Some(py);
     }
@@ -180,7 +177,8 @@ pub fn laspy_python() -> Option<PathBuf> {
 pub fn twice_apart(las: &Path, out: &Path) -> PathBuf {
     let b = std::fs::read(las).unwrap();
     let u32_at = |at: usize| u32::from_le_bytes(b[at..at + 4].try_into().unwrap());
-    let (start, rl, n) = (u32_at(96) as usize, u16::from_le_bytes([b[105], b[106]]) as usize, u32_at(107));
+    let (start, rl, n) =
+        (u32_at(96) as usize, u16::from_le_bytes([b[105], b[106]]) as usize, u32_at(107));
     let mut h = b[..start].to_vec();
     h[107..111].copy_from_slice(&(2 * n).to_le_bytes());
     for k in 0..5 {
@@ -209,7 +207,6 @@ pub fn first_piece_box(las: &Path) -> ([f64; 3], [f64; 3]) {
     (b.min, b.max)
 }
 
-
 /// Generated inputs whose partition cells are denser than a unit under 1 MiB (units of about
 /// 4,500 points; leaves of 3,000): points at one position (alone: the root is one leaf; and
 /// merged into a scan: a chain of inner nodes down to a leaf beyond the size limit), a cube of
@@ -223,8 +220,20 @@ pub fn dense_sets(dir: &Path) -> Vec<Vec<PathBuf>> {
     };
     let coincident = g("coincident.las", &["--points", "60000", "--shape", "coincident"]);
     let scan = g("scan.las", &["--points", "40000", "--seed", "3"]);
-    let cube = g("cube30.las", &["--points", "80000", "--shape", "cube", "--scale", "1", "--extent", "30"]);
+    let cube = g(
+        "cube30.las",
+        &["--points", "80000", "--shape", "cube", "--scale", "1", "--extent", "30"],
+    );
     let scan1 = g("scan1.las", &["--points", "40000", "--seed", "4", "--scale", "1"]);
-    let dups = g("dups.las", &["--points", "80000", "--shape", "duplicates", "--scale", "1", "--extent", "200"]);
-    vec![vec![coincident.clone()], vec![scan, coincident], vec![cube.clone()], vec![scan1, cube], vec![dups]]
+    let dups = g(
+        "dups.las",
+        &["--points", "80000", "--shape", "duplicates", "--scale", "1", "--extent", "200"],
+    );
+    vec![
+        vec![coincident.clone()],
+        vec![scan, coincident],
+        vec![cube.clone()],
+        vec![scan1, cube],
+        vec![dups],
+    ]
 }

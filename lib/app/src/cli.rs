@@ -23,7 +23,10 @@ pub struct ProgressBar {
     thread: Option<std::thread::JoinHandle<()>>,
 }
 
-pub fn progress_bar(command: &'static str, progress: &mortar_io::progress::Progress) -> ProgressBar {
+pub fn progress_bar(
+    command: &'static str,
+    progress: &mortar_io::progress::Progress,
+) -> ProgressBar {
     use std::io::IsTerminal;
     let stop = std::sync::Arc::new(AtomicBool::new(false));
     if QUIET.load(Ordering::Relaxed) || !std::io::stderr().is_terminal() {
@@ -132,7 +135,10 @@ pub fn print_warnings(ws: &[String]) {
 }
 
 /// Opens the inputs of a command as one dataset.
-pub fn open_dataset(inputs: &[String], crs: &CrsArgs) -> anyhow::Result<mortar_io::dataset::Dataset> {
+pub fn open_dataset(
+    inputs: &[String],
+    crs: &CrsArgs,
+) -> anyhow::Result<mortar_io::dataset::Dataset> {
     let paths = mortar_io::source::expand_inputs(inputs)?;
     Ok(mortar_io::dataset::Dataset::open_with(&paths, &crs.options())?)
 }
@@ -190,7 +196,10 @@ impl SortArgs {
         tmp_dir(&self.tmp_dir)
     }
     pub fn options(&self) -> mortar_io::sort::SortOptions {
-        mortar_io::sort::SortOptions::with_memory(self.memory.unwrap_or_else(mortar_io::sort::default_memory), self.tmp_dir())
+        mortar_io::sort::SortOptions::with_memory(
+            self.memory.unwrap_or_else(mortar_io::sort::default_memory),
+            self.tmp_dir(),
+        )
     }
 }
 

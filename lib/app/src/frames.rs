@@ -104,18 +104,35 @@ impl FrameRecorder {
         if !(a.every >= 0.0 && a.every.is_finite()) {
             bail!("--every {}: must be a number of seconds, 0 or more", a.every);
         }
-        if a.frame_width == 0 || a.frame_height == 0 || a.frame_width > 8192 || a.frame_height > 8192 {
-            bail!("--frame-width/--frame-height {}x{}: must be 1 to 8192 pixels", a.frame_width, a.frame_height);
+        if a.frame_width == 0
+            || a.frame_height == 0
+            || a.frame_width > 8192
+            || a.frame_height > 8192
+        {
+            bail!(
+                "--frame-width/--frame-height {}x{}: must be 1 to 8192 pixels",
+                a.frame_width,
+                a.frame_height
+            );
         }
         if !(a.frame_lod_threshold >= 0.0) || !a.orbit.is_finite() {
             bail!("--frame-lod-threshold must be 0 or more and --orbit a number of degrees");
         }
-        std::fs::create_dir_all(dir).with_context(|| format!("{}: cannot create the frames directory", dir.display()))?;
+        std::fs::create_dir_all(dir)
+            .with_context(|| format!("{}: cannot create the frames directory", dir.display()))?;
         let camera = build_camera(&a.camera, &header_bounds(ds), a.frame_width, a.frame_height)?;
         let gpu = match a.frame_backend {
             crate::render::Backend::Cpu => None,
-            crate::render::Backend::Gpu => Some(mortar_render::GpuContext::new(&mortar_render::GpuOptions { allow_software: true, ..Default::default() }).map_err(|e| anyhow::anyhow!("--frame-backend gpu: {e}"))?),
-            crate::render::Backend::Auto => mortar_render::GpuContext::new(&mortar_render::GpuOptions::default()).ok(),
+            crate::render::Backend::Gpu => Some(
+                mortar_render::GpuContext::new(&mortar_render::GpuOptions {
+                    allow_software: true,
+                    ..Default::default()
+                })
+                .map_err(|e| anyhow::anyhow!("--frame-backend gpu: {e}"))?,
+            ),
+            crate::render::Backend::Auto => {
+                mortar_render::GpuContext::new(&mortar_render::GpuOptions::default()).ok()
+            }
         };
         Ok(Some(FrameRecorder {
             dir: dir.clone(),
@@ -148,7 +165,8 @@ impl FrameRecorder {
         let t = (k as f64 * self.orbit).to_radians();
         let (s, co) = t.sin_cos();
         let d = [c.eye[0] - c.target[0], c.eye[1] - c.target[1]];
-        let eye = [c.target[0] + co * d[0] - s * d[1], c.target[1] + s * d[0] + co * d[1], c.eye[2]];
+        let eye =
+            [c.target[0] + co * d[0] - s * d[1], c.target[1] + s * d[0] + co * d[1], c.eye[2]];
         // The distance to the target and so the clip planes stay the same.
         Ok(Camera { eye, ..*c })
     }
@@ -169,7 +187,11 @@ impl FrameRecorder {
         let batches = lod.batches(&sel.nodes)?;
         let settings = RenderSettings::default();
         let img = match &self.gpu {
-            Some(ctx) => crate::render::lod::render_gpu(ctx, &lod, &batches, &camera, &settings).map_err(|e| anyhow::anyhow!("{}: GPU: {e}", self.store.display()))?.0?,
+            Some(ctx) => {
+                crate::render::lod::render_gpu(ctx, &lod, &batches, &camera, &settings)
+                    .map_err(|e| anyhow::anyhow!("{}: GPU: {e}", self.store.display()))?
+                    .0?
+            }
             None => store_lod::render(&lod, &batches, &camera, &settings)?,
         };
         let file = self.dir.join(format!("frame-{:04}.png", self.frames.len() + 1));
@@ -204,7 +226,8 @@ impl FrameRecorder {
         let (sw, sh) = (cols * (tw + gap) + gap, rows * (th + gap) + gap);
         let mut sheet = vec![0xff20_2020u32; (sw * sh) as usize];
         for (k, (_, _, thumb)) in self.thumbs.iter().enumerate() {
-            let (cx, cy) = ((k as u32 % cols) * (tw + gap) + gap, (k as u32 / cols) * (th + gap) + gap);
+            let (cx, cy) =
+                ((k as u32 % cols) * (tw + gap) + gap, (k as u32 / cols) * (th + gap) + gap);
             for y in 0..th {
                 let row = (y * tw) as usize;
                 let at = ((cy + y) * sw + cx) as usize;

@@ -46,7 +46,9 @@ pub fn plan_batches(xyz: &[[i32; 3]], batch_size: usize, base: usize, out: &mut 
 fn plan_range(xyz: &[[i32; 3]], range: Range<usize>, base: usize, out: &mut Vec<PlannedBatch>) {
     let (min, max) = int_bounds(&xyz[range.clone()]);
     match BatchGrid::for_bounds(min, max) {
-        Some(grid) => out.push(PlannedBatch { range: range.start + base..range.end + base, grid, max }),
+        Some(grid) => {
+            out.push(PlannedBatch { range: range.start + base..range.end + base, grid, max })
+        }
         None => {
             // A single point always fits, so the recursion ends.
             let mid = range.start + (range.end - range.start) / 2;
@@ -94,7 +96,13 @@ mod geo_tests {
     use proptest::prelude::*;
 
     /// A Morton-ordered-ish cloud (sorted by x) around a world origin on a grid.
-    fn cloud(origin: [f64; 3], scale: f64, extent_m: f64, seed: u64, n: usize) -> (Grid, Vec<[i32; 3]>) {
+    fn cloud(
+        origin: [f64; 3],
+        scale: f64,
+        extent_m: f64,
+        seed: u64,
+        n: usize,
+    ) -> (Grid, Vec<[i32; 3]>) {
         let grid = Grid { scale: [scale; 3], offset: origin };
         let mut s = seed | 1;
         let mut next = || {

@@ -49,12 +49,21 @@ impl ColorSource {
     pub fn rgba(&self, record: &[u8]) -> u32 {
         match *self {
             ColorSource::Rgb { offset, depth } => {
-                let c = |i: usize| depth.to8(u16::from_le_bytes([record[offset + 2 * i], record[offset + 2 * i + 1]])) as u32;
+                let c = |i: usize| {
+                    depth.to8(u16::from_le_bytes([
+                        record[offset + 2 * i],
+                        record[offset + 2 * i + 1],
+                    ])) as u32
+                };
                 c(0) | (c(1) << 8) | (c(2) << 16) | (255 << 24)
             }
             ColorSource::Intensity { max_intensity } => {
                 let i = u16::from_le_bytes([record[12], record[13]]) as u32;
-                let g = if max_intensity == 0 { 255 } else { (i * 255 / max_intensity as u32).min(255) };
+                let g = if max_intensity == 0 {
+                    255
+                } else {
+                    (i * 255 / max_intensity as u32).min(255)
+                };
                 g | (g << 8) | (g << 16) | (255 << 24)
             }
         }

@@ -103,7 +103,12 @@ pub fn merge(inputs: &[GridInput]) -> Result<(Grid, Vec<GridMap>), GridError> {
             match near_integer(ratio, 1e-9 * ratio) {
                 Some(k) if k >= 1 => maps[index].factor[a] = k,
                 _ => {
-                    return Err(GridError::ScaleNotMultiple { index, axis: AXES[a], scale: i.grid.scale[a], finest })
+                    return Err(GridError::ScaleNotMultiple {
+                        index,
+                        axis: AXES[a],
+                        scale: i.grid.scale[a],
+                        finest,
+                    })
                 }
             }
             let d = (i.grid.offset[a] - first.offset[a]) / finest;
@@ -121,10 +126,24 @@ pub fn merge(inputs: &[GridInput]) -> Result<(Grid, Vec<GridMap>), GridError> {
             }
         }
         // Merged integer extent; re-centre the offset (by whole steps) if it leaves i32.
-        let lo = inputs.iter().zip(&maps).map(|(i, m)| i.min[a] * m.factor[a] + m.shift[a]).min().unwrap();
-        let hi = inputs.iter().zip(&maps).map(|(i, m)| i.max[a] * m.factor[a] + m.shift[a]).max().unwrap();
+        let lo = inputs
+            .iter()
+            .zip(&maps)
+            .map(|(i, m)| i.min[a] * m.factor[a] + m.shift[a])
+            .min()
+            .unwrap();
+        let hi = inputs
+            .iter()
+            .zip(&maps)
+            .map(|(i, m)| i.max[a] * m.factor[a] + m.shift[a])
+            .max()
+            .unwrap();
         if hi - lo > u32::MAX as i64 {
-            return Err(GridError::ExtentTooLarge { axis: AXES[a], extent: (hi - lo) as f64, scale: finest });
+            return Err(GridError::ExtentTooLarge {
+                axis: AXES[a],
+                extent: (hi - lo) as f64,
+                scale: finest,
+            });
         }
         if lo < i32::MIN as i64 || hi > i32::MAX as i64 {
             let centre = lo + (hi - lo) / 2;
@@ -142,7 +161,11 @@ mod tests {
     use super::*;
 
     fn input(scale: f64, offset: f64, min: i64, max: i64) -> GridInput {
-        GridInput { grid: Grid { scale: [scale; 3], offset: [offset; 3] }, min: [min; 3], max: [max; 3] }
+        GridInput {
+            grid: Grid { scale: [scale; 3], offset: [offset; 3] },
+            min: [min; 3],
+            max: [max; 3],
+        }
     }
 
     #[test]
@@ -165,8 +188,14 @@ mod tests {
 
     #[test]
     fn impossible_merges_fail() {
-        assert!(matches!(merge(&[input(0.01, 0.0, 0, 1), input(0.015, 0.0, 0, 1)]), Err(GridError::ScaleNotMultiple { .. })));
-        assert!(matches!(merge(&[input(0.01, 0.0, 0, 1), input(0.01, 0.005, 0, 1)]), Err(GridError::OffsetOffGrid { .. })));
+        assert!(matches!(
+            merge(&[input(0.01, 0.0, 0, 1), input(0.015, 0.0, 0, 1)]),
+            Err(GridError::ScaleNotMultiple { .. })
+        ));
+        assert!(matches!(
+            merge(&[input(0.01, 0.0, 0, 1), input(0.01, 0.005, 0, 1)]),
+            Err(GridError::OffsetOffGrid { .. })
+        ));
         assert!(matches!(
             merge(&[input(0.001, 0.0, i32::MIN as i64, 0), input(0.01, 0.0, 0, i32::MAX as i64)]),
             Err(GridError::ExtentTooLarge { .. })

@@ -43,7 +43,9 @@ pub struct RecordLayout {
 pub enum LayoutError {
     #[error("point data record format {0} is not defined (LAS knows 0 to 10)")]
     UnknownFormat(u8),
-    #[error("point record length {len} is shorter than the {min} bytes point format {format} needs")]
+    #[error(
+        "point record length {len} is shorter than the {min} bytes point format {format} needs"
+    )]
     RecordTooShort { format: u8, len: usize, min: usize },
 }
 
@@ -120,8 +122,10 @@ impl RecordLayout {
         if record_len > base {
             attrs.push(("extra_bytes", base, record_len - base));
         }
-        let attributes =
-            attrs.into_iter().map(|(n, o, w)| Attribute { name: n.to_string(), offset: o, width: w }).collect();
+        let attributes = attrs
+            .into_iter()
+            .map(|(n, o, w)| Attribute { name: n.to_string(), offset: o, width: w })
+            .collect();
         Ok(RecordLayout { format, record_len, attributes })
     }
 
@@ -198,7 +202,10 @@ mod tests {
                         *c += 1;
                     }
                 }
-                assert!(covered.iter().all(|&c| c == 1), "format {format} extra {extra}: {covered:?}");
+                assert!(
+                    covered.iter().all(|&c| c == 1),
+                    "format {format} extra {extra}: {covered:?}"
+                );
             }
         }
     }
@@ -239,7 +246,12 @@ pub fn copy_column(src: &[u8], stride: usize, offset: usize, width: usize, dst: 
 
 /// Copies whole records of `record_len` bytes, record `i` of `dst` from `src(i)`, with
 /// fixed-size copies for every standard record length.
-pub fn gather_records<'a>(record_len: usize, n: usize, src: impl Fn(usize) -> &'a [u8], dst: &mut Vec<u8>) {
+pub fn gather_records<'a>(
+    record_len: usize,
+    n: usize,
+    src: impl Fn(usize) -> &'a [u8],
+    dst: &mut Vec<u8>,
+) {
     fn fixed<'a, const W: usize>(n: usize, src: impl Fn(usize) -> &'a [u8], dst: &mut Vec<u8>) {
         let start = dst.len();
         dst.resize(start + n * W, 0);
@@ -323,7 +335,9 @@ pub fn legacy_to_extended(src: &[u8], dst: &mut [u8]) {
 /// LAS 1.4 formats together merge into the smallest of 6-8 that holds every field (legacy
 /// records mapped by [`legacy_to_extended`]). Waveform formats merge only with themselves, and
 /// the extra bytes must be the same size everywhere.
-pub fn merge_layouts(layouts: &[RecordLayout]) -> Result<(RecordLayout, Vec<Option<Conversion>>), String> {
+pub fn merge_layouts(
+    layouts: &[RecordLayout],
+) -> Result<(RecordLayout, Vec<Option<Conversion>>), String> {
     let first = &layouts[0];
     if layouts.iter().all(|l| l == first) {
         return Ok((first.clone(), vec![None; layouts.len()]));
@@ -336,7 +350,11 @@ pub fn merge_layouts(layouts: &[RecordLayout]) -> Result<(RecordLayout, Vec<Opti
         return Err("inputs have different numbers of extra bytes per point".into());
     }
     let any = |name: &str| layouts.iter().any(|l| l.attribute(name).is_some());
-    let family = if layouts.iter().all(|l| l.family() == Family::Legacy) { Family::Legacy } else { Family::Extended };
+    let family = if layouts.iter().all(|l| l.family() == Family::Legacy) {
+        Family::Legacy
+    } else {
+        Family::Extended
+    };
     let target_format = match family {
         Family::Legacy => match (any("gps_time"), any("rgb")) {
             (false, false) => 0,
@@ -354,7 +372,8 @@ pub fn merge_layouts(layouts: &[RecordLayout]) -> Result<(RecordLayout, Vec<Opti
             }
         }
     };
-    let target = RecordLayout::new(target_format, base_len(target_format).unwrap() + extra(first)).map_err(|e| e.to_string())?;
+    let target = RecordLayout::new(target_format, base_len(target_format).unwrap() + extra(first))
+        .map_err(|e| e.to_string())?;
     let convs = layouts
         .iter()
         .map(|l| {
@@ -405,12 +424,17 @@ mod merge_tests {
         assert_eq!(merge_layouts(&[l(3), l(7)]).unwrap().0.format, 7);
         assert_eq!(merge_layouts(&[l(3), l(8)]).unwrap().0.format, 8);
         assert!(merge_layouts(&[l(4), l(6)]).is_err());
-        assert!(merge_layouts(&[RecordLayout::new(1, 30).unwrap(), l(6)]).is_err(), "extra bytes differ");
+        assert!(
+            merge_layouts(&[RecordLayout::new(1, 30).unwrap(), l(6)]).is_err(),
+            "extra bytes differ"
+        );
     }
 
     #[test]
     fn legacy_fields_are_mapped() {
-        let (t, c) = merge_layouts(&[RecordLayout::new(3, 34).unwrap(), RecordLayout::new(7, 36).unwrap()]).unwrap();
+        let (t, c) =
+            merge_layouts(&[RecordLayout::new(3, 34).unwrap(), RecordLayout::new(7, 36).unwrap()])
+                .unwrap();
         assert_eq!(t.format, 7);
         let c = c[0].as_ref().unwrap();
         let mut src = vec![0u8; 34];
@@ -450,7 +474,17 @@ mod merge_tests {
 
     #[test]
     fn families_and_extra_bytes() {
-        assert!(merge_layouts(&[RecordLayout::new(1, 30).unwrap(), RecordLayout::new(1, 28).unwrap()]).is_err());
-        assert_eq!(merge_layouts(&[RecordLayout::new(6, 30).unwrap(), RecordLayout::new(8, 38).unwrap()]).unwrap().0.format, 8);
+        assert!(merge_layouts(&[
+            RecordLayout::new(1, 30).unwrap(),
+            RecordLayout::new(1, 28).unwrap()
+        ])
+        .is_err());
+        assert_eq!(
+            merge_layouts(&[RecordLayout::new(6, 30).unwrap(), RecordLayout::new(8, 38).unwrap()])
+                .unwrap()
+                .0
+                .format,
+            8
+        );
     }
 }

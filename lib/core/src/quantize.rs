@@ -131,7 +131,9 @@ impl BatchGrid {
 #[inline]
 pub fn split_words(q: [u32; 3]) -> [u32; 3] {
     let word = |shift: u32| -> u32 {
-        ((q[0] >> shift) & 0x3ff) | (((q[1] >> shift) & 0x3ff) << 10) | (((q[2] >> shift) & 0x3ff) << 20)
+        ((q[0] >> shift) & 0x3ff)
+            | (((q[1] >> shift) & 0x3ff) << 10)
+            | (((q[2] >> shift) & 0x3ff) << 20)
     };
     [word(20), word(10), word(0)]
 }
@@ -155,24 +157,26 @@ mod tests {
     use proptest::prelude::*;
 
     fn grid_and_point() -> impl Strategy<Value = (BatchGrid, [i32; 3])> {
-        (prop::array::uniform3(any::<i32>()), prop::array::uniform3(0u32..=30)).prop_flat_map(|(min, bits)| {
-            let mut lo = [0i32; 3];
-            let mut bits8 = [0u8; 3];
-            for a in 0..3 {
-                // keep min + 2^bits - 1 inside i32
-                let span = (1i64 << bits[a]) - 1;
-                lo[a] = (min[a] as i64).min(i32::MAX as i64 - span) as i32;
-                bits8[a] = bits[a] as u8;
-            }
-            let g = BatchGrid { min: lo, bits: bits8 };
-            let pts = (0..3)
-                .map(|a| {
+        (prop::array::uniform3(any::<i32>()), prop::array::uniform3(0u32..=30)).prop_flat_map(
+            |(min, bits)| {
+                let mut lo = [0i32; 3];
+                let mut bits8 = [0u8; 3];
+                for a in 0..3 {
+                    // keep min + 2^bits - 1 inside i32
                     let span = (1i64 << bits[a]) - 1;
-                    (lo[a] as i64..=lo[a] as i64 + span).prop_map(|v| v as i32)
-                })
-                .collect::<Vec<_>>();
-            (Just(g), pts).prop_map(|(g, p)| (g, [p[0], p[1], p[2]]))
-        })
+                    lo[a] = (min[a] as i64).min(i32::MAX as i64 - span) as i32;
+                    bits8[a] = bits[a] as u8;
+                }
+                let g = BatchGrid { min: lo, bits: bits8 };
+                let pts = (0..3)
+                    .map(|a| {
+                        let span = (1i64 << bits[a]) - 1;
+                        (lo[a] as i64..=lo[a] as i64 + span).prop_map(|v| v as i32)
+                    })
+                    .collect::<Vec<_>>();
+                (Just(g), pts).prop_map(|(g, p)| (g, [p[0], p[1], p[2]]))
+            },
+        )
     }
 
     proptest! {

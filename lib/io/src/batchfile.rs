@@ -11,8 +11,8 @@ use crate::cleanup::TempPath;
 use crate::dataset::{RecordSource, SourceMeta};
 use crate::error::{BatchError, Error, Result};
 use crate::las::{self, Header, HeaderOut, Vlr};
-use crate::source::{open_bytes, Bytes, Piece};
 use crate::sort::{Key, OrderedSink, Summary};
+use crate::source::{open_bytes, Bytes, Piece};
 use mortar_core::batch::*;
 use mortar_core::batching::{plan_batches, PlannedBatch};
 use mortar_core::color::{ColorSource, RgbDepth};
@@ -115,7 +115,10 @@ impl AttributeSelection {
     }
 
     /// The attributes of `layout` this selection keeps; an error names an unknown attribute.
-    pub fn resolve(&self, layout: &RecordLayout) -> std::result::Result<Vec<Attribute>, UnknownAttribute> {
+    pub fn resolve(
+        &self,
+        layout: &RecordLayout,
+    ) -> std::result::Result<Vec<Attribute>, UnknownAttribute> {
         match self {
             AttributeSelection::All => Ok(layout.attributes.clone()),
             AttributeSelection::Only(names) => {
@@ -125,7 +128,11 @@ impl AttributeSelection {
                         Some(a) => out.push(a.clone()),
                         None => {
                             let have = layout.attributes.iter().map(|a| a.name.clone()).collect();
-                            return Err(UnknownAttribute { format: layout.format, name: n.clone(), have });
+                            return Err(UnknownAttribute {
+                                format: layout.format,
+                                name: n.clone(),
+                                have,
+                            });
                         }
                     }
                 }
@@ -162,7 +169,12 @@ struct BuiltBatch {
 }
 
 impl BatchSink {
-    pub fn new(target: &Path, t: SourceMeta, attributes: Vec<Attribute>, compression: Compression) -> BatchSink {
+    pub fn new(
+        target: &Path,
+        t: SourceMeta,
+        attributes: Vec<Attribute>,
+        compression: Compression,
+    ) -> BatchSink {
         BatchSink {
             target: target.to_path_buf(),
             tmp: TempPath::beside(target),
@@ -239,7 +251,8 @@ impl BatchSink {
 
     /// Quantizes one window of at most 10,240 consecutive records (split if oversized).
     fn build_window(&self, recs: &[u8]) -> Result<Vec<BuiltBatch>> {
-        let xyz: Vec<[i32; 3]> = recs.chunks_exact(self.t.layout.record_len).map(read_xyz).collect();
+        let xyz: Vec<[i32; 3]> =
+            recs.chunks_exact(self.t.layout.record_len).map(read_xyz).collect();
         let mut plan = Vec::new();
         plan_batches(&xyz, BATCH_SIZE, 0, &mut plan);
         plan.iter().map(|b| self.build(recs, b)).collect()
@@ -310,7 +323,10 @@ impl BatchSink {
         self.flush_records(&carry, true)?;
         let pending = std::mem::take(&mut self.pending);
         self.write_placed(&pending)?;
-        let meta = self.meta.clone().ok_or(Error::SinkOrder { what: "batch sink finished before it began" })?;
+        let meta = self
+            .meta
+            .clone()
+            .ok_or(Error::SinkOrder { what: "batch sink finished before it began" })?;
         let json = serde_json::to_vec_pretty(&meta).map_err(|error| Error::Json { error })?;
         let meta_r = self.put(&json)?;
         let entries = std::mem::take(&mut self.entries);
@@ -370,7 +386,9 @@ impl OrderedSink for BatchSink {
         let las_header = self.put(&hb)?;
         let evlrs = self.put(&las::write_evlrs(&self.t.evlrs))?;
         let color = match self.t.layout.attribute("rgb") {
-            Some(a) if s.max_rgb > 0 => ColorSource::Rgb { offset: a.offset, depth: RgbDepth::detect(s.max_rgb) },
+            Some(a) if s.max_rgb > 0 => {
+                ColorSource::Rgb { offset: a.offset, depth: RgbDepth::detect(s.max_rgb) }
+            }
             _ => ColorSource::Intensity { max_intensity: s.max_intensity },
         };
         self.color = Some(color);
@@ -380,7 +398,9 @@ impl OrderedSink for BatchSink {
                 rgb_bits: Some(if depth == RgbDepth::Eight { 8 } else { 16 }),
                 max_intensity: s.max_intensity,
             },
-            ColorSource::Intensity { max_intensity } => ColorMeta { source: "intensity".into(), rgb_bits: None, max_intensity },
+            ColorSource::Intensity { max_intensity } => {
+                ColorMeta { source: "intensity".into(), rgb_bits: None, max_intensity }
+            }
         };
         self.meta = Some(Meta {
             generator: format!("mortar {}", env!("CARGO_PKG_VERSION")),
@@ -499,14 +519,18 @@ pub struct BatchFile {
 
 impl std::fmt::Debug for BatchFile {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("BatchFile").field("path", &self.path).field("batches", &self.header.batch_count).finish()
+        f.debug_struct("BatchFile")
+            .field("path", &self.path)
+            .field("batches", &self.header.batch_count)
+            .finish()
     }
 }
 
 /// Whether the bytes start like a batch file.
 pub fn is_batch_file(path: &Path) -> bool {
     let mut m = [0u8; 8];
-    File::open(path).and_then(|mut f| std::io::Read::read_exact(&mut f, &mut m)).is_ok() && m == MAGIC
+    File::open(path).and_then(|mut f| std::io::Read::read_exact(&mut f, &mut m)).is_ok()
+        && m == MAGIC
 }
 
 impl BatchFile {
@@ -531,37 +555,63 @@ impl BatchFile {
         if !in_file(header.meta_offset, header.meta_len) {
             return Err(err(BatchError::MetaOutside));
         }
-        let meta: Meta = serde_json::from_slice(&bytes[header.meta_offset as usize..(header.meta_offset + header.meta_len) as usize])
-            .map_err(|error| err(BatchError::BadMeta { error }))?;
+        let meta: Meta = serde_json::from_slice(
+            &bytes[header.meta_offset as usize..(header.meta_offset + header.meta_len) as usize],
+        )
+        .map_err(|error| err(BatchError::BadMeta { error }))?;
         let sc = header.section_count as u64;
         if sc != (FIRST_ATTRIBUTE_SECTION + meta.attributes.len()) as u64 {
             return Err(err(BatchError::SectionCount));
         }
-        let table_len = header
-            .batch_count
-            .checked_mul(96)
-            .and_then(|a| header.batch_count.checked_mul(sc).and_then(|b| b.checked_mul(16)).and_then(|b| a.checked_add(b)));
+        let table_len = header.batch_count.checked_mul(96).and_then(|a| {
+            header
+                .batch_count
+                .checked_mul(sc)
+                .and_then(|b| b.checked_mul(16))
+                .and_then(|b| a.checked_add(b))
+        });
         match table_len {
-            Some(tl) if in_file(header.table_offset, tl) && header.table_offset.is_multiple_of(8) => {}
+            Some(tl)
+                if in_file(header.table_offset, tl) && header.table_offset.is_multiple_of(8) => {}
             _ => return Err(err(BatchError::TableOutside)),
         }
-        if !in_file(meta.las_header.offset, meta.las_header.len) || !in_file(meta.evlrs.offset, meta.evlrs.len) {
+        if !in_file(meta.las_header.offset, meta.las_header.len)
+            || !in_file(meta.evlrs.offset, meta.evlrs.len)
+        {
             return Err(err(BatchError::LasHeaderOutside));
         }
-        let hb = &bytes[meta.las_header.offset as usize..(meta.las_header.offset + meta.las_header.len) as usize];
-        let mut lasmeta = las::parse(hb).map_err(|error| err(BatchError::BadLasHeader { error }))?;
+        let hb = &bytes[meta.las_header.offset as usize
+            ..(meta.las_header.offset + meta.las_header.len) as usize];
+        let mut lasmeta =
+            las::parse(hb).map_err(|error| err(BatchError::BadLasHeader { error }))?;
         let eb = &bytes[meta.evlrs.offset as usize..(meta.evlrs.offset + meta.evlrs.len) as usize];
         lasmeta.evlrs = parse_evlr_blob(eb).map_err(|error| err(BatchError::BadEvlrs { error }))?;
-        let layout = RecordLayout::new(meta.point_format, meta.record_len).map_err(|error| err(BatchError::Layout { error }))?;
+        let layout = RecordLayout::new(meta.point_format, meta.record_len)
+            .map_err(|error| err(BatchError::Layout { error }))?;
         // Records are rebuilt from the attribute columns: each must lie inside a record (fuzz
         // regression attribute-outside-record), and records are LAS records (at most 65,535 bytes).
         if meta.record_len > u16::MAX as usize {
             return Err(err(BatchError::RecordTooLong { record_len: meta.record_len }));
         }
-        if let Some(a) = meta.attributes.iter().find(|a| a.offset.checked_add(a.width).is_none_or(|e| e > meta.record_len) || a.offset < 12) {
-            return Err(err(BatchError::AttributeOutside { name: a.name.clone(), offset: a.offset, width: a.width, record_len: meta.record_len }));
+        if let Some(a) = meta.attributes.iter().find(|a| {
+            a.offset.checked_add(a.width).is_none_or(|e| e > meta.record_len) || a.offset < 12
+        }) {
+            return Err(err(BatchError::AttributeOutside {
+                name: a.name.clone(),
+                offset: a.offset,
+                width: a.width,
+                record_len: meta.record_len,
+            }));
         }
-        let f = BatchFile { path: path.to_path_buf(), bytes, header, meta, las: lasmeta, layout, table_offset: header.table_offset as usize };
+        let f = BatchFile {
+            path: path.to_path_buf(),
+            bytes,
+            header,
+            meta,
+            las: lasmeta,
+            layout,
+            table_offset: header.table_offset as usize,
+        };
         f.check_table().map_err(err)?;
         Ok(f)
     }
@@ -593,16 +643,31 @@ impl BatchFile {
                 return Err(BatchError::BadEntry { batch: i });
             }
             if e.first_point != total {
-                return Err(BatchError::BatchStart { batch: i, first: e.first_point, preceding: total });
+                return Err(BatchError::BatchStart {
+                    batch: i,
+                    first: e.first_point,
+                    preceding: total,
+                });
             }
             total += e.count as u64;
             for (s, se) in self.section_entries()[i * sc..(i + 1) * sc].iter().enumerate() {
-                if se.offset.checked_add(se.stored_len).is_none_or(|end| end > self.bytes.len() as u64) {
+                if se
+                    .offset
+                    .checked_add(se.stored_len)
+                    .is_none_or(|end| end > self.bytes.len() as u64)
+                {
                     return Err(BatchError::SectionOutside { batch: i, section: s });
                 }
                 let raw = e.count as u64 * widths[s] as u64;
-                if self.meta.compression == Compression::None && (se.stored_len != raw || se.offset % 4 != 0) {
-                    return Err(BatchError::SectionLen { batch: i, section: s, len: se.stored_len, expected: raw });
+                if self.meta.compression == Compression::None
+                    && (se.stored_len != raw || se.offset % 4 != 0)
+                {
+                    return Err(BatchError::SectionLen {
+                        batch: i,
+                        section: s,
+                        len: se.stored_len,
+                        expected: raw,
+                    });
                 }
             }
         }
@@ -636,10 +701,26 @@ impl BatchFile {
                 Compression::Zstd => {
                     let mut v = vec![0u32; raw.div_ceil(4)];
                     let n = zstd::bulk::Decompressor::new()
-                        .and_then(|mut d| d.decompress_to_buffer(stored, &mut bytemuck::cast_slice_mut::<u32, u8>(&mut v)[..raw]))
-                        .map_err(|error| Error::Batch { path: self.path.clone(), error: BatchError::SectionCorrupt { batch: i, section: s, error } })?;
+                        .and_then(|mut d| {
+                            d.decompress_to_buffer(
+                                stored,
+                                &mut bytemuck::cast_slice_mut::<u32, u8>(&mut v)[..raw],
+                            )
+                        })
+                        .map_err(|error| Error::Batch {
+                            path: self.path.clone(),
+                            error: BatchError::SectionCorrupt { batch: i, section: s, error },
+                        })?;
                     if n != raw {
-                        return Err(Error::Batch { path: self.path.clone(), error: BatchError::SectionSize { batch: i, section: s, len: n, expected: raw } });
+                        return Err(Error::Batch {
+                            path: self.path.clone(),
+                            error: BatchError::SectionSize {
+                                batch: i,
+                                section: s,
+                                len: n,
+                                expected: raw,
+                            },
+                        });
                     }
                     sections.push(SectionData::Owned(v, raw));
                 }
@@ -734,7 +815,11 @@ impl RecordSource for BatchFile {
             .enumerate()
             .map(|(i, s)| {
                 let end = (s + BATCHES_PER_PIECE).min(e.len());
-                Piece { index: i, first_point: e[s].first_point, points: e[s..end].iter().map(|x| x.count as u64).sum() }
+                Piece {
+                    index: i,
+                    first_point: e[s].first_point,
+                    points: e[s..end].iter().map(|x| x.count as u64).sum(),
+                }
             })
             .collect()
     }

@@ -44,7 +44,10 @@ impl TempPath {
     /// A temporary name next to `target` (same directory, so the final rename is atomic).
     pub fn beside(target: &Path) -> TempPath {
         let dir = target.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
-        let name = target.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "out".into());
+        let name = target
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_else(|| "out".into());
         let path = dir.join(format!(".{name}.mortar-tmp-{}", std::process::id()));
         register(&path);
         TempPath { path, keep: false }

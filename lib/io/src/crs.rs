@@ -73,7 +73,8 @@ pub fn epsg_name(code: u32) -> Option<String> {
 /// Reads the CRS records among `vlrs` (VLRs and EVLRs alike).
 pub fn describe(vlrs: &[&Vlr]) -> CrsInfo {
     let mut info = CrsInfo::default();
-    let proj = |id: u16| vlrs.iter().find(|v| v.user_id_str() == "LASF_Projection" && v.record_id == id);
+    let proj =
+        |id: u16| vlrs.iter().find(|v| v.user_id_str() == "LASF_Projection" && v.record_id == id);
     if let Some(w) = proj(2112) {
         let text = String::from_utf8_lossy(&w.data).trim_end_matches('\0').trim().to_string();
         if text.is_empty() {
@@ -86,23 +87,30 @@ pub fn describe(vlrs: &[&Vlr]) -> CrsInfo {
     }
     let ascii = proj(34737).map(|v| String::from_utf8_lossy(&v.data).into_owned());
     let doubles: Vec<f64> = proj(34736)
-        .map(|v| v.data.chunks_exact(8).map(|c| f64::from_le_bytes(c.try_into().unwrap())).collect())
+        .map(|v| {
+            v.data.chunks_exact(8).map(|c| f64::from_le_bytes(c.try_into().unwrap())).collect()
+        })
         .unwrap_or_default();
     if let Some(k) = proj(34735) {
-        let words: Vec<u16> = k.data.chunks_exact(2).map(|c| u16::from_le_bytes([c[0], c[1]])).collect();
+        let words: Vec<u16> =
+            k.data.chunks_exact(2).map(|c| u16::from_le_bytes([c[0], c[1]])).collect();
         if words.len() < 4 {
             info.problems.push("GeoTIFF key directory is shorter than its header".into());
         } else {
             let n = words[3] as usize;
             if 4 + 4 * n > words.len() {
-                info.problems.push(format!("GeoTIFF key directory claims {n} keys but holds {}", (words.len() - 4) / 4));
+                info.problems.push(format!(
+                    "GeoTIFF key directory claims {n} keys but holds {}",
+                    (words.len() - 4) / 4
+                ));
             }
             for e in words[4..].chunks_exact(4).take(n) {
                 let (id, loc, count, val) = (e[0], e[1], e[2] as usize, e[3] as usize);
                 let value = match loc {
                     0 => val.to_string(),
                     34736 => doubles.get(val).map(|d| d.to_string()).unwrap_or_else(|| {
-                        info.problems.push(format!("GeoTIFF key {id} points past the double parameters"));
+                        info.problems
+                            .push(format!("GeoTIFF key {id} points past the double parameters"));
                         "?".into()
                     }),
                     34737 => ascii
@@ -110,26 +118,35 @@ pub fn describe(vlrs: &[&Vlr]) -> CrsInfo {
                         .and_then(|a| a.get(val..(val + count).min(a.len())))
                         .map(|s| s.trim_end_matches(['|', '\0']).to_string())
                         .unwrap_or_else(|| {
-                            info.problems.push(format!("GeoTIFF key {id} points past the ASCII parameters"));
+                            info.problems
+                                .push(format!("GeoTIFF key {id} points past the ASCII parameters"));
                             "?".into()
                         }),
                     _ => {
-                        info.problems.push(format!("GeoTIFF key {id} has an unknown location {loc}"));
+                        info.problems
+                            .push(format!("GeoTIFF key {id} has an unknown location {loc}"));
                         "?".into()
                     }
                 };
                 if loc == 0 {
                     let code = val as u32;
                     match id {
-                        3072 | 2048 if code != 32767 && code != 0
-                            && (id == 3072 || info.epsg.is_none()) => {
-                                info.epsg = Some(code)
-                            }
+                        3072 | 2048
+                            if code != 32767
+                                && code != 0
+                                && (id == 3072 || info.epsg.is_none()) =>
+                        {
+                            info.epsg = Some(code)
+                        }
                         4096 if code != 32767 && code != 0 => info.vertical_epsg = Some(code),
                         _ => {}
                     }
                 }
-                if (id == 1026 || id == 3073) && info.name.is_none() && value != "?" && !value.is_empty() {
+                if (id == 1026 || id == 3073)
+                    && info.name.is_none()
+                    && value != "?"
+                    && !value.is_empty()
+                {
                     info.name = Some(value.clone());
                 }
                 info.geokeys.push(GeoKey { id, name: geokey_name(id).into(), value });
@@ -197,7 +214,8 @@ impl CrsRecords {
     /// descriptions aside), or the same horizontal and vertical EPSG codes.
     pub fn agrees_with(&self, o: &CrsRecords) -> bool {
         let key = |r: &CrsRecords| {
-            let mut k: Vec<(u16, Vec<u8>)> = r.vlrs.iter().chain(&r.evlrs).map(|v| (v.record_id, v.data.clone())).collect();
+            let mut k: Vec<(u16, Vec<u8>)> =
+                r.vlrs.iter().chain(&r.evlrs).map(|v| (v.record_id, v.data.clone())).collect();
             k.sort();
             k
         };
@@ -263,9 +281,14 @@ impl AssignCrs {
         if t.len() > 5 && t[..5].eq_ignore_ascii_case("epsg:") {
             let code = |c: &str| c.trim().parse::<u32>().ok().filter(|&c| c > 0 && c < 32767);
             let mut parts = t[5..].splitn(2, '+');
-            let h = parts.next().and_then(code).ok_or_else(|| format!("'{s}': not an EPSG code (try EPSG:26910)"))?;
+            let h = parts
+                .next()
+                .and_then(code)
+                .ok_or_else(|| format!("'{s}': not an EPSG code (try EPSG:26910)"))?;
             let v = match parts.next() {
-                Some(v) => Some(code(v).ok_or_else(|| format!("'{s}': not a vertical EPSG code (try EPSG:26910+5703)"))?),
+                Some(v) => Some(code(v).ok_or_else(|| {
+                    format!("'{s}': not a vertical EPSG code (try EPSG:26910+5703)")
+                })?),
                 None => None,
             };
             return Ok(AssignCrs::Epsg { horizontal: h, vertical: v });
@@ -304,7 +327,8 @@ pub fn epsg_records(horizontal: u32, vertical: Option<u32>) -> Result<CrsRecords
     let geographic = epsg_kind(horizontal)?;
     // a citation only where mortar knows the name (readers show it; a bare code says nothing new)
     let citation = epsg_name(horizontal).map(|n| format!("{n}|"));
-    let mut keys: Vec<[u16; 4]> = vec![[1024, 0, 1, if geographic { 2 } else { 1 }], [1025, 0, 1, 1]];
+    let mut keys: Vec<[u16; 4]> =
+        vec![[1024, 0, 1, if geographic { 2 } else { 1 }], [1025, 0, 1, 1]];
     if let Some(c) = &citation {
         keys.push([1026, 34737, c.len() as u16, 0]);
     }
@@ -323,7 +347,11 @@ pub fn epsg_records(horizontal: u32, vertical: Option<u32>) -> Result<CrsRecords
         description[..desc.len()].copy_from_slice(desc.as_bytes());
         Vlr { reserved: 0, user_id, record_id: id, description, data }
     };
-    let mut vlrs = vec![rec(34735, words.iter().flat_map(|w| w.to_le_bytes()).collect(), "GeoTIFF GeoKeyDirectoryTag")];
+    let mut vlrs = vec![rec(
+        34735,
+        words.iter().flat_map(|w| w.to_le_bytes()).collect(),
+        "GeoTIFF GeoKeyDirectoryTag",
+    )];
     if let Some(c) = citation {
         let mut ascii = c.into_bytes();
         ascii.push(0);
@@ -421,15 +449,22 @@ mod tests {
         let a = r#"PROJCS["X",GEOGCS["NAD83",SPHEROID["GRS 1980",6378137,298.257222101]],UNIT["metre",1]]"#;
         let b = r#"PROJCS["X", GEOGCS["NAD83",SPHEROID["GRS 1980",6378137,298.257222101,AUTHORITY["EPSG","7019"]]],UNIT["metre",1,AUTHORITY["EPSG","9001"]]]"#;
         let c = r#"PROJCS["X",GEOGCS["NAD83",SPHEROID["GRS 1980",6378137,298.3]],UNIT["metre",1]]"#;
-        let r = |w: &str| CrsRecords { vlrs: vec![vlr(2112, w.as_bytes().to_vec())], evlrs: vec![] };
+        let r =
+            |w: &str| CrsRecords { vlrs: vec![vlr(2112, w.as_bytes().to_vec())], evlrs: vec![] };
         assert!(r(a).agrees_with(&r(b)));
         assert!(!r(a).agrees_with(&r(c)));
     }
 
     #[test]
     fn assign_crs_parses() {
-        assert_eq!(AssignCrs::parse("EPSG:26910"), Ok(AssignCrs::Epsg { horizontal: 26910, vertical: None }));
-        assert_eq!(AssignCrs::parse("epsg:26910+5703"), Ok(AssignCrs::Epsg { horizontal: 26910, vertical: Some(5703) }));
+        assert_eq!(
+            AssignCrs::parse("EPSG:26910"),
+            Ok(AssignCrs::Epsg { horizontal: 26910, vertical: None })
+        );
+        assert_eq!(
+            AssignCrs::parse("epsg:26910+5703"),
+            Ok(AssignCrs::Epsg { horizontal: 26910, vertical: Some(5703) })
+        );
         assert!(AssignCrs::parse("EPSG:x").is_err());
         assert_eq!(AssignCrs::parse("a.las"), Ok(AssignCrs::File("a.las".into())));
     }

@@ -1,12 +1,12 @@
 //! A dataset: the inputs of one command, merged onto one integer grid and one record layout.
 
+use crate::crs::{epsg_records, AssignCrs, CrsRecords};
 use crate::error::{Error, Result};
 use crate::las::{Header, Vlr};
+use crate::progress::Progress;
 use crate::source::{LasInput, Piece};
 use mortar_core::grid::{self, Grid, GridInput, GridMap};
-use crate::crs::{epsg_records, AssignCrs, CrsRecords};
 use mortar_core::layout::{base_len, merge_layouts, read_xyz, write_xyz, Conversion, RecordLayout};
-use crate::progress::Progress;
 use std::borrow::Cow;
 use std::path::{Path, PathBuf};
 
@@ -37,7 +37,12 @@ pub trait RecordSource: Send + Sync {
     fn read_piece_into(&self, piece: &Piece, out: &mut [u8]) -> Result<()> {
         let r = self.read_piece(piece)?;
         if r.len() != out.len() {
-            return Err(Error::PieceSize { path: self.path().to_path_buf(), piece: piece.index, got: r.len(), expected: out.len() });
+            return Err(Error::PieceSize {
+                path: self.path().to_path_buf(),
+                piece: piece.index,
+                got: r.len(),
+                expected: out.len(),
+            });
         }
         out.copy_from_slice(&r);
         Ok(())
@@ -141,7 +146,13 @@ impl Dataset {
         let layouts: Vec<RecordLayout> = inputs.iter().map(|i| i.layout().clone()).collect();
         let (layout, conversions) = merge_layouts(&layouts).map_err(|e| {
             let odd = inputs.iter().find(|i| i.layout() != first.layout()).unwrap_or(first);
-            Error::FormatsDiffer { path: odd.path().to_path_buf(), problem: e, format: odd.layout().format, first: first.path().to_path_buf(), first_format: first.layout().format }
+            Error::FormatsDiffer {
+                path: odd.path().to_path_buf(),
+                problem: e,
+                format: odd.layout().format,
+                first: first.path().to_path_buf(),
+                first_format: first.layout().format,
+            }
         })?;
         if conversions.iter().any(|c| c.is_some()) {
             warnings.push(format!(
@@ -176,7 +187,9 @@ impl Dataset {
                 _ => None,
             };
             match idx {
-                Some(i) => Error::IncompatibleGrid { path: inputs[i].path().to_path_buf(), error: e },
+                Some(i) => {
+                    Error::IncompatibleGrid { path: inputs[i].path().to_path_buf(), error: e }
+                }
                 None => Error::Grid { error: e },
             }
         })?;
@@ -193,15 +206,25 @@ impl Dataset {
         let mut template = tin.header().clone();
         template.point_format = layout.format;
         template.record_len = layout.record_len as u16;
-        check_extra_bytes(&inputs, layout.record_len - base_len(layout.format).unwrap_or(layout.record_len))?;
+        check_extra_bytes(
+            &inputs,
+            layout.record_len - base_len(layout.format).unwrap_or(layout.record_len),
+        )?;
         check_gps_time_kind(&inputs, &layout, &mut warnings);
         let crs = choose_crs(&inputs, opts, &mut warnings)?;
         let (mut vlrs, mut evlrs) = (tin.vlrs().to_vec(), tin.evlrs().to_vec());
         let mut dropped = Vec::new();
         for i in &inputs {
-            for (v, ext) in i.vlrs().iter().map(|v| (v, false)).chain(i.evlrs().iter().map(|v| (v, true))) {
+            for (v, ext) in
+                i.vlrs().iter().map(|v| (v, false)).chain(i.evlrs().iter().map(|v| (v, true)))
+            {
                 if let Some(why) = offset_dependent(v) {
-                    let d = format!("{}{} {} ({why})", if ext { "EVLR " } else { "VLR " }, v.user_id_str(), v.record_id);
+                    let d = format!(
+                        "{}{} {} ({why})",
+                        if ext { "EVLR " } else { "VLR " },
+                        v.user_id_str(),
+                        v.record_id
+                    );
                     if !dropped.contains(&d) {
                         dropped.push(d);
                     }
@@ -234,7 +257,9 @@ impl Dataset {
                 if template.version.1 >= 4 {
                     evlrs.extend(c.evlrs.iter().cloned());
                 } else {
-                    vlrs.extend(c.evlrs.iter().filter(|v| v.data.len() <= u16::MAX as usize).cloned());
+                    vlrs.extend(
+                        c.evlrs.iter().filter(|v| v.data.len() <= u16::MAX as usize).cloned(),
+                    );
                 }
                 if c.has_wkt() {
                     template.global_encoding |= 0x10;
@@ -250,7 +275,18 @@ impl Dataset {
                 "the output's CRS is GeoTIFF keys, but LAS 1.4 point formats 6-10 ask for WKT (readers may ignore the keys; give --assign-crs a LAS file with WKT)".into(),
             );
         }
-        Ok(Dataset { inputs, grid, maps, layout, conversions, template, vlrs, evlrs, warnings, progress: Progress::new() })
+        Ok(Dataset {
+            inputs,
+            grid,
+            maps,
+            layout,
+            conversions,
+            template,
+            vlrs,
+            evlrs,
+            warnings,
+            progress: Progress::new(),
+        })
     }
 
     /// Opens LAS/LAZ files and batch files and merges them; warnings about each file come first.
@@ -344,13 +380,17 @@ impl Dataset {
         self.inputs
             .iter()
             .enumerate()
-            .flat_map(|(i, s)| s.pieces().into_iter().map(move |p| DatasetPiece { input: i, piece: p }))
+            .flat_map(|(i, s)| {
+                s.pieces().into_iter().map(move |p| DatasetPiece { input: i, piece: p })
+            })
             .collect()
     }
 
     /// Whether reading a piece of input `i` needs a buffer (decoding, conversion or regridding).
     pub fn needs_buffer(&self, i: usize) -> bool {
-        !self.inputs[i].borrows_pieces() || !self.maps[i].is_identity() || self.conversions[i].is_some()
+        !self.inputs[i].borrows_pieces()
+            || !self.maps[i].is_identity()
+            || self.conversions[i].is_some()
     }
 
     fn regrid(&self, input: usize, records: &mut [u8]) -> Result<()> {
@@ -359,8 +399,8 @@ impl Dataset {
             return Ok(());
         }
         for r in records.chunks_exact_mut(self.layout.record_len) {
-            let xyz = map.apply(read_xyz(r)).ok_or_else(|| {
-                Error::OutsideGrid { path: self.inputs[input].path().to_path_buf() }
+            let xyz = map.apply(read_xyz(r)).ok_or_else(|| Error::OutsideGrid {
+                path: self.inputs[input].path().to_path_buf(),
             })?;
             write_xyz(r, xyz);
         }
@@ -377,7 +417,10 @@ impl Dataset {
                 let r = src.read_piece(&p.piece)?;
                 let srl = src.layout().record_len;
                 if r.len() / srl * c.target_len != out.len() {
-                    return Err(Error::PieceCount { path: src.path().to_path_buf(), piece: p.piece.index });
+                    return Err(Error::PieceCount {
+                        path: src.path().to_path_buf(),
+                        piece: p.piece.index,
+                    });
                 }
                 c.apply(&r, srl, out);
             }
@@ -453,11 +496,20 @@ fn check_extra_bytes(inputs: &[Box<dyn RecordSource>], extra: usize) -> Result<(
     if extra == 0 || inputs.len() < 2 {
         return Ok(());
     }
-    let desc = |i: &dyn RecordSource| i.vlrs().iter().find(|v| v.user_id_str() == "LASF_Spec" && v.record_id == 4).map(|v| v.data.clone());
+    let desc = |i: &dyn RecordSource| {
+        i.vlrs()
+            .iter()
+            .find(|v| v.user_id_str() == "LASF_Spec" && v.record_id == 4)
+            .map(|v| v.data.clone())
+    };
     let first = desc(inputs[0].as_ref());
     for i in &inputs[1..] {
         if desc(i.as_ref()) != first {
-            return Err(Error::ExtraBytesDiffer { path: i.path().to_path_buf(), extra, first: inputs[0].path().to_path_buf() });
+            return Err(Error::ExtraBytesDiffer {
+                path: i.path().to_path_buf(),
+                extra,
+                first: inputs[0].path().to_path_buf(),
+            });
         }
     }
     Ok(())
@@ -465,12 +517,20 @@ fn check_extra_bytes(inputs: &[Box<dyn RecordSource>], extra: usize) -> Result<(
 
 /// Warns when inputs with GPS time disagree on its kind (global encoding bit 0: GPS week time
 /// or adjusted standard GPS time): the merged values are then not comparable.
-fn check_gps_time_kind(inputs: &[Box<dyn RecordSource>], layout: &RecordLayout, warnings: &mut Vec<String>) {
+fn check_gps_time_kind(
+    inputs: &[Box<dyn RecordSource>],
+    layout: &RecordLayout,
+    warnings: &mut Vec<String>,
+) {
     if !layout.has_gps_time() {
         return;
     }
-    let with: Vec<&Box<dyn RecordSource>> = inputs.iter().filter(|i| i.layout().has_gps_time()).collect();
-    if let Some(odd) = with.iter().find(|i| (i.header().global_encoding & 1) != (with[0].header().global_encoding & 1)) {
+    let with: Vec<&Box<dyn RecordSource>> =
+        inputs.iter().filter(|i| i.layout().has_gps_time()).collect();
+    if let Some(odd) = with
+        .iter()
+        .find(|i| (i.header().global_encoding & 1) != (with[0].header().global_encoding & 1))
+    {
         warnings.push(format!(
             "{} has {} but {} has {}; the merged GPS times mix both",
             with[0].path().display(),
@@ -492,7 +552,11 @@ fn gps_kind(global_encoding: u16) -> &'static str {
 /// The CRS records of the output: the assigned one, else the one CRS the inputs agree on.
 /// Inputs whose CRSs disagree are refused (naming two of them); inputs without a CRS beside
 /// inputs with one take that CRS with a warning.
-fn choose_crs(inputs: &[Box<dyn RecordSource>], opts: &OpenOptions, warnings: &mut Vec<String>) -> Result<Option<CrsRecords>> {
+fn choose_crs(
+    inputs: &[Box<dyn RecordSource>],
+    opts: &OpenOptions,
+    warnings: &mut Vec<String>,
+) -> Result<Option<CrsRecords>> {
     match &opts.assign_crs {
         Some(AssignCrs::File(p)) => {
             let f = LasInput::open(p).map_err(|e| match e {
@@ -506,7 +570,9 @@ fn choose_crs(inputs: &[Box<dyn RecordSource>], opts: &OpenOptions, warnings: &m
             return Ok(Some(c));
         }
         Some(AssignCrs::Epsg { horizontal, vertical }) => {
-            return epsg_records(*horizontal, *vertical).map(Some).map_err(|error| Error::AssignCrsCode { error });
+            return epsg_records(*horizontal, *vertical)
+                .map(Some)
+                .map_err(|error| Error::AssignCrsCode { error });
         }
         None => {}
     }
@@ -529,7 +595,11 @@ fn choose_crs(inputs: &[Box<dyn RecordSource>], opts: &OpenOptions, warnings: &m
         warnings.push(format!(
             "{}{} no CRS; the output takes that of {}, {}",
             inputs[j].path().display(),
-            if without.len() > 1 { format!(" and {} other inputs have", without.len() - 1) } else { " has".into() },
+            if without.len() > 1 {
+                format!(" and {} other inputs have", without.len() - 1)
+            } else {
+                " has".into()
+            },
             inputs[k].path().display(),
             all[k].describe().summary()
         ));

@@ -301,7 +301,9 @@ pub enum BatchError {
     #[error("record length {record_len} is more than a LAS record can hold")]
     RecordTooLong { record_len: usize },
     /// An attribute column lies outside the record.
-    #[error("attribute {name} (bytes {offset}..+{width}) lies outside the {record_len}-byte record")]
+    #[error(
+        "attribute {name} (bytes {offset}..+{width}) lies outside the {record_len}-byte record"
+    )]
     AttributeOutside { name: String, offset: usize, width: usize, record_len: usize },
     /// A batch table entry is out of range.
     #[error("batch {batch} has an invalid entry")]
@@ -345,7 +347,9 @@ pub enum StoreError {
     #[error("nodes.bin holds {held} bytes, fewer than the {covered} the hierarchy covers")]
     NodesShort { held: u64, covered: u64 },
     /// A hierarchy entry is out of range.
-    #[error("node entry {node} is damaged (kind {kind}, {count} points, {length} bytes at {offset})")]
+    #[error(
+        "node entry {node} is damaged (kind {kind}, {count} points, {length} bytes at {offset})"
+    )]
     EntryDamaged { node: usize, kind: u32, count: u64, length: u64, offset: u64 },
     /// A payload's header disagrees with its hierarchy entry.
     #[error("node payload {node} does not match its hierarchy entry")]
@@ -473,7 +477,9 @@ pub enum JobError {
     #[error("the plan names {planned} inputs, {opened} were opened")]
     Inputs { planned: usize, opened: usize },
     /// The plan's cells are at another depth than this mortar makes them.
-    #[error("the plan's cells are at depth {planned}, this mortar makes them at {ours}; plan again")]
+    #[error(
+        "the plan's cells are at depth {planned}, this mortar makes them at {ours}; plan again"
+    )]
     CellDepth { planned: u8, ours: u8 },
     /// A node of the plan is not in its tree.
     #[error("the plan's node {node:?} is not in its tree")]
@@ -528,7 +534,9 @@ pub enum PartError {
 #[derive(Debug, thiserror::Error)]
 pub enum RenderError {
     /// More points than 32-bit indices can draw.
-    #[error("{points} points: at most 2^32 points can be drawn at once (point indices are 32-bit)")]
+    #[error(
+        "{points} points: at most 2^32 points can be drawn at once (point indices are 32-bit)"
+    )]
     TooManyToDraw { points: u64 },
     /// More points than 32-bit indices can colour.
     #[error("{points} points: at most 2^32 points can be coloured at once")]
@@ -642,7 +650,9 @@ impl Error {
     pub fn problem(&self) -> String {
         let s = self.to_string();
         match leading_path!(self) {
-            Some(p) => s.strip_prefix(&format!("{}: ", p.display())).map(str::to_string).unwrap_or(s),
+            Some(p) => {
+                s.strip_prefix(&format!("{}: ", p.display())).map(str::to_string).unwrap_or(s)
+            }
             None => s,
         }
     }

@@ -14,7 +14,10 @@
 use crate::cleanup::TempPath;
 use crate::dataset::Dataset;
 use crate::error::{Error, Result};
-use crate::sort::{declared_grid, check_interrupted, emit, in_memory_need, make_keys, refine_ties, sort_keys, OrderedSink, PieceStats, SortOptions, SortReport};
+use crate::sort::{
+    check_interrupted, declared_grid, emit, in_memory_need, make_keys, refine_ties, sort_keys,
+    OrderedSink, PieceStats, SortOptions, SortReport,
+};
 use mortar_core::layout::read_xyz;
 use mortar_core::morton::MortonGrid;
 use rayon::prelude::*;
@@ -44,7 +47,14 @@ fn bucket_of(code: u64, level: u32) -> usize {
 }
 
 /// Partitions one block of records into a new run file.
-fn write_run(block: &[u8], record_len: usize, level: u32, morton: &MortonGrid, dir: &Path, n: usize) -> Result<Run> {
+fn write_run(
+    block: &[u8],
+    record_len: usize,
+    level: u32,
+    morton: &MortonGrid,
+    dir: &Path,
+    n: usize,
+) -> Result<Run> {
     let count = block.len() / record_len;
     let buckets: Vec<u16> = block
         .par_chunks_exact(record_len)
@@ -64,28 +74,44 @@ fn write_run(block: &[u8], record_len: usize, level: u32, morton: &MortonGrid, d
     let mut cur = starts.clone();
     for (i, &b) in buckets.iter().enumerate() {
         let d = cur[b as usize];
-        out[d * record_len..(d + 1) * record_len].copy_from_slice(&block[i * record_len..(i + 1) * record_len]);
+        out[d * record_len..(d + 1) * record_len]
+            .copy_from_slice(&block[i * record_len..(i + 1) * record_len]);
         cur[b as usize] += 1;
     }
     debug_assert_eq!(cur[BUCKETS - 1], count);
     let path = dir.join(format!("run-{level}-{n}.bin"));
-    let mut f = std::io::BufWriter::new(std::fs::File::create(&path).map_err(|e| Error::io(&path, e))?);
+    let mut f =
+        std::io::BufWriter::new(std::fs::File::create(&path).map_err(|e| Error::io(&path, e))?);
     f.write_all(&out).map_err(|e| Error::io(&path, e))?;
     f.flush().map_err(|e| Error::io(&path, e))?;
-    let segments = (0..BUCKETS).map(|b| ((starts[b] * record_len) as u64, (starts[b + 1] - starts[b]) as u64)).collect();
+    let segments = (0..BUCKETS)
+        .map(|b| ((starts[b] * record_len) as u64, (starts[b + 1] - starts[b]) as u64))
+        .collect();
     Ok(Run { path, segments })
 }
 
-fn read_segment(run: &Run, bucket: usize, record_len: usize, from: u64, count: u64) -> Result<Vec<u8>> {
+fn read_segment(
+    run: &Run,
+    bucket: usize,
+    record_len: usize,
+    from: u64,
+    count: u64,
+) -> Result<Vec<u8>> {
     let (off, _) = run.segments[bucket];
     let mut buf = vec![0u8; (count as usize) * record_len];
     let f = std::fs::File::open(&run.path).map_err(|e| Error::io(&run.path, e))?;
-    f.read_exact_at(&mut buf, off + from * record_len as u64).map_err(|e| Error::io(&run.path, e))?;
+    f.read_exact_at(&mut buf, off + from * record_len as u64)
+        .map_err(|e| Error::io(&run.path, e))?;
     Ok(buf)
 }
 
 /// Pass 1 over the dataset: statistics and level-0 runs.
-fn pass1(ds: &Dataset, opts: &SortOptions, morton: &MortonGrid, dir: &Path) -> Result<(Vec<Run>, PieceStats)> {
+fn pass1(
+    ds: &Dataset,
+    opts: &SortOptions,
+    morton: &MortonGrid,
+    dir: &Path,
+) -> Result<(Vec<Run>, PieceStats)> {
     let rl = ds.layout.record_len;
     let block_bytes = (opts.memory / 4).max(rl as u64) as usize;
     let pieces = ds.pieces();
@@ -96,7 +122,9 @@ fn pass1(ds: &Dataset, opts: &SortOptions, morton: &MortonGrid, dir: &Path) -> R
         check_interrupted()?;
         let mut j = i;
         let mut bytes = 0usize;
-        while j < pieces.len() && (j == i || bytes + pieces[j].piece.points as usize * rl <= block_bytes) {
+        while j < pieces.len()
+            && (j == i || bytes + pieces[j].piece.points as usize * rl <= block_bytes)
+        {
             bytes += pieces[j].piece.points as usize * rl;
             j += 1;
         }
@@ -123,7 +151,11 @@ fn pass1(ds: &Dataset, opts: &SortOptions, morton: &MortonGrid, dir: &Path) -> R
 }
 
 /// Sorts a dataset larger than the memory budget.
-pub fn sort_external(ds: &Dataset, opts: &SortOptions, sink: &mut dyn OrderedSink) -> Result<SortReport> {
+pub fn sort_external(
+    ds: &Dataset,
+    opts: &SortOptions,
+    sink: &mut dyn OrderedSink,
+) -> Result<SortReport> {
     let rl = ds.layout.record_len;
     std::fs::create_dir_all(&opts.tmp_dir).map_err(|e| Error::io(&opts.tmp_dir, e))?;
     let tmp = TempPath::dir_in(&opts.tmp_dir, "sort").map_err(|e| Error::io(&opts.tmp_dir, e))?;
@@ -136,7 +168,11 @@ pub fn sort_external(ds: &Dataset, opts: &SortOptions, sink: &mut dyn OrderedSin
         for r in &runs {
             let _ = std::fs::remove_file(&r.path);
         }
-        ds.progress.stage("reading again (the headers' bounds are wrong)", ds.declared_points(), "points");
+        ds.progress.stage(
+            "reading again (the headers' bounds are wrong)",
+            ds.declared_points(),
+            "points",
+        );
         runs = pass1(ds, opts, &summary.morton, tmp.path())?.0;
     }
     ds.progress.stage("writing", summary.count, "points");
@@ -186,7 +222,14 @@ fn drain(
                 while from < n {
                     let take = block_points.min(n - from);
                     let block = read_segment(r, b, rl, from, take)?;
-                    sub.push(write_run(&block, rl, level + 1, morton, dir, *buckets_done * 1_000_000 + sub.len())?);
+                    sub.push(write_run(
+                        &block,
+                        rl,
+                        level + 1,
+                        morton,
+                        dir,
+                        *buckets_done * 1_000_000 + sub.len(),
+                    )?);
                     from += take;
                 }
             }

@@ -25,13 +25,18 @@ pub fn header_box(ds: &Dataset) -> Option<IntBox> {
 /// LAS piece or LAZ chunk. (Read from the source itself, so that the dataset's progress counts
 /// only the pieces a job reads; X, Y, Z are the first 12 bytes of every point format.)
 pub fn first_points(ds: &Dataset) -> Result<Vec<[i32; 3]>> {
-    let Some(p) = ds.pieces().into_iter().find(|p| p.piece.points > 0) else { return Ok(Vec::new()) };
+    let Some(p) = ds.pieces().into_iter().find(|p| p.piece.points > 0) else {
+        return Ok(Vec::new());
+    };
     let src = &ds.inputs[p.input];
     let records = src.read_piece(&p.piece)?;
     let map = ds.maps[p.input];
     records
         .chunks_exact(src.layout().record_len)
-        .map(|r| map.apply(read_xyz(r)).ok_or_else(|| Error::OutsideGrid { path: src.path().to_path_buf() }))
+        .map(|r| {
+            map.apply(read_xyz(r))
+                .ok_or_else(|| Error::OutsideGrid { path: src.path().to_path_buf() })
+        })
         .collect()
 }
 

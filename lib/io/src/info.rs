@@ -60,7 +60,8 @@ pub struct StoreInfo {
 
 /// The store section of `mortar info` for a store.
 pub fn store_info(s: &crate::store::Store) -> StoreInfo {
-    let leaves: Vec<&crate::store::NodeEntry> = s.entries.iter().filter(|e| e.kind == crate::store::LEAF).collect();
+    let leaves: Vec<&crate::store::NodeEntry> =
+        s.entries.iter().filter(|e| e.kind == crate::store::LEAF).collect();
     StoreInfo {
         commit: s.header.commit,
         nodes: s.entries.len() as u64,
@@ -142,11 +143,12 @@ pub struct FileInfo {
 /// Decimals of a coordinate on a grid of step `scale`: the fewest (at most 12) that write every
 /// multiple of it exactly, e.g. 2 for 0.01, 3 for 0.025, 0 for 1.
 pub fn grid_decimals(scale: f64) -> usize {
-    (0..12).find(|&d| {
-        let m = scale * 10f64.powi(d as i32);
-        (m - m.round()).abs() <= 1e-9 * m.abs().max(1.0)
-    })
-    .unwrap_or(12)
+    (0..12)
+        .find(|&d| {
+            let m = scale * 10f64.powi(d as i32);
+            (m - m.round()).abs() <= 1e-9 * m.abs().max(1.0)
+        })
+        .unwrap_or(12)
 }
 
 /// `v` rounded to `decimals` decimals (the nearest f64, which prints with at most that many).
@@ -168,12 +170,18 @@ fn on_grid(min: [f64; 3], max: [f64; 3], scale: [f64; 3]) -> Bounds {
 }
 
 fn vlr_info(v: &Vlr) -> VlrInfo {
-    VlrInfo { user_id: v.user_id_str(), record_id: v.record_id, description: v.description_str(), length: v.data.len() }
+    VlrInfo {
+        user_id: v.user_id_str(),
+        record_id: v.record_id,
+        description: v.description_str(),
+        length: v.data.len(),
+    }
 }
 
 /// The extra-bytes descriptors (LASF_Spec record 4) among `vlrs`.
 pub fn extra_bytes(vlrs: &[Vlr]) -> Vec<ExtraBytesInfo> {
-    const TYPES: [&str; 11] = ["undocumented", "u8", "i8", "u16", "i16", "u32", "i32", "u64", "i64", "f32", "f64"];
+    const TYPES: [&str; 11] =
+        ["undocumented", "u8", "i8", "u16", "i16", "u32", "i32", "u64", "i64", "f32", "f64"];
     let mut out = Vec::new();
     for v in vlrs.iter().filter(|v| v.user_id_str() == "LASF_Spec" && v.record_id == 4) {
         for d in v.data.chunks_exact(192) {
@@ -185,14 +193,23 @@ pub fn extra_bytes(vlrs: &[Vlr]) -> Vec<ExtraBytesInfo> {
             } else {
                 format!("type {t}")
             };
-            out.push(ExtraBytesInfo { name: c_str(&d[4..36]), data_type, description: c_str(&d[160..192]) });
+            out.push(ExtraBytesInfo {
+                name: c_str(&d[4..36]),
+                data_type,
+                description: c_str(&d[160..192]),
+            });
         }
     }
     out
 }
 
 /// Describes one input; `stats` adds a full pass over the points.
-pub fn describe(src: &dyn RecordSource, kind: &str, stats: bool, batch: Option<&BatchFile>) -> Result<FileInfo> {
+pub fn describe(
+    src: &dyn RecordSource,
+    kind: &str,
+    stats: bool,
+    batch: Option<&BatchFile>,
+) -> Result<FileInfo> {
     let h = src.header();
     let all: Vec<&Vlr> = src.vlrs().iter().chain(src.evlrs()).collect();
     let mut warnings = Vec::new();
@@ -215,7 +232,11 @@ pub fn describe(src: &dyn RecordSource, kind: &str, stats: bool, batch: Option<&
         creation_day: h.creation_day,
         creation_year: h.creation_year,
         crs,
-        attributes: layout.attributes.iter().map(|a| AttributeInfo { name: a.name.clone(), offset: a.offset, width: a.width }).collect(),
+        attributes: layout
+            .attributes
+            .iter()
+            .map(|a| AttributeInfo { name: a.name.clone(), offset: a.offset, width: a.width })
+            .collect(),
         extra_bytes: extra_bytes(src.vlrs()),
         vlrs: src.vlrs().iter().map(vlr_info).collect(),
         evlrs: src.evlrs().iter().map(vlr_info).collect(),
@@ -228,7 +249,10 @@ pub fn describe(src: &dyn RecordSource, kind: &str, stats: bool, batch: Option<&
         let s = full_stats(src)?;
         let tol = |a: usize| h.scale[a] * 0.5 + 1e-9;
         for a in 0..3 {
-            if s.point_count > 0 && ((s.bounds.min[a] - h.min[a]).abs() > tol(a) || (s.bounds.max[a] - h.max[a]).abs() > tol(a)) {
+            if s.point_count > 0
+                && ((s.bounds.min[a] - h.min[a]).abs() > tol(a)
+                    || (s.bounds.max[a] - h.max[a]).abs() > tol(a))
+            {
                 let d = grid_decimals(h.scale[a]);
                 info.warnings.push(format!(
                     "header bounds on {} are [{:.d$}, {:.d$}] but the points span [{:.d$}, {:.d$}]",
@@ -296,7 +320,14 @@ struct Acc {
 
 impl Acc {
     fn new() -> Acc {
-        Acc { n: 0, min: [i32::MAX; 3], max: [i32::MIN; 3], ranges: BTreeMap::new(), class: [0; 256], ret: [0; 16] }
+        Acc {
+            n: 0,
+            min: [i32::MAX; 3],
+            max: [i32::MIN; 3],
+            ranges: BTreeMap::new(),
+            class: [0; 256],
+            ret: [0; 16],
+        }
     }
     fn merge(mut self, o: Acc) -> Acc {
         self.n += o.n;
@@ -337,13 +368,19 @@ fn numeric_fields(layout: &RecordLayout) -> Vec<(&'static str, FieldReader)> {
             f.push(("number_of_returns", Box::new(|r: &[u8]| (r[14] >> 4) as f64)));
             f.push(("scanner_channel", Box::new(|r: &[u8]| ((r[15] >> 4) & 3) as f64)));
             f.push(("user_data", Box::new(|r: &[u8]| r[17] as f64)));
-            f.push(("scan_angle", Box::new(|r: &[u8]| i16::from_le_bytes([r[18], r[19]]) as f64 * 0.006)));
+            f.push((
+                "scan_angle",
+                Box::new(|r: &[u8]| i16::from_le_bytes([r[18], r[19]]) as f64 * 0.006),
+            ));
             f.push(("point_source_id", Box::new(u16_at(20))));
         }
     }
     if let Some(a) = layout.attribute("gps_time") {
         let o = a.offset;
-        f.push(("gps_time", Box::new(move |r: &[u8]| f64::from_le_bytes(r[o..o + 8].try_into().unwrap()))));
+        f.push((
+            "gps_time",
+            Box::new(move |r: &[u8]| f64::from_le_bytes(r[o..o + 8].try_into().unwrap())),
+        ));
     }
     if let Some(a) = layout.attribute("rgb") {
         let o = a.offset;
@@ -411,7 +448,19 @@ fn full_stats(src: &dyn RecordSource) -> Result<Stats> {
         point_count: acc.n,
         bounds,
         ranges: acc.ranges.into_iter().map(|(k, (min, max))| (k, Range { min, max })).collect(),
-        classification_counts: acc.class.iter().enumerate().filter(|(_, &c)| c > 0).map(|(i, &c)| (i as u8, c)).collect(),
-        return_counts: acc.ret.iter().enumerate().filter(|(_, &c)| c > 0).map(|(i, &c)| (i as u8, c)).collect(),
+        classification_counts: acc
+            .class
+            .iter()
+            .enumerate()
+            .filter(|(_, &c)| c > 0)
+            .map(|(i, &c)| (i as u8, c))
+            .collect(),
+        return_counts: acc
+            .ret
+            .iter()
+            .enumerate()
+            .filter(|(_, &c)| c > 0)
+            .map(|(i, &c)| (i as u8, c))
+            .collect(),
     })
 }

@@ -291,7 +291,8 @@ pub fn parse(b: &[u8]) -> Result<LasMeta, LasError> {
             if pos + EVLR_HEADER as u64 > b.len() as u64 {
                 return Err(LasError::EvlrCount { declared: header.evlr_count, found: i });
             }
-            let (v, next) = parse_evlr(b, pos as usize).map_err(|e| LasError::Evlr { index: i, error: Box::new(e) })?;
+            let (v, next) = parse_evlr(b, pos as usize)
+                .map_err(|e| LasError::Evlr { index: i, error: Box::new(e) })?;
             evlrs.push(v);
             pos = next as u64;
         }

@@ -68,7 +68,10 @@ pub fn payload_for(
         ColorChoice::Mode(ColorMode::Rgb) => match rgb {
             Some(offset) => Payload::RgbIntensity { offset },
             None => {
-                return Err(Error::Render { path: path.to_path_buf(), error: RenderError::NoColour { format: layout.format, has_rgb: false } })
+                return Err(Error::Render {
+                    path: path.to_path_buf(),
+                    error: RenderError::NoColour { format: layout.format, has_rgb: false },
+                })
             }
         },
         ColorChoice::Mode(ColorMode::Intensity) => Payload::Intensity,
@@ -80,7 +83,12 @@ pub fn payload_for(
             None => {
                 return Err(Error::Render {
                     path: path.to_path_buf(),
-                    error: RenderError::MissingAttribute { mode: "gps-time", attribute: "gps_time", format: layout.format, not_kept: false },
+                    error: RenderError::MissingAttribute {
+                        mode: "gps-time",
+                        attribute: "gps_time",
+                        format: layout.format,
+                        not_kept: false,
+                    },
                 })
             }
         },
@@ -225,12 +233,25 @@ pub fn resolve_choice(choice: ColorChoice, payload: Payload, stats: &ColorStats)
 /// `payloads` (all the points: the rule of every renderer, view-independent, as
 /// [`crate::render_input::color_range`] takes it for a batch file): the 1st to 99th percentile
 /// of their values; `None` for modes without a range.
-pub fn payload_range(payloads: &[u64], choice: ColorChoice, payload: Payload, stats: &ColorStats, grid: &Grid) -> Option<[f64; 2]> {
+pub fn payload_range(
+    payloads: &[u64],
+    choice: ColorChoice,
+    payload: Payload,
+    stats: &ColorStats,
+    grid: &Grid,
+) -> Option<[f64; 2]> {
     let choice = resolve_choice(choice, payload, stats);
-    if !matches!(choice, ColorChoice::Mode(ColorMode::Intensity | ColorMode::Elevation | ColorMode::GpsTime)) {
+    if !matches!(
+        choice,
+        ColorChoice::Mode(ColorMode::Intensity | ColorMode::Elevation | ColorMode::GpsTime)
+    ) {
         return None;
     }
-    let mut v: Vec<f64> = payloads.par_iter().map(|&p| scalar_value(p, choice, payload, grid)).filter(|x| x.is_finite()).collect();
+    let mut v: Vec<f64> = payloads
+        .par_iter()
+        .map(|&p| scalar_value(p, choice, payload, grid))
+        .filter(|x| x.is_finite())
+        .collect();
     Some([quantile(&mut v, 0.01).unwrap_or(0.0), quantile(&mut v, 0.99).unwrap_or(1.0)])
 }
 
@@ -269,15 +290,9 @@ pub fn payload_colors(
     match choice {
         ColorChoice::Mode(ColorMode::Intensity | ColorMode::Elevation | ColorMode::GpsTime) => {
             let range = range.unwrap_or_else(|| {
-                let mut v: Vec<f64> = payloads
-                    .iter()
-                    .map(|&p| scalar(p))
-                    .filter(|x| x.is_finite())
-                    .collect();
-                [
-                    quantile(&mut v, 0.01).unwrap_or(0.0),
-                    quantile(&mut v, 0.99).unwrap_or(1.0),
-                ]
+                let mut v: Vec<f64> =
+                    payloads.iter().map(|&p| scalar(p)).filter(|x| x.is_finite()).collect();
+                [quantile(&mut v, 0.01).unwrap_or(0.0), quantile(&mut v, 0.99).unwrap_or(1.0)]
             });
             let colors = payloads
                 .par_iter()
@@ -351,14 +366,7 @@ mod tests {
     fn payloads_and_colours_follow_the_batch_file_rules() {
         let layout = RecordLayout::new(3, 34).unwrap();
         let recs: Vec<u8> = [
-            record(
-                &layout,
-                [1, 2, 3],
-                100,
-                [0x1000, 0x2000, 0xff00],
-                0b0001_0001,
-                2,
-            ),
+            record(&layout, [1, 2, 3], 100, [0x1000, 0x2000, 0xff00], 0b0001_0001, 2),
             record(&layout, [4, 5, -6], 300, [0x0100, 0, 0], 0b0001_0010, 6),
         ]
         .concat();
@@ -369,48 +377,26 @@ mod tests {
         assert_eq!((p.max_rgb, p.max_intensity), (0xff00, 300));
         let mut stats = ColorStats::default();
         stats.add(&p);
-        let grid = Grid {
-            scale: [0.5; 3],
-            offset: [0.0; 3],
-        };
+        let grid = Grid { scale: [0.5; 3], offset: [0.0; 3] };
         // RGB: the stored colour of a batch file (ColorSource::rgba with the dataset's depth).
         let (c, range) = payload_colors(&p.payload, ColorChoice::Auto, rgb, &stats, &grid, None);
-        let source = ColorSource::Rgb {
-            offset: 28,
-            depth: RgbDepth::detect(0xff00),
-        };
+        let source = ColorSource::Rgb { offset: 28, depth: RgbDepth::detect(0xff00) };
         assert_eq!(c, [source.rgba(&recs[..34]), source.rgba(&recs[34..])]);
         assert_eq!(range, None);
         // All RGB zero: auto is intensity over the visible range, stored is grey over the max.
-        let zero = ColorStats {
-            max_rgb: 0,
-            ..stats
-        };
+        let zero = ColorStats { max_rgb: 0, ..stats };
         assert_eq!(
             resolve_choice(ColorChoice::Auto, rgb, &zero),
             ColorChoice::Mode(ColorMode::Intensity)
         );
         let (c, range) = payload_colors(&p.payload, ColorChoice::Auto, rgb, &zero, &grid, None);
         assert_eq!(range, Some([100.0, 300.0]));
-        assert_eq!(
-            c,
-            [
-                intensity_color(100, [100.0, 300.0]),
-                intensity_color(300, [100.0, 300.0])
-            ]
-        );
+        assert_eq!(c, [intensity_color(100, [100.0, 300.0]), intensity_color(300, [100.0, 300.0])]);
         let (c, _) = payload_colors(&p.payload, ColorChoice::Stored, rgb, &zero, &grid, None);
-        assert_eq!(
-            c[1],
-            ColorSource::Intensity { max_intensity: 300 }.rgba(&recs[34..])
-        );
+        assert_eq!(c[1], ColorSource::Intensity { max_intensity: 300 }.rgba(&recs[34..]));
         // Elevation from the integer z on the grid, with a given range.
-        let el = payload_for(
-            &layout,
-            ColorChoice::Mode(ColorMode::Elevation),
-            "x".as_ref(),
-        )
-        .unwrap();
+        let el =
+            payload_for(&layout, ColorChoice::Mode(ColorMode::Elevation), "x".as_ref()).unwrap();
         let mut q = LoadedPiece::default();
         split(&recs, &layout, el, &mut q);
         let (c, _) = payload_colors(
@@ -421,20 +407,10 @@ mod tests {
             &grid,
             Some([-3.0, 1.5]),
         );
-        assert_eq!(
-            c,
-            [
-                elevation_color(1.5, [-3.0, 1.5]),
-                elevation_color(-3.0, [-3.0, 1.5])
-            ]
-        );
+        assert_eq!(c, [elevation_color(1.5, [-3.0, 1.5]), elevation_color(-3.0, [-3.0, 1.5])]);
         // Return numbers and classes.
-        let rn = payload_for(
-            &layout,
-            ColorChoice::Mode(ColorMode::ReturnNumber),
-            "x".as_ref(),
-        )
-        .unwrap();
+        let rn =
+            payload_for(&layout, ColorChoice::Mode(ColorMode::ReturnNumber), "x".as_ref()).unwrap();
         let mut q = LoadedPiece::default();
         split(&recs, &layout, rn, &mut q);
         let (c, _) = payload_colors(
@@ -446,12 +422,8 @@ mod tests {
             None,
         );
         assert_eq!(c, [return_number_color(1, 2), return_number_color(2, 2)]);
-        let cl = payload_for(
-            &layout,
-            ColorChoice::Mode(ColorMode::Classification),
-            "x".as_ref(),
-        )
-        .unwrap();
+        let cl = payload_for(&layout, ColorChoice::Mode(ColorMode::Classification), "x".as_ref())
+            .unwrap();
         let mut q = LoadedPiece::default();
         split(&recs, &layout, cl, &mut q);
         assert_eq!(q.payload, [2, 6]);
@@ -461,12 +433,9 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("f.las") && e.contains("no RGB"), "{e}");
-        assert!(payload_for(
-            &plain,
-            ColorChoice::Mode(ColorMode::GpsTime),
-            "f.las".as_ref()
-        )
-        .is_err());
+        assert!(
+            payload_for(&plain, ColorChoice::Mode(ColorMode::GpsTime), "f.las".as_ref()).is_err()
+        );
         assert_eq!(
             payload_for(&plain, ColorChoice::Auto, "f.las".as_ref()).unwrap(),
             Payload::Intensity

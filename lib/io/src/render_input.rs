@@ -19,10 +19,12 @@ use crate::sort::{sort, SortOptions};
 use mortar_core::layout::Family;
 use mortar_core::render::framebuffer::{key_index, EMPTY_KEY};
 use mortar_core::render::resolve::{
-    classification_color, elevation_color, gps_time_color, intensity_color, resolve, return_number_color, ColorMode,
-    ResolveOptions,
+    classification_color, elevation_color, gps_time_color, intensity_color, resolve,
+    return_number_color, ColorMode, ResolveOptions,
 };
-use mortar_core::render::{rasterize, Aabb, BatchRef, Camera, Framebuffer, RasterOptions, RasterStats};
+use mortar_core::render::{
+    rasterize, Aabb, BatchRef, Camera, Framebuffer, RasterOptions, RasterStats,
+};
 use rayon::prelude::*;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -54,16 +56,25 @@ impl RenderSource {
 
     /// Morton-sorts and batches `ds` exactly as `mortar batch --attributes ...` does (no
     /// compression) into a temporary batch file under `opts.tmp_dir`, and opens it.
-    pub fn batch_dataset(ds: &Dataset, opts: &SortOptions, attributes: &AttributeSelection) -> Result<RenderSource> {
+    pub fn batch_dataset(
+        ds: &Dataset,
+        opts: &SortOptions,
+        attributes: &AttributeSelection,
+    ) -> Result<RenderSource> {
         let names: Vec<String> = ds.inputs.iter().map(|i| i.path().display().to_string()).collect();
-        let dir = TempPath::dir_in(&opts.tmp_dir, "render").map_err(|e| Error::io(&opts.tmp_dir, e))?;
+        let dir =
+            TempPath::dir_in(&opts.tmp_dir, "render").map_err(|e| Error::io(&opts.tmp_dir, e))?;
         let path = dir.path().join("input.mbat");
         let attributes = attributes.resolve(&ds.layout)?;
         let template = ds.source_meta();
         let mut sink = BatchSink::new(&path, template, attributes, Compression::None);
         sort(ds, opts, &mut sink)?;
         sink.finish()?;
-        Ok(RenderSource { file: BatchFile::open(&path)?, name: PathBuf::from(names.join(" ")), temp: Some(dir) })
+        Ok(RenderSource {
+            file: BatchFile::open(&path)?,
+            name: PathBuf::from(names.join(" ")),
+            temp: Some(dir),
+        })
     }
 
     /// `e` with the temporary batch file's path replaced by the inputs' names, so that messages
@@ -87,14 +98,20 @@ pub fn file_bounds(file: &BatchFile) -> Aabb {
 /// The coordinate words of every batch: borrowed from the map for uncompressed files,
 /// decompressed (in parallel) for zstd files.
 pub fn load_words(file: &BatchFile) -> Result<Vec<BatchView<'_>>> {
-    (0..file.batch_count()).into_par_iter().map(|i| file.batch_sections(i, &WORD_SECTIONS)).collect()
+    (0..file.batch_count())
+        .into_par_iter()
+        .map(|i| file.batch_sections(i, &WORD_SECTIONS))
+        .collect()
 }
 
 /// The rasterizer's view of the batches in `views` (from [`load_words`] on `file`). Fails when the
 /// file holds more than 2^32 points (point indices are 32-bit in the framebuffer).
 pub fn batch_refs<'a>(file: &BatchFile, views: &'a [BatchView<'_>]) -> Result<Vec<BatchRef<'a>>> {
     if file.header.point_count > 1u64 << 32 {
-        return Err(Error::Render { path: file.path.clone(), error: RenderError::TooManyToDraw { points: file.header.point_count } });
+        return Err(Error::Render {
+            path: file.path.clone(),
+            error: RenderError::TooManyToDraw { points: file.header.point_count },
+        });
     }
     Ok(views
         .iter()
@@ -154,8 +171,12 @@ impl ColorChoice {
     /// The choice `Auto` stands for in `file`; other choices unchanged.
     pub fn resolved(self, file: &BatchFile) -> ColorChoice {
         match self {
-            ColorChoice::Auto if file.meta.color.source == "rgb" => ColorChoice::Mode(ColorMode::Rgb),
-            ColorChoice::Auto if file.meta.attributes.iter().any(|a| a.name == "intensity") => ColorChoice::Mode(ColorMode::Intensity),
+            ColorChoice::Auto if file.meta.color.source == "rgb" => {
+                ColorChoice::Mode(ColorMode::Rgb)
+            }
+            ColorChoice::Auto if file.meta.attributes.iter().any(|a| a.name == "intensity") => {
+                ColorChoice::Mode(ColorMode::Intensity)
+            }
             ColorChoice::Auto => ColorChoice::Stored,
             c => c,
         }
@@ -176,7 +197,10 @@ impl ColorChoice {
 
     /// Whether the choice maps a scalar over a range (intensity, elevation, GPS time).
     pub fn uses_range(self) -> bool {
-        matches!(self, ColorChoice::Mode(ColorMode::Intensity | ColorMode::Elevation | ColorMode::GpsTime))
+        matches!(
+            self,
+            ColorChoice::Mode(ColorMode::Intensity | ColorMode::Elevation | ColorMode::GpsTime)
+        )
     }
 }
 
@@ -200,7 +224,13 @@ fn source_of(file: &BatchFile, choice: ColorChoice) -> Result<Source> {
             return if file.meta.color.source == "rgb" {
                 Ok(Source::Stored)
             } else {
-                Err(Error::Render { path: file.path.clone(), error: RenderError::NoColour { format: file.layout.format, has_rgb: file.layout.has_rgb() } })
+                Err(Error::Render {
+                    path: file.path.clone(),
+                    error: RenderError::NoColour {
+                        format: file.layout.format,
+                        has_rgb: file.layout.has_rgb(),
+                    },
+                })
             };
         }
         ColorChoice::Mode(m) => m,
@@ -210,7 +240,15 @@ fn source_of(file: &BatchFile, choice: ColorChoice) -> Result<Source> {
         return Ok(Source::Attribute { index });
     }
     let not_kept = file.layout.attribute(name).is_some();
-    Err(Error::Render { path: file.path.clone(), error: RenderError::MissingAttribute { mode: mode.name(), attribute: name, format: file.layout.format, not_kept } })
+    Err(Error::Render {
+        path: file.path.clone(),
+        error: RenderError::MissingAttribute {
+            mode: mode.name(),
+            attribute: name,
+            format: file.layout.format,
+            not_kept,
+        },
+    })
 }
 
 /// Checks that `file` has the attribute `choice` needs (an error naming the file otherwise).
@@ -273,14 +311,20 @@ pub(crate) fn quantile(v: &mut [f64], q: f64) -> Option<f64> {
 /// rule of every renderer (view-independent, so that a renderer that only knows the points it
 /// draws and one that draws all of them colour alike). Only the batches holding visible points
 /// are read for the colours.
-pub fn colors_for_keys(file: &BatchFile, keys: &[u64], choice: ColorChoice, range: Option<[f64; 2]>) -> Result<PointColors> {
+pub fn colors_for_keys(
+    file: &BatchFile,
+    keys: &[u64],
+    choice: ColorChoice,
+    range: Option<[f64; 2]>,
+) -> Result<PointColors> {
     let choice = choice.resolved(file);
     let source = source_of(file, choice)?;
     let range = match range {
         Some(r) => Some(r),
         None => color_range(file, choice)?,
     };
-    let mut indices: Vec<u32> = keys.par_iter().filter(|&&k| k != EMPTY_KEY).map(|&k| key_index(k)).collect();
+    let mut indices: Vec<u32> =
+        keys.par_iter().filter(|&&k| k != EMPTY_KEY).map(|&k| key_index(k)).collect();
     indices.par_sort_unstable();
     indices.dedup();
     colors_for_indices(file, indices, choice, source, range)
@@ -296,7 +340,10 @@ pub fn color_range(file: &BatchFile, choice: ColorChoice) -> Result<Option<[f64;
     }
     let source = source_of(file, choice)?;
     if file.header.point_count > 1u64 << 32 {
-        return Err(Error::Render { path: file.path.clone(), error: RenderError::TooManyToColour { points: file.header.point_count } });
+        return Err(Error::Render {
+            path: file.path.clone(),
+            error: RenderError::TooManyToColour { points: file.header.point_count },
+        });
     }
     let indices: Vec<u32> = (0..file.header.point_count).map(|i| i as u32).collect();
     Ok(Some(percentile_range(&values_for_indices(file, &indices, choice, source)?)))
@@ -306,11 +353,18 @@ pub fn color_range(file: &BatchFile, choice: ColorChoice) -> Result<Option<[f64;
 /// resolve on the GPU from per-point colours (`mortar view`). Scalar modes map over `range`, or
 /// when it is `None` over the 1st to 99th percentile of all the points' values (view-independent,
 /// unlike [`colors_for_keys`]). Returns the colours and the range used.
-pub fn point_colors(file: &BatchFile, choice: ColorChoice, range: Option<[f64; 2]>) -> Result<(Vec<u32>, Option<[f64; 2]>)> {
+pub fn point_colors(
+    file: &BatchFile,
+    choice: ColorChoice,
+    range: Option<[f64; 2]>,
+) -> Result<(Vec<u32>, Option<[f64; 2]>)> {
     let choice = choice.resolved(file);
     let source = source_of(file, choice)?;
     if file.header.point_count > 1u64 << 32 {
-        return Err(Error::Render { path: file.path.clone(), error: RenderError::TooManyToColour { points: file.header.point_count } });
+        return Err(Error::Render {
+            path: file.path.clone(),
+            error: RenderError::TooManyToColour { points: file.header.point_count },
+        });
     }
     let indices: Vec<u32> = (0..file.header.point_count).map(|i| i as u32).collect();
     let c = colors_for_indices(file, indices, choice, source, range)?;
@@ -318,26 +372,45 @@ pub fn point_colors(file: &BatchFile, choice: ColorChoice, range: Option<[f64; 2
 }
 
 /// The colours of the points `indices` (sorted, distinct) of `file`.
-fn colors_for_indices(file: &BatchFile, indices: Vec<u32>, choice: ColorChoice, source: Source, range: Option<[f64; 2]>) -> Result<PointColors> {
+fn colors_for_indices(
+    file: &BatchFile,
+    indices: Vec<u32>,
+    choice: ColorChoice,
+    source: Source,
+    range: Option<[f64; 2]>,
+) -> Result<PointColors> {
     let out = values_for_indices(file, &indices, choice, source)?;
     let mode = match choice {
         ColorChoice::Auto | ColorChoice::Stored | ColorChoice::Mode(ColorMode::Rgb) => None,
         ColorChoice::Mode(m) => Some(m),
     };
     if !choice.uses_range() {
-        return Ok(PointColors { indices, colors: out.into_iter().map(|c| c as u32).collect(), range: None });
+        return Ok(PointColors {
+            indices,
+            colors: out.into_iter().map(|c| c as u32).collect(),
+            range: None,
+        });
     }
-    let (colors, range) = scalar_colors(mode.expect("scalar modes are attribute or elevation modes"), &out, range);
+    let (colors, range) =
+        scalar_colors(mode.expect("scalar modes are attribute or elevation modes"), &out, range);
     Ok(PointColors { indices, colors, range: Some(range) })
 }
 
 /// Per point of `indices` (sorted, distinct) of `file`: its colour, or in scalar modes the
 /// value's `f64` bits.
-fn values_for_indices(file: &BatchFile, indices: &[u32], choice: ColorChoice, source: Source) -> Result<Vec<u64>> {
+fn values_for_indices(
+    file: &BatchFile,
+    indices: &[u32],
+    choice: ColorChoice,
+    source: Source,
+) -> Result<Vec<u64>> {
     let entries = file.entries();
     let total = file.header.point_count;
     if indices.last().is_some_and(|&i| i as u64 >= total) {
-        return Err(Error::Render { path: file.path.clone(), error: RenderError::StrayIndex { beyond: "the file's points" } });
+        return Err(Error::Render {
+            path: file.path.clone(),
+            error: RenderError::StrayIndex { beyond: "the file's points" },
+        });
     }
     // Runs of indices that fall in one batch.
     let mut groups = Vec::new();
@@ -428,7 +501,8 @@ pub(crate) fn attribute_value(mode: ColorMode, family: Family, v: &[u8]) -> u64 
 /// The range a scalar colour mode maps over when none is given: the 1st to 99th percentile of
 /// the finite `values` (`f64` bits), robust against outliers.
 pub(crate) fn percentile_range(values: &[u64]) -> [f64; 2] {
-    let mut v: Vec<f64> = values.iter().map(|&b| f64::from_bits(b)).filter(|x| x.is_finite()).collect();
+    let mut v: Vec<f64> =
+        values.iter().map(|&b| f64::from_bits(b)).filter(|x| x.is_finite()).collect();
     let lo = quantile(&mut v, 0.01).unwrap_or(0.0);
     let hi = quantile(&mut v, 0.99).unwrap_or(1.0);
     [lo, hi]
@@ -436,7 +510,11 @@ pub(crate) fn percentile_range(values: &[u64]) -> [f64; 2] {
 
 /// Colours of scalar values (`f64` bits) in `mode` (intensity, elevation, GPS time) over
 /// `range`, or when it is `None` over [`percentile_range`]; and the range used.
-pub(crate) fn scalar_colors(mode: ColorMode, values: &[u64], range: Option<[f64; 2]>) -> (Vec<u32>, [f64; 2]) {
+pub(crate) fn scalar_colors(
+    mode: ColorMode,
+    values: &[u64],
+    range: Option<[f64; 2]>,
+) -> (Vec<u32>, [f64; 2]) {
     let range = range.unwrap_or_else(|| percentile_range(values));
     let color = |v: f64| match mode {
         ColorMode::Intensity => intensity_color(v as u16, range),
@@ -461,7 +539,12 @@ pub struct RenderSettings {
 
 impl Default for RenderSettings {
     fn default() -> Self {
-        RenderSettings { raster: RasterOptions::default(), color: ColorChoice::Auto, range: None, resolve: ResolveOptions::default() }
+        RenderSettings {
+            raster: RasterOptions::default(),
+            color: ColorChoice::Auto,
+            range: None,
+            resolve: ResolveOptions::default(),
+        }
     }
 }
 
@@ -491,11 +574,18 @@ pub struct Rendered {
 /// Rasterizes `refs` (the batches of `file`, see [`batch_refs`]) for `camera` into a fresh
 /// framebuffer and resolves the image. Deterministic: the same inputs give the same keys and
 /// pixels whatever the thread count.
-pub fn render(file: &BatchFile, refs: &[BatchRef<'_>], camera: &Camera, settings: &RenderSettings) -> Result<Rendered> {
+pub fn render(
+    file: &BatchFile,
+    refs: &[BatchRef<'_>],
+    camera: &Camera,
+    settings: &RenderSettings,
+) -> Result<Rendered> {
     check_color(file, settings.color)?;
     let fb = Framebuffer::new(camera.width, camera.height);
     let t0 = Instant::now();
-    let stats = rasterize(&fb, refs, &file.grid(), camera, &settings.raster).map_err(|error| Error::Render { path: file.path.clone(), error: RenderError::Raster { error } })?;
+    let stats = rasterize(&fb, refs, &file.grid(), camera, &settings.raster).map_err(|error| {
+        Error::Render { path: file.path.clone(), error: RenderError::Raster { error } }
+    })?;
     let raster_seconds = t0.elapsed().as_secs_f64();
     resolve_keys(file, fb.into_keys(), stats, raster_seconds, camera, settings)
 }
@@ -503,11 +593,24 @@ pub fn render(file: &BatchFile, refs: &[BatchRef<'_>], camera: &Camera, settings
 /// Resolves a visibility buffer of `file`'s points (drawn by either rasterizer with `stats` in
 /// `raster_seconds`) into the image: colours of the visible points in the chosen mode, then hole
 /// filling and eye-dome lighting as asked.
-pub fn resolve_keys(file: &BatchFile, keys: Vec<u64>, stats: RasterStats, raster_seconds: f64, camera: &Camera, settings: &RenderSettings) -> Result<Rendered> {
+pub fn resolve_keys(
+    file: &BatchFile,
+    keys: Vec<u64>,
+    stats: RasterStats,
+    raster_seconds: f64,
+    camera: &Camera,
+    settings: &RenderSettings,
+) -> Result<Rendered> {
     let t1 = Instant::now();
     let colors = colors_for_keys(file, &keys, settings.color, settings.range)?;
     let bg = settings.resolve.background;
-    let rgba = resolve(&keys, camera.width, camera.height, |i| colors.get(i).unwrap_or(bg), &settings.resolve);
+    let rgba = resolve(
+        &keys,
+        camera.width,
+        camera.height,
+        |i| colors.get(i).unwrap_or(bg),
+        &settings.resolve,
+    );
     let resolve_seconds = t1.elapsed().as_secs_f64();
     let covered = keys.iter().filter(|&&k| k != EMPTY_KEY).count() as u64;
     Ok(Rendered {

@@ -59,7 +59,12 @@ fn io_err(t: &Path) -> impl Fn(std::io::Error) -> Error + '_ {
 
 impl LasSink {
     /// `compressed` chooses LAZ; for files it follows the extension unless forced.
-    pub fn new(target: Target, compressed: bool, template: SourceMeta, tmp_dir: &Path) -> Result<LasSink> {
+    pub fn new(
+        target: Target,
+        compressed: bool,
+        template: SourceMeta,
+        tmp_dir: &Path,
+    ) -> Result<LasSink> {
         let tmp = match &target {
             Target::File(p) => Some(TempPath::beside(p)),
             Target::Stdout if compressed => {
@@ -68,7 +73,16 @@ impl LasSink {
             }
             Target::Stdout => None,
         };
-        Ok(LasSink { target, compressed, t: template, tmp, out: None, summary: None, written: 0, laz_chunk: None })
+        Ok(LasSink {
+            target,
+            compressed,
+            t: template,
+            tmp,
+            out: None,
+            summary: None,
+            written: 0,
+            laz_chunk: None,
+        })
     }
 
     /// Writes LAZ chunks of `points` points (synthetic inputs with huge chunks).
@@ -78,8 +92,12 @@ impl LasSink {
 
     /// The LASzip VLR of the output.
     fn laz_vlr(&self) -> Result<laz::LazVlr> {
-        let extra = (self.t.layout.record_len - mortar_core::layout::base_len(self.t.layout.format).unwrap()) as u16;
-        let mut b = laz::LazVlrBuilder::default().with_point_format(self.t.layout.format, extra).map_err(|error| Error::LazFormat { format: self.t.layout.format, error })?;
+        let extra = (self.t.layout.record_len
+            - mortar_core::layout::base_len(self.t.layout.format).unwrap())
+            as u16;
+        let mut b = laz::LazVlrBuilder::default()
+            .with_point_format(self.t.layout.format, extra)
+            .map_err(|error| Error::LazFormat { format: self.t.layout.format, error })?;
         if let Some(n) = self.laz_chunk {
             b = b.with_fixed_chunk_size(n);
         }
@@ -129,14 +147,22 @@ impl LasSink {
             evlr_start,
             evlr_count: if evlr_start > 0 { self.t.evlrs.len() as u32 } else { 0 },
         };
-        las::write_header(&h).map_err(|error| Error::Las { path: self.target.display().to_string().into(), error })
+        las::write_header(&h)
+            .map_err(|error| Error::Las { path: self.target.display().to_string().into(), error })
     }
 
     /// Finishes the file: LAZ chunk table, EVLRs, header fix-up, rename into place.
     pub fn finish(mut self) -> Result<u64> {
-        let s = self.summary.clone().ok_or(Error::SinkOrder { what: "sink finished before it began" })?;
+        let s = self
+            .summary
+            .clone()
+            .ok_or(Error::SinkOrder { what: "sink finished before it began" })?;
         if self.written != s.count {
-            return Err(Error::ShortWrite { path: self.target.display().to_string().into(), written: self.written, expected: s.count });
+            return Err(Error::ShortWrite {
+                path: self.target.display().to_string().into(),
+                written: self.written,
+                expected: s.count,
+            });
         }
         let evlrs = las::write_evlrs(&self.t.evlrs);
         let has_evlrs = !self.t.evlrs.is_empty() && self.t.header.version.1 >= 4;
@@ -153,7 +179,10 @@ impl LasSink {
                 let mut w = match out {
                     Out::Las(w) => w,
                     Out::Laz(mut c) => {
-                        c.done().map_err(|error| Error::LazCompress { path: self.target.display().to_string().into(), error })?;
+                        c.done().map_err(|error| Error::LazCompress {
+                            path: self.target.display().to_string().into(),
+                            error,
+                        })?;
                         c.into_inner()
                     }
                     Out::Stdout(_) => unreachable!(),
@@ -192,7 +221,11 @@ impl OrderedSink for LasSink {
             (Target::Stdout, false) => {
                 // the EVLR position is known up front: right after the points
                 let hb0 = self.header_bytes(s, 0)?;
-                let evlr_start = if has_evlrs { hb0.len() as u64 + s.count * self.t.layout.record_len as u64 } else { 0 };
+                let evlr_start = if has_evlrs {
+                    hb0.len() as u64 + s.count * self.t.layout.record_len as u64
+                } else {
+                    0
+                };
                 let hb = self.header_bytes(s, evlr_start)?;
                 let mut w = BufWriter::with_capacity(1 << 20, std::io::stdout());
                 w.write_all(&hb).map_err(io_err(Path::new("<stdout>")))?;
@@ -206,7 +239,8 @@ impl OrderedSink for LasSink {
                 w.write_all(&hb).map_err(io_err(&p))?;
                 if self.compressed {
                     let vlr = self.laz_vlr()?;
-                    let c = laz::ParLasZipCompressor::new(w, vlr).map_err(|e| Error::LazSetup { error: std::io::Error::other(e) })?;
+                    let c = laz::ParLasZipCompressor::new(w, vlr)
+                        .map_err(|e| Error::LazSetup { error: std::io::Error::other(e) })?;
                     self.out = Some(Out::Laz(Box::new(c)));
                 } else {
                     self.out = Some(Out::Las(w));

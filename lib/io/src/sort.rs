@@ -10,9 +10,9 @@
 //! The Morton grid is defined by the actual integer bounds of the points, and ties are broken by
 //! input order, so the output is the same on every path and on every run.
 
-use crate::progress::Progress;
 use crate::dataset::{Dataset, DatasetPiece};
 use crate::error::{Error, Result};
+use crate::progress::Progress;
 use mortar_core::layout::{read_xyz, RecordLayout};
 use mortar_core::morton::MortonGrid;
 use rayon::prelude::*;
@@ -40,7 +40,9 @@ pub fn trace(phase: &str, t0: std::time::Instant) {
 
 /// Sort key of one point. Ordering: code, then input order (ties of a shifted code are refined
 /// by [`refine_ties`] after sorting).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, PartialOrd, Ord, bytemuck::Zeroable, bytemuck::Pod)]
+#[derive(
+    Clone, Copy, Debug, Default, PartialEq, Eq, PartialOrd, Ord, bytemuck::Zeroable, bytemuck::Pod,
+)]
 #[repr(C)]
 pub struct Key {
     pub code: u64,
@@ -75,7 +77,14 @@ pub struct PieceStats {
 
 impl Default for PieceStats {
     fn default() -> Self {
-        PieceStats { count: 0, min: [i32::MAX; 3], max: [i32::MIN; 3], by_return: [0; 15], max_rgb: 0, max_intensity: 0 }
+        PieceStats {
+            count: 0,
+            min: [i32::MAX; 3],
+            max: [i32::MIN; 3],
+            by_return: [0; 15],
+            max_rgb: 0,
+            max_intensity: 0,
+        }
     }
 }
 
@@ -87,7 +96,11 @@ impl PieceStats {
     /// The statistics of `records`, calling `each(i, xyz)` for every record in the same pass
     /// (the sort makes its keys there while the record is in cache).
     #[inline]
-    pub fn of_with(records: &[u8], layout: &RecordLayout, mut each: impl FnMut(usize, [i32; 3])) -> PieceStats {
+    pub fn of_with(
+        records: &[u8],
+        layout: &RecordLayout,
+        mut each: impl FnMut(usize, [i32; 3]),
+    ) -> PieceStats {
         let mut s = PieceStats::default();
         let rgb = layout.attribute("rgb").map(|a| a.offset);
         for (i, r) in records.chunks_exact(layout.record_len).enumerate() {
@@ -209,7 +222,8 @@ pub fn default_memory() -> u64 {
 /// Bytes the in-memory sort needs for `points` records of `record_len` bytes.
 pub fn in_memory_need(points: u64, record_len: usize, chunk_points: usize) -> u64 {
     let chunk = points.min(chunk_points as u64);
-    points * (record_len as u64 + 2 * std::mem::size_of::<Key>() as u64) + 4 * chunk * record_len as u64
+    points * (record_len as u64 + 2 * std::mem::size_of::<Key>() as u64)
+        + 4 * chunk * record_len as u64
 }
 
 /// What [`sort`] did.
@@ -287,7 +301,11 @@ pub type Slabs<'a> = Vec<(Cow<'a, [u8]>, PieceStats)>;
 /// place) and makes one key per point on the Morton grid `guess` while the piece is hot in
 /// cache: the pieces' records (in input order) with their statistics, and the keys in input
 /// order (`slab` = piece, `idx` = record in it).
-pub fn read_all<'a>(ds: &'a Dataset, guess: &MortonGrid, arena: &'a mut Vec<u8>) -> Result<(Slabs<'a>, Vec<Key>)> {
+pub fn read_all<'a>(
+    ds: &'a Dataset,
+    guess: &MortonGrid,
+    arena: &'a mut Vec<u8>,
+) -> Result<(Slabs<'a>, Vec<Key>)> {
     let pieces = ds.pieces();
     ds.inputs.par_iter().for_each(|i| i.prefetch());
     let rl = ds.layout.record_len;
@@ -296,7 +314,8 @@ pub fn read_all<'a>(ds: &'a Dataset, guess: &MortonGrid, arena: &'a mut Vec<u8>)
         return Err(Error::TooManyPoints { what: "sort" });
     }
     let buffered = |p: &DatasetPiece| ds.needs_buffer(p.input);
-    let arena_len: usize = pieces.iter().filter(|p| buffered(p)).map(|p| p.piece.points as usize * rl).sum();
+    let arena_len: usize =
+        pieces.iter().filter(|p| buffered(p)).map(|p| p.piece.points as usize * rl).sum();
     *arena = zeroed_huge::<u8>(arena_len);
     let mut keys = zeroed_huge::<Key>(n);
     let mut work = Vec::with_capacity(pieces.len());
@@ -329,10 +348,17 @@ pub fn read_all<'a>(ds: &'a Dataset, guess: &MortonGrid, arena: &'a mut Vec<u8>)
                 None => ds.read_piece(&p)?,
             };
             if slab.len() != ks.len() * rl {
-                return Err(Error::PieceCount { path: ds.inputs[p.input].path().to_path_buf(), piece: p.piece.index });
+                return Err(Error::PieceCount {
+                    path: ds.inputs[p.input].path().to_path_buf(),
+                    piece: p.piece.index,
+                });
             }
             let s = PieceStats::of_with(&slab, &ds.layout, |idx, q| {
-                ks[idx] = Key { code: guess.code([q[0] as i64, q[1] as i64, q[2] as i64]), slab: i as u32, idx: idx as u32 };
+                ks[idx] = Key {
+                    code: guess.code([q[0] as i64, q[1] as i64, q[2] as i64]),
+                    slab: i as u32,
+                    idx: idx as u32,
+                };
             });
             Ok((slab, s))
         })
@@ -360,7 +386,9 @@ pub fn declared_grid(ds: &Dataset) -> MortonGrid {
 /// One key per record, slab by slab, in parallel.
 pub fn make_keys(slabs: &[&[u8]], record_len: usize, morton: &MortonGrid) -> Result<Vec<Key>> {
     let n: usize = slabs.iter().map(|s| s.len() / record_len).sum();
-    if slabs.len() > u32::MAX as usize || slabs.iter().any(|s| s.len() / record_len > u32::MAX as usize) {
+    if slabs.len() > u32::MAX as usize
+        || slabs.iter().any(|s| s.len() / record_len > u32::MAX as usize)
+    {
         return Err(Error::TooManyPoints { what: "sort" });
     }
     let mut keys = key_buffer(n);
@@ -375,7 +403,11 @@ pub fn make_keys(slabs: &[&[u8]], record_len: usize, morton: &MortonGrid) -> Res
         let p = &ptr;
         for (idx, r) in records.chunks_exact(record_len).enumerate() {
             let q = read_xyz(r);
-            let k = Key { code: morton.code([q[0] as i64, q[1] as i64, q[2] as i64]), slab: slab as u32, idx: idx as u32 };
+            let k = Key {
+                code: morton.code([q[0] as i64, q[1] as i64, q[2] as i64]),
+                slab: slab as u32,
+                idx: idx as u32,
+            };
             // SAFETY: slab ranges [start, start + len) partition 0..n; each slot written once.
             unsafe { p.0.add(start + idx).write(k) };
         }
@@ -681,7 +713,8 @@ mod tests {
 
     #[test]
     fn radix_sort_small_inputs() {
-        let keys: Vec<Key> = (0..1000u32).map(|i| Key { code: (i as u64 * 7919) % 13, slab: 0, idx: i }).collect();
+        let keys: Vec<Key> =
+            (0..1000u32).map(|i| Key { code: (i as u64 * 7919) % 13, slab: 0, idx: i }).collect();
         let mut expect = keys.clone();
         expect.sort();
         assert_eq!(sort_keys(keys), expect);

@@ -89,8 +89,10 @@ pub fn expand_inputs(args: &[String]) -> Result<Vec<PathBuf>> {
         } else if p.exists() {
             out.push(p.to_path_buf());
         } else if a.contains(['*', '?', '[']) {
-            let paths = glob::glob(a).map_err(|error| Error::BadPattern { pattern: a.clone(), error })?;
-            let mut found: Vec<PathBuf> = paths.filter_map(|r| r.ok()).filter(|p| p.is_file()).collect();
+            let paths =
+                glob::glob(a).map_err(|error| Error::BadPattern { pattern: a.clone(), error })?;
+            let mut found: Vec<PathBuf> =
+                paths.filter_map(|r| r.ok()).filter(|p| p.is_file()).collect();
             if found.is_empty() {
                 return Err(Error::NoMatch { pattern: a.clone() });
             }
@@ -149,12 +151,21 @@ struct LazChunk {
 }
 
 enum Kind {
-    Las { start: usize },
+    Las {
+        start: usize,
+    },
     /// LAZ in chunks (a pointwise file is one chunk: its whole point data).
-    Laz { vlr: laz::LazVlr, chunks: Vec<LazChunk> },
+    Laz {
+        vlr: laz::LazVlr,
+        chunks: Vec<LazChunk>,
+    },
     /// LAZ with fixed-size chunks but no chunk table: one stream over `start..end`, decoded in
     /// order (laz-rs finds the chunk boundaries from the chunk size).
-    LazSequential { vlr: laz::LazVlr, start: usize, end: usize },
+    LazSequential {
+        vlr: laz::LazVlr,
+        start: usize,
+        end: usize,
+    },
 }
 
 /// Where the points of a LAZ piece are.
@@ -188,7 +199,12 @@ struct Streams {
 impl Streams {
     fn take(&self, chunk: usize, skip: u64) -> Option<Cursor> {
         let mut idle = self.idle.lock().unwrap_or_else(|e| e.into_inner());
-        let best = idle.iter().enumerate().filter(|(_, c)| c.chunk == chunk && c.next <= skip).max_by_key(|(_, c)| c.next).map(|(i, _)| i)?;
+        let best = idle
+            .iter()
+            .enumerate()
+            .filter(|(_, c)| c.chunk == chunk && c.next <= skip)
+            .max_by_key(|(_, c)| c.next)
+            .map(|(i, _)| i)?;
         Some(idle.swap_remove(best))
     }
 
@@ -249,7 +265,12 @@ impl Seek for Chain {
             SeekFrom::End(d) => self.len().checked_add_signed(d),
             SeekFrom::Current(d) => self.pos.checked_add_signed(d),
         };
-        let p = p.ok_or_else(|| std::io::Error::new(std::io::ErrorKind::InvalidInput, "seek before the start of the LAZ data"))?;
+        let p = p.ok_or_else(|| {
+            std::io::Error::new(
+                std::io::ErrorKind::InvalidInput,
+                "seek before the start of the LAZ data",
+            )
+        })?;
         self.pos = p;
         Ok(p)
     }
@@ -347,7 +368,10 @@ impl Skip {
 
 impl std::fmt::Debug for LasInput {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("LasInput").field("path", &self.path).field("points", &self.point_count).finish()
+        f.debug_struct("LasInput")
+            .field("path", &self.path)
+            .field("points", &self.point_count)
+            .finish()
     }
 }
 
@@ -360,9 +384,11 @@ impl LasInput {
 
     pub fn from_bytes(path: PathBuf, bytes: Bytes) -> Result<LasInput> {
         let err = |error: LazError| Error::Laz { path: path.clone(), error };
-        let mut meta = las::parse(&bytes).map_err(|error| Error::Las { path: path.clone(), error })?;
+        let mut meta =
+            las::parse(&bytes).map_err(|error| Error::Las { path: path.clone(), error })?;
         let h = &meta.header;
-        let layout = RecordLayout::new(h.point_format, h.record_len as usize).map_err(|error| Error::Layout { path: path.clone(), error })?;
+        let layout = RecordLayout::new(h.point_format, h.record_len as usize)
+            .map_err(|error| Error::Layout { path: path.clone(), error })?;
         let start = h.offset_to_point_data as usize;
         let laszip = meta.vlrs.iter().find(|v| v.is_laszip());
         let kind;
@@ -373,7 +399,8 @@ impl LasInput {
             let Some(lv) = laszip else {
                 return Err(err(LazError::NoLaszipVlr));
             };
-            let vlr = laz::LazVlr::from_buffer(&lv.data).map_err(|error| err(LazError::BadVlr { error }))?;
+            let vlr = laz::LazVlr::from_buffer(&lv.data)
+                .map_err(|error| err(LazError::BadVlr { error }))?;
             // Summed here in u64: laz sums the item sizes in u16 (an overflow panic in debug
             // builds, a wrapped size in release; fuzz regression laz-item-sizes-overflow).
             let items_size: u64 = vlr.items().iter().map(|i| u64::from(i.size())).sum();
@@ -384,7 +411,12 @@ impl LasInput {
             if let Err(e) = check_laz_items(&vlr) {
                 return Err(err(e));
             }
-            let data_end = if h.evlr_start > 0 && h.evlr_count > 0 && (h.evlr_start as usize) >= start { (h.evlr_start as usize).min(bytes.len()) } else { bytes.len() };
+            let data_end =
+                if h.evlr_start > 0 && h.evlr_count > 0 && (h.evlr_start as usize) >= start {
+                    (h.evlr_start as usize).min(bytes.len())
+                } else {
+                    bytes.len()
+                };
             let plausible = |points: u64| -> std::result::Result<(), LazError> {
                 let room = data_end.saturating_sub(start);
                 if points > (room as u64).saturating_mul(MAX_LAZ_POINTS_PER_BYTE) {
@@ -400,7 +432,11 @@ impl LasInput {
                     return Err(err(LazError::NoPointData));
                 }
                 plausible(point_count).map_err(err)?;
-                let chunks = if point_count > 0 { vec![LazChunk { offset: start, len: data_end - start, points: point_count }] } else { Vec::new() };
+                let chunks = if point_count > 0 {
+                    vec![LazChunk { offset: start, len: data_end - start, points: point_count }]
+                } else {
+                    Vec::new()
+                };
                 kind = Kind::Laz { vlr, chunks };
             } else {
                 match read_chunk_table(&bytes, start, data_end, &vlr, point_count) {
@@ -459,7 +495,13 @@ impl LasInput {
                 ));
             }
             if point_count > available {
-                return Err(Error::Truncated { path: path.clone(), declared: point_count, available, bytes: end - start as u64, record_len: rl });
+                return Err(Error::Truncated {
+                    path: path.clone(),
+                    declared: point_count,
+                    available,
+                    bytes: end - start as u64,
+                    record_len: rl,
+                });
             }
             let mut first = 0;
             let mut i = 0;
@@ -471,7 +513,18 @@ impl LasInput {
             }
             kind = Kind::Las { start };
         }
-        Ok(LasInput { path, bytes: Arc::new(bytes), meta, layout, point_count, kind, pieces, at, streams: Streams::default(), skip: None })
+        Ok(LasInput {
+            path,
+            bytes: Arc::new(bytes),
+            meta,
+            layout,
+            point_count,
+            kind,
+            pieces,
+            at,
+            streams: Streams::default(),
+            skip: None,
+        })
     }
 
     /// Decodes only the named attributes (positions always) from now on: a LAS 1.4 layered
@@ -516,7 +569,9 @@ impl LasInput {
             if e > a {
                 // SAFETY: the map is private and read-only, nothing holds references into this
                 // range after the piece was processed; DONTNEED only drops the pages from the map.
-                let _ = unsafe { m.unchecked_advise_range(memmap2::UncheckedAdvice::DontNeed, a, e - a) };
+                let _ = unsafe {
+                    m.unchecked_advise_range(memmap2::UncheckedAdvice::DontNeed, a, e - a)
+                };
             }
         }
     }
@@ -525,7 +580,10 @@ impl LasInput {
     pub fn read_piece_into(&self, piece: &Piece, out: &mut [u8]) -> Result<()> {
         let rl = self.layout.record_len;
         if out.len() != piece.points as usize * rl {
-            return Err(Error::Internal { path: self.path.clone(), what: "piece buffer of the wrong size" });
+            return Err(Error::Internal {
+                path: self.path.clone(),
+                what: "piece buffer of the wrong size",
+            });
         }
         let laz_err = |error: LazError| Error::Laz { path: self.path.clone(), error };
         let at = match (&self.kind, self.at.get(piece.index)) {
@@ -534,23 +592,40 @@ impl LasInput {
                 return Ok(());
             }
             (_, Some(at)) => *at,
-            (_, None) => return Err(Error::Internal { path: self.path.clone(), what: "a piece of another file" }),
+            (_, None) => {
+                return Err(Error::Internal {
+                    path: self.path.clone(),
+                    what: "a piece of another file",
+                })
+            }
         };
-        let selection = self.skip.as_ref().map_or(laz::DecompressionSelection::all(), |s| s.selection);
+        let selection =
+            self.skip.as_ref().map_or(laz::DecompressionSelection::all(), |s| s.selection);
         match &self.kind {
             Kind::Laz { vlr, chunks } if at.whole => {
                 let c = &chunks[at.chunk];
-                let entry = laz::laszip::ChunkTableEntry { point_count: c.points, byte_count: c.len as u64 };
+                let entry = laz::laszip::ChunkTableEntry {
+                    point_count: c.points,
+                    byte_count: c.len as u64,
+                };
                 let src = &self.bytes[c.offset..c.offset + c.len];
                 if c.points > 0 {
                     check_layer_sizes(vlr, src, at.chunk).map_err(laz_err)?;
                 }
                 let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-                    laz::par_decompress_selective(src, out, vlr, std::slice::from_ref(&entry), selection)
+                    laz::par_decompress_selective(
+                        src,
+                        out,
+                        vlr,
+                        std::slice::from_ref(&entry),
+                        selection,
+                    )
                 }));
                 match r {
                     Ok(Ok(())) => {}
-                    Ok(Err(error)) => return Err(laz_err(LazError::ChunkCorrupt { chunk: at.chunk, error })),
+                    Ok(Err(error)) => {
+                        return Err(laz_err(LazError::ChunkCorrupt { chunk: at.chunk, error }))
+                    }
                     Err(_) => return Err(laz_err(LazError::ChunkGaveUp { chunk: at.chunk })),
                 }
             }
@@ -563,7 +638,12 @@ impl LasInput {
     }
 
     /// Decodes a piece of a large chunk or of a sequential stream with a kept decoder.
-    fn read_stream(&self, at: PieceAt, out: &mut [u8], selection: laz::DecompressionSelection) -> std::result::Result<(), LazError> {
+    fn read_stream(
+        &self,
+        at: PieceAt,
+        out: &mut [u8],
+        selection: laz::DecompressionSelection,
+    ) -> std::result::Result<(), LazError> {
         let rl = self.layout.record_len;
         let mut cur = match self.streams.take(at.chunk, at.skip) {
             Some(c) => c,
@@ -571,20 +651,21 @@ impl LasInput {
         };
         let points = (out.len() / rl) as u64;
         let mut done = 0u64;
-        let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| -> std::io::Result<()> {
-            let mut scratch = Vec::new();
-            while cur.next < at.skip {
-                let n = (at.skip - cur.next).min(65_536) as usize;
-                scratch.resize(n * rl, 0);
-                cur.dec.decompress_many(&mut scratch)?;
-                cur.next += n as u64;
-            }
-            for part in out.chunks_mut(65_536 * rl) {
-                cur.dec.decompress_many(part)?;
-                done += (part.len() / rl) as u64;
-            }
-            Ok(())
-        }));
+        let r =
+            std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| -> std::io::Result<()> {
+                let mut scratch = Vec::new();
+                while cur.next < at.skip {
+                    let n = (at.skip - cur.next).min(65_536) as usize;
+                    scratch.resize(n * rl, 0);
+                    cur.dec.decompress_many(&mut scratch)?;
+                    cur.next += n as u64;
+                }
+                for part in out.chunks_mut(65_536 * rl) {
+                    cur.dec.decompress_many(part)?;
+                    done += (part.len() / rl) as u64;
+                }
+                Ok(())
+            }));
         let chunk = at.chunk;
         let sequential = matches!(self.kind, Kind::LazSequential { .. });
         match r {
@@ -594,10 +675,15 @@ impl LasInput {
                 Ok(())
             }
             Ok(Err(error)) if error.kind() == std::io::ErrorKind::UnexpectedEof => {
-                Err(LazError::EndsEarly { got: (cur.next.min(at.skip) + done) as usize, expected: self.chunk_points(chunk) })
+                Err(LazError::EndsEarly {
+                    got: (cur.next.min(at.skip) + done) as usize,
+                    expected: self.chunk_points(chunk),
+                })
             }
             Ok(Err(error)) if sequential => Err(LazError::DataCorrupt { error }),
-            Ok(Err(error)) => Err(LazError::ChunkCorrupt { chunk, error: laz::LasZipError::IoError(error) }),
+            Ok(Err(error)) => {
+                Err(LazError::ChunkCorrupt { chunk, error: laz::LasZipError::IoError(error) })
+            }
             Err(_) if sequential => Err(LazError::DataGaveUp),
             Err(_) => Err(LazError::ChunkGaveUp { chunk }),
         }
@@ -612,11 +698,24 @@ impl LasInput {
     }
 
     /// A decoder at the first point of `chunk` (of the stream, for a sequential file).
-    fn new_cursor(&self, chunk: usize, selection: laz::DecompressionSelection) -> std::result::Result<Cursor, LazError> {
+    fn new_cursor(
+        &self,
+        chunk: usize,
+        selection: laz::DecompressionSelection,
+    ) -> std::result::Result<Cursor, LazError> {
         let (source, vlr) = match &self.kind {
             Kind::LazSequential { vlr, start, end } => {
                 check_sequential_table(&self.bytes[*start..*end])?;
-                (Chain { head: Vec::new(), bytes: self.bytes.clone(), body: *start..*end, tail: Vec::new(), pos: 0 }, vlr.clone())
+                (
+                    Chain {
+                        head: Vec::new(),
+                        bytes: self.bytes.clone(),
+                        body: *start..*end,
+                        tail: Vec::new(),
+                        pos: 0,
+                    },
+                    vlr.clone(),
+                )
             }
             Kind::Laz { vlr, chunks } => {
                 let c = &chunks[chunk];
@@ -624,21 +723,41 @@ impl LasInput {
                 // The chunk as a file of one variable-size chunk: the offset of its table, its
                 // bytes, a table of one entry (laz-rs's stream decoder needs the table to know
                 // the chunk's points; a pointwise stream is such a chunk).
-                let one = laz::LazVlrBuilder::new(vlr.items().clone()).with_variable_chunk_size().build();
+                let one =
+                    laz::LazVlrBuilder::new(vlr.items().clone()).with_variable_chunk_size().build();
                 let mut table = laz::laszip::ChunkTable::with_capacity(1);
-                table.push(laz::laszip::ChunkTableEntry { point_count: c.points, byte_count: c.len as u64 });
+                table.push(laz::laszip::ChunkTableEntry {
+                    point_count: c.points,
+                    byte_count: c.len as u64,
+                });
                 let mut tail = Vec::new();
-                table.write_to(&mut tail, &one).map_err(|error| LazError::ChunkCorrupt { chunk, error: laz::LasZipError::IoError(error) })?;
+                table.write_to(&mut tail, &one).map_err(|error| LazError::ChunkCorrupt {
+                    chunk,
+                    error: laz::LasZipError::IoError(error),
+                })?;
                 let head = (8 + c.len as i64).to_le_bytes().to_vec();
-                (Chain { head, bytes: self.bytes.clone(), body: c.offset..c.offset + c.len, tail, pos: 0 }, one)
+                (
+                    Chain {
+                        head,
+                        bytes: self.bytes.clone(),
+                        body: c.offset..c.offset + c.len,
+                        tail,
+                        pos: 0,
+                    },
+                    one,
+                )
             }
             Kind::Las { .. } => unreachable!("LAS pieces are read in place"),
         };
         let sequential = matches!(self.kind, Kind::LazSequential { .. });
-        let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| laz::LasZipDecompressor::selective(source, vlr, selection)));
+        let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            laz::LasZipDecompressor::selective(source, vlr, selection)
+        }));
         match r {
             Ok(Ok(dec)) => Ok(Cursor { chunk, next: 0, dec }),
-            Ok(Err(laz::LasZipError::IoError(error))) if sequential => Err(LazError::DataCorrupt { error }),
+            Ok(Err(laz::LasZipError::IoError(error))) if sequential => {
+                Err(LazError::DataCorrupt { error })
+            }
             Ok(Err(error)) => Err(LazError::ChunkCorrupt { chunk, error }),
             Err(_) if sequential => Err(LazError::DataGaveUp),
             Err(_) => Err(LazError::ChunkGaveUp { chunk }),
@@ -670,14 +789,19 @@ fn check_laz_items(vlr: &laz::LazVlr) -> std::result::Result<(), LazError> {
     for item in vlr.items() {
         let ok = match item.item_type() {
             T::Point10 | T::GpsTime | T::RGB12 | T::Byte(_) => matches!(item.version(), 1 | 2),
-            T::Point14 | T::RGB14 | T::RGBNIR14 | T::Byte14(_) => item.version() == 3 || item.version() == 4,
+            T::Point14 | T::RGB14 | T::RGBNIR14 | T::Byte14(_) => {
+                item.version() == 3 || item.version() == 4
+            }
             T::WavePacket13 => item.version() == 1,
             T::WavePacket14 => item.version() == 3 || item.version() == 4,
             #[allow(unreachable_patterns)]
             _ => false,
         };
         if !ok {
-            return Err(LazError::UnsupportedItem { item: format!("{:?}", item.item_type()), version: item.version() });
+            return Err(LazError::UnsupportedItem {
+                item: format!("{:?}", item.item_type()),
+                version: item.version(),
+            });
         }
     }
     Ok(())
@@ -687,7 +811,11 @@ fn check_laz_items(vlr: &laz::LazVlr) -> std::result::Result<(), LazError> {
 /// chunk's bytes: laz-rs allocates each layer's claimed size before reading it, so a damaged
 /// size of up to 4 GiB per layer was a huge allocation (fuzz regression laz-layer-size). The
 /// chunk starts with the first point raw, the point count (u32), then one u32 size per layer.
-fn check_layer_sizes(vlr: &laz::LazVlr, chunk: &[u8], index: usize) -> std::result::Result<(), LazError> {
+fn check_layer_sizes(
+    vlr: &laz::LazVlr,
+    chunk: &[u8],
+    index: usize,
+) -> std::result::Result<(), LazError> {
     use laz::LazItemType as T;
     let mut layers = 0usize;
     for item in vlr.items() {
@@ -709,7 +837,8 @@ fn check_layer_sizes(vlr: &laz::LazVlr, chunk: &[u8], index: usize) -> std::resu
     let Some(sizes) = chunk.get(sizes_at..sizes_at + 4 * layers) else {
         return Ok(()); // too short: laz-rs reports the truncation itself
     };
-    let total: u64 = sizes.chunks_exact(4).map(|b| u32::from_le_bytes(b.try_into().unwrap()) as u64).sum();
+    let total: u64 =
+        sizes.chunks_exact(4).map(|b| u32::from_le_bytes(b.try_into().unwrap()) as u64).sum();
     let room = (chunk.len() - sizes_at - 4 * layers) as u64;
     if total > room {
         return Err(LazError::ChunkLayers { chunk: index, total, room });
@@ -731,7 +860,9 @@ fn check_sequential_table(data: &[u8]) -> std::result::Result<(), LazError> {
             _ => return Ok(()),
         }
     }
-    let Some(head) = usize::try_from(off).ok().and_then(|o| data.get(o..o.checked_add(8)?)) else { return Ok(()) };
+    let Some(head) = usize::try_from(off).ok().and_then(|o| data.get(o..o.checked_add(8)?)) else {
+        return Ok(());
+    };
     let count = u32::from_le_bytes(head[4..8].try_into().unwrap()) as u64;
     let room = (data.len() - off as usize - 8) as u64;
     if count > room.saturating_mul(8).min(1 << 26) {
@@ -757,8 +888,13 @@ fn read_chunk_table(
         let tail = i64::from_le_bytes(b[data_end - 8..data_end].try_into().unwrap());
         if tail > start as i64 && (tail as u64) + 8 <= data_end as u64 {
             table_at = tail;
-        } else if table_at > start as i64 && table_at as u64 + 8 > b.len() as u64 && point_count > 0 {
-            return Err(LazError::TableTruncated { at: table_at, file_len: b.len(), points: point_count });
+        } else if table_at > start as i64 && table_at as u64 + 8 > b.len() as u64 && point_count > 0
+        {
+            return Err(LazError::TableTruncated {
+                at: table_at,
+                file_len: b.len(),
+                points: point_count,
+            });
         } else {
             return Ok(None);
         }
@@ -771,9 +907,11 @@ fn read_chunk_table(
     }
     let variable = vlr.uses_variable_size_chunks();
     let mut cur = std::io::Cursor::new(&b[table_at..data_end]);
-    let table = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| laz::laszip::ChunkTable::read(&mut cur, variable)))
-        .map_err(|_| LazError::BadTable { error: None })?
-        .map_err(|e| LazError::BadTable { error: Some(e) })?;
+    let table = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+        laz::laszip::ChunkTable::read(&mut cur, variable)
+    }))
+    .map_err(|_| LazError::BadTable { error: None })?
+    .map_err(|e| LazError::BadTable { error: Some(e) })?;
     let mut chunks = Vec::with_capacity(n_chunks as usize);
     let mut offset = start as u64 + 8;
     let mut total = 0u64;

@@ -28,10 +28,14 @@
 //!   for batch files: they read only the keys.
 
 use crate::error::{Error, RenderError, Result, StoreError};
-use crate::render_input::{attribute_value, percentile_range, scalar_colors, ColorChoice, RenderSettings, Rendered};
+use crate::render_input::{
+    attribute_value, percentile_range, scalar_colors, ColorChoice, RenderSettings, Rendered,
+};
 use crate::store::{NodeData, Store, LEAF};
 use mortar_core::grid::Grid;
-use mortar_core::octree::{select_nodes, Cube, IndexEntry, LodIndex, LodOptions, LodSelection, LodTree, NodeId, NodeKey};
+use mortar_core::octree::{
+    select_nodes, Cube, IndexEntry, LodIndex, LodOptions, LodSelection, LodTree, NodeId, NodeKey,
+};
 use mortar_core::render::framebuffer::{key_index, EMPTY_KEY};
 use mortar_core::render::resolve::{resolve, ColorMode};
 use mortar_core::render::{rasterize, Aabb, BatchRef, Camera, Framebuffer, RasterStats};
@@ -51,7 +55,10 @@ pub struct StoreLod {
 
 impl std::fmt::Debug for StoreLod {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("StoreLod").field("path", &self.store.path).field("nodes", &self.store.entries.len()).finish()
+        f.debug_struct("StoreLod")
+            .field("path", &self.store.path)
+            .field("nodes", &self.store.entries.len())
+            .finish()
     }
 }
 
@@ -78,10 +85,16 @@ impl StoreLod {
         }
         let mut entries = Vec::with_capacity(store.entries.len());
         for (i, e) in store.entries.iter().enumerate() {
-            let level = u8::try_from(e.level).map_err(|_| bad(StoreError::NodeLevel { node: i, level: e.level }))?;
-            entries.push(IndexEntry { key: NodeKey { level, index: e.index }, leaf: e.kind == LEAF, samples: e.count });
+            let level = u8::try_from(e.level)
+                .map_err(|_| bad(StoreError::NodeLevel { node: i, level: e.level }))?;
+            entries.push(IndexEntry {
+                key: NodeKey { level, index: e.index },
+                leaf: e.kind == LEAF,
+                samples: e.count,
+            });
         }
-        let index = LodIndex::new_partial(root, &entries).map_err(|error| bad(StoreError::Index { error }))?;
+        let index = LodIndex::new_partial(root, &entries)
+            .map_err(|error| bad(StoreError::Index { error }))?;
         let h = &store.meta.header;
         let grid = Grid { scale: h.scale, offset: h.offset };
         let maxima = (0..entries.len()).map(|_| OnceLock::new()).collect();
@@ -124,13 +137,20 @@ impl StoreLod {
         let h = &self.store.header;
         // A commit of a build under way may hold inner levels only: their bounds are set.
         let set = (0..3).all(|a| h.min[a] <= h.max[a]);
-        let (lo, hi) = if (h.points == 0 && self.index.point_count() == 0) || !set { ([0; 3], [0; 3]) } else { (h.min, h.max) };
+        let (lo, hi) = if (h.points == 0 && self.index.point_count() == 0) || !set {
+            ([0; 3], [0; 3])
+        } else {
+            (h.min, h.max)
+        };
         world_box(&self.grid, lo, hi)
     }
 
     /// The nodes to draw for `camera` ([`select_nodes`] on the store's tree).
     pub fn select(&self, camera: &Camera, options: &LodOptions) -> Result<LodSelection> {
-        select_nodes(self, &self.grid, camera, options).map_err(|error| Error::Render { path: self.store.path.clone(), error: RenderError::Camera { error } })
+        select_nodes(self, &self.grid, camera, options).map_err(|error| Error::Render {
+            path: self.store.path.clone(),
+            error: RenderError::Camera { error },
+        })
     }
 
     /// The payload of node `id`.
@@ -164,11 +184,17 @@ impl StoreLod {
     /// from 0. Fails where they hold more than 2^32 samples (point indices are 32-bit).
     pub fn batches(&self, nodes: &[NodeId]) -> Result<LodBatches<'_>> {
         if let Some(&id) = nodes.iter().find(|id| id.index() >= self.store.entries.len()) {
-            return Err(Error::Store { path: self.store.path.clone(), error: StoreError::NoSuchNode { node: id.0 } });
+            return Err(Error::Store {
+                path: self.store.path.clone(),
+                error: StoreError::NoSuchNode { node: id.0 },
+            });
         }
         let samples: u64 = nodes.iter().map(|&id| self.store.entries[id.index()].count).sum();
         if samples > 1u64 << 32 {
-            return Err(Error::Render { path: self.store.path.clone(), error: RenderError::TooManySamples { samples } });
+            return Err(Error::Render {
+                path: self.store.path.clone(),
+                error: RenderError::TooManySamples { samples },
+            });
         }
         nodes.par_iter().for_each(|&id| {
             self.sample_max(id);
@@ -278,7 +304,8 @@ impl LodBatches<'_> {
     /// The record attributes (after X, Y, Z) of point index `index`.
     #[inline]
     pub fn attributes(&self, index: u32) -> Option<&[u8]> {
-        self.locate(index).map(|(b, i)| &self.attributes[b][i * self.attr_len..(i + 1) * self.attr_len])
+        self.locate(index)
+            .map(|(b, i)| &self.attributes[b][i * self.attr_len..(i + 1) * self.attr_len])
     }
 
     /// The exact integer position of point index `index` (a leaf point's or a voxel's point's
@@ -314,7 +341,8 @@ fn rgb_in_use(store: &Store) -> bool {
     let d = store.node(0);
     let al = d.header.attr_len as usize;
     let off = rgb.offset - 12;
-    (0..d.header.count as usize).any(|i| d.attributes[i * al + off..i * al + off + 6].iter().any(|&b| b != 0))
+    (0..d.header.count as usize)
+        .any(|i| d.attributes[i * al + off..i * al + off + 6].iter().any(|&b| b != 0))
 }
 
 impl LodColor {
@@ -323,17 +351,30 @@ impl LodColor {
     pub fn of(store: &Store, choice: ColorChoice) -> Result<LodColor> {
         match choice {
             ColorChoice::Auto if rgb_in_use(store) => Ok(LodColor::Stored),
-            ColorChoice::Auto if store.layout.attribute("intensity").is_some() => Ok(LodColor::Attribute(ColorMode::Intensity)),
+            ColorChoice::Auto if store.layout.attribute("intensity").is_some() => {
+                Ok(LodColor::Attribute(ColorMode::Intensity))
+            }
             ColorChoice::Auto | ColorChoice::Stored => Ok(LodColor::Stored),
             ColorChoice::Mode(ColorMode::Elevation) => Ok(LodColor::Elevation),
             ColorChoice::Mode(ColorMode::Rgb) if rgb_in_use(store) => Ok(LodColor::Stored),
-            ColorChoice::Mode(ColorMode::Rgb) => {
-                Err(Error::Render { path: store.path.clone(), error: RenderError::NoColour { format: store.layout.format, has_rgb: store.layout.has_rgb() } })
+            ColorChoice::Mode(ColorMode::Rgb) => Err(Error::Render {
+                path: store.path.clone(),
+                error: RenderError::NoColour {
+                    format: store.layout.format,
+                    has_rgb: store.layout.has_rgb(),
+                },
+            }),
+            ColorChoice::Mode(m) if store.layout.attribute(m.attribute()).is_some() => {
+                Ok(LodColor::Attribute(m))
             }
-            ColorChoice::Mode(m) if store.layout.attribute(m.attribute()).is_some() => Ok(LodColor::Attribute(m)),
             ColorChoice::Mode(m) => Err(Error::Render {
                 path: store.path.clone(),
-                error: RenderError::MissingAttribute { mode: m.name(), attribute: m.attribute(), format: store.layout.format, not_kept: false },
+                error: RenderError::MissingAttribute {
+                    mode: m.name(),
+                    attribute: m.attribute(),
+                    format: store.layout.format,
+                    not_kept: false,
+                },
             }),
         }
     }
@@ -349,20 +390,33 @@ impl LodColor {
 
     /// Whether it maps a scalar over a range (elevation, intensity, GPS time).
     pub fn uses_range(self) -> bool {
-        matches!(self, LodColor::Elevation | LodColor::Attribute(ColorMode::Intensity | ColorMode::GpsTime))
+        matches!(
+            self,
+            LodColor::Elevation | LodColor::Attribute(ColorMode::Intensity | ColorMode::GpsTime)
+        )
     }
 }
 
 /// The value of sample `index` of `batches` in `color`: a colour, or for scalar modes the
 /// value's `f64` bits (`None` outside the selection).
-fn sample_value(store: &Store, grid: &Grid, batches: &LodBatches<'_>, color: LodColor, index: u32) -> Option<u64> {
+fn sample_value(
+    store: &Store,
+    grid: &Grid,
+    batches: &LodBatches<'_>,
+    color: LodColor,
+    index: u32,
+) -> Option<u64> {
     match color {
         LodColor::Stored => batches.color(index).map(u64::from),
-        LodColor::Elevation => batches.position(index).map(|p| grid.world(2, p[2] as i64).to_bits()),
+        LodColor::Elevation => {
+            batches.position(index).map(|p| grid.world(2, p[2] as i64).to_bits())
+        }
         LodColor::Attribute(m) => {
             let f = store.layout.attribute(m.attribute()).expect("checked by LodColor::of");
             let at = f.offset - 12;
-            batches.attributes(index).map(|a| attribute_value(m, store.layout.family(), &a[at..at + f.width]))
+            batches
+                .attributes(index)
+                .map(|a| attribute_value(m, store.layout.family(), &a[at..at + f.width]))
         }
     }
 }
@@ -370,11 +424,21 @@ fn sample_value(store: &Store, grid: &Grid, batches: &LodBatches<'_>, color: Lod
 impl StoreLod {
     /// The colours of node `id`'s samples in `color`, scalar modes over `range` (or the 1st to
     /// 99th percentile of the node's own values): what a viewer uploads with the node.
-    pub fn node_colors(&self, id: NodeId, color: LodColor, range: Option<[f64; 2]>) -> Result<Vec<u32>> {
+    pub fn node_colors(
+        &self,
+        id: NodeId,
+        color: LodColor,
+        range: Option<[f64; 2]>,
+    ) -> Result<Vec<u32>> {
         let b = self.batches(&[id])?;
-        let v: Vec<u64> = (0..b.samples as u32).map(|i| sample_value(&self.store, &self.grid, &b, color, i).unwrap_or(0)).collect();
+        let v: Vec<u64> = (0..b.samples as u32)
+            .map(|i| sample_value(&self.store, &self.grid, &b, color, i).unwrap_or(0))
+            .collect();
         Ok(match color {
-            LodColor::Stored | LodColor::Attribute(ColorMode::Classification | ColorMode::ReturnNumber) => v.into_iter().map(|c| c as u32).collect(),
+            LodColor::Stored
+            | LodColor::Attribute(ColorMode::Classification | ColorMode::ReturnNumber) => {
+                v.into_iter().map(|c| c as u32).collect()
+            }
             LodColor::Elevation => scalar_colors(ColorMode::Elevation, &v, range).0,
             LodColor::Attribute(m) => scalar_colors(m, &v, range).0,
         })
@@ -390,11 +454,18 @@ impl StoreLod {
         if !color.uses_range() || self.store.entries.is_empty() {
             return None;
         }
-        let leaves: Vec<NodeId> = (0..self.index.node_count() as u32).map(NodeId).filter(|&id| self.index.children(id).is_none()).collect();
+        let leaves: Vec<NodeId> = (0..self.index.node_count() as u32)
+            .map(NodeId)
+            .filter(|&id| self.index.children(id).is_none())
+            .collect();
         let mut v = Vec::with_capacity(self.index.point_count() as usize);
         for group in leaves.chunks(4096) {
             let b = self.batches(group).ok()?;
-            v.par_extend((0..b.samples as u32).into_par_iter().filter_map(|i| sample_value(&self.store, &self.grid, &b, color, i)));
+            v.par_extend(
+                (0..b.samples as u32)
+                    .into_par_iter()
+                    .filter_map(|i| sample_value(&self.store, &self.grid, &b, color, i)),
+            );
         }
         Some(percentile_range(&v))
     }
@@ -402,11 +473,19 @@ impl StoreLod {
 
 /// Rasterizes `batches` (from [`StoreLod::batches`]) with the CPU rasterizer for `camera` and
 /// resolves the image ([`resolve_keys`]).
-pub fn render(lod: &StoreLod, batches: &LodBatches<'_>, camera: &Camera, settings: &RenderSettings) -> Result<Rendered> {
+pub fn render(
+    lod: &StoreLod,
+    batches: &LodBatches<'_>,
+    camera: &Camera,
+    settings: &RenderSettings,
+) -> Result<Rendered> {
     LodColor::of(&lod.store, settings.color)?;
     let fb = Framebuffer::new(camera.width, camera.height);
     let t0 = Instant::now();
-    let stats = rasterize(&fb, &batches.refs, &lod.grid, camera, &settings.raster).map_err(|error| Error::Render { path: lod.store.path.clone(), error: RenderError::Raster { error } })?;
+    let stats =
+        rasterize(&fb, &batches.refs, &lod.grid, camera, &settings.raster).map_err(|error| {
+            Error::Render { path: lod.store.path.clone(), error: RenderError::Raster { error } }
+        })?;
     let raster_seconds = t0.elapsed().as_secs_f64();
     resolve_keys(lod, batches, fb.into_keys(), stats, raster_seconds, camera, settings)
 }
@@ -427,18 +506,28 @@ pub fn resolve_keys(
     let color = LodColor::of(&lod.store, settings.color)?;
     let t1 = Instant::now();
     if keys.par_iter().any(|&k| k != EMPTY_KEY && key_index(k) as u64 >= batches.samples) {
-        return Err(Error::Render { path: lod.store.path.clone(), error: RenderError::StrayIndex { beyond: "the selected samples" } });
+        return Err(Error::Render {
+            path: lod.store.path.clone(),
+            error: RenderError::StrayIndex { beyond: "the selected samples" },
+        });
     }
     let bg = settings.resolve.background;
     // The visible samples, their values, then their colours.
-    let mut idx: Vec<u32> = keys.par_iter().filter(|&&k| k != EMPTY_KEY).map(|&k| key_index(k)).collect();
+    let mut idx: Vec<u32> =
+        keys.par_iter().filter(|&&k| k != EMPTY_KEY).map(|&k| key_index(k)).collect();
     idx.par_sort_unstable();
     idx.dedup();
-    let values: Vec<u64> = idx.par_iter().map(|&i| sample_value(&lod.store, &lod.grid, batches, color, i).unwrap_or(0)).collect();
+    let values: Vec<u64> = idx
+        .par_iter()
+        .map(|&i| sample_value(&lod.store, &lod.grid, batches, color, i).unwrap_or(0))
+        .collect();
     // Scalar modes over the range of all the store's points, as its window and `--no-lod` map them.
     let range = settings.range.or_else(|| lod.color_range(color));
     let (colors, color_range) = match color {
-        LodColor::Stored | LodColor::Attribute(ColorMode::Classification | ColorMode::ReturnNumber) => (values.iter().map(|&c| c as u32).collect::<Vec<u32>>(), None),
+        LodColor::Stored
+        | LodColor::Attribute(ColorMode::Classification | ColorMode::ReturnNumber) => {
+            (values.iter().map(|&c| c as u32).collect::<Vec<u32>>(), None)
+        }
         LodColor::Elevation => {
             let (c, r) = scalar_colors(ColorMode::Elevation, &values, range);
             (c, Some(r))
@@ -452,5 +541,15 @@ pub fn resolve_keys(
     let rgba = resolve(&keys, camera.width, camera.height, color_of, &settings.resolve);
     let resolve_seconds = t1.elapsed().as_secs_f64();
     let covered = keys.iter().filter(|&&k| k != EMPTY_KEY).count() as u64;
-    Ok(Rendered { width: camera.width, height: camera.height, keys, rgba, stats, covered, raster_seconds, resolve_seconds, color_range })
+    Ok(Rendered {
+        width: camera.width,
+        height: camera.height,
+        keys,
+        rgba,
+        stats,
+        covered,
+        raster_seconds,
+        resolve_seconds,
+        color_range,
+    })
 }

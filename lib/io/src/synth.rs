@@ -51,7 +51,15 @@ pub struct SynthOptions {
 
 impl Default for SynthOptions {
     fn default() -> Self {
-        SynthOptions { points: 1_000_000, seed: 1, extent: 1000.0, scale: 0.001, origin: [500_000.0, 5_000_000.0, 0.0], shape: Shape::Airborne, extra_bytes: 0 }
+        SynthOptions {
+            points: 1_000_000,
+            seed: 1,
+            extent: 1000.0,
+            scale: 0.001,
+            origin: [500_000.0, 5_000_000.0, 0.0],
+            shape: Shape::Airborne,
+            extra_bytes: 0,
+        }
     }
 }
 
@@ -84,7 +92,8 @@ pub fn write_file(o: &SynthOptions, output: &str, laz_chunk: Option<u32>) -> Res
     let vlrs = if o.extra_bytes > 0 { vec![extra_bytes_vlr(o.extra_bytes)] } else { Vec::new() };
     let template = SourceMeta { header, vlrs, evlrs: Vec::new(), layout, grid };
     let compressed = output.to_ascii_lowercase().ends_with(".laz");
-    let mut sink = LasSink::new(Target::parse(output), compressed, template, &std::env::temp_dir())?;
+    let mut sink =
+        LasSink::new(Target::parse(output), compressed, template, &std::env::temp_dir())?;
     if let Some(n) = laz_chunk {
         sink.laz_chunk_size(n);
     }
@@ -120,13 +129,17 @@ fn unit(h: u64) -> f64 {
 
 /// Height and class at (x, y) in scene metres.
 fn surface(x: f64, y: f64, seed: u64) -> (f64, u8) {
-    let ground = 30.0 + 8.0 * (x / 97.0).sin() * (y / 131.0).cos() + 3.0 * (x / 23.0 + y / 41.0).sin();
+    let ground =
+        30.0 + 8.0 * (x / 97.0).sin() * (y / 131.0).cos() + 3.0 * (x / 23.0 + y / 41.0).sin();
     let cell = 40.0;
     let (cx, cy) = ((x / cell).floor() as i64, (y / cell).floor() as i64);
-    let h = mix(seed ^ (cx as u64).wrapping_mul(0x9e37_79b9) ^ (cy as u64).wrapping_mul(0x85eb_ca6b));
+    let h =
+        mix(seed ^ (cx as u64).wrapping_mul(0x9e37_79b9) ^ (cy as u64).wrapping_mul(0x85eb_ca6b));
     let (fx, fy) = (x / cell - cx as f64, y / cell - cy as f64);
     match h % 5 {
-        0 if (0.2..0.8).contains(&fx) && (0.25..0.75).contains(&fy) => (ground + 6.0 + (h >> 8) as f64 % 15.0, 6),
+        0 if (0.2..0.8).contains(&fx) && (0.25..0.75).contains(&fy) => {
+            (ground + 6.0 + (h >> 8) as f64 % 15.0, 6)
+        }
         1 | 2 => {
             let (tx, ty) = (0.3 + 0.4 * unit(h >> 3), 0.3 + 0.4 * unit(h >> 7));
             let r = ((fx - tx).powi(2) + (fy - ty).powi(2)).sqrt() * cell;
@@ -202,7 +215,11 @@ pub fn records(o: &SynthOptions, first: u64, n: u64) -> (Vec<u8>, PieceStats) {
             let (x, y, z) = match o.shape {
                 Shape::Airborne | Shape::Duplicates => (x, y, z),
                 Shape::Coincident => (o.extent / 2.0, o.extent / 2.0, 50.0),
-                Shape::Cube => (unit(mix(h ^ 0x1b87_3593)) * o.extent, unit(mix(h ^ 0xcc9e_2d51)) * o.extent, unit(mix(h ^ 0x5bd1_e995)) * o.extent),
+                Shape::Cube => (
+                    unit(mix(h ^ 0x1b87_3593)) * o.extent,
+                    unit(mix(h ^ 0xcc9e_2d51)) * o.extent,
+                    unit(mix(h ^ 0x5bd1_e995)) * o.extent,
+                ),
             };
             let xi = (x / o.scale).round() as i32;
             let yi = (y / o.scale).round() as i32;

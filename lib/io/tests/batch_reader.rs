@@ -8,13 +8,29 @@ use mortar_io::sink_las::{LasSink, Target};
 use mortar_io::sort::{sort, OrderedSink, SortOptions};
 use mortar_io::synth::{self, SynthOptions};
 
-fn make_batch_file(dir: &std::path::Path, compression: Compression) -> (std::path::PathBuf, Vec<u8>) {
-    let o = SynthOptions { points: 50_000, seed: 7, extent: 300.0, scale: 0.001, origin: [500_000.0, 5_000_000.0, 0.0], ..SynthOptions::default() };
+fn make_batch_file(
+    dir: &std::path::Path,
+    compression: Compression,
+) -> (std::path::PathBuf, Vec<u8>) {
+    let o = SynthOptions {
+        points: 50_000,
+        seed: 7,
+        extent: 300.0,
+        scale: 0.001,
+        origin: [500_000.0, 5_000_000.0, 0.0],
+        ..SynthOptions::default()
+    };
     let layout = RecordLayout::new(3, 34).unwrap();
     let header = synth::header(&o);
     let grid = mortar_core::grid::Grid { scale: header.scale, offset: header.offset };
     let las = dir.join("in.las");
-    let mut sink = LasSink::new(Target::File(las.clone()), false, SourceMeta { header, vlrs: vec![], evlrs: vec![], layout, grid }, dir).unwrap();
+    let mut sink = LasSink::new(
+        Target::File(las.clone()),
+        false,
+        SourceMeta { header, vlrs: vec![], evlrs: vec![], layout, grid },
+        dir,
+    )
+    .unwrap();
     let (records, stats) = synth::records(&o, 0, o.points);
     sink.begin(&stats.summary()).unwrap();
     sink.write(&records).unwrap();
@@ -43,7 +59,10 @@ fn views_borrow_the_map_and_decode_to_the_source_points() {
         for level in 0..3 {
             let w = b.words(level);
             assert_eq!(w.len(), b.len());
-            assert!(map.contains(&(w.as_ptr() as *const u8)), "batch {i} words {level} are not in the map");
+            assert!(
+                map.contains(&(w.as_ptr() as *const u8)),
+                "batch {i} words {level} are not in the map"
+            );
         }
         assert!(map.contains(&(b.colors().as_ptr() as *const u8)));
         let g = b.entry.grid();
@@ -89,8 +108,14 @@ fn damaged_batch_files_are_refused() {
     let cases: Vec<(&str, Damage)> = vec![
         ("truncated", Box::new(|b: &mut Vec<u8>| b.truncate(b.len() / 2))),
         ("bad-version", Box::new(|b: &mut Vec<u8>| b[8] = 99)),
-        ("huge-batch-count", Box::new(|b: &mut Vec<u8>| b[24..32].copy_from_slice(&u64::MAX.to_le_bytes()))),
-        ("meta-outside", Box::new(|b: &mut Vec<u8>| b[48..56].copy_from_slice(&(1u64 << 40).to_le_bytes()))),
+        (
+            "huge-batch-count",
+            Box::new(|b: &mut Vec<u8>| b[24..32].copy_from_slice(&u64::MAX.to_le_bytes())),
+        ),
+        (
+            "meta-outside",
+            Box::new(|b: &mut Vec<u8>| b[48..56].copy_from_slice(&(1u64 << 40).to_le_bytes())),
+        ),
     ];
     for (tag, patch) in cases {
         let mut b = good.clone();

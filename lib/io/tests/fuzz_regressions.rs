@@ -15,7 +15,8 @@ fn replay(target: &str, run: fn(&[u8])) {
     for dir in ["regressions", "corpus"] {
         let d = root.join(dir).join(target);
         let Ok(rd) = std::fs::read_dir(&d) else { continue };
-        let mut files: Vec<PathBuf> = rd.filter_map(|e| e.ok()).map(|e| e.path()).filter(|p| p.is_file()).collect();
+        let mut files: Vec<PathBuf> =
+            rd.filter_map(|e| e.ok()).map(|e| e.path()).filter(|p| p.is_file()).collect();
         files.sort();
         for f in files {
             let bytes = std::fs::read(&f).unwrap();
@@ -62,7 +63,10 @@ fn lod_index() {
 // also hold in builds without overflow checks, where some of the bugs were silent).
 
 fn regression(target: &str, name: &str) -> Vec<u8> {
-    let p = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../fuzz/regressions").join(target).join(name);
+    let p = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../../fuzz/regressions")
+        .join(target)
+        .join(name);
     std::fs::read(&p).unwrap_or_else(|e| panic!("{}: {e}", p.display()))
 }
 
@@ -75,14 +79,29 @@ fn wkt_char_boundary() {
         let text = String::from_utf8_lossy(&b).into_owned();
         let mut user_id = [0u8; 16];
         user_id[..15].copy_from_slice(b"LASF_Projection");
-        let v = mortar_io::las::Vlr { reserved: 0, user_id, record_id: 2112, description: [0; 32], data: text.into_bytes() };
+        let v = mortar_io::las::Vlr {
+            reserved: 0,
+            user_id,
+            record_id: 2112,
+            description: [0; 32],
+            data: text.into_bytes(),
+        };
         let _ = mortar_io::crs::describe(&[&v]);
     }
     // Many AUTHORITY objects in one WKT: linear now, not quadratic.
-    let wkt = format!("PROJCS[\"x\",{}AUTHORITY[\"EPSG\",\"32633\"]]", "AUTHORITY[\"X\",\"1\"],".repeat(50_000));
+    let wkt = format!(
+        "PROJCS[\"x\",{}AUTHORITY[\"EPSG\",\"32633\"]]",
+        "AUTHORITY[\"X\",\"1\"],".repeat(50_000)
+    );
     let mut user_id = [0u8; 16];
     user_id[..15].copy_from_slice(b"LASF_Projection");
-    let v = mortar_io::las::Vlr { reserved: 0, user_id, record_id: 2112, description: [0; 32], data: wkt.into_bytes() };
+    let v = mortar_io::las::Vlr {
+        reserved: 0,
+        user_id,
+        record_id: 2112,
+        description: [0; 32],
+        data: wkt.into_bytes(),
+    };
     let t = std::time::Instant::now();
     assert_eq!(mortar_io::crs::describe(&[&v]).epsg, Some(32633));
     assert!(t.elapsed().as_secs_f64() < 5.0, "{:?}", t.elapsed());
@@ -93,7 +112,11 @@ fn wkt_char_boundary() {
 #[test]
 fn batch_attribute_outside_record() {
     let b = regression("batch_file", "attribute-outside-record");
-    let e = mortar_io::batchfile::BatchFile::from_bytes(std::path::Path::new("x.mbat"), mortar_io::source::Bytes::Owned(b)).unwrap_err();
+    let e = mortar_io::batchfile::BatchFile::from_bytes(
+        std::path::Path::new("x.mbat"),
+        mortar_io::source::Bytes::Owned(b),
+    )
+    .unwrap_err();
     assert!(e.to_string().contains("lies outside the"), "{e}");
 }
 
@@ -144,8 +167,17 @@ fn laz_chunk_points() {
 #[test]
 fn laz_layer_size() {
     let b = regression("las_input", "laz-layer-size");
-    let input = mortar_io::source::LasInput::from_bytes(PathBuf::from("x.laz"), mortar_io::source::Bytes::Owned(b)).unwrap();
-    let errors: Vec<String> = input.pieces().iter().filter_map(|p| input.read_piece(p).err()).map(|e| e.to_string()).collect();
+    let input = mortar_io::source::LasInput::from_bytes(
+        PathBuf::from("x.laz"),
+        mortar_io::source::Bytes::Owned(b),
+    )
+    .unwrap();
+    let errors: Vec<String> = input
+        .pieces()
+        .iter()
+        .filter_map(|p| input.read_piece(p).err())
+        .map(|e| e.to_string())
+        .collect();
     assert!(errors.iter().any(|e| e.contains("layers claim")), "{errors:?}");
 }
 

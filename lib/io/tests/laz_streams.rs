@@ -54,7 +54,13 @@ fn write_laz(path: &Path, layout: RecordLayout, recs: &[u8], chunk: u32) {
     header.point_format = layout.format;
     header.record_len = layout.record_len as u16;
     let grid = mortar_core::grid::Grid { scale: header.scale, offset: header.offset };
-    let mut sink = LasSink::new(Target::File(path.to_path_buf()), true, SourceMeta { header, vlrs: vec![], evlrs: vec![], layout: layout.clone(), grid }, path.parent().unwrap()).unwrap();
+    let mut sink = LasSink::new(
+        Target::File(path.to_path_buf()),
+        true,
+        SourceMeta { header, vlrs: vec![], evlrs: vec![], layout: layout.clone(), grid },
+        path.parent().unwrap(),
+    )
+    .unwrap();
     sink.laz_chunk_size(chunk);
     let stats = PieceStats::of(recs, &layout);
     sink.begin(&stats.summary()).unwrap();
@@ -67,7 +73,11 @@ fn check_pieces(input: &LasInput, recs: &[u8], rl: usize) {
     let pieces = input.pieces().to_vec();
     assert!(pieces.len() > 1, "the chunk should be cut into pieces");
     assert!(pieces.iter().all(|p| p.points <= LAZ_PIECE_POINTS));
-    let got: Vec<(u64, Vec<u8>)> = pieces.par_iter().rev().map(|p| (p.first_point, input.read_piece(p).unwrap().into_owned())).collect();
+    let got: Vec<(u64, Vec<u8>)> = pieces
+        .par_iter()
+        .rev()
+        .map(|p| (p.first_point, input.read_piece(p).unwrap().into_owned()))
+        .collect();
     for (first, bytes) in got {
         let s = first as usize * rl;
         assert!(bytes == recs[s..s + bytes.len()], "piece at point {first} differs");

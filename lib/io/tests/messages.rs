@@ -93,5 +93,8 @@ fn paths_are_found_renamed_and_stripped() {
 #[test]
 fn the_las_parser_says_why() {
     assert!(matches!(las::parse(b"LASF"), Err(LasError::TooShort { len: 4 })));
-    assert_eq!(las::parse(b"nope").unwrap_err().to_string(), "not a LAS/LAZ file (no LASF signature)");
+    assert_eq!(
+        las::parse(b"nope").unwrap_err().to_string(),
+        "not a LAS/LAZ file (no LASF signature)"
+    );
 }

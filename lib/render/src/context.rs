@@ -132,12 +132,16 @@ pub struct GpuContext {
 
 impl std::fmt::Debug for GpuContext {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("GpuContext").field("adapter", &self.summary).field("path", &self.path).finish()
+        f.debug_struct("GpuContext")
+            .field("adapter", &self.summary)
+            .field("path", &self.path)
+            .finish()
     }
 }
 
 /// The 64-bit atomic features the one-pass path needs.
-pub const INT64_ATOMICS: wgpu::Features = wgpu::Features::SHADER_INT64.union(wgpu::Features::SHADER_INT64_ATOMIC_MIN_MAX);
+pub const INT64_ATOMICS: wgpu::Features =
+    wgpu::Features::SHADER_INT64.union(wgpu::Features::SHADER_INT64_ATOMIC_MIN_MAX);
 
 fn rank(t: wgpu::DeviceType) -> u32 {
     match t {
@@ -159,7 +163,10 @@ impl GpuContext {
         let from_env = wgpu::Backends::from_env();
         let mut adapters = Vec::new();
         for backends in [from_env.unwrap_or(wgpu::Backends::PRIMARY), wgpu::Backends::GL] {
-            let instance = wgpu::Instance::new(wgpu::InstanceDescriptor { backends, ..wgpu::InstanceDescriptor::new_without_display_handle() });
+            let instance = wgpu::Instance::new(wgpu::InstanceDescriptor {
+                backends,
+                ..wgpu::InstanceDescriptor::new_without_display_handle()
+            });
             adapters = pollster::block_on(instance.enumerate_adapters(backends));
             if !adapters.is_empty() || from_env.is_some() {
                 break;
@@ -172,9 +179,18 @@ impl GpuContext {
     /// does), and the window's surface on it. The surface is not configured yet (see
     /// [`crate::present::WindowSurface`]). Vulkan, Metal and DX12 are tried first, GL only when
     /// none of their adapters can present; `WGPU_BACKEND` restricts the backends.
-    pub fn for_window<W>(options: &GpuOptions, window: W) -> Result<(GpuContext, wgpu::Surface<'static>), GpuError>
+    pub fn for_window<W>(
+        options: &GpuOptions,
+        window: W,
+    ) -> Result<(GpuContext, wgpu::Surface<'static>), GpuError>
     where
-        W: wgpu::WindowHandle + wgpu::rwh::HasDisplayHandle + std::fmt::Debug + Clone + Send + Sync + 'static,
+        W: wgpu::WindowHandle
+            + wgpu::rwh::HasDisplayHandle
+            + std::fmt::Debug
+            + Clone
+            + Send
+            + Sync
+            + 'static,
     {
         quiet_device_select();
         let from_env = wgpu::Backends::from_env();
@@ -209,21 +225,38 @@ impl GpuContext {
 
     /// Ranks `adapters`, keeps those that can present to `surface` (when given), and opens the
     /// best one.
-    fn open(adapters: Vec<wgpu::Adapter>, options: &GpuOptions, surface: Option<&wgpu::Surface<'_>>) -> Result<GpuContext, GpuError> {
+    fn open(
+        adapters: Vec<wgpu::Adapter>,
+        options: &GpuOptions,
+        surface: Option<&wgpu::Surface<'_>>,
+    ) -> Result<GpuContext, GpuError> {
         let mut seen = Vec::new();
         let mut best: Option<(u32, bool, wgpu::Adapter)> = None;
         for a in adapters {
             let info = a.get_info();
             let presents = surface.is_none_or(|s| a.is_surface_supported(s));
-            seen.push(format!("{} ({:?}, {:?}{})", info.name, info.backend, info.device_type, if presents { "" } else { ", cannot present to the window" }));
-            if !presents || !a.get_downlevel_capabilities().flags.contains(wgpu::DownlevelFlags::COMPUTE_SHADERS) {
+            seen.push(format!(
+                "{} ({:?}, {:?}{})",
+                info.name,
+                info.backend,
+                info.device_type,
+                if presents { "" } else { ", cannot present to the window" }
+            ));
+            if !presents
+                || !a
+                    .get_downlevel_capabilities()
+                    .flags
+                    .contains(wgpu::DownlevelFlags::COMPUTE_SHADERS)
+            {
                 continue;
             }
             if info.device_type == wgpu::DeviceType::Cpu && !options.allow_software {
                 continue;
             }
             // Prefer the device type, then 64-bit atomics, then Vulkan over GL.
-            let score = rank(info.device_type) * 4 + 2 * a.features().contains(INT64_ATOMICS) as u32 + (info.backend != wgpu::Backend::Gl) as u32;
+            let score = rank(info.device_type) * 4
+                + 2 * a.features().contains(INT64_ATOMICS) as u32
+                + (info.backend != wgpu::Backend::Gl) as u32;
             if best.as_ref().is_none_or(|b| score > b.0) {
                 best = Some((score, info.device_type == wgpu::DeviceType::Cpu, a));
             }
@@ -232,14 +265,24 @@ impl GpuContext {
             let what = if seen.is_empty() {
                 String::new()
             } else {
-                format!(" (seen: {}{})", seen.join(", "), if options.allow_software { "" } else { "; software adapters are not used here" })
+                format!(
+                    " (seen: {}{})",
+                    seen.join(", "),
+                    if options.allow_software {
+                        ""
+                    } else {
+                        "; software adapters are not used here"
+                    }
+                )
             };
             return Err(GpuError::NoAdapter(what));
         };
         let info = adapter.get_info();
         let have = adapter.features();
         let path = match options.atomics {
-            Some(AtomicPath::U64) if !have.contains(INT64_ATOMICS) => return Err(GpuError::NoInt64Atomics { adapter: info.name }),
+            Some(AtomicPath::U64) if !have.contains(INT64_ATOMICS) => {
+                return Err(GpuError::NoInt64Atomics { adapter: info.name })
+            }
             Some(p) => p,
             None if have.contains(INT64_ATOMICS) => AtomicPath::U64,
             None => AtomicPath::TwoPass32,
@@ -259,7 +302,10 @@ impl GpuContext {
             required_limits: limits.clone(),
             ..Default::default()
         }))
-        .map_err(|e| GpuError::RequestDevice { adapter: info.name.clone(), message: e.to_string() })?;
+        .map_err(|e| GpuError::RequestDevice {
+            adapter: info.name.clone(),
+            message: e.to_string(),
+        })?;
         let errors = Arc::new(Mutex::new(Vec::new()));
         let sink = errors.clone();
         device.on_uncaptured_error(Arc::new(move |e: wgpu::Error| {
@@ -273,8 +319,23 @@ impl GpuContext {
             device_type: format!("{:?}", info.device_type),
             driver: format!("{} {}", info.driver, info.driver_info).trim().to_string(),
         };
-        let dispatch_x = options.max_workgroups_per_dimension.unwrap_or(u32::MAX).min(limits.max_compute_workgroups_per_dimension).max(1);
-        Ok(GpuContext { device, queue, adapter, summary, path, timestamps, software, limits, dispatch_x, errors })
+        let dispatch_x = options
+            .max_workgroups_per_dimension
+            .unwrap_or(u32::MAX)
+            .min(limits.max_compute_workgroups_per_dimension)
+            .max(1);
+        Ok(GpuContext {
+            device,
+            queue,
+            adapter,
+            summary,
+            path,
+            timestamps,
+            software,
+            limits,
+            dispatch_x,
+            errors,
+        })
     }
 
     /// The adapter in use.
@@ -328,7 +389,8 @@ impl GpuContext {
 
     /// Fails with the first error wgpu reported since the last call, if any.
     pub fn check(&self) -> Result<(), GpuError> {
-        let mut v = self.errors.lock().map_err(|_| GpuError::Device("error log poisoned".into()))?;
+        let mut v =
+            self.errors.lock().map_err(|_| GpuError::Device("error log poisoned".into()))?;
         if v.is_empty() {
             return Ok(());
         }
@@ -340,7 +402,9 @@ impl GpuContext {
 
     /// Waits until the GPU has finished all submitted work.
     pub fn wait(&self) -> Result<(), GpuError> {
-        self.device.poll(wgpu::PollType::wait_indefinitely()).map_err(|e| GpuError::Device(e.to_string()))?;
+        self.device
+            .poll(wgpu::PollType::wait_indefinitely())
+            .map_err(|e| GpuError::Device(e.to_string()))?;
         self.check()
     }
 

@@ -38,6 +38,9 @@ pub use wgpu;
 
 pub use context::{AdapterSummary, AtomicPath, GpuContext, GpuError, GpuOptions};
 pub use present::{Overlay, Presented, ReadBack, WindowSurface};
-pub use progressive::{BudgetTiming, GpuProgressive, GpuProgressiveFrame, InsertPreparer, PreparedInsert, ProgressiveGpuError, ProgressiveGpuTimings, ProgressiveOptions};
+pub use progressive::{
+    BudgetTiming, GpuProgressive, GpuProgressiveFrame, InsertPreparer, PreparedInsert,
+    ProgressiveGpuError, ProgressiveGpuTimings, ProgressiveOptions,
+};
 pub use raster::{DrawTuning, GpuFrame, GpuRasterizer, GpuTimings, RecordOrder};
 pub use scene::{GpuBatch, GpuScene, SceneOptions};

@@ -7,7 +7,13 @@ use crate::context::GpuContext;
 use crate::shaders::{binding, Binding, BindingKind, Pass};
 
 /// The layout of bind group `group` from the entries of `bindings` in that group.
-pub(crate) fn bind_group_layout(ctx: &GpuContext, label: &str, bindings: &[Binding], group: u32, visibility: wgpu::ShaderStages) -> wgpu::BindGroupLayout {
+pub(crate) fn bind_group_layout(
+    ctx: &GpuContext,
+    label: &str,
+    bindings: &[Binding],
+    group: u32,
+    visibility: wgpu::ShaderStages,
+) -> wgpu::BindGroupLayout {
     let entries: Vec<wgpu::BindGroupLayoutEntry> = bindings
         .iter()
         .filter(|b| b.group == group)
@@ -17,8 +23,12 @@ pub(crate) fn bind_group_layout(ctx: &GpuContext, label: &str, bindings: &[Bindi
             ty: wgpu::BindingType::Buffer {
                 ty: match b.kind {
                     BindingKind::Uniform => wgpu::BufferBindingType::Uniform,
-                    BindingKind::StorageRead => wgpu::BufferBindingType::Storage { read_only: true },
-                    BindingKind::StorageReadWrite => wgpu::BufferBindingType::Storage { read_only: false },
+                    BindingKind::StorageRead => {
+                        wgpu::BufferBindingType::Storage { read_only: true }
+                    }
+                    BindingKind::StorageReadWrite => {
+                        wgpu::BufferBindingType::Storage { read_only: false }
+                    }
                 },
                 has_dynamic_offset: false,
                 // Checked against the shader's types when a pass runs.
@@ -27,7 +37,10 @@ pub(crate) fn bind_group_layout(ctx: &GpuContext, label: &str, bindings: &[Bindi
             count: None,
         })
         .collect();
-    ctx.device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor { label: Some(label), entries: &entries })
+    ctx.device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+        label: Some(label),
+        entries: &entries,
+    })
 }
 
 /// Bind-group layouts several pipelines share, so that one bind group serves all of them.
@@ -38,7 +51,15 @@ pub(crate) struct SharedLayouts {
 
 impl SharedLayouts {
     pub(crate) fn new(ctx: &GpuContext) -> SharedLayouts {
-        SharedLayouts { batches: bind_group_layout(ctx, "batches", &binding::BATCHES, 1, wgpu::ShaderStages::COMPUTE) }
+        SharedLayouts {
+            batches: bind_group_layout(
+                ctx,
+                "batches",
+                &binding::BATCHES,
+                1,
+                wgpu::ShaderStages::COMPUTE,
+            ),
+        }
     }
 
     /// The layout of group 1 of the draw passes.
@@ -62,7 +83,12 @@ impl PassPipeline {
     }
 
     /// [`new`](Self::new) with values for the WGSL module's `override` constants (name, value).
-    pub(crate) fn with_constants(ctx: &GpuContext, pass: Pass, shared: &SharedLayouts, constants: &[(&str, f64)]) -> PassPipeline {
+    pub(crate) fn with_constants(
+        ctx: &GpuContext,
+        pass: Pass,
+        shared: &SharedLayouts,
+        constants: &[(&str, f64)],
+    ) -> PassPipeline {
         let bindings = pass.bindings();
         let groups = bindings.iter().map(|b| b.group + 1).max().unwrap_or(0);
         let layouts: Vec<wgpu::BindGroupLayout> = (0..groups)
@@ -75,7 +101,11 @@ impl PassPipeline {
             })
             .collect();
         let layout_refs: Vec<Option<&wgpu::BindGroupLayout>> = layouts.iter().map(Some).collect();
-        let layout = ctx.device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor { label: Some(pass.file()), bind_group_layouts: &layout_refs, immediate_size: 0 });
+        let layout = ctx.device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some(pass.file()),
+            bind_group_layouts: &layout_refs,
+            immediate_size: 0,
+        });
         let module = ctx.device.create_shader_module(wgpu::ShaderModuleDescriptor {
             label: Some(pass.file()),
             source: wgpu::ShaderSource::Wgsl(pass.source().into()),
@@ -86,7 +116,10 @@ impl PassPipeline {
             module: &module,
             entry_point: Some("main"),
             // The passes initialise the little workgroup memory they use (common/counters.wgsl).
-            compilation_options: wgpu::PipelineCompilationOptions { constants, zero_initialize_workgroup_memory: false },
+            compilation_options: wgpu::PipelineCompilationOptions {
+                constants,
+                zero_initialize_workgroup_memory: false,
+            },
             cache: None,
         });
         PassPipeline { pass, pipeline, layouts }
@@ -104,18 +137,35 @@ impl PassPipeline {
 
     /// A bind group of group `group` from `entries` (made with [`entry`] from the pass's
     /// bindings).
-    pub(crate) fn bind_group(&self, ctx: &GpuContext, group: u32, entries: &[wgpu::BindGroupEntry<'_>]) -> wgpu::BindGroup {
-        ctx.device.create_bind_group(&wgpu::BindGroupDescriptor { label: Some(self.pass.file()), layout: &self.layouts[group as usize], entries })
+    pub(crate) fn bind_group(
+        &self,
+        ctx: &GpuContext,
+        group: u32,
+        entries: &[wgpu::BindGroupEntry<'_>],
+    ) -> wgpu::BindGroup {
+        ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some(self.pass.file()),
+            layout: &self.layouts[group as usize],
+            entries,
+        })
     }
 }
 
 /// A bind-group entry for `binding` (one of [`crate::shaders::binding`]).
-pub(crate) fn entry(binding: Binding, resource: wgpu::BindingResource<'_>) -> wgpu::BindGroupEntry<'_> {
+pub(crate) fn entry(
+    binding: Binding,
+    resource: wgpu::BindingResource<'_>,
+) -> wgpu::BindGroupEntry<'_> {
     wgpu::BindGroupEntry { binding: binding.binding, resource }
 }
 
 /// A batches bind group (group 1 of the draw passes) over `records` and one chunk's words.
-pub(crate) fn batches_group(ctx: &GpuContext, shared: &SharedLayouts, records: wgpu::BufferBinding<'_>, words: &[wgpu::Buffer; 3]) -> wgpu::BindGroup {
+pub(crate) fn batches_group(
+    ctx: &GpuContext,
+    shared: &SharedLayouts,
+    records: wgpu::BufferBinding<'_>,
+    words: &[wgpu::Buffer; 3],
+) -> wgpu::BindGroup {
     ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
         label: Some("batches"),
         layout: shared.batches(),
@@ -129,7 +179,12 @@ pub(crate) fn batches_group(ctx: &GpuContext, shared: &SharedLayouts, records: w
 }
 
 /// A storage buffer of `size` bytes (at least 4) with the `extra` usages.
-pub(crate) fn storage(ctx: &GpuContext, label: &str, size: u64, extra: wgpu::BufferUsages) -> wgpu::Buffer {
+pub(crate) fn storage(
+    ctx: &GpuContext,
+    label: &str,
+    size: u64,
+    extra: wgpu::BufferUsages,
+) -> wgpu::Buffer {
     ctx.device.create_buffer(&wgpu::BufferDescriptor {
         label: Some(label),
         size: size.max(4),
@@ -156,7 +211,11 @@ pub(crate) struct Timestamps {
 
 impl Timestamps {
     pub(crate) fn new(ctx: &GpuContext, label: &str, count: u32) -> Timestamps {
-        let set = ctx.device.create_query_set(&wgpu::QuerySetDescriptor { label: Some(label), ty: wgpu::QueryType::Timestamp, count });
+        let set = ctx.device.create_query_set(&wgpu::QuerySetDescriptor {
+            label: Some(label),
+            ty: wgpu::QueryType::Timestamp,
+            count,
+        });
         let buffer = ctx.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some(label),
             size: count as u64 * 8,
@@ -167,7 +226,15 @@ impl Timestamps {
     }
 
     /// The writes of a pass: slot `begin` at its start, `end` at its end (either may be absent).
-    pub(crate) fn writes(&self, begin: Option<u32>, end: Option<u32>) -> wgpu::ComputePassTimestampWrites<'_> {
-        wgpu::ComputePassTimestampWrites { query_set: &self.set, beginning_of_pass_write_index: begin, end_of_pass_write_index: end }
+    pub(crate) fn writes(
+        &self,
+        begin: Option<u32>,
+        end: Option<u32>,
+    ) -> wgpu::ComputePassTimestampWrites<'_> {
+        wgpu::ComputePassTimestampWrites {
+            query_set: &self.set,
+            beginning_of_pass_write_index: begin,
+            end_of_pass_write_index: end,
+        }
     }
 }

@@ -63,30 +63,54 @@ pub struct WindowSurface {
 
 impl std::fmt::Debug for WindowSurface {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("WindowSurface").field("format", &self.config.format).field("size", &(self.config.width, self.config.height)).finish()
+        f.debug_struct("WindowSurface")
+            .field("format", &self.config.format)
+            .field("size", &(self.config.width, self.config.height))
+            .finish()
     }
 }
 
 /// The surface formats the present pass prefers: 8-bit unorm first (the image's bytes go through
 /// unchanged), then sRGB (decoded in the shader, encoded again by the hardware).
-const PREFERRED: [wgpu::TextureFormat; 4] =
-    [wgpu::TextureFormat::Bgra8Unorm, wgpu::TextureFormat::Rgba8Unorm, wgpu::TextureFormat::Bgra8UnormSrgb, wgpu::TextureFormat::Rgba8UnormSrgb];
+const PREFERRED: [wgpu::TextureFormat; 4] = [
+    wgpu::TextureFormat::Bgra8Unorm,
+    wgpu::TextureFormat::Rgba8Unorm,
+    wgpu::TextureFormat::Bgra8UnormSrgb,
+    wgpu::TextureFormat::Rgba8UnormSrgb,
+];
 
 impl WindowSurface {
     /// Configures `surface` (from [`GpuContext::for_window`] with the same context) for
     /// `width x height` pixels and builds the present pass.
-    pub fn new(ctx: &GpuContext, surface: wgpu::Surface<'static>, width: u32, height: u32) -> Result<WindowSurface, GpuError> {
+    pub fn new(
+        ctx: &GpuContext,
+        surface: wgpu::Surface<'static>,
+        width: u32,
+        height: u32,
+    ) -> Result<WindowSurface, GpuError> {
         let caps = surface.get_capabilities(ctx.wgpu_adapter());
-        let Some(&format) = PREFERRED.iter().find(|f| caps.formats.contains(f)).or(caps.formats.first()) else {
-            return Err(GpuError::Surface(format!("{} offers no format for this window", ctx.adapter().name)));
+        let Some(&format) =
+            PREFERRED.iter().find(|f| caps.formats.contains(f)).or(caps.formats.first())
+        else {
+            return Err(GpuError::Surface(format!(
+                "{} offers no format for this window",
+                ctx.adapter().name
+            )));
         };
         if ctx.limits().max_storage_buffers_per_shader_stage < 2 {
-            return Err(GpuError::Surface(format!("{} cannot read storage buffers in a fragment shader", ctx.adapter().name)));
+            return Err(GpuError::Surface(format!(
+                "{} cannot read storage buffers in a fragment shader",
+                ctx.adapter().name
+            )));
         }
         let copyable = caps.usages.contains(wgpu::TextureUsages::COPY_SRC);
         let readable_bgra = match format {
-            wgpu::TextureFormat::Bgra8Unorm | wgpu::TextureFormat::Bgra8UnormSrgb if copyable => Some(true),
-            wgpu::TextureFormat::Rgba8Unorm | wgpu::TextureFormat::Rgba8UnormSrgb if copyable => Some(false),
+            wgpu::TextureFormat::Bgra8Unorm | wgpu::TextureFormat::Bgra8UnormSrgb if copyable => {
+                Some(true)
+            }
+            wgpu::TextureFormat::Rgba8Unorm | wgpu::TextureFormat::Rgba8UnormSrgb if copyable => {
+                Some(false)
+            }
             _ => None,
         };
         let alpha_mode = if caps.alpha_modes.contains(&wgpu::CompositeAlphaMode::Opaque) {
@@ -95,7 +119,12 @@ impl WindowSurface {
             caps.alpha_modes.first().copied().unwrap_or(wgpu::CompositeAlphaMode::Auto)
         };
         let config = wgpu::SurfaceConfiguration {
-            usage: wgpu::TextureUsages::RENDER_ATTACHMENT | if readable_bgra.is_some() { wgpu::TextureUsages::COPY_SRC } else { wgpu::TextureUsages::empty() },
+            usage: wgpu::TextureUsages::RENDER_ATTACHMENT
+                | if readable_bgra.is_some() {
+                    wgpu::TextureUsages::COPY_SRC
+                } else {
+                    wgpu::TextureUsages::empty()
+                },
             format,
             color_space: wgpu::SurfaceColorSpace::Auto,
             width: width.max(1),
@@ -110,13 +139,22 @@ impl WindowSurface {
             label: Some("present.wgsl"),
             source: wgpu::ShaderSource::Wgsl(crate::shaders::PRESENT.into()),
         });
-        let layout = bind_group_layout(ctx, "present", PRESENT_BINDINGS, 0, wgpu::ShaderStages::FRAGMENT);
-        let pipeline_layout =
-            ctx.device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor { label: Some("present"), bind_group_layouts: &[Some(&layout)], immediate_size: 0 });
+        let layout =
+            bind_group_layout(ctx, "present", PRESENT_BINDINGS, 0, wgpu::ShaderStages::FRAGMENT);
+        let pipeline_layout = ctx.device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some("present"),
+            bind_group_layouts: &[Some(&layout)],
+            immediate_size: 0,
+        });
         let pipeline = ctx.device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
             label: Some("present"),
             layout: Some(&pipeline_layout),
-            vertex: wgpu::VertexState { module: &module, entry_point: Some("vs_main"), compilation_options: Default::default(), buffers: &[] },
+            vertex: wgpu::VertexState {
+                module: &module,
+                entry_point: Some("vs_main"),
+                compilation_options: Default::default(),
+                buffers: &[],
+            },
             primitive: wgpu::PrimitiveState::default(),
             depth_stencil: None,
             multisample: wgpu::MultisampleState::default(),
@@ -124,7 +162,11 @@ impl WindowSurface {
                 module: &module,
                 entry_point: Some("fs_main"),
                 compilation_options: Default::default(),
-                targets: &[Some(wgpu::ColorTargetState { format, blend: None, write_mask: wgpu::ColorWrites::ALL })],
+                targets: &[Some(wgpu::ColorTargetState {
+                    format,
+                    blend: None,
+                    write_mask: wgpu::ColorWrites::ALL,
+                })],
             }),
             multiview_mask: None,
             cache: None,
@@ -132,7 +174,16 @@ impl WindowSurface {
         let uniforms = crate::pipeline::uniform::<PresentUniforms>(ctx, "present uniforms");
         let overlay = overlay_buffer(ctx, 4);
         ctx.check()?;
-        Ok(WindowSurface { surface, config, pipeline, layout, uniforms, overlay, srgb: format.is_srgb(), readable_bgra })
+        Ok(WindowSurface {
+            surface,
+            config,
+            pipeline,
+            layout,
+            uniforms,
+            overlay,
+            srgb: format.is_srgb(),
+            readable_bgra,
+        })
     }
 
     /// The surface's size in pixels.
@@ -168,9 +219,17 @@ impl WindowSurface {
     /// Draws the last image `raster` resolved (its size must be the surface's) and `overlay` into
     /// the next surface texture and presents it. With `read_back`, also returns the pixels drawn
     /// (see [`read_back`](Self::read_back) for where they come from).
-    pub fn present(&mut self, ctx: &GpuContext, raster: &GpuRasterizer, overlay: Option<Overlay<'_>>, read_back: bool) -> Result<Presented, GpuError> {
+    pub fn present(
+        &mut self,
+        ctx: &GpuContext,
+        raster: &GpuRasterizer,
+        overlay: Option<Overlay<'_>>,
+        read_back: bool,
+    ) -> Result<Presented, GpuError> {
         let Some(image) = raster.image_buffer() else {
-            return Err(GpuError::Surface("no resolved image to present (draw with a background colour first)".into()));
+            return Err(GpuError::Surface(
+                "no resolved image to present (draw with a background colour first)".into(),
+            ));
         };
         self.present_image(ctx, image, raster.size(), overlay, read_back)
     }
@@ -179,12 +238,23 @@ impl WindowSurface {
     /// resolve pass writes them; `size` must be the surface's) and `overlay` into the next
     /// surface texture and presents it. [`present`](Self::present) for any renderer that resolves
     /// its own image (the progressive renderer does).
-    pub fn present_image(&mut self, ctx: &GpuContext, image: &wgpu::Buffer, size: (u32, u32), overlay: Option<Overlay<'_>>, read_back: bool) -> Result<Presented, GpuError> {
+    pub fn present_image(
+        &mut self,
+        ctx: &GpuContext,
+        image: &wgpu::Buffer,
+        size: (u32, u32),
+        overlay: Option<Overlay<'_>>,
+        read_back: bool,
+    ) -> Result<Presented, GpuError> {
         let (width, height) = self.size();
         if size != (width, height) || image.size() < width as u64 * height as u64 * 4 {
-            return Err(GpuError::Surface(format!("image of {size:?} pixels for a surface of {width}x{height}")));
+            return Err(GpuError::Surface(format!(
+                "image of {size:?} pixels for a surface of {width}x{height}"
+            )));
         }
-        let overlay = overlay.filter(|o| o.width > 0 && o.height > 0 && o.rgba.len() == o.width as usize * o.height as usize);
+        let overlay = overlay.filter(|o| {
+            o.width > 0 && o.height > 0 && o.rgba.len() == o.width as usize * o.height as usize
+        });
         let (ow, oh) = overlay.map_or((0, 0), |o| (o.width, o.height));
         if let Some(o) = overlay {
             let bytes = o.rgba.len() as u64 * 4;
@@ -193,13 +263,27 @@ impl WindowSurface {
             }
             ctx.queue.write_buffer(&self.overlay, 0, bytemuck::cast_slice(o.rgba));
         }
-        let u = PresentUniforms { width, height, overlay_width: ow, overlay_height: oh, srgb_target: self.srgb as u32, _pad0: 0, _pad1: 0, _pad2: 0 };
+        let u = PresentUniforms {
+            width,
+            height,
+            overlay_width: ow,
+            overlay_height: oh,
+            srgb_target: self.srgb as u32,
+            _pad0: 0,
+            _pad1: 0,
+            _pad2: 0,
+        };
         ctx.queue.write_buffer(&self.uniforms, 0, bytemuck::bytes_of(&u));
 
         let texture = match self.surface.get_current_texture() {
-            wgpu::CurrentSurfaceTexture::Success(t) | wgpu::CurrentSurfaceTexture::Suboptimal(t) => t,
-            wgpu::CurrentSurfaceTexture::Timeout => return Ok(Presented::Skipped("the surface timed out")),
-            wgpu::CurrentSurfaceTexture::Occluded => return Ok(Presented::Skipped("the window is hidden")),
+            wgpu::CurrentSurfaceTexture::Success(t)
+            | wgpu::CurrentSurfaceTexture::Suboptimal(t) => t,
+            wgpu::CurrentSurfaceTexture::Timeout => {
+                return Ok(Presented::Skipped("the surface timed out"))
+            }
+            wgpu::CurrentSurfaceTexture::Occluded => {
+                return Ok(Presented::Skipped("the window is hidden"))
+            }
             wgpu::CurrentSurfaceTexture::Outdated | wgpu::CurrentSurfaceTexture::Lost => {
                 self.surface.configure(&ctx.device, &self.config);
                 return Ok(Presented::Skipped("the surface was reconfigured"));
@@ -220,7 +304,9 @@ impl WindowSurface {
                 entry(binding::PRESENT_OVERLAY, self.overlay.as_entire_binding()),
             ],
         });
-        let mut enc = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("present") });
+        let mut enc = ctx
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("present") });
         {
             let mut pass = enc.begin_render_pass(&wgpu::RenderPassDescriptor {
                 label: Some("present"),
@@ -228,7 +314,10 @@ impl WindowSurface {
                     view: &view,
                     depth_slice: None,
                     resolve_target: None,
-                    ops: wgpu::Operations { load: wgpu::LoadOp::Clear(wgpu::Color::BLACK), store: wgpu::StoreOp::Store },
+                    ops: wgpu::Operations {
+                        load: wgpu::LoadOp::Clear(wgpu::Color::BLACK),
+                        store: wgpu::StoreOp::Store,
+                    },
                 })],
                 depth_stencil_attachment: None,
                 timestamp_writes: None,
@@ -252,7 +341,11 @@ impl WindowSurface {
                     texture.texture.as_image_copy(),
                     wgpu::TexelCopyBufferInfo {
                         buffer: &buf,
-                        layout: wgpu::TexelCopyBufferLayout { offset: 0, bytes_per_row: Some(row_bytes), rows_per_image: Some(height) },
+                        layout: wgpu::TexelCopyBufferLayout {
+                            offset: 0,
+                            bytes_per_row: Some(row_bytes),
+                            rows_per_image: Some(height),
+                        },
                     },
                     wgpu::Extent3d { width, height, depth_or_array_layers: 1 },
                 );

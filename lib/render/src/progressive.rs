@@ -67,16 +67,25 @@
 //! 16 bytes of floats and attributes; [`RasterStats`] counts one "batch" per dispatch.
 
 use crate::context::{AtomicPath, GpuContext, GpuError};
-use crate::pipeline::{batches_group, entry, storage, uniform, PassPipeline, SharedLayouts, Timestamps};
+use crate::pipeline::{
+    batches_group, entry, storage, uniform, PassPipeline, SharedLayouts, Timestamps,
+};
 use crate::raster::{map_read, read_image_buffer, readback};
 use crate::scene::MAX_CHUNK_POINTS;
 use crate::shaders::{binding, Pass};
 use mortar_core::grid::Grid;
 use mortar_core::quantize::BatchGrid;
-use mortar_core::render::gpu::{DrawRecord, EyeDomeUniforms, FrameUniforms, HoleFillUniforms, ReframeUniforms, ResolveUniforms};
+use mortar_core::render::gpu::{
+    DrawRecord, EyeDomeUniforms, FrameUniforms, HoleFillUniforms, ReframeUniforms, ResolveUniforms,
+};
+use mortar_core::render::progressive::{
+    piece_box, AdaptiveBudget, FillBudget, FrameStats, ProbeTimings, ProgressiveError,
+    ProgressiveFrame, Shuffle,
+};
 use mortar_core::render::resolve::ResolveOptions;
-use mortar_core::render::progressive::{piece_box, AdaptiveBudget, FillBudget, FrameStats, ProbeTimings, ProgressiveError, ProgressiveFrame, Shuffle};
-use mortar_core::render::{Aabb, BatchPlan, BatchProjection, Camera, Planner, RasterError, RasterOptions, RasterStats};
+use mortar_core::render::{
+    Aabb, BatchPlan, BatchProjection, Camera, Planner, RasterError, RasterOptions, RasterStats,
+};
 use rayon::prelude::*;
 use std::num::NonZeroU64;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -345,18 +354,33 @@ impl GpuProgressive {
     /// [`ProgressiveRenderer::new`](mortar_core::render::progressive::ProgressiveRenderer::new)
     /// takes them; points outside grow it). Allocates the whole shuffled buffer on the GPU and
     /// marks every slot unloaded.
-    pub fn new(ctx: &GpuContext, grid: Grid, min: [i32; 3], max: [i32; 3], capacity: u64, options: ProgressiveOptions) -> Result<GpuProgressive, ProgressiveGpuError> {
+    pub fn new(
+        ctx: &GpuContext,
+        grid: Grid,
+        min: [i32; 3],
+        max: [i32; 3],
+        capacity: u64,
+        options: ProgressiveOptions,
+    ) -> Result<GpuProgressive, ProgressiveGpuError> {
         GpuProgressive::with_frame(ctx, ProgressiveFrame::exact(grid, min, max)?, capacity, options)
     }
 
     /// A renderer for `capacity` points in `frame` (e.g. [`ProgressiveFrame::around`] the
     /// headers' box), as [`ProgressiveRenderer::with_frame`](mortar_core::render::progressive::ProgressiveRenderer::with_frame).
-    pub fn with_frame(ctx: &GpuContext, frame: ProgressiveFrame, capacity: u64, options: ProgressiveOptions) -> Result<GpuProgressive, ProgressiveGpuError> {
+    pub fn with_frame(
+        ctx: &GpuContext,
+        frame: ProgressiveFrame,
+        capacity: u64,
+        options: ProgressiveOptions,
+    ) -> Result<GpuProgressive, ProgressiveGpuError> {
         if ctx.atomic_path() != AtomicPath::U64 {
-            return Err(ProgressiveGpuError::Needs64BitAtomics { adapter: ctx.adapter().name.clone() });
+            return Err(ProgressiveGpuError::Needs64BitAtomics {
+                adapter: ctx.adapter().name.clone(),
+            });
         }
         let len = u32::try_from(capacity).map_err(|_| ProgressiveError::TooManyPoints(capacity))?;
-        let by_device = ((ctx.max_binding() / 4).min(MAX_CHUNK_POINTS as u64) as u32 & !255).max(256);
+        let by_device =
+            ((ctx.max_binding() / 4).min(MAX_CHUNK_POINTS as u64) as u32 & !255).max(256);
         let chunk_slots = options.chunk_slots.unwrap_or(by_device).clamp(1, by_device);
         let shared = SharedLayouts::new(ctx);
         let passes = Passes {
@@ -378,21 +402,39 @@ impl GpuProgressive {
         let mut first = 0u64;
         while first < len as u64 {
             let n = (len as u64 - first).min(chunk_slots as u64) as u32;
-            let make = |label: &str| storage(ctx, label, n as u64 * 4, wgpu::BufferUsages::COPY_DST);
-            let words = [make("shuffled coarse words"), make("shuffled medium words"), make("shuffled fine words")];
+            let make =
+                |label: &str| storage(ctx, label, n as u64 * 4, wgpu::BufferUsages::COPY_DST);
+            let words = [
+                make("shuffled coarse words"),
+                make("shuffled medium words"),
+                make("shuffled fine words"),
+            ];
             let colors = options.colors.then(|| make("shuffled colours"));
             chunks.push(SlotChunk { words, colors, first: first as u32, len: n });
             first += n as u64;
         }
         ctx.check()?;
         // Every slot unloaded.
-        let mut enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("unload") });
+        let mut enc =
+            dev.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("unload") });
         {
             let groups: Vec<(wgpu::BindGroup, u32)> = chunks
                 .iter()
-                .map(|c| (passes.unload.bind_group(ctx, 0, &[entry(binding::UNLOAD_COARSE, c.words[0].as_entire_binding())]), c.len.div_ceil(256)))
+                .map(|c| {
+                    (
+                        passes.unload.bind_group(
+                            ctx,
+                            0,
+                            &[entry(binding::UNLOAD_COARSE, c.words[0].as_entire_binding())],
+                        ),
+                        c.len.div_ceil(256),
+                    )
+                })
                 .collect();
-            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("unload"), timestamp_writes: None });
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("unload"),
+                timestamp_writes: None,
+            });
             pass.set_pipeline(passes.unload.pipeline());
             for (bg, n) in &groups {
                 let (x, y) = ctx.split_dispatch(*n);
@@ -402,7 +444,10 @@ impl GpuProgressive {
         }
         ctx.queue.submit([enc.finish()]);
         let copy = wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST;
-        let scatter_uniform_stride = round_up(std::mem::size_of::<ScatterUniforms>() as u64, ctx.limits().min_uniform_buffer_offset_alignment.max(4) as u64);
+        let scatter_uniform_stride = round_up(
+            std::mem::size_of::<ScatterUniforms>() as u64,
+            ctx.limits().min_uniform_buffer_offset_alignment.max(4) as u64,
+        );
         let scatter_uniforms = dev.create_buffer(&wgpu::BufferDescriptor {
             label: Some("scatter uniforms"),
             size: scatter_uniform_stride * chunks.len().max(1) as u64,
@@ -418,15 +463,27 @@ impl GpuProgressive {
         let per_frame = PerFrame {
             frame_uniforms: uniform::<FrameUniforms>(ctx, "frame uniforms"),
             counters: storage(ctx, "progressive counters", 8, copy),
-            records: storage(ctx, "progressive draw records", max_records * record_stride, wgpu::BufferUsages::COPY_DST),
+            records: storage(
+                ctx,
+                "progressive draw records",
+                max_records * record_stride,
+                wgpu::BufferUsages::COPY_DST,
+            ),
             record_stride,
             prepare_uniforms: uniform::<PrepareUniforms>(ctx, "prepare uniforms"),
             list_counts: storage(ctx, "visible list counts", chunks.len().max(1) as u64 * 4, copy),
-            resolve_uniforms: if options.colors { (0..chunks.len().max(1)).map(|_| uniform::<ResolveUniforms>(ctx, "resolve uniforms")).collect() } else { Vec::new() },
+            resolve_uniforms: if options.colors {
+                (0..chunks.len().max(1))
+                    .map(|_| uniform::<ResolveUniforms>(ctx, "resolve uniforms"))
+                    .collect()
+            } else {
+                Vec::new()
+            },
             fill_uniforms: uniform::<HoleFillUniforms>(ctx, "hole fill uniforms"),
             eye_dome_uniforms: uniform::<EyeDomeUniforms>(ctx, "eye-dome uniforms"),
         };
-        let queries = (ctx.has_timestamps() && !options.host_clock).then(|| Timestamps::new(ctx, "progressive pass times", QUERIES));
+        let queries = (ctx.has_timestamps() && !options.host_clock)
+            .then(|| Timestamps::new(ctx, "progressive pass times", QUERIES));
         let n = len as usize;
         let words64 = n.div_ceil(64);
         let r = GpuProgressive {
@@ -436,8 +493,23 @@ impl GpuProgressive {
             options,
             chunk_slots,
             list_counts: vec![0; chunks.len()],
-            gpu: GpuState { chunks, passes, per_frame, scatter_uniforms, scatter_uniform_stride, dummy: storage(ctx, "unused", 4, wgpu::BufferUsages::empty()), queries },
-            slots: SlotBook { loaded_bits: (0..words64).map(|_| AtomicU64::new(0)).collect(), loaded: 0, arrived: Ranges::default(), done: vec![0; words64], done_count: 0, cursor: 0 },
+            gpu: GpuState {
+                chunks,
+                passes,
+                per_frame,
+                scatter_uniforms,
+                scatter_uniform_stride,
+                dummy: storage(ctx, "unused", 4, wgpu::BufferUsages::empty()),
+                queries,
+            },
+            slots: SlotBook {
+                loaded_bits: (0..words64).map(|_| AtomicU64::new(0)).collect(),
+                loaded: 0,
+                arrived: Ranges::default(),
+                done: vec![0; words64],
+                done_count: 0,
+                cursor: 0,
+            },
             payload: options.payloads.then(|| (0..n).map(|_| AtomicU64::new(0)).collect()),
             frames: 0,
             view: None,
@@ -514,7 +586,10 @@ impl GpuProgressive {
 
     /// Whether slot `slot` holds a point.
     pub fn is_loaded(&self, slot: u32) -> bool {
-        self.slots.loaded_bits.get(slot as usize / 64).is_some_and(|w| w.load(Ordering::Relaxed) >> (slot % 64) & 1 == 1)
+        self.slots
+            .loaded_bits
+            .get(slot as usize / 64)
+            .is_some_and(|w| w.load(Ordering::Relaxed) >> (slot % 64) & 1 == 1)
     }
 
     /// The payload of the point in slot `slot`, if loaded and the renderer keeps payloads.
@@ -533,7 +608,11 @@ impl GpuProgressive {
     /// [`loaded_payloads`](mortar_core::render::progressive::ProgressiveRenderer::loaded_payloads).
     pub fn loaded_payloads(&self) -> Vec<u64> {
         let Some(p) = &self.payload else { return Vec::new() };
-        p.par_iter().enumerate().filter(|(s, _)| self.is_loaded(*s as u32)).map(|(_, v)| v.load(Ordering::Relaxed)).collect()
+        p.par_iter()
+            .enumerate()
+            .filter(|(s, _)| self.is_loaded(*s as u32))
+            .map(|(_, v)| v.load(Ordering::Relaxed))
+            .collect()
     }
 
     /// The viewport size `(width, height)` of the last frame (`(0, 0)` before the first).
@@ -556,7 +635,14 @@ impl GpuProgressive {
     /// [`insert_prepared`](Self::insert_prepared), in one pass (the words are encoded straight
     /// into staging memory); the two halves let a caller do the costly one on another thread
     /// while frames are drawn.
-    pub fn insert(&mut self, ctx: &GpuContext, first: u64, xyz: &[[i32; 3]], colors: Option<&[u32]>, payload: Option<&[u64]>) -> Result<(), ProgressiveGpuError> {
+    pub fn insert(
+        &mut self,
+        ctx: &GpuContext,
+        first: u64,
+        xyz: &[[i32; 3]],
+        colors: Option<&[u32]>,
+        payload: Option<&[u64]>,
+    ) -> Result<(), ProgressiveGpuError> {
         self.preparer().check(first, xyz, colors, payload, false)?;
         let n = xyz.len();
         if let Some(k) = self.slots.arrived.first_in(first, first + n as u64) {
@@ -580,7 +666,12 @@ impl GpuProgressive {
             self.upload(ctx, first + s as u64, e - s, stride, false, |k, m, out| {
                 ENCODED.with_borrow_mut(|buf| {
                     buf.resize(m * stride, 0);
-                    encode_records(&frame, &xyz[s + k..s + k + m], colors.map(|c| &c[s + k..s + k + m]), buf);
+                    encode_records(
+                        &frame,
+                        &xyz[s + k..s + k + m],
+                        colors.map(|c| &c[s + k..s + k + m]),
+                        buf,
+                    );
                     out.copy_from_slice(bytemuck::cast_slice(buf));
                 })
             })?;
@@ -593,11 +684,20 @@ impl GpuProgressive {
 
     /// The host's bookkeeping of an insert whose points are on their way: the loaded bits, the
     /// payloads, the ranges that arrived.
-    fn finish_insert(&mut self, first: u64, n: usize, slots: &SortedSlots, payload: Option<&[u64]>) {
+    fn finish_insert(
+        &mut self,
+        first: u64,
+        n: usize,
+        slots: &SortedSlots,
+        payload: Option<&[u64]>,
+    ) {
         slots.apply(&mut self.slots.loaded_bits);
         if let (Some(store), Some(values)) = (&self.payload, payload) {
             let shuffle = self.shuffle;
-            values.par_iter().enumerate().with_min_len(4096).for_each(|(k, &v)| store[shuffle.target((first + k as u64) as u32) as usize].store(v, Ordering::Relaxed));
+            values.par_iter().enumerate().with_min_len(4096).for_each(|(k, &v)| {
+                store[shuffle.target((first + k as u64) as u32) as usize]
+                    .store(v, Ordering::Relaxed)
+            });
         }
         self.slots.loaded += n as u64;
         self.slots.arrived.insert(first, first + n as u64);
@@ -605,7 +705,14 @@ impl GpuProgressive {
 
     /// What [`InsertPreparer::prepare`] needs of this renderer (a few numbers, `Send`).
     pub fn preparer(&self) -> InsertPreparer {
-        InsertPreparer { frame: self.frame.quant, frame_max: self.frame.max, shuffle: self.shuffle, options: self.options, bit_words: self.slots.loaded_bits.len(), pool: self.record_pool.clone() }
+        InsertPreparer {
+            frame: self.frame.quant,
+            frame_max: self.frame.max,
+            shuffle: self.shuffle,
+            options: self.options,
+            bit_words: self.slots.loaded_bits.len(),
+            pool: self.record_pool.clone(),
+        }
     }
 
     /// Inserts points prepared by [`InsertPreparer::prepare`] (from this renderer's
@@ -614,9 +721,21 @@ impl GpuProgressive {
     /// GPU), and sets the host's bit per slot from the prepared, sorted slots. The host's share
     /// here is a parallel copy into wgpu's staging memory and the bits (about a third of
     /// [`insert`](Self::insert)'s time on 16 cores).
-    pub fn insert_prepared(&mut self, ctx: &GpuContext, p: PreparedInsert) -> Result<(), ProgressiveGpuError> {
+    pub fn insert_prepared(
+        &mut self,
+        ctx: &GpuContext,
+        p: PreparedInsert,
+    ) -> Result<(), ProgressiveGpuError> {
         let mine = self.preparer();
-        if p.of != (mine.shuffle.len(), mine.options.colors, mine.options.payloads, mine.frame.min, mine.frame_max) {
+        if p.of
+            != (
+                mine.shuffle.len(),
+                mine.options.colors,
+                mine.options.payloads,
+                mine.frame.min,
+                mine.frame_max,
+            )
+        {
             return Err(GpuError::Colors("points prepared for another renderer (capacity, colours, payloads or frame differ)".into()).into());
         }
         let (first, n) = (p.first, p.n);
@@ -635,7 +754,9 @@ impl GpuProgressive {
         while s < n {
             let e = (s + STAGING_POINTS).min(n);
             let records = &p.records[s * stride..e * stride];
-            self.upload(ctx, first + s as u64, e - s, stride, false, |k, m, out| out.copy_from_slice(bytemuck::cast_slice(&records[k * stride..(k + m) * stride])))?;
+            self.upload(ctx, first + s as u64, e - s, stride, false, |k, m, out| {
+                out.copy_from_slice(bytemuck::cast_slice(&records[k * stride..(k + m) * stride]))
+            })?;
             s = e;
         }
         self.finish_insert(first, n, &p.slots, p.payload.as_deref());
@@ -652,14 +773,21 @@ impl GpuProgressive {
     /// inserted), leaving their positions alone: a colour-mode switch streamed in piece by piece
     /// (§3.5) while frames go on. The points not replaced yet keep their colour. Checks everything
     /// before changing anything.
-    pub fn recolor(&mut self, ctx: &GpuContext, first: u64, colors: &[u32]) -> Result<(), ProgressiveGpuError> {
+    pub fn recolor(
+        &mut self,
+        ctx: &GpuContext,
+        first: u64,
+        colors: &[u32],
+    ) -> Result<(), ProgressiveGpuError> {
         if !self.options.colors {
             return Err(GpuError::Colors("the renderer was made without colours".into()).into());
         }
         let n = colors.len();
         let end = first.saturating_add(n as u64);
         if end > self.capacity() {
-            return Err(ProgressiveError::IndexRange { first, end, capacity: self.capacity() }.into());
+            return Err(
+                ProgressiveError::IndexRange { first, end, capacity: self.capacity() }.into()
+            );
         }
         if let Some(k) = self.slots.arrived.first_missing(first, end) {
             return Err(ProgressiveError::NotLoaded(k).into());
@@ -668,7 +796,9 @@ impl GpuProgressive {
         while s < n {
             let e = (s + STAGING_POINTS).min(n);
             let part = &colors[s..e];
-            self.upload(ctx, first + s as u64, e - s, 1, true, |k, m, out| out.copy_from_slice(bytemuck::cast_slice(&part[k..k + m])))?;
+            self.upload(ctx, first + s as u64, e - s, 1, true, |k, m, out| {
+                out.copy_from_slice(bytemuck::cast_slice(&part[k..k + m]))
+            })?;
             s = e;
         }
         Ok(())
@@ -678,29 +808,49 @@ impl GpuProgressive {
     /// straight into wgpu's staging memory (`fill(k, m, out)` writes records `k..k + m` into
     /// `out`), and dispatches the scatter pass over them once per chunk; `colors_only`: one colour
     /// per record, only the colours are written.
-    fn upload(&mut self, ctx: &GpuContext, first: u64, count: usize, stride: usize, colors_only: bool, fill: impl Fn(usize, usize, &mut wgpu::WriteOnly<[u8]>) + Sync) -> Result<(), GpuError> {
+    fn upload(
+        &mut self,
+        ctx: &GpuContext,
+        first: u64,
+        count: usize,
+        stride: usize,
+        colors_only: bool,
+        fill: impl Fn(usize, usize, &mut wgpu::WriteOnly<[u8]>) + Sync,
+    ) -> Result<(), GpuError> {
         let bytes = (count * stride * 4) as u64;
         if self.staging.size() < bytes {
             let size = (STAGING_POINTS as u64 * 16).max(bytes);
             if size > ctx.limits().max_buffer_size {
-                return Err(GpuError::TooLarge { what: "the scatter staging buffer", needed: size, limit: ctx.limits().max_buffer_size });
+                return Err(GpuError::TooLarge {
+                    what: "the scatter staging buffer",
+                    needed: size,
+                    limit: ctx.limits().max_buffer_size,
+                });
             }
             self.staging = storage(ctx, "scatter staging", size, wgpu::BufferUsages::COPY_DST);
         }
         let Some(size) = NonZeroU64::new(bytes) else { return Ok(()) };
         {
-            let mut view = ctx.queue.write_buffer_with(&self.staging, 0, size).ok_or_else(|| GpuError::Device(format!("no staging memory for {bytes} bytes of scatter records")))?;
+            let mut view =
+                ctx.queue.write_buffer_with(&self.staging, 0, size).ok_or_else(|| {
+                    GpuError::Device(format!(
+                        "no staging memory for {bytes} bytes of scatter records"
+                    ))
+                })?;
             // Pieces of 16 Ki records, written by as many threads.
             const PIECE: usize = 1 << 14;
             let mut rest = view.slice(..);
-            let mut pieces: Vec<(usize, usize, SendWrite)> = Vec::with_capacity(count.div_ceil(PIECE));
+            let mut pieces: Vec<(usize, usize, SendWrite)> =
+                Vec::with_capacity(count.div_ceil(PIECE));
             for k in (0..count).step_by(PIECE) {
                 let m = (count - k).min(PIECE);
                 let (head, tail) = rest.split_at(m * stride * 4);
                 pieces.push((k, m, SendWrite(head)));
                 rest = tail;
             }
-            pieces.into_par_iter().for_each(|(k, m, mut out): (usize, usize, SendWrite)| fill(k, m, &mut out.0));
+            pieces
+                .into_par_iter()
+                .for_each(|(k, m, mut out): (usize, usize, SendWrite)| fill(k, m, &mut out.0));
         }
         // One dispatch per chunk, each with its uniforms at its own aligned offset.
         let ustride = self.gpu.scatter_uniform_stride;
@@ -716,7 +866,11 @@ impl GpuProgressive {
                 count: count as u32,
                 _pad: 0,
             };
-            ctx.queue.write_buffer(&self.gpu.scatter_uniforms, c as u64 * ustride, bytemuck::bytes_of(&u));
+            ctx.queue.write_buffer(
+                &self.gpu.scatter_uniforms,
+                c as u64 * ustride,
+                bytemuck::bytes_of(&u),
+            );
         }
         let usize_ = NonZeroU64::new(std::mem::size_of::<ScatterUniforms>() as u64);
         let groups: Vec<wgpu::BindGroup> = self
@@ -729,19 +883,41 @@ impl GpuProgressive {
                     ctx,
                     0,
                     &[
-                        entry(binding::SCATTER_PARAMS, wgpu::BindingResource::Buffer(wgpu::BufferBinding { buffer: &self.gpu.scatter_uniforms, offset: c as u64 * ustride, size: usize_ })),
-                        entry(binding::SCATTER_STAGED, wgpu::BindingResource::Buffer(wgpu::BufferBinding { buffer: &self.staging, offset: 0, size: Some(size) })),
+                        entry(
+                            binding::SCATTER_PARAMS,
+                            wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                                buffer: &self.gpu.scatter_uniforms,
+                                offset: c as u64 * ustride,
+                                size: usize_,
+                            }),
+                        ),
+                        entry(
+                            binding::SCATTER_STAGED,
+                            wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                                buffer: &self.staging,
+                                offset: 0,
+                                size: Some(size),
+                            }),
+                        ),
                         entry(binding::SCATTER_COARSE, chunk.words[0].as_entire_binding()),
                         entry(binding::SCATTER_MEDIUM, chunk.words[1].as_entire_binding()),
                         entry(binding::SCATTER_FINE, chunk.words[2].as_entire_binding()),
-                        entry(binding::SCATTER_COLORS, chunk.colors.as_ref().unwrap_or(&self.gpu.dummy).as_entire_binding()),
+                        entry(
+                            binding::SCATTER_COLORS,
+                            chunk.colors.as_ref().unwrap_or(&self.gpu.dummy).as_entire_binding(),
+                        ),
                     ],
                 )
             })
             .collect();
-        let mut enc = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("scatter") });
+        let mut enc = ctx
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("scatter") });
         {
-            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("scatter"), timestamp_writes: None });
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("scatter"),
+                timestamp_writes: None,
+            });
             pass.set_pipeline(self.gpu.passes.scatter.pipeline());
             let (x, y) = ctx.split_dispatch((count as u32).div_ceil(256));
             for bg in &groups {
@@ -758,7 +934,9 @@ impl GpuProgressive {
         self.in_flight_bytes += bytes;
         while self.in_flight_bytes > MAX_IN_FLIGHT {
             let Some((index, b)) = self.in_flight.pop_front() else { break };
-            ctx.device.poll(wgpu::PollType::Wait { submission_index: Some(index), timeout: None }).map_err(|e| GpuError::Device(e.to_string()))?;
+            ctx.device
+                .poll(wgpu::PollType::Wait { submission_index: Some(index), timeout: None })
+                .map_err(|e| GpuError::Device(e.to_string()))?;
             self.in_flight_bytes -= b;
         }
         ctx.check()
@@ -774,7 +952,11 @@ impl GpuProgressive {
             .iter()
             .map(|c| {
                 let u = uniform::<ReframeUniforms>(ctx, "reframe uniforms");
-                ctx.queue.write_buffer(&u, 0, bytemuck::bytes_of(&ReframeUniforms::new(&from, &to.quant, c.len)));
+                ctx.queue.write_buffer(
+                    &u,
+                    0,
+                    bytemuck::bytes_of(&ReframeUniforms::new(&from, &to.quant, c.len)),
+                );
                 let g = self.gpu.passes.reframe.bind_group(
                     ctx,
                     0,
@@ -788,9 +970,14 @@ impl GpuProgressive {
                 (u, g, c.len.div_ceil(256))
             })
             .collect();
-        let mut enc = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("reframe") });
+        let mut enc = ctx
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("reframe") });
         {
-            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("reframe"), timestamp_writes: None });
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("reframe"),
+                timestamp_writes: None,
+            });
             pass.set_pipeline(self.gpu.passes.reframe.pipeline());
             for (_, g, n) in &buffers {
                 let (x, y) = ctx.split_dispatch(*n);
@@ -818,16 +1005,34 @@ impl GpuProgressive {
     /// the resolve into [`image_buffer`](Self::image_buffer): the passes of the batch rasterizer
     /// (`hole_fill.wgsl`, `resolve.wgsl`, `eye_dome.wgsl`), the CPU resolve's bytes. Waits for the GPU. A change of camera or options
     /// keeps the visible lists (that is what they are for) but starts convergence over.
-    pub fn frame(&mut self, ctx: &GpuContext, camera: &Camera, options: &RasterOptions, budget: &FillBudget, resolve: Option<&ResolveOptions>) -> Result<GpuProgressiveFrame, ProgressiveGpuError> {
+    pub fn frame(
+        &mut self,
+        ctx: &GpuContext,
+        camera: &Camera,
+        options: &RasterOptions,
+        budget: &FillBudget,
+        resolve: Option<&ResolveOptions>,
+    ) -> Result<GpuProgressiveFrame, ProgressiveGpuError> {
         let start = Instant::now();
         camera.validate().map_err(RasterError::from)?;
         if resolve.is_some() && !self.options.colors {
-            return Err(GpuError::Colors("resolve asked for but the renderer has no colours".into()).into());
+            return Err(GpuError::Colors(
+                "resolve asked for but the renderer has no colours".into(),
+            )
+            .into());
         }
         let planner = Planner::new(camera, &self.frame.grid, options)?;
         let n = self.capacity();
         let gpu = &self.gpu;
-        let t = Target::ensure(&mut self.target, &mut self.resolved, ctx, gpu, &self.list_counts, camera.width, camera.height)?;
+        let t = Target::ensure(
+            &mut self.target,
+            &mut self.resolved,
+            ctx,
+            gpu,
+            &self.list_counts,
+            camera.width,
+            camera.height,
+        )?;
         let resolving = match resolve {
             Some(post) => Some((post, Resolved::ensure(&mut self.resolved, ctx, gpu, t)?)),
             None => None,
@@ -838,7 +1043,8 @@ impl GpuProgressive {
             self.slots.done_count = 0;
         }
         self.frames += 1;
-        let mut st = FrameStats { frame: self.frames, loaded: self.slots.loaded, ..FrameStats::default() };
+        let mut st =
+            FrameStats { frame: self.frames, loaded: self.slots.loaded, ..FrameStats::default() };
         // One plan for every slot: one frame, one set of bounds.
         let plan = planner.plan(&self.frame.quant, &self.frame.bounds, n as usize);
         let projection = match plan {
@@ -857,7 +1063,11 @@ impl GpuProgressive {
                 None => {}
             }
         };
-        ctx.queue.write_buffer(&gpu.per_frame.frame_uniforms, 0, bytemuck::bytes_of(&FrameUniforms::new(camera, ctx.division())));
+        ctx.queue.write_buffer(
+            &gpu.per_frame.frame_uniforms,
+            0,
+            bytemuck::bytes_of(&FrameUniforms::new(camera, ctx.division())),
+        );
         ctx.queue.write_buffer(&gpu.per_frame.counters, 0, &[0u8; 8]);
 
         // Reproject: each chunk's list of the last Prepare.
@@ -867,12 +1077,25 @@ impl GpuProgressive {
                 .iter()
                 .enumerate()
                 .filter(|(_, &count)| count > 0)
-                .map(|(c, &count)| Dispatch { chunk: c, record: DrawRecord { projection: *p, offset: 0, count, first_index: gpu.chunks[c].first, _pad: 0 } })
+                .map(|(c, &count)| Dispatch {
+                    chunk: c,
+                    record: DrawRecord {
+                        projection: *p,
+                        offset: 0,
+                        count,
+                        first_index: gpu.chunks[c].first,
+                        _pad: 0,
+                    },
+                })
                 .collect(),
             None => Vec::new(),
         };
         st.reprojected = self.list_counts.iter().map(|&c| c as u64).sum();
-        count_batches(&mut raster, self.list_counts.iter().filter(|&&c| c > 0).count(), st.reprojected);
+        count_batches(
+            &mut raster,
+            self.list_counts.iter().filter(|&&c| c > 0).count(),
+            st.reprojected,
+        );
 
         // Fill, first step: the fixed budget or the probe.
         let (first, adaptive): (u64, Option<AdaptiveBudget>) = match budget {
@@ -883,12 +1106,15 @@ impl GpuProgressive {
         st.filled = first.min(n);
         st.fill_points = points;
         count_batches(&mut raster, runs.len(), points);
-        let probe: Vec<Dispatch> = projection.as_ref().map(|(_, p)| gpu.fill_dispatches(&runs, p)).unwrap_or_default();
+        let probe: Vec<Dispatch> =
+            projection.as_ref().map(|(_, p)| gpu.fill_dispatches(&runs, p)).unwrap_or_default();
         let timed = gpu.queries.is_some();
         let host_ms = |t: Instant| t.elapsed().as_secs_f64() * 1e3;
 
         let dev = &ctx.device;
-        let mut enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("progressive frame") });
+        let mut enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+            label: Some("progressive frame"),
+        });
         gpu.encode_clear(ctx, &mut enc, t, (Some(0), None));
         gpu.encode_draw(ctx, &mut enc, t, "reproject", &reproject, 0, true, (None, Some(1)));
         let mut host_times = [0.0f64; 4]; // reproject, fill, prepare, resolve (host clock)
@@ -897,10 +1123,21 @@ impl GpuProgressive {
             ctx.queue.submit([enc.finish()]);
             ctx.wait()?;
             host_times[0] = host_ms(t);
-            enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("progressive frame") });
+            enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("progressive frame"),
+            });
         }
         let t_fill = Instant::now();
-        gpu.encode_draw(ctx, &mut enc, t, "fill", &probe, reproject.len(), false, (Some(2), Some(3)));
+        gpu.encode_draw(
+            ctx,
+            &mut enc,
+            t,
+            "fill",
+            &probe,
+            reproject.len(),
+            false,
+            (Some(2), Some(3)),
+        );
         let mut extra_dispatches = Vec::new();
         if let Some(a) = adaptive {
             st.probe = st.filled;
@@ -909,14 +1146,28 @@ impl GpuProgressive {
                 Some(q) => {
                     ctx.queue.submit([enc.finish()]);
                     let t = Self::read_queries(ctx, &q)?;
-                    enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("progressive frame") });
-                    ProbeTimings { probe_points: st.probe, probe_ms: t[3] - t[2], elapsed_ms: t[3], after_fill_ms: self.last_after_fill_ms }
+                    enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                        label: Some("progressive frame"),
+                    });
+                    ProbeTimings {
+                        probe_points: st.probe,
+                        probe_ms: t[3] - t[2],
+                        elapsed_ms: t[3],
+                        after_fill_ms: self.last_after_fill_ms,
+                    }
                 }
                 None => {
                     ctx.queue.submit([enc.finish()]);
                     ctx.wait()?;
-                    enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("progressive frame") });
-                    ProbeTimings { probe_points: st.probe, probe_ms: host_ms(t_fill), elapsed_ms: host_ms(start), after_fill_ms: self.last_after_fill_ms }
+                    enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                        label: Some("progressive frame"),
+                    });
+                    ProbeTimings {
+                        probe_points: st.probe,
+                        probe_ms: host_ms(t_fill),
+                        elapsed_ms: host_ms(start),
+                        after_fill_ms: self.last_after_fill_ms,
+                    }
                 }
             };
             let more = a.extra_points(&timings).min(n - st.filled);
@@ -929,12 +1180,23 @@ impl GpuProgressive {
             }
         }
         // The second Fill step (empty without the adaptive budget, timed all the same).
-        gpu.encode_draw(ctx, &mut enc, t, "fill more", &extra_dispatches, reproject.len() + probe.len(), false, (Some(4), Some(5)));
+        gpu.encode_draw(
+            ctx,
+            &mut enc,
+            t,
+            "fill more",
+            &extra_dispatches,
+            reproject.len() + probe.len(),
+            false,
+            (Some(4), Some(5)),
+        );
         if !timed {
             ctx.queue.submit([enc.finish()]);
             ctx.wait()?;
             host_times[1] = host_ms(t_fill);
-            enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("progressive frame") });
+            enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("progressive frame"),
+            });
         }
         let t_prepare = Instant::now();
         gpu.encode_prepare(ctx, &mut enc, t, self.chunk_slots, (Some(6), Some(7)));
@@ -942,7 +1204,9 @@ impl GpuProgressive {
             ctx.queue.submit([enc.finish()]);
             ctx.wait()?;
             host_times[2] = host_ms(t_prepare);
-            enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("progressive frame") });
+            enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("progressive frame"),
+            });
         }
         let t_resolve = Instant::now();
         if let Some((post, r)) = resolving {
@@ -951,7 +1215,8 @@ impl GpuProgressive {
         let stamps = if resolve.is_some() { 10 } else { 8 };
         let queries = gpu.resolve_queries(ctx, &mut enc, stamps);
         let counters_read = readback(ctx, &mut enc, &gpu.per_frame.counters, 8);
-        let counts_read = readback(ctx, &mut enc, &gpu.per_frame.list_counts, gpu.per_frame.list_counts.size());
+        let counts_read =
+            readback(ctx, &mut enc, &gpu.per_frame.list_counts, gpu.per_frame.list_counts.size());
         ctx.queue.submit([enc.finish()]);
         let c: Vec<u32> = bytemuck::pod_collect_to_vec(&map_read(ctx, &counters_read)?);
         raster.points_drawn = c[0] as u64 | (c[1] as u64) << 32;
@@ -1006,10 +1271,19 @@ impl GpuProgressive {
             return Ok(None);
         }
         let planner = Planner::new(&camera, &self.frame.grid, &options)?;
-        let BatchPlan::Draw { projection, .. } = planner.plan(&self.frame.quant, &self.frame.bounds, self.capacity() as usize) else { return Ok(Some(0)) };
+        let BatchPlan::Draw { projection, .. } =
+            planner.plan(&self.frame.quant, &self.frame.bounds, self.capacity() as usize)
+        else {
+            return Ok(Some(0));
+        };
         let gpu = &self.gpu;
         let pixels = t.width as u64 * t.height as u64;
-        let flags = storage(ctx, "tie flags", pixels * 4, wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST);
+        let flags = storage(
+            ctx,
+            "tie flags",
+            pixels * 4,
+            wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST,
+        );
         // The frame uniforms are still the last frame's (its camera).
         let g0 = gpu.passes.ties.bind_group(
             ctx,
@@ -1020,12 +1294,18 @@ impl GpuProgressive {
                 entry(binding::TIES_FLAGS, flags.as_entire_binding()),
             ],
         );
-        let runs: Vec<(usize, u32, u32)> = gpu.chunks.iter().enumerate().map(|(c, ch)| (c, 0, ch.len)).collect();
+        let runs: Vec<(usize, u32, u32)> =
+            gpu.chunks.iter().enumerate().map(|(c, ch)| (c, 0, ch.len)).collect();
         let groups = gpu.draw_groups(ctx, t, &gpu.fill_dispatches(&runs, &projection), 0, false);
-        let mut enc = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("ties") });
+        let mut enc = ctx
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("ties") });
         enc.clear_buffer(&flags, 0, None);
         {
-            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("ties"), timestamp_writes: None });
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("ties"),
+                timestamp_writes: None,
+            });
             pass.set_pipeline(gpu.passes.ties.pipeline());
             for (_, g1, n) in &groups {
                 if *n == 0 {
@@ -1048,11 +1328,14 @@ impl GpuProgressive {
     /// in the CPU renderer), empty before the first frame.
     pub fn read_keys(&self, ctx: &GpuContext) -> Result<Vec<u64>, GpuError> {
         let Some(t) = &self.target else { return Ok(Vec::new()) };
-        let mut enc = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("read keys") });
+        let mut enc = ctx
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("read keys") });
         let buf = readback(ctx, &mut enc, &t.keys, t.keys.size());
         ctx.queue.submit([enc.finish()]);
         let bytes = map_read(ctx, &buf)?;
-        Ok(bytemuck::pod_collect_to_vec::<u8, u64>(&bytes)[..t.width as usize * t.height as usize].to_vec())
+        Ok(bytemuck::pod_collect_to_vec::<u8, u64>(&bytes)[..t.width as usize * t.height as usize]
+            .to_vec())
     }
 
     /// The resolved image of the last frame drawn with `resolve` (RGBA8 packed, row-major).
@@ -1067,7 +1350,9 @@ impl GpuProgressive {
     /// in increasing order.
     pub fn read_visible(&self, ctx: &GpuContext) -> Result<Vec<u32>, GpuError> {
         let Some(t) = &self.target else { return Ok(Vec::new()) };
-        let mut enc = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("read visible") });
+        let mut enc = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+            label: Some("read visible"),
+        });
         let buf = readback(ctx, &mut enc, &t.lists, t.lists.size());
         ctx.queue.submit([enc.finish()]);
         let all: Vec<u32> = bytemuck::pod_collect_to_vec(&map_read(ctx, &buf)?);
@@ -1146,19 +1431,41 @@ impl PreparedInsert {
 impl InsertPreparer {
     /// The checks of an insert that need no state: colours and payloads as the renderer was
     /// made, the index range, every point inside the frame.
-    fn check(&self, first: u64, xyz: &[[i32; 3]], colors: Option<&[u32]>, payload: Option<&[u64]>, in_frame: bool) -> Result<(), ProgressiveGpuError> {
+    fn check(
+        &self,
+        first: u64,
+        xyz: &[[i32; 3]],
+        colors: Option<&[u32]>,
+        payload: Option<&[u64]>,
+        in_frame: bool,
+    ) -> Result<(), ProgressiveGpuError> {
         let n = xyz.len();
         match (self.options.colors, colors) {
             (true, Some(c)) if c.len() == n => {}
-            (true, Some(c)) => return Err(GpuError::Colors(format!("{} colours for {n} points", c.len())).into()),
-            (true, None) => return Err(GpuError::Colors("the renderer has colours but points came without".into()).into()),
-            (false, Some(_)) => return Err(GpuError::Colors("the renderer was made without colours".into()).into()),
+            (true, Some(c)) => {
+                return Err(GpuError::Colors(format!("{} colours for {n} points", c.len())).into())
+            }
+            (true, None) => {
+                return Err(GpuError::Colors(
+                    "the renderer has colours but points came without".into(),
+                )
+                .into())
+            }
+            (false, Some(_)) => {
+                return Err(GpuError::Colors("the renderer was made without colours".into()).into())
+            }
             (false, None) => {}
         }
         match (self.options.payloads, payload) {
-            (true, Some(p)) if p.len() != n => return Err(ProgressiveError::PayloadCount { points: n, payloads: p.len() }.into()),
-            (true, None) => return Err(ProgressiveError::PayloadCount { points: n, payloads: 0 }.into()),
-            (false, Some(p)) => return Err(ProgressiveError::PayloadCount { points: n, payloads: p.len() }.into()),
+            (true, Some(p)) if p.len() != n => {
+                return Err(ProgressiveError::PayloadCount { points: n, payloads: p.len() }.into())
+            }
+            (true, None) => {
+                return Err(ProgressiveError::PayloadCount { points: n, payloads: 0 }.into())
+            }
+            (false, Some(p)) => {
+                return Err(ProgressiveError::PayloadCount { points: n, payloads: p.len() }.into())
+            }
             _ => {}
         }
         let capacity = self.shuffle.len() as u64;
@@ -1170,8 +1477,16 @@ impl InsertPreparer {
         if !in_frame {
             return Ok(());
         }
-        if let Some(k) = xyz.par_iter().position_first(|p| (0..3).any(|a| p[a] < min[a] || p[a] > max[a])) {
-            return Err(ProgressiveError::OutsideFrame { index: first + k as u64, point: xyz[k], min, max }.into());
+        if let Some(k) =
+            xyz.par_iter().position_first(|p| (0..3).any(|a| p[a] < min[a] || p[a] > max[a]))
+        {
+            return Err(ProgressiveError::OutsideFrame {
+                index: first + k as u64,
+                point: xyz[k],
+                min,
+                max,
+            }
+            .into());
         }
         Ok(())
     }
@@ -1180,7 +1495,13 @@ impl InsertPreparer {
     /// while frames are drawn: checks the points (colours and payloads as the renderer was made,
     /// index range, inside the frame), encodes their words, computes and sorts their slots.
     /// Duplicates are checked by [`GpuProgressive::insert_prepared`].
-    pub fn prepare(&self, first: u64, xyz: &[[i32; 3]], colors: Option<&[u32]>, payload: Option<&[u64]>) -> Result<PreparedInsert, ProgressiveGpuError> {
+    pub fn prepare(
+        &self,
+        first: u64,
+        xyz: &[[i32; 3]],
+        colors: Option<&[u32]>,
+        payload: Option<&[u64]>,
+    ) -> Result<PreparedInsert, ProgressiveGpuError> {
         self.check(first, xyz, colors, payload, true)?;
         let n = xyz.len();
         let (min, max) = (self.frame.min, self.frame_max);
@@ -1325,7 +1646,13 @@ impl SlotBook {
     /// The runs of Fill for `count` slots from the cursor (wrapping around), split at chunk
     /// boundaries, as `(chunk, offset in chunk, slots)`; advances the cursor and marks the loaded
     /// slots drawn. Returns the runs and the points (loaded slots) among them.
-    fn sweep(&mut self, count: u64, chunks: &[SlotChunk], chunk_slots: u32, capacity: u64) -> (Vec<(usize, u32, u32)>, u64) {
+    fn sweep(
+        &mut self,
+        count: u64,
+        chunks: &[SlotChunk],
+        chunk_slots: u32,
+        capacity: u64,
+    ) -> (Vec<(usize, u32, u32)>, u64) {
         let n = capacity;
         let mut left = count.min(n);
         let mut runs = Vec::new();
@@ -1379,7 +1706,15 @@ impl Target {
     /// The target of the next frame: `slot`'s if it has `width x height` pixels, else a new one
     /// (the last Prepare's visible lists carried over; the old resolved image dropped). On an
     /// error `slot` and `resolved` are left as they were.
-    fn ensure<'a>(slot: &'a mut Option<Target>, resolved: &mut Option<Resolved>, ctx: &GpuContext, gpu: &GpuState, list_counts: &[u32], width: u32, height: u32) -> Result<&'a Target, GpuError> {
+    fn ensure<'a>(
+        slot: &'a mut Option<Target>,
+        resolved: &mut Option<Resolved>,
+        ctx: &GpuContext,
+        gpu: &GpuState,
+        list_counts: &[u32],
+        width: u32,
+        height: u32,
+    ) -> Result<&'a Target, GpuError> {
         let t = match slot.take() {
             Some(t) if (t.width, t.height) == (width, height) => t,
             old => match Target::new(ctx, gpu, old.as_ref(), list_counts, width, height) {
@@ -1399,10 +1734,21 @@ impl Target {
     /// The framebuffer for `width x height`, the visible lists (`old`'s if they are large
     /// enough, else grown with `old`'s entries copied) and the bind groups of clear, Fill and
     /// Prepare.
-    fn new(ctx: &GpuContext, gpu: &GpuState, old: Option<&Target>, list_counts: &[u32], width: u32, height: u32) -> Result<Target, GpuError> {
+    fn new(
+        ctx: &GpuContext,
+        gpu: &GpuState,
+        old: Option<&Target>,
+        list_counts: &[u32],
+        width: u32,
+        height: u32,
+    ) -> Result<Target, GpuError> {
         let pixels = width as u64 * height as u64;
         if pixels == 0 || pixels * 8 > ctx.max_binding() {
-            return Err(GpuError::TooLarge { what: "the framebuffer", needed: pixels * 8, limit: ctx.max_binding() });
+            return Err(GpuError::TooLarge {
+                what: "the framebuffer",
+                needed: pixels * 8,
+                limit: ctx.max_binding(),
+            });
         }
         let copy = wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST;
         let align = ctx.limits().min_storage_buffer_offset_alignment.max(4) as u64;
@@ -1412,15 +1758,28 @@ impl Target {
             _ => {
                 let size = gpu.chunks.len().max(1) as u64 * stride * 4;
                 if size > ctx.max_binding() || stride > u32::MAX as u64 {
-                    return Err(GpuError::TooLarge { what: "the visible lists", needed: size, limit: ctx.max_binding() });
+                    return Err(GpuError::TooLarge {
+                        what: "the visible lists",
+                        needed: size,
+                        limit: ctx.max_binding(),
+                    });
                 }
                 let lists = storage(ctx, "visible lists", size, copy);
                 // The last Prepare's lists move along: the next Reproject draws them in the new view.
                 if let Some(o) = old {
-                    let mut enc = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("grow visible lists") });
+                    let mut enc =
+                        ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                            label: Some("grow visible lists"),
+                        });
                     for (c, &count) in list_counts.iter().enumerate() {
                         if count > 0 {
-                            enc.copy_buffer_to_buffer(&o.lists, c as u64 * o.list_stride as u64 * 4, &lists, c as u64 * stride * 4, count as u64 * 4);
+                            enc.copy_buffer_to_buffer(
+                                &o.lists,
+                                c as u64 * o.list_stride as u64 * 4,
+                                &lists,
+                                c as u64 * stride * 4,
+                                count as u64 * 4,
+                            );
                         }
                     }
                     ctx.queue.submit([enc.finish()]);
@@ -1430,7 +1789,11 @@ impl Target {
         };
         let keys = storage(ctx, "progressive keys", pixels * 8, copy);
         let (passes, f) = (&gpu.passes, &gpu.per_frame);
-        let clear_group = passes.clear.bind_group(ctx, 0, &[entry(binding::CLEAR_WORDS, keys.as_entire_binding())]);
+        let clear_group = passes.clear.bind_group(
+            ctx,
+            0,
+            &[entry(binding::CLEAR_WORDS, keys.as_entire_binding())],
+        );
         let fill_group = passes.fill.bind_group(
             ctx,
             0,
@@ -1451,13 +1814,27 @@ impl Target {
             ],
         );
         ctx.check()?;
-        Ok(Target { width, height, keys, lists, list_stride, clear_group, fill_group, prepare_group })
+        Ok(Target {
+            width,
+            height,
+            keys,
+            lists,
+            list_stride,
+            clear_group,
+            fill_group,
+            prepare_group,
+        })
     }
 }
 
 impl Resolved {
     /// `slot`'s image and bind groups, made for `t` if there are none.
-    fn ensure<'a>(slot: &'a mut Option<Resolved>, ctx: &GpuContext, gpu: &GpuState, t: &Target) -> Result<&'a Resolved, GpuError> {
+    fn ensure<'a>(
+        slot: &'a mut Option<Resolved>,
+        ctx: &GpuContext,
+        gpu: &GpuState,
+        t: &Target,
+    ) -> Result<&'a Resolved, GpuError> {
         let r = match slot.take() {
             Some(r) => r,
             None => Resolved::new(ctx, gpu, t)?,
@@ -1470,12 +1847,20 @@ impl Resolved {
     fn new(ctx: &GpuContext, gpu: &GpuState, t: &Target) -> Result<Resolved, GpuError> {
         let pixels = t.width as u64 * t.height as u64;
         let image = storage(ctx, "progressive image", pixels * 4, wgpu::BufferUsages::COPY_SRC);
-        let filled = storage(ctx, "progressive filled keys", pixels * 8, wgpu::BufferUsages::COPY_SRC);
+        let filled =
+            storage(ctx, "progressive filled keys", pixels * 8, wgpu::BufferUsages::COPY_SRC);
         let colors: Vec<&wgpu::Buffer> = if gpu.chunks.is_empty() {
             vec![&gpu.dummy]
         } else {
             // A renderer with colours (checked by `frame`) has them in every chunk.
-            gpu.chunks.iter().map(|c| c.colors.as_ref().ok_or_else(|| GpuError::Colors("resolve asked for but the renderer has no colours".into()))).collect::<Result<_, _>>()?
+            gpu.chunks
+                .iter()
+                .map(|c| {
+                    c.colors.as_ref().ok_or_else(|| {
+                        GpuError::Colors("resolve asked for but the renderer has no colours".into())
+                    })
+                })
+                .collect::<Result<_, _>>()?
         };
         let f = &gpu.per_frame;
         // The 64-bit keys read as words: index at 2p, depth bits at 2p + 1; the filled keys alike.
@@ -1533,7 +1918,11 @@ impl Resolved {
 }
 
 impl GpuState {
-    fn timestamps(&self, begin: Option<u32>, end: Option<u32>) -> Option<wgpu::ComputePassTimestampWrites<'_>> {
+    fn timestamps(
+        &self,
+        begin: Option<u32>,
+        end: Option<u32>,
+    ) -> Option<wgpu::ComputePassTimestampWrites<'_>> {
         if begin.is_none() && end.is_none() {
             return None;
         }
@@ -1551,7 +1940,14 @@ impl GpuState {
 
     /// Writes `dispatches` as records from slot `first_record` and returns their bind groups
     /// (group 1, and for Reproject group 0 with the chunk's list) with workgroup counts.
-    fn draw_groups(&self, ctx: &GpuContext, t: &Target, dispatches: &[Dispatch], first_record: usize, reproject: bool) -> Vec<(Option<wgpu::BindGroup>, wgpu::BindGroup, u32)> {
+    fn draw_groups(
+        &self,
+        ctx: &GpuContext,
+        t: &Target,
+        dispatches: &[Dispatch],
+        first_record: usize,
+        reproject: bool,
+    ) -> Vec<(Option<wgpu::BindGroup>, wgpu::BindGroup, u32)> {
         let f = &self.per_frame;
         let record_size = std::mem::size_of::<DrawRecord>() as u64;
         dispatches
@@ -1560,10 +1956,19 @@ impl GpuState {
             .map(|(k, d)| {
                 let offset = (first_record + k) as u64 * f.record_stride;
                 ctx.queue.write_buffer(&f.records, offset, bytemuck::bytes_of(&d.record));
-                let record = wgpu::BufferBinding { buffer: &f.records, offset, size: NonZeroU64::new(record_size) };
-                let g1 = batches_group(ctx, &self.passes.shared, record, &self.chunks[d.chunk].words);
+                let record = wgpu::BufferBinding {
+                    buffer: &f.records,
+                    offset,
+                    size: NonZeroU64::new(record_size),
+                };
+                let g1 =
+                    batches_group(ctx, &self.passes.shared, record, &self.chunks[d.chunk].words);
                 let g0 = reproject.then(|| {
-                    let list = wgpu::BufferBinding { buffer: &t.lists, offset: d.chunk as u64 * t.list_stride as u64 * 4, size: NonZeroU64::new(d.record.count as u64 * 4) };
+                    let list = wgpu::BufferBinding {
+                        buffer: &t.lists,
+                        offset: d.chunk as u64 * t.list_stride as u64 * 4,
+                        size: NonZeroU64::new(d.record.count as u64 * 4),
+                    };
                     self.passes.reproject.bind_group(
                         ctx,
                         0,
@@ -1582,10 +1987,23 @@ impl GpuState {
 
     /// Records one draw pass (Reproject or Fill) of `dispatches` into `enc`.
     #[allow(clippy::too_many_arguments)]
-    fn encode_draw(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, t: &Target, label: &str, dispatches: &[Dispatch], first_record: usize, reproject: bool, ts: (Option<u32>, Option<u32>)) {
+    fn encode_draw(
+        &self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        t: &Target,
+        label: &str,
+        dispatches: &[Dispatch],
+        first_record: usize,
+        reproject: bool,
+        ts: (Option<u32>, Option<u32>),
+    ) {
         let pipe = if reproject { &self.passes.reproject } else { &self.passes.fill };
         let groups = self.draw_groups(ctx, t, dispatches, first_record, reproject);
-        let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some(label), timestamp_writes: self.timestamps(ts.0, ts.1) });
+        let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some(label),
+            timestamp_writes: self.timestamps(ts.0, ts.1),
+        });
         pass.set_pipeline(pipe.pipeline());
         for (g0, g1, n) in &groups {
             if *n == 0 {
@@ -1604,8 +2022,17 @@ impl GpuState {
     }
 
     /// Records the clear of the framebuffer.
-    fn encode_clear(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, t: &Target, ts: (Option<u32>, Option<u32>)) {
-        let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("clear"), timestamp_writes: self.timestamps(ts.0, ts.1) });
+    fn encode_clear(
+        &self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        t: &Target,
+        ts: (Option<u32>, Option<u32>),
+    ) {
+        let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some("clear"),
+            timestamp_writes: self.timestamps(ts.0, ts.1),
+        });
         pass.set_pipeline(self.passes.clear.pipeline());
         pass.set_bind_group(0, &t.clear_group, &[]);
         let (x, y) = ctx.split_dispatch((t.keys.size() / 4).div_ceil(256) as u32);
@@ -1613,12 +2040,27 @@ impl GpuState {
     }
 
     /// Records Prepare (the list counts zeroed first).
-    fn encode_prepare(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, t: &Target, chunk_slots: u32, ts: (Option<u32>, Option<u32>)) {
+    fn encode_prepare(
+        &self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        t: &Target,
+        chunk_slots: u32,
+        ts: (Option<u32>, Option<u32>),
+    ) {
         let pixels = t.width * t.height;
-        let u = PrepareUniforms { pixels, chunk_slots, list_stride: t.list_stride, chunks: self.chunks.len() as u32 };
+        let u = PrepareUniforms {
+            pixels,
+            chunk_slots,
+            list_stride: t.list_stride,
+            chunks: self.chunks.len() as u32,
+        };
         ctx.queue.write_buffer(&self.per_frame.prepare_uniforms, 0, bytemuck::bytes_of(&u));
         enc.clear_buffer(&self.per_frame.list_counts, 0, None);
-        let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("prepare"), timestamp_writes: self.timestamps(ts.0, ts.1) });
+        let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some("prepare"),
+            timestamp_writes: self.timestamps(ts.0, ts.1),
+        });
         pass.set_pipeline(self.passes.prepare.pipeline());
         pass.set_bind_group(0, &t.prepare_group, &[]);
         let (x, y) = ctx.split_dispatch(pixels.div_ceil(256));
@@ -1629,7 +2071,15 @@ impl GpuState {
     /// the colours (one dispatch per chunk, from the filled keys or the framebuffer) and eye-dome
     /// lighting of the image from the same keys' depths, as the batch rasterizer resolves; the
     /// timestamps `ts` around all of them.
-    fn encode_resolve(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, t: &Target, r: &Resolved, post: &ResolveOptions, ts: (Option<u32>, Option<u32>)) {
+    fn encode_resolve(
+        &self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        t: &Target,
+        r: &Resolved,
+        post: &ResolveOptions,
+        ts: (Option<u32>, Option<u32>),
+    ) {
         let (x, y) = ctx.split_dispatch((t.width as u64 * t.height as u64).div_ceil(256) as u32);
         // Both key buffers hold two words per pixel: the index, then the depth bits.
         let (stride, depth_offset) = (2, 1);
@@ -1637,20 +2087,35 @@ impl GpuState {
         if let Some(fill) = &post.hole_fill {
             let u = HoleFillUniforms::new(fill, t.width, t.height, stride, depth_offset);
             ctx.queue.write_buffer(&self.per_frame.fill_uniforms, 0, bytemuck::bytes_of(&u));
-            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("hole fill"), timestamp_writes: self.timestamps(ts.0, None) });
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("hole fill"),
+                timestamp_writes: self.timestamps(ts.0, None),
+            });
             pass.set_pipeline(self.passes.hole_fill.pipeline());
             pass.set_bind_group(0, &r.fill_group, &[]);
             pass.dispatch_workgroups(x, y, 1);
         }
         for (i, u) in self.per_frame.resolve_uniforms.iter().enumerate().take(r.groups.len()) {
             let (first_index, count) = self.chunks.get(i).map_or((0, 0), |c| (c.first, c.len));
-            let u_val = ResolveUniforms { width: t.width, height: t.height, key_stride: stride, depth_offset, first_index, count, background: post.background, write_background: (i == 0) as u32 };
+            let u_val = ResolveUniforms {
+                width: t.width,
+                height: t.height,
+                key_stride: stride,
+                depth_offset,
+                first_index,
+                count,
+                background: post.background,
+                write_background: (i == 0) as u32,
+            };
             ctx.queue.write_buffer(u, 0, bytemuck::bytes_of(&u_val));
         }
         {
             let begin = if post.hole_fill.is_some() { None } else { ts.0 };
             let end = if last_is_resolve { ts.1 } else { None };
-            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("resolve"), timestamp_writes: self.timestamps(begin, end) });
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("resolve"),
+                timestamp_writes: self.timestamps(begin, end),
+            });
             pass.set_pipeline(self.passes.resolve.pipeline());
             let groups = if post.hole_fill.is_some() { &r.groups_filled } else { &r.groups };
             for bg in groups {
@@ -1661,22 +2126,47 @@ impl GpuState {
         if let Some(edl) = &post.eye_dome {
             let u = EyeDomeUniforms::new(edl, t.width, t.height, stride, depth_offset);
             ctx.queue.write_buffer(&self.per_frame.eye_dome_uniforms, 0, bytemuck::bytes_of(&u));
-            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("eye-dome lighting"), timestamp_writes: self.timestamps(None, ts.1) });
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("eye-dome lighting"),
+                timestamp_writes: self.timestamps(None, ts.1),
+            });
             pass.set_pipeline(self.passes.eye_dome.pipeline());
-            pass.set_bind_group(0, if post.hole_fill.is_some() { &r.eye_dome_group_filled } else { &r.eye_dome_group }, &[]);
+            pass.set_bind_group(
+                0,
+                if post.hole_fill.is_some() { &r.eye_dome_group_filled } else { &r.eye_dome_group },
+                &[],
+            );
             pass.dispatch_workgroups(x, y, 1);
         }
     }
 
     /// The draw dispatches of Fill runs.
-    fn fill_dispatches(&self, runs: &[(usize, u32, u32)], projection: &BatchProjection) -> Vec<Dispatch> {
+    fn fill_dispatches(
+        &self,
+        runs: &[(usize, u32, u32)],
+        projection: &BatchProjection,
+    ) -> Vec<Dispatch> {
         runs.iter()
-            .map(|&(c, offset, count)| Dispatch { chunk: c, record: DrawRecord { projection: *projection, offset, count, first_index: self.chunks[c].first + offset, _pad: 0 } })
+            .map(|&(c, offset, count)| Dispatch {
+                chunk: c,
+                record: DrawRecord {
+                    projection: *projection,
+                    offset,
+                    count,
+                    first_index: self.chunks[c].first + offset,
+                    _pad: 0,
+                },
+            })
             .collect()
     }
 
     /// Reads `count` timestamps from slot 0 (resolved into the query buffer by `enc`).
-    fn resolve_queries(&self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, count: u32) -> Option<wgpu::Buffer> {
+    fn resolve_queries(
+        &self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        count: u32,
+    ) -> Option<wgpu::Buffer> {
         self.queries.as_ref().map(|q| {
             enc.resolve_query_set(&q.set, 0..count, &q.buffer, 0);
             readback(ctx, enc, &q.buffer, count as u64 * 8)
@@ -1692,7 +2182,13 @@ mod tests {
     /// that do and do not fill the last region.
     #[test]
     fn sorted_slots_set_the_same_bits_as_one_or_per_slot() {
-        for (capacity, first, n) in [(3u32, 0u32, 0usize), (1000, 10, 900), (300_000, 0, 300_000), (1 << 20, 5, 600_000), ((1 << 22) + 77, 123_456, 2_000_000)] {
+        for (capacity, first, n) in [
+            (3u32, 0u32, 0usize),
+            (1000, 10, 900),
+            (300_000, 0, 300_000),
+            (1 << 20, 5, 600_000),
+            ((1 << 22) + 77, 123_456, 2_000_000),
+        ] {
             let shuffle = Shuffle::new(capacity);
             let words = (capacity as usize).div_ceil(64);
             let mut bits: Vec<AtomicU64> = (0..words).map(|_| AtomicU64::new(0)).collect();

@@ -9,11 +9,16 @@
 //! where a GPU may round differently).
 
 use crate::context::{AtomicPath, GpuContext, GpuError};
-use crate::pipeline::{batches_group, entry, storage, uniform, PassPipeline, SharedLayouts, Timestamps};
+use crate::pipeline::{
+    batches_group, entry, storage, uniform, PassPipeline, SharedLayouts, Timestamps,
+};
 use crate::scene::GpuScene;
 use crate::shaders::{binding, Pass};
 use mortar_core::render::framebuffer::EMPTY_KEY;
-use mortar_core::render::gpu::{plan_counter, DrawRecord, EyeDomeUniforms, FrameUniforms, HoleFillUniforms, PlanUniforms, ResolveUniforms};
+use mortar_core::render::gpu::{
+    plan_counter, DrawRecord, EyeDomeUniforms, FrameUniforms, HoleFillUniforms, PlanUniforms,
+    ResolveUniforms,
+};
 use mortar_core::render::resolve::ResolveOptions;
 use mortar_core::render::{BatchPlan, Camera, Planner, RasterError, RasterOptions, RasterStats};
 use rayon::prelude::*;
@@ -42,7 +47,8 @@ impl GpuTimings {
     /// The resolve's passes together: hole filling, colours, eye-dome lighting (`None` when the
     /// frame was not resolved).
     pub fn post_ms(&self) -> Option<f64> {
-        self.resolve_ms.map(|r| r + self.hole_fill_ms.unwrap_or(0.0) + self.eye_dome_ms.unwrap_or(0.0))
+        self.resolve_ms
+            .map(|r| r + self.hole_fill_ms.unwrap_or(0.0) + self.eye_dome_ms.unwrap_or(0.0))
     }
 }
 
@@ -83,7 +89,13 @@ pub struct DrawTuning {
 
 impl Default for DrawTuning {
     fn default() -> Self {
-        DrawTuning { kernel: 0, workgroup: 128, order: RecordOrder::Scene, plan_on_gpu: true, division: None }
+        DrawTuning {
+            kernel: 0,
+            workgroup: 128,
+            order: RecordOrder::Scene,
+            plan_on_gpu: true,
+            division: None,
+        }
     }
 }
 
@@ -209,11 +221,21 @@ struct Target {
 }
 
 impl Target {
-    fn new(ctx: &GpuContext, passes: &Passes, per_frame: &PerFrame, width: u32, height: u32) -> Result<Target, GpuError> {
+    fn new(
+        ctx: &GpuContext,
+        passes: &Passes,
+        per_frame: &PerFrame,
+        width: u32,
+        height: u32,
+    ) -> Result<Target, GpuError> {
         let pixels = width as u64 * height as u64;
         let key_bytes = pixels * if matches!(passes.draw, DrawPasses::U64(_)) { 8 } else { 4 };
         if key_bytes > ctx.max_binding() || pixels == 0 {
-            return Err(GpuError::TooLarge { what: "the framebuffer", needed: key_bytes, limit: ctx.max_binding() });
+            return Err(GpuError::TooLarge {
+                what: "the framebuffer",
+                needed: key_bytes,
+                limit: ctx.max_binding(),
+            });
         }
         let copy = wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST;
         let frame = entry(binding::FRAME, per_frame.frame_uniforms.as_entire_binding());
@@ -224,18 +246,32 @@ impl Target {
                 let g = draw.bind_group(
                     ctx,
                     0,
-                    &[frame, entry(binding::KEYS, keys.as_entire_binding()), counters, entry(binding::KEY_WORDS, keys.as_entire_binding())],
+                    &[
+                        frame,
+                        entry(binding::KEYS, keys.as_entire_binding()),
+                        counters,
+                        entry(binding::KEY_WORDS, keys.as_entire_binding()),
+                    ],
                 );
                 (Keys::U64(keys), vec![g])
             }
             DrawPasses::TwoPass32([depth, index]) => {
                 let depths = storage(ctx, "keys", key_bytes, copy);
                 let indices = storage(ctx, "indices", pixels * 4, copy);
-                let g0 = depth.bind_group(ctx, 0, &[frame.clone(), entry(binding::DEPTHS, depths.as_entire_binding())]);
+                let g0 = depth.bind_group(
+                    ctx,
+                    0,
+                    &[frame.clone(), entry(binding::DEPTHS, depths.as_entire_binding())],
+                );
                 let g1 = index.bind_group(
                     ctx,
                     0,
-                    &[frame, entry(binding::DEPTHS, depths.as_entire_binding()), counters, entry(binding::INDICES, indices.as_entire_binding())],
+                    &[
+                        frame,
+                        entry(binding::DEPTHS, depths.as_entire_binding()),
+                        counters,
+                        entry(binding::INDICES, indices.as_entire_binding()),
+                    ],
                 );
                 (Keys::TwoPass32 { depths, indices }, vec![g0, g1])
             }
@@ -243,7 +279,16 @@ impl Target {
         let clear_groups = keys
             .buffers()
             .into_iter()
-            .map(|buf| (passes.clear.bind_group(ctx, 0, &[entry(binding::CLEAR_WORDS, buf.as_entire_binding())]), (buf.size() / 4).div_ceil(256) as u32))
+            .map(|buf| {
+                (
+                    passes.clear.bind_group(
+                        ctx,
+                        0,
+                        &[entry(binding::CLEAR_WORDS, buf.as_entire_binding())],
+                    ),
+                    (buf.size() / 4).div_ceil(256) as u32,
+                )
+            })
             .collect();
         let image = storage(ctx, "image", pixels * 4, wgpu::BufferUsages::COPY_SRC);
         let eye_dome_group = |depths: &wgpu::Buffer| {
@@ -251,7 +296,10 @@ impl Target {
                 ctx,
                 0,
                 &[
-                    entry(binding::EYE_DOME_PARAMS, per_frame.eye_dome_uniforms.as_entire_binding()),
+                    entry(
+                        binding::EYE_DOME_PARAMS,
+                        per_frame.eye_dome_uniforms.as_entire_binding(),
+                    ),
                     entry(binding::EYE_DOME_DEPTH_WORDS, depths.as_entire_binding()),
                     entry(binding::EYE_DOME_IMAGE, image.as_entire_binding()),
                 ],
@@ -275,7 +323,17 @@ impl Target {
         });
         let eye_dome_group = eye_dome_group(depth_words);
         ctx.check()?;
-        Ok(Target { width, height, keys, clear_groups, draw_groups, filled, eye_dome_group, image, resolved: false })
+        Ok(Target {
+            width,
+            height,
+            keys,
+            clear_groups,
+            draw_groups,
+            filled,
+            eye_dome_group,
+            image,
+            resolved: false,
+        })
     }
 }
 
@@ -307,7 +365,10 @@ impl GpuRasterizer {
         let shared = SharedLayouts::new(ctx);
         let draw = match path {
             AtomicPath::U64 => DrawPasses::U64(PassPipeline::new(ctx, Pass::Draw64, &shared)),
-            AtomicPath::TwoPass32 => DrawPasses::TwoPass32([PassPipeline::new(ctx, Pass::DrawDepth32, &shared), PassPipeline::new(ctx, Pass::DrawIndex32, &shared)]),
+            AtomicPath::TwoPass32 => DrawPasses::TwoPass32([
+                PassPipeline::new(ctx, Pass::DrawDepth32, &shared),
+                PassPipeline::new(ctx, Pass::DrawIndex32, &shared),
+            ]),
         };
         let passes = Passes {
             clear: PassPipeline::new(ctx, Pass::Clear, &shared),
@@ -334,21 +395,42 @@ impl GpuRasterizer {
         let queries = ctx.has_timestamps().then(|| Timestamps::new(ctx, "pass times", QUERIES));
         let no_colors = storage(ctx, "no colours", 4, wgpu::BufferUsages::empty());
         ctx.check()?;
-        Ok(GpuRasterizer { path, passes, per_frame, target, no_colors, queries, tuning: DrawTuning::default() })
+        Ok(GpuRasterizer {
+            path,
+            passes,
+            per_frame,
+            target,
+            no_colors,
+            queries,
+            tuning: DrawTuning::default(),
+        })
     }
 
     /// Rebuilds the 64-bit draw pipeline with `tuning` (measurements only: see [`DrawTuning`]).
     pub fn set_tuning(&mut self, ctx: &GpuContext, tuning: DrawTuning) -> Result<(), GpuError> {
         if (tuning.kernel, tuning.workgroup) != (self.tuning.kernel, self.tuning.workgroup) {
             let DrawPasses::U64(_) = self.passes.draw else {
-                return Err(GpuError::Device("draw kernels and workgroup sizes apply to the 64-bit path only".into()));
+                return Err(GpuError::Device(
+                    "draw kernels and workgroup sizes apply to the 64-bit path only".into(),
+                ));
             };
             if !(32..=1024).contains(&tuning.workgroup) || tuning.kernel > 4 {
                 return Err(GpuError::Device(format!("draw tuning out of range: {tuning:?}")));
             }
             let constants = [("KERNEL", tuning.kernel as f64), ("WG", tuning.workgroup as f64)];
-            self.passes.draw = DrawPasses::U64(PassPipeline::with_constants(ctx, Pass::Draw64, &self.passes.shared, &constants));
-            self.target = Target::new(ctx, &self.passes, &self.per_frame, self.target.width, self.target.height)?;
+            self.passes.draw = DrawPasses::U64(PassPipeline::with_constants(
+                ctx,
+                Pass::Draw64,
+                &self.passes.shared,
+                &constants,
+            ));
+            self.target = Target::new(
+                ctx,
+                &self.passes,
+                &self.per_frame,
+                self.target.width,
+                self.target.height,
+            )?;
         }
         self.tuning = tuning;
         ctx.check()
@@ -384,7 +466,14 @@ impl GpuRasterizer {
     /// Draws the scene for `camera` into a cleared framebuffer; with `resolve` also resolves the
     /// image from the scene's colours as [`mortar_core::render::resolve::resolve`] does (hole
     /// filling, colours, eye-dome lighting, background). Waits for the GPU.
-    pub fn draw(&mut self, ctx: &GpuContext, scene: &mut GpuScene, camera: &Camera, options: &RasterOptions, resolve: Option<&ResolveOptions>) -> Result<GpuFrame, GpuError> {
+    pub fn draw(
+        &mut self,
+        ctx: &GpuContext,
+        scene: &mut GpuScene,
+        camera: &Camera,
+        options: &RasterOptions,
+        resolve: Option<&ResolveOptions>,
+    ) -> Result<GpuFrame, GpuError> {
         self.draw_selected(ctx, scene, None, camera, options, resolve)
     }
 
@@ -404,7 +493,13 @@ impl GpuRasterizer {
         let start = Instant::now();
         let (width, height) = self.size();
         if camera.width != width || camera.height != height {
-            return Err(RasterError::Viewport { fb_width: width, fb_height: height, width: camera.width, height: camera.height }.into());
+            return Err(RasterError::Viewport {
+                fb_width: width,
+                fb_height: height,
+                width: camera.width,
+                height: camera.height,
+            }
+            .into());
         }
         if let Some(r) = resolve {
             self.check_resolve(ctx, scene, r)?;
@@ -423,21 +518,43 @@ impl GpuRasterizer {
                 let size = grown_size(ctx, f.records.size(), needed);
                 f.records = storage(ctx, "draw records", size, wgpu::BufferUsages::COPY_DST);
             }
-            let mut u = PlanUniforms::new(camera, scene.grid(), options, self.tuning.division.unwrap_or(ctx.division()));
+            let mut u = PlanUniforms::new(
+                camera,
+                scene.grid(),
+                options,
+                self.tuning.division.unwrap_or(ctx.division()),
+            );
             u.batches = scene.batches.len() as u32;
             ctx.queue.write_buffer(&f.plan_uniforms, 0, bytemuck::bytes_of(&u));
             ctx.queue.write_buffer(&f.plan_counters, 0, &[0u8; 4 * plan_counter::WORDS]);
             stats.batches = scene.batches.len() as u64;
-            scene.record_ranges.iter().enumerate().filter(|r| r.1 .1 > 0).map(|(chunk, &(first, count))| (chunk, first as usize, count as usize)).collect()
+            scene
+                .record_ranges
+                .iter()
+                .enumerate()
+                .filter(|r| r.1 .1 > 0)
+                .map(|(chunk, &(first, count))| (chunk, first as usize, count as usize))
+                .collect()
         } else {
             self.plan_on_host(ctx, scene, selected, camera, options, &mut stats)?
         };
         let plan_seconds = start.elapsed().as_secs_f64();
         if let Some(r) = ranges.iter().find(|r| r.2 as u64 * record_size > ctx.max_binding()) {
-            return Err(GpuError::TooLarge { what: "one chunk's draw records", needed: r.2 as u64 * record_size, limit: ctx.max_binding() });
+            return Err(GpuError::TooLarge {
+                what: "one chunk's draw records",
+                needed: r.2 as u64 * record_size,
+                limit: ctx.max_binding(),
+            });
         }
         let f = &mut self.per_frame;
-        ctx.queue.write_buffer(&f.frame_uniforms, 0, bytemuck::bytes_of(&FrameUniforms::new(camera, self.tuning.division.unwrap_or(ctx.division()))));
+        ctx.queue.write_buffer(
+            &f.frame_uniforms,
+            0,
+            bytemuck::bytes_of(&FrameUniforms::new(
+                camera,
+                self.tuning.division.unwrap_or(ctx.division()),
+            )),
+        );
         ctx.queue.write_buffer(&f.counters, 0, &[0u8; 8]);
         let f = &self.per_frame;
         let t = &self.target;
@@ -445,9 +562,12 @@ impl GpuRasterizer {
         let queries = self.queries.as_ref();
 
         let dev = &ctx.device;
-        let mut enc = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("frame") });
+        let mut enc =
+            dev.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("frame") });
         if on_gpu {
-            let Some(plan_batches) = &scene.plan_buffer else { return Err(GpuError::Device("the scene's plan batches were not written".into())) };
+            let Some(plan_batches) = &scene.plan_buffer else {
+                return Err(GpuError::Device("the scene's plan batches were not written".into()));
+            };
             let group = passes.plan.bind_group(
                 ctx,
                 0,
@@ -458,7 +578,11 @@ impl GpuRasterizer {
                     entry(binding::PLAN_COUNTERS, f.plan_counters.as_entire_binding()),
                 ],
             );
-            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("plan"), timestamp_writes: queries.map(|q| q.writes(Some(PLAN_QUERIES), Some(PLAN_QUERIES + 1))) });
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("plan"),
+                timestamp_writes: queries
+                    .map(|q| q.writes(Some(PLAN_QUERIES), Some(PLAN_QUERIES + 1))),
+            });
             pass.set_pipeline(passes.plan.pipeline());
             pass.set_bind_group(0, &group, &[]);
             let (x, y) = ctx.split_dispatch((scene.batches.len() as u32).div_ceil(256));
@@ -466,7 +590,10 @@ impl GpuRasterizer {
         }
         // Clear.
         {
-            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("clear"), timestamp_writes: queries.map(|q| q.writes(Some(0), Some(1))) });
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("clear"),
+                timestamp_writes: queries.map(|q| q.writes(Some(0), Some(1))),
+            });
             pass.set_pipeline(passes.clear.pipeline());
             for (bg, n) in &t.clear_groups {
                 let (x, y) = ctx.split_dispatch(*n);
@@ -479,14 +606,23 @@ impl GpuRasterizer {
         let batches: Vec<(wgpu::BindGroup, u32)> = ranges
             .iter()
             .map(|&(chunk, first, count)| {
-                let rec = wgpu::BufferBinding { buffer: &f.records, offset: first as u64 * record_size, size: NonZeroU64::new(count as u64 * record_size) };
+                let rec = wgpu::BufferBinding {
+                    buffer: &f.records,
+                    offset: first as u64 * record_size,
+                    size: NonZeroU64::new(count as u64 * record_size),
+                };
                 (batches_group(ctx, &passes.shared, rec, &scene.chunks[chunk].words), count as u32)
             })
             .collect();
         let steps = passes.draw.steps();
         for (step, (pipe, group0)) in steps.iter().zip(&t.draw_groups).enumerate() {
-            let ts = queries.map(|q| q.writes((step == 0).then_some(2), (step + 1 == steps.len()).then_some(3)));
-            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some(pipe.pass().file()), timestamp_writes: ts });
+            let ts = queries.map(|q| {
+                q.writes((step == 0).then_some(2), (step + 1 == steps.len()).then_some(3))
+            });
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some(pipe.pass().file()),
+                timestamp_writes: ts,
+            });
             pass.set_pipeline(pipe.pipeline());
             pass.set_bind_group(0, group0, &[]);
             for (bg, n) in &batches {
@@ -499,7 +635,9 @@ impl GpuRasterizer {
             self.encode_resolve(ctx, &mut enc, scene, r)?;
         }
         let counters_read = readback(ctx, &mut enc, &self.per_frame.counters, 8);
-        let plan_read = on_gpu.then(|| readback(ctx, &mut enc, &self.per_frame.plan_counters, 4 * plan_counter::WORDS as u64));
+        let plan_read = on_gpu.then(|| {
+            readback(ctx, &mut enc, &self.per_frame.plan_counters, 4 * plan_counter::WORDS as u64)
+        });
         let times_read = self.queries.as_ref().map(|q| {
             enc.resolve_query_set(&q.set, 0..QUERIES, &q.buffer, 0);
             readback(ctx, &mut enc, &q.buffer, QUERIES as u64 * 8)
@@ -540,7 +678,15 @@ impl GpuRasterizer {
     /// Plans the batches (all, or those `selected`) on the host, writes their records per chunk
     /// (each chunk's records starting at a storage-offset boundary; padding records have no
     /// points) and returns the chunks' record ranges `(chunk, first record, count)`.
-    fn plan_on_host(&mut self, ctx: &GpuContext, scene: &GpuScene, selected: Option<&[u32]>, camera: &Camera, options: &RasterOptions, stats: &mut RasterStats) -> Result<Vec<(usize, usize, usize)>, GpuError> {
+    fn plan_on_host(
+        &mut self,
+        ctx: &GpuContext,
+        scene: &GpuScene,
+        selected: Option<&[u32]>,
+        camera: &Camera,
+        options: &RasterOptions,
+        stats: &mut RasterStats,
+    ) -> Result<Vec<(usize, usize, usize)>, GpuError> {
         let planner = Planner::new(camera, scene.grid(), options)?;
         // The batches to draw, in scene order (so that each chunk's records are contiguous).
         let order: Vec<u32> = match selected {
@@ -550,15 +696,21 @@ impl GpuRasterizer {
                 v.sort_unstable();
                 v.dedup();
                 if let Some(&bad) = v.iter().find(|&&i| i as usize >= scene.batches.len()) {
-                    return Err(GpuError::Selection(format!("batch {bad} selected, but the scene holds {}", scene.batches.len())));
+                    return Err(GpuError::Selection(format!(
+                        "batch {bad} selected, but the scene holds {}",
+                        scene.batches.len()
+                    )));
                 }
                 v
             }
         };
-        let plans: Vec<BatchPlan> = order.par_iter().map(|&i| {
-            let b = &scene.batches[i as usize];
-            planner.plan(&b.grid, &b.bounds, b.count as usize)
-        }).collect();
+        let plans: Vec<BatchPlan> = order
+            .par_iter()
+            .map(|&i| {
+                let b = &scene.batches[i as usize];
+                planner.plan(&b.grid, &b.bounds, b.count as usize)
+            })
+            .collect();
         stats.batches = plans.len() as u64;
         let align = ctx.limits().min_storage_buffer_offset_alignment.max(1) as usize;
         let mut records: Vec<DrawRecord> = Vec::new();
@@ -573,13 +725,21 @@ impl GpuRasterizer {
                     match ranges.last_mut() {
                         Some(r) if r.0 == b.chunk as usize => r.2 += 1,
                         _ => {
-                            while !(records.len() * std::mem::size_of::<DrawRecord>()).is_multiple_of(align) {
+                            while !(records.len() * std::mem::size_of::<DrawRecord>())
+                                .is_multiple_of(align)
+                            {
                                 records.push(bytemuck::Zeroable::zeroed());
                             }
                             ranges.push((b.chunk as usize, records.len(), 1));
                         }
                     }
-                    records.push(DrawRecord { projection: *projection, offset: b.offset, count: b.count, first_index: b.first_index, _pad: 0 });
+                    records.push(DrawRecord {
+                        projection: *projection,
+                        offset: b.offset,
+                        count: b.count,
+                        first_index: b.first_index,
+                        _pad: 0,
+                    });
                 }
             }
         }
@@ -609,10 +769,17 @@ impl GpuRasterizer {
     /// (`mortar render` colours scalar modes by the visible points' percentiles), then
     /// [`GpuScene::set_colors`]. Waits for the GPU; returns the passes' times (hole fill,
     /// resolve, eye-dome lighting) where the device has timestamps.
-    pub fn resolve(&mut self, ctx: &GpuContext, scene: &mut GpuScene, options: &ResolveOptions) -> Result<Option<GpuTimings>, GpuError> {
+    pub fn resolve(
+        &mut self,
+        ctx: &GpuContext,
+        scene: &mut GpuScene,
+        options: &ResolveOptions,
+    ) -> Result<Option<GpuTimings>, GpuError> {
         self.check_resolve(ctx, scene, options)?;
         scene.flush(ctx)?;
-        let mut enc = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("resolve") });
+        let mut enc = ctx
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("resolve") });
         self.encode_resolve(ctx, &mut enc, scene, options)?;
         let times_read = self.queries.as_ref().map(|q| {
             enc.resolve_query_set(&q.set, 0..QUERIES, &q.buffer, 0);
@@ -624,7 +791,14 @@ impl GpuRasterizer {
                 let t: Vec<u64> = bytemuck::pod_collect_to_vec(&map_read(ctx, &buf)?);
                 let period = ctx.queue.get_timestamp_period() as f64 * 1e-6;
                 let (hole_fill_ms, resolve_ms, eye_dome_ms) = resolve_timings(&t, period, options);
-                Some(GpuTimings { clear_ms: 0.0, draw_ms: 0.0, resolve_ms: Some(resolve_ms), hole_fill_ms, eye_dome_ms, plan_ms: None })
+                Some(GpuTimings {
+                    clear_ms: 0.0,
+                    draw_ms: 0.0,
+                    resolve_ms: Some(resolve_ms),
+                    hole_fill_ms,
+                    eye_dome_ms,
+                    plan_ms: None,
+                })
             }
             None => {
                 ctx.wait()?;
@@ -636,13 +810,22 @@ impl GpuRasterizer {
     }
 
     /// Whether `scene` and this rasterizer can resolve with `options`.
-    fn check_resolve(&self, ctx: &GpuContext, scene: &GpuScene, options: &ResolveOptions) -> Result<(), GpuError> {
+    fn check_resolve(
+        &self,
+        ctx: &GpuContext,
+        scene: &GpuScene,
+        options: &ResolveOptions,
+    ) -> Result<(), GpuError> {
         if !scene.has_colors() {
             return Err(GpuError::Colors("resolve asked for but the scene has no colours".into()));
         }
         if options.hole_fill.is_some() && self.target.filled.is_none() {
             let needed = self.target.width as u64 * self.target.height as u64 * 8;
-            return Err(GpuError::TooLarge { what: "the hole-filled keys", needed, limit: ctx.max_binding() });
+            return Err(GpuError::TooLarge {
+                what: "the hole-filled keys",
+                needed,
+                limit: ctx.max_binding(),
+            });
         }
         Ok(())
     }
@@ -650,7 +833,13 @@ impl GpuRasterizer {
     /// Records the resolve's passes into `enc`: hole filling (the framebuffer into the filled
     /// keys), one colour dispatch per chunk from the filled keys or the framebuffer, eye-dome
     /// lighting of the image from the same keys' depths.
-    fn encode_resolve(&mut self, ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, scene: &GpuScene, options: &ResolveOptions) -> Result<(), GpuError> {
+    fn encode_resolve(
+        &mut self,
+        ctx: &GpuContext,
+        enc: &mut wgpu::CommandEncoder,
+        scene: &GpuScene,
+        options: &ResolveOptions,
+    ) -> Result<(), GpuError> {
         let (width, height) = self.size();
         let pixels = width as u64 * height as u64;
         let t = &mut self.target;
@@ -660,20 +849,30 @@ impl GpuRasterizer {
         let (split_x, split_y) = ctx.split_dispatch(pixels.div_ceil(256) as u32);
         let (index_words, depth_words, stride, depth_offset) = t.keys.words();
         // Where the colours and the eye-dome depths are read from.
-        let (index_buf, depth_buf, stride, depth_offset, eye_dome_group) = match (&options.hole_fill, &t.filled) {
-            (Some(fill), Some((filled, fill_group, edl_group))) => {
-                let u = HoleFillUniforms::new(fill, width, height, stride, depth_offset);
-                ctx.queue.write_buffer(&f.fill_uniforms, 0, bytemuck::bytes_of(&u));
-                let slots = (Some(RESOLVE_QUERIES), Some(RESOLVE_QUERIES + 1));
-                let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("hole fill"), timestamp_writes: queries.map(|q| q.writes(slots.0, slots.1)) });
-                pass.set_pipeline(passes.hole_fill.pipeline());
-                pass.set_bind_group(0, fill_group, &[]);
-                pass.dispatch_workgroups(split_x, split_y, 1);
-                (filled, filled, 2, 1, edl_group)
-            }
-            (Some(_), None) => return Err(GpuError::TooLarge { what: "the hole-filled keys", needed: pixels * 8, limit: ctx.max_binding() }),
-            (None, _) => (index_words, depth_words, stride, depth_offset, &t.eye_dome_group),
-        };
+        let (index_buf, depth_buf, stride, depth_offset, eye_dome_group) =
+            match (&options.hole_fill, &t.filled) {
+                (Some(fill), Some((filled, fill_group, edl_group))) => {
+                    let u = HoleFillUniforms::new(fill, width, height, stride, depth_offset);
+                    ctx.queue.write_buffer(&f.fill_uniforms, 0, bytemuck::bytes_of(&u));
+                    let slots = (Some(RESOLVE_QUERIES), Some(RESOLVE_QUERIES + 1));
+                    let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                        label: Some("hole fill"),
+                        timestamp_writes: queries.map(|q| q.writes(slots.0, slots.1)),
+                    });
+                    pass.set_pipeline(passes.hole_fill.pipeline());
+                    pass.set_bind_group(0, fill_group, &[]);
+                    pass.dispatch_workgroups(split_x, split_y, 1);
+                    (filled, filled, 2, 1, edl_group)
+                }
+                (Some(_), None) => {
+                    return Err(GpuError::TooLarge {
+                        what: "the hole-filled keys",
+                        needed: pixels * 8,
+                        limit: ctx.max_binding(),
+                    })
+                }
+                (None, _) => (index_words, depth_words, stride, depth_offset, &t.eye_dome_group),
+            };
         // Colours: one dispatch per chunk.
         while f.resolve_uniforms.len() < scene.chunks.len().max(1) {
             f.resolve_uniforms.push(uniform::<ResolveUniforms>(ctx, "resolve uniforms"));
@@ -686,8 +885,19 @@ impl GpuRasterizer {
         let mut groups = Vec::with_capacity(chunk_list.len());
         for (i, (first_index, count, colors)) in chunk_list.into_iter().enumerate() {
             // Checked by check_resolve: a scene with colours has them in every chunk.
-            let Some(colors) = colors else { return Err(GpuError::Colors("a chunk of the scene has no colours".into())) };
-            let u = ResolveUniforms { width, height, key_stride: stride, depth_offset, first_index, count, background: options.background, write_background: (i == 0) as u32 };
+            let Some(colors) = colors else {
+                return Err(GpuError::Colors("a chunk of the scene has no colours".into()));
+            };
+            let u = ResolveUniforms {
+                width,
+                height,
+                key_stride: stride,
+                depth_offset,
+                first_index,
+                count,
+                background: options.background,
+                write_background: (i == 0) as u32,
+            };
             ctx.queue.write_buffer(&f.resolve_uniforms[i], 0, bytemuck::bytes_of(&u));
             groups.push(passes.resolve.bind_group(
                 ctx,
@@ -703,7 +913,10 @@ impl GpuRasterizer {
         }
         {
             let slots = (Some(RESOLVE_QUERIES + 2), Some(RESOLVE_QUERIES + 3));
-            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("resolve"), timestamp_writes: queries.map(|q| q.writes(slots.0, slots.1)) });
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("resolve"),
+                timestamp_writes: queries.map(|q| q.writes(slots.0, slots.1)),
+            });
             pass.set_pipeline(passes.resolve.pipeline());
             for bg in &groups {
                 pass.set_bind_group(0, bg, &[]);
@@ -714,7 +927,10 @@ impl GpuRasterizer {
             let u = EyeDomeUniforms::new(edl, width, height, stride, depth_offset);
             ctx.queue.write_buffer(&f.eye_dome_uniforms, 0, bytemuck::bytes_of(&u));
             let slots = (Some(RESOLVE_QUERIES + 4), Some(RESOLVE_QUERIES + 5));
-            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("eye-dome lighting"), timestamp_writes: queries.map(|q| q.writes(slots.0, slots.1)) });
+            let mut pass = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("eye-dome lighting"),
+                timestamp_writes: queries.map(|q| q.writes(slots.0, slots.1)),
+            });
             pass.set_pipeline(passes.eye_dome.pipeline());
             pass.set_bind_group(0, eye_dome_group, &[]);
             pass.dispatch_workgroups(split_x, split_y, 1);
@@ -728,9 +944,17 @@ impl GpuRasterizer {
     /// eye-dome lighting read).
     pub fn read_filled_keys(&self, ctx: &GpuContext) -> Result<Vec<u64>, GpuError> {
         let pixels = self.target.width as u64 * self.target.height as u64;
-        let Some((filled, _, _)) = &self.target.filled else { return Err(GpuError::TooLarge { what: "the hole-filled keys", needed: pixels * 8, limit: ctx.max_binding() }) };
+        let Some((filled, _, _)) = &self.target.filled else {
+            return Err(GpuError::TooLarge {
+                what: "the hole-filled keys",
+                needed: pixels * 8,
+                limit: ctx.max_binding(),
+            });
+        };
         let pixels = self.target.width as usize * self.target.height as usize;
-        let mut enc = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("read filled keys") });
+        let mut enc = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+            label: Some("read filled keys"),
+        });
         let buf = readback(ctx, &mut enc, filled, filled.size());
         ctx.queue.submit([enc.finish()]);
         Ok(bytemuck::pod_collect_to_vec::<u8, u64>(&map_read(ctx, &buf)?)[..pixels].to_vec())
@@ -740,12 +964,15 @@ impl GpuRasterizer {
     /// [`EMPTY_KEY`] for an empty pixel), row-major from the top-left pixel.
     pub fn read_keys(&self, ctx: &GpuContext) -> Result<Vec<u64>, GpuError> {
         let pixels = self.target.width as usize * self.target.height as usize;
-        let mut enc = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("read keys") });
+        let mut enc = ctx
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("read keys") });
         match &self.target.keys {
             Keys::U64(keys) => {
                 let keys = readback(ctx, &mut enc, keys, keys.size());
                 ctx.queue.submit([enc.finish()]);
-                Ok(bytemuck::pod_collect_to_vec::<u8, u64>(&map_read(ctx, &keys)?)[..pixels].to_vec())
+                Ok(bytemuck::pod_collect_to_vec::<u8, u64>(&map_read(ctx, &keys)?)[..pixels]
+                    .to_vec())
             }
             Keys::TwoPass32 { depths, indices } => {
                 let d = readback(ctx, &mut enc, depths, depths.size());
@@ -753,7 +980,15 @@ impl GpuRasterizer {
                 ctx.queue.submit([enc.finish()]);
                 let d: Vec<u32> = bytemuck::pod_collect_to_vec(&map_read(ctx, &d)?);
                 let i: Vec<u32> = bytemuck::pod_collect_to_vec(&map_read(ctx, &i)?);
-                Ok((0..pixels).map(|p| if d[p] == u32::MAX { EMPTY_KEY } else { (d[p] as u64) << 32 | i[p] as u64 }).collect())
+                Ok((0..pixels)
+                    .map(|p| {
+                        if d[p] == u32::MAX {
+                            EMPTY_KEY
+                        } else {
+                            (d[p] as u64) << 32 | i[p] as u64
+                        }
+                    })
+                    .collect())
             }
         }
     }
@@ -761,7 +996,9 @@ impl GpuRasterizer {
     /// The resolved image (RGBA8 packed `r | g << 8 | b << 16 | a << 24`, row-major) of the last
     /// frame drawn with `resolve`.
     pub fn read_image(&self, ctx: &GpuContext) -> Result<Vec<u32>, GpuError> {
-        let Some(image) = self.image_buffer() else { return Err(GpuError::Colors("no frame was resolved yet".into())) };
+        let Some(image) = self.image_buffer() else {
+            return Err(GpuError::Colors("no frame was resolved yet".into()));
+        };
         read_image_buffer(ctx, image, self.target.width, self.target.height)
     }
 }
@@ -776,14 +1013,29 @@ pub(crate) fn grown_size(ctx: &GpuContext, old: u64, needed: u64) -> u64 {
 
 /// The resolve's pass times `(hole fill, resolve, eye-dome lighting)` in milliseconds from the
 /// timestamps `t` (ticks of `period` ms), the passes `options` did not run `None`.
-fn resolve_timings(t: &[u64], period: f64, options: &ResolveOptions) -> (Option<f64>, f64, Option<f64>) {
+fn resolve_timings(
+    t: &[u64],
+    period: f64,
+    options: &ResolveOptions,
+) -> (Option<f64>, f64, Option<f64>) {
     let ms = |a: u32| t[a as usize + 1].saturating_sub(t[a as usize]) as f64 * period;
-    (options.hole_fill.map(|_| ms(RESOLVE_QUERIES)), ms(RESOLVE_QUERIES + 2), options.eye_dome.map(|_| ms(RESOLVE_QUERIES + 4)))
+    (
+        options.hole_fill.map(|_| ms(RESOLVE_QUERIES)),
+        ms(RESOLVE_QUERIES + 2),
+        options.eye_dome.map(|_| ms(RESOLVE_QUERIES + 4)),
+    )
 }
 
 /// The first `width * height` RGBA8 pixels of an image buffer (a resolve pass's output).
-pub(crate) fn read_image_buffer(ctx: &GpuContext, image: &wgpu::Buffer, width: u32, height: u32) -> Result<Vec<u32>, GpuError> {
-    let mut enc = ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("read image") });
+pub(crate) fn read_image_buffer(
+    ctx: &GpuContext,
+    image: &wgpu::Buffer,
+    width: u32,
+    height: u32,
+) -> Result<Vec<u32>, GpuError> {
+    let mut enc = ctx
+        .device
+        .create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("read image") });
     let buf = readback(ctx, &mut enc, image, image.size());
     ctx.queue.submit([enc.finish()]);
     let bytes = map_read(ctx, &buf)?;
@@ -791,7 +1043,12 @@ pub(crate) fn read_image_buffer(ctx: &GpuContext, image: &wgpu::Buffer, width: u
 }
 
 /// A mappable copy of `size` bytes of `src`, recorded in `enc`.
-pub(crate) fn readback(ctx: &GpuContext, enc: &mut wgpu::CommandEncoder, src: &wgpu::Buffer, size: u64) -> wgpu::Buffer {
+pub(crate) fn readback(
+    ctx: &GpuContext,
+    enc: &mut wgpu::CommandEncoder,
+    src: &wgpu::Buffer,
+    size: u64,
+) -> wgpu::Buffer {
     let dst = ctx.device.create_buffer(&wgpu::BufferDescriptor {
         label: Some("readback"),
         size,
@@ -814,7 +1071,10 @@ pub(crate) fn map_read(ctx: &GpuContext, buf: &wgpu::Buffer) -> Result<Vec<u8>, 
         Ok(Err(e)) => return Err(GpuError::Device(format!("cannot read back: {e}"))),
         Err(_) => return Err(GpuError::Device("read back never completed".into())),
     }
-    let bytes = buf.get_mapped_range(..).map_err(|e| GpuError::Device(format!("cannot read back: {e}")))?.to_vec();
+    let bytes = buf
+        .get_mapped_range(..)
+        .map_err(|e| GpuError::Device(format!("cannot read back: {e}")))?
+        .to_vec();
     buf.unmap();
     Ok(bytes)
 }

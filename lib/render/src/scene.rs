@@ -90,7 +90,12 @@ pub struct GpuScene {
 impl GpuScene {
     /// An empty scene of points on the world grid `grid`. `expected_points` sizes the chunks
     /// (the last one is no larger than needed); more points may still come.
-    pub fn new(ctx: &GpuContext, grid: Grid, expected_points: u64, options: SceneOptions) -> Result<GpuScene, GpuError> {
+    pub fn new(
+        ctx: &GpuContext,
+        grid: Grid,
+        expected_points: u64,
+        options: SceneOptions,
+    ) -> Result<GpuScene, GpuError> {
         let by_device = (ctx.max_binding() / 4).min(MAX_CHUNK_POINTS as u64) as u32 & !255;
         let chunk_points = options.chunk_points.unwrap_or(by_device).min(by_device).max(1);
         Ok(GpuScene {
@@ -108,7 +113,8 @@ impl GpuScene {
             plan_written: 0,
             record_ranges: Vec::new(),
             records_total: 0,
-            record_align: (ctx.limits().min_storage_buffer_offset_alignment.max(1) as usize).div_ceil(std::mem::size_of::<DrawRecord>()) as u32,
+            record_align: (ctx.limits().min_storage_buffer_offset_alignment.max(1) as usize)
+                .div_ceil(std::mem::size_of::<DrawRecord>()) as u32,
         })
     }
 
@@ -149,26 +155,55 @@ impl GpuScene {
 
     /// Adds one batch (its `first_index` must be the number of points added before) and, if the
     /// scene has colours, its points' RGBA8 colours.
-    pub fn push(&mut self, ctx: &GpuContext, b: &BatchRef<'_>, colors: Option<&[u32]>) -> Result<(), GpuError> {
+    pub fn push(
+        &mut self,
+        ctx: &GpuContext,
+        b: &BatchRef<'_>,
+        colors: Option<&[u32]>,
+    ) -> Result<(), GpuError> {
         let n = b.len();
         if b.words[1].len() != n || b.words[2].len() != n {
-            return Err(mortar_core::render::RasterError::WordCounts { batch: self.batches.len(), lengths: b.words.map(<[u32]>::len) }.into());
+            return Err(mortar_core::render::RasterError::WordCounts {
+                batch: self.batches.len(),
+                lengths: b.words.map(<[u32]>::len),
+            }
+            .into());
         }
         if b.first_index as u64 != self.points {
             return Err(GpuError::FirstIndex { expected: self.points, got: b.first_index });
         }
         if self.points + n as u64 > 1u64 << 32 {
-            return Err(mortar_core::render::RasterError::IndexOverflow { batch: self.batches.len(), first_index: b.first_index, count: n }.into());
+            return Err(mortar_core::render::RasterError::IndexOverflow {
+                batch: self.batches.len(),
+                first_index: b.first_index,
+                count: n,
+            }
+            .into());
         }
         match (self.options.colors, colors) {
             (true, Some(c)) if c.len() == n => {}
-            (true, Some(c)) => return Err(GpuError::Colors(format!("{} colours for a batch of {n} points", c.len()))),
-            (true, None) => return Err(GpuError::Colors("the scene has colours but a batch came without".into())),
-            (false, Some(_)) => return Err(GpuError::Colors("the scene was made without colours".into())),
+            (true, Some(c)) => {
+                return Err(GpuError::Colors(format!(
+                    "{} colours for a batch of {n} points",
+                    c.len()
+                )))
+            }
+            (true, None) => {
+                return Err(GpuError::Colors(
+                    "the scene has colours but a batch came without".into(),
+                ))
+            }
+            (false, Some(_)) => {
+                return Err(GpuError::Colors("the scene was made without colours".into()))
+            }
             (false, None) => {}
         }
         if n > self.chunk_points as usize {
-            return Err(GpuError::TooLarge { what: "one batch", needed: n as u64 * 4, limit: self.chunk_points as u64 * 4 });
+            return Err(GpuError::TooLarge {
+                what: "one batch",
+                needed: n as u64 * 4,
+                limit: self.chunk_points as u64 * 4,
+            });
         }
         let chunk = match self.chunks.last() {
             Some(c) if c.capacity - c.len >= n as u32 => self.chunks.len() - 1,
@@ -186,7 +221,15 @@ impl GpuScene {
         let record = range.0 + range.1;
         range.1 += 1;
         self.records_total = record + 1;
-        self.plan.push(PlanBatch::new(&self.grid, &b.grid, &b.bounds(), n as u32, self.chunks[chunk].len, b.first_index, record));
+        self.plan.push(PlanBatch::new(
+            &self.grid,
+            &b.grid,
+            &b.bounds(),
+            n as u32,
+            self.chunks[chunk].len,
+            b.first_index,
+            record,
+        ));
         let c = &mut self.chunks[chunk];
         self.batches.push(GpuBatch {
             grid: b.grid,
@@ -238,13 +281,21 @@ impl GpuScene {
             return Err(GpuError::Colors("the scene was made without colours".into()));
         }
         if colors.len() as u64 != self.points {
-            return Err(GpuError::Colors(format!("{} colours for a scene of {} points", colors.len(), self.points)));
+            return Err(GpuError::Colors(format!(
+                "{} colours for a scene of {} points",
+                colors.len(),
+                self.points
+            )));
         }
         self.flush(ctx)?;
         for c in &self.chunks {
             let first = c.first_index as usize;
             if let Some(buf) = &c.colors {
-                ctx.queue.write_buffer(buf, 0, bytemuck::cast_slice(&colors[first..first + c.len as usize]));
+                ctx.queue.write_buffer(
+                    buf,
+                    0,
+                    bytemuck::cast_slice(&colors[first..first + c.len as usize]),
+                );
             }
         }
         ctx.queue.submit([]);
@@ -260,7 +311,11 @@ impl GpuScene {
         let size = std::mem::size_of::<PlanBatch>() as u64;
         let needed = self.plan.len() as u64 * size;
         if self.plan_buffer.as_ref().is_none_or(|b| b.size() < needed) {
-            let grown = crate::raster::grown_size(ctx, self.plan_buffer.as_ref().map_or(0, |b| b.size()), needed);
+            let grown = crate::raster::grown_size(
+                ctx,
+                self.plan_buffer.as_ref().map_or(0, |b| b.size()),
+                needed,
+            );
             self.plan_buffer = Some(ctx.device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some("plan batches"),
                 size: grown,
@@ -270,7 +325,11 @@ impl GpuScene {
             self.plan_written = 0;
         }
         if let Some(buf) = &self.plan_buffer {
-            ctx.queue.write_buffer(buf, self.plan_written as u64 * size, bytemuck::cast_slice(&self.plan[self.plan_written..]));
+            ctx.queue.write_buffer(
+                buf,
+                self.plan_written as u64 * size,
+                bytemuck::cast_slice(&self.plan[self.plan_written..]),
+            );
         }
         self.plan_written = self.plan.len();
     }

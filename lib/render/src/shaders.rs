@@ -171,7 +171,8 @@ pub mod binding {
 }
 
 /// The bindings of the present pass (`shaders/present.wgsl`, fragment stage).
-pub const PRESENT_BINDINGS: &[Binding] = &[binding::PRESENT_PARAMS, binding::PRESENT_IMAGE, binding::PRESENT_OVERLAY];
+pub const PRESENT_BINDINGS: &[Binding] =
+    &[binding::PRESENT_PARAMS, binding::PRESENT_IMAGE, binding::PRESENT_OVERLAY];
 
 /// A compute pass of the rasterizer; one WGSL file each.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -268,7 +269,9 @@ impl Pass {
             Pass::EyeDome => include_str!("../../../shaders/eye_dome.wgsl"),
             Pass::ProgressiveUnload => include_str!("../../../shaders/progressive_unload.wgsl"),
             Pass::ProgressiveScatter => include_str!("../../../shaders/progressive_scatter.wgsl"),
-            Pass::ProgressiveReproject => include_str!("../../../shaders/progressive_reproject.wgsl"),
+            Pass::ProgressiveReproject => {
+                include_str!("../../../shaders/progressive_reproject.wgsl")
+            }
             Pass::ProgressiveFill => include_str!("../../../shaders/progressive_fill.wgsl"),
             Pass::ProgressivePrepare => include_str!("../../../shaders/progressive_prepare.wgsl"),
             Pass::ProgressiveReframe => include_str!("../../../shaders/progressive_reframe.wgsl"),
@@ -284,29 +287,64 @@ impl Pass {
             Pass::Draw64 => &[FRAME, KEYS, COUNTERS, KEY_WORDS, RECORDS, COARSE, MEDIUM, FINE],
             Pass::DrawDepth32 => &[FRAME, DEPTHS, RECORDS, COARSE, MEDIUM, FINE],
             Pass::DrawIndex32 => &[FRAME, DEPTHS, COUNTERS, INDICES, RECORDS, COARSE, MEDIUM, FINE],
-            Pass::Resolve => &[RESOLVE_PARAMS, RESOLVE_INDEX_WORDS, RESOLVE_DEPTH_WORDS, RESOLVE_COLORS, RESOLVE_IMAGE],
+            Pass::Resolve => &[
+                RESOLVE_PARAMS,
+                RESOLVE_INDEX_WORDS,
+                RESOLVE_DEPTH_WORDS,
+                RESOLVE_COLORS,
+                RESOLVE_IMAGE,
+            ],
             Pass::Plan => &[PLAN_PARAMS, PLAN_BATCHES, PLAN_RECORDS, PLAN_COUNTERS],
             Pass::HoleFill => &[FILL_PARAMS, FILL_INDEX_WORDS, FILL_DEPTH_WORDS, FILL_FILLED],
             Pass::EyeDome => &[EYE_DOME_PARAMS, EYE_DOME_DEPTH_WORDS, EYE_DOME_IMAGE],
             Pass::ProgressiveUnload => &[UNLOAD_COARSE],
-            Pass::ProgressiveScatter => &[SCATTER_PARAMS, SCATTER_STAGED, SCATTER_COARSE, SCATTER_MEDIUM, SCATTER_FINE, SCATTER_COLORS],
-            Pass::ProgressiveReproject => &[FRAME, KEYS, COUNTERS, VISIBLE, RECORDS, COARSE, MEDIUM, FINE],
+            Pass::ProgressiveScatter => &[
+                SCATTER_PARAMS,
+                SCATTER_STAGED,
+                SCATTER_COARSE,
+                SCATTER_MEDIUM,
+                SCATTER_FINE,
+                SCATTER_COLORS,
+            ],
+            Pass::ProgressiveReproject => {
+                &[FRAME, KEYS, COUNTERS, VISIBLE, RECORDS, COARSE, MEDIUM, FINE]
+            }
             Pass::ProgressiveFill => &[FRAME, KEYS, COUNTERS, RECORDS, COARSE, MEDIUM, FINE],
-            Pass::ProgressivePrepare => &[PREPARE_PARAMS, PREPARE_KEY_WORDS, PREPARE_LIST_COUNTS, PREPARE_LISTS],
-            Pass::ProgressiveReframe => &[REFRAME_PARAMS, REFRAME_COARSE, REFRAME_MEDIUM, REFRAME_FINE],
-            Pass::ProgressiveTies => &[FRAME, TIES_KEY_WORDS, TIES_FLAGS, RECORDS, COARSE, MEDIUM, FINE],
+            Pass::ProgressivePrepare => {
+                &[PREPARE_PARAMS, PREPARE_KEY_WORDS, PREPARE_LIST_COUNTS, PREPARE_LISTS]
+            }
+            Pass::ProgressiveReframe => {
+                &[REFRAME_PARAMS, REFRAME_COARSE, REFRAME_MEDIUM, REFRAME_FINE]
+            }
+            Pass::ProgressiveTies => {
+                &[FRAME, TIES_KEY_WORDS, TIES_FLAGS, RECORDS, COARSE, MEDIUM, FINE]
+            }
         }
     }
 
     /// Whether the pass draws batches: its group 1 is [`binding::BATCHES`] (`common/batches.wgsl`).
     pub fn draws_batches(self) -> bool {
-        matches!(self, Pass::Draw64 | Pass::DrawDepth32 | Pass::DrawIndex32 | Pass::ProgressiveReproject | Pass::ProgressiveFill | Pass::ProgressiveTies)
+        matches!(
+            self,
+            Pass::Draw64
+                | Pass::DrawDepth32
+                | Pass::DrawIndex32
+                | Pass::ProgressiveReproject
+                | Pass::ProgressiveFill
+                | Pass::ProgressiveTies
+        )
     }
 
     /// Whether the pass uses 64-bit integers and atomics (SHADER_INT64 +
     /// SHADER_INT64_ATOMIC_MIN_MAX).
     pub fn needs_int64(self) -> bool {
-        matches!(self, Pass::Draw64 | Pass::ProgressiveReproject | Pass::ProgressiveFill | Pass::ProgressiveScatter)
+        matches!(
+            self,
+            Pass::Draw64
+                | Pass::ProgressiveReproject
+                | Pass::ProgressiveFill
+                | Pass::ProgressiveScatter
+        )
     }
 
     /// The complete WGSL module of the pass, as the pipeline compiles it.
@@ -318,8 +356,13 @@ impl Pass {
             Pass::Plan => parts.push(DECODE),
             Pass::Draw64 | Pass::DrawIndex32 => parts.extend([DECODE, BATCHES, COUNTERS]),
             Pass::DrawDepth32 => parts.extend([DECODE, BATCHES]),
-            Pass::ProgressiveUnload | Pass::ProgressiveScatter | Pass::ProgressivePrepare | Pass::ProgressiveReframe => parts.push(PROGRESSIVE),
-            Pass::ProgressiveReproject | Pass::ProgressiveFill => parts.extend([PROGRESSIVE, DECODE, BATCHES, COUNTERS]),
+            Pass::ProgressiveUnload
+            | Pass::ProgressiveScatter
+            | Pass::ProgressivePrepare
+            | Pass::ProgressiveReframe => parts.push(PROGRESSIVE),
+            Pass::ProgressiveReproject | Pass::ProgressiveFill => {
+                parts.extend([PROGRESSIVE, DECODE, BATCHES, COUNTERS])
+            }
             Pass::ProgressiveTies => parts.extend([PROGRESSIVE, DECODE, BATCHES]),
         }
         parts.push(self.own_source());

@@ -9,10 +9,17 @@
 use mortar_core::grid::Grid;
 use mortar_core::quantize::Precision;
 use mortar_core::render::framebuffer::{key_depth, key_index, EMPTY_KEY};
-use mortar_core::render::resolve::{fill_holes, resolve_with_colors, EyeDome, HoleFill, ResolveOptions};
+use mortar_core::render::resolve::{
+    fill_holes, resolve_with_colors, EyeDome, HoleFill, ResolveOptions,
+};
 use mortar_core::render::testutil::Scene;
-use mortar_core::render::{rasterize, Camera, Framebuffer, PrecisionMode, RasterOptions, RasterStats, ViewPreset};
-use mortar_render::{AtomicPath, DrawTuning, GpuContext, GpuError, GpuRasterizer, GpuScene, RecordOrder, SceneOptions};
+use mortar_core::render::{
+    rasterize, Camera, Framebuffer, PrecisionMode, RasterOptions, RasterStats, ViewPreset,
+};
+use mortar_render::{
+    AtomicPath, DrawTuning, GpuContext, GpuError, GpuRasterizer, GpuScene, RecordOrder,
+    SceneOptions,
+};
 
 fn context(atomics: AtomicPath, max_dispatch: Option<u32>) -> Option<GpuContext> {
     mortar_render::testing::context_or_skip(atomics, max_dispatch)
@@ -25,7 +32,13 @@ fn cpu_keys(scene: &Scene, cam: &Camera, opts: &RasterOptions) -> (Vec<u64>, Ras
 }
 
 fn upload(ctx: &GpuContext, scene: &Scene, chunk_points: Option<u32>) -> GpuScene {
-    let mut g = GpuScene::new(ctx, scene.grid, scene.points.len() as u64, SceneOptions { chunk_points, colors: true }).unwrap();
+    let mut g = GpuScene::new(
+        ctx,
+        scene.grid,
+        scene.points.len() as u64,
+        SceneOptions { chunk_points, colors: true },
+    )
+    .unwrap();
     for b in scene.refs() {
         let s = b.first_index as usize;
         g.push(ctx, &b, Some(&scene.colors[s..s + b.len()])).unwrap();
@@ -40,7 +53,11 @@ fn compare(gpu: &[u64], cpu: &[u64]) -> (usize, usize) {
         if g == c {
             continue;
         }
-        if *g != EMPTY_KEY && *c != EMPTY_KEY && key_depth(*g) == key_depth(*c) && key_index(*g) != key_index(*c) {
+        if *g != EMPTY_KEY
+            && *c != EMPTY_KEY
+            && key_depth(*g) == key_depth(*c)
+            && key_index(*g) != key_index(*c)
+        {
             ties += 1;
         } else {
             other += 1;
@@ -51,28 +68,55 @@ fn compare(gpu: &[u64], cpu: &[u64]) -> (usize, usize) {
 
 fn cameras(scene: &Scene) -> Vec<(String, Camera)> {
     let mut cams = vec![
-        ("iso".to_string(), Camera::frame_perspective(&scene.bounds, ViewPreset::Iso, 0.8, 640, 400).unwrap()),
-        ("top ortho".to_string(), Camera::frame_orthographic(&scene.bounds, ViewPreset::Top, 500, 380).unwrap()),
+        (
+            "iso".to_string(),
+            Camera::frame_perspective(&scene.bounds, ViewPreset::Iso, 0.8, 640, 400).unwrap(),
+        ),
+        (
+            "top ortho".to_string(),
+            Camera::frame_orthographic(&scene.bounds, ViewPreset::Top, 500, 380).unwrap(),
+        ),
         ("close-up".to_string(), Camera::close_up(&scene.bounds, 0.8, 640, 400).unwrap()),
         ("inside".to_string(), Camera::inside(&scene.bounds, 1.2, 640, 400).unwrap()),
     ];
     let c = scene.bounds.center();
     // Looking partly past the data: points on every side of the viewport, batches culled.
-    cams.push(("past".to_string(), Camera { eye: [c[0] - 30.0, c[1], c[2] + 5.0], target: [c[0] + 10.0, c[1] + 25.0, c[2]], ..cams[0].1 }));
+    cams.push((
+        "past".to_string(),
+        Camera {
+            eye: [c[0] - 30.0, c[1], c[2] + 5.0],
+            target: [c[0] + 10.0, c[1] + 25.0, c[2]],
+            ..cams[0].1
+        },
+    ));
     cams
 }
 
-fn check_scene(name: &str, scene: &Scene, path: AtomicPath, chunk_points: Option<u32>, max_dispatch: Option<u32>) {
+fn check_scene(
+    name: &str,
+    scene: &Scene,
+    path: AtomicPath,
+    chunk_points: Option<u32>,
+    max_dispatch: Option<u32>,
+) {
     let Some(ctx) = context(path, max_dispatch) else { return };
     assert_eq!(ctx.atomic_path(), path);
     let mut gs = upload(&ctx, scene, chunk_points);
     if let Some(cp) = chunk_points {
-        assert!(gs.chunk_count() as u64 >= scene.points.len() as u64 / cp as u64, "{name}: {} chunks", gs.chunk_count());
+        assert!(
+            gs.chunk_count() as u64 >= scene.points.len() as u64 / cp as u64,
+            "{name}: {} chunks",
+            gs.chunk_count()
+        );
     }
     let mut total_ties = 0;
     for (cam_name, cam) in cameras(scene) {
         let mut gr = GpuRasterizer::new(&ctx, cam.width, cam.height).unwrap();
-        for mode in [PrecisionMode::Adaptive, PrecisionMode::Fixed(Precision::Bits30), PrecisionMode::Fixed(Precision::Bits10)] {
+        for mode in [
+            PrecisionMode::Adaptive,
+            PrecisionMode::Fixed(Precision::Bits30),
+            PrecisionMode::Fixed(Precision::Bits10),
+        ] {
             for cull in [true, false] {
                 let opts = RasterOptions { precision: mode, cull };
                 let (want, want_stats) = cpu_keys(scene, &cam, &opts);
@@ -82,7 +126,10 @@ fn check_scene(name: &str, scene: &Scene, path: AtomicPath, chunk_points: Option
                 let covered = want.iter().filter(|&&k| k != EMPTY_KEY).count();
                 assert_eq!(other, 0, "{name} {path:?} {cam_name} {mode:?} cull={cull}: {other} of {covered} pixels differ beyond exact depth ties");
                 total_ties += ties;
-                assert_eq!(frame.stats, want_stats, "{name} {path:?} {cam_name} {mode:?} cull={cull}: statistics");
+                assert_eq!(
+                    frame.stats, want_stats,
+                    "{name} {path:?} {cam_name} {mode:?} cull={cull}: statistics"
+                );
                 assert!(covered > 1000, "{name} {cam_name}: only {covered} pixels covered");
             }
         }
@@ -97,13 +144,25 @@ fn check_scene(name: &str, scene: &Scene, path: AtomicPath, chunk_points: Option
     let kernels: &[u32] = if path == AtomicPath::U64 { &[0, 1, 2, 4] } else { &[0] };
     for &kernel in kernels {
         for plan_on_gpu in [true, false] {
-            let tuning = DrawTuning { kernel, workgroup: if kernel == 4 { 64 } else { 128 }, order: RecordOrder::Strided(5), plan_on_gpu, division: None };
+            let tuning = DrawTuning {
+                kernel,
+                workgroup: if kernel == 4 { 64 } else { 128 },
+                order: RecordOrder::Strided(5),
+                plan_on_gpu,
+                division: None,
+            };
             gr.set_tuning(&ctx, tuning).unwrap();
             let frame = gr.draw(&ctx, &mut gs, &cam, &opts, None).unwrap();
             let got = gr.read_keys(&ctx).unwrap();
             assert_eq!(compare(&got, &want).1, 0, "{name} {path:?} {cam_name} {tuning:?}");
-            assert_eq!(frame.stats, want_stats, "{name} {path:?} {cam_name} {tuning:?}: statistics");
-            assert_eq!(frame.timings.map(|t| t.plan_ms.is_some()), ctx.has_timestamps().then_some(plan_on_gpu));
+            assert_eq!(
+                frame.stats, want_stats,
+                "{name} {path:?} {cam_name} {tuning:?}: statistics"
+            );
+            assert_eq!(
+                frame.timings.map(|t| t.plan_ms.is_some()),
+                ctx.has_timestamps().then_some(plan_on_gpu)
+            );
         }
     }
     assert!(want_stats.batches_culled > 0, "{name}: the 'past' view culls nothing");
@@ -127,7 +186,11 @@ fn two_pass_32_bit_path_matches_cpu_on_utm_terrain() {
 fn both_paths_match_cpu_on_ecef_with_chunks_and_split_dispatches() {
     // ECEF-sized coordinates at 0.1 mm, several chunks of points and dispatches split at 7
     // workgroups per dimension.
-    let scene = Scene::terrain(200_000, 3, Grid { scale: [0.0001; 3], offset: [6_400_000.0, 6_400_000.0, 6_400_000.0] });
+    let scene = Scene::terrain(
+        200_000,
+        3,
+        Grid { scale: [0.0001; 3], offset: [6_400_000.0, 6_400_000.0, 6_400_000.0] },
+    );
     for path in [AtomicPath::U64, AtomicPath::TwoPass32] {
         check_scene("ECEF chunked", &scene, path, Some(50_000), Some(7));
     }
@@ -142,10 +205,23 @@ fn resolve_matches_cpu_resolve() {
         let cam = Camera::frame_perspective(&scene.bounds, ViewPreset::Iso, 0.8, 400, 300).unwrap();
         let mut gr = GpuRasterizer::new(&ctx, cam.width, cam.height).unwrap();
         let background = 0xff20_1008;
-        gr.draw(&ctx, &mut gs, &cam, &RasterOptions::default(), Some(&ResolveOptions { background, ..Default::default() })).unwrap();
+        gr.draw(
+            &ctx,
+            &mut gs,
+            &cam,
+            &RasterOptions::default(),
+            Some(&ResolveOptions { background, ..Default::default() }),
+        )
+        .unwrap();
         let keys = gr.read_keys(&ctx).unwrap();
         let image = gr.read_image(&ctx).unwrap();
-        let want = resolve_with_colors(&keys, cam.width, cam.height, &scene.colors, &ResolveOptions { background, ..Default::default() });
+        let want = resolve_with_colors(
+            &keys,
+            cam.width,
+            cam.height,
+            &scene.colors,
+            &ResolveOptions { background, ..Default::default() },
+        );
         assert_eq!(image, want, "{path:?}");
         assert!(image.iter().filter(|&&c| c != background).count() > 10_000);
     }
@@ -181,8 +257,14 @@ fn hole_filling_and_eye_dome_lighting_match_cpu_resolve() {
         let Some(ctx) = context(path, None) else { continue };
         let mut gs = upload(&ctx, &scene, Some(60_000));
         let cams = [
-            ("top ortho", Camera::frame_orthographic(&scene.bounds, ViewPreset::Top, 640, 480).unwrap()),
-            ("iso", Camera::frame_perspective(&scene.bounds, ViewPreset::Iso, 0.8, 600, 400).unwrap()),
+            (
+                "top ortho",
+                Camera::frame_orthographic(&scene.bounds, ViewPreset::Top, 640, 480).unwrap(),
+            ),
+            (
+                "iso",
+                Camera::frame_perspective(&scene.bounds, ViewPreset::Iso, 0.8, 600, 400).unwrap(),
+            ),
             ("close-up", Camera::close_up(&scene.bounds, 0.8, 500, 350).unwrap()),
         ];
         for (cam_name, cam) in cams {
@@ -192,14 +274,22 @@ fn hole_filling_and_eye_dome_lighting_match_cpu_resolve() {
             let keys = gr.read_keys(&ctx).unwrap();
             let plain_image = gr.read_image(&ctx).unwrap();
             let holes = keys.iter().filter(|&&k| k == EMPTY_KEY).count();
-            assert!(holes > 1000 && keys.len() - holes > 10_000, "{path:?} {cam_name}: {holes} of {} pixels empty", keys.len());
+            assert!(
+                holes > 1000 && keys.len() - holes > 10_000,
+                "{path:?} {cam_name}: {holes} of {} pixels empty",
+                keys.len()
+            );
             for (n, opts) in post_options(background).into_iter().enumerate() {
                 let what = format!("{path:?} {cam_name} {opts:?}");
                 // Every other case through a fresh draw, the rest through resolve() on the
                 // framebuffer as it is.
                 let frame = if n % 2 == 0 {
                     gr.draw(&ctx, &mut gs, &cam, &RasterOptions::default(), Some(&opts)).unwrap();
-                    assert_eq!(gr.read_keys(&ctx).unwrap(), keys, "{what}: the draw is deterministic");
+                    assert_eq!(
+                        gr.read_keys(&ctx).unwrap(),
+                        keys,
+                        "{what}: the draw is deterministic"
+                    );
                     None
                 } else {
                     gr.resolve(&ctx, &mut gs, &opts).unwrap()
@@ -225,8 +315,13 @@ fn hole_filling_and_eye_dome_lighting_match_cpu_resolve() {
             }
         }
     }
-    eprintln!("pixels filled: {filled_total}, pixels the eye-dome lighting changed: {shaded_total}");
-    assert!(filled_total > 10_000 && shaded_total > 10_000, "the scenes do not exercise the passes: {filled_total} filled, {shaded_total} shaded");
+    eprintln!(
+        "pixels filled: {filled_total}, pixels the eye-dome lighting changed: {shaded_total}"
+    );
+    assert!(
+        filled_total > 10_000 && shaded_total > 10_000,
+        "the scenes do not exercise the passes: {filled_total} filled, {shaded_total} shaded"
+    );
 }
 
 #[test]
@@ -238,17 +333,32 @@ fn bad_calls_are_errors_not_panics() {
     // Out of order.
     assert!(matches!(gs.push(&ctx, &refs[1], None), Err(GpuError::FirstIndex { expected: 0, .. })));
     // Colours where the scene has none.
-    assert!(matches!(gs.push(&ctx, &refs[0], Some(&scene.colors[..refs[0].len()])), Err(GpuError::Colors(_))));
+    assert!(matches!(
+        gs.push(&ctx, &refs[0], Some(&scene.colors[..refs[0].len()])),
+        Err(GpuError::Colors(_))
+    ));
     gs.push(&ctx, &refs[0], None).unwrap();
     let cam = Camera::frame_perspective(&scene.bounds, ViewPreset::Top, 0.8, 64, 48).unwrap();
     let mut gr = GpuRasterizer::new(&ctx, 64, 48).unwrap();
     // Resolve without colours, and a camera of another size.
-    assert!(matches!(gr.draw(&ctx, &mut gs, &cam, &RasterOptions::default(), Some(&ResolveOptions::default())), Err(GpuError::Colors(_))));
-    assert!(matches!(gr.resolve(&ctx, &mut gs, &ResolveOptions::default()), Err(GpuError::Colors(_))));
+    assert!(matches!(
+        gr.draw(&ctx, &mut gs, &cam, &RasterOptions::default(), Some(&ResolveOptions::default())),
+        Err(GpuError::Colors(_))
+    ));
+    assert!(matches!(
+        gr.resolve(&ctx, &mut gs, &ResolveOptions::default()),
+        Err(GpuError::Colors(_))
+    ));
     let other = Camera { width: 65, ..cam };
-    assert!(matches!(gr.draw(&ctx, &mut gs, &other, &RasterOptions::default(), None), Err(GpuError::Raster(_))));
+    assert!(matches!(
+        gr.draw(&ctx, &mut gs, &other, &RasterOptions::default(), None),
+        Err(GpuError::Raster(_))
+    ));
     // A framebuffer beyond the device's largest binding.
-    assert!(matches!(GpuRasterizer::new(&ctx, 1 << 15, 1 << 15), Err(GpuError::TooLarge { .. })) || ctx.max_binding() >= 1u64 << 32);
+    assert!(
+        matches!(GpuRasterizer::new(&ctx, 1 << 15, 1 << 15), Err(GpuError::TooLarge { .. }))
+            || ctx.max_binding() >= 1u64 << 32
+    );
     // An empty scene draws nothing.
     let mut empty = GpuScene::new(&ctx, scene.grid, 0, SceneOptions::default()).unwrap();
     let f = gr.draw(&ctx, &mut empty, &cam, &RasterOptions::default(), None).unwrap();
@@ -260,7 +370,15 @@ fn bad_calls_are_errors_not_panics() {
 fn adapter_is_reported() {
     let Some(ctx) = context(AtomicPath::TwoPass32, None) else { return };
     let a = ctx.adapter();
-    eprintln!("adapter: {} ({}, {}, driver {}), timestamps: {}, largest binding: {} MiB", a.name, a.backend, a.device_type, a.driver, ctx.has_timestamps(), ctx.max_binding() >> 20);
+    eprintln!(
+        "adapter: {} ({}, {}, driver {}), timestamps: {}, largest binding: {} MiB",
+        a.name,
+        a.backend,
+        a.device_type,
+        a.driver,
+        ctx.has_timestamps(),
+        ctx.max_binding() >> 20
+    );
     assert!(!a.name.is_empty());
     assert!(ctx.max_binding() >= 128 << 20);
 }
@@ -272,7 +390,13 @@ fn a_scene_drawn_while_it_grows_matches_cpu_after_every_batch() {
     // buffer grown by half again and again once became odd-sized on the H200).
     let scene = utm_terrain(200_000);
     let Some(ctx) = context(AtomicPath::U64, None) else { return };
-    let mut gs = GpuScene::new(&ctx, scene.grid, 1000, SceneOptions { chunk_points: Some(25_000), colors: false }).unwrap();
+    let mut gs = GpuScene::new(
+        &ctx,
+        scene.grid,
+        1000,
+        SceneOptions { chunk_points: Some(25_000), colors: false },
+    )
+    .unwrap();
     let cam = Camera::frame_perspective(&scene.bounds, ViewPreset::Iso, 0.8, 160, 100).unwrap();
     let mut gr = GpuRasterizer::new(&ctx, cam.width, cam.height).unwrap();
     let refs = scene.refs();
@@ -282,8 +406,13 @@ fn a_scene_drawn_while_it_grows_matches_cpu_after_every_batch() {
         gr.set_tuning(&ctx, DrawTuning { plan_on_gpu, ..Default::default() }).unwrap();
         let frame = gr.draw(&ctx, &mut gs, &cam, &RasterOptions::default(), None).unwrap();
         let fb = Framebuffer::new(cam.width, cam.height);
-        let want_stats = rasterize(&fb, &refs[..=i], &scene.grid, &cam, &RasterOptions::default()).unwrap();
-        assert_eq!(compare(&gr.read_keys(&ctx).unwrap(), &fb.into_keys()).1, 0, "after batch {i}, plan on GPU: {plan_on_gpu}");
+        let want_stats =
+            rasterize(&fb, &refs[..=i], &scene.grid, &cam, &RasterOptions::default()).unwrap();
+        assert_eq!(
+            compare(&gr.read_keys(&ctx).unwrap(), &fb.into_keys()).1,
+            0,
+            "after batch {i}, plan on GPU: {plan_on_gpu}"
+        );
         assert_eq!(frame.stats, want_stats, "after batch {i}");
     }
     assert!(gs.chunk_count() > 4);

@@ -11,11 +11,16 @@
 
 use mortar_core::grid::Grid;
 use mortar_core::render::framebuffer::EMPTY_KEY;
-use mortar_core::render::progressive::{AdaptiveBudget, FillBudget, FrameStats, ProgressiveError, ProgressiveRenderer};
+use mortar_core::render::progressive::{
+    AdaptiveBudget, FillBudget, FrameStats, ProgressiveError, ProgressiveRenderer,
+};
 use mortar_core::render::resolve::{resolve_with_colors, ResolveOptions};
 use mortar_core::render::testutil::{Rng, Scene};
 use mortar_core::render::{rasterize, Aabb, Camera, Framebuffer, RasterOptions, ViewPreset};
-use mortar_render::{AtomicPath, BudgetTiming, GpuContext, GpuError, GpuProgressive, ProgressiveGpuError, ProgressiveOptions};
+use mortar_render::{
+    AtomicPath, BudgetTiming, GpuContext, GpuError, GpuProgressive, ProgressiveGpuError,
+    ProgressiveOptions,
+};
 
 /// A resolve onto `background` without post-processing.
 fn bg(background: u32) -> ResolveOptions {
@@ -43,41 +48,94 @@ fn terrain(n: usize, seed: u64) -> Scene {
 }
 
 /// A GPU and a CPU renderer over the scene's frame (nothing inserted).
-fn pair(ctx: &GpuContext, scene: &Scene, chunk_slots: Option<u32>) -> (GpuProgressive, ProgressiveRenderer) {
+fn pair(
+    ctx: &GpuContext,
+    scene: &Scene,
+    chunk_slots: Option<u32>,
+) -> (GpuProgressive, ProgressiveRenderer) {
     let (lo, hi) = int_bounds(&scene.points);
     let n = scene.points.len() as u64;
-    let gpu = GpuProgressive::new(ctx, scene.grid, lo, hi, n, ProgressiveOptions { chunk_slots, colors: true, payloads: true, host_clock: false }).unwrap();
+    let gpu = GpuProgressive::new(
+        ctx,
+        scene.grid,
+        lo,
+        hi,
+        n,
+        ProgressiveOptions { chunk_slots, colors: true, payloads: true, host_clock: false },
+    )
+    .unwrap();
     let cpu = ProgressiveRenderer::new(scene.grid, lo, hi, n).unwrap();
     (gpu, cpu)
 }
 
 /// Inserts points `s..e` into both renderers (payload = input index, colour = the scene's).
-fn insert(ctx: &GpuContext, gpu: &mut GpuProgressive, cpu: &mut ProgressiveRenderer, scene: &Scene, s: usize, e: usize) {
+fn insert(
+    ctx: &GpuContext,
+    gpu: &mut GpuProgressive,
+    cpu: &mut ProgressiveRenderer,
+    scene: &Scene,
+    s: usize,
+    e: usize,
+) {
     let payload: Vec<u64> = (s as u64..e as u64).collect();
-    gpu.insert(ctx, s as u64, &scene.points[s..e], Some(&scene.colors[s..e]), Some(&payload)).unwrap();
+    gpu.insert(ctx, s as u64, &scene.points[s..e], Some(&scene.colors[s..e]), Some(&payload))
+        .unwrap();
     cpu.insert(s as u64, &scene.points[s..e], &payload).unwrap();
 }
 
 /// The statistics both renderers must agree on (times and rasterizer batch counts apart).
 fn comparable(s: &FrameStats) -> (u64, u64, u64, u64, u64, u64, u64, bool, u64, [u64; 3]) {
-    (s.frame, s.loaded, s.reprojected, s.filled, s.fill_points, s.probe, s.visible, s.converged, s.raster.points_drawn, s.raster.points_by_precision)
+    (
+        s.frame,
+        s.loaded,
+        s.reprojected,
+        s.filled,
+        s.fill_points,
+        s.probe,
+        s.visible,
+        s.converged,
+        s.raster.points_drawn,
+        s.raster.points_by_precision,
+    )
 }
 
 /// One frame on both; asserts equal keys, visible slots and statistics.
-fn frame_both(ctx: &GpuContext, gpu: &mut GpuProgressive, cpu: &mut ProgressiveRenderer, cam: &Camera, budget: u64, what: &str) -> FrameStats {
+fn frame_both(
+    ctx: &GpuContext,
+    gpu: &mut GpuProgressive,
+    cpu: &mut ProgressiveRenderer,
+    cam: &Camera,
+    budget: u64,
+    what: &str,
+) -> FrameStats {
     let opts = RasterOptions::default();
     let g = gpu.frame(ctx, cam, &opts, &FillBudget::Fixed(budget), Some(&bg(0xff00_0000))).unwrap();
     let c = cpu.frame(cam, &opts, &FillBudget::Fixed(budget)).unwrap();
     assert_eq!(comparable(&g.stats), comparable(&c), "{what}: frame statistics");
     assert_eq!(gpu.read_keys(ctx).unwrap(), cpu.keys(), "{what}: keys of frame {}", c.frame);
-    assert_eq!(gpu.read_visible(ctx).unwrap(), cpu.visible(), "{what}: visible slots of frame {}", c.frame);
-    assert_eq!(g.timing, if ctx.has_timestamps() { BudgetTiming::GpuTimestamps } else { BudgetTiming::HostClock });
+    assert_eq!(
+        gpu.read_visible(ctx).unwrap(),
+        cpu.visible(),
+        "{what}: visible slots of frame {}",
+        c.frame
+    );
+    assert_eq!(
+        g.timing,
+        if ctx.has_timestamps() { BudgetTiming::GpuTimestamps } else { BudgetTiming::HostClock }
+    );
     g.stats
 }
 
 fn brute_force(cpu: &ProgressiveRenderer, cam: &Camera) -> Vec<u64> {
     let fb = Framebuffer::new(cam.width, cam.height);
-    rasterize(&fb, &cpu.all_points().expect("all loaded"), cpu.grid(), cam, &RasterOptions::default()).unwrap();
+    rasterize(
+        &fb,
+        &cpu.all_points().expect("all loaded"),
+        cpu.grid(),
+        cam,
+        &RasterOptions::default(),
+    )
+    .unwrap();
     fb.into_keys()
 }
 
@@ -116,7 +174,13 @@ fn still_camera_fixed_budget_equals_cpu_frame_by_frame_and_brute_force() {
     assert!(covered(&keys) > 10_000, "{} pixels", covered(&keys));
     assert_eq!(last.visible as usize, covered(&keys));
     // The GPU resolve colours each pixel with its slot's colour.
-    let want = resolve_with_colors(&keys, cam.width, cam.height, &slot_colors(&gpu, &scene), &ResolveOptions { background: 0xff00_0000, ..Default::default() });
+    let want = resolve_with_colors(
+        &keys,
+        cam.width,
+        cam.height,
+        &slot_colors(&gpu, &scene),
+        &ResolveOptions { background: 0xff00_0000, ..Default::default() },
+    );
     assert_eq!(gpu.read_image(&ctx).unwrap(), want);
     assert_eq!(gpu.size(), (320, 240));
     assert!(gpu.image_buffer().is_some());
@@ -141,16 +205,40 @@ fn a_large_insert_across_chunks_equals_cpu() {
     // The first 300,000 prepared on another thread (as a loader would), then inserted.
     let preparer = gpu.preparer();
     let payload: Vec<u64> = (0..300_000).collect();
-    let prepared = std::thread::scope(|s| s.spawn(|| preparer.prepare(0, &scene.points[..300_000], Some(&scene.colors[..300_000]), Some(&payload))).join().unwrap()).unwrap();
+    let prepared = std::thread::scope(|s| {
+        s.spawn(|| {
+            preparer.prepare(
+                0,
+                &scene.points[..300_000],
+                Some(&scene.colors[..300_000]),
+                Some(&payload),
+            )
+        })
+        .join()
+        .unwrap()
+    })
+    .unwrap();
     assert_eq!((prepared.first(), prepared.len()), (0, 300_000));
     // Points prepared for another renderer are refused.
     let (other, _) = pair(&ctx, &terrain(1000, 2), None);
-    let foreign = other.preparer().prepare(0, &terrain(1000, 2).points, Some(&terrain(1000, 2).colors), Some(&vec![0; 1000])).unwrap();
+    let foreign = other
+        .preparer()
+        .prepare(0, &terrain(1000, 2).points, Some(&terrain(1000, 2).colors), Some(&vec![0; 1000]))
+        .unwrap();
     assert!(gpu.insert_prepared(&ctx, foreign).is_err());
     assert_eq!(gpu.loaded(), 0);
     gpu.insert_prepared(&ctx, prepared).unwrap();
     cpu.insert(0, &scene.points[..300_000], &payload).unwrap();
-    assert!(matches!(gpu.insert(&ctx, 299_999, &scene.points[299_999..300_001], Some(&scene.colors[299_999..300_001]), Some(&[0, 0])), Err(ProgressiveGpuError::Progressive(ProgressiveError::Duplicate(299_999)))));
+    assert!(matches!(
+        gpu.insert(
+            &ctx,
+            299_999,
+            &scene.points[299_999..300_001],
+            Some(&scene.colors[299_999..300_001]),
+            Some(&[0, 0])
+        ),
+        Err(ProgressiveGpuError::Progressive(ProgressiveError::Duplicate(299_999)))
+    ));
     insert(&ctx, &mut gpu, &mut cpu, &scene, 300_000, 400_000);
     assert_eq!(gpu.loaded(), 400_000);
     assert!((0..400_000).all(|s| gpu.is_loaded(s)));
@@ -169,7 +257,10 @@ fn points_inserted_between_frames_show_up_and_converge() {
     let scene = terrain(90_000, 13);
     let (mut gpu, mut cpu) = pair(&ctx, &scene, Some(40_000));
     let cam = Camera::frame_perspective(&scene.bounds, ViewPreset::Iso, 0.8, 300, 200).unwrap();
-    let pieces: Vec<(usize, usize)> = (0..scene.points.len()).step_by(7_000).map(|s| (s, (s + 7_000).min(scene.points.len()))).collect();
+    let pieces: Vec<(usize, usize)> = (0..scene.points.len())
+        .step_by(7_000)
+        .map(|s| (s, (s + 7_000).min(scene.points.len())))
+        .collect();
     let mut order: Vec<usize> = (0..pieces.len()).collect();
     let mut rng = Rng(3);
     for i in (1..order.len()).rev() {
@@ -181,7 +272,11 @@ fn points_inserted_between_frames_show_up_and_converge() {
         insert(&ctx, &mut gpu, &mut cpu, &scene, s, e);
         let st = frame_both(&ctx, &mut gpu, &mut cpu, &cam, 11_000, "loading");
         let all = gpu.loaded() == scene.points.len() as u64;
-        assert!(st.fill_points < st.filled || all, "frame {}: slots of points not yet loaded are skipped", k + 1);
+        assert!(
+            st.fill_points < st.filled || all,
+            "frame {}: slots of points not yet loaded are skipped",
+            k + 1
+        );
         assert!(!st.converged);
         assert!(st.visible >= shown, "what arrived stays visible");
         shown = st.visible;
@@ -222,7 +317,12 @@ fn a_moved_camera_reprojects_and_converges_again() {
     assert_eq!(gpu.read_keys(&ctx).unwrap(), brute_force(&cpu, &moved));
     // And back: a camera looking away from the data culls everything and draws nothing.
     let c = scene.bounds.center();
-    let away = Camera { eye: [c[0], c[1], c[2] + 1000.0], target: [c[0], c[1], c[2] + 2000.0], up: [0.0, 1.0, 0.0], ..moved };
+    let away = Camera {
+        eye: [c[0], c[1], c[2] + 1000.0],
+        target: [c[0], c[1], c[2] + 2000.0],
+        up: [0.0, 1.0, 0.0],
+        ..moved
+    };
     let st = frame_both(&ctx, &mut gpu, &mut cpu, &away, 25_000, "looking away");
     assert_eq!((st.visible, st.raster.points_drawn), (0, 0));
 }
@@ -242,7 +342,20 @@ fn adaptive_budget_with(ctx: &GpuContext, scene: &Scene, host_clock: bool) {
     let (lo, hi) = int_bounds(&scene.points);
     let cam = Camera::frame_perspective(&scene.bounds, ViewPreset::Iso, 0.8, 200, 150).unwrap();
     let make = || {
-        let mut g = GpuProgressive::new(ctx, scene.grid, lo, hi, 80_000, ProgressiveOptions { chunk_slots: Some(50_000), colors: true, payloads: false, host_clock }).unwrap();
+        let mut g = GpuProgressive::new(
+            ctx,
+            scene.grid,
+            lo,
+            hi,
+            80_000,
+            ProgressiveOptions {
+                chunk_slots: Some(50_000),
+                colors: true,
+                payloads: false,
+                host_clock,
+            },
+        )
+        .unwrap();
         g.insert(ctx, 0, &scene.points, Some(&scene.colors), None).unwrap();
         g
     };
@@ -251,12 +364,19 @@ fn adaptive_budget_with(ctx: &GpuContext, scene: &Scene, host_clock: bool) {
         c.insert(0, &scene.points, &vec![0; 80_000]).unwrap();
         brute_force(&c, &cam)
     };
-    let timing = if ctx.has_timestamps() && !host_clock { BudgetTiming::GpuTimestamps } else { BudgetTiming::HostClock };
+    let timing = if ctx.has_timestamps() && !host_clock {
+        BudgetTiming::GpuTimestamps
+    } else {
+        BudgetTiming::HostClock
+    };
     assert_eq!(make().timing(), timing);
     // No time at all: only the probe is filled, so it converges after ceil(n / probe) frames.
     let mut g = make();
-    let none = FillBudget::Adaptive(AdaptiveBudget { target_ms: 0.0, probe_points: 30_000, usable: 0.9 });
-    let st: Vec<_> = (0..3).map(|_| g.frame(ctx, &cam, &RasterOptions::default(), &none, None).unwrap()).collect();
+    let none =
+        FillBudget::Adaptive(AdaptiveBudget { target_ms: 0.0, probe_points: 30_000, usable: 0.9 });
+    let st: Vec<_> = (0..3)
+        .map(|_| g.frame(ctx, &cam, &RasterOptions::default(), &none, None).unwrap())
+        .collect();
     for f in &st {
         assert_eq!((f.stats.probe, f.stats.filled), (30_000, 30_000));
         assert_eq!(f.timing, timing);
@@ -267,7 +387,8 @@ fn adaptive_budget_with(ctx: &GpuContext, scene: &Scene, host_clock: bool) {
     assert_eq!(g.read_keys(ctx).unwrap(), want);
     // A generous target: the probe, then the rest of the buffer in the same frame.
     let mut g = make();
-    let lots = FillBudget::Adaptive(AdaptiveBudget { target_ms: 1e6, probe_points: 1_000, usable: 0.9 });
+    let lots =
+        FillBudget::Adaptive(AdaptiveBudget { target_ms: 1e6, probe_points: 1_000, usable: 0.9 });
     let f = g.frame(ctx, &cam, &RasterOptions::default(), &lots, Some(&bg(0))).unwrap();
     assert_eq!((f.stats.probe, f.stats.filled, f.stats.fill_points), (1_000, 80_000, 80_000));
     assert!(f.stats.converged);
@@ -275,11 +396,15 @@ fn adaptive_budget_with(ctx: &GpuContext, scene: &Scene, host_clock: bool) {
     if let Some(t) = f.gpu {
         eprintln!("GPU timings of a whole-buffer frame: {t:?}");
         assert!(t.probe_ms >= 0.0 && t.extra_fill_ms > 0.0 && t.resolve_ms.is_some());
-        assert!(t.frame_ms >= t.reproject_ms + t.probe_ms + t.extra_fill_ms + t.prepare_ms - 1e-6, "{t:?}");
+        assert!(
+            t.frame_ms >= t.reproject_ms + t.probe_ms + t.extra_fill_ms + t.prepare_ms - 1e-6,
+            "{t:?}"
+        );
     }
     // A realistic target: the frames stay about within it and the image converges.
     let mut g = make();
-    let target = FillBudget::Adaptive(AdaptiveBudget { target_ms: 50.0, probe_points: 5_000, usable: 0.9 });
+    let target =
+        FillBudget::Adaptive(AdaptiveBudget { target_ms: 50.0, probe_points: 5_000, usable: 0.9 });
     let mut frames = 0;
     while !g.frame(ctx, &cam, &RasterOptions::default(), &target, None).unwrap().stats.converged {
         frames += 1;
@@ -290,9 +415,13 @@ fn adaptive_budget_with(ctx: &GpuContext, scene: &Scene, host_clock: bool) {
 
 #[test]
 fn a_32_bit_context_is_refused() {
-    let Some(ctx) = mortar_render::testing::context_or_skip(AtomicPath::TwoPass32, None) else { return };
+    let Some(ctx) = mortar_render::testing::context_or_skip(AtomicPath::TwoPass32, None) else {
+        return;
+    };
     let grid = Grid { scale: [0.01; 3], offset: [0.0; 3] };
-    let e = GpuProgressive::new(&ctx, grid, [0; 3], [100; 3], 10, ProgressiveOptions::default()).err().expect("refused");
+    let e = GpuProgressive::new(&ctx, grid, [0; 3], [100; 3], 10, ProgressiveOptions::default())
+        .err()
+        .expect("refused");
     assert!(matches!(e, ProgressiveGpuError::Needs64BitAtomics { .. }));
     assert!(e.to_string().contains("needs 64-bit atomics"), "{e}");
 }
@@ -301,43 +430,97 @@ fn a_32_bit_context_is_refused() {
 fn bad_input_is_refused_without_changes() {
     let Some(ctx) = context(None) else { return };
     let grid = Grid { scale: [0.01; 3], offset: [0.0; 3] };
-    let opts = ProgressiveOptions { chunk_slots: None, colors: true, payloads: false, host_clock: false };
+    let opts =
+        ProgressiveOptions { chunk_slots: None, colors: true, payloads: false, host_clock: false };
     let progressive = |r: Result<_, ProgressiveGpuError>| match r {
         Err(ProgressiveGpuError::Progressive(e)) => e,
         Err(e) => panic!("{e}"),
         Ok(_) => panic!("accepted"),
     };
-    assert!(matches!(progressive(GpuProgressive::new(&ctx, grid, [0; 3], [10; 3], 1 << 32, opts).map(|_| ())), ProgressiveError::TooManyPoints(_)));
-    assert!(matches!(progressive(GpuProgressive::new(&ctx, grid, [0; 3], [-1, 5, 5], 10, opts).map(|_| ())), ProgressiveError::Frame { .. }));
+    assert!(matches!(
+        progressive(GpuProgressive::new(&ctx, grid, [0; 3], [10; 3], 1 << 32, opts).map(|_| ())),
+        ProgressiveError::TooManyPoints(_)
+    ));
+    assert!(matches!(
+        progressive(GpuProgressive::new(&ctx, grid, [0; 3], [-1, 5, 5], 10, opts).map(|_| ())),
+        ProgressiveError::Frame { .. }
+    ));
     let mut r = GpuProgressive::new(&ctx, grid, [0; 3], [100; 3], 10, opts).unwrap();
     let p = [[1, 2, 3], [4, 5, 6]];
     let red = [0xff00_00ffu32; 2];
-    assert!(matches!(progressive(r.insert(&ctx, 9, &p, Some(&red), None)), ProgressiveError::IndexRange { .. }));
+    assert!(matches!(
+        progressive(r.insert(&ctx, 9, &p, Some(&red), None)),
+        ProgressiveError::IndexRange { .. }
+    ));
     // Points outside the frame grow it (`a_frame_that_grows_...`), except past 30 bits; a
     // prepared insert, encoded off the renderer's thread, must lie in the frame it was prepared for.
-    assert!(matches!(progressive(r.insert(&ctx, 0, &[[1, 2, 3], [4, 1 << 30, 6]], Some(&red), None)), ProgressiveError::Frame { .. }));
-    assert!(matches!(progressive(r.preparer().prepare(0, &[[1, 2, 3], [4, 101, 6]], Some(&red), None).map(|_| ())), ProgressiveError::OutsideFrame { index: 1, .. }));
+    assert!(matches!(
+        progressive(r.insert(&ctx, 0, &[[1, 2, 3], [4, 1 << 30, 6]], Some(&red), None)),
+        ProgressiveError::Frame { .. }
+    ));
+    assert!(matches!(
+        progressive(
+            r.preparer().prepare(0, &[[1, 2, 3], [4, 101, 6]], Some(&red), None).map(|_| ())
+        ),
+        ProgressiveError::OutsideFrame { index: 1, .. }
+    ));
     assert_eq!(r.growths(), 0);
-    assert!(matches!(progressive(r.insert(&ctx, 0, &p, Some(&red), Some(&[1, 2]))), ProgressiveError::PayloadCount { .. }));
-    assert!(matches!(r.insert(&ctx, 0, &p, None, None), Err(ProgressiveGpuError::Gpu(GpuError::Colors(_)))));
-    assert!(matches!(r.insert(&ctx, 0, &p, Some(&red[..1]), None), Err(ProgressiveGpuError::Gpu(GpuError::Colors(_)))));
+    assert!(matches!(
+        progressive(r.insert(&ctx, 0, &p, Some(&red), Some(&[1, 2]))),
+        ProgressiveError::PayloadCount { .. }
+    ));
+    assert!(matches!(
+        r.insert(&ctx, 0, &p, None, None),
+        Err(ProgressiveGpuError::Gpu(GpuError::Colors(_)))
+    ));
+    assert!(matches!(
+        r.insert(&ctx, 0, &p, Some(&red[..1]), None),
+        Err(ProgressiveGpuError::Gpu(GpuError::Colors(_)))
+    ));
     assert_eq!(r.loaded(), 0);
     r.insert(&ctx, 3, &p, Some(&red), None).unwrap();
-    assert!(matches!(progressive(r.insert(&ctx, 4, &p, Some(&red), None)), ProgressiveError::Duplicate(4)));
+    assert!(matches!(
+        progressive(r.insert(&ctx, 4, &p, Some(&red), None)),
+        ProgressiveError::Duplicate(4)
+    ));
     assert_eq!(r.loaded(), 2);
     assert!(r.is_loaded(r.shuffle().target(3)) && !r.is_loaded(r.shuffle().target(0)));
     // An unusable camera, a framebuffer past the device's binding, a resolve without colours.
-    let cam = Camera::frame_orthographic(&Aabb::new([0.0; 3], [1.0; 3]), ViewPreset::Top, 16, 16).unwrap();
+    let cam = Camera::frame_orthographic(&Aabb::new([0.0; 3], [1.0; 3]), ViewPreset::Top, 16, 16)
+        .unwrap();
     let bad = Camera { far: cam.near, ..cam };
-    assert!(matches!(progressive(r.frame(&ctx, &bad, &RasterOptions::default(), &FillBudget::Fixed(4), None).map(|_| ())), ProgressiveError::Raster(_)));
+    assert!(matches!(
+        progressive(
+            r.frame(&ctx, &bad, &RasterOptions::default(), &FillBudget::Fixed(4), None).map(|_| ())
+        ),
+        ProgressiveError::Raster(_)
+    ));
     let huge = Camera { width: 16384, height: 16384, ..cam };
-    assert!(matches!(r.frame(&ctx, &huge, &RasterOptions::default(), &FillBudget::Fixed(4), None), Err(ProgressiveGpuError::Gpu(GpuError::TooLarge { .. }))) || ctx.max_binding() >= 16384 * 16384 * 8);
-    let mut plain = GpuProgressive::new(&ctx, grid, [0; 3], [100; 3], 10, ProgressiveOptions::default()).unwrap();
-    assert!(matches!(plain.frame(&ctx, &cam, &RasterOptions::default(), &FillBudget::Fixed(4), Some(&bg(0))), Err(ProgressiveGpuError::Gpu(GpuError::Colors(_)))));
+    assert!(
+        matches!(
+            r.frame(&ctx, &huge, &RasterOptions::default(), &FillBudget::Fixed(4), None),
+            Err(ProgressiveGpuError::Gpu(GpuError::TooLarge { .. }))
+        ) || ctx.max_binding() >= 16384 * 16384 * 8
+    );
+    let mut plain =
+        GpuProgressive::new(&ctx, grid, [0; 3], [100; 3], 10, ProgressiveOptions::default())
+            .unwrap();
+    assert!(matches!(
+        plain.frame(&ctx, &cam, &RasterOptions::default(), &FillBudget::Fixed(4), Some(&bg(0))),
+        Err(ProgressiveGpuError::Gpu(GpuError::Colors(_)))
+    ));
     assert!(plain.read_image(&ctx).is_err());
     // An empty renderer draws empty frames and is converged.
     let mut e = GpuProgressive::new(&ctx, grid, [0; 3], [0; 3], 0, opts).unwrap();
-    let f = e.frame(&ctx, &cam, &RasterOptions::default(), &FillBudget::Fixed(100), Some(&bg(0xff11_2233))).unwrap();
+    let f = e
+        .frame(
+            &ctx,
+            &cam,
+            &RasterOptions::default(),
+            &FillBudget::Fixed(100),
+            Some(&bg(0xff11_2233)),
+        )
+        .unwrap();
     assert!(f.stats.converged && f.stats.visible == 0);
     assert!(e.read_keys(&ctx).unwrap().iter().all(|&k| k == EMPTY_KEY));
     assert!(e.read_image(&ctx).unwrap().iter().all(|&c| c == 0xff11_2233));
@@ -363,13 +546,19 @@ fn recolor_streams_new_colours_in_and_keeps_the_positions() {
     for i in 0..30_000u32 {
         by_slot[gpu.shuffle().target(i) as usize] = new_colors[i as usize];
     }
-    assert_eq!(gpu.read_image(&ctx).unwrap(), resolve_with_colors(&keys, cam.width, cam.height, &by_slot, &opts));
+    assert_eq!(
+        gpu.read_image(&ctx).unwrap(),
+        resolve_with_colors(&keys, cam.width, cam.height, &by_slot, &opts)
+    );
     gpu.recolor(&ctx, 30_000, &new_colors[30_000..]).unwrap();
     frame_both(&ctx, &mut gpu, &mut cpu, &cam, 60_000, "all");
     for i in 30_000..60_000u32 {
         by_slot[gpu.shuffle().target(i) as usize] = new_colors[i as usize];
     }
-    assert_eq!(gpu.read_image(&ctx).unwrap(), resolve_with_colors(&keys, cam.width, cam.height, &by_slot, &opts));
+    assert_eq!(
+        gpu.read_image(&ctx).unwrap(),
+        resolve_with_colors(&keys, cam.width, cam.height, &by_slot, &opts)
+    );
     // Points not inserted and ranges past the end are refused.
     let (mut fresh, _) = pair(&ctx, &scene, None);
     assert!(fresh.recolor(&ctx, 0, &new_colors[..10]).is_err());
@@ -385,10 +574,25 @@ fn a_frame_that_grows_for_points_outside_it_equals_cpu_frame_by_frame() {
     let Some(ctx) = context(None) else { return };
     let scene = terrain(90_000, 31);
     let (lo, hi) = int_bounds(&scene.points);
-    let small = mortar_core::render::framing::IntBox { min: lo, max: [0, 1, 2].map(|a| lo[a] + (hi[a] - lo[a]) / 10) };
-    let frame = mortar_core::render::progressive::ProgressiveFrame::around(scene.grid, small).unwrap();
+    let small = mortar_core::render::framing::IntBox {
+        min: lo,
+        max: [0, 1, 2].map(|a| lo[a] + (hi[a] - lo[a]) / 10),
+    };
+    let frame =
+        mortar_core::render::progressive::ProgressiveFrame::around(scene.grid, small).unwrap();
     let n = scene.points.len() as u64;
-    let mut gpu = GpuProgressive::with_frame(&ctx, frame, n, ProgressiveOptions { chunk_slots: Some(32_768), colors: true, payloads: true, host_clock: false }).unwrap();
+    let mut gpu = GpuProgressive::with_frame(
+        &ctx,
+        frame,
+        n,
+        ProgressiveOptions {
+            chunk_slots: Some(32_768),
+            colors: true,
+            payloads: true,
+            host_clock: false,
+        },
+    )
+    .unwrap();
     let mut cpu = ProgressiveRenderer::with_frame(frame, n).unwrap();
     let cam = Camera::frame_perspective(&scene.bounds, ViewPreset::Iso, 0.8, 256, 192).unwrap();
     for s in (0..scene.points.len()).step_by(15_000) {
@@ -411,7 +615,10 @@ fn the_ties_pass_counts_what_the_cpu_counts() {
     let (mut gpu, mut cpu) = pair(&ctx, &scene, Some(32_768));
     assert_eq!(gpu.depth_ties(&ctx).unwrap(), None, "nothing drawn yet");
     insert(&ctx, &mut gpu, &mut cpu, &scene, 0, scene.points.len());
-    for cam in [Camera::frame_perspective(&scene.bounds, ViewPreset::Iso, 0.8, 320, 240).unwrap(), Camera::frame_orthographic(&scene.bounds, ViewPreset::Top, 320, 240).unwrap()] {
+    for cam in [
+        Camera::frame_perspective(&scene.bounds, ViewPreset::Iso, 0.8, 320, 240).unwrap(),
+        Camera::frame_orthographic(&scene.bounds, ViewPreset::Top, 320, 240).unwrap(),
+    ] {
         while !frame_both(&ctx, &mut gpu, &mut cpu, &cam, 40_000, "ties").converged {}
         let ties = cpu.depth_ties().unwrap().unwrap();
         assert_eq!(gpu.depth_ties(&ctx).unwrap(), Some(ties));
@@ -433,12 +640,26 @@ fn hole_filling_and_eye_dome_lighting_equal_the_cpu_resolve() {
     let cam = Camera::frame_perspective(&scene.bounds, ViewPreset::Iso, 0.8, 300, 200).unwrap();
     let colors = slot_colors(&gpu, &scene);
     let cases = [
-        ResolveOptions { background: 0xff20_3040, hole_fill: Some(HoleFill { min_neighbors: 3 }), eye_dome: None },
-        ResolveOptions { background: 0xff00_0000, hole_fill: None, eye_dome: Some(EyeDome { strength: 1.5, ..EyeDome::default() }) },
-        ResolveOptions { background: 0, hole_fill: Some(HoleFill { min_neighbors: 1 }), eye_dome: Some(EyeDome::default()) },
+        ResolveOptions {
+            background: 0xff20_3040,
+            hole_fill: Some(HoleFill { min_neighbors: 3 }),
+            eye_dome: None,
+        },
+        ResolveOptions {
+            background: 0xff00_0000,
+            hole_fill: None,
+            eye_dome: Some(EyeDome { strength: 1.5, ..EyeDome::default() }),
+        },
+        ResolveOptions {
+            background: 0,
+            hole_fill: Some(HoleFill { min_neighbors: 1 }),
+            eye_dome: Some(EyeDome::default()),
+        },
     ];
     for post in &cases {
-        let f = gpu.frame(&ctx, &cam, &RasterOptions::default(), &FillBudget::Fixed(60_000), Some(post)).unwrap();
+        let f = gpu
+            .frame(&ctx, &cam, &RasterOptions::default(), &FillBudget::Fixed(60_000), Some(post))
+            .unwrap();
         assert!(f.stats.converged);
         let keys = gpu.read_keys(&ctx).unwrap();
         let want = resolve_with_colors(&keys, cam.width, cam.height, &colors, post);
@@ -446,7 +667,8 @@ fn hole_filling_and_eye_dome_lighting_equal_the_cpu_resolve() {
         let differ = got.iter().zip(&want).filter(|(a, b)| a != b).count();
         assert_eq!(differ, 0, "{post:?}: {differ} pixels differ from the CPU resolve");
         // Not a no-op: the post-processing changed the image.
-        let plain = resolve_with_colors(&keys, cam.width, cam.height, &colors, &bg(post.background));
+        let plain =
+            resolve_with_colors(&keys, cam.width, cam.height, &colors, &bg(post.background));
         assert!(plain.iter().zip(&want).filter(|(a, b)| a != b).count() > 100, "{post:?}");
     }
 }

@@ -4,9 +4,12 @@
 //! from), and every struct shared with WGSL has the same size and member offsets as its
 //! `#[repr(C)]` Rust twin.
 
-use mortar_core::render::gpu::{BatchProjection, DrawRecord, EyeDomeUniforms, FrameUniforms, HoleFillUniforms, PlanBatch, PlanUniforms, PrepareUniforms, ReframeUniforms, ResolveUniforms, ScatterUniforms};
-use mortar_core::render::resolve::{EDL_EXP2_COEFFS, EDL_LOG2_COEFFS};
+use mortar_core::render::gpu::{
+    BatchProjection, DrawRecord, EyeDomeUniforms, FrameUniforms, HoleFillUniforms, PlanBatch,
+    PlanUniforms, PrepareUniforms, ReframeUniforms, ResolveUniforms, ScatterUniforms,
+};
 use mortar_core::render::progressive::UNLOADED;
+use mortar_core::render::resolve::{EDL_EXP2_COEFFS, EDL_LOG2_COEFFS};
 use mortar_render::progressive::SLOTS_PER_THREAD;
 use mortar_render::shaders::{binding, Binding, BindingKind, Pass, PRESENT, PRESENT_BINDINGS};
 use naga::valid::{Capabilities, ValidationFlags, Validator};
@@ -14,7 +17,8 @@ use std::mem::{offset_of, size_of};
 
 fn parse(pass: Pass) -> naga::Module {
     let src = pass.source();
-    naga::front::wgsl::parse_str(&src).unwrap_or_else(|e| panic!("{}: {}", pass.file(), e.emit_to_string(&src)))
+    naga::front::wgsl::parse_str(&src)
+        .unwrap_or_else(|e| panic!("{}: {}", pass.file(), e.emit_to_string(&src)))
 }
 
 #[test]
@@ -35,7 +39,12 @@ fn every_pass_validates_with_the_capabilities_it_is_given() {
     // The 64-bit pass really needs the capabilities: without them naga refuses it, so the
     // check above would notice a pass that silently stopped using 64-bit atomics.
     let module = parse(Pass::Draw64);
-    assert!(Validator::new(ValidationFlags::all(), Capabilities::SHADER_INT64).validate(&module).is_err(), "atomicMin on u64 needs SHADER_INT64_ATOMIC_MIN_MAX");
+    assert!(
+        Validator::new(ValidationFlags::all(), Capabilities::SHADER_INT64)
+            .validate(&module)
+            .is_err(),
+        "atomicMin on u64 needs SHADER_INT64_ATOMIC_MIN_MAX"
+    );
 }
 
 /// What a WGSL resource variable is, as wgpu's bind-group layouts distinguish them.
@@ -70,10 +79,16 @@ fn declared_bindings(module: &naga::Module) -> Vec<(u32, u32, Kind, String)> {
             let rb = var.binding.as_ref()?;
             let kind = match var.space {
                 naga::AddressSpace::Uniform => Kind::Uniform,
-                naga::AddressSpace::Storage { access } if access.contains(naga::StorageAccess::STORE) => Kind::StorageReadWrite,
+                naga::AddressSpace::Storage { access }
+                    if access.contains(naga::StorageAccess::STORE) =>
+                {
+                    Kind::StorageReadWrite
+                }
                 naga::AddressSpace::Storage { .. } => Kind::StorageRead,
                 naga::AddressSpace::Handle => match module.types[var.ty].inner {
-                    naga::TypeInner::Image { class: naga::ImageClass::Storage { .. }, .. } => Kind::StorageTexture,
+                    naga::TypeInner::Image { class: naga::ImageClass::Storage { .. }, .. } => {
+                        Kind::StorageTexture
+                    }
                     naga::TypeInner::Image { .. } => Kind::Texture,
                     naga::TypeInner::Sampler { .. } => Kind::Sampler,
                     _ => Kind::Other,
@@ -92,24 +107,39 @@ fn declared_bindings(module: &naga::Module) -> Vec<(u32, u32, Kind, String)> {
 /// other lacks).
 fn binding_mismatches(module: &naga::Module, bindings: &[Binding]) -> Vec<String> {
     let wgsl = declared_bindings(module);
-    let mut rust: Vec<(u32, u32, Kind, String)> = bindings.iter().map(|b| (b.group, b.binding, Kind::from(b.kind), b.name.to_string())).collect();
+    let mut rust: Vec<(u32, u32, Kind, String)> = bindings
+        .iter()
+        .map(|b| (b.group, b.binding, Kind::from(b.kind), b.name.to_string()))
+        .collect();
     rust.sort();
     let mut out = Vec::new();
     for w in rust.windows(2) {
         if (w[0].0, w[0].1) == (w[1].0, w[1].1) {
-            out.push(format!("Rust lists @group({}) @binding({}) twice ({} and {})", w[0].0, w[0].1, w[0].3, w[1].3));
+            out.push(format!(
+                "Rust lists @group({}) @binding({}) twice ({} and {})",
+                w[0].0, w[0].1, w[0].3, w[1].3
+            ));
         }
     }
     for r in &rust {
         match wgsl.iter().find(|w| (w.0, w.1) == (r.0, r.1)) {
-            None => out.push(format!("Rust has @group({}) @binding({}) {} ({:?}) that the WGSL does not declare", r.0, r.1, r.3, r.2)),
-            Some(w) if w != r => out.push(format!("@group({}) @binding({}): WGSL {} ({:?}), Rust {} ({:?})", r.0, r.1, w.3, w.2, r.3, r.2)),
+            None => out.push(format!(
+                "Rust has @group({}) @binding({}) {} ({:?}) that the WGSL does not declare",
+                r.0, r.1, r.3, r.2
+            )),
+            Some(w) if w != r => out.push(format!(
+                "@group({}) @binding({}): WGSL {} ({:?}), Rust {} ({:?})",
+                r.0, r.1, w.3, w.2, r.3, r.2
+            )),
             Some(_) => {}
         }
     }
     for w in &wgsl {
         if !rust.iter().any(|r| (r.0, r.1) == (w.0, w.1)) {
-            out.push(format!("the WGSL declares @group({}) @binding({}) {} ({:?}) that Rust does not list", w.0, w.1, w.3, w.2));
+            out.push(format!(
+                "the WGSL declares @group({}) @binding({}) {} ({:?}) that Rust does not list",
+                w.0, w.1, w.3, w.2
+            ));
         }
     }
     out
@@ -119,17 +149,37 @@ fn binding_mismatches(module: &naga::Module, bindings: &[Binding]) -> Vec<String
 fn every_pass_declares_exactly_its_rust_bindings() {
     for pass in Pass::ALL {
         let problems = binding_mismatches(&parse(pass), pass.bindings());
-        assert!(problems.is_empty(), "{}: bindings differ from Pass::bindings():\n  {}", pass.file(), problems.join("\n  "));
+        assert!(
+            problems.is_empty(),
+            "{}: bindings differ from Pass::bindings():\n  {}",
+            pass.file(),
+            problems.join("\n  ")
+        );
         // The draw passes share one group-1 layout (binding::BATCHES) and so one bind group.
-        let group1: Vec<Binding> = pass.bindings().iter().copied().filter(|b| b.group == 1).collect();
-        assert_eq!(pass.draws_batches(), !group1.is_empty(), "{}: draws_batches() and the table disagree", pass.file());
+        let group1: Vec<Binding> =
+            pass.bindings().iter().copied().filter(|b| b.group == 1).collect();
+        assert_eq!(
+            pass.draws_batches(),
+            !group1.is_empty(),
+            "{}: draws_batches() and the table disagree",
+            pass.file()
+        );
         if pass.draws_batches() {
-            assert_eq!(group1, binding::BATCHES, "{}: group 1 is not binding::BATCHES", pass.file());
+            assert_eq!(
+                group1,
+                binding::BATCHES,
+                "{}: group 1 is not binding::BATCHES",
+                pass.file()
+            );
         }
     }
     let present = naga::front::wgsl::parse_str(PRESENT).unwrap();
     let problems = binding_mismatches(&present, PRESENT_BINDINGS);
-    assert!(problems.is_empty(), "present.wgsl: bindings differ from PRESENT_BINDINGS:\n  {}", problems.join("\n  "));
+    assert!(
+        problems.is_empty(),
+        "present.wgsl: bindings differ from PRESENT_BINDINGS:\n  {}",
+        problems.join("\n  ")
+    );
 }
 
 #[test]
@@ -147,16 +197,24 @@ fn a_wrong_binding_table_is_noticed() {
         ("missing", |t| {
             t.pop();
         }),
-        ("extra", |t| t.push(Binding { group: 0, binding: 7, kind: BindingKind::Uniform, name: "extra" })),
+        ("extra", |t| {
+            t.push(Binding { group: 0, binding: 7, kind: BindingKind::Uniform, name: "extra" })
+        }),
     ];
     for (what, edit) in edits {
         let mut bad = good.to_vec();
         edit(&mut bad);
-        assert!(!binding_mismatches(&module, &bad).is_empty(), "a table with a wrong {what} passed");
+        assert!(
+            !binding_mismatches(&module, &bad).is_empty(),
+            "a table with a wrong {what} passed"
+        );
     }
     let mut twice = good.to_vec();
     twice.push(binding::COUNTERS);
-    assert!(!binding_mismatches(&module, &twice).is_empty(), "a table listing a binding twice passed");
+    assert!(
+        !binding_mismatches(&module, &twice).is_empty(),
+        "a table listing a binding twice passed"
+    );
 }
 
 /// Size and member offsets (by name) of the WGSL struct `name`.
@@ -167,7 +225,13 @@ fn wgsl_layout(module: &naga::Module, name: &str) -> (u32, Vec<(String, u32)>) {
         if ty.name.as_deref() == Some(name) {
             if let naga::TypeInner::Struct { members, span } = &ty.inner {
                 assert_eq!(layouter[handle].size, *span);
-                return (*span, members.iter().map(|m| (m.name.clone().unwrap_or_default(), m.offset)).collect());
+                return (
+                    *span,
+                    members
+                        .iter()
+                        .map(|m| (m.name.clone().unwrap_or_default(), m.offset))
+                        .collect(),
+                );
             }
         }
     }
@@ -379,7 +443,12 @@ fn shared_structs_have_the_rust_layout() {
 
 /// The value of the WGSL `u32` constant `name` of `module`.
 fn wgsl_u32_constant(module: &naga::Module, name: &str) -> u32 {
-    let c = module.constants.iter().find(|(_, c)| c.name.as_deref() == Some(name)).unwrap_or_else(|| panic!("constant {name} not found in the WGSL")).1;
+    let c = module
+        .constants
+        .iter()
+        .find(|(_, c)| c.name.as_deref() == Some(name))
+        .unwrap_or_else(|| panic!("constant {name} not found in the WGSL"))
+        .1;
     match module.global_expressions[c.init] {
         naga::Expression::Literal(naga::Literal::U32(v)) => v,
         ref e => panic!("constant {name}: {e:?} is not a u32 literal"),
@@ -388,7 +457,12 @@ fn wgsl_u32_constant(module: &naga::Module, name: &str) -> u32 {
 
 /// The value of the WGSL `f32` constant `name` of `module`.
 fn wgsl_f32_constant(module: &naga::Module, name: &str) -> f32 {
-    let c = module.constants.iter().find(|(_, c)| c.name.as_deref() == Some(name)).unwrap_or_else(|| panic!("constant {name} not found in the WGSL")).1;
+    let c = module
+        .constants
+        .iter()
+        .find(|(_, c)| c.name.as_deref() == Some(name))
+        .unwrap_or_else(|| panic!("constant {name} not found in the WGSL"))
+        .1;
     match module.global_expressions[c.init] {
         naga::Expression::Literal(naga::Literal::F32(v)) => v,
         ref e => panic!("constant {name}: {e:?} is not an f32 literal"),
@@ -398,15 +472,27 @@ fn wgsl_f32_constant(module: &naga::Module, name: &str) -> f32 {
 #[test]
 fn plan_constants_have_the_rust_values() {
     let plan = parse(Pass::Plan);
-    assert_eq!(wgsl_f32_constant(&plan, "FAR_UNITS"), mortar_core::render::plan::FAR_UNITS, "FAR_UNITS: WGSL and mortar_core differ");
+    assert_eq!(
+        wgsl_f32_constant(&plan, "FAR_UNITS"),
+        mortar_core::render::plan::FAR_UNITS,
+        "FAR_UNITS: WGSL and mortar_core differ"
+    );
 }
 
 #[test]
 fn progressive_constants_have_the_rust_values() {
     // The progressive passes share progressive_types.wgsl; Fill uses both constants.
     let fill = parse(Pass::ProgressiveFill);
-    assert_eq!(wgsl_u32_constant(&fill, "UNLOADED"), UNLOADED, "UNLOADED: WGSL and mortar_core differ");
-    assert_eq!(wgsl_u32_constant(&fill, "SLOTS_PER_THREAD"), SLOTS_PER_THREAD, "SLOTS_PER_THREAD: WGSL and Rust differ");
+    assert_eq!(
+        wgsl_u32_constant(&fill, "UNLOADED"),
+        UNLOADED,
+        "UNLOADED: WGSL and mortar_core differ"
+    );
+    assert_eq!(
+        wgsl_u32_constant(&fill, "SLOTS_PER_THREAD"),
+        SLOTS_PER_THREAD,
+        "SLOTS_PER_THREAD: WGSL and Rust differ"
+    );
     let unload = parse(Pass::ProgressiveUnload);
     assert_eq!(wgsl_u32_constant(&unload, "UNLOADED"), UNLOADED);
 }

@@ -9,20 +9,28 @@
 //! the median wall time of a whole frame (host planning and upload of the draw records included)
 //! and points per second. One JSON object per line on stdout, a table on stderr.
 
-use mortar_core::metrics::median;
 use anyhow::{anyhow, bail, Context, Result};
 use clap::Parser;
 use mortar_core::batch::SECTION_COLOR;
+use mortar_core::metrics::median;
 use mortar_core::quantize::Precision;
 use mortar_core::render::framebuffer::{key_depth, EMPTY_KEY};
-use mortar_core::render::{rasterize, Aabb, BatchRef, Camera, Framebuffer, PrecisionMode, RasterOptions, ViewPreset};
+use mortar_core::render::{
+    rasterize, Aabb, BatchRef, Camera, Framebuffer, PrecisionMode, RasterOptions, ViewPreset,
+};
 use mortar_io::batchfile::BatchFile;
-use mortar_render::{AtomicPath, DrawTuning, GpuContext, GpuOptions, GpuRasterizer, GpuScene, RecordOrder, SceneOptions};
+use mortar_render::{
+    AtomicPath, DrawTuning, GpuContext, GpuOptions, GpuRasterizer, GpuScene, RecordOrder,
+    SceneOptions,
+};
 use std::path::PathBuf;
 use std::time::Instant;
 
 #[derive(Parser)]
-#[command(name = "mortar-bench-gpu", about = "GPU (and CPU) rasterizer frame times on a batch file tiled to billions of points")]
+#[command(
+    name = "mortar-bench-gpu",
+    about = "GPU (and CPU) rasterizer frame times on a batch file tiled to billions of points"
+)]
 pub struct Args {
     /// A batch file (uncompressed or zstd) of a real scan.
     input: PathBuf,
@@ -102,7 +110,9 @@ fn order(name: &str) -> Result<RecordOrder> {
 fn options(variant: &str) -> Result<RasterOptions> {
     Ok(match variant {
         "adaptive" => RasterOptions::default(),
-        "brute" => RasterOptions { precision: PrecisionMode::Fixed(Precision::Bits30), cull: false },
+        "brute" => {
+            RasterOptions { precision: PrecisionMode::Fixed(Precision::Bits30), cull: false }
+        }
         "ten" => RasterOptions { precision: PrecisionMode::Fixed(Precision::Bits10), cull: false },
         v => bail!("unknown variant {v} (adaptive, brute, ten)"),
     })
@@ -112,7 +122,9 @@ fn options(variant: &str) -> Result<RasterOptions> {
 pub fn run(a: Args) -> Result<()> {
     let file = BatchFile::open(&a.input).with_context(|| format!("{}", a.input.display()))?;
     let sections = [0, 1, 2, SECTION_COLOR];
-    let views = (0..file.batch_count()).map(|i| file.batch_sections(i, &sections)).collect::<mortar_io::Result<Vec<_>>>()?;
+    let views = (0..file.batch_count())
+        .map(|i| file.batch_sections(i, &sections))
+        .collect::<mortar_io::Result<Vec<_>>>()?;
     let grid = file.grid();
     let src_points = file.header.point_count;
     if src_points == 0 {
@@ -140,7 +152,15 @@ pub fn run(a: Args) -> Result<()> {
             bail!("{} tiles per row do not fit the 32-bit integer grid", cols);
         }
     }
-    eprintln!("{}: {} points in {} batches; tiles of {}x{} units, {} columns", a.input.display(), src_points, views.len(), step[0], step[1], cols);
+    eprintln!(
+        "{}: {} points in {} batches; tiles of {}x{} units, {} columns",
+        a.input.display(),
+        src_points,
+        views.len(),
+        step[0],
+        step[1],
+        cols
+    );
 
     let gpu = a.backend == "gpu";
     let ctx = if gpu {
@@ -150,16 +170,34 @@ pub fn run(a: Args) -> Result<()> {
             Some(32) => Some(AtomicPath::TwoPass32),
             Some(n) => bail!("--atomics {n}: 64 or 32"),
         };
-        Some(GpuContext::new(&GpuOptions { atomics, allow_software: a.allow_software, ..Default::default() }).map_err(|e| anyhow!("{e}"))?)
+        Some(
+            GpuContext::new(&GpuOptions {
+                atomics,
+                allow_software: a.allow_software,
+                ..Default::default()
+            })
+            .map_err(|e| anyhow!("{e}"))?,
+        )
     } else {
         None
     };
     if let Some(c) = &ctx {
         let ad = c.adapter();
-        eprintln!("adapter: {} ({}, {}), driver {}, atomics {}, timestamps {}", ad.name, ad.backend, ad.device_type, ad.driver, c.atomic_path().name(), c.has_timestamps());
+        eprintln!(
+            "adapter: {} ({}, {}), driver {}, atomics {}, timestamps {}",
+            ad.name,
+            ad.backend,
+            ad.device_type,
+            ad.driver,
+            c.atomic_path().name(),
+            c.has_timestamps()
+        );
     }
     let mut scene = match &ctx {
-        Some(c) => Some(GpuScene::new(c, grid, max_points, SceneOptions { chunk_points: None, colors: true }).map_err(|e| anyhow!("{e}"))?),
+        Some(c) => Some(
+            GpuScene::new(c, grid, max_points, SceneOptions { chunk_points: None, colors: true })
+                .map_err(|e| anyhow!("{e}"))?,
+        ),
         None => None,
     };
     let mut raster = match &ctx {
@@ -185,9 +223,23 @@ pub fn run(a: Args) -> Result<()> {
                 g.min[0] += off[0] as i32;
                 g.min[1] += off[1] as i32;
                 let shift = |ax: usize, w: f64| w + off[ax] as f64 * grid.scale[ax];
-                let bmin = [shift(0, e.world_min[0].min(e.world_max[0])), shift(1, e.world_min[1].min(e.world_max[1])), e.world_min[2].min(e.world_max[2])];
-                let bmax = [shift(0, e.world_min[0].max(e.world_max[0])), shift(1, e.world_min[1].max(e.world_max[1])), e.world_min[2].max(e.world_max[2])];
-                let b = BatchRef { grid: g, bounds_min: bmin, bounds_max: bmax, words: [v.words(0), v.words(1), v.words(2)], first_index: points as u32 };
+                let bmin = [
+                    shift(0, e.world_min[0].min(e.world_max[0])),
+                    shift(1, e.world_min[1].min(e.world_max[1])),
+                    e.world_min[2].min(e.world_max[2]),
+                ];
+                let bmax = [
+                    shift(0, e.world_min[0].max(e.world_max[0])),
+                    shift(1, e.world_min[1].max(e.world_max[1])),
+                    e.world_min[2].max(e.world_max[2]),
+                ];
+                let b = BatchRef {
+                    grid: g,
+                    bounds_min: bmin,
+                    bounds_max: bmax,
+                    words: [v.words(0), v.words(1), v.words(2)],
+                    first_index: points as u32,
+                };
                 bounds.grow(bmin);
                 bounds.grow(bmax);
                 points += b.len() as u64;
@@ -206,14 +258,34 @@ pub fn run(a: Args) -> Result<()> {
         let cam = match a.view.as_str() {
             // Close to the ground in the middle of the tiles: most batches culled.
             "closeup" => Camera::close_up(&bounds, 50f64.to_radians(), a.width, a.height),
-            "top" => Camera::frame_perspective(&bounds, ViewPreset::Top, 50f64.to_radians(), a.width, a.height),
-            _ => Camera::frame_perspective(&bounds, ViewPreset::Iso, 50f64.to_radians(), a.width, a.height),
+            "top" => Camera::frame_perspective(
+                &bounds,
+                ViewPreset::Top,
+                50f64.to_radians(),
+                a.width,
+                a.height,
+            ),
+            _ => Camera::frame_perspective(
+                &bounds,
+                ViewPreset::Iso,
+                50f64.to_radians(),
+                a.width,
+                a.height,
+            ),
         }
         .map_err(|e| anyhow!("{e}"))?;
-        if let (Some(c), Some(s), Some(r), true) = (&ctx, &mut scene, &mut raster, a.warmup_ms > 0) {
+        if let (Some(c), Some(s), Some(r), true) = (&ctx, &mut scene, &mut raster, a.warmup_ms > 0)
+        {
             let t = Instant::now();
             while t.elapsed().as_millis() < a.warmup_ms as u128 {
-                r.draw(c, s, &cam, &RasterOptions::default(), Some(&mortar_core::render::resolve::ResolveOptions::default())).map_err(|e| anyhow!("{e}"))?;
+                r.draw(
+                    c,
+                    s,
+                    &cam,
+                    &RasterOptions::default(),
+                    Some(&mortar_core::render::resolve::ResolveOptions::default()),
+                )
+                .map_err(|e| anyhow!("{e}"))?;
             }
         }
         let mut configs = Vec::new();
@@ -231,11 +303,24 @@ pub fn run(a: Args) -> Result<()> {
                                 for d in &a.divisions {
                                     let division = match d.as_str() {
                                         "default" => None,
-                                        "refined" => Some(mortar_core::render::gpu::DIVISION_REFINED),
+                                        "refined" => {
+                                            Some(mortar_core::render::gpu::DIVISION_REFINED)
+                                        }
                                         "plain" => Some(mortar_core::render::gpu::DIVISION_PLAIN),
                                         d => bail!("--divisions {d}: default, refined or plain"),
                                     };
-                                    configs.push((round, variant.clone(), DrawTuning { kernel, workgroup, order: order(o)?, plan_on_gpu, division }, o.clone()));
+                                    configs.push((
+                                        round,
+                                        variant.clone(),
+                                        DrawTuning {
+                                            kernel,
+                                            workgroup,
+                                            order: order(o)?,
+                                            plan_on_gpu,
+                                            division,
+                                        },
+                                        o.clone(),
+                                    ));
                                 }
                             }
                         }
@@ -251,20 +336,38 @@ pub fn run(a: Args) -> Result<()> {
             let opts = options(variant)?;
             // Each configuration drawn back to back for a while first, so that the GPU's clocks
             // are up whatever ran before (METHOD.md: warm up; the first run did not).
-            if let (Some(c), Some(s), Some(r), true) = (&ctx, &mut scene, &mut raster, a.config_warmup_ms > 0) {
+            if let (Some(c), Some(s), Some(r), true) =
+                (&ctx, &mut scene, &mut raster, a.config_warmup_ms > 0)
+            {
                 let t = Instant::now();
                 while t.elapsed().as_millis() < a.config_warmup_ms as u128 {
-                    r.draw(c, s, &cam, &opts, Some(&mortar_core::render::resolve::ResolveOptions::default())).map_err(|e| anyhow!("{e}"))?;
+                    r.draw(
+                        c,
+                        s,
+                        &cam,
+                        &opts,
+                        Some(&mortar_core::render::resolve::ResolveOptions::default()),
+                    )
+                    .map_err(|e| anyhow!("{e}"))?;
                 }
             }
-            let (mut draw, mut clear, mut resolve, mut wall, mut plan) = (Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new());
+            let (mut draw, mut clear, mut resolve, mut wall, mut plan) =
+                (Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new());
             let mut gpu_plan = Vec::new();
             let mut stats = Default::default();
             for _ in 0..a.frames + 1 {
                 let t = Instant::now();
                 match (&ctx, &mut scene, &mut raster) {
                     (Some(c), Some(s), Some(r)) => {
-                        let f = r.draw(c, s, &cam, &opts, Some(&mortar_core::render::resolve::ResolveOptions::default())).map_err(|e| anyhow!("{e}"))?;
+                        let f = r
+                            .draw(
+                                c,
+                                s,
+                                &cam,
+                                &opts,
+                                Some(&mortar_core::render::resolve::ResolveOptions::default()),
+                            )
+                            .map_err(|e| anyhow!("{e}"))?;
                         stats = f.stats;
                         if let Some(tm) = f.timings {
                             draw.push(tm.draw_ms);
@@ -289,7 +392,9 @@ pub fn run(a: Args) -> Result<()> {
                 }
             }
             let mut compare = serde_json::Value::Null;
-            if let (true, Some(c), Some(r), Some(sc)) = (a.compare_cpu && tuning.kernel != 3, &ctx, &mut raster, &mut scene) {
+            if let (true, Some(c), Some(r), Some(sc)) =
+                (a.compare_cpu && tuning.kernel != 3, &ctx, &mut raster, &mut scene)
+            {
                 r.draw(c, sc, &cam, &opts, None).map_err(|e| anyhow!("{e}"))?;
                 let f = r.read_keys(c).map_err(|e| anyhow!("{e}"))?;
                 let fb = Framebuffer::new(a.width, a.height);
@@ -306,7 +411,8 @@ pub fn run(a: Args) -> Result<()> {
                         }
                     }
                 }
-                compare = serde_json::json!({ "covered": covered, "depth_ties": ties, "other": other });
+                compare =
+                    serde_json::json!({ "covered": covered, "depth_ties": ties, "other": other });
                 eprintln!("  GPU vs CPU keys: {other} of {covered} covered pixels differ, {ties} exact depth ties");
             }
             let draw_ms = median(&draw);
@@ -374,4 +480,3 @@ pub fn run(a: Args) -> Result<()> {
     }
     Ok(())
 }
-

@@ -6,12 +6,14 @@
 //! of the stored colours. Writes a markdown table to stdout (and `--out DIR`), with `--images`
 //! every render too.
 
-use mortar_core::metrics::{median, psnr};
 use anyhow::{bail, Context, Result};
 use clap::Parser;
+use mortar_core::metrics::{median, psnr};
 use mortar_core::octree::{LodOptions, NodeId};
 use mortar_core::render::framebuffer::{key_index, EMPTY_KEY};
-use mortar_core::render::{rasterize, Camera, Framebuffer, PrecisionMode, RasterOptions, RasterStats, ViewPreset};
+use mortar_core::render::{
+    rasterize, Camera, Framebuffer, PrecisionMode, RasterOptions, RasterStats, ViewPreset,
+};
 use mortar_io::render_input::{self, ColorChoice, RenderSettings, RenderSource};
 use mortar_io::store_lod::{self, StoreLod};
 use std::fmt::Write as _;
@@ -19,7 +21,10 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 #[derive(Parser)]
-#[command(name = "mortar-bench-lod", about = "LOD rendering of a store: selection and raster time against image error, per threshold")]
+#[command(
+    name = "mortar-bench-lod",
+    about = "LOD rendering of a store: selection and raster time against image error, per threshold"
+)]
 pub struct Args {
     /// An octree store (made by `mortar build`).
     store: PathBuf,
@@ -103,7 +108,12 @@ pub fn run(a: Args) -> Result<()> {
     if lod.point_count() == 0 {
         bail!("{}: no points to draw", a.store.display());
     }
-    let label = a.label.clone().unwrap_or_else(|| a.store.file_name().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "store".into()));
+    let label = a.label.clone().unwrap_or_else(|| {
+        a.store
+            .file_name()
+            .map(|s| s.to_string_lossy().into_owned())
+            .unwrap_or_else(|| "store".into())
+    });
     let leaves = lod.store().leaves().len();
     // Every node's bounds once (what the first render of each node pays).
     let all: Vec<NodeId> = (0..lod.store().entries.len() as u32).map(NodeId).collect();
@@ -125,7 +135,12 @@ pub fn run(a: Args) -> Result<()> {
     };
     if let Some(s) = &source {
         if s.file.header.point_count != lod.point_count() {
-            bail!("--batch-file {}: {} points, the store has {}", s.name.display(), s.file.header.point_count, lod.point_count());
+            bail!(
+                "--batch-file {}: {} points, the store has {}",
+                s.name.display(),
+                s.file.header.point_count,
+                lod.point_count()
+            );
         }
     }
     let mut md = String::new();
@@ -147,7 +162,9 @@ pub fn run(a: Args) -> Result<()> {
         // The reference (threshold 0, no budget) first, then every threshold, then the batch
         // file (a NaN threshold).
         let mut configs = vec![(0.0, None)];
-        configs.extend(a.thresholds.iter().map(|&t| (t, a.point_budget)).filter(|&c| c != (0.0, None)));
+        configs.extend(
+            a.thresholds.iter().map(|&t| (t, a.point_budget)).filter(|&c| c != (0.0, None)),
+        );
         if source.is_some() {
             configs.push((f64::NAN, None));
         }
@@ -237,7 +254,10 @@ pub fn run(a: Args) -> Result<()> {
         let full_samples = reference.points + reference.voxels;
         let total = |r: &Row| median(&r.select) + median(&r.prepare) + median(&r.raster);
         let full_time = total(reference);
-        let reference_batches = lod.batches(&lod.select(&cam, &LodOptions { threshold_px: 0.0, point_budget: None, cull: true })?.nodes)?;
+        let reference_batches = lod.batches(
+            &lod.select(&cam, &LodOptions { threshold_px: 0.0, point_budget: None, cull: true })?
+                .nodes,
+        )?;
         for (k, r) in rows.iter().enumerate() {
             let colour = if r.threshold.is_nan() {
                 // Pixels won by another point (positions compared; the colours of a batch file
@@ -253,7 +273,9 @@ pub fn run(a: Args) -> Result<()> {
                     .zip(&reference.keys)
                     .filter(|(&x, &y)| match (x == EMPTY_KEY, y == EMPTY_KEY) {
                         (true, true) => false,
-                        (false, false) => Some(position(key_index(x))) != reference_batches.position(key_index(y)),
+                        (false, false) => {
+                            Some(position(key_index(x))) != reference_batches.position(key_index(y))
+                        }
                         _ => true,
                     })
                     .count() as u64
@@ -262,7 +284,10 @@ pub fn run(a: Args) -> Result<()> {
             };
             let mine = r.keys.iter().filter(|&&k| k != EMPTY_KEY).count() as u64;
             let pct = |v: f64| 100.0 * v / covered.max(1) as f64;
-            let (min, max) = (r.raster.iter().copied().fold(f64::INFINITY, f64::min), r.raster.iter().copied().fold(0.0, f64::max));
+            let (min, max) = (
+                r.raster.iter().copied().fold(f64::INFINITY, f64::min),
+                r.raster.iter().copied().fold(0.0, f64::max),
+            );
             let p = if r.threshold.is_nan() { f64::NAN } else { psnr(&r.rgba, &reference.rgba) };
             let samples = r.points + r.voxels;
             let name = if k == 0 {
@@ -309,7 +334,12 @@ pub fn run(a: Args) -> Result<()> {
                     } else {
                         format!("{}", r.threshold)
                     };
-                    write_png(&dir.join(format!("{label}-{view}-{tag}.png")), a.width, a.height, &r.rgba)?;
+                    write_png(
+                        &dir.join(format!("{label}-{view}-{tag}.png")),
+                        a.width,
+                        a.height,
+                        &r.rgba,
+                    )?;
                 }
             }
         }
@@ -317,7 +347,8 @@ pub fn run(a: Args) -> Result<()> {
     print!("{md}");
     if let Some(dir) = &a.out {
         std::fs::create_dir_all(dir).with_context(|| dir.display().to_string())?;
-        std::fs::write(dir.join(format!("{label}-lod.md")), md.as_bytes()).with_context(|| dir.display().to_string())?;
+        std::fs::write(dir.join(format!("{label}-lod.md")), md.as_bytes())
+            .with_context(|| dir.display().to_string())?;
     }
     Ok(())
 }

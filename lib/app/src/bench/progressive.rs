@@ -15,20 +15,25 @@
 //! time, time to the first frame, frames and time to converge per phase, median frame times and
 //! budgets); a short table on stderr.
 
-use mortar_core::render::resolve::ResolveOptions;
-use mortar_core::metrics::median;
 use anyhow::{anyhow, bail, Result};
 use clap::Parser;
 use mortar_core::grid::Grid;
+use mortar_core::metrics::median;
 use mortar_core::render::progressive::{AdaptiveBudget, FillBudget};
+use mortar_core::render::resolve::ResolveOptions;
 use mortar_core::render::testutil::Rng;
 use mortar_core::render::{Aabb, Camera, RasterOptions, ViewPreset};
-use mortar_render::{GpuContext, GpuOptions, GpuProgressive, GpuProgressiveFrame, ProgressiveOptions};
+use mortar_render::{
+    GpuContext, GpuOptions, GpuProgressive, GpuProgressiveFrame, ProgressiveOptions,
+};
 use rayon::prelude::*;
 use std::time::Instant;
 
 #[derive(Parser)]
-#[command(name = "mortar-bench-progressive", about = "GPU progressive renderer (paper 000): frames to convergence on synthetic points")]
+#[command(
+    name = "mortar-bench-progressive",
+    about = "GPU progressive renderer (paper 000): frames to convergence on synthetic points"
+)]
 pub struct Args {
     /// Points (e.g. 1e9; at most 4294967295).
     #[arg(long, default_value = "1e8")]
@@ -98,19 +103,22 @@ fn height(x: f64, y: f64) -> f64 {
 
 /// Points `first..first + xyz.len()` of the synthetic set, with colours.
 fn generate(seed: u64, first: u64, xyz: &mut [[i32; 3]], colors: &mut [u32]) {
-    xyz.par_chunks_mut(1 << 14).zip(colors.par_chunks_mut(1 << 14)).enumerate().for_each(|(k, (p, c))| {
-        for (j, (p, c)) in p.iter_mut().zip(c.iter_mut()).enumerate() {
-            let i = first + (k << 14) as u64 + j as u64;
-            let mut rng = Rng(seed.wrapping_mul(0x9e37_79b9_7f4a_7c15) ^ i);
-            let x = rng.unit() * EXTENT[0];
-            let y = rng.unit() * EXTENT[1];
-            let noise = rng.unit();
-            let z = height(x, y) + 0.5 * noise;
-            *p = [(x * 1000.0) as i32, (y * 1000.0) as i32, (z * 1000.0) as i32];
-            let g = (((z - 30.0) / 70.0).clamp(0.0, 1.0) * 200.0) as u32 + (noise * 55.0) as u32;
-            *c = (g / 2) | (g << 8) | ((255 - g) << 16) | (255 << 24);
-        }
-    });
+    xyz.par_chunks_mut(1 << 14).zip(colors.par_chunks_mut(1 << 14)).enumerate().for_each(
+        |(k, (p, c))| {
+            for (j, (p, c)) in p.iter_mut().zip(c.iter_mut()).enumerate() {
+                let i = first + (k << 14) as u64 + j as u64;
+                let mut rng = Rng(seed.wrapping_mul(0x9e37_79b9_7f4a_7c15) ^ i);
+                let x = rng.unit() * EXTENT[0];
+                let y = rng.unit() * EXTENT[1];
+                let noise = rng.unit();
+                let z = height(x, y) + 0.5 * noise;
+                *p = [(x * 1000.0) as i32, (y * 1000.0) as i32, (z * 1000.0) as i32];
+                let g =
+                    (((z - 30.0) / 70.0).clamp(0.0, 1.0) * 200.0) as u32 + (noise * 55.0) as u32;
+                *c = (g / 2) | (g << 8) | ((255 - g) << 16) | (255 << 24);
+            }
+        },
+    );
 }
 
 /// One frame's JSON line.
@@ -167,13 +175,24 @@ impl Phase {
 }
 
 #[allow(clippy::too_many_arguments)]
-fn run_phase(ctx: &GpuContext, r: &mut GpuProgressive, name: &str, cam: &Camera, budget: &FillBudget, resolve: Option<&ResolveOptions>, max_frames: u64, start: Instant) -> Result<Phase> {
+fn run_phase(
+    ctx: &GpuContext,
+    r: &mut GpuProgressive,
+    name: &str,
+    cam: &Camera,
+    budget: &FillBudget,
+    resolve: Option<&ResolveOptions>,
+    max_frames: u64,
+    start: Instant,
+) -> Result<Phase> {
     let t = Instant::now();
     let mut frames = Vec::new();
     let mut converged_after = None;
     let mut first_at_s = None;
     while (frames.len() as u64) < max_frames {
-        let f = r.frame(ctx, cam, &RasterOptions::default(), budget, resolve).map_err(|e| anyhow!("{e}"))?;
+        let f = r
+            .frame(ctx, cam, &RasterOptions::default(), budget, resolve)
+            .map_err(|e| anyhow!("{e}"))?;
         let at = start.elapsed().as_secs_f64();
         first_at_s.get_or_insert(at);
         println!("{}", frame_json(name, &f, at));
@@ -208,26 +227,55 @@ pub fn run(a: Args) -> Result<()> {
     }
     let n = a.points as u64;
     let budget = match a.budget.as_str() {
-        "auto" => FillBudget::Adaptive(AdaptiveBudget { target_ms: a.target_ms, probe_points: a.probe.max(1), usable: a.usable }),
+        "auto" => FillBudget::Adaptive(AdaptiveBudget {
+            target_ms: a.target_ms,
+            probe_points: a.probe.max(1),
+            usable: a.usable,
+        }),
         b => match b.parse::<u64>() {
             Ok(v) if v > 0 => FillBudget::Fixed(v),
             _ => bail!("--budget '{b}': 'auto' or a positive number of slots"),
         },
     };
-    let ctx = GpuContext::new(&GpuOptions { allow_software: a.allow_software, ..Default::default() }).map_err(|e| anyhow!("{e}"))?;
+    let ctx =
+        GpuContext::new(&GpuOptions { allow_software: a.allow_software, ..Default::default() })
+            .map_err(|e| anyhow!("{e}"))?;
     let ad = ctx.adapter();
-    eprintln!("adapter: {} ({}, {}), driver {}, atomics {}, timestamps {}", ad.name, ad.backend, ad.device_type, ad.driver, ctx.atomic_path().name(), ctx.has_timestamps());
+    eprintln!(
+        "adapter: {} ({}, {}), driver {}, atomics {}, timestamps {}",
+        ad.name,
+        ad.backend,
+        ad.device_type,
+        ad.driver,
+        ctx.atomic_path().name(),
+        ctx.has_timestamps()
+    );
     let max = [(EXTENT[0] * 1000.0) as i32, (EXTENT[1] * 1000.0) as i32, 120_000];
-    let options = ProgressiveOptions { chunk_slots: a.chunk_slots, colors: !a.no_resolve, payloads: false, host_clock: false };
+    let options = ProgressiveOptions {
+        chunk_slots: a.chunk_slots,
+        colors: !a.no_resolve,
+        payloads: false,
+        host_clock: false,
+    };
     let start = Instant::now();
-    let mut r = GpuProgressive::new(&ctx, GRID, [0, 0, 0], max, n, options).map_err(|e| anyhow!("{e}"))?;
+    let mut r =
+        GpuProgressive::new(&ctx, GRID, [0, 0, 0], max, n, options).map_err(|e| anyhow!("{e}"))?;
     let alloc_seconds = start.elapsed().as_secs_f64();
-    eprintln!("{} points: {} chunks of {} slots, {:.2} GiB on the GPU, allocated in {:.2} s", n, r.chunk_count(), r.chunk_slots(), r.gpu_bytes() as f64 / (1u64 << 30) as f64, alloc_seconds);
+    eprintln!(
+        "{} points: {} chunks of {} slots, {:.2} GiB on the GPU, allocated in {:.2} s",
+        n,
+        r.chunk_count(),
+        r.chunk_slots(),
+        r.gpu_bytes() as f64 / (1u64 << 30) as f64,
+        alloc_seconds
+    );
     let bounds = {
         let w = |a: usize, v: i32| GRID.world(a, v as i64);
         Aabb::new([w(0, 0), w(1, 0), w(2, 20_000)], [w(0, max[0]), w(1, max[1]), w(2, 100_000)])
     };
-    let cam = Camera::frame_perspective(&bounds, ViewPreset::Iso, 50f64.to_radians(), a.width, a.height).map_err(|e| anyhow!("{e}"))?;
+    let cam =
+        Camera::frame_perspective(&bounds, ViewPreset::Iso, 50f64.to_radians(), a.width, a.height)
+            .map_err(|e| anyhow!("{e}"))?;
     let post = ResolveOptions { background: 0xff00_0000, ..Default::default() };
     let resolve = (!a.no_resolve).then_some(&post);
 
@@ -236,7 +284,8 @@ pub fn run(a: Args) -> Result<()> {
     // of each insert (checks, words, sorted slots) runs on another thread, a piece ahead, while
     // the render thread uploads and draws.
     let piece = a.piece.min(n as usize);
-    let pieces: Vec<(u64, usize)> = (0..n).step_by(piece).map(|f| (f, (n - f).min(piece as u64) as usize)).collect();
+    let pieces: Vec<(u64, usize)> =
+        (0..n).step_by(piece).map(|f| (f, (n - f).min(piece as u64) as usize)).collect();
     let t = Instant::now();
     let all = a.pregenerate.then(|| {
         let mut xyz = vec![[0i32; 3]; n as usize];
@@ -266,7 +315,9 @@ pub fn run(a: Args) -> Result<()> {
         };
         let gen = t.elapsed().as_secs_f64();
         let t = Instant::now();
-        let p = preparer.prepare(f, xyz, colored.then_some(colors), None).map_err(|e| anyhow!("{e}"))?;
+        let p = preparer
+            .prepare(f, xyz, colored.then_some(colors), None)
+            .map_err(|e| anyhow!("{e}"))?;
         Ok((p, gen, t.elapsed().as_secs_f64()))
     };
     let (mut gen_s, mut prepare_s, mut insert_s) = (0.0, 0.0, 0.0);
@@ -275,7 +326,9 @@ pub fn run(a: Args) -> Result<()> {
     let mut load_frames = Vec::new();
     let mut frame_ends = Vec::new();
     let load_start = Instant::now();
-    let mut consume = |r: &mut GpuProgressive, (p, g, pr): (mortar_render::PreparedInsert, f64, f64)| -> Result<()> {
+    let mut consume = |r: &mut GpuProgressive,
+                       (p, g, pr): (mortar_render::PreparedInsert, f64, f64)|
+     -> Result<()> {
         gen_s += g;
         prepare_s += pr;
         let done = p.first() + p.len() as u64;
@@ -284,7 +337,9 @@ pub fn run(a: Args) -> Result<()> {
         insert_s += t.elapsed().as_secs_f64();
         insert_ms.push(t.elapsed().as_secs_f64() * 1e3);
         if !a.no_load_frames && done < n {
-            let f = r.frame(&ctx, &cam, &RasterOptions::default(), &budget, resolve).map_err(|e| anyhow!("{e}"))?;
+            let f = r
+                .frame(&ctx, &cam, &RasterOptions::default(), &budget, resolve)
+                .map_err(|e| anyhow!("{e}"))?;
             println!("{}", frame_json("load", &f, start.elapsed().as_secs_f64()));
             first_frame_s.get_or_insert(start.elapsed().as_secs_f64());
             frame_ends.push(load_start.elapsed().as_secs_f64());
@@ -335,10 +390,15 @@ pub fn run(a: Args) -> Result<()> {
     let (s, c) = a.orbit_degrees.to_radians().sin_cos();
     let d = [0, 1, 2].map(|k| cam.eye[k] - cam.target[k]);
     let moved = Camera {
-        eye: [cam.target[0] + 0.8 * (c * d[0] - s * d[1]), cam.target[1] + 0.8 * (s * d[0] + c * d[1]), cam.target[2] + 0.8 * d[2]],
+        eye: [
+            cam.target[0] + 0.8 * (c * d[0] - s * d[1]),
+            cam.target[1] + 0.8 * (s * d[0] + c * d[1]),
+            cam.target[2] + 0.8 * d[2],
+        ],
         ..cam
     };
-    let moved_phase = run_phase(&ctx, &mut r, "moved", &moved, &budget, resolve, a.max_frames, start)?;
+    let moved_phase =
+        run_phase(&ctx, &mut r, "moved", &moved, &budget, resolve, a.max_frames, start)?;
     let summary = serde_json::json!({
         "summary": true,
         "adapter": ad.name,

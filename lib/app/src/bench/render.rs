@@ -6,28 +6,35 @@
 //! coverage differences and PSNR. Writes a markdown table (stdout, and `--out DIR`) and a plot of
 //! time against error per view (PNG, drawn here with a built-in bitmap font).
 
-
-use mortar_core::metrics::{median, psnr};
-use anyhow::{bail, Result};
-use clap::Parser;
-use mortar_core::render::framebuffer::{key_index, EMPTY_KEY};
-use mortar_core::render::resolve::{resolve, ResolveOptions};
-use mortar_core::grid::Grid;
-use mortar_core::quantize::Precision;
-use mortar_core::render::precision::{choose_precision, decode_error_px, quantization_box, sufficient_precision};
-use mortar_core::render::{precision_for_pixels, rasterize, BatchRef, Camera, Framebuffer, PrecisionMode, RasterOptions, RasterStats};
-use rayon::prelude::*;
-use mortar_io::batchfile::BatchFile;
-use mortar_io::render_input::{self, ColorChoice};
 use crate::cli as common;
 use crate::render;
 use crate::render::{CameraArgs, PrecisionArg, ViewArg};
+use anyhow::{bail, Result};
+use clap::Parser;
+use mortar_core::grid::Grid;
+use mortar_core::metrics::{median, psnr};
+use mortar_core::quantize::Precision;
+use mortar_core::render::framebuffer::{key_index, EMPTY_KEY};
+use mortar_core::render::precision::{
+    choose_precision, decode_error_px, quantization_box, sufficient_precision,
+};
+use mortar_core::render::resolve::{resolve, ResolveOptions};
+use mortar_core::render::{
+    precision_for_pixels, rasterize, BatchRef, Camera, Framebuffer, PrecisionMode, RasterOptions,
+    RasterStats,
+};
+use mortar_io::batchfile::BatchFile;
+use mortar_io::render_input::{self, ColorChoice};
+use rayon::prelude::*;
 use std::fmt::Write as _;
 use std::path::PathBuf;
 use std::time::Instant;
 
 #[derive(Parser)]
-#[command(name = "mortar-bench-render", about = "Raster time against image error: precision adaptive/10/20/30, culling on/off")]
+#[command(
+    name = "mortar-bench-render",
+    about = "Raster time against image error: precision adaptive/10/20/30, culling on/off"
+)]
 pub struct Args {
     /// A batch file, or LAS/LAZ (batched into a temporary batch file first).
     #[arg(required = true)]
@@ -133,8 +140,17 @@ type Reference = (Vec<u64>, Vec<u32>, Option<[f64; 2]>);
 
 /// The batches of a view grouped by the precision the 500 px rule gives them, raised while the
 /// decode error bound reaches `budget` pixels.
-fn budget_groups<'a>(refs: &[BatchRef<'a>], grid: &Grid, cam: &Camera, budget: f64) -> [(Precision, Vec<BatchRef<'a>>); 3] {
-    let mut g = [(Precision::Bits10, Vec::new()), (Precision::Bits20, Vec::new()), (Precision::Bits30, Vec::new())];
+fn budget_groups<'a>(
+    refs: &[BatchRef<'a>],
+    grid: &Grid,
+    cam: &Camera,
+    budget: f64,
+) -> [(Precision, Vec<BatchRef<'a>>); 3] {
+    let mut g = [
+        (Precision::Bits10, Vec::new()),
+        (Precision::Bits20, Vec::new()),
+        (Precision::Bits30, Vec::new()),
+    ];
     for b in refs {
         let p = budget_precision(cam, grid, b, budget);
         g[p.words() - 1].1.push(*b);
@@ -146,22 +162,41 @@ fn budget_groups<'a>(refs: &[BatchRef<'a>], grid: &Grid, cam: &Camera, budget: f
 /// raised while the decode error bound reaches `budget` pixels.
 fn budget_precision(cam: &Camera, grid: &Grid, b: &BatchRef<'_>, budget: f64) -> Precision {
     let enough = sufficient_precision(&b.grid);
-    let mut p = precision_for_pixels(cam.projected_size(&quantization_box(grid, &b.grid))).min(enough);
-    while budget.is_finite() && p < enough && decode_error_px(cam, grid, &b.grid, &b.bounds(), p) >= budget {
+    let mut p =
+        precision_for_pixels(cam.projected_size(&quantization_box(grid, &b.grid))).min(enough);
+    while budget.is_finite()
+        && p < enough
+        && decode_error_px(cam, grid, &b.grid, &b.bounds(), p) >= budget
+    {
         p = if p == Precision::Bits10 { Precision::Bits20 } else { Precision::Bits30 };
     }
     p
 }
 
 /// Draws one configuration into `fb`.
-fn draw(fb: &Framebuffer, refs: &[BatchRef<'_>], groups: Option<&[(Precision, Vec<BatchRef<'_>>); 3]>, grid: &Grid, cam: &Camera, cfg: Config) -> Result<RasterStats> {
+fn draw(
+    fb: &Framebuffer,
+    refs: &[BatchRef<'_>],
+    groups: Option<&[(Precision, Vec<BatchRef<'_>>); 3]>,
+    grid: &Grid,
+    cam: &Camera,
+    cfg: Config,
+) -> Result<RasterStats> {
     Ok(match (cfg, groups) {
-        (Config::Options(p, cull), _) => rasterize(fb, refs, grid, cam, &RasterOptions { precision: p.mode(), cull })?,
+        (Config::Options(p, cull), _) => {
+            rasterize(fb, refs, grid, cam, &RasterOptions { precision: p.mode(), cull })?
+        }
         (Config::Budget(_), None) => unreachable!("budget configurations come with their groups"),
         (Config::Budget(_), Some(groups)) => {
             let mut s = RasterStats::default();
             for (p, g) in groups {
-                s = s.merge(rasterize(fb, g, grid, cam, &RasterOptions { precision: PrecisionMode::Fixed(*p), cull: true })?);
+                s = s.merge(rasterize(
+                    fb,
+                    g,
+                    grid,
+                    cam,
+                    &RasterOptions { precision: PrecisionMode::Fixed(*p), cull: true },
+                )?);
             }
             s
         }
@@ -172,7 +207,13 @@ fn draw(fb: &Framebuffer, refs: &[BatchRef<'_>], groups: Option<&[(Precision, Ve
 /// once into its cleared framebuffer (interleaved, so that load from other processes on a shared
 /// machine spreads over all configurations alike). Returns per configuration the keys of its last
 /// run, its stats and its times.
-fn measure(refs: &[BatchRef<'_>], file: &BatchFile, cam: &Camera, configs: &[Config], runs: usize) -> Result<Measured> {
+fn measure(
+    refs: &[BatchRef<'_>],
+    file: &BatchFile,
+    cam: &Camera,
+    configs: &[Config],
+    runs: usize,
+) -> Result<Measured> {
     let grid = file.grid();
     let groups: Vec<_> = configs
         .iter()
@@ -181,23 +222,36 @@ fn measure(refs: &[BatchRef<'_>], file: &BatchFile, cam: &Camera, configs: &[Con
             Config::Options(..) => None,
         })
         .collect();
-    let mut fbs: Vec<Framebuffer> = configs.iter().map(|_| Framebuffer::new(cam.width, cam.height)).collect();
+    let mut fbs: Vec<Framebuffer> =
+        configs.iter().map(|_| Framebuffer::new(cam.width, cam.height)).collect();
     let mut out: Vec<(RasterStats, Vec<f64>)> = Vec::with_capacity(configs.len());
     for ((fb, &cfg), g) in fbs.iter().zip(configs).zip(&groups) {
         out.push((draw(fb, refs, g.as_ref(), &grid, cam, cfg)?, Vec::with_capacity(runs)));
     }
     for _ in 0..runs.max(1) {
-        for (((fb, &cfg), (stats, times)), g) in fbs.iter_mut().zip(configs).zip(out.iter_mut()).zip(&groups) {
+        for (((fb, &cfg), (stats, times)), g) in
+            fbs.iter_mut().zip(configs).zip(out.iter_mut()).zip(&groups)
+        {
             fb.clear();
             let t = Instant::now();
             *stats = draw(fb, refs, g.as_ref(), &grid, cam, cfg)?;
             times.push(t.elapsed().as_secs_f64());
         }
     }
-    Ok(fbs.into_iter().zip(out).map(|(fb, (stats, times))| (fb.into_keys(), stats, times)).collect())
+    Ok(fbs
+        .into_iter()
+        .zip(out)
+        .map(|(fb, (stats, times))| (fb.into_keys(), stats, times))
+        .collect())
 }
 
-fn colorize(file: &BatchFile, keys: &[u64], cam: &Camera, color: ColorChoice, range: Option<[f64; 2]>) -> Result<(Vec<u32>, Option<[f64; 2]>)> {
+fn colorize(
+    file: &BatchFile,
+    keys: &[u64],
+    cam: &Camera,
+    color: ColorChoice,
+    range: Option<[f64; 2]>,
+) -> Result<(Vec<u32>, Option<[f64; 2]>)> {
     let colors = render_input::colors_for_keys(file, keys, color, range)?;
     let opts = ResolveOptions::default();
     let bg = opts.background;
@@ -210,7 +264,11 @@ pub fn run(a: Args) -> Result<()> {
         rayon::ThreadPoolBuilder::new().num_threads(t.max(1)).build_global()?;
     }
     let Some(color) = ColorChoice::from_name(&a.color) else {
-        bail!("--color {}: not a colour mode (one of {})", a.color, ColorChoice::names().join(", "));
+        bail!(
+            "--color {}: not a colour mode (one of {})",
+            a.color,
+            ColorChoice::names().join(", ")
+        );
     };
     let (source, bounds) = render::open_source(&a.inputs, &common::SortArgs::default(), None)?;
     let file = &source.file;
@@ -219,7 +277,10 @@ pub fn run(a: Args) -> Result<()> {
     }
     render_input::check_color(file, color)?;
     let label = a.label.clone().unwrap_or_else(|| {
-        PathBuf::from(&a.inputs[0]).file_stem().map(|s| s.to_string_lossy().split('.').next().unwrap_or("input").to_string()).unwrap_or_else(|| "input".into())
+        PathBuf::from(&a.inputs[0])
+            .file_stem()
+            .map(|s| s.to_string_lossy().split('.').next().unwrap_or("input").to_string())
+            .unwrap_or_else(|| "input".into())
     });
     let views = render_input::load_words(file)?;
     let refs = render_input::batch_refs(file, &views)?;
@@ -240,26 +301,46 @@ pub fn run(a: Args) -> Result<()> {
     writeln!(md, "|---|---|---|---|---|---|---|---|---|---|---|---|---|")?;
     let mut summaries = Vec::new();
     for &view in &a.views {
-        let cam_args = CameraArgs { view: Some(view), eye: None, target: None, up: [0.0, 0.0, 1.0], fov: a.fov, ortho: false };
+        let cam_args = CameraArgs {
+            view: Some(view),
+            eye: None,
+            target: None,
+            up: [0.0, 0.0, 1.0],
+            fov: a.fov,
+            ortho: false,
+        };
         let cam = render::build_camera(&cam_args, &bounds, a.width, a.height)?;
         let view_name = format!("{view:?}").to_lowercase();
         // The reference first: brute force, every batch, all words.
         let configs: Vec<Config> = if a.rule_report.is_some() {
-            let mut c = vec![Config::Options(PrecisionArg::Bits30, false), Config::Options(PrecisionArg::Bits30, true), RULE500, Config::Options(PrecisionArg::Adaptive, true)];
+            let mut c = vec![
+                Config::Options(PrecisionArg::Bits30, false),
+                Config::Options(PrecisionArg::Bits30, true),
+                RULE500,
+                Config::Options(PrecisionArg::Adaptive, true),
+            ];
             c.extend(a.budgets.iter().map(|&b| Config::Budget(b)));
             c
         } else {
-            [PrecisionArg::Bits30, PrecisionArg::Bits20, PrecisionArg::Bits10, PrecisionArg::Adaptive]
-                .into_iter()
-                .flat_map(|p| [Config::Options(p, false), Config::Options(p, true)])
-                .collect()
+            [
+                PrecisionArg::Bits30,
+                PrecisionArg::Bits20,
+                PrecisionArg::Bits10,
+                PrecisionArg::Adaptive,
+            ]
+            .into_iter()
+            .flat_map(|p| [Config::Options(p, false), Config::Options(p, true)])
+            .collect()
         };
         let measured = measure(&refs, file, &cam, &configs, a.runs)?;
         let mut reference: Option<Reference> = None;
         let mut rows = Vec::new();
         let mut keys_of = Vec::new();
         for (config, (keys, stats, times)) in configs.iter().copied().zip(measured) {
-            let (min, max) = (times.iter().copied().fold(f64::INFINITY, f64::min), times.iter().copied().fold(0.0, f64::max));
+            let (min, max) = (
+                times.iter().copied().fold(f64::INFINITY, f64::min),
+                times.iter().copied().fold(0.0, f64::max),
+            );
             let med = median(&times);
             // Colour with the reference's range, so that only the points differ.
             let range = reference.as_ref().and_then(|r| r.2);
@@ -286,7 +367,9 @@ pub fn run(a: Args) -> Result<()> {
                 if (k == EMPTY_KEY) != (r == EMPTY_KEY) {
                     row.coverage_diff += 1;
                 }
-                if (k == EMPTY_KEY) != (r == EMPTY_KEY) || (k != EMPTY_KEY && key_index(k) != key_index(r)) {
+                if (k == EMPTY_KEY) != (r == EMPTY_KEY)
+                    || (k != EMPTY_KEY && key_index(k) != key_index(r))
+                {
                     row.winner_diff += 1;
                 }
                 if rgba[i] != rc[i] {
@@ -296,8 +379,15 @@ pub fn run(a: Args) -> Result<()> {
             if a.images {
                 if let Some(dir) = &a.out {
                     std::fs::create_dir_all(dir)?;
-                    let name = format!("{label}-{view_name}-{}-{}.png", config.name().replace(' ', "-"), if config.cull() { "cull" } else { "nocull" });
-                    render::write_atomic(&dir.join(name), &render::encode_png(a.width, a.height, &rgba)?)?;
+                    let name = format!(
+                        "{label}-{view_name}-{}-{}.png",
+                        config.name().replace(' ', "-"),
+                        if config.cull() { "cull" } else { "nocull" }
+                    );
+                    render::write_atomic(
+                        &dir.join(name),
+                        &render::encode_png(a.width, a.height, &rgba)?,
+                    )?;
                 }
             }
             rows.push(row);
@@ -360,11 +450,22 @@ pub fn run(a: Args) -> Result<()> {
             let reference = &keys_of[at(Config::Options(PrecisionArg::Bits30, false))];
             let old_keys = &keys_of[at(RULE500)];
             let new_keys = &keys_of[at(Config::Options(PrecisionArg::Adaptive, true))];
-            batch_report(&mut md, &view_name, n, &refs, &file.grid(), &cam, reference, old_keys, new_keys)?;
+            batch_report(
+                &mut md,
+                &view_name,
+                n,
+                &refs,
+                &file.grid(),
+                &cam,
+                reference,
+                old_keys,
+                new_keys,
+            )?;
         }
         if let Some(dir) = &a.out {
             std::fs::create_dir_all(dir)?;
-            let title = format!("{label} {view_name} {}x{}: raster time vs error", a.width, a.height);
+            let title =
+                format!("{label} {view_name} {}x{}: raster time vs error", a.width, a.height);
             let png = plot::time_vs_error(&title, &rows)?;
             render::write_atomic(&dir.join(format!("{label}-{view_name}.png")), &png)?;
         }
@@ -402,11 +503,16 @@ fn measured_error_px(b: &BatchRef<'_>, grid: &Grid, cam: &Camera, precision: Pre
         return 0.0;
     }
     let (w, h) = (cam.width as f64, cam.height as f64);
-    let world = |rel: [f64; 3]| [0, 1, 2].map(|a| grid.offset[a] + grid.scale[a] * (b.grid.min[a] as f64 + rel[a]));
+    let world = |rel: [f64; 3]| {
+        [0, 1, 2].map(|a| grid.offset[a] + grid.scale[a] * (b.grid.min[a] as f64 + rel[a]))
+    };
     let mut worst = 0f64;
     for i in 0..b.len() {
         let words = [b.words[0][i], b.words[1][i], b.words[2][i]];
-        let (Some(d), Some(e)) = (cam.project(world(b.grid.decode_relative(words, precision))), cam.project(world(b.grid.decode_relative(words, Precision::Bits30)))) else {
+        let (Some(d), Some(e)) = (
+            cam.project(world(b.grid.decode_relative(words, precision))),
+            cam.project(world(b.grid.decode_relative(words, Precision::Bits30))),
+        ) else {
             continue;
         };
         let inside = |x: f64, y: f64| x >= -2.0 && x <= w + 2.0 && y >= -2.0 && y <= h + 2.0;
@@ -418,7 +524,17 @@ fn measured_error_px(b: &BatchRef<'_>, grid: &Grid, cam: &Camera, precision: Pre
 }
 
 #[allow(clippy::too_many_arguments)]
-fn batch_report(md: &mut String, view: &str, n: usize, refs: &[BatchRef<'_>], grid: &Grid, cam: &Camera, reference: &[u64], old_keys: &[u64], new_keys: &[u64]) -> Result<()> {
+fn batch_report(
+    md: &mut String,
+    view: &str,
+    n: usize,
+    refs: &[BatchRef<'_>],
+    grid: &Grid,
+    cam: &Camera,
+    reference: &[u64],
+    old_keys: &[u64],
+    new_keys: &[u64],
+) -> Result<()> {
     let starts: Vec<u32> = refs.iter().map(|b| b.first_index).collect();
     let batch_of = |index: u32| starts.partition_point(|&s| s <= index) - 1;
     let (mut lost_old, mut lost_new) = (vec![0u64; refs.len()], vec![0u64; refs.len()]);
@@ -444,12 +560,19 @@ fn batch_report(md: &mut String, view: &str, n: usize, refs: &[BatchRef<'_>], gr
         .map(|(i, b)| {
             let bounds = b.bounds();
             let px = cam.projected_size(&quantization_box(grid, &b.grid));
-            let depths = bounds.corners().map(|c| (0..3).map(|a| axes.forward[a] * (c[a] - cam.eye[a])).sum::<f64>());
-            let (zmin, zmax) = depths.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &z| (lo.min(z), hi.max(z)));
+            let depths = bounds
+                .corners()
+                .map(|c| (0..3).map(|a| axes.forward[a] * (c[a] - cam.eye[a])).sum::<f64>());
+            let (zmin, zmax) = depths
+                .iter()
+                .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &z| (lo.min(z), hi.max(z)));
             let p_old = budget_precision(cam, grid, b, f64::INFINITY);
             let (p_new, _) = choose_precision(PrecisionMode::Adaptive, cam, grid, &b.grid, &bounds);
-            let visible = lost_old[i] > 0 || lost_new[i] > 0 || frustum.test_aabb(&bounds) != mortar_core::render::Containment::Outside;
-            let measure = |p: Precision| if visible { measured_error_px(b, grid, cam, p) } else { 0.0 };
+            let visible = lost_old[i] > 0
+                || lost_new[i] > 0
+                || frustum.test_aabb(&bounds) != mortar_core::render::Containment::Outside;
+            let measure =
+                |p: Precision| if visible { measured_error_px(b, grid, cam, p) } else { 0.0 };
             let m_old = measure(p_old);
             let m_new = if p_new == p_old { m_old } else { measure(p_new) };
             BatchLoss {
@@ -457,13 +580,25 @@ fn batch_report(md: &mut String, view: &str, n: usize, refs: &[BatchRef<'_>], gr
                 points: b.len(),
                 px,
                 depth_ratio: if zmin > 0.0 { zmax / zmin } else { f64::INFINITY },
-                old: (p_old, decode_error_px(cam, grid, &b.grid, &bounds, p_old), m_old, lost_old[i]),
-                new: (p_new, decode_error_px(cam, grid, &b.grid, &bounds, p_new), m_new, lost_new[i]),
+                old: (
+                    p_old,
+                    decode_error_px(cam, grid, &b.grid, &bounds, p_old),
+                    m_old,
+                    lost_old[i],
+                ),
+                new: (
+                    p_new,
+                    decode_error_px(cam, grid, &b.grid, &bounds, p_new),
+                    m_new,
+                    lost_new[i],
+                ),
             }
         })
         .collect();
     let count = |f: &dyn Fn(&BatchLoss) -> bool| losses.iter().filter(|l| f(l)).count();
-    let by_precision = |sel: &dyn Fn(&BatchLoss) -> Precision| [Precision::Bits10, Precision::Bits20, Precision::Bits30].map(|p| count(&|l| sel(l) == p));
+    let by_precision = |sel: &dyn Fn(&BatchLoss) -> Precision| {
+        [Precision::Bits10, Precision::Bits20, Precision::Bits30].map(|p| count(&|l| sel(l) == p))
+    };
     let (bo, bn) = (by_precision(&|l| l.old.0), by_precision(&|l| l.new.0));
     let worst = |sel: &dyn Fn(&BatchLoss) -> f64| losses.iter().map(sel).fold(0f64, f64::max);
     let violations = count(&|l| l.old.2 > l.old.1 + 1e-9 || l.new.2 > l.new.1 + 1e-9);
@@ -485,7 +620,18 @@ fn batch_report(md: &mut String, view: &str, n: usize, refs: &[BatchRef<'_>], gr
         writeln!(
             md,
             "| {} | {} | {:.0} | {:.2} | {}, {:.3}, {:.3}, {} | {}, {:.3}, {:.3}, {} |",
-            l.batch, l.points, l.px, l.depth_ratio, l.old.0.bits(), l.old.1, l.old.2, l.old.3, l.new.0.bits(), l.new.1, l.new.2, l.new.3
+            l.batch,
+            l.points,
+            l.px,
+            l.depth_ratio,
+            l.old.0.bits(),
+            l.old.1,
+            l.old.2,
+            l.old.3,
+            l.new.0.bits(),
+            l.new.1,
+            l.new.2,
+            l.new.3
         )?;
     }
     Ok(())
@@ -602,7 +748,11 @@ mod plot {
                         if bits >> (4 - col) & 1 == 1 {
                             for u in 0..s {
                                 for v in 0..s {
-                                    self.set(x + (i as i32 * 6 + col) * s + u, y + row as i32 * s + v, c);
+                                    self.set(
+                                        x + (i as i32 * 6 + col) * s + u,
+                                        y + row as i32 * s + v,
+                                        c,
+                                    );
                                 }
                             }
                         }
@@ -619,7 +769,11 @@ mod plot {
         fn marker(&mut self, x: i32, y: i32, filled: bool, c: u32) {
             for u in -6..=6i32 {
                 for v in -6..=6i32 {
-                    let on = if filled { u * u + v * v <= 30 } else { (u.abs() == 6 || v.abs() == 6) || (u.abs() == 5 || v.abs() == 5) };
+                    let on = if filled {
+                        u * u + v * v <= 30
+                    } else {
+                        (u.abs() == 6 || v.abs() == 6) || (u.abs() == 5 || v.abs() == 5)
+                    };
                     if on {
                         self.set(x + u, y + v, c);
                     }
@@ -642,7 +796,11 @@ mod plot {
     fn tick_step(span: f64, n: f64) -> f64 {
         let raw = (span / n).max(1e-12);
         let mag = 10f64.powf(raw.log10().floor());
-        [1.0, 2.0, 2.5, 5.0, 10.0].into_iter().map(|m| m * mag).find(|&s| s >= raw).unwrap_or(10.0 * mag)
+        [1.0, 2.0, 2.5, 5.0, 10.0]
+            .into_iter()
+            .map(|m| m * mag)
+            .find(|&s| s >= raw)
+            .unwrap_or(10.0 * mag)
     }
 
     fn label(v: f64, step: f64) -> String {
@@ -697,9 +855,18 @@ mod plot {
         // Legend.
         let lx = W - RIGHT + 20;
         let mut ly = TOP + 10;
-        for p in [PrecisionArg::Adaptive, PrecisionArg::Bits10, PrecisionArg::Bits20, PrecisionArg::Bits30] {
+        for p in [
+            PrecisionArg::Adaptive,
+            PrecisionArg::Bits10,
+            PrecisionArg::Bits20,
+            PrecisionArg::Bits30,
+        ] {
             c.marker(lx + 6, ly + 7, true, color_of(p));
-            let name = if p == PrecisionArg::Adaptive { "adaptive".to_string() } else { format!("{} bits", p.name()) };
+            let name = if p == PrecisionArg::Adaptive {
+                "adaptive".to_string()
+            } else {
+                format!("{} bits", p.name())
+            };
             c.text(lx + 20, ly, 2, &name, BLACK);
             ly += 26;
         }

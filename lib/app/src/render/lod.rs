@@ -47,10 +47,14 @@ impl LodArgs {
 /// not given. LOD options given for any other input are an error.
 pub fn store_input(a: &Args) -> Result<Option<PathBuf>> {
     let store = match &a.inputs[..] {
-        [one] if one != "-" && mortar_io::store::is_store(Path::new(one)) => Some(PathBuf::from(one)),
+        [one] if one != "-" && mortar_io::store::is_store(Path::new(one)) => {
+            Some(PathBuf::from(one))
+        }
         _ => None,
     };
-    if store.is_none() && (a.lod.lod_threshold.is_some() || a.lod.point_budget.is_some() || a.lod.no_lod) {
+    if store.is_none()
+        && (a.lod.lod_threshold.is_some() || a.lod.point_budget.is_some() || a.lod.no_lod)
+    {
         bail!("--lod-threshold, --point-budget and --no-lod apply to a single octree store (made by mortar build), not to {}", a.inputs.join(" "));
     }
     Ok(if a.lod.no_lod { None } else { store })
@@ -67,7 +71,8 @@ pub fn run(a: &Args, dir: &Path) -> Result<()> {
     }
     let color = LodColor::of(lod.store(), a.color)?;
     let options = a.lod.options(!a.no_cull)?;
-    let camera = build_camera(&a.camera, &lod.bounds(), a.width, a.height).map_err(|e| anyhow!("{label}: {e:#}"))?;
+    let camera = build_camera(&a.camera, &lod.bounds(), a.width, a.height)
+        .map_err(|e| anyhow!("{label}: {e:#}"))?;
     let t = Instant::now();
     let selection = lod.select(&camera, &options)?;
     let selection_seconds = t.elapsed().as_secs_f64();
@@ -79,7 +84,8 @@ pub fn run(a: &Args, dir: &Path) -> Result<()> {
     let (r, gpu_json) = match &gpu {
         None => (store_lod::render(&lod, &batches, &camera, &settings)?, serde_json::Value::Null),
         Some(ctx) => {
-            let (r, j) = render_gpu(ctx, &lod, &batches, &camera, &settings).map_err(|e| anyhow!("{label}: GPU: {e}"))?;
+            let (r, j) = render_gpu(ctx, &lod, &batches, &camera, &settings)
+                .map_err(|e| anyhow!("{label}: GPU: {e}"))?;
             (r?, j)
         }
     };
@@ -88,7 +94,16 @@ pub fn run(a: &Args, dir: &Path) -> Result<()> {
     write_atomic(&a.output, &png)?;
     let png_seconds = t.elapsed().as_secs_f64();
     if a.json {
-        let mut j = crate::render::rendered_json(a, &label, &r, &gpu_json, color.name(), &camera, lod.point_count(), png_seconds);
+        let mut j = crate::render::rendered_json(
+            a,
+            &label,
+            &r,
+            &gpu_json,
+            color.name(),
+            &camera,
+            lod.point_count(),
+            png_seconds,
+        );
         j["lod"] = lod_json(&selection, &options, selection_seconds, prepare_seconds);
         j["open_seconds"] = serde_json::json!(open_seconds);
         crate::render::print_json(a, &j)?;
@@ -97,7 +112,12 @@ pub fn run(a: &Args, dir: &Path) -> Result<()> {
 }
 
 /// The selection's statistics as JSON.
-pub fn lod_json(sel: &LodSelection, options: &LodOptions, selection_seconds: f64, prepare_seconds: f64) -> serde_json::Value {
+pub fn lod_json(
+    sel: &LodSelection,
+    options: &LodOptions,
+    selection_seconds: f64,
+    prepare_seconds: f64,
+) -> serde_json::Value {
     let s = &sel.stats;
     serde_json::json!({
         "threshold_px": options.threshold_px,
@@ -126,6 +146,24 @@ pub(crate) fn render_gpu(
     camera: &Camera,
     settings: &RenderSettings,
 ) -> std::result::Result<(mortar_io::Result<Rendered>, serde_json::Value), GpuError> {
-    let (keys, frame, j) = super::draw_keys_gpu(ctx, lod.grid(), batches.samples, &batches.refs, camera, &settings.raster)?;
-    Ok((store_lod::resolve_keys(lod, batches, keys, frame.stats, frame.frame_seconds, camera, settings), j))
+    let (keys, frame, j) = super::draw_keys_gpu(
+        ctx,
+        lod.grid(),
+        batches.samples,
+        &batches.refs,
+        camera,
+        &settings.raster,
+    )?;
+    Ok((
+        store_lod::resolve_keys(
+            lod,
+            batches,
+            keys,
+            frame.stats,
+            frame.frame_seconds,
+            camera,
+            settings,
+        ),
+        j,
+    ))
 }

@@ -9,16 +9,18 @@ pub mod progressive;
 
 use crate::cli as common;
 use anyhow::{anyhow, bail, Context, Result};
-use mortar_core::quantize::Precision;
-use mortar_core::render::resolve::{EyeDome, HoleFill, ResolveOptions};
-use mortar_core::render::{Aabb, Camera, PrecisionMode, Projection, RasterOptions, ViewPreset};
-use mortar_io::cleanup::TempPath;
-use mortar_core::render::BatchRef;
-use mortar_io::batchfile::{AttributeSelection, BatchFile};
-use mortar_io::render_input::{self, ColorChoice, RenderSettings, RenderSource, Rendered};
 use mortar_core::grid::Grid;
+use mortar_core::quantize::Precision;
 use mortar_core::render::framing::{IntBox, ViewBox};
-use mortar_render::{AtomicPath, GpuContext, GpuError, GpuFrame, GpuOptions, GpuRasterizer, GpuScene, SceneOptions};
+use mortar_core::render::resolve::{EyeDome, HoleFill, ResolveOptions};
+use mortar_core::render::BatchRef;
+use mortar_core::render::{Aabb, Camera, PrecisionMode, Projection, RasterOptions, ViewPreset};
+use mortar_io::batchfile::{AttributeSelection, BatchFile};
+use mortar_io::cleanup::TempPath;
+use mortar_io::render_input::{self, ColorChoice, RenderSettings, RenderSource, Rendered};
+use mortar_render::{
+    AtomicPath, GpuContext, GpuError, GpuFrame, GpuOptions, GpuRasterizer, GpuScene, SceneOptions,
+};
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -140,7 +142,11 @@ pub fn parse_vec3(s: &str) -> std::result::Result<[f64; 3], String> {
 
 /// `lo,hi` as two numbers.
 pub(crate) fn parse_range(s: &str) -> std::result::Result<[f64; 2], String> {
-    let v: Vec<f64> = s.split(',').map(|t| t.trim().parse::<f64>()).collect::<std::result::Result<_, _>>().map_err(|_| format!("'{s}' is not lo,hi"))?;
+    let v: Vec<f64> = s
+        .split(',')
+        .map(|t| t.trim().parse::<f64>())
+        .collect::<std::result::Result<_, _>>()
+        .map_err(|_| format!("'{s}' is not lo,hi"))?;
     match v[..] {
         [lo, hi] if lo.is_finite() && hi.is_finite() && lo < hi => Ok([lo, hi]),
         _ => Err(format!("'{s}' is not lo,hi with lo < hi")),
@@ -158,7 +164,8 @@ pub fn parse_color(s: &str) -> std::result::Result<u32, String> {
         _ => {}
     }
     let hex = s.strip_prefix('#').unwrap_or(s);
-    let bad = || format!("'{s}' is not a colour (black, white, grey, transparent, #rrggbb or #rrggbbaa)");
+    let bad =
+        || format!("'{s}' is not a colour (black, white, grey, transparent, #rrggbb or #rrggbbaa)");
     if !(hex.len() == 6 || hex.len() == 8) || !hex.chars().all(|c| c.is_ascii_hexdigit()) {
         return Err(bad());
     }
@@ -168,7 +175,9 @@ pub fn parse_color(s: &str) -> std::result::Result<u32, String> {
 }
 
 pub(crate) fn parse_color_choice(s: &str) -> std::result::Result<ColorChoice, String> {
-    ColorChoice::from_name(s).ok_or_else(|| format!("'{s}' is not a colour mode (one of {})", ColorChoice::names().join(", ")))
+    ColorChoice::from_name(s).ok_or_else(|| {
+        format!("'{s}' is not a colour mode (one of {})", ColorChoice::names().join(", "))
+    })
 }
 
 /// Prints a render's `--json` statistics: on stdout, or on stderr where the PNG goes to stdout.
@@ -249,7 +258,11 @@ pub struct Args {
 /// of every renderer ([`mortar_core::render::framing`]): for LAS/LAZ the headers' box unless the
 /// first piece lies farther than its extent outside it, else (and for a batch file, whose
 /// header records it) the points' box.
-pub fn open_source(inputs: &[String], sort: &common::SortArgs, colour: Option<ColorChoice>) -> Result<(RenderSource, Aabb)> {
+pub fn open_source(
+    inputs: &[String],
+    sort: &common::SortArgs,
+    colour: Option<ColorChoice>,
+) -> Result<(RenderSource, Aabb)> {
     if let [one] = inputs {
         let p = Path::new(one);
         if one != "-" && p.is_file() && mortar_io::batchfile::is_batch_file(p) {
@@ -307,7 +320,15 @@ pub fn build_camera(a: &CameraArgs, bounds: &Aabb, width: u32, height: u32) -> R
     }
     let fov = a.fov.to_radians();
     let cam = match (a.eye, a.target) {
-        (Some(eye), Some(target)) => Camera::look_at(eye, target, a.up, Projection::Perspective { fov_y: fov }, bounds, width, height)?,
+        (Some(eye), Some(target)) => Camera::look_at(
+            eye,
+            target,
+            a.up,
+            Projection::Perspective { fov_y: fov },
+            bounds,
+            width,
+            height,
+        )?,
         _ => match a.view.unwrap_or(ViewArg::Iso) {
             ViewArg::Closeup => Camera::close_up(bounds, fov, width, height)?,
             ViewArg::Inside => Camera::inside(bounds, fov, width, height)?,
@@ -331,7 +352,15 @@ pub fn build_camera(a: &CameraArgs, bounds: &Aabb, width: u32, height: u32) -> R
     // Orthographic with the perspective view's visible height at the target's distance.
     let d: f64 = (0..3).map(|i| (cam.target[i] - cam.eye[i]).powi(2)).sum::<f64>().sqrt();
     let height_world = 2.0 * d * (0.5 * fov).tan();
-    Ok(Camera::look_at(cam.eye, cam.target, cam.up, Projection::Orthographic { height: height_world }, bounds, width, height)?)
+    Ok(Camera::look_at(
+        cam.eye,
+        cam.target,
+        cam.up,
+        Projection::Orthographic { height: height_world },
+        bounds,
+        width,
+        height,
+    )?)
 }
 
 /// PNG bytes of an RGBA8 image (packed `r | g << 8 | b << 16 | a << 24`, row-major).
@@ -358,14 +387,19 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
         return Ok(());
     }
     let tmp = TempPath::beside(path);
-    std::fs::write(tmp.path(), bytes).with_context(|| format!("{}: cannot write", path.display()))?;
+    std::fs::write(tmp.path(), bytes)
+        .with_context(|| format!("{}: cannot write", path.display()))?;
     tmp.persist(path).with_context(|| format!("{}: cannot write", path.display()))?;
     Ok(())
 }
 
 /// The resolve's choices of `--background`, `--hole-fill [N]` and `--edl [STRENGTH]` (shared by
 /// `mortar render`, `mortar view` and `build --preview`).
-pub fn resolve_options(background: u32, hole_fill: Option<u32>, edl: Option<f32>) -> ResolveOptions {
+pub fn resolve_options(
+    background: u32,
+    hole_fill: Option<u32>,
+    edl: Option<f32>,
+) -> ResolveOptions {
     ResolveOptions {
         background,
         hole_fill: hole_fill.map(|n| HoleFill { min_neighbors: n }),
@@ -393,15 +427,25 @@ pub(crate) fn gpu_context(a: &Args) -> Result<Option<GpuContext>> {
     };
     Ok(match a.backend {
         Backend::Cpu => None,
-        Backend::Gpu => Some(GpuContext::new(&GpuOptions { atomics, allow_software: true, ..Default::default() }).map_err(|e| anyhow!("--backend gpu: {e}"))?),
-        Backend::Auto => GpuContext::new(&GpuOptions { atomics, allow_software: false, ..Default::default() }).ok(),
+        Backend::Gpu => Some(
+            GpuContext::new(&GpuOptions { atomics, allow_software: true, ..Default::default() })
+                .map_err(|e| anyhow!("--backend gpu: {e}"))?,
+        ),
+        Backend::Auto => {
+            GpuContext::new(&GpuOptions { atomics, allow_software: false, ..Default::default() })
+                .ok()
+        }
     })
 }
 
 pub(crate) fn camera_json(c: &Camera) -> serde_json::Value {
     let projection = match c.projection {
-        Projection::Perspective { fov_y } => serde_json::json!({ "perspective": { "fov_degrees": fov_y.to_degrees() } }),
-        Projection::Orthographic { height } => serde_json::json!({ "orthographic": { "height": height } }),
+        Projection::Perspective { fov_y } => {
+            serde_json::json!({ "perspective": { "fov_degrees": fov_y.to_degrees() } })
+        }
+        Projection::Orthographic { height } => {
+            serde_json::json!({ "orthographic": { "height": height } })
+        }
     };
     serde_json::json!({ "eye": c.eye, "target": c.target, "up": c.up, "projection": projection, "near": c.near, "far": c.far })
 }
@@ -431,15 +475,20 @@ pub fn run(a: Args) -> Result<()> {
         bail!("{label}: no points to draw");
     }
     render_input::check_color(file, a.color).map_err(own)?;
-    let camera = build_camera(&a.camera, &bounds, a.width, a.height).map_err(|e| anyhow!("{label}: {e:#}"))?;
+    let camera = build_camera(&a.camera, &bounds, a.width, a.height)
+        .map_err(|e| anyhow!("{label}: {e:#}"))?;
     let views = render_input::load_words(file).map_err(own)?;
     let refs = render_input::batch_refs(file, &views).map_err(own)?;
     let settings = render_settings(&a);
     let gpu = gpu_context(&a)?;
     let (r, gpu_json) = match &gpu {
-        None => (render_input::render(file, &refs, &camera, &settings).map_err(own)?, serde_json::Value::Null),
+        None => (
+            render_input::render(file, &refs, &camera, &settings).map_err(own)?,
+            serde_json::Value::Null,
+        ),
         Some(ctx) => {
-            let (r, j) = render_gpu(ctx, file, &refs, &camera, &settings).map_err(|e| anyhow!("{label}: GPU: {e}"))?;
+            let (r, j) = render_gpu(ctx, file, &refs, &camera, &settings)
+                .map_err(|e| anyhow!("{label}: GPU: {e}"))?;
             (r.map_err(own)?, j)
         }
     };
@@ -449,16 +498,38 @@ pub fn run(a: Args) -> Result<()> {
     let png_seconds = t.elapsed().as_secs_f64();
     if a.json {
         let projected = r.stats.points_projected() as f64;
-        let mut j = rendered_json(&a, &label, &r, &gpu_json, a.color.resolved(file).name(), &camera, file.header.point_count, png_seconds);
+        let mut j = rendered_json(
+            &a,
+            &label,
+            &r,
+            &gpu_json,
+            a.color.resolved(file).name(),
+            &camera,
+            file.header.point_count,
+            png_seconds,
+        );
         // Pixels whose winner ties in depth with another point (where a renderer numbering the
         // points otherwise may show another of them): a second pass over the points on the CPU,
         // on the CPU backend only.
         j["depth_ties"] = serde_json::json!(match &gpu {
-            None => Some(mortar_core::render::count_depth_ties(&r.keys, &refs, &file.grid(), &camera, &settings.raster).map_err(|e| anyhow!("{label}: {e}"))?),
+            None => Some(
+                mortar_core::render::count_depth_ties(
+                    &r.keys,
+                    &refs,
+                    &file.grid(),
+                    &camera,
+                    &settings.raster
+                )
+                .map_err(|e| anyhow!("{label}: {e}"))?
+            ),
             Some(_) => None,
         });
-        j["batch_seconds"] = serde_json::json!(if source.is_temporary() { Some(batch_seconds) } else { None });
-        j["gpu_points_per_second"] = serde_json::json!(gpu_json.get("draw_ms").and_then(|v| v.as_f64()).map(|ms| projected / (ms * 1e-3).max(1e-12)));
+        j["batch_seconds"] =
+            serde_json::json!(if source.is_temporary() { Some(batch_seconds) } else { None });
+        j["gpu_points_per_second"] = serde_json::json!(gpu_json
+            .get("draw_ms")
+            .and_then(|v| v.as_f64())
+            .map(|ms| projected / (ms * 1e-3).max(1e-12)));
         print_json(&a, &j)?;
     }
     Ok(())
@@ -467,7 +538,16 @@ pub fn run(a: Args) -> Result<()> {
 /// The `--json` statistics every `mortar render` of batches (batch files, LAS/LAZ, stores)
 /// reports; each caller adds its own.
 #[allow(clippy::too_many_arguments)]
-pub(crate) fn rendered_json(a: &Args, label: &str, r: &Rendered, gpu_json: &serde_json::Value, color: &str, camera: &Camera, points: u64, png_seconds: f64) -> serde_json::Value {
+pub(crate) fn rendered_json(
+    a: &Args,
+    label: &str,
+    r: &Rendered,
+    gpu_json: &serde_json::Value,
+    color: &str,
+    camera: &Camera,
+    points: u64,
+    png_seconds: f64,
+) -> serde_json::Value {
     let s = &r.stats;
     serde_json::json!({
         "input": label,
@@ -501,7 +581,14 @@ pub(crate) fn rendered_json(a: &Args, label: &str, r: &Rendered, gpu_json: &serd
 /// back, for callers that resolve on the host exactly as their CPU path does (`mortar render`
 /// of a store, whose colours come from the nodes' payloads; batch files and LAS/LAZ resolve on
 /// the GPU, see `render_gpu`). Returns the keys, the frame and its `gpu` statistics for `--json`.
-pub fn draw_keys_gpu(ctx: &GpuContext, grid: Grid, points: u64, refs: &[BatchRef<'_>], camera: &Camera, options: &RasterOptions) -> std::result::Result<(Vec<u64>, GpuFrame, serde_json::Value), GpuError> {
+pub fn draw_keys_gpu(
+    ctx: &GpuContext,
+    grid: Grid,
+    points: u64,
+    refs: &[BatchRef<'_>],
+    camera: &Camera,
+    options: &RasterOptions,
+) -> std::result::Result<(Vec<u64>, GpuFrame, serde_json::Value), GpuError> {
     let t = Instant::now();
     let mut scene = GpuScene::new(ctx, grid, points, SceneOptions::default())?;
     for b in refs {
@@ -522,13 +609,24 @@ pub fn draw_keys_gpu(ctx: &GpuContext, grid: Grid, points: u64, refs: &[BatchRef
 /// path does, those colours uploaded, and the framebuffer resolved on the GPU (hole filling,
 /// colours, eye-dome lighting: [`GpuRasterizer::resolve`]); only the image comes back. The outer
 /// error is the GPU's, the inner one the input's.
-fn render_gpu(ctx: &GpuContext, file: &BatchFile, refs: &[BatchRef<'_>], camera: &Camera, settings: &RenderSettings) -> std::result::Result<(mortar_io::Result<Rendered>, serde_json::Value), GpuError> {
+fn render_gpu(
+    ctx: &GpuContext,
+    file: &BatchFile,
+    refs: &[BatchRef<'_>],
+    camera: &Camera,
+    settings: &RenderSettings,
+) -> std::result::Result<(mortar_io::Result<Rendered>, serde_json::Value), GpuError> {
     if let Err(e) = render_input::check_color(file, settings.color) {
         return Ok((Err(e), serde_json::Value::Null));
     }
     let points = file.header.point_count;
     let t = Instant::now();
-    let mut scene = GpuScene::new(ctx, file.grid(), points, SceneOptions { colors: true, ..Default::default() })?;
+    let mut scene = GpuScene::new(
+        ctx,
+        file.grid(),
+        points,
+        SceneOptions { colors: true, ..Default::default() },
+    )?;
     // The colours depend on the visible points: placeholders now, the real ones after the draw.
     let zeros = vec![0u32; refs.iter().map(BatchRef::len).max().unwrap_or(0)];
     for b in refs {
@@ -579,7 +677,12 @@ fn render_gpu(ctx: &GpuContext, file: &BatchFile, refs: &[BatchRef<'_>], camera:
 }
 
 /// The `gpu` statistics of `--json`: the adapter, the scene and the frame.
-fn gpu_json(ctx: &GpuContext, scene: &GpuScene, upload_seconds: f64, frame: &GpuFrame) -> serde_json::Value {
+fn gpu_json(
+    ctx: &GpuContext,
+    scene: &GpuScene,
+    upload_seconds: f64,
+    frame: &GpuFrame,
+) -> serde_json::Value {
     let a = ctx.adapter();
     serde_json::json!({
         "adapter": a.name,

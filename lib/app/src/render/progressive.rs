@@ -12,12 +12,12 @@
 //! The interactive window (`mortar view` on raw LAS/LAZ) draws progressively too:
 //! [`crate::viewer::progressive`].
 
-use mortar_core::metrics::median;
 use crate::cli as common;
 use crate::render::{
     build_camera, camera_json, encode_png, gpu_context, write_atomic, Args, Backend,
 };
 use anyhow::{anyhow, bail, Result};
+use mortar_core::metrics::median;
 use mortar_core::render::framing::{IntBox, ViewBox};
 use mortar_core::render::progressive::{
     AdaptiveBudget, FillBudget, FrameStats, ProgressiveFrame, ProgressiveRenderer, Shuffle,
@@ -26,7 +26,8 @@ use mortar_core::render::resolve::{resolve, ColorMode, EyeDome, HoleFill, Resolv
 use mortar_core::render::{Camera, RasterOptions};
 use mortar_io::dataset::Dataset;
 use mortar_io::progressive::{
-    load_pieces, payload_colors, payload_for, payload_range, point_count, resolve_choice, ColorStats, LoadedPiece,
+    load_pieces, payload_colors, payload_for, payload_range, point_count, resolve_choice,
+    ColorStats, LoadedPiece,
 };
 use mortar_io::render_input::ColorChoice;
 use mortar_render::{
@@ -126,8 +127,7 @@ fn parse_budget(p: &ProgressiveArgs) -> Result<FillBudget> {
 
 /// The frame period of `--pace`, ms.
 fn frame_period(p: &ProgressiveArgs) -> Option<f64> {
-    p.pace
-        .then(|| p.target_ms.unwrap_or(AdaptiveBudget::default().target_ms))
+    p.pace.then(|| p.target_ms.unwrap_or(AdaptiveBudget::default().target_ms))
 }
 
 /// The `--backend` value, for messages.
@@ -157,7 +157,12 @@ pub trait ProgressiveEngine {
     /// Inserts a decoded piece (positions and payloads).
     fn insert(&mut self, piece: &LoadedPiece) -> std::result::Result<(), String>;
     /// One frame: reproject, fill within `budget`, prepare; the GPU's own account where there is one.
-    fn frame(&mut self, camera: &Camera, options: &RasterOptions, budget: &FillBudget) -> std::result::Result<(FrameStats, Option<GpuProgressiveFrame>), String>;
+    fn frame(
+        &mut self,
+        camera: &Camera,
+        options: &RasterOptions,
+        budget: &FillBudget,
+    ) -> std::result::Result<(FrameStats, Option<GpuProgressiveFrame>), String>;
     /// The last frame's keys and its visible slots (sorted).
     fn keys_and_visible(&self) -> Result<(Vec<u64>, Vec<u32>)>;
     /// The payload in `slot`, once loaded.
@@ -191,11 +196,19 @@ impl ProgressiveEngine for ProgressiveRenderer {
     }
 
     fn insert(&mut self, piece: &LoadedPiece) -> std::result::Result<(), String> {
-        ProgressiveRenderer::insert(self, piece.first, &piece.xyz, &piece.payload).map_err(|e| e.to_string())
+        ProgressiveRenderer::insert(self, piece.first, &piece.xyz, &piece.payload)
+            .map_err(|e| e.to_string())
     }
 
-    fn frame(&mut self, camera: &Camera, options: &RasterOptions, budget: &FillBudget) -> std::result::Result<(FrameStats, Option<GpuProgressiveFrame>), String> {
-        ProgressiveRenderer::frame(self, camera, options, budget).map(|s| (s, None)).map_err(|e| e.to_string())
+    fn frame(
+        &mut self,
+        camera: &Camera,
+        options: &RasterOptions,
+        budget: &FillBudget,
+    ) -> std::result::Result<(FrameStats, Option<GpuProgressiveFrame>), String> {
+        ProgressiveRenderer::frame(self, camera, options, budget)
+            .map(|s| (s, None))
+            .map_err(|e| e.to_string())
     }
 
     fn keys_and_visible(&self) -> Result<(Vec<u64>, Vec<u32>)> {
@@ -245,11 +258,21 @@ impl ProgressiveEngine for OnGpu<'_> {
     }
 
     fn insert(&mut self, piece: &LoadedPiece) -> std::result::Result<(), String> {
-        self.r.insert(self.ctx, piece.first, &piece.xyz, None, Some(&piece.payload)).map_err(|e| e.to_string())
+        self.r
+            .insert(self.ctx, piece.first, &piece.xyz, None, Some(&piece.payload))
+            .map_err(|e| e.to_string())
     }
 
-    fn frame(&mut self, camera: &Camera, options: &RasterOptions, budget: &FillBudget) -> std::result::Result<(FrameStats, Option<GpuProgressiveFrame>), String> {
-        self.r.frame(self.ctx, camera, options, budget, None).map(|f| (f.stats, Some(f))).map_err(|e| format!("GPU: {e}"))
+    fn frame(
+        &mut self,
+        camera: &Camera,
+        options: &RasterOptions,
+        budget: &FillBudget,
+    ) -> std::result::Result<(FrameStats, Option<GpuProgressiveFrame>), String> {
+        self.r
+            .frame(self.ctx, camera, options, budget, None)
+            .map(|f| (f.stats, Some(f)))
+            .map_err(|e| format!("GPU: {e}"))
     }
 
     fn keys_and_visible(&self) -> Result<(Vec<u64>, Vec<u32>)> {
@@ -319,7 +342,13 @@ struct Outcome {
 }
 
 /// Takes a decoded piece into the renderer.
-fn take(r: &mut dyn ProgressiveEngine, piece: mortar_io::Result<LoadedPiece>, colors: &mut ColorStats, decode_seconds: &mut f64, label: &str) -> Result<()> {
+fn take(
+    r: &mut dyn ProgressiveEngine,
+    piece: mortar_io::Result<LoadedPiece>,
+    colors: &mut ColorStats,
+    decode_seconds: &mut f64,
+    label: &str,
+) -> Result<()> {
     let piece = piece?;
     colors.add(&piece);
     *decode_seconds += piece.seconds;
@@ -351,7 +380,14 @@ fn render_loop(
         open = false;
     }
     let camera = camera(&*r)?;
-    let mut out = Outcome { camera, frames: Vec::new(), colors, loaded_ms: None, first_frame_ms: 0.0, decode_seconds };
+    let mut out = Outcome {
+        camera,
+        frames: Vec::new(),
+        colors,
+        loaded_ms: None,
+        first_frame_ms: 0.0,
+        decode_seconds,
+    };
     loop {
         let t = Instant::now();
         // The first frame waits for the first points, so that it shows something.
@@ -369,11 +405,7 @@ fn render_loop(
             }
         }
         if !open && r.loaded() < r.capacity() {
-            bail!(
-                "{label}: only {} of {} points could be read",
-                r.loaded(),
-                r.capacity()
-            );
+            bail!("{label}: only {} of {} points could be read", r.loaded(), r.capacity());
         }
         let distribute_ms = ms(t);
         if out.loaded_ms.is_none() && r.loaded() == r.capacity() {
@@ -382,15 +414,9 @@ fn render_loop(
         if out.frames.is_empty() {
             out.first_frame_ms = ms(start);
         }
-        let (stats, gpu) = r
-            .frame(&out.camera, options, budget)
-            .map_err(|e| anyhow!("{label}: {e}"))?;
-        out.frames.push(FrameRecord {
-            stats,
-            gpu,
-            distribute_ms,
-            at_ms: ms(start),
-        });
+        let (stats, gpu) =
+            r.frame(&out.camera, options, budget).map_err(|e| anyhow!("{label}: {e}"))?;
+        out.frames.push(FrameRecord { stats, gpu, distribute_ms, at_ms: ms(start) });
         let done = match frames {
             Frames::Count(n) => stats.frame >= n,
             Frames::Converge => stats.converged,
@@ -434,11 +460,7 @@ pub fn run(a: &Args) -> Result<()> {
     common::print_warnings(&ds.warnings);
     let keep = a.color.attributes(&ds.layout);
     ds.decode_only(&keep);
-    let label = paths
-        .iter()
-        .map(|p| p.display().to_string())
-        .collect::<Vec<_>>()
-        .join(" ");
+    let label = paths.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(" ");
     let points = point_count(&ds);
     if points == 0 {
         bail!("{label}: no points to draw");
@@ -452,7 +474,8 @@ pub fn run(a: &Args) -> Result<()> {
         ViewBox::Header(h) => (ProgressiveFrame::around(ds.grid, h), p.preload),
         ViewBox::Points => {
             common::warn(&format!("{label}: the header's bounds do not hold the first points; reading every point before the first frame to frame them"));
-            let first = IntBox::of(&mortar_io::framing::first_points(&ds)?).ok_or_else(|| anyhow!("{label}: the first piece holds no point"))?;
+            let first = IntBox::of(&mortar_io::framing::first_points(&ds)?)
+                .ok_or_else(|| anyhow!("{label}: the first piece holds no point"))?;
             (ProgressiveFrame::around(ds.grid, first), true)
         }
     };
@@ -463,11 +486,9 @@ pub fn run(a: &Args) -> Result<()> {
         build_camera(&a.camera, &bounds, width, height).map_err(|e| anyhow!("{label}: {e:#}"))
     };
     // Checked before anything is loaded.
-    build_camera(&a.camera, &frame.data.world(&grid), width, height).map_err(|e| anyhow!("{label}: {e:#}"))?;
-    let options = RasterOptions {
-        precision: a.precision.mode(),
-        cull: !a.no_cull,
-    };
+    build_camera(&a.camera, &frame.data.world(&grid), width, height)
+        .map_err(|e| anyhow!("{label}: {e:#}"))?;
+    let options = RasterOptions { precision: a.precision.mode(), cull: !a.no_cull };
     // `auto` takes a hardware GPU only if it has the 64-bit atomics the GPU renderer needs.
     let gpu = match gpu_context(a)? {
         Some(ctx) if a.backend == Backend::Auto && ctx.atomic_path() != AtomicPath::U64 => None,
@@ -475,24 +496,18 @@ pub fn run(a: &Args) -> Result<()> {
     };
     let mut renderer: Box<dyn ProgressiveEngine> = match &gpu {
         None => Box::new(
-            ProgressiveRenderer::with_frame(frame, points)
-                .map_err(|e| anyhow!("{label}: {e}"))?,
+            ProgressiveRenderer::with_frame(frame, points).map_err(|e| anyhow!("{label}: {e}"))?,
         ),
         Some(ctx) => {
-            let options = ProgressiveOptions {
-                payloads: true,
-                ..ProgressiveOptions::default()
-            };
+            let options = ProgressiveOptions { payloads: true, ..ProgressiveOptions::default() };
             let r = GpuProgressive::with_frame(ctx, frame, points, options)
                 .map_err(|e| anyhow!("{label}: --backend {}: {e}", backend_name(a.backend)))?;
             Box::new(OnGpu { ctx, r })
         }
     };
-    let threads = p.load_threads.unwrap_or_else(|| {
-        std::thread::available_parallelism()
-            .map(|n| n.get())
-            .unwrap_or(1)
-    });
+    let threads = p
+        .load_threads
+        .unwrap_or_else(|| std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1));
 
     let start = Instant::now();
     let cancel = AtomicBool::new(false);
@@ -501,9 +516,7 @@ pub fn run(a: &Args) -> Result<()> {
         let ds = &ds;
         let cancel = &cancel;
         let loader = s.spawn(move || {
-            load_pieces(ds, payload, threads, cancel, move |piece| {
-                tx.send(piece).is_ok()
-            })
+            load_pieces(ds, payload, threads, cancel, move |piece| tx.send(piece).is_ok())
         });
         let result = render_loop(
             &mut *renderer,
@@ -519,9 +532,7 @@ pub fn run(a: &Args) -> Result<()> {
         );
         // The receiver is gone: the loader's next delivery fails and it stops.
         cancel.store(true, std::sync::atomic::Ordering::Relaxed);
-        let loaded = loader
-            .join()
-            .map_err(|_| anyhow!("{label}: a loader thread panicked"))?;
+        let loaded = loader.join().map_err(|_| anyhow!("{label}: a loader thread panicked"))?;
         let out = result?;
         loaded?;
         Ok(out)
@@ -542,39 +553,22 @@ pub fn run(a: &Args) -> Result<()> {
     if loaded_all && a.color == ColorChoice::Mode(ColorMode::Rgb) && outcome.colors.max_rgb == 0 {
         bail!("{}: --color rgb: the points have no colour (every RGB value is zero, point format {}); try --color intensity", first_path.display(), ds.layout.format);
     }
-    let (keys, slots) = renderer
-        .keys_and_visible()
-        .map_err(|e| anyhow!("{label}: GPU: {e}"))?;
-    let payloads: Vec<u64> = slots
-        .iter()
-        .map(|&s| renderer.payload(s).expect("visible points are loaded"))
-        .collect();
-    let range = a.range.or_else(|| payload_range(&renderer.loaded_payloads(), a.color, payload, &outcome.colors, &ds.grid));
-    let (colors, color_range) = payload_colors(
-        &payloads,
-        a.color,
-        payload,
-        &outcome.colors,
-        &ds.grid,
-        range,
-    );
+    let (keys, slots) = renderer.keys_and_visible().map_err(|e| anyhow!("{label}: GPU: {e}"))?;
+    let payloads: Vec<u64> =
+        slots.iter().map(|&s| renderer.payload(s).expect("visible points are loaded")).collect();
+    let range = a.range.or_else(|| {
+        payload_range(&renderer.loaded_payloads(), a.color, payload, &outcome.colors, &ds.grid)
+    });
+    let (colors, color_range) =
+        payload_colors(&payloads, a.color, payload, &outcome.colors, &ds.grid, range);
     let resolve_options = ResolveOptions {
         background: a.background,
         hole_fill: a.hole_fill.map(|n| HoleFill { min_neighbors: n }),
-        eye_dome: a.edl.map(|strength| EyeDome {
-            strength,
-            ..EyeDome::default()
-        }),
+        eye_dome: a.edl.map(|strength| EyeDome { strength, ..EyeDome::default() }),
     };
     let bg = a.background;
     let color_of = |i: u32| slots.binary_search(&i).map(|k| colors[k]).unwrap_or(bg);
-    let rgba = resolve(
-        &keys,
-        camera.width,
-        camera.height,
-        color_of,
-        &resolve_options,
-    );
+    let rgba = resolve(&keys, camera.width, camera.height, color_of, &resolve_options);
     let resolve_seconds = t.elapsed().as_secs_f64();
     let t = Instant::now();
     let png = encode_png(camera.width, camera.height, &rgba)?;
@@ -597,7 +591,11 @@ pub fn run(a: &Args) -> Result<()> {
     // Where the converged image may show another point than a renderer that numbers the points
     // otherwise (the batch rasterizer: Morton order): pixels whose winner ties in depth.
     let t = Instant::now();
-    let depth_ties = if last.converged { renderer.depth_ties().map_err(|e| anyhow!("{label}: {e:#}"))? } else { None };
+    let depth_ties = if last.converged {
+        renderer.depth_ties().map_err(|e| anyhow!("{label}: {e:#}"))?
+    } else {
+        None
+    };
     let ties_seconds = t.elapsed().as_secs_f64();
     let gpu_json = renderer.backend_json();
     let budget_json = match budget {
@@ -608,16 +606,9 @@ pub fn run(a: &Args) -> Result<()> {
             serde_json::json!({ "auto": { "target_ms": a.target_ms, "probe": a.probe_points, "usable": a.usable } })
         }
     };
-    let filled: Vec<f64> = outcome
-        .frames
-        .iter()
-        .map(|f| f.stats.filled as f64)
-        .collect();
-    let loaded_frames: Vec<&FrameRecord> = outcome
-        .frames
-        .iter()
-        .filter(|f| f.stats.loaded == renderer.capacity())
-        .collect();
+    let filled: Vec<f64> = outcome.frames.iter().map(|f| f.stats.filled as f64).collect();
+    let loaded_frames: Vec<&FrameRecord> =
+        outcome.frames.iter().filter(|f| f.stats.loaded == renderer.capacity()).collect();
     let frame_json: Vec<serde_json::Value> = outcome
         .frames
         .iter()
@@ -713,24 +704,15 @@ mod tests {
             budget: b.map(String::from),
             ..ProgressiveArgs::default()
         };
-        assert_eq!(
-            parse_budget(&args(None)).unwrap(),
-            FillBudget::Fixed(DEFAULT_BUDGET)
-        );
-        assert_eq!(
-            parse_budget(&args(Some("5000"))).unwrap(),
-            FillBudget::Fixed(5000)
-        );
+        assert_eq!(parse_budget(&args(None)).unwrap(), FillBudget::Fixed(DEFAULT_BUDGET));
+        assert_eq!(parse_budget(&args(Some("5000"))).unwrap(), FillBudget::Fixed(5000));
         assert!(parse_budget(&args(Some("0")))
             .unwrap_err()
             .to_string()
             .contains("at least one point"));
         assert!(parse_budget(&args(Some("lots"))).is_err());
-        let auto = ProgressiveArgs {
-            target_ms: Some(8.0),
-            probe: Some(1000),
-            ..args(Some("auto"))
-        };
+        let auto =
+            ProgressiveArgs { target_ms: Some(8.0), probe: Some(1000), ..args(Some("auto")) };
         assert_eq!(
             parse_budget(&auto).unwrap(),
             FillBudget::Adaptive(AdaptiveBudget {
@@ -739,31 +721,15 @@ mod tests {
                 ..AdaptiveBudget::default()
             })
         );
-        assert!(parse_budget(&ProgressiveArgs {
-            target_ms: Some(-1.0),
-            ..auto.clone()
-        })
-        .is_err());
-        assert!(parse_budget(&ProgressiveArgs {
-            target_ms: Some(8.0),
-            ..args(Some("10"))
-        })
-        .is_err());
+        assert!(parse_budget(&ProgressiveArgs { target_ms: Some(-1.0), ..auto.clone() }).is_err());
+        assert!(
+            parse_budget(&ProgressiveArgs { target_ms: Some(8.0), ..args(Some("10")) }).is_err()
+        );
         // --pace takes --target-ms as its frame period, with any budget.
-        let paced = ProgressiveArgs {
-            target_ms: Some(40.0),
-            pace: true,
-            ..args(Some("10"))
-        };
+        let paced = ProgressiveArgs { target_ms: Some(40.0), pace: true, ..args(Some("10")) };
         assert_eq!(parse_budget(&paced).unwrap(), FillBudget::Fixed(10));
         assert_eq!(frame_period(&paced), Some(40.0));
         assert_eq!(frame_period(&args(None)), None);
-        assert_eq!(
-            frame_period(&ProgressiveArgs {
-                pace: true,
-                ..args(None)
-            }),
-            Some(16.6)
-        );
+        assert_eq!(frame_period(&ProgressiveArgs { pace: true, ..args(None) }), Some(16.6));
     }
 }

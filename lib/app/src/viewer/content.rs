@@ -35,7 +35,12 @@ pub struct GpuDrawn {
 impl GpuDrawn {
     /// What a frame of the batch rasterizer drew (resolved in the rasterizer).
     pub fn of(f: &GpuFrame) -> GpuDrawn {
-        GpuDrawn { points_drawn: f.stats.points_drawn, draw_ms: f.timings.map(|t| t.draw_ms), resolve_ms: f.timings.and_then(|t| t.post_ms()), own_image: false }
+        GpuDrawn {
+            points_drawn: f.stats.points_drawn,
+            draw_ms: f.timings.map(|t| t.draw_ms),
+            resolve_ms: f.timings.and_then(|t| t.post_ms()),
+            own_image: false,
+        }
     }
 }
 
@@ -70,11 +75,23 @@ pub trait Content {
     fn use_gpu(&mut self, ctx: &GpuContext) -> Result<(), GpuError>;
     /// One frame on the CPU: the RGBA8 image of `camera` resolved with `resolve` (background,
     /// hole filling, eye-dome lighting) and the points drawn.
-    fn draw_cpu(&mut self, camera: &Camera, options: &RasterOptions, resolve: &ResolveOptions) -> Result<(Vec<u32>, u64)>;
+    fn draw_cpu(
+        &mut self,
+        camera: &Camera,
+        options: &RasterOptions,
+        resolve: &ResolveOptions,
+    ) -> Result<(Vec<u32>, u64)>;
     /// One frame on the GPU, resolved with `resolve` into `raster` (or into
     /// [`image`](Self::image) where [`GpuDrawn::own_image`]) without leaving the GPU, ready to
     /// present; the same image as [`draw_cpu`](Self::draw_cpu).
-    fn draw_gpu(&mut self, ctx: &GpuContext, raster: &mut GpuRasterizer, camera: &Camera, options: &RasterOptions, resolve: &ResolveOptions) -> Result<GpuDrawn>;
+    fn draw_gpu(
+        &mut self,
+        ctx: &GpuContext,
+        raster: &mut GpuRasterizer,
+        camera: &Camera,
+        options: &RasterOptions,
+        resolve: &ResolveOptions,
+    ) -> Result<GpuDrawn>;
     /// The content's own resolved image on the GPU, after [`draw_gpu`](Self::draw_gpu).
     fn image(&self) -> Option<&wgpu::Buffer> {
         None
@@ -111,22 +128,46 @@ impl<'a> BatchContent<'a> {
     /// The batches `refs` of `file` (named `label` in errors), first shown in colour mode
     /// `color`; the other modes are those the file's attributes serve; `bounds` what framed views
     /// frame. `range`: of the scalar modes (default: the 1st to 99th percentile of all points).
-    pub fn new(label: String, file: &'a BatchFile, refs: &'a [BatchRef<'a>], bounds: Aabb, color: ColorChoice, range: Option<[f64; 2]>) -> mortar_io::Result<BatchContent<'a>> {
+    pub fn new(
+        label: String,
+        file: &'a BatchFile,
+        refs: &'a [BatchRef<'a>],
+        bounds: Aabb,
+        color: ColorChoice,
+        range: Option<[f64; 2]>,
+    ) -> mortar_io::Result<BatchContent<'a>> {
         let initial = color.resolved(file);
         render_input::check_color(file, initial)?;
-        let mut modes: Vec<ColorChoice> = ColorMode::ALL.iter().map(|&m| ColorChoice::Mode(m)).filter(|&c| render_input::check_color(file, c).is_ok()).collect();
+        let mut modes: Vec<ColorChoice> = ColorMode::ALL
+            .iter()
+            .map(|&m| ColorChoice::Mode(m))
+            .filter(|&c| render_input::check_color(file, c).is_ok())
+            .collect();
         if !modes.contains(&initial) {
             modes.insert(0, initial);
         }
         let mode = modes.iter().position(|&m| m == initial).unwrap_or(0);
         let colors = vec![None; modes.len()];
-        Ok(BatchContent { label, file, refs, bounds, range, modes, mode, colors, fb: None, gpu: None })
+        Ok(BatchContent {
+            label,
+            file,
+            refs,
+            bounds,
+            range,
+            modes,
+            mode,
+            colors,
+            fb: None,
+            gpu: None,
+        })
     }
 
     /// Every point's colour in the current mode (computed once per mode).
     fn colors(&mut self) -> Result<&[u32]> {
         if self.colors[self.mode].is_none() {
-            let (c, _range) = render_input::point_colors(self.file, self.modes[self.mode], self.range).map_err(|e| anyhow!("{}: {e}", self.label))?;
+            let (c, _range) =
+                render_input::point_colors(self.file, self.modes[self.mode], self.range)
+                    .map_err(|e| anyhow!("{}: {e}", self.label))?;
             self.colors[self.mode] = Some(c);
         }
         Ok(self.colors[self.mode].as_deref().unwrap_or_default())
@@ -169,12 +210,22 @@ impl Content for BatchContent<'_> {
         }
         // Batches are uploaded by the frames, a time slice each, so that the first frame comes
         // at once whatever the file's size.
-        let scene = GpuScene::new(ctx, self.file.grid(), self.file.header.point_count, SceneOptions { colors: true, ..Default::default() })?;
+        let scene = GpuScene::new(
+            ctx,
+            self.file.grid(),
+            self.file.header.point_count,
+            SceneOptions { colors: true, ..Default::default() },
+        )?;
         self.gpu = Some(BatchGpu { scene, uploaded: self.mode, next: 0 });
         Ok(())
     }
 
-    fn draw_cpu(&mut self, camera: &Camera, options: &RasterOptions, resolve_options: &ResolveOptions) -> Result<(Vec<u32>, u64)> {
+    fn draw_cpu(
+        &mut self,
+        camera: &Camera,
+        options: &RasterOptions,
+        resolve_options: &ResolveOptions,
+    ) -> Result<(Vec<u32>, u64)> {
         self.colors()?;
         let (w, h) = (camera.width, camera.height);
         let fb = match &mut self.fb {
@@ -184,14 +235,28 @@ impl Content for BatchContent<'_> {
             }
             fb => fb.insert(Framebuffer::new(w, h)),
         };
-        let s = rasterize(fb, self.refs, &self.file.grid(), camera, options).map_err(|e| anyhow!("{}: {e}", self.label))?;
+        let s = rasterize(fb, self.refs, &self.file.grid(), camera, options)
+            .map_err(|e| anyhow!("{}: {e}", self.label))?;
         let colors = self.colors[self.mode].as_deref().unwrap_or_default();
         let background = resolve_options.background;
-        let rgba = resolve(fb.keys_slice(), w, h, |i| colors.get(i as usize).copied().unwrap_or(background), resolve_options);
+        let rgba = resolve(
+            fb.keys_slice(),
+            w,
+            h,
+            |i| colors.get(i as usize).copied().unwrap_or(background),
+            resolve_options,
+        );
         Ok((rgba, s.points_drawn))
     }
 
-    fn draw_gpu(&mut self, ctx: &GpuContext, raster: &mut GpuRasterizer, camera: &Camera, options: &RasterOptions, resolve: &ResolveOptions) -> Result<GpuDrawn> {
+    fn draw_gpu(
+        &mut self,
+        ctx: &GpuContext,
+        raster: &mut GpuRasterizer,
+        camera: &Camera,
+        options: &RasterOptions,
+        resolve: &ResolveOptions,
+    ) -> Result<GpuDrawn> {
         self.colors()?;
         let label = &self.label;
         let gpu = |e: GpuError| anyhow!("{label}: GPU: {e}");
@@ -210,7 +275,9 @@ impl Content for BatchContent<'_> {
         }
         let frame = if g.next < self.refs.len() {
             let ids: Vec<u32> = (0..g.next as u32).collect();
-            raster.draw_selected(ctx, &mut g.scene, Some(&ids), camera, options, Some(resolve)).map_err(gpu)?
+            raster
+                .draw_selected(ctx, &mut g.scene, Some(&ids), camera, options, Some(resolve))
+                .map_err(gpu)?
         } else {
             raster.draw(ctx, &mut g.scene, camera, options, Some(resolve)).map_err(gpu)?
         };

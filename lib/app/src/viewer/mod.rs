@@ -16,21 +16,26 @@ pub mod store;
 pub use content::{BatchContent, Content, GpuDrawn};
 
 use crate::cli as common;
-use crate::render::{build_camera, encode_png, parse_color, parse_color_choice, parse_range, write_atomic, AtomicsArg, CameraArgs, PrecisionArg};
+use crate::render::{
+    build_camera, encode_png, parse_color, parse_color_choice, parse_range, write_atomic,
+    AtomicsArg, CameraArgs, PrecisionArg,
+};
 use crate::viewer::progressive::ProgressiveView;
 use crate::viewer::store::StoreView;
-use mortar_core::layout::RecordLayout;
 use anyhow::{anyhow, bail, Context as _, Result};
+use mortar_core::layout::RecordLayout;
 use mortar_core::render::resolve::ResolveOptions;
 use mortar_core::render::{Aabb, Orbit, RasterOptions};
 use mortar_io::render_input::{self, ColorChoice};
-use mortar_render::{AtomicPath, GpuContext, GpuError, GpuOptions, GpuRasterizer, Overlay, Presented, WindowSurface};
+use mortar_io::store::{BuildProgress, BuildReport};
+use mortar_render::{
+    AtomicPath, GpuContext, GpuError, GpuOptions, GpuRasterizer, Overlay, Presented, WindowSurface,
+};
 use std::num::NonZeroU32;
 use std::path::PathBuf;
-use std::sync::Arc;
 use std::sync::mpsc::{Receiver, TryRecvError};
+use std::sync::Arc;
 use std::time::Instant;
-use mortar_io::store::{BuildProgress, BuildReport};
 use winit::application::ApplicationHandler;
 use winit::dpi::PhysicalSize;
 use winit::event::{ElementState, KeyEvent, MouseButton, MouseScrollDelta, WindowEvent};
@@ -220,7 +225,13 @@ pub fn run(a: Args) -> Result<()> {
     // The display first: no point in batching a large LAZ file for a window that cannot open.
     let event_loop = event_loop()?;
     let store = match &a.inputs[..] {
-        [one] if one != "-" && !a.lod.no_lod && mortar_io::store::is_store(std::path::Path::new(one)) => Some(PathBuf::from(one)),
+        [one]
+            if one != "-"
+                && !a.lod.no_lod
+                && mortar_io::store::is_store(std::path::Path::new(one)) =>
+        {
+            Some(PathBuf::from(one))
+        }
         _ => None,
     };
     if store.is_none() && (a.lod.lod_threshold.is_some() || a.lod.point_budget.is_some()) {
@@ -235,7 +246,11 @@ pub fn run(a: Args) -> Result<()> {
     if !a.no_progressive {
         let paths = mortar_io::source::expand_inputs(&a.inputs)?;
         let raw = !paths.is_empty()
-            && paths.iter().all(|p| p.as_os_str() != "-" && !mortar_io::store::is_store(p) && !(p.is_file() && mortar_io::batchfile::is_batch_file(p)));
+            && paths.iter().all(|p| {
+                p.as_os_str() != "-"
+                    && !mortar_io::store::is_store(p)
+                    && !(p.is_file() && mortar_io::batchfile::is_batch_file(p))
+            });
         if raw {
             let threads = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
             let view = ProgressiveView::open(&paths, a.color, a.range, threads)?;
@@ -253,10 +268,10 @@ pub fn run(a: Args) -> Result<()> {
     render_input::check_color(file, a.color.resolved(file)).map_err(own)?;
     let views = render_input::load_words(file).map_err(own)?;
     let refs = render_input::batch_refs(file, &views).map_err(own)?;
-    let content = BatchContent::new(label.clone(), file, &refs, bounds, a.color, a.range).map_err(own)?;
+    let content =
+        BatchContent::new(label.clone(), file, &refs, bounds, a.color, a.range).map_err(own)?;
     show(&a, event_loop, Box::new(content), label, None).map(drop)
 }
-
 
 /// `mortar build --preview`: shows the store `dir` as `build` grows it. `build` runs on its own
 /// thread and reports progress through the callback it is given, which never blocks (an
@@ -265,7 +280,13 @@ pub fn run(a: Args) -> Result<()> {
 /// window is closed first, the build goes on without it and this waits for it; with
 /// `--screenshot` the window closes itself once the last commit was shown. Returns the build's
 /// report and the frames' statistics.
-pub fn run_preview<F>(a: &Args, dir: &std::path::Path, bounds: Aabb, layout: &RecordLayout, build: F) -> Result<(BuildReport, serde_json::Value)>
+pub fn run_preview<F>(
+    a: &Args,
+    dir: &std::path::Path,
+    bounds: Aabb,
+    layout: &RecordLayout,
+    build: F,
+) -> Result<(BuildReport, serde_json::Value)>
 where
     F: FnOnce(&mut dyn FnMut(&BuildProgress)) -> Result<BuildReport> + Send,
 {
@@ -303,7 +324,8 @@ where
                 serde_json::Value::Null
             }
         };
-        let result = rrx.recv().map_err(|_| anyhow!("the build's thread ended without a result"))?;
+        let result =
+            rrx.recv().map_err(|_| anyhow!("the build's thread ended without a result"))?;
         result.map(|r| (r, frames))
     })
 }
@@ -314,7 +336,13 @@ const OFFSCREEN_PERIOD_MS: f64 = 1000.0 / 60.0;
 /// `mortar build --preview --preview-offscreen`: the preview's frames drawn without a window,
 /// paced to 60 per second, by the same store view as the window (GPU or CPU), from the fixed
 /// camera of the options. Returns the build's report and the frames' statistics.
-pub fn run_preview_offscreen<F>(a: &Args, dir: &std::path::Path, bounds: Aabb, layout: &RecordLayout, build: F) -> Result<(BuildReport, serde_json::Value)>
+pub fn run_preview_offscreen<F>(
+    a: &Args,
+    dir: &std::path::Path,
+    bounds: Aabb,
+    layout: &RecordLayout,
+    build: F,
+) -> Result<(BuildReport, serde_json::Value)>
 where
     F: FnOnce(&mut dyn FnMut(&BuildProgress)) -> Result<BuildReport> + Send,
 {
@@ -330,8 +358,14 @@ where
     };
     let ctx = match a.backend {
         ViewBackend::Cpu => None,
-        ViewBackend::Gpu => Some(GpuContext::new(&GpuOptions { atomics, allow_software: true, ..Default::default() }).map_err(|e| anyhow!("--preview-backend gpu: {e}"))?),
-        ViewBackend::Auto => GpuContext::new(&GpuOptions { atomics, allow_software: false, ..Default::default() }).ok(),
+        ViewBackend::Gpu => Some(
+            GpuContext::new(&GpuOptions { atomics, allow_software: true, ..Default::default() })
+                .map_err(|e| anyhow!("--preview-backend gpu: {e}"))?,
+        ),
+        ViewBackend::Auto => {
+            GpuContext::new(&GpuOptions { atomics, allow_software: false, ..Default::default() })
+                .ok()
+        }
     };
     let mut raster = match &ctx {
         Some(ctx) => {
@@ -361,7 +395,9 @@ where
                 Ok(r) if r.is_err() => return Ok((frames, r)),
                 Ok(r) => result = Some(r),
                 Err(TryRecvError::Empty) => {}
-                Err(TryRecvError::Disconnected) => return Err(anyhow!("the build's thread ended without a result")),
+                Err(TryRecvError::Disconnected) => {
+                    return Err(anyhow!("the build's thread ended without a result"))
+                }
             }
             let committed = state.poll();
             let last = result.is_some();
@@ -373,7 +409,9 @@ where
                     let f = view.draw_gpu(ctx, raster, &camera, &options, &a.resolve_options())?;
                     (f.points_drawn, f.draw_ms.map(|d| d + f.resolve_ms.unwrap_or(0.0)))
                 }
-                _ => view.draw_cpu(&camera, &options, &a.resolve_options()).map(|(_, n)| (n, None))?,
+                _ => view
+                    .draw_cpu(&camera, &options, &a.resolve_options())
+                    .map(|(_, n)| (n, None))?,
             };
             let frame_ms = t.elapsed().as_secs_f64() * 1e3;
             frames.push(serde_json::json!({
@@ -399,7 +437,8 @@ where
     let ms: Vec<f64> = frames.iter().filter_map(|f| f["frame_ms"].as_f64()).collect();
     let pick = |q: f64| mortar_core::metrics::percentile(&ms, q);
     let seconds = report.seconds.max(1e-9);
-    let during = frames.iter().filter(|f| f["at_seconds"].as_f64().is_some_and(|t| t <= seconds)).count();
+    let during =
+        frames.iter().filter(|f| f["at_seconds"].as_f64().is_some_and(|t| t <= seconds)).count();
     let j = serde_json::json!({
         "offscreen": true,
         "renderer": match &ctx { Some(c) => serde_json::json!({ "backend": "gpu", "adapter": c.adapter().name }), None => serde_json::json!({ "backend": "cpu" }) },
@@ -424,9 +463,16 @@ struct Shown {
 }
 
 /// Runs the window on `content` until it closes.
-fn show<'a>(a: &'a Args, event_loop: EventLoop<Wake>, content: Box<dyn Content + 'a>, label: String, build: Option<BuildState>) -> Result<Shown> {
+fn show<'a>(
+    a: &'a Args,
+    event_loop: EventLoop<Wake>,
+    content: Box<dyn Content + 'a>,
+    label: String,
+    build: Option<BuildState>,
+) -> Result<Shown> {
     let bounds = content.bounds();
-    let camera = build_camera(&a.camera, &bounds, a.width, a.height).map_err(|e| anyhow!("{label}: {e:#}"))?;
+    let camera = build_camera(&a.camera, &bounds, a.width, a.height)
+        .map_err(|e| anyhow!("{label}: {e:#}"))?;
     let mut app = App {
         args: a,
         content,
@@ -536,7 +582,17 @@ struct BuildState {
 impl BuildState {
     fn new(progress: Receiver<BuildProgress>) -> BuildState {
         let now = Instant::now();
-        BuildState { progress, latest: BuildProgress::default(), start: now, rate_from: (0, now), rate: 0.0, done: false, seconds: None, final_loaded: false, failed: false }
+        BuildState {
+            progress,
+            latest: BuildProgress::default(),
+            start: now,
+            rate_from: (0, now),
+            rate: 0.0,
+            done: false,
+            seconds: None,
+            final_loaded: false,
+            failed: false,
+        }
     }
 
     /// Takes every report that arrived (keeping the newest); whether the commit count changed.
@@ -611,7 +667,9 @@ impl Renderer {
                     },
                 })
             }
-            Renderer::Cpu { why, .. } => serde_json::json!({ "backend": "cpu", "why": why, "read_back": "window pixel buffer" }),
+            Renderer::Cpu { why, .. } => {
+                serde_json::json!({ "backend": "cpu", "why": why, "read_back": "window pixel buffer" })
+            }
         }
     }
 }
@@ -642,7 +700,9 @@ impl App<'_> {
 
     /// Opens the window and what draws into it.
     fn open(&mut self, event_loop: &ActiveEventLoop) -> Result<()> {
-        let attrs = Window::default_attributes().with_title(format!("mortar view: {}", self.label)).with_inner_size(PhysicalSize::new(self.args.width, self.args.height));
+        let attrs = Window::default_attributes()
+            .with_title(format!("mortar view: {}", self.label))
+            .with_inner_size(PhysicalSize::new(self.args.width, self.args.height));
         let window = Arc::new(event_loop.create_window(attrs).context("cannot open a window")?);
         self.window = Some(window.clone());
         let size = window.inner_size();
@@ -654,8 +714,16 @@ impl App<'_> {
         };
         let gpu = match self.args.backend {
             ViewBackend::Cpu => Err("--backend cpu"),
-            ViewBackend::Gpu => Ok(GpuContext::for_window(&GpuOptions { atomics, allow_software: true, ..Default::default() }, window.clone()).map_err(|e| anyhow!("--backend gpu: {e}"))?),
-            ViewBackend::Auto => GpuContext::for_window(&GpuOptions { atomics, allow_software: false, ..Default::default() }, window.clone()).map_err(|_| "no hardware GPU can present to the window"),
+            ViewBackend::Gpu => Ok(GpuContext::for_window(
+                &GpuOptions { atomics, allow_software: true, ..Default::default() },
+                window.clone(),
+            )
+            .map_err(|e| anyhow!("--backend gpu: {e}"))?),
+            ViewBackend::Auto => GpuContext::for_window(
+                &GpuOptions { atomics, allow_software: false, ..Default::default() },
+                window.clone(),
+            )
+            .map_err(|_| "no hardware GPU can present to the window"),
         };
         // Content the GPU cannot draw (the progressive renderer on 32-bit atomics) is drawn on the CPU.
         let gpu = gpu.and_then(|g| match self.content.gpu_unsupported(&g.0) {
@@ -663,10 +731,14 @@ impl App<'_> {
             None => Ok(g),
         });
         let renderer = match gpu {
-            Ok((ctx, surface)) => self.open_gpu(ctx, surface, w, h).map_err(|e| anyhow!("{}: GPU: {e}", self.label))?,
+            Ok((ctx, surface)) => self
+                .open_gpu(ctx, surface, w, h)
+                .map_err(|e| anyhow!("{}: GPU: {e}", self.label))?,
             Err(why) => {
-                let context = softbuffer::Context::new(window.clone()).map_err(|e| anyhow!("cannot draw into the window: {e}"))?;
-                let surface = softbuffer::Surface::new(&context, window.clone()).map_err(|e| anyhow!("cannot draw into the window: {e}"))?;
+                let context = softbuffer::Context::new(window.clone())
+                    .map_err(|e| anyhow!("cannot draw into the window: {e}"))?;
+                let surface = softbuffer::Surface::new(&context, window.clone())
+                    .map_err(|e| anyhow!("cannot draw into the window: {e}"))?;
                 Renderer::Cpu { surface, _context: context, why }
             }
         };
@@ -675,7 +747,13 @@ impl App<'_> {
         Ok(())
     }
 
-    fn open_gpu(&mut self, ctx: GpuContext, surface: mortar_render::wgpu::Surface<'static>, w: u32, h: u32) -> std::result::Result<Renderer, GpuError> {
+    fn open_gpu(
+        &mut self,
+        ctx: GpuContext,
+        surface: mortar_render::wgpu::Surface<'static>,
+        w: u32,
+        h: u32,
+    ) -> std::result::Result<Renderer, GpuError> {
         let surface = WindowSurface::new(&ctx, surface, w, h)?;
         let raster = GpuRasterizer::new(&ctx, w, h)?;
         self.content.use_gpu(&ctx)?;
@@ -705,7 +783,10 @@ impl App<'_> {
         if w == 0 || h == 0 {
             return Ok(None);
         }
-        let camera = self.orbit.camera(self.fov(), self.args.camera.ortho, &self.bounds, w, h).map_err(|e| anyhow!("{}: {e:#}", self.label))?;
+        let camera = self
+            .orbit
+            .camera(self.fov(), self.args.camera.ortho, &self.bounds, w, h)
+            .map_err(|e| anyhow!("{}: {e:#}", self.label))?;
         let options = RasterOptions { precision: self.args.precision.mode(), cull: true };
         let status = self.status();
         let overlay = (!self.args.no_status).then(|| status_overlay(&status, w));
@@ -725,9 +806,16 @@ impl App<'_> {
                 stats.points_drawn = drawn.points_drawn;
                 stats.gpu_draw_ms = drawn.draw_ms;
                 stats.gpu_resolve_ms = drawn.resolve_ms;
-                let o = overlay.as_ref().map(|(ow, oh, px)| Overlay { width: *ow, height: *oh, rgba: px });
+                let o = overlay.as_ref().map(|(ow, oh, px)| Overlay {
+                    width: *ow,
+                    height: *oh,
+                    rgba: px,
+                });
                 let shown = if drawn.own_image {
-                    let image = self.content.image().ok_or_else(|| anyhow!("{label}: GPU: no image resolved"))?;
+                    let image = self
+                        .content
+                        .image()
+                        .ok_or_else(|| anyhow!("{label}: GPU: no image resolved"))?;
                     surface.present_image(ctx, image, (w, h), o, read_back).map_err(gpu)?
                 } else {
                     surface.present(ctx, raster, o, read_back).map_err(gpu)?
@@ -745,9 +833,14 @@ impl App<'_> {
                 stats.points_drawn = drawn;
                 stats.raster_ms = start.elapsed().as_secs_f64() * 1e3;
                 if let Some((ow, oh, px)) = &overlay {
-                    mortar_render::present::blend_overlay(&mut rgba, w, &Overlay { width: *ow, height: *oh, rgba: px });
+                    mortar_render::present::blend_overlay(
+                        &mut rgba,
+                        w,
+                        &Overlay { width: *ow, height: *oh, rgba: px },
+                    );
                 }
-                let (nw, nh) = (NonZeroU32::new(w).expect("w > 0"), NonZeroU32::new(h).expect("h > 0"));
+                let (nw, nh) =
+                    (NonZeroU32::new(w).expect("w > 0"), NonZeroU32::new(h).expect("h > 0"));
                 surface.resize(nw, nh).map_err(|e| anyhow!("window: {e}"))?;
                 let mut buf = surface.buffer_mut().map_err(|e| anyhow!("window: {e}"))?;
                 for (d, c) in buf.iter_mut().zip(&rgba) {
@@ -787,7 +880,11 @@ impl App<'_> {
             Key::Character(c) => match c.to_ascii_lowercase().as_str() {
                 "q" => event_loop.exit(),
                 "f" => {
-                    let (w, h) = self.window.as_ref().map(|w| (w.inner_size().width, w.inner_size().height)).unwrap_or((1, 1));
+                    let (w, h) = self
+                        .window
+                        .as_ref()
+                        .map(|w| (w.inner_size().width, w.inner_size().height))
+                        .unwrap_or((1, 1));
                     let fov = self.fov();
                     self.orbit.fit(&self.bounds, fov, w, h);
                     self.redraw();
@@ -818,7 +915,15 @@ impl App<'_> {
         if pan {
             let Some(window) = &self.window else { return };
             let size = window.inner_size();
-            let Ok(cam) = self.orbit.camera(self.fov(), self.args.camera.ortho, &self.bounds, size.width.max(1), size.height.max(1)) else { return };
+            let Ok(cam) = self.orbit.camera(
+                self.fov(),
+                self.args.camera.ortho,
+                &self.bounds,
+                size.width.max(1),
+                size.height.max(1),
+            ) else {
+                return;
+            };
             if self.orbit.pan(dx, dy, self.fov(), &cam).is_some() {
                 self.redraw();
             }
@@ -869,7 +974,10 @@ impl App<'_> {
         if reload {
             changed = self.content.reload()?;
         }
-        let stale = self.frames.last().is_none_or(|_| self.last_frame.is_none_or(|t| t.elapsed().as_secs_f64() >= 0.5));
+        let stale = self
+            .frames
+            .last()
+            .is_none_or(|_| self.last_frame.is_none_or(|t| t.elapsed().as_secs_f64() >= 0.5));
         if changed || reload || stale {
             self.redraw();
         }

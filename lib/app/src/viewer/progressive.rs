@@ -23,17 +23,24 @@
 //! ([`GpuProgressive::recolor`], the scatter pass writing colours only); points not switched yet
 //! keep their colour.
 
-use anyhow::{anyhow, bail, Result};
-use mortar_core::render::progressive::{AdaptiveBudget, FillBudget, FrameStats, ProgressiveRenderer};
 use super::content::{Content, GpuDrawn};
-use mortar_render::{wgpu, AtomicPath, GpuContext, GpuError, GpuProgressive, GpuRasterizer, ProgressiveOptions};
+use anyhow::{anyhow, bail, Result};
+use mortar_core::render::framing::{IntBox, ViewBox};
+use mortar_core::render::progressive::ProgressiveFrame;
+use mortar_core::render::progressive::{
+    AdaptiveBudget, FillBudget, FrameStats, ProgressiveRenderer,
+};
 use mortar_core::render::resolve::{resolve, ColorMode, ResolveOptions};
 use mortar_core::render::{Aabb, Camera, RasterOptions};
 use mortar_io::dataset::Dataset;
-use mortar_core::render::framing::{IntBox, ViewBox};
-use mortar_core::render::progressive::ProgressiveFrame;
-use mortar_io::progressive::{load_pieces, payload_colors, payload_for, payload_range, point_count, ColorStats, LoadedPiece, Payload};
+use mortar_io::progressive::{
+    load_pieces, payload_colors, payload_for, payload_range, point_count, ColorStats, LoadedPiece,
+    Payload,
+};
 use mortar_io::render_input::ColorChoice;
+use mortar_render::{
+    wgpu, AtomicPath, GpuContext, GpuError, GpuProgressive, GpuRasterizer, ProgressiveOptions,
+};
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::mpsc::{sync_channel, Receiver, TryRecvError};
@@ -59,7 +66,9 @@ impl Loader {
         let (ds, c) = (ds.clone(), cancel.clone());
         let thread = std::thread::Builder::new()
             .name("mortar-view-load".into())
-            .spawn(move || load_pieces(&ds, payload, threads, &c, move |piece| tx.send(piece).is_ok()))
+            .spawn(move || {
+                load_pieces(&ds, payload, threads, &c, move |piece| tx.send(piece).is_ok())
+            })
             .ok();
         Loader { pending: Vec::new(), rx, cancel, thread, finished: false }
     }
@@ -185,7 +194,12 @@ impl ProgressiveView {
     /// Opens `paths` (raw LAS/LAZ) and starts loading them; `color` is the first colour mode.
     /// Where the framing rule needs the points' box (the headers' box misses the first piece),
     /// every point is read first.
-    pub fn open(paths: &[PathBuf], color: ColorChoice, range: Option<[f64; 2]>, threads: usize) -> Result<ProgressiveView> {
+    pub fn open(
+        paths: &[PathBuf],
+        color: ColorChoice,
+        range: Option<[f64; 2]>,
+        threads: usize,
+    ) -> Result<ProgressiveView> {
         let ds = Dataset::open(paths)?;
         crate::cli::print_warnings(&ds.warnings);
         let label = paths.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(" ");
@@ -216,12 +230,18 @@ impl ProgressiveView {
             ViewBox::Points => {
                 crate::cli::warn(&format!("{label}: the header's bounds do not hold the first points; reading every point before the first frame to frame them"));
                 loader.preload().map_err(|e| anyhow!("{label}: {e:#}"))?;
-                let b = loader.pending.iter().filter_map(|p| mortar_core::render::progressive::piece_box(&p.xyz)).reduce(IntBox::union).ok_or_else(|| anyhow!("{label}: no points could be read"))?;
+                let b = loader
+                    .pending
+                    .iter()
+                    .filter_map(|p| mortar_core::render::progressive::piece_box(&p.xyz))
+                    .reduce(IntBox::union)
+                    .ok_or_else(|| anyhow!("{label}: no points could be read"))?;
                 (ProgressiveFrame::around(grid, b), b.world(&grid), None)
             }
         };
         let frame = frame.map_err(|e| anyhow!("{label}: {e}"))?;
-        let renderer = ProgressiveRenderer::with_frame(frame, points).map_err(|e| anyhow!("{label}: {e}"))?;
+        let renderer =
+            ProgressiveRenderer::with_frame(frame, points).map_err(|e| anyhow!("{label}: {e}"))?;
         Ok(ProgressiveView {
             label,
             first_path,
@@ -272,13 +292,19 @@ impl ProgressiveView {
     /// Draws with the GPU progressive renderer from now on (before the first frame). Fails
     /// (and the view stays on the CPU) where the context cannot run it (32-bit atomics).
     pub fn start_gpu(&mut self, ctx: &GpuContext) -> Result<()> {
-        let renderer = GpuProgressive::with_frame(ctx, self.frame, self.points, ProgressiveOptions { colors: true, ..Default::default() }).map_err(|e| anyhow!("{}: {e}", self.label))?;
+        let renderer = GpuProgressive::with_frame(
+            ctx,
+            self.frame,
+            self.points,
+            ProgressiveOptions { colors: true, ..Default::default() },
+        )
+        .map_err(|e| anyhow!("{}: {e}", self.label))?;
         self.gpu = Some(GpuState { renderer, rules: None, values: Vec::new(), loaded: 0 });
         // The CPU renderer's buffers are not needed any more.
-        self.renderer = ProgressiveRenderer::with_frame(self.frame, 0).map_err(|e| anyhow!("{}: {e}", self.label))?;
+        self.renderer = ProgressiveRenderer::with_frame(self.frame, 0)
+            .map_err(|e| anyhow!("{}: {e}", self.label))?;
         Ok(())
     }
-
 
     /// What the status line says of the loading and switching.
     pub fn load_status(&self) -> String {
@@ -290,7 +316,10 @@ impl ProgressiveView {
             "refining".to_string()
         };
         if let Some(w) = &self.switch {
-            s += &format!(", switching colours {:.0}%", 100.0 * w.points as f64 / self.capacity().max(1) as f64);
+            s += &format!(
+                ", switching colours {:.0}%",
+                100.0 * w.points as f64 / self.capacity().max(1) as f64
+            );
         }
         s += &format!(", budget {}", crate::viewer::group_digits(self.last.filled));
         s
@@ -312,7 +341,15 @@ impl ProgressiveView {
             if self.loader.is_some() {
                 return Ok(false);
             }
-            self.switch = Some(Switch { loader: Loader::start(&self.ds, self.payloads[to], self.threads), to, payload: self.payloads[to], done: Vec::new(), points: 0, rules: None, values: Vec::new() });
+            self.switch = Some(Switch {
+                loader: Loader::start(&self.ds, self.payloads[to], self.threads),
+                to,
+                payload: self.payloads[to],
+                done: Vec::new(),
+                points: 0,
+                rules: None,
+                values: Vec::new(),
+            });
             return Ok(true);
         }
         Ok(self.switch_cpu(to))
@@ -327,7 +364,15 @@ impl ProgressiveView {
             return false;
         }
         let n = self.capacity() as usize;
-        self.switch = Some(Switch { loader: Loader::start(&self.ds, self.payloads[to], self.threads), to, payload: self.payloads[to], done: vec![0; n.div_ceil(64)], points: 0, rules: None, values: Vec::new() });
+        self.switch = Some(Switch {
+            loader: Loader::start(&self.ds, self.payloads[to], self.threads),
+            to,
+            payload: self.payloads[to],
+            done: vec![0; n.div_ceil(64)],
+            points: 0,
+            rules: None,
+            values: Vec::new(),
+        });
         true
     }
 
@@ -347,20 +392,42 @@ impl ProgressiveView {
                 let (stats, range) = *w.rules.get_or_insert_with(|| {
                     let mut st = ColorStats::default();
                     st.add(&piece);
-                    let (_, r) = payload_colors(&piece.payload, choice, payload, &st, &grid, self.range);
+                    let (_, r) =
+                        payload_colors(&piece.payload, choice, payload, &st, &grid, self.range);
                     (st, r)
                 });
-                let (colors, _) = payload_colors(&piece.payload, choice, payload, &stats, &grid, range);
-                g.renderer.recolor(ctx, piece.first, &colors).map_err(|e| anyhow!("{}: GPU: {e}", self.label))?;
+                let (colors, _) =
+                    payload_colors(&piece.payload, choice, payload, &stats, &grid, range);
+                g.renderer
+                    .recolor(ctx, piece.first, &colors)
+                    .map_err(|e| anyhow!("{}: GPU: {e}", self.label))?;
                 let f = piece.first as usize;
                 w.values[f..f + piece.payload.len()].copy_from_slice(&piece.payload);
                 w.points += piece.payload.len() as u64;
             }
             if w.loader.finished {
                 if w.points < self.points {
-                    bail!("{}: only {} of {} points could be read again for the new colours", self.label, w.points, self.points);
+                    bail!(
+                        "{}: only {} of {} points could be read again for the new colours",
+                        self.label,
+                        w.points,
+                        self.points
+                    );
                 }
-                g.rules = Some(final_rules(ctx, &mut g.renderer, w.rules, self.stats, &w.values, choice, payload, &grid, self.range).map_err(|e| anyhow!("{}: GPU: {e}", self.label))?);
+                g.rules = Some(
+                    final_rules(
+                        ctx,
+                        &mut g.renderer,
+                        w.rules,
+                        self.stats,
+                        &w.values,
+                        choice,
+                        payload,
+                        &grid,
+                        self.range,
+                    )
+                    .map_err(|e| anyhow!("{}: GPU: {e}", self.label))?,
+                );
                 self.mode = w.to;
                 self.switch = None;
             }
@@ -373,11 +440,14 @@ impl ProgressiveView {
         for piece in l.arrived().map_err(|e| anyhow!("{}: {e:#}", self.label))? {
             self.stats.add(&piece);
             let (stats, range) = *g.rules.get_or_insert_with(|| {
-                let (_, r) = payload_colors(&piece.payload, choice, payload, &self.stats, &grid, self.range);
+                let (_, r) =
+                    payload_colors(&piece.payload, choice, payload, &self.stats, &grid, self.range);
                 (self.stats, r)
             });
             let (colors, _) = payload_colors(&piece.payload, choice, payload, &stats, &grid, range);
-            g.renderer.insert(ctx, piece.first, &piece.xyz, Some(&colors), None).map_err(|e| anyhow!("{}: {e}", self.label))?;
+            g.renderer
+                .insert(ctx, piece.first, &piece.xyz, Some(&colors), None)
+                .map_err(|e| anyhow!("{}: {e}", self.label))?;
             let f = piece.first as usize;
             g.values[f..f + piece.payload.len()].copy_from_slice(&piece.payload);
             g.loaded += piece.xyz.len() as u64;
@@ -388,9 +458,27 @@ impl ProgressiveView {
                 bail!("{}: only {} of {} points could be read", self.label, g.loaded, self.points);
             }
             let values = std::mem::take(&mut g.values);
-            g.rules = Some(final_rules(ctx, &mut g.renderer, g.rules, self.stats, &values, choice, payload, &grid, self.range).map_err(|e| anyhow!("{}: GPU: {e}", self.label))?);
+            g.rules = Some(
+                final_rules(
+                    ctx,
+                    &mut g.renderer,
+                    g.rules,
+                    self.stats,
+                    &values,
+                    choice,
+                    payload,
+                    &grid,
+                    self.range,
+                )
+                .map_err(|e| anyhow!("{}: GPU: {e}", self.label))?,
+            );
             if let Some(h) = self.header {
-                crate::render::warn_outside_header(&self.label, &h, &g.renderer.frame_state().data, &grid);
+                crate::render::warn_outside_header(
+                    &self.label,
+                    &h,
+                    &g.renderer.frame_state().data,
+                    &grid,
+                );
             }
         }
         Ok(())
@@ -398,10 +486,19 @@ impl ProgressiveView {
 
     /// Draws one progressive frame with the GPU renderer, resolved on the GPU into its image
     /// buffer (for the window's present pass): the image buffer and the frame's statistics.
-    pub fn frame_gpu(&mut self, ctx: &GpuContext, camera: &Camera, options: &RasterOptions, resolve: &ResolveOptions) -> Result<mortar_render::GpuProgressiveFrame> {
+    pub fn frame_gpu(
+        &mut self,
+        ctx: &GpuContext,
+        camera: &Camera,
+        options: &RasterOptions,
+        resolve: &ResolveOptions,
+    ) -> Result<mortar_render::GpuProgressiveFrame> {
         self.take_arrived_gpu(ctx)?;
         let g = self.gpu.as_mut().ok_or_else(|| anyhow!("the view is not on the GPU"))?;
-        let f = g.renderer.frame(ctx, camera, options, &self.budget, Some(resolve)).map_err(|e| anyhow!("{}: GPU: {e}", self.label))?;
+        let f = g
+            .renderer
+            .frame(ctx, camera, options, &self.budget, Some(resolve))
+            .map_err(|e| anyhow!("{}: GPU: {e}", self.label))?;
         self.last = f.stats;
         Ok(f)
     }
@@ -416,15 +513,27 @@ impl ProgressiveView {
         if let Some(l) = &mut self.loader {
             for piece in l.arrived().map_err(|e| anyhow!("{}: {e:#}", self.label))? {
                 self.stats.add(&piece);
-                self.renderer.insert(piece.first, &piece.xyz, &piece.payload).map_err(|e| anyhow!("{}: {e}", self.label))?;
+                self.renderer
+                    .insert(piece.first, &piece.xyz, &piece.payload)
+                    .map_err(|e| anyhow!("{}: {e}", self.label))?;
             }
             if l.finished {
                 self.loader = None;
                 if self.loaded() < self.capacity() {
-                    bail!("{}: only {} of {} points could be read", self.label, self.loaded(), self.capacity());
+                    bail!(
+                        "{}: only {} of {} points could be read",
+                        self.label,
+                        self.loaded(),
+                        self.capacity()
+                    );
                 }
                 if let Some(h) = self.header {
-                    crate::render::warn_outside_header(&self.label, &h, &self.renderer.frame_state().data, &self.ds.grid);
+                    crate::render::warn_outside_header(
+                        &self.label,
+                        &h,
+                        &self.renderer.frame_state().data,
+                        &self.ds.grid,
+                    );
                 }
             }
         }
@@ -432,7 +541,9 @@ impl ProgressiveView {
         if let Some(w) = &mut self.switch {
             for piece in w.loader.arrived().map_err(|e| anyhow!("{}: {e:#}", self.label))? {
                 self.stats.add(&piece);
-                self.renderer.replace_payloads(piece.first, &piece.payload).map_err(|e| anyhow!("{}: {e}", self.label))?;
+                self.renderer
+                    .replace_payloads(piece.first, &piece.payload)
+                    .map_err(|e| anyhow!("{}: {e}", self.label))?;
                 let shuffle = *self.renderer.shuffle();
                 for i in 0..piece.payload.len() as u64 {
                     let s = shuffle.target((piece.first + i) as u32) as usize;
@@ -442,7 +553,11 @@ impl ProgressiveView {
             }
             if w.loader.finished {
                 if w.points < capacity {
-                    bail!("{}: only {} of {capacity} points could be read again for the new colours", self.label, w.points);
+                    bail!(
+                        "{}: only {} of {capacity} points could be read again for the new colours",
+                        self.label,
+                        w.points
+                    );
                 }
                 self.mode = w.to;
                 self.switch = None;
@@ -456,16 +571,31 @@ impl ProgressiveView {
     /// (`values()` gives theirs), cached in `self.ranges[k]` and computed again when their number
     /// doubled or they are all there: `--range`, else the range of every point once all of them
     /// are in, the rule of every renderer.
-    fn range_of(&mut self, k: usize, mode: usize, held: u64, values: impl FnOnce(&Self) -> Vec<u64>) -> Option<[f64; 2]> {
+    fn range_of(
+        &mut self,
+        k: usize,
+        mode: usize,
+        held: u64,
+        values: impl FnOnce(&Self) -> Vec<u64>,
+    ) -> Option<[f64; 2]> {
         if self.range.is_some() {
             return self.range;
         }
         let c = self.ranges[k];
         let all = self.capacity();
-        let stale = c.mode != mode || c.count == 0 || held >= 2 * c.count || (held == all && c.count != all);
+        let stale = c.mode != mode
+            || c.count == 0
+            || held >= 2 * c.count
+            || (held == all && c.count != all);
         if stale && held > 0 {
             let v = values(self);
-            let range = payload_range(&v, self.modes[mode], self.payloads_of(mode), &self.stats, &self.ds.grid);
+            let range = payload_range(
+                &v,
+                self.modes[mode],
+                self.payloads_of(mode),
+                &self.stats,
+                &self.ds.grid,
+            );
             self.ranges[k] = RangeCache { mode, count: held, range };
         }
         self.ranges[k].range
@@ -478,15 +608,27 @@ impl ProgressiveView {
 
     /// Draws one progressive frame with the CPU renderer and resolves it (hole filling and
     /// eye-dome lighting as `resolve` asks, like every renderer): the RGBA8 image.
-    pub fn frame_cpu(&mut self, camera: &Camera, options: &RasterOptions, resolve_options: &ResolveOptions) -> Result<Vec<u32>> {
+    pub fn frame_cpu(
+        &mut self,
+        camera: &Camera,
+        options: &RasterOptions,
+        resolve_options: &ResolveOptions,
+    ) -> Result<Vec<u32>> {
         let background = resolve_options.background;
         self.take_arrived()?;
-        self.last = self.renderer.frame(camera, options, &self.budget).map_err(|e| anyhow!("{}: {e}", self.label))?;
+        self.last = self
+            .renderer
+            .frame(camera, options, &self.budget)
+            .map_err(|e| anyhow!("{}: {e}", self.label))?;
         let keys = self.renderer.keys();
         let mut slots = self.renderer.visible();
         slots.sort_unstable();
         let colors = self.colors(&slots);
-        if self.mode == 0 && matches!(self.modes[0], ColorChoice::Mode(ColorMode::Rgb)) && self.loader.is_none() && self.stats.max_rgb == 0 {
+        if self.mode == 0
+            && matches!(self.modes[0], ColorChoice::Mode(ColorMode::Rgb))
+            && self.loader.is_none()
+            && self.stats.max_rgb == 0
+        {
             bail!("{}: --color rgb: the points have no colour (every RGB value is zero); try --color intensity", self.first_path.display());
         }
         let color_of = |i: u32| slots.binary_search(&i).map(|k| colors[k]).unwrap_or(background);
@@ -497,23 +639,49 @@ impl ProgressiveView {
     /// modes over the range of all points holding that mode's payload.
     fn colors(&mut self, slots: &[u32]) -> Vec<u32> {
         let grid = self.ds.grid;
-        let Some((to, to_payload, switched_points)) = self.switch.as_ref().map(|w| (w.to, w.payload, w.points)) else {
-            let range = self.range_of(0, self.mode, self.renderer.loaded(), |v| v.renderer.loaded_payloads());
-            let payloads: Vec<u64> = slots.iter().map(|&s| self.renderer.payload(s).expect("visible points are loaded")).collect();
-            return payload_colors(&payloads, self.modes[self.mode], self.payloads[self.mode], &self.stats, &grid, range).0;
+        let Some((to, to_payload, switched_points)) =
+            self.switch.as_ref().map(|w| (w.to, w.payload, w.points))
+        else {
+            let range = self
+                .range_of(0, self.mode, self.renderer.loaded(), |v| v.renderer.loaded_payloads());
+            let payloads: Vec<u64> = slots
+                .iter()
+                .map(|&s| self.renderer.payload(s).expect("visible points are loaded"))
+                .collect();
+            return payload_colors(
+                &payloads,
+                self.modes[self.mode],
+                self.payloads[self.mode],
+                &self.stats,
+                &grid,
+                range,
+            )
+            .0;
         };
         let switched = |w: &Switch, s: u32| w.done[s as usize / 64] >> (s % 64) & 1 == 1;
         let new_range = self.range_of(1, to, switched_points, |v| {
             let w = v.switch.as_ref().expect("a switch");
-            (0..v.capacity() as u32).filter(|&s| switched(w, s)).filter_map(|s| v.renderer.payload(s)).collect()
+            (0..v.capacity() as u32)
+                .filter(|&s| switched(w, s))
+                .filter_map(|s| v.renderer.payload(s))
+                .collect()
         });
-        let old_range = if self.ranges[0].mode == self.mode { self.ranges[0].range } else { None }.or(self.range);
+        let old_range = if self.ranges[0].mode == self.mode { self.ranges[0].range } else { None }
+            .or(self.range);
         let w = self.switch.as_ref().expect("a switch");
-        let (new, old): (Vec<usize>, Vec<usize>) = (0..slots.len()).partition(|&k| switched(w, slots[k]));
+        let (new, old): (Vec<usize>, Vec<usize>) =
+            (0..slots.len()).partition(|&k| switched(w, slots[k]));
         let mut out = vec![0u32; slots.len()];
-        for (ks, mode, payload, range) in [(&new, to, to_payload, new_range), (&old, self.mode, self.payloads[self.mode], old_range)] {
-            let payloads: Vec<u64> = ks.iter().map(|&k| self.renderer.payload(slots[k]).expect("visible points are loaded")).collect();
-            let c = payload_colors(&payloads, self.modes[mode], payload, &self.stats, &grid, range).0;
+        for (ks, mode, payload, range) in [
+            (&new, to, to_payload, new_range),
+            (&old, self.mode, self.payloads[self.mode], old_range),
+        ] {
+            let payloads: Vec<u64> = ks
+                .iter()
+                .map(|&k| self.renderer.payload(slots[k]).expect("visible points are loaded"))
+                .collect();
+            let c =
+                payload_colors(&payloads, self.modes[mode], payload, &self.stats, &grid, range).0;
             for (&k, c) in ks.iter().zip(c) {
                 out[k] = c;
             }
@@ -526,7 +694,17 @@ impl ProgressiveView {
 /// all points (`values`: every point's payload in input order), or `range`. Where they differ
 /// from `provisional` (the first piece's), every point's colour is written again.
 #[allow(clippy::too_many_arguments)]
-fn final_rules(ctx: &GpuContext, r: &mut GpuProgressive, provisional: Option<(ColorStats, Option<[f64; 2]>)>, stats: ColorStats, values: &[u64], choice: ColorChoice, payload: Payload, grid: &mortar_core::grid::Grid, range: Option<[f64; 2]>) -> Result<(ColorStats, Option<[f64; 2]>), mortar_render::ProgressiveGpuError> {
+fn final_rules(
+    ctx: &GpuContext,
+    r: &mut GpuProgressive,
+    provisional: Option<(ColorStats, Option<[f64; 2]>)>,
+    stats: ColorStats,
+    values: &[u64],
+    choice: ColorChoice,
+    payload: Payload,
+    grid: &mortar_core::grid::Grid,
+    range: Option<[f64; 2]>,
+) -> Result<(ColorStats, Option<[f64; 2]>), mortar_render::ProgressiveGpuError> {
     let rules = (stats, range.or_else(|| payload_range(values, choice, payload, &stats, grid)));
     if provisional != Some(rules) {
         let (colors, _) = payload_colors(values, choice, payload, &rules.0, grid, rules.1);
@@ -559,7 +737,14 @@ impl Content for ProgressiveView {
     }
 
     fn status(&self) -> Vec<String> {
-        vec![format!("{} of {} points", super::group_digits(self.loaded()), super::group_digits(self.capacity())), self.load_status()]
+        vec![
+            format!(
+                "{} of {} points",
+                super::group_digits(self.loaded()),
+                super::group_digits(self.capacity())
+            ),
+            self.load_status(),
+        ]
     }
 
     /// Points are loading, a colour switch is streaming, or the image has not converged.
@@ -568,7 +753,8 @@ impl Content for ProgressiveView {
     }
 
     fn gpu_unsupported(&self, ctx: &GpuContext) -> Option<&'static str> {
-        (ctx.atomic_path() != AtomicPath::U64).then_some("the GPU progressive renderer needs 64-bit atomics")
+        (ctx.atomic_path() != AtomicPath::U64)
+            .then_some("the GPU progressive renderer needs 64-bit atomics")
     }
 
     fn use_gpu(&mut self, ctx: &GpuContext) -> Result<(), GpuError> {
@@ -576,14 +762,26 @@ impl Content for ProgressiveView {
     }
 
     /// Resolved with hole filling and eye-dome lighting as `resolve` asks (the GPU path's bytes).
-    fn draw_cpu(&mut self, camera: &Camera, options: &RasterOptions, resolve: &ResolveOptions) -> Result<(Vec<u32>, u64)> {
+    fn draw_cpu(
+        &mut self,
+        camera: &Camera,
+        options: &RasterOptions,
+        resolve: &ResolveOptions,
+    ) -> Result<(Vec<u32>, u64)> {
         let rgba = self.frame_cpu(camera, options, resolve)?;
         Ok((rgba, self.last.raster.points_drawn))
     }
 
     /// Resolved on the GPU into the progressive renderer's own image buffer, with hole filling
     /// and eye-dome lighting as `resolve` asks ([`draw_cpu`](Content::draw_cpu)'s bytes).
-    fn draw_gpu(&mut self, ctx: &GpuContext, _raster: &mut GpuRasterizer, camera: &Camera, options: &RasterOptions, resolve: &ResolveOptions) -> Result<GpuDrawn> {
+    fn draw_gpu(
+        &mut self,
+        ctx: &GpuContext,
+        _raster: &mut GpuRasterizer,
+        camera: &Camera,
+        options: &RasterOptions,
+        resolve: &ResolveOptions,
+    ) -> Result<GpuDrawn> {
         let f = self.frame_gpu(ctx, camera, options, resolve)?;
         Ok(GpuDrawn {
             points_drawn: f.stats.raster.points_drawn,
@@ -610,7 +808,13 @@ mod tests {
     /// Frames until the image is final; the last image.
     fn settle(v: &mut ProgressiveView, camera: &Camera) -> Vec<u32> {
         for _ in 0..10_000 {
-            let img = v.frame_cpu(camera, &RasterOptions::default(), &ResolveOptions { background: 0xff00_0000, ..Default::default() }).unwrap();
+            let img = v
+                .frame_cpu(
+                    camera,
+                    &RasterOptions::default(),
+                    &ResolveOptions { background: 0xff00_0000, ..Default::default() },
+                )
+                .unwrap();
             if !v.busy() {
                 return img;
             }
@@ -625,9 +829,22 @@ mod tests {
         let b = v.bounds();
         let c = b.center();
         let d = b.diagonal();
-        let camera = Camera::look_at([c[0] + d, c[1] - d, c[2] + d], c, [0.0, 0.0, 1.0], Projection::Perspective { fov_y: 0.8 }, &b, 200, 150).unwrap();
+        let camera = Camera::look_at(
+            [c[0] + d, c[1] - d, c[2] + d],
+            c,
+            [0.0, 0.0, 1.0],
+            Projection::Perspective { fov_y: 0.8 },
+            &b,
+            200,
+            150,
+        )
+        .unwrap();
         let rgb = settle(&mut v, &camera);
-        let k = v.modes.iter().position(|&m| m == ColorChoice::Mode(ColorMode::Classification)).expect("the sample has classes");
+        let k = v
+            .modes
+            .iter()
+            .position(|&m| m == ColorChoice::Mode(ColorMode::Classification))
+            .expect("the sample has classes");
         assert!(v.set_mode(k, None).unwrap());
         assert_eq!(v.mode(), k);
         assert!(v.switch.is_some(), "classification needs another attribute: streamed");
@@ -635,7 +852,13 @@ mod tests {
         assert!(!v.set_mode(0, None).unwrap());
         let switched = settle(&mut v, &camera);
         assert!(v.switch.is_none() && v.mode == k);
-        let mut fresh = ProgressiveView::open(&[sample()], ColorChoice::Mode(ColorMode::Classification), None, 2).unwrap();
+        let mut fresh = ProgressiveView::open(
+            &[sample()],
+            ColorChoice::Mode(ColorMode::Classification),
+            None,
+            2,
+        )
+        .unwrap();
         let expected = settle(&mut fresh, &camera);
         assert_eq!(switched, expected);
         assert!(switched.iter().zip(&rgb).filter(|(a, b)| a != b).count() > 1000);
@@ -647,7 +870,13 @@ mod tests {
     /// GPU frames until the image is final; the last image.
     fn settle_gpu(v: &mut ProgressiveView, ctx: &GpuContext, camera: &Camera) -> Vec<u32> {
         for _ in 0..10_000 {
-            v.frame_gpu(ctx, camera, &RasterOptions::default(), &ResolveOptions { background: 0xff00_0000, ..Default::default() }).unwrap();
+            v.frame_gpu(
+                ctx,
+                camera,
+                &RasterOptions::default(),
+                &ResolveOptions { background: 0xff00_0000, ..Default::default() },
+            )
+            .unwrap();
             if !v.busy() {
                 return v.gpu.as_ref().unwrap().renderer.read_image(ctx).unwrap();
             }
@@ -658,7 +887,11 @@ mod tests {
 
     #[test]
     fn on_the_gpu_a_colour_switch_is_streamed_into_the_shuffled_buffer() {
-        let Some(ctx) = mortar_render::testing::context_or_skip(mortar_render::AtomicPath::U64, None) else { return };
+        let Some(ctx) =
+            mortar_render::testing::context_or_skip(mortar_render::AtomicPath::U64, None)
+        else {
+            return;
+        };
         let open = |c: ColorChoice| {
             let mut v = ProgressiveView::open(&[sample()], c, None, 2).unwrap();
             v.start_gpu(&ctx).unwrap();
@@ -667,11 +900,27 @@ mod tests {
         let mut v = open(ColorChoice::Auto);
         let b = v.bounds();
         let (c, d) = (b.center(), b.diagonal());
-        let camera = Camera::look_at([c[0] - d, c[1] - d, c[2] + d], c, [0.0, 0.0, 1.0], Projection::Perspective { fov_y: 0.8 }, &b, 200, 150).unwrap();
+        let camera = Camera::look_at(
+            [c[0] - d, c[1] - d, c[2] + d],
+            c,
+            [0.0, 0.0, 1.0],
+            Projection::Perspective { fov_y: 0.8 },
+            &b,
+            200,
+            150,
+        )
+        .unwrap();
         let first = settle_gpu(&mut v, &ctx, &camera);
-        let k = v.modes.iter().position(|&m| m == ColorChoice::Mode(ColorMode::Classification)).unwrap();
+        let k = v
+            .modes
+            .iter()
+            .position(|&m| m == ColorChoice::Mode(ColorMode::Classification))
+            .unwrap();
         assert!(v.set_mode(k, Some(&ctx)).unwrap());
-        assert!(v.switch.is_some() && v.loaded() == v.capacity(), "a switch streams colours, it does not reload the points");
+        assert!(
+            v.switch.is_some() && v.loaded() == v.capacity(),
+            "a switch streams colours, it does not reload the points"
+        );
         let switched = settle_gpu(&mut v, &ctx, &camera);
         assert!(v.switch.is_none() && v.mode == k);
         let mut fresh = open(ColorChoice::Mode(ColorMode::Classification));

@@ -18,15 +18,15 @@
 //!   still writing, the points of that first commit), so that both rasterizers colour a sample
 //!   alike and a growing store's colours do not shift from frame to frame.
 
+use super::content::{Content, GpuDrawn};
 use anyhow::{anyhow, Result};
 use mortar_core::grid::Grid;
-use mortar_core::octree::{LodOptions, LodTree};
 use mortar_core::layout::RecordLayout;
+use mortar_core::octree::{LodOptions, LodTree};
 use mortar_core::render::resolve::{ColorMode, ResolveOptions};
 use mortar_core::render::{Aabb, BatchRef, Camera, RasterOptions};
 use mortar_io::render_input::{ColorChoice, RenderSettings};
 use mortar_io::store_lod::{self, LodColor, StoreLod};
-use super::content::{Content, GpuDrawn};
 use mortar_render::{GpuContext, GpuError, GpuFrame, GpuRasterizer, GpuScene, SceneOptions};
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -38,7 +38,12 @@ const SLICE: usize = 1 << 14;
 /// attribute modes the format has.
 pub fn modes_of(layout: &RecordLayout) -> Vec<ColorChoice> {
     let mut m = vec![ColorChoice::Auto, ColorChoice::Mode(ColorMode::Elevation)];
-    for c in [ColorMode::Intensity, ColorMode::Classification, ColorMode::ReturnNumber, ColorMode::GpsTime] {
+    for c in [
+        ColorMode::Intensity,
+        ColorMode::Classification,
+        ColorMode::ReturnNumber,
+        ColorMode::GpsTime,
+    ] {
         if layout.attribute(c.attribute()).is_some() {
             m.push(ColorChoice::Mode(c));
         }
@@ -108,18 +113,41 @@ impl StoreView {
     /// A view of the store a build is writing into `dir` (points in `layout`), shown from its
     /// first commit on; until then frames are empty. `bounds`: the points' bounds as the inputs'
     /// headers declare them.
-    pub fn waiting(dir: &Path, bounds: Aabb, layout: &RecordLayout, options: LodOptions, given: Option<[f64; 2]>) -> StoreView {
+    pub fn waiting(
+        dir: &Path,
+        bounds: Aabb,
+        layout: &RecordLayout,
+        options: LodOptions,
+        given: Option<[f64; 2]>,
+    ) -> StoreView {
         let range = given.unwrap_or([bounds.min[2], bounds.max[2].max(bounds.min[2] + 1e-9)]);
         let modes = modes_of(layout);
         let ranges = vec![None; modes.len()];
-        StoreView { path: dir.to_path_buf(), lod: None, commit: 0, options, modes, given, range, ranges, bounds, mode: 0, gpu: None, selected: Selected::default() }
+        StoreView {
+            path: dir.to_path_buf(),
+            lod: None,
+            commit: 0,
+            options,
+            modes,
+            given,
+            range,
+            ranges,
+            bounds,
+            mode: 0,
+            gpu: None,
+            selected: Selected::default(),
+        }
     }
 
     /// Fixes the scalar modes' ranges from `lod` (the first commit seen).
     fn set_ranges(&mut self, lod: &StoreLod) {
         for (m, r) in self.modes.iter().zip(self.ranges.iter_mut()) {
             *r = match LodColor::of(lod.store(), *m) {
-                Ok(c) if c.uses_range() => self.given.or_else(|| lod.color_range(c)).or(matches!(c, LodColor::Elevation).then_some(self.range)),
+                Ok(c) if c.uses_range() => {
+                    self.given
+                        .or_else(|| lod.color_range(c))
+                        .or(matches!(c, LodColor::Elevation).then_some(self.range))
+                }
                 _ => None,
             };
         }
@@ -135,7 +163,13 @@ impl StoreView {
             ColorChoice::Stored | ColorChoice::Mode(ColorMode::Rgb) => ColorChoice::Auto,
             c => c,
         };
-        self.modes.iter().position(|&m| m == want).ok_or_else(|| anyhow!("{}: --color {}: the store's point format has no such attribute", self.path.display(), choice.name()))
+        self.modes.iter().position(|&m| m == want).ok_or_else(|| {
+            anyhow!(
+                "{}: --color {}: the store's point format has no such attribute",
+                self.path.display(),
+                choice.name()
+            )
+        })
     }
 
     /// Shows colour mode `choice` (see [`mode_of`](Self::mode_of)).
@@ -170,7 +204,9 @@ impl StoreView {
             self.set_ranges(&lod);
         }
         if let Some(g) = &mut self.gpu {
-            let live: std::collections::HashSet<u64> = (0..lod.node_count()).map(|i| lod.payload_offset(mortar_core::octree::NodeId(i as u32))).collect();
+            let live: std::collections::HashSet<u64> = (0..lod.node_count())
+                .map(|i| lod.payload_offset(mortar_core::octree::NodeId(i as u32)))
+                .collect();
             let before = g.batches.len();
             let mut dropped = 0;
             g.batches.retain(|off, (_, _, n)| {
@@ -187,8 +223,18 @@ impl StoreView {
         Ok(true)
     }
 
-    fn settings(&self, mode: usize, options: &RasterOptions, resolve: &ResolveOptions) -> RenderSettings {
-        RenderSettings { raster: *options, color: self.modes[mode], range: self.ranges[mode], resolve: *resolve }
+    fn settings(
+        &self,
+        mode: usize,
+        options: &RasterOptions,
+        resolve: &ResolveOptions,
+    ) -> RenderSettings {
+        RenderSettings {
+            raster: *options,
+            color: self.modes[mode],
+            range: self.ranges[mode],
+            resolve: *resolve,
+        }
     }
 }
 
@@ -218,8 +264,17 @@ impl Content for StoreView {
     fn status(&self) -> Vec<String> {
         use super::group_digits;
         vec![
-            format!("{} points, {} nodes, commit {}", group_digits(self.points()), group_digits(self.nodes()), self.commit()),
-            format!("drawn {} nodes, {} samples", group_digits(self.selected.nodes), group_digits(self.selected.samples)),
+            format!(
+                "{} points, {} nodes, commit {}",
+                group_digits(self.points()),
+                group_digits(self.nodes()),
+                self.commit()
+            ),
+            format!(
+                "drawn {} nodes, {} samples",
+                group_digits(self.selected.nodes),
+                group_digits(self.selected.samples)
+            ),
         ]
     }
 
@@ -232,41 +287,87 @@ impl Content for StoreView {
     }
 
     fn use_gpu(&mut self, ctx: &GpuContext) -> Result<(), GpuError> {
-        let grid = self.lod.as_ref().map_or(Grid { scale: [1.0; 3], offset: [0.0; 3] }, StoreLod::grid);
-        self.gpu = Some(StoreGpu { scene: GpuScene::new(ctx, grid, 1 << 20, SceneOptions { colors: true, ..Default::default() })?, batches: HashMap::new(), mode: self.mode, garbage: 0 });
+        let grid =
+            self.lod.as_ref().map_or(Grid { scale: [1.0; 3], offset: [0.0; 3] }, StoreLod::grid);
+        self.gpu = Some(StoreGpu {
+            scene: GpuScene::new(
+                ctx,
+                grid,
+                1 << 20,
+                SceneOptions { colors: true, ..Default::default() },
+            )?,
+            batches: HashMap::new(),
+            mode: self.mode,
+            garbage: 0,
+        });
         Ok(())
     }
 
     /// The LOD selection of `camera`, drawn by the CPU rasterizer.
-    fn draw_cpu(&mut self, camera: &Camera, options: &RasterOptions, resolve: &ResolveOptions) -> Result<(Vec<u32>, u64)> {
+    fn draw_cpu(
+        &mut self,
+        camera: &Camera,
+        options: &RasterOptions,
+        resolve: &ResolveOptions,
+    ) -> Result<(Vec<u32>, u64)> {
         let Some(lod) = &self.lod else {
-            return Ok((vec![resolve.background; camera.width as usize * camera.height as usize], 0));
+            return Ok((
+                vec![resolve.background; camera.width as usize * camera.height as usize],
+                0,
+            ));
         };
         let sel = lod.select(camera, &self.options)?;
         let batches = lod.batches(&sel.nodes)?;
-        let img = store_lod::render(lod, &batches, camera, &self.settings(self.mode, options, resolve))?;
-        self.selected = Selected { nodes: sel.nodes.len() as u64, samples: batches.samples, uploaded_nodes: 0 };
+        let img =
+            store_lod::render(lod, &batches, camera, &self.settings(self.mode, options, resolve))?;
+        self.selected =
+            Selected { nodes: sel.nodes.len() as u64, samples: batches.samples, uploaded_nodes: 0 };
         Ok((img.rgba, batches.samples))
     }
 
     /// The LOD selection of `camera`, drawn by the GPU rasterizer into `raster` (resolved, ready
     /// to present), uploading the selected nodes the GPU does not hold yet.
-    fn draw_gpu(&mut self, ctx: &GpuContext, raster: &mut GpuRasterizer, camera: &Camera, options: &RasterOptions, resolve: &ResolveOptions) -> Result<GpuDrawn> {
+    fn draw_gpu(
+        &mut self,
+        ctx: &GpuContext,
+        raster: &mut GpuRasterizer,
+        camera: &Camera,
+        options: &RasterOptions,
+        resolve: &ResolveOptions,
+    ) -> Result<GpuDrawn> {
         let mode = self.mode;
         let path = self.path.display().to_string();
         let gpu = |e: GpuError| anyhow!("{path}: GPU: {e}");
         let drawn = |f: GpuFrame| GpuDrawn::of(&f);
         let g = self.gpu.as_mut().ok_or_else(|| anyhow!("{path}: GPU: not set up"))?;
         let Some(lod) = &self.lod else {
-            return raster.draw_selected(ctx, &mut g.scene, Some(&[]), camera, options, Some(resolve)).map(drawn).map_err(gpu);
+            return raster
+                .draw_selected(ctx, &mut g.scene, Some(&[]), camera, options, Some(resolve))
+                .map(drawn)
+                .map_err(gpu);
         };
         let sel = lod.select(camera, &self.options)?;
         let samples: u64 = sel.nodes.iter().map(|&id| lod.index().samples(id)).sum();
         // A new colour mode, a new grid (the first commit) or more garbage than live samples:
         // start a new scene with what this frame needs.
         let live = g.scene.points() - g.garbage;
-        if g.mode != mode || *g.scene.grid() != lod.grid() || (g.garbage > live && g.garbage > 1 << 20) || g.scene.points() + samples >= 1 << 32 {
-            *g = StoreGpu { scene: GpuScene::new(ctx, lod.grid(), samples.max(1 << 20), SceneOptions { colors: true, ..Default::default() }).map_err(gpu)?, batches: HashMap::new(), mode, garbage: 0 };
+        if g.mode != mode
+            || *g.scene.grid() != lod.grid()
+            || (g.garbage > live && g.garbage > 1 << 20)
+            || g.scene.points() + samples >= 1 << 32
+        {
+            *g = StoreGpu {
+                scene: GpuScene::new(
+                    ctx,
+                    lod.grid(),
+                    samples.max(1 << 20),
+                    SceneOptions { colors: true, ..Default::default() },
+                )
+                .map_err(gpu)?,
+                batches: HashMap::new(),
+                mode,
+                garbage: 0,
+            };
         }
         let color = LodColor::of(lod.store(), self.modes[mode])?;
         let range = self.ranges[mode];
@@ -289,7 +390,11 @@ impl Content for StoreView {
             let mut k = 0u32;
             for s in (0..n.max(1)).step_by(SLICE) {
                 let e = (s + SLICE).min(n);
-                let part = BatchRef { words: [0, 1, 2].map(|w| &batch.words[w][s..e]), first_index: batch.first_index + s as u32, ..batch };
+                let part = BatchRef {
+                    words: [0, 1, 2].map(|w| &batch.words[w][s..e]),
+                    first_index: batch.first_index + s as u32,
+                    ..batch
+                };
                 g.scene.push(ctx, &part, Some(&c[s..e])).map_err(gpu)?;
                 k += 1;
             }
@@ -297,7 +402,11 @@ impl Content for StoreView {
             ids.extend(b..b + k);
             uploaded += 1;
         }
-        self.selected = Selected { nodes: sel.nodes.len() as u64, samples, uploaded_nodes: uploaded };
-        raster.draw_selected(ctx, &mut g.scene, Some(&ids), camera, options, Some(resolve)).map(drawn).map_err(gpu)
+        self.selected =
+            Selected { nodes: sel.nodes.len() as u64, samples, uploaded_nodes: uploaded };
+        raster
+            .draw_selected(ctx, &mut g.scene, Some(&ids), camera, options, Some(resolve))
+            .map(drawn)
+            .map_err(gpu)
     }
 }

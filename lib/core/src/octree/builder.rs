@@ -13,7 +13,10 @@ use super::chunks::Chunks;
 use super::cube::{Cube, NodeKey, MAX_ROOT_SIZE_LOG2};
 use super::snapshot::{NodeView, Payload, Snapshot};
 use super::voxels::{Sample, Sampler, VoxelState};
-use super::{BuilderConfig, NodeId, OctreeError, Point, Voxel, GRID_LOG2, MIN_INNER_SIZE_LOG2, POINT_CHUNK_MAX};
+use super::{
+    BuilderConfig, NodeId, OctreeError, Point, Voxel, GRID_LOG2, MIN_INNER_SIZE_LOG2,
+    POINT_CHUNK_MAX,
+};
 use bytemuck::Zeroable;
 use rayon::prelude::*;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -210,7 +213,11 @@ impl Builder {
 
     /// An empty octree over the smallest cube that covers the inclusive integer bounds
     /// `[min, max]` of a dataset ([`Cube::covering`]).
-    pub fn for_bounds(min: [i32; 3], max: [i32; 3], config: BuilderConfig) -> Result<Builder, OctreeError> {
+    pub fn for_bounds(
+        min: [i32; 3],
+        max: [i32; 3],
+        config: BuilderConfig,
+    ) -> Result<Builder, OctreeError> {
         Builder::new(Cube::covering(min, max), config)
     }
 
@@ -260,14 +267,20 @@ impl Builder {
     /// publishes the changed nodes. Every point must lie in the root cube; on an error nothing
     /// changes.
     pub fn add_batch(&mut self, points: &[Point]) -> Result<BatchStats, OctreeError> {
-        self.add_batch_paged(points, &|id| Err(format!("leaf {} has paged-out points but no pager was given", id.0)))
+        self.add_batch_paged(points, &|id| {
+            Err(format!("leaf {} has paged-out points but no pager was given", id.0))
+        })
     }
 
     /// [`add_batch`](Self::add_batch) for a builder whose leaves may hold points paged out with
     /// [`page_out`](Self::page_out): before a leaf with paged-out points splits, `page_in(id)`
     /// must return exactly those points, in their order (called in parallel, before anything
     /// changes; an error is returned as [`OctreeError::PageIn`] and leaves the tree as it was).
-    pub fn add_batch_paged(&mut self, points: &[Point], page_in: &PageIn<'_>) -> Result<BatchStats, OctreeError> {
+    pub fn add_batch_paged(
+        &mut self,
+        points: &[Point],
+        page_in: &PageIn<'_>,
+    ) -> Result<BatchStats, OctreeError> {
         if points.is_empty() {
             return Ok(BatchStats { nodes: self.shapes.len(), ..BatchStats::default() });
         }
@@ -322,26 +335,43 @@ impl Builder {
         }
         let (lo, hi) = batch
             .par_iter()
-            .fold(|| ([i64::MAX; 3], [i64::MIN; 3]), |(mut lo, mut hi), p| {
-                for a in 0..3 {
-                    lo[a] = lo[a].min(p.pos[a] as i64);
-                    hi[a] = hi[a].max(p.pos[a] as i64);
-                }
-                (lo, hi)
-            })
-            .reduce(|| ([i64::MAX; 3], [i64::MIN; 3]), |a, b| (std::array::from_fn(|i| a.0[i].min(b.0[i])), std::array::from_fn(|i| a.1[i].max(b.1[i]))));
+            .fold(
+                || ([i64::MAX; 3], [i64::MIN; 3]),
+                |(mut lo, mut hi), p| {
+                    for a in 0..3 {
+                        lo[a] = lo[a].min(p.pos[a] as i64);
+                        hi[a] = hi[a].max(p.pos[a] as i64);
+                    }
+                    (lo, hi)
+                },
+            )
+            .reduce(
+                || ([i64::MAX; 3], [i64::MIN; 3]),
+                |a, b| {
+                    (
+                        std::array::from_fn(|i| a.0[i].min(b.0[i])),
+                        std::array::from_fn(|i| a.1[i].max(b.1[i])),
+                    )
+                },
+            );
         // The cubes the root will pass through, checked before anything changes.
         let mut steps = Vec::new();
         let mut cube = root;
         while !(cube.contains_i64(lo) && cube.contains_i64(hi)) {
             if cube.size_log2 >= MAX_ROOT_SIZE_LOG2 {
                 let index = batch.iter().position(|p| !cube.contains(p.pos)).unwrap_or(0);
-                return Err(OctreeError::PointOutsideRoot { index, pos: batch[index].pos, min: cube.min, size: cube.size() });
+                return Err(OctreeError::PointOutsideRoot {
+                    index,
+                    pos: batch[index].pos,
+                    min: cube.min,
+                    size: cube.size(),
+                });
             }
             // The old root is the upper half on axes where points lie below it.
             let octant: usize = (0..3).map(|a| usize::from(lo[a] < cube.min[a]) << a).sum();
             let size = cube.size() as i64;
-            let min = std::array::from_fn(|a| cube.min[a] - if octant >> a & 1 == 1 { size } else { 0 });
+            let min =
+                std::array::from_fn(|a| cube.min[a] - if octant >> a & 1 == 1 { size } else { 0 });
             cube = Cube { min, size_log2: cube.size_log2 + 1 };
             steps.push((cube, octant));
         }
@@ -351,7 +381,11 @@ impl Builder {
         if self.shapes[0].first_child != NO_CHILD && self.data[0].paged > 0 {
             let pts = page_in(NodeId(0)).map_err(OctreeError::PageIn)?;
             if pts.len() as u64 != self.data[0].paged {
-                return Err(OctreeError::PageIn(format!("root: {} voxels paged in, {} saved", pts.len(), self.data[0].paged)));
+                return Err(OctreeError::PageIn(format!(
+                    "root: {} voxels paged in, {} saved",
+                    pts.len(),
+                    self.data[0].paged
+                )));
             }
             resolved = Some(pts);
         }
@@ -370,11 +404,17 @@ impl Builder {
                 self.root = cube;
                 continue;
             }
-            let first = u32::try_from(self.shapes.len()).expect("an octree has fewer than 2^32 nodes");
+            let first =
+                u32::try_from(self.shapes.len()).expect("an octree has fewer than 2^32 nodes");
             // Every key moves one level down, below the new root's octant.
             for sh in self.shapes.iter_mut().skip(1) {
                 let l = sh.key.level as u32;
-                sh.key = NodeKey { level: sh.key.level + 1, index: std::array::from_fn(|a| sh.key.index[a] + ((((octant >> a) & 1) as u32) << l)) };
+                sh.key = NodeKey {
+                    level: sh.key.level + 1,
+                    index: std::array::from_fn(|a| {
+                        sh.key.index[a] + ((((octant >> a) & 1) as u32) << l)
+                    }),
+                };
             }
             // The new root samples its grid from the old root's voxels, in their order.
             let old = self.data[0].voxels.as_ref().expect("an inner root has voxels");
@@ -389,11 +429,20 @@ impl Builder {
             }
             let moved = first as usize + octant;
             let old_root = self.shapes[0];
-            self.shapes[moved] = Shape { key: NodeKey::ROOT.child(octant), cube: old_root.cube, first_child: old_root.first_child };
+            self.shapes[moved] = Shape {
+                key: NodeKey::ROOT.child(octant),
+                cube: old_root.cube,
+                first_child: old_root.first_child,
+            };
             self.data.swap(0, moved);
             self.data[moved].changed = true;
             self.shapes[0] = Shape { key: NodeKey::ROOT, cube, first_child: first };
-            self.data[0] = NodeData { voxels: Some(Box::new(state)), subtree, changed: true, ..NodeData::default() };
+            self.data[0] = NodeData {
+                voxels: Some(Box::new(state)),
+                subtree,
+                changed: true,
+                ..NodeData::default()
+            };
             self.root = cube;
         }
         // Every view again: keys changed; unchanged nodes keep their revision.
@@ -409,9 +458,19 @@ impl Builder {
                     Some(v) => Payload::Voxels(v.chunks.clone()),
                     None => Payload::Points(d.points.clone()),
                 };
-                let revision = if d.changed { rev } else { old_views.get(i).map_or(rev, |v| v.revision()) };
-                let first_child = (shape.first_child != NO_CHILD).then_some(NodeId(shape.first_child));
-                Arc::new(NodeView::new(shape.key, shape.cube, first_child, payload, d.subtree, revision, d.paged))
+                let revision =
+                    if d.changed { rev } else { old_views.get(i).map_or(rev, |v| v.revision()) };
+                let first_child =
+                    (shape.first_child != NO_CHILD).then_some(NodeId(shape.first_child));
+                Arc::new(NodeView::new(
+                    shape.key,
+                    shape.cube,
+                    first_child,
+                    payload,
+                    d.subtree,
+                    revision,
+                    d.paged,
+                ))
             })
             .collect();
         for d in &mut self.data {
@@ -437,14 +496,16 @@ impl Builder {
         let counts: Vec<AtomicU64> = (0..n0).map(|_| AtomicU64::new(0)).collect();
         {
             let shapes = &self.shapes;
-            batch_leaf.par_chunks_mut(COUNT_CHUNK).zip(batch.par_chunks(COUNT_CHUNK)).for_each(|(leaves, pts)| {
-                let mut run = RunCounter::new(&counts, 0);
-                for (l, p) in leaves.iter_mut().zip(pts) {
-                    *l = descend(shapes, 0, p.pos);
-                    run.add(*l);
-                }
-                run.flush();
-            });
+            batch_leaf.par_chunks_mut(COUNT_CHUNK).zip(batch.par_chunks(COUNT_CHUNK)).for_each(
+                |(leaves, pts)| {
+                    let mut run = RunCounter::new(&counts, 0);
+                    for (l, p) in leaves.iter_mut().zip(pts) {
+                        *l = descend(shapes, 0, p.pos);
+                        run.add(*l);
+                    }
+                    run.flush();
+                },
+            );
         }
         let mut new_count: Vec<u64> = counts.into_iter().map(AtomicU64::into_inner).collect();
 
@@ -466,7 +527,8 @@ impl Builder {
             return Err(OctreeError::BatchTooLarge { points: batch.len(), spilled });
         }
         // Leaves that split need their paged-out points back first.
-        let paged: Vec<u32> = to_split.iter().copied().filter(|&l| self.data[l as usize].paged > 0).collect();
+        let paged: Vec<u32> =
+            to_split.iter().copied().filter(|&l| self.data[l as usize].paged > 0).collect();
         if !paged.is_empty() {
             let loaded: Vec<Vec<Point>> = paged
                 .par_iter()
@@ -474,7 +536,10 @@ impl Builder {
                     let pts = page_in(NodeId(l)).map_err(OctreeError::PageIn)?;
                     let want = self.data[l as usize].paged;
                     if pts.len() as u64 != want {
-                        return Err(OctreeError::PageIn(format!("leaf {l}: {} points paged in, {want} paged out", pts.len())));
+                        return Err(OctreeError::PageIn(format!(
+                            "leaf {l}: {} points paged in, {want} paged out",
+                            pts.len()
+                        )));
                     }
                     Ok(pts)
                 })
@@ -525,8 +590,14 @@ impl Builder {
                 }
                 run.flush();
             };
-            batch_leaf.par_chunks_mut(COUNT_CHUNK).zip(batch.par_chunks(COUNT_CHUNK)).for_each(|(l, p)| step(l, p));
-            spill_leaf.par_chunks_mut(COUNT_CHUNK).zip(spill.par_chunks(COUNT_CHUNK)).for_each(|(l, p)| step(l, p));
+            batch_leaf
+                .par_chunks_mut(COUNT_CHUNK)
+                .zip(batch.par_chunks(COUNT_CHUNK))
+                .for_each(|(l, p)| step(l, p));
+            spill_leaf
+                .par_chunks_mut(COUNT_CHUNK)
+                .zip(spill.par_chunks(COUNT_CHUNK))
+                .for_each(|(l, p)| step(l, p));
             new_count.extend(counts.into_iter().map(AtomicU64::into_inner));
             iterations += 1;
 
@@ -540,11 +611,21 @@ impl Builder {
 
     /// Turns leaf `leaf` into an inner node with 8 empty leaf children; its points go to the
     /// spill list.
-    fn split(&mut self, leaf: u32, spill: &mut Vec<Point>, spill_leaf: &mut Vec<u32>, spill_origin: &mut Vec<u8>) {
+    fn split(
+        &mut self,
+        leaf: u32,
+        spill: &mut Vec<Point>,
+        spill_leaf: &mut Vec<u32>,
+        spill_origin: &mut Vec<u8>,
+    ) {
         let s = self.shapes[leaf as usize];
         let first = u32::try_from(self.shapes.len()).expect("an octree has fewer than 2^32 nodes");
         for o in 0..8 {
-            self.shapes.push(Shape { key: s.key.child(o), cube: s.cube.child(o), first_child: NO_CHILD });
+            self.shapes.push(Shape {
+                key: s.key.child(o),
+                cube: s.cube.child(o),
+                first_child: NO_CHILD,
+            });
             self.data.push(NodeData { changed: true, ..NodeData::default() });
         }
         self.shapes[leaf as usize].first_child = first;
@@ -568,7 +649,12 @@ impl Builder {
         }
         // Records: spilled points first (they arrived earlier), then the batch in input order;
         // `seq` is the place in that sequence.
-        let rec = |p: &Point, tag: u32, seq: usize| Rec { off: root.cube.offset(p.pos), color: p.color, tag, seq: seq as u32 };
+        let rec = |p: &Point, tag: u32, seq: usize| Rec {
+            off: root.cube.offset(p.pos),
+            color: p.color,
+            tag,
+            seq: seq as u32,
+        };
         let total = exp.spill.len() + batch.len();
         let ns = exp.spill.len();
         self.work.clear();
@@ -589,7 +675,9 @@ impl Builder {
             .map(|chunk| {
                 let mut c = [0usize; 8];
                 for r in chunk {
-                    c[((r.off[0] >> s) & 1 | ((r.off[1] >> s) & 1) << 1 | ((r.off[2] >> s) & 1) << 2) as usize] += 1;
+                    c[((r.off[0] >> s) & 1
+                        | ((r.off[1] >> s) & 1) << 1
+                        | ((r.off[2] >> s) & 1) << 2) as usize] += 1;
                 }
                 c
             })
@@ -607,7 +695,8 @@ impl Builder {
     fn insert_points(&mut self, exp: &Expansion, batch: &[Point]) {
         debug_assert_eq!(exp.new_count.len(), self.shapes.len());
         let total = exp.spill.len() + batch.len();
-        let leaves: Vec<u32> = (0..exp.new_count.len() as u32).filter(|&i| exp.new_count[i as usize] > 0).collect();
+        let leaves: Vec<u32> =
+            (0..exp.new_count.len() as u32).filter(|&i| exp.new_count[i as usize] > 0).collect();
         let mut compact = vec![u32::MAX; exp.new_count.len()];
         for (k, &l) in leaves.iter().enumerate() {
             compact[l as usize] = k as u32;
@@ -616,8 +705,11 @@ impl Builder {
         let bounds: Vec<usize> = (0..=parts).map(|p| p * total / parts).collect();
         let seq = |a: usize, b: usize| {
             let s = exp.spill.len();
-            let spill = exp.spill[a.min(s)..b.min(s)].iter().zip(&exp.spill_leaf[a.min(s)..b.min(s)]);
-            let batch = batch[a.max(s) - s..b.max(s) - s].iter().zip(&exp.batch_leaf[a.max(s) - s..b.max(s) - s]);
+            let spill =
+                exp.spill[a.min(s)..b.min(s)].iter().zip(&exp.spill_leaf[a.min(s)..b.min(s)]);
+            let batch = batch[a.max(s) - s..b.max(s) - s]
+                .iter()
+                .zip(&exp.batch_leaf[a.max(s) - s..b.max(s) - s]);
             spill.chain(batch).map(|(p, &l)| (p, compact[l as usize] as usize))
         };
 
@@ -636,9 +728,12 @@ impl Builder {
         // One new chunk per leaf, cut into one piece per part.
         let mut fresh: Vec<Arc<[Point]>> = leaves
             .par_iter()
-            .map(|&l| std::iter::repeat_n(Point::zeroed(), exp.new_count[l as usize] as usize).collect())
+            .map(|&l| {
+                std::iter::repeat_n(Point::zeroed(), exp.new_count[l as usize] as usize).collect()
+            })
             .collect();
-        let mut pieces: Vec<Vec<&mut [Point]>> = (0..parts).map(|_| Vec::with_capacity(leaves.len())).collect();
+        let mut pieces: Vec<Vec<&mut [Point]>> =
+            (0..parts).map(|_| Vec::with_capacity(leaves.len())).collect();
         for (k, chunk) in fresh.iter_mut().enumerate() {
             let mut rest = Arc::get_mut(chunk).expect("a new chunk is not shared yet");
             for (p, piece) in pieces.iter_mut().enumerate() {
@@ -714,8 +809,17 @@ impl Builder {
                 if v.chunks.len() != d.paged {
                     d.paged = v.chunks.len();
                     let old = &self.views[i];
-                    let first_child = (shape.first_child != NO_CHILD).then_some(NodeId(shape.first_child));
-                    self.views[i] = Arc::new(NodeView::new(shape.key, shape.cube, first_child, Payload::Voxels(v.chunks.clone()), d.subtree, old.revision(), d.paged));
+                    let first_child =
+                        (shape.first_child != NO_CHILD).then_some(NodeId(shape.first_child));
+                    self.views[i] = Arc::new(NodeView::new(
+                        shape.key,
+                        shape.cube,
+                        first_child,
+                        Payload::Voxels(v.chunks.clone()),
+                        d.subtree,
+                        old.revision(),
+                        d.paged,
+                    ));
                     republish = true;
                 }
                 continue;
@@ -729,7 +833,15 @@ impl Builder {
             d.points = Chunks::default();
             let old = &self.views[i];
             let first_child = (shape.first_child != NO_CHILD).then_some(NodeId(shape.first_child));
-            self.views[i] = Arc::new(NodeView::new(shape.key, shape.cube, first_child, Payload::Points(Chunks::default()), d.subtree, old.revision(), d.paged));
+            self.views[i] = Arc::new(NodeView::new(
+                shape.key,
+                shape.cube,
+                first_child,
+                Payload::Points(Chunks::default()),
+                d.subtree,
+                old.revision(),
+                d.paged,
+            ));
         }
         if dropped > 0 || republish {
             self.published = self.views.iter().cloned().collect();
@@ -754,7 +866,15 @@ impl Builder {
                 None => Payload::Points(d.points.clone()),
             };
             let first_child = (shape.first_child != NO_CHILD).then_some(NodeId(shape.first_child));
-            let view = Arc::new(NodeView::new(shape.key, shape.cube, first_child, payload, d.subtree, self.revision, d.paged));
+            let view = Arc::new(NodeView::new(
+                shape.key,
+                shape.cube,
+                first_child,
+                payload,
+                d.subtree,
+                self.revision,
+                d.paged,
+            ));
             if i < old {
                 self.views[i] = view;
             } else {
@@ -796,7 +916,13 @@ impl SampleCtx<'_> {
 /// partitions them stably by octant into `scratch`; then, one task per octant, samples that
 /// octant of the node's grid and recurses into the child if it is inner (large octants in
 /// parallel). `recs` becomes the children's scratch space.
-fn sample_subtree(ctx: &SampleCtx<'_>, node: u32, recs: &mut [Rec], scratch: &mut [Rec], counts: [usize; 8]) {
+fn sample_subtree(
+    ctx: &SampleCtx<'_>,
+    node: u32,
+    recs: &mut [Rec],
+    scratch: &mut [Rec],
+    counts: [usize; 8],
+) {
     let shape = &ctx.shapes[node as usize];
     debug_assert_ne!(shape.first_child, NO_CHILD);
     let base = ctx.base(shape);
@@ -830,8 +956,12 @@ fn sample_subtree(ctx: &SampleCtx<'_>, node: u32, recs: &mut [Rec], scratch: &mu
                     let mut oct = vox.octant(o);
                     let oct = &mut *oct;
                     let (sampled, through) = match &mut oct.sampler {
-                        Sampler::FirstCome(s) => sample_recs(shape, base, child_recs, s, &mut child_counts),
-                        Sampler::Averaged(s) => sample_recs(shape, base, child_recs, s, &mut child_counts),
+                        Sampler::FirstCome(s) => {
+                            sample_recs(shape, base, child_recs, s, &mut child_counts)
+                        }
+                        Sampler::Averaged(s) => {
+                            sample_recs(shape, base, child_recs, s, &mut child_counts)
+                        }
                     };
                     oct.sampled += sampled;
                     oct.through += through;
@@ -858,7 +988,13 @@ fn sample_subtree(ctx: &SampleCtx<'_>, node: u32, recs: &mut [Rec], scratch: &mu
 /// those are new in its cube (spilled points passing through the node that spilled them were
 /// already counted there).
 #[inline]
-fn sample_recs<S: Sample>(shape: &Shape, base: [u32; 3], recs: &[Rec], s: &mut S, child_counts: &mut [usize; 8]) -> (u64, u64) {
+fn sample_recs<S: Sample>(
+    shape: &Shape,
+    base: [u32; 3],
+    recs: &[Rec],
+    s: &mut S,
+    child_counts: &mut [usize; 8],
+) -> (u64, u64) {
     let level = shape.key.level as u32;
     let shift = (shape.cube.size_log2 - GRID_LOG2) as u32;
     let mut sampled = 0u64;
@@ -871,7 +1007,8 @@ fn sample_recs<S: Sample>(shape: &Shape, base: [u32; 3], recs: &[Rec], s: &mut S
         ];
         // bit 5 of the cell is the point's octant in the child (meaningful when the child is
         // inner, i.e. at least 128 units wide)
-        child_counts[((cell[0] >> 5) & 1 | ((cell[1] >> 5) & 1) << 1 | ((cell[2] >> 5) & 1) << 2) as usize] += 1;
+        child_counts[((cell[0] >> 5) & 1 | ((cell[1] >> 5) & 1) << 1 | ((cell[2] >> 5) & 1) << 2)
+            as usize] += 1;
         // batch points (tag 0) and points spilled at this level or above sample here
         if r.tag <= level + 1 {
             s.sample(cell, r.color, r.seq);

@@ -22,7 +22,10 @@ pub struct Chunks<T> {
 impl<T> std::fmt::Debug for Chunks<T> {
     /// A summary: element and chunk counts, not the elements.
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Chunks").field("len", &self.len).field("chunks", &self.chunks.len()).finish()
+        f.debug_struct("Chunks")
+            .field("len", &self.len)
+            .field("chunks", &self.chunks.len())
+            .finish()
     }
 }
 

@@ -27,7 +27,8 @@ impl Cube {
     /// inclusive bounds `[min, max]` (a dataset's bounds). Empty bounds (`max < min`) give a cube
     /// of one grid unit.
     pub fn covering(min: [i32; 3], max: [i32; 3]) -> Cube {
-        let extent = (0..3).map(|a| (max[a] as i64 - min[a] as i64).max(0) as u64).max().unwrap_or(0);
+        let extent =
+            (0..3).map(|a| (max[a] as i64 - min[a] as i64).max(0) as u64).max().unwrap_or(0);
         let size_log2 = (64 - extent.leading_zeros()) as u8;
         Cube { min: min.map(|v| v as i64), size_log2 }
     }
@@ -147,7 +148,8 @@ impl NodeKey {
 
     /// The parent's key, `None` for the root.
     pub fn parent(&self) -> Option<NodeKey> {
-        (self.level > 0).then(|| NodeKey { level: self.level - 1, index: self.index.map(|i| i >> 1) })
+        (self.level > 0)
+            .then(|| NodeKey { level: self.level - 1, index: self.index.map(|i| i >> 1) })
     }
 
     /// The octant of this node in its parent (0 for the root).
@@ -160,7 +162,9 @@ impl NodeKey {
         (0..self.level).rev().map(move |shift| {
             // checked: a key read from a damaged store may claim 32+ levels (fuzz regression
             // key-name-deep-level)
-            (0..3).map(|a| ((self.index[a].checked_shr(shift as u32).unwrap_or(0) & 1) as u8) << a).sum::<u8>()
+            (0..3)
+                .map(|a| ((self.index[a].checked_shr(shift as u32).unwrap_or(0) & 1) as u8) << a)
+                .sum::<u8>()
         })
     }
 

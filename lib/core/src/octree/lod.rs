@@ -191,7 +191,11 @@ pub fn node_batch(node: &NodeView, grid: &Grid) -> Result<NodeBatch, NodeBatchEr
         let extent = (hi[a] as i64 - lo[a] as i64) as u64;
         let b = bits_for_extent(extent);
         if b > MAX_BITS {
-            return Err(NodeBatchError::TooWide { key: node.key(), axis: ['x', 'y', 'z'][a], extent });
+            return Err(NodeBatchError::TooWide {
+                key: node.key(),
+                axis: ['x', 'y', 'z'][a],
+                extent,
+            });
         }
         bits[a] = b as u8;
     }
@@ -456,7 +460,11 @@ impl LodIndex {
         Self::build(root, entries, true)
     }
 
-    fn build(root: Cube, entries: &[IndexEntry], frontier: bool) -> Result<LodIndex, LodIndexError> {
+    fn build(
+        root: Cube,
+        entries: &[IndexEntry],
+        frontier: bool,
+    ) -> Result<LodIndex, LodIndexError> {
         use std::collections::HashMap;
         if root.size_log2 > MAX_ROOT_SIZE_LOG2 {
             return Err(LodIndexError::RootTooLarge { size_log2: root.size_log2 });
@@ -472,7 +480,12 @@ impl LodIndex {
         for (i, e) in entries.iter().enumerate() {
             let k = e.key;
             if k.level > root.size_log2 || k.index.iter().any(|&v| (v as u64) >> k.level != 0) {
-                return Err(LodIndexError::BadKey { node: i, level: k.level, index: k.index, root_log2: root.size_log2 });
+                return Err(LodIndexError::BadKey {
+                    node: i,
+                    level: k.level,
+                    index: k.index,
+                    root_log2: root.size_log2,
+                });
             }
             if let Some(&j) = by_key.get(&k) {
                 return Err(LodIndexError::Duplicate { first: j as usize, second: i, key: k });
@@ -481,7 +494,12 @@ impl LodIndex {
         }
         let mut nodes: Vec<IndexNode> = entries
             .iter()
-            .map(|e| IndexNode { cube: e.key.cube_in(root), samples: e.samples, subtree: 0, children: NO_CHILDREN })
+            .map(|e| IndexNode {
+                cube: e.key.cube_in(root),
+                samples: e.samples,
+                subtree: 0,
+                children: NO_CHILDREN,
+            })
             .collect();
         let mut children = Vec::new();
         let mut reached = vec![false; entries.len()];
@@ -491,15 +509,20 @@ impl LodIndex {
                 continue;
             }
             let mut kids = [NodeId::ROOT; 8];
-            let child_at = |o: usize| (e.key.level < root.size_log2).then(|| by_key.get(&e.key.child(o))).flatten();
+            let child_at = |o: usize| {
+                (e.key.level < root.size_log2).then(|| by_key.get(&e.key.child(o))).flatten()
+            };
             if frontier && (0..8).all(|o| child_at(o).is_none()) {
                 continue;
             }
             for (o, kid) in kids.iter_mut().enumerate() {
                 // A child key exists only below level 255 and inside the root (checked above for
                 // the children themselves).
-                let found = (e.key.level < root.size_log2).then(|| by_key.get(&e.key.child(o))).flatten();
-                let Some(&c) = found else { return Err(LodIndexError::MissingChild { node: i, key: e.key, octant: o }) };
+                let found =
+                    (e.key.level < root.size_log2).then(|| by_key.get(&e.key.child(o))).flatten();
+                let Some(&c) = found else {
+                    return Err(LodIndexError::MissingChild { node: i, key: e.key, octant: o });
+                };
                 *kid = NodeId(c);
                 reached[c as usize] = true;
             }
@@ -517,7 +540,10 @@ impl LodIndex {
             nodes[i as usize].subtree = if n.children == NO_CHILDREN {
                 n.samples
             } else {
-                children[n.children as usize].iter().map(|c| nodes[c.index()].subtree).fold(0u64, u64::saturating_add)
+                children[n.children as usize]
+                    .iter()
+                    .map(|c| nodes[c.index()].subtree)
+                    .fold(0u64, u64::saturating_add)
             };
         }
         Ok(LodIndex { root, nodes, children })
@@ -582,7 +608,13 @@ impl View<'_> {
             // Decoded samples stay within size / 2^11 grid units of the cube (see the module
             // docs); f32 depth may be off by a tiny fraction of the distance.
             let units = (cube.size() >> 10) as f64 + 1.0;
-            let d = bounds.center().iter().zip(&self.camera.eye).map(|(c, e)| (c - e) * (c - e)).sum::<f64>().sqrt();
+            let d = bounds
+                .center()
+                .iter()
+                .zip(&self.camera.eye)
+                .map(|(c, e)| (c - e) * (c - e))
+                .sum::<f64>()
+                .sqrt();
             let slack = CULL_DEPTH_MARGIN * (d + bounds.diagonal());
             let margin = [0, 1, 2].map(|a| units * self.grid.scale[a].abs() + slack);
             if frustum.test_aabb(&bounds.expanded(margin)) == Containment::Outside {
@@ -619,9 +651,15 @@ impl PartialOrd for Candidate {
 /// outside the frustum, replacing inner nodes larger than `options.threshold_px` on screen by
 /// their children, largest first, within the point budget. `grid` is the world grid of the
 /// tree's integer coordinates. Fails only for an unusable camera.
-pub fn select_nodes<T: LodTree + ?Sized>(tree: &T, grid: &Grid, camera: &Camera, options: &LodOptions) -> Result<LodSelection, CameraError> {
+pub fn select_nodes<T: LodTree + ?Sized>(
+    tree: &T,
+    grid: &Grid,
+    camera: &Camera,
+    options: &LodOptions,
+) -> Result<LodSelection, CameraError> {
     camera.validate()?;
-    let view = View { grid, camera, frustum: options.cull.then(|| Frustum::new(camera, CULL_MARGIN_PX)) };
+    let view =
+        View { grid, camera, frustum: options.cull.then(|| Frustum::new(camera, CULL_MARGIN_PX)) };
     let refinable = |id: NodeId, size: f64| !tree.is_leaf(id) && size > options.threshold_px;
     let mut sel = LodSelection::default();
     let mut drawn = vec![false; tree.node_count()];
@@ -686,7 +724,8 @@ pub fn select_nodes<T: LodTree + ?Sized>(tree: &T, grid: &Grid, camera: &Camera,
         }
     }
 
-    sel.nodes = drawn.iter().enumerate().filter(|(_, d)| **d).map(|(i, _)| NodeId(i as u32)).collect();
+    sel.nodes =
+        drawn.iter().enumerate().filter(|(_, d)| **d).map(|(i, _)| NodeId(i as u32)).collect();
     sel.culled.sort_unstable();
     for &id in &sel.nodes {
         let s = tree.samples(id);
@@ -706,10 +745,12 @@ mod tests {
     use super::*;
     use crate::batching::int_bounds;
     use crate::octree::{Builder, BuilderConfig, Point};
+    use crate::quantize::Precision;
     use crate::render::framebuffer::key_index;
     use crate::render::testutil::{Rng, Scene};
-    use crate::quantize::Precision;
-    use crate::render::{rasterize, Framebuffer, PrecisionMode, RasterOptions, ViewPreset, EMPTY_KEY};
+    use crate::render::{
+        rasterize, Framebuffer, PrecisionMode, RasterOptions, ViewPreset, EMPTY_KEY,
+    };
     use std::collections::HashSet;
 
     /// A georeferenced millimetre grid (UTM-like offsets).
@@ -732,7 +773,12 @@ mod tests {
             pts.swap(i, j);
         }
         let (min, max) = int_bounds(&scene.points);
-        let mut b = Builder::for_bounds(min, max, BuilderConfig { leaf_capacity: cap, ..BuilderConfig::default() }).unwrap();
+        let mut b = Builder::for_bounds(
+            min,
+            max,
+            BuilderConfig { leaf_capacity: cap, ..BuilderConfig::default() },
+        )
+        .unwrap();
         for c in pts.chunks(37_000) {
             b.add_batch(c).unwrap();
         }
@@ -784,7 +830,9 @@ mod tests {
     /// Whether the f64 reference projection puts `p` in the viewport and depth range.
     fn visible(cam: &Camera, p: [i32; 3]) -> bool {
         let w = [0, 1, 2].map(|a| GRID.world(a, p[a] as i64));
-        cam.project(w).is_some_and(|q| q.x >= 0.0 && q.x < cam.width as f64 && q.y >= 0.0 && q.y < cam.height as f64)
+        cam.project(w).is_some_and(|q| {
+            q.x >= 0.0 && q.x < cam.width as f64 && q.y >= 0.0 && q.y < cam.height as f64
+        })
     }
 
     /// The leaves below (or at) `id`.
@@ -838,12 +886,16 @@ mod tests {
             let r = b.batch_ref(1234);
             assert_eq!((r.first_index, r.len(), r.grid), (1234, b.len(), b.grid));
             assert_eq!(r.bounds(), b.bounds());
-            let decoded: Vec<[i32; 3]> =
-                (0..b.len()).map(|i| b.grid.decode_exact([b.words[0][i], b.words[1][i], b.words[2][i]])).collect();
+            let decoded: Vec<[i32; 3]> = (0..b.len())
+                .map(|i| b.grid.decode_exact([b.words[0][i], b.words[1][i], b.words[2][i]]))
+                .collect();
             let bounds = b.bounds();
             for p in &decoded {
                 let w = [0, 1, 2].map(|a| GRID.world(a, p[a] as i64));
-                assert!((0..3).all(|a| bounds.min[a] <= w[a] && w[a] <= bounds.max[a]), "{id:?} {p:?}");
+                assert!(
+                    (0..3).all(|a| bounds.min[a] <= w[a] && w[a] <= bounds.max[a]),
+                    "{id:?} {p:?}"
+                );
             }
             match n.payload() {
                 Payload::Points(pts) => {
@@ -872,11 +924,17 @@ mod tests {
     fn wide_nodes_are_refused_and_edge_cells_clamped() {
         // A single leaf spanning 2^31 - 1 units.
         let mut b = Builder::new(Cube::new([0; 3], 31), BuilderConfig::default()).unwrap();
-        b.add_batch(&[Point { pos: [0, 0, 0], ..Point::default() }, Point { pos: [i32::MAX, 3, 0], ..Point::default() }])
-            .unwrap();
+        b.add_batch(&[
+            Point { pos: [0, 0, 0], ..Point::default() },
+            Point { pos: [i32::MAX, 3, 0], ..Point::default() },
+        ])
+        .unwrap();
         let snap = b.snapshot();
         let err = node_batch(snap.node(NodeId::ROOT), &GRID).unwrap_err();
-        assert_eq!(err, NodeBatchError::TooWide { key: NodeKey::ROOT, axis: 'x', extent: i32::MAX as u64 });
+        assert_eq!(
+            err,
+            NodeBatchError::TooWide { key: NodeKey::ROOT, axis: 'x', extent: i32::MAX as u64 }
+        );
         assert!(err.to_string().contains("node r "), "{err}");
 
         // A tree over the whole i32 range: only nodes wider than 2^30 units can fail.
@@ -884,22 +942,36 @@ mod tests {
         let pts: Vec<Point> = (0..4_000)
             .map(|i| Point { pos: [0; 3].map(|_: i32| rng.next_u64() as i32), color: 0, record: i })
             .collect();
-        let mut b = Builder::for_bounds([i32::MIN; 3], [i32::MAX; 3], BuilderConfig { leaf_capacity: 200, ..BuilderConfig::default() })
-            .unwrap();
+        let mut b = Builder::for_bounds(
+            [i32::MIN; 3],
+            [i32::MAX; 3],
+            BuilderConfig { leaf_capacity: 200, ..BuilderConfig::default() },
+        )
+        .unwrap();
         b.add_batch(&pts).unwrap();
         let snap = b.snapshot();
         assert_eq!(snap.root_cube().size_log2, 32);
-        assert!(matches!(node_batch(snap.node(NodeId::ROOT), &GRID), Err(NodeBatchError::TooWide { .. })));
+        assert!(matches!(
+            node_batch(snap.node(NodeId::ROOT), &GRID),
+            Err(NodeBatchError::TooWide { .. })
+        ));
         for (id, n) in snap.iter().filter(|(_, n)| n.cube().size_log2 <= 30) {
             node_batch(n, &GRID).unwrap_or_else(|e| panic!("{id:?}: {e}"));
         }
 
         // A root cube overhanging i32::MAX: voxels are real points inside their cells.
         let lo = i32::MAX - 1000;
-        let mut pts: Vec<Point> = (0..600).map(|i| Point { pos: [lo + (i * 7919) % 1001; 3], color: i as u32, record: i as u64 }).collect();
+        let mut pts: Vec<Point> = (0..600)
+            .map(|i| Point { pos: [lo + (i * 7919) % 1001; 3], color: i as u32, record: i as u64 })
+            .collect();
         pts.push(Point { pos: [lo; 3], color: 1, record: 600 });
         pts.push(Point { pos: [i32::MAX; 3], color: 2, record: 601 });
-        let mut b = Builder::for_bounds([lo; 3], [i32::MAX; 3], BuilderConfig { leaf_capacity: 50, ..BuilderConfig::default() }).unwrap();
+        let mut b = Builder::for_bounds(
+            [lo; 3],
+            [i32::MAX; 3],
+            BuilderConfig { leaf_capacity: 50, ..BuilderConfig::default() },
+        )
+        .unwrap();
         b.add_batch(&pts).unwrap();
         let snap = b.snapshot();
         let root = snap.node(NodeId::ROOT);
@@ -909,7 +981,10 @@ mod tests {
         for (v, i) in root.voxels().unwrap().iter().zip(0..) {
             let p = nb.grid.decode_exact([nb.words[0][i], nb.words[1][i], nb.words[2][i]]);
             assert_eq!(p, v.pos);
-            assert!(pts.iter().any(|q| q.pos == p && q.record == v.record), "a voxel is a source point");
+            assert!(
+                pts.iter().any(|q| q.pos == p && q.record == v.record),
+                "a voxel is a source point"
+            );
             top += (p == [i32::MAX; 3]) as usize;
         }
         assert_eq!(top, 1);
@@ -917,7 +992,13 @@ mod tests {
 
     /// The entries a store's hierarchy records for `snap`'s nodes, in id order.
     fn entries_of(snap: &Snapshot) -> Vec<IndexEntry> {
-        snap.iter().map(|(_, n)| IndexEntry { key: n.key(), leaf: n.is_leaf(), samples: n.point_count() + n.voxel_count() }).collect()
+        snap.iter()
+            .map(|(_, n)| IndexEntry {
+                key: n.key(),
+                leaf: n.is_leaf(),
+                samples: n.point_count() + n.voxel_count(),
+            })
+            .collect()
     }
 
     #[test]
@@ -956,7 +1037,8 @@ mod tests {
                     assert_eq!(select_nodes(&index, &GRID, &cam, &opts).unwrap(), want);
                     // Through the shuffled index: the same nodes, renumbered.
                     let got = select_nodes(&mixed, &GRID, &cam, &opts).unwrap();
-                    let mut back: Vec<NodeId> = got.nodes.iter().map(|id| NodeId(perm[id.index()] as u32)).collect();
+                    let mut back: Vec<NodeId> =
+                        got.nodes.iter().map(|id| NodeId(perm[id.index()] as u32)).collect();
                     back.sort_unstable();
                     assert_eq!(back, want.nodes);
                     assert_eq!(got.stats, want.stats);
@@ -975,7 +1057,10 @@ mod tests {
         assert!(LodIndex::new(root, &entries).is_ok());
         assert_eq!(LodIndex::new(root, &[]).unwrap_err(), LodIndexError::Empty);
         let big = Cube { size_log2: 33, ..root };
-        assert!(matches!(LodIndex::new(big, &entries), Err(LodIndexError::RootTooLarge { size_log2: 33 })));
+        assert!(matches!(
+            LodIndex::new(big, &entries),
+            Err(LodIndexError::RootTooLarge { size_log2: 33 })
+        ));
         // The root not first.
         let mut e = entries.clone();
         e.swap(0, 1);
@@ -990,7 +1075,10 @@ mod tests {
         // Two nodes with one key.
         let mut e = entries.clone();
         e[2].key = e[1].key;
-        assert!(matches!(LodIndex::new(root, &e), Err(LodIndexError::Duplicate { first: 1, second: 2, .. })));
+        assert!(matches!(
+            LodIndex::new(root, &e),
+            Err(LodIndexError::Duplicate { first: 1, second: 2, .. })
+        ));
         // An inner node without a child.
         let inner = entries.iter().rposition(|x| !x.leaf).unwrap();
         let child = snap.node(NodeId(inner as u32)).child(5).unwrap();
@@ -1006,14 +1094,20 @@ mod tests {
         // An inner node at the deepest level has no room for children.
         let tiny = Cube { size_log2: 0, ..root };
         let e = [IndexEntry { key: NodeKey::ROOT, leaf: false, samples: 1 }];
-        assert!(matches!(LodIndex::new(tiny, &e), Err(LodIndexError::MissingChild { node: 0, octant: 0, .. })));
+        assert!(matches!(
+            LodIndex::new(tiny, &e),
+            Err(LodIndexError::MissingChild { node: 0, octant: 0, .. })
+        ));
         // While a build is under way, an inner node without any child is a frontier; one with
         // some children is still damaged.
         let p = LodIndex::new_partial(tiny, &e).unwrap();
         assert_eq!(p.point_count(), 1);
         let mut e = entries.clone();
         e.remove(child.index());
-        assert!(matches!(LodIndex::new_partial(root, &e), Err(LodIndexError::MissingChild { octant: 5, .. })));
+        assert!(matches!(
+            LodIndex::new_partial(root, &e),
+            Err(LodIndexError::MissingChild { octant: 5, .. })
+        ));
         let top: Vec<IndexEntry> = entries.iter().filter(|x| x.key.level == 0).copied().collect();
         assert_eq!(LodIndex::new_partial(root, &top).unwrap().point_count(), top[0].samples);
     }
@@ -1022,7 +1116,8 @@ mod tests {
     fn threshold_zero_selects_the_visible_leaves_and_draws_every_point() {
         let (scene, snap) = terrain_tree(150_000, 3_000);
         let parents = parents(&snap);
-        let leaves: Vec<NodeId> = snap.leaves().filter(|(_, n)| n.point_count() > 0).map(|(id, _)| id).collect();
+        let leaves: Vec<NodeId> =
+            snap.leaves().filter(|(_, n)| n.point_count() > 0).map(|(id, _)| id).collect();
         // One global numbering of all leaf points, by leaf id: the same for both renders.
         let mut first = vec![0u32; snap.node_count()];
         let mut records = Vec::new();
@@ -1033,12 +1128,15 @@ mod tests {
             records.extend(pts.iter().map(|p| p.record));
             all.push(reference_batch(&pts));
         }
-        let all_refs: Vec<BatchRef<'_>> = leaves.iter().zip(&all).map(|(id, b)| b.batch_ref(first[id.index()])).collect();
+        let all_refs: Vec<BatchRef<'_>> =
+            leaves.iter().zip(&all).map(|(id, b)| b.batch_ref(first[id.index()])).collect();
         let scene_refs = scene.refs();
         let opts = LodOptions { threshold_px: 0.0, point_budget: None, cull: true };
 
         // Without culling: every non-empty leaf.
-        let sel = select_nodes(&snap, &GRID, &framed(&scene)[0], &LodOptions { cull: false, ..opts }).unwrap();
+        let sel =
+            select_nodes(&snap, &GRID, &framed(&scene)[0], &LodOptions { cull: false, ..opts })
+                .unwrap();
         assert_eq!(sel.nodes, leaves);
         assert_eq!(sel.stats.points, snap.point_count());
 
@@ -1048,8 +1146,11 @@ mod tests {
             let chosen: HashSet<NodeId> = sel.nodes.iter().copied().collect();
             // Exactly the non-empty leaves not below a culled node.
             let culled: HashSet<NodeId> = sel.culled.iter().copied().collect();
-            let want: Vec<NodeId> =
-                leaves.iter().copied().filter(|&l| !lineage(&parents, l).iter().any(|a| culled.contains(a))).collect();
+            let want: Vec<NodeId> = leaves
+                .iter()
+                .copied()
+                .filter(|&l| !lineage(&parents, l).iter().any(|a| culled.contains(a)))
+                .collect();
             assert_eq!(sel.nodes, want, "camera {ci}");
             culling_seen |= !culled.is_empty();
             assert_eq!(sel.stats.voxels, 0);
@@ -1064,8 +1165,14 @@ mod tests {
 
             // The selected leaves, drawn through node_batch and culled, give the very keys of all
             // leaves drawn without culling.
-            let batches: Vec<NodeBatch> = sel.nodes.iter().map(|&id| node_batch(snap.node(id), &GRID).unwrap()).collect();
-            let refs: Vec<BatchRef<'_>> = sel.nodes.iter().zip(&batches).map(|(id, b)| b.batch_ref(first[id.index()])).collect();
+            let batches: Vec<NodeBatch> =
+                sel.nodes.iter().map(|&id| node_batch(snap.node(id), &GRID).unwrap()).collect();
+            let refs: Vec<BatchRef<'_>> = sel
+                .nodes
+                .iter()
+                .zip(&batches)
+                .map(|(id, b)| b.batch_ref(first[id.index()]))
+                .collect();
             let got = render(cam, &refs, true);
             let want_keys = render(cam, &all_refs, false);
             let covered = want_keys.iter().filter(|&&k| k != EMPTY_KEY).count();
@@ -1074,7 +1181,8 @@ mod tests {
 
             // Against the original points in Morton batches (other frames, so f32 rounding may
             // move a point across a pixel edge): the same winning record almost everywhere.
-            let exact = RasterOptions { precision: PrecisionMode::Fixed(Precision::Bits30), cull: false };
+            let exact =
+                RasterOptions { precision: PrecisionMode::Fixed(Precision::Bits30), cull: false };
             let got = render_with(cam, &refs, &exact);
             let orig = render_with(cam, &scene_refs, &exact);
             let differ = got
@@ -1086,7 +1194,10 @@ mod tests {
                     _ => true,
                 })
                 .count();
-            assert!(differ * 100 <= covered, "camera {ci}: {differ} of {covered} pixels differ from the original points");
+            assert!(
+                differ * 100 <= covered,
+                "camera {ci}: {differ} of {covered} pixels differ from the original points"
+            );
         }
         assert!(culling_seen, "some camera culls nodes");
     }
@@ -1100,7 +1211,13 @@ mod tests {
             for cull in [true, false] {
                 let mut last = u64::MAX;
                 for &t in &thresholds {
-                    let sel = select_nodes(&snap, &GRID, cam, &LodOptions { threshold_px: t, point_budget: None, cull }).unwrap();
+                    let sel = select_nodes(
+                        &snap,
+                        &GRID,
+                        cam,
+                        &LodOptions { threshold_px: t, point_budget: None, cull },
+                    )
+                    .unwrap();
                     assert!(sel.stats.samples() <= last, "camera {ci} cull {cull} threshold {t}");
                     last = sel.stats.samples();
                     if t >= 1e9 {
@@ -1117,7 +1234,11 @@ mod tests {
         assert!(coarse >= 4, "{coarse} framed views stop above the leaves");
         // A camera looking away from the data sees nothing.
         let c = scene.bounds.center();
-        let away = Camera { eye: [c[0], c[1] - 400.0, c[2]], target: [c[0], c[1] - 401.0, c[2]], ..small(scene.cameras()[8]) };
+        let away = Camera {
+            eye: [c[0], c[1] - 400.0, c[2]],
+            target: [c[0], c[1] - 401.0, c[2]],
+            ..small(scene.cameras()[8])
+        };
         let sel = select_nodes(&snap, &GRID, &away, &LodOptions::default()).unwrap();
         assert!(sel.nodes.is_empty() && sel.culled == vec![NodeId::ROOT], "{sel:?}");
         // An unusable camera is an error, not a panic.
@@ -1129,15 +1250,27 @@ mod tests {
     fn budget_is_respected_and_the_view_stays_covered() {
         let (scene, snap) = terrain_tree(150_000, 3_000);
         let parents = parents(&snap);
-        let leaves: Vec<NodeId> = snap.leaves().filter(|(_, n)| n.point_count() > 0).map(|(id, _)| id).collect();
+        let leaves: Vec<NodeId> =
+            snap.leaves().filter(|(_, n)| n.point_count() > 0).map(|(id, _)| id).collect();
         let root_voxels = snap.node(NodeId::ROOT).voxel_count();
-        let budgets = [Some(0), Some(root_voxels), Some(20_000), Some(50_000), Some(90_000), Some(u64::MAX), None];
+        let budgets = [
+            Some(0),
+            Some(root_voxels),
+            Some(20_000),
+            Some(50_000),
+            Some(90_000),
+            Some(u64::MAX),
+            None,
+        ];
         let nframed = framed(&scene).len();
         let mut limited = 0;
         for (ci, cam) in all_cameras(&scene).iter().enumerate() {
             // Which leaves have a visible point.
-            let seen: Vec<NodeId> =
-                leaves.iter().copied().filter(|&l| snap.node(l).points().unwrap().iter().any(|p| visible(cam, p.pos))).collect();
+            let seen: Vec<NodeId> = leaves
+                .iter()
+                .copied()
+                .filter(|&l| snap.node(l).points().unwrap().iter().any(|p| visible(cam, p.pos)))
+                .collect();
             for threshold_px in [0.0, 32.0, 128.0] {
                 let mut last = 0;
                 for budget in budgets {
@@ -1145,18 +1278,27 @@ mod tests {
                     let sel = select_nodes(&snap, &GRID, cam, &opts).unwrap();
                     let s = sel.stats.samples();
                     if let Some(b) = budget {
-                        assert!(s <= b || sel.nodes == [NodeId::ROOT], "camera {ci}: {s} samples over budget {b}");
+                        assert!(
+                            s <= b || sel.nodes == [NodeId::ROOT],
+                            "camera {ci}: {s} samples over budget {b}"
+                        );
                     }
                     limited += sel.stats.budget_reached as usize;
                     let chosen: HashSet<NodeId> = sel.nodes.iter().copied().collect();
                     // No two selected nodes are nested.
                     for &id in &sel.nodes {
-                        assert!(lineage(&parents, id)[1..].iter().all(|a| !chosen.contains(a)), "camera {ci}: {id:?} nested");
+                        assert!(
+                            lineage(&parents, id)[1..].iter().all(|a| !chosen.contains(a)),
+                            "camera {ci}: {id:?} nested"
+                        );
                     }
                     // Every visible leaf is covered exactly once.
                     for &l in &seen {
                         let n = lineage(&parents, l).iter().filter(|a| chosen.contains(a)).count();
-                        assert_eq!(n, 1, "camera {ci} budget {budget:?}: leaf {l:?} covered {n} times");
+                        assert_eq!(
+                            n, 1,
+                            "camera {ci} budget {budget:?}: leaf {l:?} covered {n} times"
+                        );
                     }
                     // In framed views no non-empty node is culled, so refining never lowers the
                     // count: a larger budget selects at least as much.
@@ -1165,7 +1307,13 @@ mod tests {
                         last = s;
                     }
                     if budget.is_none() {
-                        let unlimited = select_nodes(&snap, &GRID, cam, &LodOptions { point_budget: Some(u64::MAX), ..opts }).unwrap();
+                        let unlimited = select_nodes(
+                            &snap,
+                            &GRID,
+                            cam,
+                            &LodOptions { point_budget: Some(u64::MAX), ..opts },
+                        )
+                        .unwrap();
                         assert_eq!(unlimited, sel);
                         assert!(!sel.stats.budget_reached);
                     }
@@ -1174,7 +1322,13 @@ mod tests {
         }
         assert!(limited > 10, "budgets bind in {limited} selections");
         // A budget below the root's voxels still shows the root.
-        let sel = select_nodes(&snap, &GRID, &framed(&scene)[0], &LodOptions { point_budget: Some(1), ..LodOptions::default() }).unwrap();
+        let sel = select_nodes(
+            &snap,
+            &GRID,
+            &framed(&scene)[0],
+            &LodOptions { point_budget: Some(1), ..LodOptions::default() },
+        )
+        .unwrap();
         assert_eq!(sel.nodes, vec![NodeId::ROOT]);
         assert!(sel.stats.budget_reached);
     }
@@ -1191,7 +1345,13 @@ mod tests {
                 let full = select_nodes(&snap, &GRID, &cam, &opts).unwrap();
                 for k in 1..10 {
                     let budget = full.stats.samples() * k / 10;
-                    let sel = select_nodes(&snap, &GRID, &cam, &LodOptions { point_budget: Some(budget), ..opts }).unwrap();
+                    let sel = select_nodes(
+                        &snap,
+                        &GRID,
+                        &cam,
+                        &LodOptions { point_budget: Some(budget), ..opts },
+                    )
+                    .unwrap();
                     assert!(sel.stats.budget_reached, "{budget}: {:?}", sel.stats);
                     if sel.stats.refined == 0 {
                         continue;
@@ -1199,11 +1359,19 @@ mod tests {
                     checked += 1;
                     // Every inner node left coarse above the threshold is no larger on screen than
                     // every node that was refined (the parents of selected nodes).
-                    let refined_min =
-                        sel.nodes.iter().filter_map(|&id| parents[id.index()]).map(size).fold(f64::INFINITY, f64::min);
+                    let refined_min = sel
+                        .nodes
+                        .iter()
+                        .filter_map(|&id| parents[id.index()])
+                        .map(size)
+                        .fold(f64::INFINITY, f64::min);
                     for &id in &sel.nodes {
                         if !snap.node(id).is_leaf() && size(id) > threshold_px {
-                            assert!(size(id) <= refined_min, "{id:?}: {} px left coarse, a {refined_min} px node refined", size(id));
+                            assert!(
+                                size(id) <= refined_min,
+                                "{id:?}: {} px left coarse, a {refined_min} px node refined",
+                                size(id)
+                            );
                         }
                     }
                 }
@@ -1218,7 +1386,13 @@ mod tests {
         let mut culled_total = 0;
         for (ci, cam) in all_cameras(&scene).iter().enumerate() {
             for threshold_px in [0.0, 128.0] {
-                let sel = select_nodes(&snap, &GRID, cam, &LodOptions { threshold_px, ..LodOptions::default() }).unwrap();
+                let sel = select_nodes(
+                    &snap,
+                    &GRID,
+                    cam,
+                    &LodOptions { threshold_px, ..LodOptions::default() },
+                )
+                .unwrap();
                 culled_total += sel.culled.len();
                 let mut batches = Vec::new();
                 for &id in &sel.culled {
@@ -1227,7 +1401,10 @@ mod tests {
                     leaves_below(&snap, id, &mut below);
                     for l in below {
                         for p in snap.node(l).points().unwrap().iter() {
-                            assert!(!visible(cam, p.pos), "camera {ci}: visible point {p:?} below culled {id:?}");
+                            assert!(
+                                !visible(cam, p.pos),
+                                "camera {ci}: visible point {p:?} below culled {id:?}"
+                            );
                         }
                     }
                     // ...and the rasterizer, not culling, draws nothing of its batch.
@@ -1235,8 +1412,19 @@ mod tests {
                 }
                 let refs: Vec<BatchRef<'_>> = batches.iter().map(|b| b.batch_ref(0)).collect();
                 let fb = Framebuffer::new(cam.width, cam.height);
-                let stats = rasterize(&fb, &refs, &GRID, cam, &RasterOptions { cull: false, ..RasterOptions::default() }).unwrap();
-                assert_eq!(stats.points_drawn, 0, "camera {ci}: culled nodes draw {} points", stats.points_drawn);
+                let stats = rasterize(
+                    &fb,
+                    &refs,
+                    &GRID,
+                    cam,
+                    &RasterOptions { cull: false, ..RasterOptions::default() },
+                )
+                .unwrap();
+                assert_eq!(
+                    stats.points_drawn, 0,
+                    "camera {ci}: culled nodes draw {} points",
+                    stats.points_drawn
+                );
             }
         }
         assert!(culled_total > 20, "{culled_total} nodes culled");

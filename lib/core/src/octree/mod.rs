@@ -154,11 +154,14 @@ pub use builder::{BatchStats, Builder, PageIn, PhaseTimes};
 pub use chunks::Chunks;
 pub use cube::{Cube, NodeKey, MAX_ROOT_SIZE_LOG2};
 pub use lod::{
-    node_batch, select_nodes, IndexEntry, LodIndex, LodIndexError, LodOptions, LodSelection, LodStats, LodTree, NodeBatch, NodeBatchError,
-    DEFAULT_THRESHOLD_PX,
+    node_batch, select_nodes, IndexEntry, LodIndex, LodIndexError, LodOptions, LodSelection,
+    LodStats, LodTree, NodeBatch, NodeBatchError, DEFAULT_THRESHOLD_PX,
 };
 pub use snapshot::{NodeView, Payload, Snapshot};
-pub use sorted::{build_sorted, build_subtree, earliest_in_parent_cells, splits, SortedContent, SortedNode, SortedTree, Subtree};
+pub use sorted::{
+    build_sorted, build_subtree, earliest_in_parent_cells, splits, SortedContent, SortedNode,
+    SortedTree, Subtree,
+};
 pub use voxels::{mean_color, AVERAGED_CHUNK, MAX_AVERAGED_SAMPLES};
 
 /// Cells per axis of an inner node's voxel grid (paper 004 §3.3).
@@ -248,7 +251,11 @@ pub struct BuilderConfig {
 
 impl Default for BuilderConfig {
     fn default() -> Self {
-        BuilderConfig { leaf_capacity: DEFAULT_LEAF_CAPACITY, color_mode: ColorMode::FirstCome, max_level: DEFAULT_MAX_LEVEL }
+        BuilderConfig {
+            leaf_capacity: DEFAULT_LEAF_CAPACITY,
+            color_mode: ColorMode::FirstCome,
+            max_level: DEFAULT_MAX_LEVEL,
+        }
     }
 }
 

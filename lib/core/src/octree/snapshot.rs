@@ -33,7 +33,15 @@ pub struct NodeView {
 }
 
 impl NodeView {
-    pub(crate) fn new(key: NodeKey, cube: Cube, first_child: Option<NodeId>, payload: Payload, subtree_points: u64, revision: u64, paged_points: u64) -> NodeView {
+    pub(crate) fn new(
+        key: NodeKey,
+        cube: Cube,
+        first_child: Option<NodeId>,
+        payload: Payload,
+        subtree_points: u64,
+        revision: u64,
+        paged_points: u64,
+    ) -> NodeView {
         NodeView { key, cube, first_child, payload, subtree_points, revision, paged_points }
     }
 

@@ -108,7 +108,13 @@ struct Ctx<'a, P, S> {
 /// Builds the octree over `root` of `n` points sorted by their Morton code relative to
 /// `root.min` at full resolution: `pos(i)` is the position of sorted point `i` and `arrival(i)`
 /// its arrival number (unique; smaller arrived earlier). Every point must lie in `root`.
-pub fn build_sorted<P, S>(root: Cube, n: usize, pos: &P, arrival: &S, config: BuilderConfig) -> Result<SortedTree, OctreeError>
+pub fn build_sorted<P, S>(
+    root: Cube,
+    n: usize,
+    pos: &P,
+    arrival: &S,
+    config: BuilderConfig,
+) -> Result<SortedTree, OctreeError>
 where
     P: Fn(usize) -> [i32; 3] + Sync,
     S: Fn(usize) -> u64 + Sync,
@@ -142,7 +148,14 @@ pub struct Subtree {
 /// the `n` points of that cube, sorted as [`build_sorted`] wants them (Morton order relative to
 /// the tree's root, full resolution): exactly the nodes `build_sorted` makes under `key` over
 /// all the points, since a subtree depends on the points in its cube alone.
-pub fn build_subtree<P, S>(key: NodeKey, cube: Cube, n: usize, pos: &P, arrival: &S, config: BuilderConfig) -> Result<Subtree, OctreeError>
+pub fn build_subtree<P, S>(
+    key: NodeKey,
+    cube: Cube,
+    n: usize,
+    pos: &P,
+    arrival: &S,
+    config: BuilderConfig,
+) -> Result<Subtree, OctreeError>
 where
     P: Fn(usize) -> [i32; 3] + Sync,
     S: Fn(usize) -> u64 + Sync,
@@ -151,13 +164,20 @@ where
         return Err(OctreeError::ZeroCapacity);
     }
     if config.color_mode != ColorMode::FirstCome {
-        return Err(OctreeError::Unsupported("the sorted build makes first-come voxels only".into()));
+        return Err(OctreeError::Unsupported(
+            "the sorted build makes first-come voxels only".into(),
+        ));
     }
     if n > u32::MAX as usize {
         return Err(OctreeError::BatchTooLarge { points: n, spilled: 0 });
     }
     if let Some(index) = (0..n).into_par_iter().position_any(|i| !cube.contains(pos(i))) {
-        return Err(OctreeError::PointOutsideRoot { index, pos: pos(index), min: cube.min, size: cube.size() });
+        return Err(OctreeError::PointOutsideRoot {
+            index,
+            pos: pos(index),
+            min: cube.min,
+            size: cube.size(),
+        });
     }
     let ctx = Ctx { pos, arrival, config };
     let mut nodes = Vec::new();
@@ -168,13 +188,20 @@ where
 /// Whether a node at `key` (cube `cube`) holding `count` points is an inner node: more points
 /// than the leaf capacity, and it may split.
 pub fn splits(count: u64, key: NodeKey, cube: Cube, config: &BuilderConfig) -> bool {
-    count > config.leaf_capacity as u64 && cube.size_log2 >= MIN_INNER_SIZE_LOG2 && key.level < config.max_level
+    count > config.leaf_capacity as u64
+        && cube.size_log2 >= MIN_INNER_SIZE_LOG2
+        && key.level < config.max_level
 }
 
 /// Of `items` (in Morton order, all in `cube`), the earliest to arrive in each cell of the
 /// parent's grid (cells `2^(cube.size_log2 - 6)` wide), in order: what a node whose children's
 /// candidates (or whose points) are `items` gives its own parent.
-pub fn earliest_in_parent_cells<T: Copy>(cube: Cube, items: impl IntoIterator<Item = T>, pos: impl Fn(T) -> [i32; 3], arrival: impl Fn(T) -> u64) -> Vec<T> {
+pub fn earliest_in_parent_cells<T: Copy>(
+    cube: Cube,
+    items: impl IntoIterator<Item = T>,
+    pos: impl Fn(T) -> [i32; 3],
+    arrival: impl Fn(T) -> u64,
+) -> Vec<T> {
     let cell_log2 = cube.size_log2 - (GRID_LOG2 - 1);
     let min = cube.min;
     let cell = |p: [i32; 3]| [0, 1, 2].map(|a| ((p[a] as i64 - min[a]) as u64) >> cell_log2);
@@ -208,9 +235,19 @@ pub fn earliest_in_parent_cells<T: Copy>(cube: Cube, items: impl IntoIterator<It
 /// nodes to `out` depth first; returns, for each occupied cell of the parent's grid inside this
 /// cube (cells `2^(cube.size_log2 - 6)` wide), the earliest point, in Morton order. Nothing for
 /// the root.
-fn subtree<P: Fn(usize) -> [i32; 3] + Sync, S: Fn(usize) -> u64 + Sync>(ctx: &Ctx<'_, P, S>, key: NodeKey, cube: Cube, range: Range<usize>, out: &mut Vec<SortedNode>) -> Vec<u32> {
+fn subtree<P: Fn(usize) -> [i32; 3] + Sync, S: Fn(usize) -> u64 + Sync>(
+    ctx: &Ctx<'_, P, S>,
+    key: NodeKey,
+    cube: Cube,
+    range: Range<usize>,
+    out: &mut Vec<SortedNode>,
+) -> Vec<u32> {
     if !splits(range.len() as u64, key, cube, &ctx.config) {
-        let candidates = if key.level == 0 { Vec::new() } else { earliest_per_cell(ctx, cube, range.clone().map(|i| i as u32)) };
+        let candidates = if key.level == 0 {
+            Vec::new()
+        } else {
+            earliest_per_cell(ctx, cube, range.clone().map(|i| i as u32))
+        };
         out.push(SortedNode { key, cube, content: SortedContent::Leaf(range) });
         return candidates;
     }
@@ -230,7 +267,9 @@ fn subtree<P: Fn(usize) -> [i32; 3] + Sync, S: Fn(usize) -> u64 + Sync>(ctx: &Ct
         }
         bounds[o] = a;
     }
-    let child = |o: usize, out: &mut Vec<SortedNode>| subtree(ctx, key.child(o), cube.child(o), bounds[o]..bounds[o + 1], out);
+    let child = |o: usize, out: &mut Vec<SortedNode>| {
+        subtree(ctx, key.child(o), cube.child(o), bounds[o]..bounds[o + 1], out)
+    };
     let mut kids: Vec<(Vec<SortedNode>, Vec<u32>)> = if range.len() >= PAR_MIN {
         (0..8)
             .into_par_iter()
@@ -250,7 +289,11 @@ fn subtree<P: Fn(usize) -> [i32; 3] + Sync, S: Fn(usize) -> u64 + Sync>(ctx: &Ct
             .collect()
     };
     let voxels: Vec<u32> = kids.iter_mut().flat_map(|(_, c)| std::mem::take(c)).collect();
-    let candidates = if key.level == 0 { Vec::new() } else { earliest_per_cell(ctx, cube, voxels.iter().copied()) };
+    let candidates = if key.level == 0 {
+        Vec::new()
+    } else {
+        earliest_per_cell(ctx, cube, voxels.iter().copied())
+    };
     out.push(SortedNode { key, cube, content: SortedContent::Inner(voxels) });
     for (v, _) in kids {
         out.extend(v);
@@ -259,6 +302,10 @@ fn subtree<P: Fn(usize) -> [i32; 3] + Sync, S: Fn(usize) -> u64 + Sync>(ctx: &Ct
 }
 
 /// [`earliest_in_parent_cells`] over sorted point indices.
-fn earliest_per_cell<P: Fn(usize) -> [i32; 3] + Sync, S: Fn(usize) -> u64 + Sync>(ctx: &Ctx<'_, P, S>, cube: Cube, items: impl Iterator<Item = u32>) -> Vec<u32> {
+fn earliest_per_cell<P: Fn(usize) -> [i32; 3] + Sync, S: Fn(usize) -> u64 + Sync>(
+    ctx: &Ctx<'_, P, S>,
+    cube: Cube,
+    items: impl Iterator<Item = u32>,
+) -> Vec<u32> {
     earliest_in_parent_cells(cube, items, |i| (ctx.pos)(i as usize), |i| (ctx.arrival)(i as usize))
 }

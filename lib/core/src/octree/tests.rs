@@ -39,7 +39,8 @@ fn random_points(n: usize, seed: u64, origin: [i32; 3], extent: u32) -> Vec<Poin
 /// `n` points around a few centres, spread over a few units.
 fn clustered_points(n: usize, seed: u64, extent: u32) -> Vec<Point> {
     let mut r = Rng(seed);
-    let centres: Vec<[i32; 3]> = (0..5).map(|_| [0; 3].map(|_: i32| 200 + r.below(extent as u64 - 400) as i32)).collect();
+    let centres: Vec<[i32; 3]> =
+        (0..5).map(|_| [0; 3].map(|_: i32| 200 + r.below(extent as u64 - 400) as i32)).collect();
     (0..n)
         .map(|i| {
             let c = centres[r.below(centres.len() as u64) as usize];
@@ -62,7 +63,12 @@ fn config(cap: u32, mode: ColorMode) -> BuilderConfig {
 }
 
 /// Builds from `points` cut into batches of `batch` points; returns the snapshot after each batch.
-fn build(points: &[Point], root: Cube, cfg: BuilderConfig, batch: usize) -> (Builder, Vec<Snapshot>) {
+fn build(
+    points: &[Point],
+    root: Cube,
+    cfg: BuilderConfig,
+    batch: usize,
+) -> (Builder, Vec<Snapshot>) {
     let mut b = Builder::new(root, cfg).unwrap();
     let mut snaps = Vec::new();
     for c in points.chunks(batch.max(1)) {
@@ -108,7 +114,13 @@ fn canon(mut f: BTreeMap<NodeKey, Flat>) -> BTreeMap<NodeKey, Flat> {
 
 /// The naive reference: the whole point sequence at once, top-down, in arrival order.
 fn reference(points: &[Point], root: Cube, cfg: BuilderConfig) -> BTreeMap<NodeKey, Flat> {
-    fn rec(key: NodeKey, cube: Cube, pts: Vec<Point>, cfg: &BuilderConfig, out: &mut BTreeMap<NodeKey, Flat>) {
+    fn rec(
+        key: NodeKey,
+        cube: Cube,
+        pts: Vec<Point>,
+        cfg: &BuilderConfig,
+        out: &mut BTreeMap<NodeKey, Flat>,
+    ) {
         let splittable = cube.size_log2 >= MIN_INNER_SIZE_LOG2 && key.level < cfg.max_level;
         if pts.len() as u64 > cfg.leaf_capacity as u64 && splittable {
             let mut order: Vec<u32> = Vec::new();
@@ -167,7 +179,8 @@ fn check_invariants(s: &Snapshot, input: &[Point]) {
     assert_eq!(s.point_count(), input.len() as u64);
 
     // Every input point is in exactly one leaf: the multisets are equal.
-    let mut stored: Vec<Point> = s.leaves().flat_map(|(_, n)| n.points().unwrap().iter().copied()).collect();
+    let mut stored: Vec<Point> =
+        s.leaves().flat_map(|(_, n)| n.points().unwrap().iter().copied()).collect();
     let mut want = input.to_vec();
     let by = |p: &Point| (p.record, p.pos, p.color);
     stored.sort_by_key(by);
@@ -206,7 +219,12 @@ fn check_invariants(s: &Snapshot, input: &[Point]) {
                     pts.len()
                 );
                 for p in pts.iter() {
-                    assert!(n.cube().contains(p.pos), "point {:?} outside leaf {}", p.pos, n.key().name());
+                    assert!(
+                        n.cube().contains(p.pos),
+                        "point {:?} outside leaf {}",
+                        p.pos,
+                        n.key().name()
+                    );
                     assert_eq!(s.leaf_at(p.pos), Some(id));
                 }
                 assert!(pts.chunks().iter().all(|c| !c.is_empty() && c.len() <= POINT_CHUNK_MAX));
@@ -223,12 +241,22 @@ fn check_invariants(s: &Snapshot, input: &[Point]) {
                 assert!(vox.len() <= (GRID_SIZE as u64).pow(3));
                 let mut seen = HashSet::new();
                 for v in vox.iter() {
-                    assert!(n.cube().contains(v.pos), "voxel {:?} outside {}", v.pos, n.key().name());
+                    assert!(
+                        n.cube().contains(v.pos),
+                        "voxel {:?} outside {}",
+                        v.pos,
+                        n.key().name()
+                    );
                     let cell = n.cube().voxel_of(v.pos);
                     assert!(cell.iter().all(|&c| (c as u32) < GRID_SIZE));
                     assert!(seen.insert(cell), "voxel {:?} twice in {}", cell, n.key().name());
                 }
-                assert_eq!(seen, cells[id.index()], "voxels of {} are not the cells of its points", n.key().name());
+                assert_eq!(
+                    seen,
+                    cells[id.index()],
+                    "voxels of {} are not the cells of its points",
+                    n.key().name()
+                );
             }
         }
     }
@@ -256,7 +284,12 @@ fn check_monotone(a: &Snapshot, b: &Snapshot) {
                 for p in na.points().unwrap().iter() {
                     let leaf = b.node(b.leaf_at(p.pos).unwrap());
                     assert!(leaf.key().level > na.key().level);
-                    assert!(leaf.points().unwrap().iter().any(|q| q == p), "split leaf {} lost {:?}", na.key().name(), p);
+                    assert!(
+                        leaf.points().unwrap().iter().any(|q| q == p),
+                        "split leaf {} lost {:?}",
+                        na.key().name(),
+                        p
+                    );
                 }
             }
             (false, true) => panic!("inner node {} became a leaf", na.key().name()),
@@ -268,7 +301,12 @@ fn check_monotone(a: &Snapshot, b: &Snapshot) {
                     assert_eq!(&vb[..va.len()], &va[..], "voxels of {} changed", na.key().name());
                 } else {
                     for (x, y) in va.iter().zip(&vb) {
-                        assert_eq!((x.pos, x.record), (y.pos, y.record), "voxel points of {} changed", na.key().name());
+                        assert_eq!(
+                            (x.pos, x.record),
+                            (y.pos, y.record),
+                            "voxel points of {} changed",
+                            na.key().name()
+                        );
                     }
                 }
             }
@@ -291,8 +329,12 @@ fn every_point_in_exactly_one_leaf() {
                 for mode in [ColorMode::FirstCome, ColorMode::Averaged] {
                     let (_, snaps) = build(pts, root, config(cap, mode), batch);
                     let s = snaps.last().unwrap();
-                    std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| check_invariants(s, pts)))
-                        .unwrap_or_else(|_| panic!("{name}, capacity {cap}, batches of {batch}, {mode:?}"));
+                    std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                        check_invariants(s, pts)
+                    }))
+                    .unwrap_or_else(|_| {
+                        panic!("{name}, capacity {cap}, batches of {batch}, {mode:?}")
+                    });
                 }
             }
         }
@@ -303,15 +345,24 @@ fn every_point_in_exactly_one_leaf() {
 fn matches_reference_on_fixed_cases() {
     let root = Cube::new([-1000, -1000, -1000], 12);
     let mut pts = random_points(3000, 7, [-1000; 3], 4096);
-    pts.extend(duplicate_points(500, 8).into_iter().map(|p| Point { record: p.record + 3000, ..p }));
-    pts.extend(clustered_points(2000, 9, 4096).into_iter().map(|p| Point { pos: p.pos.map(|v| v - 1000), record: p.record + 3500, ..p }));
+    pts.extend(
+        duplicate_points(500, 8).into_iter().map(|p| Point { record: p.record + 3000, ..p }),
+    );
+    pts.extend(clustered_points(2000, 9, 4096).into_iter().map(|p| Point {
+        pos: p.pos.map(|v| v - 1000),
+        record: p.record + 3500,
+        ..p
+    }));
     for cap in [1, 16, 100] {
         for mode in [ColorMode::FirstCome, ColorMode::Averaged] {
             let cfg = config(cap, mode);
             let want = reference(&pts, root, cfg);
             for batch in [pts.len(), 1000, 333, 10] {
                 let (_, snaps) = build(&pts, root, cfg, batch);
-                assert!(canon(flatten(snaps.last().unwrap())) == want, "capacity {cap}, {mode:?}, batches of {batch}");
+                assert!(
+                    canon(flatten(snaps.last().unwrap())) == want,
+                    "capacity {cap}, {mode:?}, batches of {batch}"
+                );
             }
         }
     }
@@ -321,7 +372,11 @@ fn matches_reference_on_fixed_cases() {
 fn snapshots_are_monotone() {
     let root = Cube::new([0; 3], 16);
     let mut pts = clustered_points(30_000, 11, 1 << 16);
-    pts.extend(random_points(10_000, 12, [0; 3], 1 << 16).into_iter().map(|p| Point { record: p.record + 30_000, ..p }));
+    pts.extend(
+        random_points(10_000, 12, [0; 3], 1 << 16)
+            .into_iter()
+            .map(|p| Point { record: p.record + 30_000, ..p }),
+    );
     for mode in [ColorMode::FirstCome, ColorMode::Averaged] {
         let mut b = Builder::new(root, config(200, mode)).unwrap();
         let empty = b.snapshot();
@@ -357,14 +412,22 @@ fn first_come_and_averaged_colours_by_hand() {
     let red = 0xff00_00ff;
     let green = 0xff00_ff00;
     let blue = 0xffff_0000;
-    let pts = [point([0, 0, 0], red, 0), point([1, 1, 1], green, 1), point([200, 0, 0], blue, 2), point([1, 0, 1], blue, 3)];
+    let pts = [
+        point([0, 0, 0], red, 0),
+        point([1, 1, 1], green, 1),
+        point([200, 0, 0], blue, 2),
+        point([1, 0, 1], blue, 3),
+    ];
 
     let mut b = Builder::new(root, config(2, ColorMode::FirstCome)).unwrap();
     b.add_batch(&pts).unwrap();
     let s = b.snapshot();
     let r = s.node(NodeId::ROOT);
     assert!(!r.is_leaf());
-    assert_eq!(r.voxels().unwrap().to_vec(), vec![Voxel::of(&pts[0], red), Voxel::of(&pts[2], blue)]);
+    assert_eq!(
+        r.voxels().unwrap().to_vec(),
+        vec![Voxel::of(&pts[0], red), Voxel::of(&pts[2], blue)]
+    );
     // child 0 (128 units, 1-unit voxels) holds 3 points: it splits too
     let c0 = s.node(r.child(0).unwrap());
     assert_eq!(
@@ -418,7 +481,11 @@ fn spilled_points_keep_first_come_and_are_averaged_once() {
 fn thread_count_does_not_change_the_tree() {
     let root = Cube::new([0; 3], 20);
     let mut pts = random_points(150_000, 21, [0; 3], 1 << 20);
-    pts.extend(clustered_points(150_000, 22, 1 << 20).into_iter().map(|p| Point { record: p.record + 150_000, ..p }));
+    pts.extend(
+        clustered_points(150_000, 22, 1 << 20)
+            .into_iter()
+            .map(|p| Point { record: p.record + 150_000, ..p }),
+    );
     for mode in [ColorMode::FirstCome, ColorMode::Averaged] {
         let cfg = config(2_000, mode);
         let run = |threads: usize| {
@@ -492,7 +559,11 @@ fn paging_out_and_in_does_not_change_the_tree() {
             let after = b.snapshot();
             assert_eq!(after.point_count(), 0);
             assert_eq!(after.total_points(), b.input_points());
-            assert_eq!(after.changed_since(snap.revision()).count(), 0, "paging out is not a change");
+            assert_eq!(
+                after.changed_since(snap.revision()).count(),
+                0,
+                "paging out is not a change"
+            );
             // The snapshot taken before paging out keeps its points.
             assert_eq!(snap.point_count(), resident);
             assert_eq!(snap.total_points(), b.input_points());
@@ -567,7 +638,11 @@ fn a_full_voxel_grid() {
             }
         }
     }
-    pts.extend(random_points(10_000, 51, [0; 3], 128).into_iter().map(|p| Point { record: p.record + (1 << 21), ..p }));
+    pts.extend(
+        random_points(10_000, 51, [0; 3], 128)
+            .into_iter()
+            .map(|p| Point { record: p.record + (1 << 21), ..p }),
+    );
     let mut b = Builder::new(root, config(1, ColorMode::FirstCome)).unwrap();
     for c in pts.chunks(1 << 20) {
         b.add_batch(c).unwrap();
@@ -594,7 +669,11 @@ fn occupancy_is_compact() {
     let (b, snaps) = build(&pts, root, config(5_000, ColorMode::FirstCome), 100_000);
     let inner = snaps.last().unwrap().iter().filter(|(_, n)| !n.is_leaf()).count();
     assert!(inner >= 5);
-    assert!(b.sampling_bytes() < inner * 40 * 1024, "{} bytes for {inner} inner nodes", b.sampling_bytes());
+    assert!(
+        b.sampling_bytes() < inner * 40 * 1024,
+        "{} bytes for {inner} inner nodes",
+        b.sampling_bytes()
+    );
 }
 
 #[test]
@@ -615,7 +694,8 @@ fn changed_since_names_the_touched_nodes() {
     for (id, n) in s2.changed_since(s1.revision()) {
         // on the point's path, or new (children of a split on the path)
         let on_path = n.cube().contains(p.pos);
-        let new_sibling = id.index() >= s1.node_count() && s2.node(s2.leaf_at(p.pos).unwrap()).key().parent() == n.key().parent();
+        let new_sibling = id.index() >= s1.node_count()
+            && s2.node(s2.leaf_at(p.pos).unwrap()).key().parent() == n.key().parent();
         assert!(on_path || new_sibling, "{} changed", n.key().name());
     }
     // an unchanged node is the same allocation in both snapshots
@@ -625,7 +705,10 @@ fn changed_since_names_the_touched_nodes() {
 
 #[test]
 fn errors_leave_the_builder_unchanged() {
-    assert_eq!(Builder::new(Cube::new([0; 3], 4), config(0, ColorMode::FirstCome)).unwrap_err(), OctreeError::ZeroCapacity);
+    assert_eq!(
+        Builder::new(Cube::new([0; 3], 4), config(0, ColorMode::FirstCome)).unwrap_err(),
+        OctreeError::ZeroCapacity
+    );
     assert_eq!(
         Builder::new(Cube::new([0; 3], 33), BuilderConfig::default()).unwrap_err(),
         OctreeError::RootTooLarge { size_log2: 33 }
@@ -637,9 +720,18 @@ fn errors_leave_the_builder_unchanged() {
     let mut b = Builder::new(Cube::new([-5; 3], 31), config(4, ColorMode::FirstCome)).unwrap();
     b.add_batch(&random_points(100, 81, [0; 3], 100)).unwrap();
     let before = flatten(&b.snapshot());
-    let bad = [point([1, 1, 1], 0, 0), point([i32::MIN, 0, 0], 0, 1), point([i32::MAX, 0, 0], 0, 2)];
+    let bad =
+        [point([1, 1, 1], 0, 0), point([i32::MIN, 0, 0], 0, 1), point([i32::MAX, 0, 0], 0, 2)];
     let err = b.add_batch(&bad).unwrap_err();
-    assert_eq!(err, OctreeError::PointOutsideRoot { index: 2, pos: [i32::MAX, 0, 0], min: [-5 - (1 << 31), -5, -5], size: 1 << 32 });
+    assert_eq!(
+        err,
+        OctreeError::PointOutsideRoot {
+            index: 2,
+            pos: [i32::MAX, 0, 0],
+            min: [-5 - (1 << 31), -5, -5],
+            size: 1 << 32
+        }
+    );
     assert!(err.to_string().contains("outside the octree's root cube"));
     assert!(flatten(&b.snapshot()) == before);
     assert_eq!(b.revision(), 1);
@@ -814,18 +906,28 @@ fn time_one_million_random_points() {
             .map(|i| {
                 let x = r.below(1 << 24) as f64;
                 let y = r.below(1 << 24) as f64;
-                let z = (1 << 22) as f64 * (1.5 + (x / 900_000.0).sin() * (y / 1_300_000.0).cos()) + r.below(64) as f64;
+                let z = (1 << 22) as f64 * (1.5 + (x / 900_000.0).sin() * (y / 1_300_000.0).cos())
+                    + r.below(64) as f64;
                 point([x as i32, y as i32, z as i32], r.next() as u32, i as u64)
             })
             .collect()
     };
     for (name, cube) in [("cube", true), ("terrain", false)] {
         for mode in [ColorMode::FirstCome, ColorMode::Averaged] {
-            let mut b = Builder::new(root, BuilderConfig { color_mode: mode, ..BuilderConfig::default() }).unwrap();
+            let mut b =
+                Builder::new(root, BuilderConfig { color_mode: mode, ..BuilderConfig::default() })
+                    .unwrap();
             let mut sum = std::time::Duration::ZERO;
             for k in 0..4u64 {
-                let pts = if cube { random_points(n, 100 + k, [0; 3], 1 << 24) } else { terrain(200 + k) };
-                let pts: Vec<Point> = pts.into_iter().map(|p| Point { record: p.record + k * n as u64, ..p }).collect();
+                let pts = if cube {
+                    random_points(n, 100 + k, [0; 3], 1 << 24)
+                } else {
+                    terrain(200 + k)
+                };
+                let pts: Vec<Point> = pts
+                    .into_iter()
+                    .map(|p| Point { record: p.record + k * n as u64, ..p })
+                    .collect();
                 let t = std::time::Instant::now();
                 let st = b.add_batch(&pts).unwrap();
                 let total = t.elapsed();
@@ -849,7 +951,11 @@ fn time_one_million_random_points() {
                     rayon::current_num_threads(),
                 );
             }
-            eprintln!("{name} {mode:?}: 4 batches in {sum:.1?}, {:.1} M points/s; sampling state {} KiB", 4.0 * n as f64 / sum.as_secs_f64() / 1e6, b.sampling_bytes() / 1024);
+            eprintln!(
+                "{name} {mode:?}: 4 batches in {sum:.1?}, {:.1} M points/s; sampling state {} KiB",
+                4.0 * n as f64 / sum.as_secs_f64() / 1e6,
+                b.sampling_bytes() / 1024
+            );
         }
     }
 }
@@ -862,7 +968,9 @@ fn morton_sorted(points: &[Point], root: Cube) -> Vec<Point> {
         let o = [0, 1, 2].map(|a| (p.pos[a] as i64 - root.min[a]) as u64);
         let mut c = 0u128;
         for bit in (0..33).rev() {
-            c = c << 3 | (((o[2] >> bit) & 1) << 2 | ((o[1] >> bit) & 1) << 1 | ((o[0] >> bit) & 1)) as u128;
+            c = c << 3
+                | (((o[2] >> bit) & 1) << 2 | ((o[1] >> bit) & 1) << 1 | ((o[0] >> bit) & 1))
+                    as u128;
         }
         (c, p.record)
     });
@@ -873,7 +981,8 @@ fn morton_sorted(points: &[Point], root: Cube) -> Vec<Point> {
 fn sorted_flat(points: &[Point], root: Cube, cfg: BuilderConfig) -> BTreeMap<NodeKey, Flat> {
     let s = morton_sorted(points, root);
     let pos: Vec<[i32; 3]> = s.iter().map(|p| p.pos).collect();
-    let tree = build_sorted(root, pos.len(), &|i: usize| pos[i], &|i: usize| s[i].record, cfg).unwrap();
+    let tree =
+        build_sorted(root, pos.len(), &|i: usize| pos[i], &|i: usize| s[i].record, cfg).unwrap();
     // Levels in order, the root first.
     let levels: Vec<u8> = tree.nodes.iter().map(|n| n.key.level).collect();
     assert!(levels.windows(2).all(|w| w[0] <= w[1]));
@@ -885,16 +994,32 @@ fn sorted_flat(points: &[Point], root: Cube, cfg: BuilderConfig) -> BTreeMap<Nod
             SortedContent::Leaf(r) => {
                 let mut points = s[r.clone()].to_vec();
                 points.sort_by_key(|p| p.record);
-                Flat { leaf: true, cube: n.cube, subtree: points.len() as u64, points, voxels: vec![] }
+                Flat {
+                    leaf: true,
+                    cube: n.cube,
+                    subtree: points.len() as u64,
+                    points,
+                    voxels: vec![],
+                }
             }
             SortedContent::Inner(v) => {
                 // Voxels are in the Morton order of their cells.
-                let cells: Vec<[u8; 3]> = v.iter().map(|&i| n.cube.voxel_of(s[i as usize].pos)).collect();
+                let cells: Vec<[u8; 3]> =
+                    v.iter().map(|&i| n.cube.voxel_of(s[i as usize].pos)).collect();
                 let mut uniq = cells.clone();
                 uniq.dedup();
                 assert_eq!(uniq.len(), cells.len(), "one voxel per cell in {}", n.key.name());
                 let subtree = (0..8).map(|o| sub[&n.key.child(o)]).sum();
-                Flat { leaf: false, cube: n.cube, points: vec![], voxels: v.iter().map(|&i| Voxel::of(&s[i as usize], s[i as usize].color)).collect(), subtree }
+                Flat {
+                    leaf: false,
+                    cube: n.cube,
+                    points: vec![],
+                    voxels: v
+                        .iter()
+                        .map(|&i| Voxel::of(&s[i as usize], s[i as usize].color))
+                        .collect(),
+                    subtree,
+                }
             }
         };
         sub.insert(n.key, f.subtree);
@@ -907,7 +1032,11 @@ fn sorted_flat(points: &[Point], root: Cube, cfg: BuilderConfig) -> BTreeMap<Nod
     r
 }
 
-fn reference_by_record(points: &[Point], root: Cube, cfg: BuilderConfig) -> BTreeMap<NodeKey, Flat> {
+fn reference_by_record(
+    points: &[Point],
+    root: Cube,
+    cfg: BuilderConfig,
+) -> BTreeMap<NodeKey, Flat> {
     let mut r = reference(points, root, cfg);
     for f in r.values_mut() {
         f.points.sort_by_key(|p| p.record);
@@ -942,8 +1071,26 @@ fn the_sorted_build_matches_the_reference() {
 fn the_sorted_build_refuses_what_it_cannot_build() {
     let root = Cube::new([0; 3], 10);
     let pos = [[5, 5, 5], [2000, 0, 0]];
-    assert!(matches!(build_sorted(root, 2, &|i: usize| pos[i], &|i: usize| i as u64, config(1, ColorMode::FirstCome)), Err(OctreeError::PointOutsideRoot { index: 1, .. })));
-    assert!(matches!(build_sorted(root, 1, &|i: usize| pos[i], &|i: usize| i as u64, config(1, ColorMode::Averaged)), Err(OctreeError::Unsupported(_))));
+    assert!(matches!(
+        build_sorted(
+            root,
+            2,
+            &|i: usize| pos[i],
+            &|i: usize| i as u64,
+            config(1, ColorMode::FirstCome)
+        ),
+        Err(OctreeError::PointOutsideRoot { index: 1, .. })
+    ));
+    assert!(matches!(
+        build_sorted(
+            root,
+            1,
+            &|i: usize| pos[i],
+            &|i: usize| i as u64,
+            config(1, ColorMode::Averaged)
+        ),
+        Err(OctreeError::Unsupported(_))
+    ));
 }
 
 proptest! {

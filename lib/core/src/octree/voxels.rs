@@ -297,7 +297,8 @@ impl VoxelState {
     /// the cube since the last call.
     pub(crate) fn publish(&mut self, point: &(dyn Fn(u32) -> Point + Sync)) -> (u64, u64, u64) {
         let before = self.chunks.len();
-        let mut octs = self.octants.each_mut().map(|m| m.get_mut().unwrap_or_else(PoisonError::into_inner));
+        let mut octs =
+            self.octants.each_mut().map(|m| m.get_mut().unwrap_or_else(PoisonError::into_inner));
         let sampled = octs.iter().map(|o| o.sampled).sum();
         let through = octs.iter().map(|o| o.through).sum();
         for o in octs.iter_mut() {
@@ -311,7 +312,8 @@ impl VoxelState {
         for (o, oct) in octs.iter_mut().enumerate() {
             match &mut oct.sampler {
                 Sampler::FirstCome(s) => {
-                    new_firstcome.extend(s.backlog.iter().map(|v| Voxel::of(&point(v.seq), v.color)));
+                    new_firstcome
+                        .extend(s.backlog.iter().map(|v| Voxel::of(&point(v.seq), v.color)));
                     s.backlog = Vec::new();
                 }
                 Sampler::Averaged(s) => {
@@ -351,7 +353,10 @@ impl VoxelState {
                     let end = (start + AVERAGED_CHUNK).min(self.order.len());
                     let chunk: Arc<[Voxel]> = self.order[start..end]
                         .iter()
-                        .map(|&e| accs[(e >> LOCAL_BITS) as usize][(e & ((1 << LOCAL_BITS) - 1)) as usize].voxel())
+                        .map(|&e| {
+                            accs[(e >> LOCAL_BITS) as usize][(e & ((1 << LOCAL_BITS) - 1)) as usize]
+                                .voxel()
+                        })
                         .collect();
                     self.chunks.put_chunk(k, chunk);
                 }
@@ -390,12 +395,21 @@ impl VoxelState {
             if at >= points.len() {
                 break;
             }
-            let chunk: Arc<[Voxel]> = old.iter().enumerate().map(|(i, v)| Voxel { record: points.get(at + i).map_or(v.record, |p| p.record), ..*v }).collect();
+            let chunk: Arc<[Voxel]> = old
+                .iter()
+                .enumerate()
+                .map(|(i, v)| Voxel {
+                    record: points.get(at + i).map_or(v.record, |p| p.record),
+                    ..*v
+                })
+                .collect();
             at += chunk.len();
             self.chunks.put_chunk(k, chunk);
         }
         for o in self.octants.iter_mut() {
-            if let Sampler::Averaged(s) = &mut o.get_mut().unwrap_or_else(PoisonError::into_inner).sampler {
+            if let Sampler::Averaged(s) =
+                &mut o.get_mut().unwrap_or_else(PoisonError::into_inner).sampler
+            {
                 for a in &mut s.acc {
                     if a.global != UNPUBLISHED && (a.global as usize) < points.len() {
                         a.first.record = points[a.global as usize].record;
@@ -409,9 +423,13 @@ impl VoxelState {
     pub(crate) fn sampler_bytes(&self) -> usize {
         let octs: usize = (0..8)
             .map(|o| match &self.octant(o).sampler {
-                Sampler::FirstCome(s) => s.occupied.heap_bytes() + s.backlog.capacity() * std::mem::size_of::<Pending>(),
+                Sampler::FirstCome(s) => {
+                    s.occupied.heap_bytes() + s.backlog.capacity() * std::mem::size_of::<Pending>()
+                }
                 Sampler::Averaged(s) => {
-                    s.index.heap_bytes() + s.acc.capacity() * std::mem::size_of::<Accum>() + s.dirty.capacity() * 8
+                    s.index.heap_bytes()
+                        + s.acc.capacity() * std::mem::size_of::<Accum>()
+                        + s.dirty.capacity() * 8
                 }
             })
             .sum();
@@ -496,7 +514,8 @@ mod tests {
     fn averaged_chunks_rebuild_when_colours_change() {
         let mut v = VoxelState::new(ColorMode::Averaged);
         // AVERAGED_CHUNK + 10 distinct cells, spread over two octants
-        let cells: Vec<[u32; 3]> = (0..AVERAGED_CHUNK as u32 + 10).map(|i| [i & 127, i >> 7 & 127, i >> 14]).collect();
+        let cells: Vec<[u32; 3]> =
+            (0..AVERAGED_CHUNK as u32 + 10).map(|i| [i & 127, i >> 7 & 127, i >> 14]).collect();
         for &c in &cells {
             sample_at(&v, c, 0xff00_0000);
         }

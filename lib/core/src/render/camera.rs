@@ -61,7 +61,8 @@ pub enum ViewPreset {
 
 impl ViewPreset {
     /// All presets, in a stable order.
-    pub const ALL: [ViewPreset; 4] = [ViewPreset::Top, ViewPreset::Front, ViewPreset::Side, ViewPreset::Iso];
+    pub const ALL: [ViewPreset; 4] =
+        [ViewPreset::Top, ViewPreset::Front, ViewPreset::Side, ViewPreset::Iso];
 
     /// The viewing direction and up vector of the preset.
     pub fn direction_and_up(self) -> (DVec3, DVec3) {
@@ -240,7 +241,11 @@ impl BatchProjection {
 impl Camera {
     /// Checks that the camera defines a view.
     pub fn validate(&self) -> Result<(), CameraError> {
-        if self.width == 0 || self.height == 0 || self.width > MAX_VIEWPORT || self.height > MAX_VIEWPORT {
+        if self.width == 0
+            || self.height == 0
+            || self.width > MAX_VIEWPORT
+            || self.height > MAX_VIEWPORT
+        {
             return Err(CameraError::Viewport { width: self.width, height: self.height });
         }
         if !(self.near > 0.0 && self.far > self.near && self.far.is_finite()) {
@@ -254,7 +259,11 @@ impl Camera {
             return Err(CameraError::Projection(self.projection));
         }
         if self.axes().is_none() || !self.eye.iter().all(|v| v.is_finite()) {
-            return Err(CameraError::Orientation { eye: self.eye, target: self.target, up: self.up });
+            return Err(CameraError::Orientation {
+                eye: self.eye,
+                target: self.target,
+                up: self.up,
+            });
         }
         Ok(())
     }
@@ -529,8 +538,19 @@ impl Camera {
     }
 
     /// An orthographic camera showing all of `bounds` from the preset's direction, with a small margin.
-    pub fn frame_orthographic(bounds: &Aabb, preset: ViewPreset, width: u32, height: u32) -> Result<Camera, CameraError> {
-        let mut cam = Camera::framing_start(bounds, preset, Projection::Orthographic { height: 1.0 }, width, height)?;
+    pub fn frame_orthographic(
+        bounds: &Aabb,
+        preset: ViewPreset,
+        width: u32,
+        height: u32,
+    ) -> Result<Camera, CameraError> {
+        let mut cam = Camera::framing_start(
+            bounds,
+            preset,
+            Projection::Orthographic { height: 1.0 },
+            width,
+            height,
+        )?;
         let axes = cam.axes_or_panic();
         let c = bounds.center();
         let extent = bounds.diagonal().max(1e-6 * length(c)).max(1e-9);
@@ -591,7 +611,12 @@ impl Camera {
     /// south-west at the box's centre, from the distance at which the view shows, from top to
     /// bottom, about a tenth of the box's larger horizontal extent (a view in which most drawn
     /// batches are large on screen).
-    pub fn close_up(bounds: &Aabb, fov_y: f64, width: u32, height: u32) -> Result<Camera, CameraError> {
+    pub fn close_up(
+        bounds: &Aabb,
+        fov_y: f64,
+        width: u32,
+        height: u32,
+    ) -> Result<Camera, CameraError> {
         if bounds.is_empty() || !bounds.min.iter().chain(&bounds.max).all(|v| v.is_finite()) {
             return Err(CameraError::Bounds { min: bounds.min, max: bounds.max });
         }
@@ -603,20 +628,41 @@ impl Camera {
         // Unit vector: horizontal part (1, 1) / sqrt(2) times cos 45, vertical -sin 45.
         let dir = [0.5, 0.5, -h];
         let eye = sub(c, scale(dir, dist));
-        Camera::look_at(eye, c, [0.0, 0.0, 1.0], Projection::Perspective { fov_y }, bounds, width, height)
+        Camera::look_at(
+            eye,
+            c,
+            [0.0, 0.0, 1.0],
+            Projection::Perspective { fov_y },
+            bounds,
+            width,
+            height,
+        )
     }
 
     /// A perspective view from inside `bounds`: the eye above the centre of the box's footprint at
     /// 30 % of its height, looking horizontally north (+y). For a forest or a city this stands
     /// among the trees or buildings; for a scanned object it looks at its inner side.
-    pub fn inside(bounds: &Aabb, fov_y: f64, width: u32, height: u32) -> Result<Camera, CameraError> {
+    pub fn inside(
+        bounds: &Aabb,
+        fov_y: f64,
+        width: u32,
+        height: u32,
+    ) -> Result<Camera, CameraError> {
         if bounds.is_empty() || !bounds.min.iter().chain(&bounds.max).all(|v| v.is_finite()) {
             return Err(CameraError::Bounds { min: bounds.min, max: bounds.max });
         }
         let c = bounds.center();
         let eye = [c[0], c[1], bounds.min[2] + 0.3 * bounds.size()[2]];
         let target = [eye[0], eye[1] + bounds.diagonal().max(1e-9), eye[2]];
-        Camera::look_at(eye, target, [0.0, 0.0, 1.0], Projection::Perspective { fov_y }, bounds, width, height)
+        Camera::look_at(
+            eye,
+            target,
+            [0.0, 0.0, 1.0],
+            Projection::Perspective { fov_y },
+            bounds,
+            width,
+            height,
+        )
     }
 
     fn framing_start(
@@ -653,7 +699,13 @@ impl Camera {
     /// [`FAR_UNITS`](super::plan::FAR_UNITS) grid units from the eye is anchored at its point
     /// nearest to the eye, with the pixel origin at the centre of its on-screen rectangle. The
     /// f32 twin the rasterizers run is [`super::plan::plan_batch`].
-    pub fn batch_projection(&self, grid: &Grid, batch: &BatchGrid, bounds: &Aabb, precision: Precision) -> BatchProjection {
+    pub fn batch_projection(
+        &self,
+        grid: &Grid,
+        batch: &BatchGrid,
+        bounds: &Aabb,
+        precision: Precision,
+    ) -> BatchProjection {
         let axes = self.axes_or_panic();
         let mut anchor = [0i32; 3];
         let mut shift = [0u32; 3];
@@ -662,7 +714,10 @@ impl Camera {
         let far = bounds.is_empty()
             || (0..3).any(|a| {
                 let e = eye_units(a);
-                let (lo, hi) = ((bounds.min[a] - grid.offset[a]) / grid.scale[a], (bounds.max[a] - grid.offset[a]) / grid.scale[a]);
+                let (lo, hi) = (
+                    (bounds.min[a] - grid.offset[a]) / grid.scale[a],
+                    (bounds.max[a] - grid.offset[a]) / grid.scale[a],
+                );
                 !((e - lo).abs() < limit && (e - hi).abs() < limit)
             });
         // Eye-relative world position of the local origin (anchor plus the centre of the unloaded bits).
@@ -672,9 +727,17 @@ impl Camera {
             shift[a] = MAX_BITS - bits;
             let an = if far {
                 let span = ((1u64 << bits) - 1) as f64;
-                let nearest = if bounds.is_empty() { self.eye[a] } else { self.eye[a].clamp(bounds.min[a], bounds.max[a]) };
+                let nearest = if bounds.is_empty() {
+                    self.eye[a]
+                } else {
+                    self.eye[a].clamp(bounds.min[a], bounds.max[a])
+                };
                 let units = (nearest - grid.offset[a]) / grid.scale[a] - batch.min[a] as f64;
-                if units.is_nan() { 0.0 } else { units.round().clamp(0.0, span) }
+                if units.is_nan() {
+                    0.0
+                } else {
+                    units.round().clamp(0.0, span)
+                }
             } else {
                 (eye_units(a) + 0.5).floor() - batch.min[a] as f64
             };
@@ -687,7 +750,9 @@ impl Camera {
         // view_from_local: rows right, up, forward (depth), applied to scale * local + rel.
         let s = grid.scale;
         let row = |ax: DVec3| [ax[0] * s[0], ax[1] * s[1], ax[2] * s[2], dot(ax, rel)];
-        let view_from_local = DMat4 { rows: [row(axes.right), row(axes.up), row(axes.forward), [0.0, 0.0, 0.0, 1.0]] };
+        let view_from_local = DMat4 {
+            rows: [row(axes.right), row(axes.up), row(axes.forward), [0.0, 0.0, 0.0, 1.0]],
+        };
 
         // Pixel origin: the viewport's centre; for a far batch the centre of its on-screen
         // rectangle, so that |pixel - origin| of every drawn point is at most half its visible size.
@@ -761,16 +826,26 @@ mod tests {
         for (i, cam) in scene.cameras().iter().enumerate() {
             for mode in [PrecisionMode::Adaptive, PrecisionMode::Fixed(Precision::Bits30)] {
                 let c = scene.check_projection(cam, mode);
-                assert!(c.on_screen > 20_000, "{label} camera {i}: only {} points on screen", c.on_screen);
+                assert!(
+                    c.on_screen > 20_000,
+                    "{label} camera {i}: only {} points on screen",
+                    c.on_screen
+                );
                 assert!(c.on_edge * 20 < c.on_screen, "{label} camera {i} {mode:?}: {c:?}");
-                assert!(c.other_pixel as f64 <= 2e-4 * c.on_screen as f64, "{label} camera {i} {mode:?}: {c:?}");
+                assert!(
+                    c.other_pixel as f64 <= 2e-4 * c.on_screen as f64,
+                    "{label} camera {i} {mode:?}: {c:?}"
+                );
                 assert!(c.worst_f32_px < 1e-3, "{label} camera {i} {mode:?}: {c:?}");
                 assert!(c.worst_decode_px < 0.5, "{label} camera {i} {mode:?}: {c:?}");
                 total += c.on_screen;
                 other += c.other_pixel;
             }
         }
-        assert!(other as f64 <= 1e-4 * total as f64, "{label}: {other} of {total} points in another pixel");
+        assert!(
+            other as f64 <= 1e-4 * total as f64,
+            "{label}: {other} of {total} points in another pixel"
+        );
     }
 
     #[test]
@@ -793,10 +868,20 @@ mod tests {
         // Batches of random extent up to the whole region (far larger than Morton batches), at ECEF
         // coordinates: the f32 error grows with the batch's size on screen but stays far below a pixel.
         let grid = Grid { scale: [0.0001; 3], offset: [6_400_000.0; 3] };
-        let region = Aabb::new([6_400_000.0, 6_400_000.0, 6_400_000.0], [6_400_200.0, 6_400_150.0, 6_400_030.0]);
+        let region = Aabb::new(
+            [6_400_000.0, 6_400_000.0, 6_400_000.0],
+            [6_400_200.0, 6_400_150.0, 6_400_030.0],
+        );
         let mut rng = Rng(99);
-        let mut cams: Vec<Camera> = ViewPreset::ALL.iter().map(|&p| Camera::frame_perspective(&region, p, 0.8, 1920, 1080).unwrap()).collect();
-        cams.push(Camera { eye: [6_400_050.0, 6_400_010.0, 6_400_032.0], target: [6_400_100.0, 6_400_060.0, 6_400_015.0], ..cams[0] });
+        let mut cams: Vec<Camera> = ViewPreset::ALL
+            .iter()
+            .map(|&p| Camera::frame_perspective(&region, p, 0.8, 1920, 1080).unwrap())
+            .collect();
+        cams.push(Camera {
+            eye: [6_400_050.0, 6_400_010.0, 6_400_032.0],
+            target: [6_400_100.0, 6_400_060.0, 6_400_015.0],
+            ..cams[0]
+        });
         cams[4].near = 0.05;
         let (mut total, mut differ, mut worst) = (0usize, 0usize, 0f64);
         for cam in &cams {
@@ -816,9 +901,14 @@ mod tests {
                 for precision in [Precision::Bits10, Precision::Bits20, Precision::Bits30] {
                     let bp = cam.batch_projection(&grid, &batch, &bounds, precision);
                     for _ in 0..50 {
-                        let p: [i32; 3] = [0, 1, 2].map(|a| min[a] + (rng.unit() * (max[a] - min[a] + 1) as f64) as i32);
+                        let p: [i32; 3] = [0, 1, 2]
+                            .map(|a| min[a] + (rng.unit() * (max[a] - min[a] + 1) as f64) as i32);
                         let words = batch.encode(p);
-                        let Some(r) = cam.project(world_of(&grid, &batch, batch.decode_relative(words, precision))) else {
+                        let Some(r) = cam.project(world_of(
+                            &grid,
+                            &batch,
+                            batch.decode_relative(words, precision),
+                        )) else {
                             continue;
                         };
                         if !(r.x >= 0.0 && r.x < 1920.0 && r.y >= 0.0 && r.y < 1080.0) {
@@ -852,9 +942,15 @@ mod tests {
         let p = [6_400_003.3, 6_400_007.1, 6_400_001.9];
         let r = cam.project(p).unwrap();
         let p32 = p.map(|v| v as f32);
-        let c: Vec<f32> = (0..4).map(|i| m32[i][0] * p32[0] + m32[i][1] * p32[1] + m32[i][2] * p32[2] + m32[i][3]).collect();
+        let c: Vec<f32> = (0..4)
+            .map(|i| m32[i][0] * p32[0] + m32[i][1] * p32[1] + m32[i][2] * p32[2] + m32[i][3])
+            .collect();
         let x = (c[0] / c[3] + 1.0) * 0.5 * 1920.0;
-        assert!((x as f64 - r.x).abs() > 2.0, "f32 world projection unexpectedly accurate: {x} vs {}", r.x);
+        assert!(
+            (x as f64 - r.x).abs() > 2.0,
+            "f32 world projection unexpectedly accurate: {x} vs {}",
+            r.x
+        );
     }
 
     #[test]
@@ -891,7 +987,10 @@ mod tests {
                 let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
                 for k in region.corners() {
                     let p = cam.project(k).unwrap();
-                    assert!(p.x > 0.0 && p.x < 1000.0 && p.y > 0.0 && p.y < 500.0, "{preset:?} {p:?}");
+                    assert!(
+                        p.x > 0.0 && p.x < 1000.0 && p.y > 0.0 && p.y < 500.0,
+                        "{preset:?} {p:?}"
+                    );
                     lo = [lo[0].min(p.x), lo[1].min(p.y)];
                     hi = [hi[0].max(p.x), hi[1].max(p.y)];
                 }
@@ -909,10 +1008,24 @@ mod tests {
         let region = Aabb::new([684_700.0, 5_017_700.0, 0.0], [685_500.0, 5_018_200.0, 30.0]);
         let depth = |cam: &Camera, p: DVec3| dot(cam.axes().unwrap().forward, sub(p, cam.eye));
         let eye = [684_600.0, 5_017_600.0, 400.0];
-        let cam = Camera::look_at(eye, region.center(), [0.0, 0.0, 1.0], Projection::Perspective { fov_y: 0.9 }, &region, 640, 480).unwrap();
+        let cam = Camera::look_at(
+            eye,
+            region.center(),
+            [0.0, 0.0, 1.0],
+            Projection::Perspective { fov_y: 0.9 },
+            &region,
+            640,
+            480,
+        )
+        .unwrap();
         for k in region.corners() {
             let d = depth(&cam, k);
-            assert!(d > cam.near && d < cam.far, "corner depth {d} outside [{}, {}]", cam.near, cam.far);
+            assert!(
+                d > cam.near && d < cam.far,
+                "corner depth {d} outside [{}, {}]",
+                cam.near,
+                cam.far
+            );
         }
         // The centre is looked at: it projects to the middle of the image.
         let c = cam.project(region.center()).unwrap();
@@ -922,13 +1035,22 @@ mod tests {
         // About a tenth of the 800 m extent is visible from top to bottom at the target.
         let visible = 2.0 * length(sub(close.target, close.eye)) * (0.45f64).tan();
         assert!((visible - 80.0).abs() < 1.0, "{visible}");
-        assert!(close.projected_size(&region) > 5000.0, "a close-up is much larger than the viewport");
+        assert!(
+            close.projected_size(&region) > 5000.0,
+            "a close-up is much larger than the viewport"
+        );
         let d = close.axes().unwrap().forward;
-        assert!((d[2] + std::f64::consts::FRAC_1_SQRT_2).abs() < 1e-9 && (d[0] - d[1]).abs() < 1e-9, "{d:?}");
+        assert!(
+            (d[2] + std::f64::consts::FRAC_1_SQRT_2).abs() < 1e-9 && (d[0] - d[1]).abs() < 1e-9,
+            "{d:?}"
+        );
 
         let inside = Camera::inside(&region, 1.2, 640, 480).unwrap();
         let e = inside.eye;
-        assert!((0..3).all(|a| e[a] > region.min[a] && e[a] < region.max[a]), "eye {e:?} not inside");
+        assert!(
+            (0..3).all(|a| e[a] > region.min[a] && e[a] < region.max[a]),
+            "eye {e:?} not inside"
+        );
         assert!((e[2] - 9.0).abs() < 1e-9);
         assert!(inside.near < 0.1 && inside.far > region.size()[1] * 0.5);
         // Looking north along the ground: a point ahead at eye height projects to the image centre row.

@@ -71,7 +71,12 @@ impl Framebuffer {
 
     /// The key of pixel `(x, y)`.
     pub fn key(&self, x: u32, y: u32) -> u64 {
-        assert!(x < self.width && y < self.height, "pixel ({x}, {y}) outside {}x{}", self.width, self.height);
+        assert!(
+            x < self.width && y < self.height,
+            "pixel ({x}, {y}) outside {}x{}",
+            self.width,
+            self.height
+        );
         self.keys[y as usize * self.width as usize + x as usize].load(Ordering::Relaxed)
     }
 

@@ -60,7 +60,10 @@ impl IntBox {
 
     /// The smallest box holding both.
     pub fn union(self, o: IntBox) -> IntBox {
-        IntBox { min: [0, 1, 2].map(|a| self.min[a].min(o.min[a])), max: [0, 1, 2].map(|a| self.max[a].max(o.max[a])) }
+        IntBox {
+            min: [0, 1, 2].map(|a| self.min[a].min(o.min[a])),
+            max: [0, 1, 2].map(|a| self.max[a].max(o.max[a])),
+        }
     }
 
     /// Whether `p` lies in the box.
@@ -77,7 +80,9 @@ impl IntBox {
     /// Whether `p` lies within `margin` grid units of the box on every axis.
     #[inline]
     pub fn near(&self, p: &[i32; 3], margin: i64) -> bool {
-        (0..3).all(|a| p[a] as i64 >= self.min[a] as i64 - margin && p[a] as i64 <= self.max[a] as i64 + margin)
+        (0..3).all(|a| {
+            p[a] as i64 >= self.min[a] as i64 - margin && p[a] as i64 <= self.max[a] as i64 + margin
+        })
     }
 
     /// The world box on `grid` (ordered on axes with a negative scale).

@@ -56,7 +56,8 @@ impl Frustum {
     /// The frustum of `camera`, its side planes moved outwards by `margin_px` pixels on each side of
     /// the viewport. The camera must be valid ([`Camera::validate`]).
     pub fn new(camera: &Camera, margin_px: f64) -> Frustum {
-        let axes = camera.axes().expect("camera orientation is degenerate; call Camera::validate first");
+        let axes =
+            camera.axes().expect("camera orientation is degenerate; call Camera::validate first");
         let grow_x = (camera.width as f64 + 2.0 * margin_px) / camera.width as f64;
         let grow_y = (camera.height as f64 + 2.0 * margin_px) / camera.height as f64;
         // Planes in view coordinates (x right, y up, d = depth along the view direction).
@@ -87,7 +88,8 @@ impl Frustum {
             }
         };
         let planes = view_planes.map(|(n, offset)| {
-            let w = [0, 1, 2].map(|a| n[0] * axes.right[a] + n[1] * axes.up[a] + n[2] * axes.forward[a]);
+            let w = [0, 1, 2]
+                .map(|a| n[0] * axes.right[a] + n[1] * axes.up[a] + n[2] * axes.forward[a]);
             Plane::new(w, offset)
         });
         Frustum { origin: camera.eye, planes }
@@ -159,7 +161,8 @@ mod tests {
     #[test]
     fn perspective_boxes() {
         // fov 90 degrees: at depth 10 the view spans z in [-10, 10] and x in [-20, 20].
-        let f = Frustum::new(&cam(Projection::Perspective { fov_y: std::f64::consts::FRAC_PI_2 }), 0.0);
+        let f =
+            Frustum::new(&cam(Projection::Perspective { fov_y: std::f64::consts::FRAC_PI_2 }), 0.0);
         assert_eq!(f.test_aabb(&cube([0.0, 10.0, 0.0], 1.0)), Containment::Inside);
         assert_eq!(f.test_aabb(&cube([0.0, -10.0, 0.0], 1.0)), Containment::Outside); // behind
         assert_eq!(f.test_aabb(&cube([0.0, 10.0, 15.0], 2.0)), Containment::Outside); // above
@@ -209,7 +212,11 @@ mod tests {
                         .is_some_and(|q| q.x >= 0.0 && q.x <= 640.0 && q.y >= 0.0 && q.y <= 480.0);
                     let inside = f.contains_point(p);
                     // Allow disagreement only within a hair of a plane.
-                    let margin = f.planes.iter().map(|pl| pl.distance(sub(p, f.origin)).abs()).fold(f64::INFINITY, f64::min);
+                    let margin = f
+                        .planes
+                        .iter()
+                        .map(|pl| pl.distance(sub(p, f.origin)).abs())
+                        .fold(f64::INFINITY, f64::min);
                     if margin > 1e-6 {
                         assert_eq!(visible, inside, "{preset:?} {p:?}");
                     }

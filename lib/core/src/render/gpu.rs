@@ -244,8 +244,23 @@ const _: () = assert!(std::mem::size_of::<HoleFillUniforms>() == 32);
 
 impl HoleFillUniforms {
     /// The uniforms of `fill` over a framebuffer read with `key_stride` and `depth_offset`.
-    pub fn new(fill: &HoleFill, width: u32, height: u32, key_stride: u32, depth_offset: u32) -> HoleFillUniforms {
-        HoleFillUniforms { width, height, key_stride, depth_offset, min_neighbors: fill.min_neighbors.max(1), _pad0: 0, _pad1: 0, _pad2: 0 }
+    pub fn new(
+        fill: &HoleFill,
+        width: u32,
+        height: u32,
+        key_stride: u32,
+        depth_offset: u32,
+    ) -> HoleFillUniforms {
+        HoleFillUniforms {
+            width,
+            height,
+            key_stride,
+            depth_offset,
+            min_neighbors: fill.min_neighbors.max(1),
+            _pad0: 0,
+            _pad1: 0,
+            _pad2: 0,
+        }
     }
 }
 
@@ -289,9 +304,16 @@ const _: () = assert!(std::mem::size_of::<EyeDomeUniforms>() == 176);
 impl EyeDomeUniforms {
     /// The uniforms of `edl` over a framebuffer (or filled keys) read with `key_stride` and
     /// `depth_offset`.
-    pub fn new(edl: &EyeDome, width: u32, height: u32, key_stride: u32, depth_offset: u32) -> EyeDomeUniforms {
+    pub fn new(
+        edl: &EyeDome,
+        width: u32,
+        height: u32,
+        key_stride: u32,
+        depth_offset: u32,
+    ) -> EyeDomeUniforms {
         let o = edl.offsets();
-        let offsets = std::array::from_fn(|i| [o[2 * i][0], o[2 * i][1], o[2 * i + 1][0], o[2 * i + 1][1]]);
+        let offsets =
+            std::array::from_fn(|i| [o[2 * i][0], o[2 * i][1], o[2 * i + 1][0], o[2 * i + 1][1]]);
         let mut log2_coeffs = [[0.0; 4]; 3];
         for (i, c) in EDL_LOG2_COEFFS.iter().enumerate() {
             log2_coeffs[i / 4][i % 4] = *c;
@@ -300,7 +322,19 @@ impl EyeDomeUniforms {
         for (i, c) in EDL_EXP2_COEFFS.iter().enumerate() {
             exp2_coeffs[i / 4][i % 4] = *c;
         }
-        EyeDomeUniforms { width, height, key_stride, depth_offset, scale: edl.scale(), zero: 0, _pad0: 0, _pad1: 0, offsets, log2_coeffs, exp2_coeffs }
+        EyeDomeUniforms {
+            width,
+            height,
+            key_stride,
+            depth_offset,
+            scale: edl.scale(),
+            zero: 0,
+            _pad0: 0,
+            _pad1: 0,
+            offsets,
+            log2_coeffs,
+            exp2_coeffs,
+        }
     }
 }
 
@@ -379,9 +413,24 @@ const _: () = assert!(std::mem::size_of::<ReframeUniforms>() == 64);
 
 impl ReframeUniforms {
     /// The constants of a chunk of `count` slots moving from frame `from` to `to`.
-    pub fn new(from: &crate::quantize::BatchGrid, to: &crate::quantize::BatchGrid, count: u32) -> ReframeUniforms {
-        let shift = |g: &crate::quantize::BatchGrid| g.bits.map(|b| crate::quantize::MAX_BITS - (b as u32).min(crate::quantize::MAX_BITS));
-        ReframeUniforms { from_min: from.min, count, to_min: to.min, _pad0: 0, from_shift: shift(from), _pad1: 0, to_shift: shift(to), _pad2: 0 }
+    pub fn new(
+        from: &crate::quantize::BatchGrid,
+        to: &crate::quantize::BatchGrid,
+        count: u32,
+    ) -> ReframeUniforms {
+        let shift = |g: &crate::quantize::BatchGrid| {
+            g.bits.map(|b| crate::quantize::MAX_BITS - (b as u32).min(crate::quantize::MAX_BITS))
+        };
+        ReframeUniforms {
+            from_min: from.min,
+            count,
+            to_min: to.min,
+            _pad0: 0,
+            from_shift: shift(from),
+            _pad1: 0,
+            to_shift: shift(to),
+            _pad2: 0,
+        }
     }
 }
 

@@ -58,8 +58,14 @@ pub struct DMat4 {
 
 impl DMat4 {
     /// The identity.
-    pub const IDENTITY: DMat4 =
-        DMat4 { rows: [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]] };
+    pub const IDENTITY: DMat4 = DMat4 {
+        rows: [
+            [1.0, 0.0, 0.0, 0.0],
+            [0.0, 1.0, 0.0, 0.0],
+            [0.0, 0.0, 1.0, 0.0],
+            [0.0, 0.0, 0.0, 1.0],
+        ],
+    };
 
     /// The product `self * rhs` (apply `rhs` first).
     pub fn mul(&self, rhs: &DMat4) -> DMat4 {

@@ -10,8 +10,8 @@
 pub mod camera;
 pub mod framebuffer;
 pub mod framing;
-pub mod gpu;
 pub mod frustum;
+pub mod gpu;
 pub mod math;
 pub mod orbit;
 pub mod plan;
@@ -22,10 +22,15 @@ pub mod resolve;
 #[doc(hidden)]
 pub mod testutil;
 
-pub use camera::{BatchProjection, Camera, CameraError, Projection, ProjectedPoint, ViewAxes, ViewPreset};
+pub use camera::{
+    BatchProjection, Camera, CameraError, ProjectedPoint, Projection, ViewAxes, ViewPreset,
+};
 pub use framebuffer::{pack_key, unpack_key, Framebuffer, EMPTY_KEY};
 pub use frustum::{Containment, Frustum, Plane};
 pub use math::{Aabb, DMat4, DVec3};
 pub use orbit::Orbit;
 pub use precision::{choose_precision, precision_for_pixels, PrecisionMode};
-pub use raster::{count_depth_ties, rasterize, rasterize_gathered, validate_batches, BatchPlan, BatchRef, GatheredRef, Planner, RasterError, RasterOptions, RasterStats, RasterUniforms};
+pub use raster::{
+    count_depth_ties, rasterize, rasterize_gathered, validate_batches, BatchPlan, BatchRef,
+    GatheredRef, Planner, RasterError, RasterOptions, RasterStats, RasterUniforms,
+};

@@ -40,8 +40,14 @@ impl Orbit {
         let dir = d.map(|v| v / distance);
         // Straight down (or up): the azimuth from the camera's up vector, so a top view keeps north
         // up.
-        let yaw = if dir[2].abs() > 0.9999 { (-c.up[1]).atan2(-c.up[0]) } else { dir[1].atan2(dir[0]) };
-        Orbit { target: c.target, distance, yaw, pitch: dir[2].clamp(-1.0, 1.0).asin().clamp(-MAX_PITCH, MAX_PITCH) }
+        let yaw =
+            if dir[2].abs() > 0.9999 { (-c.up[1]).atan2(-c.up[0]) } else { dir[1].atan2(dir[0]) };
+        Orbit {
+            target: c.target,
+            distance,
+            yaw,
+            pitch: dir[2].clamp(-1.0, 1.0).asin().clamp(-MAX_PITCH, MAX_PITCH),
+        }
     }
 
     /// Where the eye is.
@@ -54,7 +60,14 @@ impl Orbit {
 
     /// The camera of this orbit: perspective with vertical field of view `fov_y`, or
     /// orthographic with the height that field of view sees at the target's distance.
-    pub fn camera(&self, fov_y: f64, ortho: bool, bounds: &Aabb, width: u32, height: u32) -> Result<Camera, CameraError> {
+    pub fn camera(
+        &self,
+        fov_y: f64,
+        ortho: bool,
+        bounds: &Aabb,
+        width: u32,
+        height: u32,
+    ) -> Result<Camera, CameraError> {
         let projection = if ortho {
             Projection::Orthographic { height: 2.0 * self.distance * (0.5 * fov_y).tan() }
         } else {
@@ -100,7 +113,11 @@ impl Orbit {
         // right = forward x z (the pitch stops short of the poles, so it is not zero), up = right x forward.
         let n = (forward[0] * forward[0] + forward[1] * forward[1]).sqrt().max(1e-12);
         let right = [forward[1] / n, -forward[0] / n, 0.0];
-        let up = [right[1] * forward[2], -right[0] * forward[2], right[0] * forward[1] - right[1] * forward[0]];
+        let up = [
+            right[1] * forward[2],
+            -right[0] * forward[2],
+            right[0] * forward[1] - right[1] * forward[0],
+        ];
         let dot = |a: [f64; 3], b: [f64; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
         let ty = (0.5 * fov_y).tan() / 1.05;
         let tx = ty * width.max(1) as f64 / height.max(1) as f64;
@@ -130,7 +147,12 @@ mod tests {
         let o = Orbit::from_camera(&cam);
         let back = o.camera(0.8, false, &bounds, 640, 480).unwrap();
         for i in 0..3 {
-            assert!((back.eye[i] - cam.eye[i]).abs() < 1e-6 * o.distance, "{:?} vs {:?}", back.eye, cam.eye);
+            assert!(
+                (back.eye[i] - cam.eye[i]).abs() < 1e-6 * o.distance,
+                "{:?} vs {:?}",
+                back.eye,
+                cam.eye
+            );
         }
         // A top view keeps north up: the eye is displaced south of the target.
         let top = Camera::frame_perspective(&bounds, ViewPreset::Top, 0.8, 640, 480).unwrap();
@@ -149,12 +171,18 @@ mod tests {
             let (mut lo, mut hi) = ([f64::MAX; 2], [f64::MIN; 2]);
             for k in bounds.corners() {
                 let p = cam.project(k).expect("in front of the eye");
-                assert!(p.x >= 0.0 && p.x <= w as f64 && p.y >= 0.0 && p.y <= h as f64, "{k:?} at {p:?} outside {w}x{h}");
+                assert!(
+                    p.x >= 0.0 && p.x <= w as f64 && p.y >= 0.0 && p.y <= h as f64,
+                    "{k:?} at {p:?} outside {w}x{h}"
+                );
                 lo = [lo[0].min(p.x), lo[1].min(p.y)];
                 hi = [hi[0].max(p.x), hi[1].max(p.y)];
             }
             // Tight: the box spans most of the window in one direction.
-            assert!((hi[0] - lo[0]) / w as f64 > 0.8 || (hi[1] - lo[1]) / h as f64 > 0.8, "{lo:?}..{hi:?} in {w}x{h}");
+            assert!(
+                (hi[0] - lo[0]) / w as f64 > 0.8 || (hi[1] - lo[1]) / h as f64 > 0.8,
+                "{lo:?}..{hi:?} in {w}x{h}"
+            );
         }
     }
 

@@ -58,8 +58,17 @@ const EYE_LIMIT: f64 = (i32::MAX - 2) as f64;
 
 impl PlanUniforms {
     /// The plan constants of a view of points on `grid`.
-    pub fn new(camera: &Camera, grid: &Grid, options: &RasterOptions, division: u32) -> PlanUniforms {
-        let axes = camera.axes().unwrap_or(super::camera::ViewAxes { right: [1.0, 0.0, 0.0], up: [0.0, 1.0, 0.0], forward: [0.0, 0.0, 1.0] });
+    pub fn new(
+        camera: &Camera,
+        grid: &Grid,
+        options: &RasterOptions,
+        division: u32,
+    ) -> PlanUniforms {
+        let axes = camera.axes().unwrap_or(super::camera::ViewAxes {
+            right: [1.0, 0.0, 0.0],
+            up: [0.0, 1.0, 0.0],
+            forward: [0.0, 0.0, 1.0],
+        });
         let mut eye_int = [0i32; 3];
         let mut eye_frac = [0f32; 3];
         for a in 0..3 {
@@ -70,7 +79,14 @@ impl PlanUniforms {
             // In [0, 1); f32 rounding may give 1.0, which the anchor and offsets take as it is.
             eye_frac[a] = (units - floor) as f32;
         }
-        let scaled = |ax: [f64; 3]| [(ax[0] * grid.scale[0]) as f32, (ax[1] * grid.scale[1]) as f32, (ax[2] * grid.scale[2]) as f32, 0.0];
+        let scaled = |ax: [f64; 3]| {
+            [
+                (ax[0] * grid.scale[0]) as f32,
+                (ax[1] * grid.scale[1]) as f32,
+                (ax[2] * grid.scale[2]) as f32,
+                0.0,
+            ]
+        };
         let (w, h) = (camera.width as f64, camera.height as f64);
         let [hx, hy] = camera.half_extent();
         let words = match options.precision {
@@ -85,7 +101,12 @@ impl PlanUniforms {
             right: scaled(axes.right),
             up: scaled(axes.up),
             forward: scaled(axes.forward),
-            scale: [grid.scale[0].abs() as f32, grid.scale[1].abs() as f32, grid.scale[2].abs() as f32, 0.0],
+            scale: [
+                grid.scale[0].abs() as f32,
+                grid.scale[1].abs() as f32,
+                grid.scale[2].abs() as f32,
+                0.0,
+            ],
             sx: (0.5 * w / hx) as f32,
             sy: (0.5 * h / hy) as f32,
             cx: (0.5 * w) as f32,
@@ -110,7 +131,15 @@ impl PlanBatch {
     /// The plan pass's record of a batch of `count` points with quantization frame `batch` and
     /// world `bounds` (converted back to integer offsets, clamped into the frame; an empty box
     /// stands for the whole frame).
-    pub fn new(grid: &Grid, batch: &BatchGrid, bounds: &Aabb, count: u32, offset: u32, first_index: u32, record: u32) -> PlanBatch {
+    pub fn new(
+        grid: &Grid,
+        batch: &BatchGrid,
+        bounds: &Aabb,
+        count: u32,
+        offset: u32,
+        first_index: u32,
+        record: u32,
+    ) -> PlanBatch {
         let mut lo = [0u32; 3];
         let mut hi = [0u32; 3];
         for a in 0..3 {
@@ -131,7 +160,16 @@ impl PlanBatch {
                 hi[a] = u0.max(u1);
             }
         }
-        PlanBatch { min: batch.min, record, lo, offset, hi, count, bits: batch.bits.map(u32::from), first_index }
+        PlanBatch {
+            min: batch.min,
+            record,
+            lo,
+            offset,
+            hi,
+            count,
+            bits: batch.bits.map(u32::from),
+            first_index,
+        }
     }
 }
 
@@ -239,7 +277,10 @@ pub fn plan_batch(b: &PlanBatch, u: &PlanUniforms) -> BatchPlan {
     let e = error_units(&b.bits, words);
     if u.cull != 0 {
         // Each corner may move by the decode error and the slack towards a plane.
-        let size = (((b.hi[0] - b.lo[0]) as f32 * u.scale[0] + (b.hi[1] - b.lo[1]) as f32 * u.scale[1]) + (b.hi[2] - b.lo[2]) as f32 * u.scale[2]) + (xm + ym + zmax.abs().max(zmin.abs()));
+        let size = (((b.hi[0] - b.lo[0]) as f32 * u.scale[0]
+            + (b.hi[1] - b.lo[1]) as f32 * u.scale[1])
+            + (b.hi[2] - b.lo[2]) as f32 * u.scale[2])
+            + (xm + ym + zmax.abs().max(zmin.abs()));
         let s = u.slack * size;
         let ex = reach(&u.right, e) + s;
         let ey = reach(&u.up, e) + s;
@@ -268,7 +309,9 @@ pub fn plan_batch(b: &PlanBatch, u: &PlanUniforms) -> BatchPlan {
         };
         for p in &planes {
             let moved = (p[0].abs() * ex + p[1].abs() * ey) + p[2].abs() * ez;
-            let outside = corners.iter().all(|c| ((p[0] * c[0] + p[1] * c[1]) + p[2] * c[2]) + p[3] + moved < 0.0);
+            let outside = corners
+                .iter()
+                .all(|c| ((p[0] * c[0] + p[1] * c[1]) + p[2] * c[2]) + p[3] + moved < 0.0);
             if outside {
                 return BatchPlan::Culled;
             }
@@ -331,8 +374,18 @@ pub fn plan_batch(b: &PlanBatch, u: &PlanUniforms) -> BatchPlan {
     let f = &u.forward;
     let m = if u.perspective != 0 {
         [
-            [u.sx * u.right[0] + dx * f[0], u.sx * u.right[1] + dx * f[1], u.sx * u.right[2] + dx * f[2], u.sx * wx + dx * wz],
-            [dy * f[0] - u.sy * u.up[0], dy * f[1] - u.sy * u.up[1], dy * f[2] - u.sy * u.up[2], dy * wz - u.sy * wy],
+            [
+                u.sx * u.right[0] + dx * f[0],
+                u.sx * u.right[1] + dx * f[1],
+                u.sx * u.right[2] + dx * f[2],
+                u.sx * wx + dx * wz,
+            ],
+            [
+                dy * f[0] - u.sy * u.up[0],
+                dy * f[1] - u.sy * u.up[1],
+                dy * f[2] - u.sy * u.up[2],
+                dy * wz - u.sy * wy,
+            ],
             [f[0], f[1], f[2], wz],
             [f[0], f[1], f[2], wz],
         ]

@@ -88,7 +88,13 @@ pub fn quantization_box(grid: &Grid, batch: &BatchGrid) -> Aabb {
 /// `precision` and its exact position ([`Camera::displacement_bound_px`] of the decode's error
 /// bound, [`BatchGrid::error_bound`], over the points' world `bounds`); 0 where the words hold every
 /// bit the batch uses.
-pub fn decode_error_px(camera: &Camera, grid: &Grid, batch: &BatchGrid, bounds: &Aabb, precision: Precision) -> f64 {
+pub fn decode_error_px(
+    camera: &Camera,
+    grid: &Grid,
+    batch: &BatchGrid,
+    bounds: &Aabb,
+    precision: Precision,
+) -> f64 {
     let e = batch.error_bound(precision);
     if e == [0.0; 3] {
         return 0.0;
@@ -110,7 +116,13 @@ fn finer(p: Precision) -> Precision {
 ///
 /// Adaptive: the 500 px rule proposes a precision, which is then raised while its decode error
 /// could project to [`MAX_ERROR_PX`] or more ([`decode_error_px`]).
-pub fn choose_precision(mode: PrecisionMode, camera: &Camera, grid: &Grid, batch: &BatchGrid, bounds: &Aabb) -> (Precision, Option<f64>) {
+pub fn choose_precision(
+    mode: PrecisionMode,
+    camera: &Camera,
+    grid: &Grid,
+    batch: &BatchGrid,
+    bounds: &Aabb,
+) -> (Precision, Option<f64>) {
     let enough = sufficient_precision(batch);
     match mode {
         PrecisionMode::Fixed(p) => (p.min(enough), None),
@@ -166,23 +178,79 @@ mod tests {
         let grid = Grid { scale: [0.001; 3], offset: [0.0; 3] };
         // 2^15 mm = 32.8 m -> 328 px: 10 bits.
         let small = BatchGrid { min: [10_000, 10_000, 0], bits: [15, 15, 15] };
-        let (p, px) = choose_precision(PrecisionMode::Adaptive, &cam, &grid, &small, &quantization_box(&grid, &small));
+        let (p, px) = choose_precision(
+            PrecisionMode::Adaptive,
+            &cam,
+            &grid,
+            &small,
+            &quantization_box(&grid, &small),
+        );
         assert_eq!(p, Precision::Bits10);
         assert!((px.unwrap() - 327.68).abs() < 1e-6);
         // 2^16 mm = 65.5 m -> 655 px: 20 bits.
         let medium = BatchGrid { min: [10_000, 10_000, 0], bits: [16, 12, 12] };
-        assert_eq!(choose_precision(PrecisionMode::Adaptive, &cam, &grid, &medium, &quantization_box(&grid, &medium)).0, Precision::Bits20);
+        assert_eq!(
+            choose_precision(
+                PrecisionMode::Adaptive,
+                &cam,
+                &grid,
+                &medium,
+                &quantization_box(&grid, &medium)
+            )
+            .0,
+            Precision::Bits20
+        );
         // 2^26 mm = 67 km -> 671,000 px: 30 bits.
         let huge = BatchGrid { min: [0, 0, 0], bits: [26, 12, 12] };
-        assert_eq!(choose_precision(PrecisionMode::Adaptive, &cam, &grid, &huge, &quantization_box(&grid, &huge)).0, Precision::Bits30);
+        assert_eq!(
+            choose_precision(
+                PrecisionMode::Adaptive,
+                &cam,
+                &grid,
+                &huge,
+                &quantization_box(&grid, &huge)
+            )
+            .0,
+            Precision::Bits30
+        );
         // A batch that 10 bits hold exactly never loads more, whatever is asked.
         let exact = BatchGrid { min: [0, 0, 0], bits: [10, 10, 10] };
-        assert_eq!(choose_precision(PrecisionMode::Fixed(Precision::Bits30), &cam, &grid, &exact, &quantization_box(&grid, &exact)).0, Precision::Bits10);
-        assert_eq!(choose_precision(PrecisionMode::Fixed(Precision::Bits20), &cam, &grid, &huge, &quantization_box(&grid, &huge)).0, Precision::Bits20);
+        assert_eq!(
+            choose_precision(
+                PrecisionMode::Fixed(Precision::Bits30),
+                &cam,
+                &grid,
+                &exact,
+                &quantization_box(&grid, &exact)
+            )
+            .0,
+            Precision::Bits10
+        );
+        assert_eq!(
+            choose_precision(
+                PrecisionMode::Fixed(Precision::Bits20),
+                &cam,
+                &grid,
+                &huge,
+                &quantization_box(&grid, &huge)
+            )
+            .0,
+            Precision::Bits20
+        );
         // Zooming in 4x moves the small batch over the threshold.
         let mut close = cam;
         close.projection = Projection::Orthographic { height: 25.0 };
-        assert_eq!(choose_precision(PrecisionMode::Adaptive, &close, &grid, &small, &quantization_box(&grid, &small)).0, Precision::Bits20);
+        assert_eq!(
+            choose_precision(
+                PrecisionMode::Adaptive,
+                &close,
+                &grid,
+                &small,
+                &quantization_box(&grid, &small)
+            )
+            .0,
+            Precision::Bits20
+        );
     }
     #[test]
     fn decode_error_bound_holds_for_displaced_points() {
@@ -195,10 +263,27 @@ mod tests {
         for case in 0..400 {
             let r = |rng: &mut Rng, s: f64| (rng.unit() - 0.5) * 2.0 * s;
             let eye = [r(&mut rng, 50.0), r(&mut rng, 50.0), r(&mut rng, 20.0)];
-            let target = [eye[0] + r(&mut rng, 30.0), eye[1] + r(&mut rng, 30.0) + 0.1, eye[2] + r(&mut rng, 10.0)];
-            let projection = if case % 5 == 4 { Projection::Orthographic { height: 1.0 + rng.unit() * 80.0 } } else { Projection::Perspective { fov_y: 0.3 + rng.unit() * 1.5 } };
+            let target = [
+                eye[0] + r(&mut rng, 30.0),
+                eye[1] + r(&mut rng, 30.0) + 0.1,
+                eye[2] + r(&mut rng, 10.0),
+            ];
+            let projection = if case % 5 == 4 {
+                Projection::Orthographic { height: 1.0 + rng.unit() * 80.0 }
+            } else {
+                Projection::Perspective { fov_y: 0.3 + rng.unit() * 1.5 }
+            };
             let near = if case % 7 == 3 { 1e-5 } else { 0.01 + rng.unit() };
-            let cam = Camera { eye, target, up: [0.0, 0.0, 1.0], projection, near, far: 1e4, width: 640, height: 480 };
+            let cam = Camera {
+                eye,
+                target,
+                up: [0.0, 0.0, 1.0],
+                projection,
+                near,
+                far: 1e4,
+                width: 640,
+                height: 480,
+            };
             let lo = [r(&mut rng, 60.0), r(&mut rng, 60.0), r(&mut rng, 20.0)];
             let size = [rng.unit() * 40.0, rng.unit() * 40.0, rng.unit() * 10.0];
             let b = Aabb::new(lo, [lo[0] + size[0], lo[1] + size[1], lo[2] + size[2]]);
@@ -211,7 +296,10 @@ mod tests {
                 let d = [0, 1, 2].map(|a| p[a] + if k >> a & 1 == 1 { err[a] } else { -err[a] });
                 let Some(q) = cam.project(d) else { continue };
                 let moved = ((q.x - e.x).powi(2) + (q.y - e.y).powi(2)).sqrt();
-                assert!(moved <= bound * (1.0 + 1e-9) + 1e-9, "case {case}: moved {moved} px, bound {bound}, {cam:?} {b:?} {err:?}");
+                assert!(
+                    moved <= bound * (1.0 + 1e-9) + 1e-9,
+                    "case {case}: moved {moved} px, bound {bound}, {cam:?} {b:?} {err:?}"
+                );
                 checked += 1;
             }
         }
@@ -238,11 +326,20 @@ mod tests {
             height: 1080,
         };
         let rod = |x: i32| BatchGrid::for_bounds([x, 0, 0], [x + 20, 32_767, 20]).unwrap();
-        let bounds = |b: &BatchGrid| Aabb::new([0, 1, 2].map(|a| grid.world(a, b.min[a] as i64)), [grid.world(0, b.min[0] as i64 + 20), 32.767, 0.02]);
+        let bounds = |b: &BatchGrid| {
+            Aabb::new(
+                [0, 1, 2].map(|a| grid.world(a, b.min[a] as i64)),
+                [grid.world(0, b.min[0] as i64 + 20), 32.767, 0.02],
+            )
+        };
         let side = rod(3000);
         let px = cam.projected_size(&quantization_box(&grid, &side));
         assert!(px > 450.0 && px < 500.0, "{px}");
-        assert_eq!(precision_for_pixels(px), Precision::Bits10, "the 500 px rule alone takes 10 bits");
+        assert_eq!(
+            precision_for_pixels(px),
+            Precision::Bits10,
+            "the 500 px rule alone takes 10 bits"
+        );
         let e10 = decode_error_px(&cam, &grid, &side, &bounds(&side), Precision::Bits10);
         assert!(e10 > 1.4 && e10 < 1.8, "{e10}");
         let (p, _) = choose_precision(PrecisionMode::Adaptive, &cam, &grid, &side, &bounds(&side));
@@ -251,14 +348,23 @@ mod tests {
         let nearer = rod(1000);
         let e10 = decode_error_px(&cam, &grid, &nearer, &bounds(&nearer), Precision::Bits10);
         assert!(e10 > 0.4 && e10 < 0.8, "{e10}");
-        assert_eq!(choose_precision(PrecisionMode::Adaptive, &cam, &grid, &nearer, &bounds(&nearer)).0, Precision::Bits20);
+        assert_eq!(
+            choose_precision(PrecisionMode::Adaptive, &cam, &grid, &nearer, &bounds(&nearer)).0,
+            Precision::Bits20
+        );
         let centre = rod(300);
         let e10 = decode_error_px(&cam, &grid, &centre, &bounds(&centre), Precision::Bits10);
         assert!(e10 > 0.05 && e10 < MAX_ERROR_PX, "{e10}");
-        assert_eq!(choose_precision(PrecisionMode::Adaptive, &cam, &grid, &centre, &bounds(&centre)).0, Precision::Bits10);
+        assert_eq!(
+            choose_precision(PrecisionMode::Adaptive, &cam, &grid, &centre, &bounds(&centre)).0,
+            Precision::Bits10
+        );
         // Far away, the bound is the 500 px rule's quarter pixel: 10 bits stay.
         let mut far = cam;
         far.eye = [0.0, -300.0, 0.0];
-        assert_eq!(choose_precision(PrecisionMode::Adaptive, &far, &grid, &side, &bounds(&side)).0, Precision::Bits10);
+        assert_eq!(
+            choose_precision(PrecisionMode::Adaptive, &far, &grid, &side, &bounds(&side)).0,
+            Precision::Bits10
+        );
     }
 }

@@ -45,11 +45,12 @@
 //! supersampling).
 
 use super::camera::Camera;
-use super::framing::IntBox;
 use super::framebuffer::{key_index, Framebuffer, EMPTY_KEY};
+use super::framing::IntBox;
 use super::math::Aabb;
 use super::raster::{
-    count_depth_ties, rasterize, rasterize_gathered, BatchRef, GatheredRef, RasterError, RasterOptions, RasterStats,
+    count_depth_ties, rasterize, rasterize_gathered, BatchRef, GatheredRef, RasterError,
+    RasterOptions, RasterStats,
 };
 use crate::grid::Grid;
 use crate::quantize::BatchGrid;
@@ -227,11 +228,7 @@ pub struct AdaptiveBudget {
 
 impl Default for AdaptiveBudget {
     fn default() -> Self {
-        AdaptiveBudget {
-            target_ms: 16.6,
-            probe_points: 100_000,
-            usable: 0.9,
-        }
+        AdaptiveBudget { target_ms: 16.6, probe_points: 100_000, usable: 0.9 }
     }
 }
 
@@ -296,7 +293,11 @@ pub struct ProgressiveFrame {
 
 impl ProgressiveFrame {
     /// The frame `min..=max` exactly, with no margin.
-    pub fn exact(grid: Grid, min: [i32; 3], max: [i32; 3]) -> Result<ProgressiveFrame, ProgressiveError> {
+    pub fn exact(
+        grid: Grid,
+        min: [i32; 3],
+        max: [i32; 3],
+    ) -> Result<ProgressiveFrame, ProgressiveError> {
         if (0..3).any(|a| min[a] > max[a]) {
             return Err(ProgressiveError::Frame { min, max });
         }
@@ -314,7 +315,8 @@ impl ProgressiveFrame {
         let clamp = |v: i64| v.clamp(i32::MIN as i64, i32::MAX as i64) as i32;
         let min = data.min.map(|v| clamp(v as i64 - 1 - margin));
         let max = data.max.map(|v| clamp(v as i64 + 1 + margin));
-        let mut f = ProgressiveFrame::exact(grid, min, max).map_err(|_| ProgressiveError::Frame { min: data.min, max: data.max })?;
+        let mut f = ProgressiveFrame::exact(grid, min, max)
+            .map_err(|_| ProgressiveError::Frame { min: data.min, max: data.max })?;
         f.data = data;
         Ok(f)
     }
@@ -547,7 +549,10 @@ impl ProgressiveRenderer {
 
     /// A renderer for `capacity` points in `frame` (e.g. [`ProgressiveFrame::around`] the
     /// headers' box).
-    pub fn with_frame(frame: ProgressiveFrame, capacity: u64) -> Result<ProgressiveRenderer, ProgressiveError> {
+    pub fn with_frame(
+        frame: ProgressiveFrame,
+        capacity: u64,
+    ) -> Result<ProgressiveRenderer, ProgressiveError> {
         let len = u32::try_from(capacity).map_err(|_| ProgressiveError::TooManyPoints(capacity))?;
         let n = len as usize;
         let mut coarse = Vec::with_capacity(n);
@@ -628,11 +633,7 @@ impl ProgressiveRenderer {
         }
         let end = first.saturating_add(xyz.len() as u64);
         if end > self.capacity() {
-            return Err(ProgressiveError::IndexRange {
-                first,
-                end,
-                capacity: self.capacity(),
-            });
+            return Err(ProgressiveError::IndexRange { first, end, capacity: self.capacity() });
         }
         let shuffle = self.shuffle;
         let targets: Vec<u32> = (0..xyz.len())
@@ -640,10 +641,7 @@ impl ProgressiveRenderer {
             .with_min_len(4096)
             .map(|k| shuffle.target((first + k as u64) as u32))
             .collect();
-        if let Some(k) = targets
-            .iter()
-            .position(|&t| self.words[0][t as usize] != UNLOADED)
-        {
+        if let Some(k) = targets.iter().position(|&t| self.words[0][t as usize] != UNLOADED) {
             return Err(ProgressiveError::Duplicate(first + k as u64));
         }
         // Points outside the frame grow it (the words held are re-encoded; fails unchanged past
@@ -661,16 +659,13 @@ impl ProgressiveRenderer {
             payload: self.payload.as_mut_ptr(),
             len: c.len(),
         };
-        (0..xyz.len())
-            .into_par_iter()
-            .with_min_len(4096)
-            .for_each(|k| {
-                let out = &out;
-                // SAFETY: every target is below `len` (the shuffle is a bijection on 0..len), and the
-                // targets are distinct (a bijection of distinct indices), so no two iterations write
-                // the same slot; the buffers are borrowed mutably for the whole loop.
-                unsafe { out.write(targets[k] as usize, frame.encode(xyz[k]), payload[k]) };
-            });
+        (0..xyz.len()).into_par_iter().with_min_len(4096).for_each(|k| {
+            let out = &out;
+            // SAFETY: every target is below `len` (the shuffle is a bijection on 0..len), and the
+            // targets are distinct (a bijection of distinct indices), so no two iterations write
+            // the same slot; the buffers are borrowed mutably for the whole loop.
+            unsafe { out.write(targets[k] as usize, frame.encode(xyz[k]), payload[k]) };
+        });
         self.loaded += xyz.len() as u64;
         Ok(())
     }
@@ -680,11 +675,13 @@ impl ProgressiveRenderer {
     fn reframe(&mut self, to: ProgressiveFrame) {
         let from = self.frame.quant;
         let [c, m, f] = &mut self.words;
-        c.par_iter_mut().zip(m.par_iter_mut()).zip(f.par_iter_mut()).with_min_len(4096).for_each(|((c, m), f)| {
-            if *c != UNLOADED {
-                [*c, *m, *f] = to.reencode(&from, [*c, *m, *f]);
-            }
-        });
+        c.par_iter_mut().zip(m.par_iter_mut()).zip(f.par_iter_mut()).with_min_len(4096).for_each(
+            |((c, m), f)| {
+                if *c != UNLOADED {
+                    [*c, *m, *f] = to.reencode(&from, [*c, *m, *f]);
+                }
+            },
+        );
         for g in &mut self.reproject {
             let [c, m, f] = &mut g.words;
             for i in 0..c.len() {
@@ -705,13 +702,21 @@ impl ProgressiveRenderer {
     /// inserted) with new ones, leaving their positions and the frame's state alone: attribute
     /// switching streamed batch by batch (§3.5), as a loader delivers the new attribute. Checks
     /// everything before changing anything.
-    pub fn replace_payloads(&mut self, first: u64, payload: &[u64]) -> Result<(), ProgressiveError> {
+    pub fn replace_payloads(
+        &mut self,
+        first: u64,
+        payload: &[u64],
+    ) -> Result<(), ProgressiveError> {
         let end = first.saturating_add(payload.len() as u64);
         if end > self.capacity() {
             return Err(ProgressiveError::IndexRange { first, end, capacity: self.capacity() });
         }
         let shuffle = self.shuffle;
-        let targets: Vec<u32> = (0..payload.len()).into_par_iter().with_min_len(4096).map(|k| shuffle.target((first + k as u64) as u32)).collect();
+        let targets: Vec<u32> = (0..payload.len())
+            .into_par_iter()
+            .with_min_len(4096)
+            .map(|k| shuffle.target((first + k as u64) as u32))
+            .collect();
         if let Some(k) = targets.iter().position(|&t| self.words[0][t as usize] == UNLOADED) {
             return Err(ProgressiveError::NotLoaded(first + k as u64));
         }
@@ -723,9 +728,7 @@ impl ProgressiveRenderer {
 
     /// Whether slot `slot` holds a point.
     pub fn is_loaded(&self, slot: u32) -> bool {
-        self.words[0]
-            .get(slot as usize)
-            .is_some_and(|&c| c != UNLOADED)
+        self.words[0].get(slot as usize).is_some_and(|&c| c != UNLOADED)
     }
 
     /// The payload of the point in slot `slot` (a shuffled index, as in the keys), if loaded.
@@ -736,16 +739,19 @@ impl ProgressiveRenderer {
     /// The payloads of every point inserted so far, in slot order (for view-independent colour
     /// ranges over all the points).
     pub fn loaded_payloads(&self) -> Vec<u64> {
-        self.words[0].par_iter().zip(&self.payload).filter(|(c, _)| **c != UNLOADED).map(|(_, &v)| v).collect()
+        self.words[0]
+            .par_iter()
+            .zip(&self.payload)
+            .filter(|(c, _)| **c != UNLOADED)
+            .map(|(_, &v)| v)
+            .collect()
     }
 
     /// The integer coordinates of the point in slot `slot`, if loaded.
     pub fn position(&self, slot: u32) -> Option<[i32; 3]> {
         let s = slot as usize;
         self.is_loaded(slot).then(|| {
-            self.frame
-                .quant
-                .decode_exact([self.words[0][s], self.words[1][s], self.words[2][s]])
+            self.frame.quant.decode_exact([self.words[0][s], self.words[1][s], self.words[2][s]])
         })
     }
 
@@ -763,10 +769,7 @@ impl ProgressiveRenderer {
 
     /// The slots of the points visible at the end of the last frame, in increasing order.
     pub fn visible(&self) -> Vec<u32> {
-        self.reproject
-            .iter()
-            .flat_map(|g| g.indices.iter().copied())
-            .collect()
+        self.reproject.iter().flat_map(|g| g.indices.iter().copied()).collect()
     }
 
     /// The pixels of the last frame in which another point has exactly the winner's depth
@@ -774,7 +777,11 @@ impl ProgressiveRenderer {
     /// a renderer that numbers the points otherwise may show another of them. `None` until every
     /// point arrived and a frame was drawn.
     pub fn depth_ties(&self) -> Result<Option<u64>, ProgressiveError> {
-        let (Some(all), Some((camera, options)), Some(fb)) = (self.all_points(), self.view, &self.fb) else { return Ok(None) };
+        let (Some(all), Some((camera, options)), Some(fb)) =
+            (self.all_points(), self.view, &self.fb)
+        else {
+            return Ok(None);
+        };
         Ok(Some(count_depth_ties(&fb.keys(), &all, &self.frame.grid, &camera, &options)?))
     }
 
@@ -806,11 +813,7 @@ impl ProgressiveRenderer {
             let w = i / 64;
             let lo = i % 64;
             let hi = (e - w * 64).min(64);
-            let mask = if hi - lo == 64 {
-                u64::MAX
-            } else {
-                ((1u64 << (hi - lo)) - 1) << lo
-            };
+            let mask = if hi - lo == 64 { u64::MAX } else { ((1u64 << (hi - lo)) - 1) << lo };
             self.done_count += (mask & !self.done[w]).count_ones() as u64;
             self.done[w] |= mask;
             i = w * 64 + hi;
@@ -842,10 +845,7 @@ impl ProgressiveRenderer {
         while left > 0 {
             let s = self.cursor as usize;
             let e = (self.cursor + left).min(n) as usize;
-            let fb = self
-                .fb
-                .as_ref()
-                .expect("framebuffer made before the passes");
+            let fb = self.fb.as_ref().expect("framebuffer made before the passes");
             if self.loaded == n {
                 let st = rasterize(fb, &self.slot_refs(s, e), &self.frame.grid, camera, options)?;
                 stats = stats.merge(st);
@@ -910,11 +910,8 @@ impl ProgressiveRenderer {
             self.done_count = 0;
         }
         self.frames += 1;
-        let mut st = FrameStats {
-            frame: self.frames,
-            loaded: self.loaded,
-            ..FrameStats::default()
-        };
+        let mut st =
+            FrameStats { frame: self.frames, loaded: self.loaded, ..FrameStats::default() };
 
         // Reproject: the points visible at the end of the last frame, from their coordinates.
         let fb = self.fb.as_ref().expect("made above");
@@ -972,10 +969,7 @@ impl ProgressiveRenderer {
                 for (i, w) in chunk.iter().enumerate() {
                     let mut v = w.swap(0, Ordering::Relaxed);
                     while v != 0 {
-                        g.push(
-                            words,
-                            (c * (CHUNK / 16) + i) * 64 + v.trailing_zeros() as usize,
-                        );
+                        g.push(words, (c * (CHUNK / 16) + i) * 64 + v.trailing_zeros() as usize);
                         v &= v - 1;
                     }
                 }
@@ -1026,10 +1020,7 @@ mod tests {
             let mut seen = vec![false; p as usize];
             for i in 0..p {
                 let t = s.permute(i);
-                assert!(
-                    t < p && !seen[t as usize],
-                    "n {n}: permute not a bijection on 0..{p}"
-                );
+                assert!(t < p && !seen[t as usize], "n {n}: permute not a bijection on 0..{p}");
                 seen[t as usize] = true;
             }
         }
@@ -1040,25 +1031,14 @@ mod tests {
         for n in 0..20_000u64 {
             assert_eq!(is_prime(n), trial_division(n), "{n}");
         }
-        for n in [
-            4_294_967_291u64,
-            4_294_967_279,
-            2_147_483_647,
-            184_007_671,
-            184_008_203,
-            1_000_003,
-        ] {
+        for n in
+            [4_294_967_291u64, 4_294_967_279, 2_147_483_647, 184_007_671, 184_008_203, 1_000_003]
+        {
             assert!(is_prime(n), "{n}");
         }
-        for n in [
-            4_294_967_295u64,
-            4_294_967_293,
-            2_147_483_649,
-            1_000_001,
-            561,
-            1_105,
-            3_215_031_751,
-        ] {
+        for n in
+            [4_294_967_295u64, 4_294_967_293, 2_147_483_649, 1_000_001, 561, 1_105, 3_215_031_751]
+        {
             assert_eq!(is_prime(n), trial_division(n), "{n}");
         }
     }
@@ -1169,11 +1149,7 @@ mod tests {
 
     #[test]
     fn adaptive_budget_fills_the_time_left() {
-        let a = AdaptiveBudget {
-            target_ms: 16.0,
-            probe_points: 1_000_000,
-            usable: 1.0,
-        };
+        let a = AdaptiveBudget { target_ms: 16.0, probe_points: 1_000_000, usable: 1.0 };
         // 1 M points in 2 ms, 4 ms into the frame, 2 ms expected after: 10 ms left at 0.5 M/ms.
         let t = ProbeTimings {
             probe_points: 1_000_000,
@@ -1184,54 +1160,22 @@ mod tests {
         assert_eq!(a.extra_points(&t), 5_000_000);
         // Twice as fast (e.g. half the points outside the frustum): twice the budget.
         assert_eq!(
-            a.extra_points(&ProbeTimings {
-                probe_ms: 1.0,
-                elapsed_ms: 3.0,
-                ..t
-            }),
+            a.extra_points(&ProbeTimings { probe_ms: 1.0, elapsed_ms: 3.0, ..t }),
             11_000_000
         );
         // Planning with 10 of 16 ms (the paper's advice) leaves 4 ms.
-        let careful = AdaptiveBudget {
-            usable: 10.0 / 16.0,
-            ..a
-        };
+        let careful = AdaptiveBudget { usable: 10.0 / 16.0, ..a };
         assert_eq!(careful.extra_points(&t), 2_000_000);
         // Over time already: nothing more; too fast to measure: everything; no probe: nothing.
-        assert_eq!(
-            a.extra_points(&ProbeTimings {
-                elapsed_ms: 15.0,
-                ..t
-            }),
-            0
-        );
-        assert_eq!(
-            a.extra_points(&ProbeTimings {
-                elapsed_ms: f64::NAN,
-                ..t
-            }),
-            0
-        );
-        assert_eq!(
-            a.extra_points(&ProbeTimings { probe_ms: 0.0, ..t }),
-            u64::MAX
-        );
-        assert_eq!(
-            a.extra_points(&ProbeTimings {
-                probe_points: 0,
-                ..t
-            }),
-            0
-        );
+        assert_eq!(a.extra_points(&ProbeTimings { elapsed_ms: 15.0, ..t }), 0);
+        assert_eq!(a.extra_points(&ProbeTimings { elapsed_ms: f64::NAN, ..t }), 0);
+        assert_eq!(a.extra_points(&ProbeTimings { probe_ms: 0.0, ..t }), u64::MAX);
+        assert_eq!(a.extra_points(&ProbeTimings { probe_points: 0, ..t }), 0);
         // A closed loop against a synthetic machine (fixed cost per point, reprojection and
         // prepare costs): frames stay within the target and the budget settles where the fill
         // takes the time left.
         let (per_point_ms, reproject_ms, prepare_ms) = (2e-6, 1.0, 1.5);
-        let a = AdaptiveBudget {
-            target_ms: 16.6,
-            probe_points: 100_000,
-            usable: 0.9,
-        };
+        let a = AdaptiveBudget { target_ms: 16.6, probe_points: 100_000, usable: 0.9 };
         let mut after = 0.0;
         for frame in 0..5 {
             let probe_ms = a.probe_points as f64 * per_point_ms;
@@ -1311,10 +1255,7 @@ mod tests {
         let scene = Scene::terrain(
             150_000,
             31,
-            Grid {
-                scale: [0.001; 3],
-                offset: [500_000.0, 5_400_000.0, 0.0],
-            },
+            Grid { scale: [0.001; 3], offset: [500_000.0, 5_400_000.0, 0.0] },
         );
         let n = scene.points.len() as u64;
         let options = RasterOptions::default();
@@ -1335,11 +1276,7 @@ mod tests {
                         covered(&keys),
                         "camera {ci}: one visible point per covered pixel"
                     );
-                    assert_eq!(
-                        st.converged,
-                        f == frames,
-                        "camera {ci} budget {budget} frame {f}"
-                    );
+                    assert_eq!(st.converged, f == frames, "camera {ci} budget {budget} frame {f}");
                     if let Some(p) = &prev {
                         assert_eq!(st.reprojected as usize, covered(p));
                         // Still camera: every pixel keeps its point or gets a nearer one, so the
@@ -1376,20 +1313,12 @@ mod tests {
     fn early_frames_show_a_random_subset_everywhere() {
         // Frame 1 of 10 draws a tenth of the points spread over the whole image (the shuffle), so it
         // already covers a large part of what the final image covers, and coverage only grows.
-        let scene = Scene::terrain(
-            200_000,
-            5,
-            Grid {
-                scale: [0.001; 3],
-                offset: [0.0; 3],
-            },
-        );
+        let scene = Scene::terrain(200_000, 5, Grid { scale: [0.001; 3], offset: [0.0; 3] });
         let cam = Camera::frame_perspective(&scene.bounds, ViewPreset::Top, 0.8, 400, 300).unwrap();
         let mut r = renderer_for(&scene);
         let mut cover = Vec::new();
         for _ in 0..10 {
-            r.frame(&cam, &RasterOptions::default(), &FillBudget::Fixed(20_000))
-                .unwrap();
+            r.frame(&cam, &RasterOptions::default(), &FillBudget::Fixed(20_000)).unwrap();
             cover.push(covered(&r.keys()));
         }
         assert!(cover.windows(2).all(|w| w[0] <= w[1]), "{cover:?}");
@@ -1397,8 +1326,7 @@ mod tests {
         assert!(cover[0] * 100 > last * 5 && cover[0] < last, "{cover:?}");
         // Every quarter of the final image gets points in frame 1.
         let mut r = renderer_for(&scene);
-        r.frame(&cam, &RasterOptions::default(), &FillBudget::Fixed(20_000))
-            .unwrap();
+        r.frame(&cam, &RasterOptions::default(), &FillBudget::Fixed(20_000)).unwrap();
         let keys = r.keys();
         for q in 0..4 {
             let (x0, y0) = ((q % 2) * 200, (q / 2) * 150);
@@ -1419,10 +1347,7 @@ mod tests {
         let scene = Scene::terrain(
             120_000,
             77,
-            Grid {
-                scale: [0.01; 3],
-                offset: [684_000.0, 5_017_000.0, 0.0],
-            },
+            Grid { scale: [0.01; 3], offset: [684_000.0, 5_017_000.0, 0.0] },
         );
         let one = Scene::from_points(scene.grid, scene.points.clone(), scene.points.len());
         assert_eq!(one.batches.len(), 1);
@@ -1434,8 +1359,7 @@ mod tests {
             let mut r = renderer_for(&one);
             let st: Vec<FrameStats> = (0..4)
                 .map(|_| {
-                    r.frame(cam, &RasterOptions::default(), &FillBudget::Fixed(30_000))
-                        .unwrap()
+                    r.frame(cam, &RasterOptions::default(), &FillBudget::Fixed(30_000)).unwrap()
                 })
                 .collect();
             assert!(
@@ -1467,22 +1391,13 @@ mod tests {
             let counted = r.depth_ties().unwrap().unwrap();
             assert!(counted >= ties as u64, "camera {ci}: {counted} ties counted, {ties} seen");
             assert!(counted > 0 || ci == 2, "camera {ci}: no ties at all?");
-            assert_eq!(
-                other, 0,
-                "camera {ci}: {other} pixels differ beyond depth ties"
-            );
+            assert_eq!(other, 0, "camera {ci}: {other} pixels differ beyond depth ties");
             // Few, but not none: several points share a pixel, and their f32 depths (24-bit
             // mantissa, ~3 mm at 300 m) are often equal; heights on a 1 cm grid make equal depths
             // more common in the orthographic top view (camera 1: ~3 % of the pixels).
-            assert!(
-                ties * 20 <= n,
-                "camera {ci}: {ties} depth ties in {n} pixels"
-            );
+            assert!(ties * 20 <= n, "camera {ci}: {ties} depth ties in {n} pixels");
             if ci != 1 {
-                assert!(
-                    ties * 50 <= n,
-                    "camera {ci}: {ties} depth ties in {n} pixels"
-                );
+                assert!(ties * 50 <= n, "camera {ci}: {ties} depth ties in {n} pixels");
             }
         }
     }
@@ -1499,10 +1414,7 @@ mod tests {
         let scene = Scene::terrain(
             150_000,
             41,
-            Grid {
-                scale: [0.001; 3],
-                offset: [6_400_000.0, 0.0, 0.0],
-            },
+            Grid { scale: [0.001; 3], offset: [6_400_000.0, 0.0, 0.0] },
         );
         let cam = Camera::frame_perspective(&scene.bounds, ViewPreset::Iso, 0.8, 480, 320).unwrap();
         let options = RasterOptions {
@@ -1513,18 +1425,16 @@ mod tests {
         rasterize(&fb, &scene.refs(), &scene.grid, &cam, &options).unwrap();
         let want = fb.into_keys();
         let mut r = renderer_for(&scene);
-        while !r
-            .frame(&cam, &options, &FillBudget::Fixed(50_000))
-            .unwrap()
-            .converged
-        {}
+        while !r.frame(&cam, &options, &FillBudget::Fixed(50_000)).unwrap().converged {}
         let mut inverse = vec![0u32; scene.points.len()];
         for i in 0..scene.points.len() as u32 {
             inverse[r.shuffle().target(i) as usize] = i;
         }
         let (mut ties, mut other) = (0usize, 0usize);
         for (k, w) in r.keys().iter().zip(&want) {
-            if (*k == EMPTY_KEY) != (*w == EMPTY_KEY) || (*k != EMPTY_KEY && key_depth(*k) != key_depth(*w)) {
+            if (*k == EMPTY_KEY) != (*w == EMPTY_KEY)
+                || (*k != EMPTY_KEY && key_depth(*k) != key_depth(*w))
+            {
                 other += 1;
             } else if *k != EMPTY_KEY && inverse[key_index(*k) as usize] != key_index(*w) {
                 ties += 1;
@@ -1541,14 +1451,7 @@ mod tests {
     fn points_arriving_while_rendering_are_shown_and_converge() {
         // Pieces arrive between frames in a scrambled order; every frame shows what arrived, and
         // the image converges once everything arrived and every slot was swept since.
-        let scene = Scene::terrain(
-            100_000,
-            13,
-            Grid {
-                scale: [0.001; 3],
-                offset: [0.0; 3],
-            },
-        );
+        let scene = Scene::terrain(100_000, 13, Grid { scale: [0.001; 3], offset: [0.0; 3] });
         let cam = Camera::frame_perspective(&scene.bounds, ViewPreset::Iso, 0.8, 320, 240).unwrap();
         let (lo, hi) = int_bounds(&scene.points);
         let mut r =
@@ -1579,11 +1482,7 @@ mod tests {
         assert!(frames > 0 && r.loaded() == scene.points.len() as u64);
         let want = brute_force(&r, &cam, &RasterOptions::default());
         let mut extra = 0;
-        while !r
-            .frame(&cam, &RasterOptions::default(), &budget)
-            .unwrap()
-            .converged
-        {
+        while !r.frame(&cam, &RasterOptions::default(), &budget).unwrap().converged {
             extra += 1;
             assert!(extra <= 10, "no convergence 10 frames after loading ended");
         }
@@ -1597,38 +1496,22 @@ mod tests {
 
     #[test]
     fn a_moved_camera_reprojects_and_converges_again() {
-        let scene = Scene::terrain(
-            120_000,
-            17,
-            Grid {
-                scale: [0.001; 3],
-                offset: [0.0; 3],
-            },
-        );
+        let scene = Scene::terrain(120_000, 17, Grid { scale: [0.001; 3], offset: [0.0; 3] });
         let cams = cameras(&scene);
         let mut r = renderer_for(&scene);
         let budget = FillBudget::Fixed(25_000);
         for _ in 0..5 {
-            r.frame(&cams[0], &RasterOptions::default(), &budget)
-                .unwrap();
+            r.frame(&cams[0], &RasterOptions::default(), &budget).unwrap();
         }
         assert!(r.converged());
         // Move to a camera of another size: the visible points of the old view are drawn in the
         // new one first (reprojected from their coordinates), then the fill completes the image.
-        let moved = Camera {
-            width: 200,
-            height: 150,
-            ..cams[3]
-        };
+        let moved = Camera { width: 200, height: 150, ..cams[3] };
         let st = r.frame(&moved, &RasterOptions::default(), &budget).unwrap();
         assert!(st.reprojected > 10_000 && !st.converged);
         let want = brute_force(&r, &moved, &RasterOptions::default());
         let mut frames = 1;
-        while !r
-            .frame(&moved, &RasterOptions::default(), &budget)
-            .unwrap()
-            .converged
-        {
+        while !r.frame(&moved, &RasterOptions::default(), &budget).unwrap().converged {
             frames += 1;
         }
         assert_eq!(frames + 1, 5, "ceil(120000 / 25000) frames after the move");
@@ -1637,14 +1520,7 @@ mod tests {
 
     #[test]
     fn adaptive_budget_in_the_renderer() {
-        let scene = Scene::terrain(
-            80_000,
-            23,
-            Grid {
-                scale: [0.001; 3],
-                offset: [0.0; 3],
-            },
-        );
+        let scene = Scene::terrain(80_000, 23, Grid { scale: [0.001; 3], offset: [0.0; 3] });
         let cam = Camera::frame_perspective(&scene.bounds, ViewPreset::Iso, 0.8, 200, 150).unwrap();
         // No time at all: only the probe is filled, so it converges after ceil(n / probe) frames.
         let mut r = renderer_for(&scene);
@@ -1653,9 +1529,8 @@ mod tests {
             probe_points: 30_000,
             usable: 0.9,
         });
-        let st: Vec<FrameStats> = (0..3)
-            .map(|_| r.frame(&cam, &RasterOptions::default(), &none).unwrap())
-            .collect();
+        let st: Vec<FrameStats> =
+            (0..3).map(|_| r.frame(&cam, &RasterOptions::default(), &none).unwrap()).collect();
         assert!(st.iter().all(|s| s.probe == 30_000 && s.filled == 30_000));
         assert!(!st[1].converged && st[2].converged);
         assert_eq!(r.keys(), brute_force(&r, &cam, &RasterOptions::default()));
@@ -1673,10 +1548,7 @@ mod tests {
 
     #[test]
     fn bad_input_is_refused_without_changes() {
-        let grid = Grid {
-            scale: [0.01; 3],
-            offset: [0.0; 3],
-        };
+        let grid = Grid { scale: [0.01; 3], offset: [0.0; 3] };
         assert!(matches!(
             ProgressiveRenderer::new(grid, [0; 3], [10; 3], 1 << 32),
             Err(ProgressiveError::TooManyPoints(_))
@@ -1691,14 +1563,8 @@ mod tests {
         ));
         let mut r = ProgressiveRenderer::new(grid, [0; 3], [100; 3], 10).unwrap();
         let p = [[1, 2, 3], [4, 5, 6]];
-        assert!(matches!(
-            r.insert(0, &p, &[0]),
-            Err(ProgressiveError::PayloadCount { .. })
-        ));
-        assert!(matches!(
-            r.insert(9, &p, &[0, 0]),
-            Err(ProgressiveError::IndexRange { .. })
-        ));
+        assert!(matches!(r.insert(0, &p, &[0]), Err(ProgressiveError::PayloadCount { .. })));
+        assert!(matches!(r.insert(9, &p, &[0, 0]), Err(ProgressiveError::IndexRange { .. })));
         // A point that would need more than 30 bits on an axis cannot be framed: refused, nothing
         // changed. (Points outside the frame otherwise grow it: `a_frame_grows_to_hold_...`.)
         assert!(matches!(
@@ -1708,10 +1574,7 @@ mod tests {
         assert_eq!(r.loaded(), 0);
         assert_eq!(r.frame_state().max, [100; 3]);
         r.insert(3, &p, &[7, 8]).unwrap();
-        assert!(matches!(
-            r.insert(4, &p, &[0, 0]),
-            Err(ProgressiveError::Duplicate(4))
-        ));
+        assert!(matches!(r.insert(4, &p, &[0, 0]), Err(ProgressiveError::Duplicate(4))));
         assert_eq!(r.loaded(), 2);
         assert_eq!(r.payload(r.shuffle().target(4)), Some(8));
         assert_eq!(r.position(r.shuffle().target(3)), Some([1, 2, 3]));
@@ -1739,9 +1602,7 @@ mod tests {
         let cam =
             Camera::frame_orthographic(&Aabb::new([0.0; 3], [1.0; 3]), ViewPreset::Top, 16, 16)
                 .unwrap();
-        let s = e
-            .frame(&cam, &RasterOptions::default(), &FillBudget::Fixed(100))
-            .unwrap();
+        let s = e.frame(&cam, &RasterOptions::default(), &FillBudget::Fixed(100)).unwrap();
         assert!(s.converged && s.visible == 0 && covered(&e.keys()) == 0);
     }
 
@@ -1752,11 +1613,18 @@ mod tests {
         // words held are re-encoded, and the converged keys are those of a renderer framed for
         // the final box from the start (any precision: same frame, same plan) and, at 30 bits,
         // of the brute force in the scene's own tight frame (keys do not depend on the frame).
-        let scene = Scene::terrain(60_000, 29, Grid { scale: [0.001; 3], offset: [500_000.0, 5_400_000.0, 0.0] });
+        let scene = Scene::terrain(
+            60_000,
+            29,
+            Grid { scale: [0.001; 3], offset: [500_000.0, 5_400_000.0, 0.0] },
+        );
         let (lo, hi) = int_bounds(&scene.points);
         let small = IntBox { min: lo, max: [0, 1, 2].map(|a| lo[a] + (hi[a] - lo[a]) / 10) };
         let cam = Camera::frame_perspective(&scene.bounds, ViewPreset::Iso, 0.8, 320, 240).unwrap();
-        let full = RasterOptions { precision: crate::render::PrecisionMode::Fixed(crate::quantize::Precision::Bits30), cull: true };
+        let full = RasterOptions {
+            precision: crate::render::PrecisionMode::Fixed(crate::quantize::Precision::Bits30),
+            cull: true,
+        };
         for options in [RasterOptions::default(), full] {
             let frame = ProgressiveFrame::around(scene.grid, small).unwrap();
             let mut r = ProgressiveRenderer::with_frame(frame, scene.points.len() as u64).unwrap();
@@ -1776,7 +1644,9 @@ mod tests {
             for i in (0..scene.points.len() as u32).step_by(97) {
                 assert_eq!(r.position(r.shuffle().target(i)), Some(scene.points[i as usize]));
             }
-            let mut same = ProgressiveRenderer::with_frame(*r.frame_state(), scene.points.len() as u64).unwrap();
+            let mut same =
+                ProgressiveRenderer::with_frame(*r.frame_state(), scene.points.len() as u64)
+                    .unwrap();
             let payload: Vec<u64> = (0..scene.points.len() as u64).collect();
             same.insert(0, &scene.points, &payload).unwrap();
             while !same.frame(&cam, &options, &budget).unwrap().converged {}
@@ -1786,9 +1656,16 @@ mod tests {
             }
         }
         // Past 30 bits: refused, the renderer unchanged.
-        let mut r = ProgressiveRenderer::with_frame(ProgressiveFrame::around(scene.grid, small).unwrap(), 10).unwrap();
+        let mut r = ProgressiveRenderer::with_frame(
+            ProgressiveFrame::around(scene.grid, small).unwrap(),
+            10,
+        )
+        .unwrap();
         let before = *r.frame_state();
-        assert!(matches!(r.insert(0, &[[0, 0, 0], [1 << 30, 0, 0]], &[0, 0]), Err(ProgressiveError::Frame { .. })));
+        assert!(matches!(
+            r.insert(0, &[[0, 0, 0], [1 << 30, 0, 0]], &[0, 0]),
+            Err(ProgressiveError::Frame { .. })
+        ));
         assert_eq!((*r.frame_state(), r.loaded(), r.growths()), (before, 0, 0));
     }
 
@@ -1796,33 +1673,18 @@ mod tests {
     fn gathered_points_leave_the_same_keys_as_batches() {
         // rasterize_gathered with each batch's points listed in reverse order (and their indices)
         // gives the keys of rasterize.
-        let scene = Scene::terrain(
-            60_000,
-            9,
-            Grid {
-                scale: [0.001; 3],
-                offset: [300_000.0, 0.0, 0.0],
-            },
-        );
+        let scene =
+            Scene::terrain(60_000, 9, Grid { scale: [0.001; 3], offset: [300_000.0, 0.0, 0.0] });
         for cam in cameras(&scene) {
             let fb = Framebuffer::new(cam.width, cam.height);
-            rasterize(
-                &fb,
-                &scene.refs(),
-                &scene.grid,
-                &cam,
-                &RasterOptions::default(),
-            )
-            .unwrap();
+            rasterize(&fb, &scene.refs(), &scene.grid, &cam, &RasterOptions::default()).unwrap();
             let want = fb.into_keys();
             let mut owned = Vec::new();
             for b in scene.refs() {
                 let words: [Vec<u32>; 3] =
                     [0, 1, 2].map(|k| b.words[k].iter().rev().copied().collect());
-                let indices: Vec<u32> = (0..b.len() as u32)
-                    .rev()
-                    .map(|i| b.first_index + i)
-                    .collect();
+                let indices: Vec<u32> =
+                    (0..b.len() as u32).rev().map(|i| b.first_index + i).collect();
                 owned.push((b, words, indices));
             }
             let refs: Vec<GatheredRef<'_>> = owned

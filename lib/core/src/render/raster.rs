@@ -14,8 +14,8 @@
 
 use super::camera::{BatchProjection, Camera, CameraError};
 use super::framebuffer::Framebuffer;
-use super::math::Aabb;
 use super::gpu::{PlanBatch, PlanUniforms, DIVISION_REFINED};
+use super::math::Aabb;
 use super::plan::plan_batch;
 use super::precision::PrecisionMode;
 use crate::grid::Grid;
@@ -135,7 +135,9 @@ pub enum RasterError {
         lengths: [usize; 3],
     },
     /// A batch's point indices do not fit in 32 bits.
-    #[error("batch {batch}: points {first_index}.. ({count} points) exceed the 32-bit point index")]
+    #[error(
+        "batch {batch}: points {first_index}.. ({count} points) exceed the 32-bit point index"
+    )]
     IndexOverflow {
         /// Position of the batch in the slice.
         batch: usize,
@@ -176,7 +178,12 @@ const _: () = assert!(std::mem::size_of::<RasterUniforms>() == 16);
 impl RasterUniforms {
     /// The uniforms of a camera.
     pub fn new(camera: &Camera) -> RasterUniforms {
-        RasterUniforms { width: camera.width, height: camera.height, near: camera.near as f32, far: camera.far as f32 }
+        RasterUniforms {
+            width: camera.width,
+            height: camera.height,
+            near: camera.near as f32,
+            far: camera.far as f32,
+        }
     }
 }
 
@@ -188,7 +195,11 @@ pub fn validate_batches(batches: &[BatchRef<'_>]) -> Result<(), RasterError> {
             return Err(RasterError::WordCounts { batch: i, lengths });
         }
         if b.first_index as u64 + lengths[0] as u64 > 1u64 << 32 {
-            return Err(RasterError::IndexOverflow { batch: i, first_index: b.first_index, count: lengths[0] });
+            return Err(RasterError::IndexOverflow {
+                batch: i,
+                first_index: b.first_index,
+                count: lengths[0],
+            });
         }
     }
     Ok(())
@@ -224,9 +235,17 @@ pub struct Planner {
 
 impl Planner {
     /// The planner of a view; fails if the camera is unusable.
-    pub fn new(camera: &Camera, grid: &Grid, options: &RasterOptions) -> Result<Planner, RasterError> {
+    pub fn new(
+        camera: &Camera,
+        grid: &Grid,
+        options: &RasterOptions,
+    ) -> Result<Planner, RasterError> {
         camera.validate()?;
-        Ok(Planner { camera: *camera, grid: *grid, uniforms: PlanUniforms::new(camera, grid, options, DIVISION_REFINED) })
+        Ok(Planner {
+            camera: *camera,
+            grid: *grid,
+            uniforms: PlanUniforms::new(camera, grid, options, DIVISION_REFINED),
+        })
     }
 
     /// The camera planned for.
@@ -274,23 +293,41 @@ pub fn rasterize(
 fn check_view(fb: &Framebuffer, camera: &Camera) -> Result<(), RasterError> {
     camera.validate()?;
     if fb.width() != camera.width || fb.height() != camera.height {
-        return Err(RasterError::Viewport { fb_width: fb.width(), fb_height: fb.height(), width: camera.width, height: camera.height });
+        return Err(RasterError::Viewport {
+            fb_width: fb.width(),
+            fb_height: fb.height(),
+            width: camera.width,
+            height: camera.height,
+        });
     }
     Ok(())
 }
 
 /// Culls, chooses the precision and draws one batch.
-fn draw_batch<S: Sink>(fb: &S, b: &BatchRef<'_>, planner: &Planner, uniforms: &RasterUniforms) -> RasterStats {
-    plan_and_draw(planner, &b.grid, &b.bounds(), b.len(), |precision, bp, perspective| match precision {
-        Precision::Bits10 => draw_points::<1, S>(fb, bp, b, uniforms, perspective),
-        Precision::Bits20 => draw_points::<2, S>(fb, bp, b, uniforms, perspective),
-        Precision::Bits30 => draw_points::<3, S>(fb, bp, b, uniforms, perspective),
+fn draw_batch<S: Sink>(
+    fb: &S,
+    b: &BatchRef<'_>,
+    planner: &Planner,
+    uniforms: &RasterUniforms,
+) -> RasterStats {
+    plan_and_draw(planner, &b.grid, &b.bounds(), b.len(), |precision, bp, perspective| {
+        match precision {
+            Precision::Bits10 => draw_points::<1, S>(fb, bp, b, uniforms, perspective),
+            Precision::Bits20 => draw_points::<2, S>(fb, bp, b, uniforms, perspective),
+            Precision::Bits30 => draw_points::<3, S>(fb, bp, b, uniforms, perspective),
+        }
     })
 }
 
 /// The per-batch statistics around one planned draw: `draw(precision, projection, perspective)`
 /// runs only for a batch that is neither empty nor culled and returns the points it drew.
-fn plan_and_draw(planner: &Planner, grid: &BatchGrid, bounds: &Aabb, len: usize, draw: impl FnOnce(Precision, &BatchProjection, bool) -> u64) -> RasterStats {
+fn plan_and_draw(
+    planner: &Planner,
+    grid: &BatchGrid,
+    bounds: &Aabb,
+    len: usize,
+    draw: impl FnOnce(Precision, &BatchProjection, bool) -> u64,
+) -> RasterStats {
     let mut stats = RasterStats { batches: 1, ..RasterStats::default() };
     let (precision, bp) = match planner.plan(grid, bounds, len) {
         BatchPlan::Empty => return stats,
@@ -359,7 +396,11 @@ pub fn rasterize_gathered(
             return Err(RasterError::WordCounts { batch: i, lengths });
         }
         if b.indices.len() != lengths[0] {
-            return Err(RasterError::IndexCount { batch: i, points: lengths[0], indices: b.indices.len() });
+            return Err(RasterError::IndexCount {
+                batch: i,
+                points: lengths[0],
+                indices: b.indices.len(),
+            });
         }
     }
     let planner = Planner::new(camera, grid, options)?;
@@ -372,11 +413,18 @@ pub fn rasterize_gathered(
 }
 
 /// [`draw_batch`] for a [`GatheredRef`].
-fn draw_gathered_batch<S: Sink>(fb: &S, b: &GatheredRef<'_>, planner: &Planner, uniforms: &RasterUniforms) -> RasterStats {
-    plan_and_draw(planner, &b.grid, &b.bounds(), b.len(), |precision, bp, perspective| match precision {
-        Precision::Bits10 => draw_listed::<1, S>(fb, bp, b, uniforms, perspective),
-        Precision::Bits20 => draw_listed::<2, S>(fb, bp, b, uniforms, perspective),
-        Precision::Bits30 => draw_listed::<3, S>(fb, bp, b, uniforms, perspective),
+fn draw_gathered_batch<S: Sink>(
+    fb: &S,
+    b: &GatheredRef<'_>,
+    planner: &Planner,
+    uniforms: &RasterUniforms,
+) -> RasterStats {
+    plan_and_draw(planner, &b.grid, &b.bounds(), b.len(), |precision, bp, perspective| {
+        match precision {
+            Precision::Bits10 => draw_listed::<1, S>(fb, bp, b, uniforms, perspective),
+            Precision::Bits20 => draw_listed::<2, S>(fb, bp, b, uniforms, perspective),
+            Precision::Bits30 => draw_listed::<3, S>(fb, bp, b, uniforms, perspective),
+        }
     })
 }
 
@@ -406,7 +454,8 @@ impl Sink for TieMarks<'_> {
     fn put(&self, pixel: usize, key: u64) {
         let won = self.keys[pixel];
         if key >> 32 == won >> 32 && key != won {
-            self.marks[pixel / 64].fetch_or(1 << (pixel % 64), std::sync::atomic::Ordering::Relaxed);
+            self.marks[pixel / 64]
+                .fetch_or(1 << (pixel % 64), std::sync::atomic::Ordering::Relaxed);
         }
     }
 }
@@ -416,19 +465,37 @@ impl Sink for TieMarks<'_> {
 /// smaller point index decides, so a renderer that numbers the same points otherwise (the batch
 /// file in Morton order, the progressive renderer by shuffled slot) may show another of them.
 /// A second pass over every point; paper 000's "z-fighting" caveat, counted.
-pub fn count_depth_ties(keys: &[u64], batches: &[BatchRef<'_>], grid: &Grid, camera: &Camera, options: &RasterOptions) -> Result<u64, RasterError> {
+pub fn count_depth_ties(
+    keys: &[u64],
+    batches: &[BatchRef<'_>],
+    grid: &Grid,
+    camera: &Camera,
+    options: &RasterOptions,
+) -> Result<u64, RasterError> {
     camera.validate()?;
     if keys.len() != camera.width as usize * camera.height as usize {
-        return Err(RasterError::Viewport { fb_width: keys.len() as u32, fb_height: 1, width: camera.width, height: camera.height });
+        return Err(RasterError::Viewport {
+            fb_width: keys.len() as u32,
+            fb_height: 1,
+            width: camera.width,
+            height: camera.height,
+        });
     }
     validate_batches(batches)?;
     let planner = Planner::new(camera, grid, options)?;
     let uniforms = RasterUniforms::new(camera);
-    let marks = TieMarks { keys, marks: (0..keys.len().div_ceil(64)).map(|_| std::sync::atomic::AtomicU64::new(0)).collect() };
+    let marks = TieMarks {
+        keys,
+        marks: (0..keys.len().div_ceil(64)).map(|_| std::sync::atomic::AtomicU64::new(0)).collect(),
+    };
     batches.par_iter().for_each(|b| {
         draw_batch(&marks, b, &planner, &uniforms);
     });
-    Ok(marks.marks.iter().map(|m| m.load(std::sync::atomic::Ordering::Relaxed).count_ones() as u64).sum())
+    Ok(marks
+        .marks
+        .iter()
+        .map(|m| m.load(std::sync::atomic::Ordering::Relaxed).count_ones() as u64)
+        .sum())
 }
 
 /// Points per block of the two-phase per-point loop.
@@ -510,7 +577,11 @@ fn project_block<const WORDS: usize, const PERSPECTIVE: bool>(
         let mut q = [(c & 0x3ff) << 20, ((c >> 10) & 0x3ff) << 20, ((c >> 20) & 0x3ff) << 20];
         if WORDS >= 2 {
             let w = medium[i];
-            q = [q[0] | (w & 0x3ff) << 10, q[1] | ((w >> 10) & 0x3ff) << 10, q[2] | ((w >> 20) & 0x3ff) << 10];
+            q = [
+                q[0] | (w & 0x3ff) << 10,
+                q[1] | ((w >> 10) & 0x3ff) << 10,
+                q[2] | ((w >> 20) & 0x3ff) << 10,
+            ];
         }
         if WORDS >= 3 {
             let w = fine[i];
@@ -526,7 +597,12 @@ fn project_block<const WORDS: usize, const PERSPECTIVE: bool>(
         let (x, y, depth) = (row(0), row(1), row(2));
         let (fx, fy) = if PERSPECTIVE { (x / depth, y / depth) } else { (x, y) };
         // Also rejects NaN. Inside [near, far], the perspective divisor (the depth) is positive.
-        let inside = (depth >= k.near) & (depth <= k.far) & (fx >= k.x_lo) & (fx < k.x_hi) & (fy >= k.y_lo) & (fy < k.y_hi);
+        let inside = (depth >= k.near)
+            & (depth <= k.far)
+            & (fx >= k.x_lo)
+            & (fx < k.x_hi)
+            & (fy >= k.y_lo)
+            & (fy < k.y_hi);
         let px = floor_i32(fx).wrapping_add(k.origin[0]);
         let py = floor_i32(fy).wrapping_add(k.origin[1]);
         let pixel = py.wrapping_mul(k.width).wrapping_add(px) as u32;
@@ -544,7 +620,11 @@ fn project_block<const WORDS: usize, const PERSPECTIVE: bool>(
 /// test and the atomic minimum one by one. The result is the same as projecting each point with
 /// [`BatchProjection::local`] and [`BatchProjection::transform`] and flooring `(X / W, Y / W)`.
 #[inline(always)]
-fn draw_points_impl<const WORDS: usize, const PERSPECTIVE: bool, S: Sink>(fb: &S, k: &Kernel, b: &BatchRef<'_>) -> u64 {
+fn draw_points_impl<const WORDS: usize, const PERSPECTIVE: bool, S: Sink>(
+    fb: &S,
+    k: &Kernel,
+    b: &BatchRef<'_>,
+) -> u64 {
     draw_loop::<WORDS, PERSPECTIVE, _, S>(fb, k, b.words, Consecutive(b.first_index))
 }
 
@@ -578,7 +658,12 @@ impl PointIndices for Listed<'_> {
 
 /// The body of [`draw_points_impl`], for either source of point indices.
 #[inline(always)]
-fn draw_loop<const WORDS: usize, const PERSPECTIVE: bool, I: PointIndices, S: Sink>(fb: &S, k: &Kernel, words: [&[u32]; 3], idx: I) -> u64 {
+fn draw_loop<const WORDS: usize, const PERSPECTIVE: bool, I: PointIndices, S: Sink>(
+    fb: &S,
+    k: &Kernel,
+    words: [&[u32]; 3],
+    idx: I,
+) -> u64 {
     let n = words[0].len();
     let mut pixels = [0u32; BLOCK];
     let mut depths = [0u32; BLOCK];
@@ -588,7 +673,14 @@ fn draw_loop<const WORDS: usize, const PERSPECTIVE: bool, I: PointIndices, S: Si
         let end = (start + BLOCK).min(n);
         let medium = if WORDS >= 2 { &words[1][start..end] } else { &[][..] };
         let fine = if WORDS >= 3 { &words[2][start..end] } else { &[][..] };
-        project_block::<WORDS, PERSPECTIVE>(k, &words[0][start..end], medium, fine, &mut pixels, &mut depths);
+        project_block::<WORDS, PERSPECTIVE>(
+            k,
+            &words[0][start..end],
+            medium,
+            fine,
+            &mut pixels,
+            &mut depths,
+        );
         for i in 0..end - start {
             let p = pixels[i];
             if p != SKIP {
@@ -606,14 +698,22 @@ fn draw_loop<const WORDS: usize, const PERSPECTIVE: bool, I: PointIndices, S: Si
 /// are bit for bit those of the baseline build.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-unsafe fn draw_points_avx2<const WORDS: usize, const PERSPECTIVE: bool, S: Sink>(fb: &S, k: &Kernel, b: &BatchRef<'_>) -> u64 {
+unsafe fn draw_points_avx2<const WORDS: usize, const PERSPECTIVE: bool, S: Sink>(
+    fb: &S,
+    k: &Kernel,
+    b: &BatchRef<'_>,
+) -> u64 {
     draw_points_impl::<WORDS, PERSPECTIVE, S>(fb, k, b)
 }
 
 /// [`draw_loop`] over a [`GatheredRef`], compiled for AVX2 (see [`draw_points_avx2`]).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-unsafe fn draw_listed_avx2<const WORDS: usize, const PERSPECTIVE: bool, S: Sink>(fb: &S, k: &Kernel, b: &GatheredRef<'_>) -> u64 {
+unsafe fn draw_listed_avx2<const WORDS: usize, const PERSPECTIVE: bool, S: Sink>(
+    fb: &S,
+    k: &Kernel,
+    b: &GatheredRef<'_>,
+) -> u64 {
     draw_loop::<WORDS, PERSPECTIVE, _, S>(fb, k, b.words, Listed(b.indices))
 }
 
@@ -622,7 +722,9 @@ fn use_avx2() -> bool {
     #[cfg(target_arch = "x86_64")]
     {
         static AVX2: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
-        *AVX2.get_or_init(|| std::is_x86_feature_detected!("avx2") && std::env::var_os("MORTAR_NO_AVX2").is_none())
+        *AVX2.get_or_init(|| {
+            std::is_x86_feature_detected!("avx2") && std::env::var_os("MORTAR_NO_AVX2").is_none()
+        })
     }
     #[cfg(not(target_arch = "x86_64"))]
     {
@@ -632,7 +734,13 @@ fn use_avx2() -> bool {
 
 /// [`draw_points`] for a [`GatheredRef`].
 #[inline(never)]
-fn draw_listed<const WORDS: usize, S: Sink>(fb: &S, bp: &BatchProjection, b: &GatheredRef<'_>, u: &RasterUniforms, perspective: bool) -> u64 {
+fn draw_listed<const WORDS: usize, S: Sink>(
+    fb: &S,
+    bp: &BatchProjection,
+    b: &GatheredRef<'_>,
+    u: &RasterUniforms,
+    perspective: bool,
+) -> u64 {
     let k = Kernel::new(bp, u);
     #[cfg(target_arch = "x86_64")]
     if use_avx2() {
@@ -653,7 +761,13 @@ fn draw_listed<const WORDS: usize, S: Sink>(fb: &S, bp: &BatchProjection, b: &Ga
 }
 
 #[inline(never)]
-fn draw_points<const WORDS: usize, S: Sink>(fb: &S, bp: &BatchProjection, b: &BatchRef<'_>, u: &RasterUniforms, perspective: bool) -> u64 {
+fn draw_points<const WORDS: usize, S: Sink>(
+    fb: &S,
+    bp: &BatchProjection,
+    b: &BatchRef<'_>,
+    u: &RasterUniforms,
+    perspective: bool,
+) -> u64 {
     let k = Kernel::new(bp, u);
     #[cfg(target_arch = "x86_64")]
     if use_avx2() {
@@ -693,14 +807,21 @@ mod tests {
     #[test]
     fn nearer_point_occludes_and_ties_go_to_the_smaller_index() {
         // Points on a column above (50, 50): seen from the top, the highest is nearest.
-        let pts = vec![[5070, 5070, 100], [5070, 5070, 900], [5070, 5070, 500], [9030, 9030, 0], [9030, 9030, 0]];
+        let pts = vec![
+            [5070, 5070, 100],
+            [5070, 5070, 900],
+            [5070, 5070, 500],
+            [9030, 9030, 0],
+            [9030, 9030, 0],
+        ];
         let scene = Scene::from_points(Grid { scale: [0.01; 3], offset: [0.0; 3] }, pts, 2);
         let bounds = Aabb::new([0.0; 3], [100.0, 100.0, 10.0]);
         let cam = Camera::frame_orthographic(&bounds, ViewPreset::Top, 64, 64).unwrap();
         let (keys, stats) = render(&scene, &cam, RasterOptions::default());
         assert_eq!(stats.points_drawn, 5);
         assert_eq!(covered(&keys), 2);
-        let winners: Vec<u32> = keys.iter().filter(|&&k| k != EMPTY_KEY).map(|&k| key_index(k)).collect();
+        let winners: Vec<u32> =
+            keys.iter().filter(|&&k| k != EMPTY_KEY).map(|&k| key_index(k)).collect();
         let z_of = |i: u32| scene.points[i as usize][2];
         let x_of = |i: u32| scene.points[i as usize][0];
         for w in winners {
@@ -716,7 +837,11 @@ mod tests {
 
     #[test]
     fn deterministic_across_runs_orders_and_threads() {
-        let scene = Scene::terrain(200_000, 11, Grid { scale: [0.001; 3], offset: [500_000.0, 5_400_000.0, 0.0] });
+        let scene = Scene::terrain(
+            200_000,
+            11,
+            Grid { scale: [0.001; 3], offset: [500_000.0, 5_400_000.0, 0.0] },
+        );
         let cam = Camera::frame_perspective(&scene.bounds, ViewPreset::Iso, 0.8, 320, 240).unwrap();
         let (a, sa) = render(&scene, &cam, RasterOptions::default());
         let (b, sb) = render(&scene, &cam, RasterOptions::default());
@@ -737,7 +862,8 @@ mod tests {
 
     #[test]
     fn culling_skips_batches_but_not_pixels() {
-        let scene = Scene::terrain(300_000, 5, Grid { scale: [0.001; 3], offset: [6_400_000.0, 0.0, 0.0] });
+        let scene =
+            Scene::terrain(300_000, 5, Grid { scale: [0.001; 3], offset: [6_400_000.0, 0.0, 0.0] });
         let c = scene.bounds.center();
         let size = scene.bounds.size();
         let mut cams = vec![
@@ -764,17 +890,26 @@ mod tests {
                 height: 300,
             },
         ];
-        cams.push(Camera::frame_perspective(&scene.bounds, ViewPreset::Front, 0.5, 200, 100).unwrap());
+        cams.push(
+            Camera::frame_perspective(&scene.bounds, ViewPreset::Front, 0.5, 200, 100).unwrap(),
+        );
         for (i, cam) in cams.iter().enumerate() {
-            let (on, s_on) = render(&scene, cam, RasterOptions { cull: true, ..Default::default() });
-            let (off, s_off) = render(&scene, cam, RasterOptions { cull: false, ..Default::default() });
+            let (on, s_on) =
+                render(&scene, cam, RasterOptions { cull: true, ..Default::default() });
+            let (off, s_off) =
+                render(&scene, cam, RasterOptions { cull: false, ..Default::default() });
             assert_eq!(on, off, "camera {i}: culling changed the image");
             assert_eq!(s_on.points_drawn, s_off.points_drawn, "camera {i}");
             assert_eq!(s_off.batches_culled, 0);
             assert_eq!(s_on.batches_culled + s_on.batches_drawn, s_on.batches);
             match i {
                 0 => assert!(s_on.batches_culled > 0, "camera {i}: nothing culled"),
-                1 => assert!(s_on.batches_culled * 2 > s_on.batches, "camera {i}: culled only {} of {}", s_on.batches_culled, s_on.batches),
+                1 => assert!(
+                    s_on.batches_culled * 2 > s_on.batches,
+                    "camera {i}: culled only {} of {}",
+                    s_on.batches_culled,
+                    s_on.batches
+                ),
                 _ => {}
             }
             assert!(covered(&on) > 1000, "camera {i}: covered {}", covered(&on));
@@ -790,21 +925,39 @@ mod tests {
     fn adaptive_precision_matches_full_precision_in_an_overview() {
         // Dense terrain (15-60 points per pixel) at millimetre scale: batches need ~15 bits, so the
         // 10 bits the rule picks in an overview are lossy (points move by up to ~0.06 px here).
-        let scene = Scene::terrain(1_000_000, 21, Grid { scale: [0.001; 3], offset: [300_000.0, 4_000_000.0, 0.0] });
+        let scene = Scene::terrain(
+            1_000_000,
+            21,
+            Grid { scale: [0.001; 3], offset: [300_000.0, 4_000_000.0, 0.0] },
+        );
         assert!(scene.batches.iter().all(|b| b.grid.bits.iter().any(|&bits| bits > 10)));
-        let full_precision = RasterOptions { precision: PrecisionMode::Fixed(Precision::Bits30), ..Default::default() };
+        let full_precision = RasterOptions {
+            precision: PrecisionMode::Fixed(Precision::Bits30),
+            ..Default::default()
+        };
         for preset in [ViewPreset::Top, ViewPreset::Iso] {
             let cam = Camera::frame_perspective(&scene.bounds, preset, 0.8, 300, 225).unwrap();
             let (adaptive, sa) = render(&scene, &cam, RasterOptions::default());
             let (full, sf) = render(&scene, &cam, full_precision);
-            assert_eq!(sa.points_by_precision, [1_000_000, 0, 0], "{preset:?}: an overview loads one word per point");
-            assert_eq!(sf.points_by_precision, [0, 1_000_000, 0], "{preset:?}: 20 bits hold every bit these batches use");
+            assert_eq!(
+                sa.points_by_precision,
+                [1_000_000, 0, 0],
+                "{preset:?}: an overview loads one word per point"
+            );
+            assert_eq!(
+                sf.points_by_precision,
+                [0, 1_000_000, 0],
+                "{preset:?}: 20 bits hold every bit these batches use"
+            );
             // No holes opened or closed: coverage differs only at a few silhouette pixels. (Which of
             // the ~20 points in a pixel wins does change for ~11 % of pixels: sub-pixel shifts
             // reorder points that share a pixel, at any precision short of exact.)
             let n = covered(&full);
             let diff = coverage_diff(&adaptive, &full);
-            assert!(diff as f64 <= 5e-4 * n as f64, "{preset:?}: coverage differs in {diff} of {n} pixels");
+            assert!(
+                diff as f64 <= 5e-4 * n as f64,
+                "{preset:?}: coverage differs in {diff} of {n} pixels"
+            );
         }
         // Control: in a close-up the rule asks for 20 bits; forcing 10 bits there (cells of ~0.8 px)
         // changes the coverage a lot, the adaptive choice does not.
@@ -821,23 +974,41 @@ mod tests {
         };
         let (adaptive, sa) = render(&scene, &cam, RasterOptions::default());
         let (full, _) = render(&scene, &cam, full_precision);
-        let (coarse, _) = render(&scene, &cam, RasterOptions { precision: PrecisionMode::Fixed(Precision::Bits10), ..Default::default() });
+        let (coarse, _) = render(
+            &scene,
+            &cam,
+            RasterOptions {
+                precision: PrecisionMode::Fixed(Precision::Bits10),
+                ..Default::default()
+            },
+        );
         assert!(sa.points_by_precision[1] > 0, "{sa:?}");
         let n = covered(&full);
         assert!(n > 1000, "{n}");
         assert_eq!(coverage_diff(&adaptive, &full), 0);
         let forced = coverage_diff(&coarse, &full);
-        assert!(forced as f64 > 0.05 * n as f64, "forcing 10 bits changed only {forced} of {n} pixels");
+        assert!(
+            forced as f64 > 0.05 * n as f64,
+            "forcing 10 bits changed only {forced} of {n} pixels"
+        );
     }
 
     #[test]
     fn full_precision_matches_f64_brute_force() {
         // Every point projected in f64 from its exact world position, nearest depth wins: the
         // rasterizer at 30 bits must give the same winner in nearly every pixel (2 in 10^4).
-        let scene = Scene::terrain(300_000, 9, Grid { scale: [0.0001; 3], offset: [6_400_000.0, 6_400_000.0, 6_400_000.0] });
+        let scene = Scene::terrain(
+            300_000,
+            9,
+            Grid { scale: [0.0001; 3], offset: [6_400_000.0, 6_400_000.0, 6_400_000.0] },
+        );
         for preset in [ViewPreset::Top, ViewPreset::Iso] {
             let cam = Camera::frame_perspective(&scene.bounds, preset, 0.8, 640, 480).unwrap();
-            let (keys, _) = render(&scene, &cam, RasterOptions { precision: PrecisionMode::Fixed(Precision::Bits30), cull: true });
+            let (keys, _) = render(
+                &scene,
+                &cam,
+                RasterOptions { precision: PrecisionMode::Fixed(Precision::Bits30), cull: true },
+            );
             let mut best = vec![(f64::INFINITY, u32::MAX); 640 * 480];
             for (i, p) in scene.points.iter().enumerate() {
                 let world = [0, 1, 2].map(|a| scene.grid.world(a, p[a] as i64));
@@ -852,7 +1023,14 @@ mod tests {
                 }
             }
             let n = best.iter().filter(|b| b.1 != u32::MAX).count();
-            let differ = keys.iter().zip(&best).filter(|(k, b)| (**k == EMPTY_KEY) != (b.1 == u32::MAX) || (**k != EMPTY_KEY && key_index(**k) != b.1)).count();
+            let differ = keys
+                .iter()
+                .zip(&best)
+                .filter(|(k, b)| {
+                    (**k == EMPTY_KEY) != (b.1 == u32::MAX)
+                        || (**k != EMPTY_KEY && key_index(**k) != b.1)
+                })
+                .count();
             assert!(n > 50_000, "{preset:?}: {n}");
             // Points within f32 rounding (~1e-4 px at 640 px: the projection is relative to the
             // viewport's centre, the same for every batch) of a pixel edge: 5 and 8 pixels here
@@ -873,7 +1051,14 @@ mod tests {
     }
 
     /// One batch through the baseline or the AVX2 build of the per-point loop.
-    fn draw_with(fb: &Framebuffer, k: &Kernel, b: &BatchRef<'_>, p: Precision, persp: bool, avx2: bool) -> u64 {
+    fn draw_with(
+        fb: &Framebuffer,
+        k: &Kernel,
+        b: &BatchRef<'_>,
+        p: Precision,
+        persp: bool,
+        avx2: bool,
+    ) -> u64 {
         #[cfg(target_arch = "x86_64")]
         if avx2 {
             assert!(avx2_present());
@@ -881,11 +1066,17 @@ mod tests {
             return unsafe {
                 match (p, persp) {
                     (Precision::Bits10, true) => draw_points_avx2::<1, true, Framebuffer>(fb, k, b),
-                    (Precision::Bits10, false) => draw_points_avx2::<1, false, Framebuffer>(fb, k, b),
+                    (Precision::Bits10, false) => {
+                        draw_points_avx2::<1, false, Framebuffer>(fb, k, b)
+                    }
                     (Precision::Bits20, true) => draw_points_avx2::<2, true, Framebuffer>(fb, k, b),
-                    (Precision::Bits20, false) => draw_points_avx2::<2, false, Framebuffer>(fb, k, b),
+                    (Precision::Bits20, false) => {
+                        draw_points_avx2::<2, false, Framebuffer>(fb, k, b)
+                    }
                     (Precision::Bits30, true) => draw_points_avx2::<3, true, Framebuffer>(fb, k, b),
-                    (Precision::Bits30, false) => draw_points_avx2::<3, false, Framebuffer>(fb, k, b),
+                    (Precision::Bits30, false) => {
+                        draw_points_avx2::<3, false, Framebuffer>(fb, k, b)
+                    }
                 }
             };
         }
@@ -902,7 +1093,12 @@ mod tests {
 
     /// The projection the planner gives batch `b` at precision `p` (culling off).
     fn planned(grid: &Grid, cam: &Camera, b: &BatchRef<'_>, p: Precision) -> BatchProjection {
-        let planner = Planner::new(cam, grid, &RasterOptions { precision: PrecisionMode::Fixed(p), cull: false }).unwrap();
+        let planner = Planner::new(
+            cam,
+            grid,
+            &RasterOptions { precision: PrecisionMode::Fixed(p), cull: false },
+        )
+        .unwrap();
         match planner.plan(&b.grid, &b.bounds(), b.len()) {
             BatchPlan::Draw { projection, .. } => projection,
             other => panic!("{other:?}"),
@@ -923,12 +1119,16 @@ mod tests {
                 if !(depth >= u.near && depth <= u.far) {
                     continue;
                 }
-                let (fx, fy) = ((x / wc).floor() as i64 + bp.pixel_origin[0] as i64, (y / wc).floor() as i64 + bp.pixel_origin[1] as i64);
+                let (fx, fy) = (
+                    (x / wc).floor() as i64 + bp.pixel_origin[0] as i64,
+                    (y / wc).floor() as i64 + bp.pixel_origin[1] as i64,
+                );
                 if fx < 0 || fy < 0 || fx >= cam.width as i64 || fy >= cam.height as i64 {
                     continue;
                 }
                 let slot = &mut keys[fy as usize * cam.width as usize + fx as usize];
-                *slot = (*slot).min(crate::render::framebuffer::pack_key(depth, b.first_index + i as u32));
+                *slot = (*slot)
+                    .min(crate::render::framebuffer::pack_key(depth, b.first_index + i as u32));
             }
         }
         keys
@@ -936,7 +1136,11 @@ mod tests {
 
     #[test]
     fn kernel_matches_the_per_point_reference_with_and_without_avx2() {
-        let scene = Scene::terrain(120_000, 3, Grid { scale: [0.001; 3], offset: [500_000.0, 5_400_000.0, 0.0] });
+        let scene = Scene::terrain(
+            120_000,
+            3,
+            Grid { scale: [0.001; 3], offset: [500_000.0, 5_400_000.0, 0.0] },
+        );
         let c = scene.bounds.center();
         let mut cams = vec![
             Camera::frame_perspective(&scene.bounds, ViewPreset::Iso, 0.8, 320, 200).unwrap(),
@@ -945,18 +1149,26 @@ mod tests {
             Camera::inside(&scene.bounds, 1.2, 320, 200).unwrap(),
         ];
         // A camera looking partly past the data, so that points fall on every side of the viewport.
-        cams.push(Camera { eye: [c[0] - 30.0, c[1], c[2] + 5.0], target: [c[0] + 10.0, c[1] + 25.0, c[2]], ..cams[0] });
+        cams.push(Camera {
+            eye: [c[0] - 30.0, c[1], c[2] + 5.0],
+            target: [c[0] + 10.0, c[1] + 25.0, c[2]],
+            ..cams[0]
+        });
         for (ci, cam) in cams.iter().enumerate() {
             for precision in [Precision::Bits10, Precision::Bits20, Precision::Bits30] {
                 let want = reference_keys(&scene, cam, precision);
-                let opts = RasterOptions { precision: PrecisionMode::Fixed(precision), cull: false };
+                let opts =
+                    RasterOptions { precision: PrecisionMode::Fixed(precision), cull: false };
                 let (got, _) = render(&scene, cam, opts);
                 let differ = got.iter().zip(&want).filter(|(a, b)| a != b).count();
                 assert_eq!(differ, 0, "camera {ci} {precision:?}: {differ} pixels differ from the per-point reference");
                 assert!(covered(&got) > 500, "camera {ci}: {}", covered(&got));
                 // The baseline build of the loop and the AVX2 build write the same keys.
                 let u = RasterUniforms::new(cam);
-                let (base, wide) = (Framebuffer::new(cam.width, cam.height), Framebuffer::new(cam.width, cam.height));
+                let (base, wide) = (
+                    Framebuffer::new(cam.width, cam.height),
+                    Framebuffer::new(cam.width, cam.height),
+                );
                 for b in scene.refs() {
                     let p = precision.min(crate::render::precision::sufficient_precision(&b.grid));
                     let k = Kernel::new(&planned(&scene.grid, cam, &b, p), &u);
@@ -975,7 +1187,9 @@ mod tests {
 
     #[test]
     fn floor_is_exact_where_it_matters() {
-        for v in [-3.5f32, -3.0, -0.25, -0.0, 0.0, 0.9999999, 1.0, 1919.9999, 32767.5, -32768.0, 1.0e8] {
+        for v in
+            [-3.5f32, -3.0, -0.25, -0.0, 0.0, 0.9999999, 1.0, 1919.9999, 32767.5, -32768.0, 1.0e8]
+        {
             assert_eq!(floor_i32(v), v.floor() as i32, "{v}");
         }
         // Anything else gives some value without undefined behaviour.
@@ -991,17 +1205,29 @@ mod tests {
         assert_eq!(s.points_projected(), 50_000);
         assert_eq!(s.points_drawn, 50_000, "a framed top view shows every point");
         let fb = Framebuffer::new(99, 100);
-        assert!(matches!(rasterize(&fb, &scene.refs(), &scene.grid, &cam, &RasterOptions::default()), Err(RasterError::Viewport { .. })));
+        assert!(matches!(
+            rasterize(&fb, &scene.refs(), &scene.grid, &cam, &RasterOptions::default()),
+            Err(RasterError::Viewport { .. })
+        ));
         let fb = Framebuffer::new(100, 100);
         let mut refs = scene.refs();
         refs[1].words[2] = &refs[1].words[2][1..];
-        assert!(matches!(rasterize(&fb, &refs, &scene.grid, &cam, &RasterOptions::default()), Err(RasterError::WordCounts { batch: 1, .. })));
+        assert!(matches!(
+            rasterize(&fb, &refs, &scene.grid, &cam, &RasterOptions::default()),
+            Err(RasterError::WordCounts { batch: 1, .. })
+        ));
         let mut refs = scene.refs();
         refs[0].first_index = u32::MAX - 5;
-        assert!(matches!(rasterize(&fb, &refs, &scene.grid, &cam, &RasterOptions::default()), Err(RasterError::IndexOverflow { batch: 0, .. })));
+        assert!(matches!(
+            rasterize(&fb, &refs, &scene.grid, &cam, &RasterOptions::default()),
+            Err(RasterError::IndexOverflow { batch: 0, .. })
+        ));
         let mut bad = cam;
         bad.far = bad.near;
-        assert!(matches!(rasterize(&fb, &scene.refs(), &scene.grid, &bad, &RasterOptions::default()), Err(RasterError::Camera(_))));
+        assert!(matches!(
+            rasterize(&fb, &scene.refs(), &scene.grid, &bad, &RasterOptions::default()),
+            Err(RasterError::Camera(_))
+        ));
     }
     /// Rods 2 cm thick and 32.8 m long seen along their length from 6 m before their near ends
     /// (think rails, fences, wires or vine rows at a grazing angle): one batch per rod, noisy colours.
@@ -1012,13 +1238,20 @@ mod tests {
         for x in -4..=4 {
             for z in -2..=2 {
                 let rod: Vec<[i32; 3]> = (0..crate::BATCH_SIZE)
-                    .map(|_| [x * 1000 + (rng.unit() * 20.0) as i32, (rng.unit() * 32_767.0) as i32, z * 1000 + (rng.unit() * 20.0) as i32])
+                    .map(|_| {
+                        [
+                            x * 1000 + (rng.unit() * 20.0) as i32,
+                            (rng.unit() * 32_767.0) as i32,
+                            z * 1000 + (rng.unit() * 20.0) as i32,
+                        ]
+                    })
                     .collect();
                 groups.push(rod);
             }
         }
         let scene = Scene::from_groups(grid, groups);
-        let colors = (0..scene.points.len()).map(|_| (rng.next_u64() as u32) | 0xff00_0000).collect();
+        let colors =
+            (0..scene.points.len()).map(|_| (rng.next_u64() as u32) | 0xff00_0000).collect();
         let cam = Camera {
             eye: scene.world([0.0, -6.0, 0.0]),
             target: scene.world([0.0, 10.0, 0.0]),
@@ -1034,25 +1267,49 @@ mod tests {
 
     /// PSNR (dB) of the RGB colours of two key images over the pixels covered in either.
     fn psnr_covered(a: &[u64], b: &[u64], colors: &[u32]) -> f64 {
-        let rgb = |k: &u64| if *k == EMPTY_KEY { 0 } else { colors[key_index(*k) as usize] & 0x00ff_ffff };
-        let (x, y): (Vec<u32>, Vec<u32>) = (a.iter().map(rgb).collect(), b.iter().map(rgb).collect());
+        let rgb = |k: &u64| {
+            if *k == EMPTY_KEY {
+                0
+            } else {
+                colors[key_index(*k) as usize] & 0x00ff_ffff
+            }
+        };
+        let (x, y): (Vec<u32>, Vec<u32>) =
+            (a.iter().map(rgb).collect(), b.iter().map(rgb).collect());
         crate::metrics::psnr_where(&x, &y, |i| a[i] != EMPTY_KEY || b[i] != EMPTY_KEY)
     }
 
     #[test]
     fn adaptive_precision_bounds_the_decode_error_on_grazing_rods() {
-        use crate::render::precision::{decode_error_px, quantization_box, sufficient_precision, MAX_ERROR_PX};
+        use crate::render::precision::{
+            decode_error_px, quantization_box, sufficient_precision, MAX_ERROR_PX,
+        };
         use crate::render::precision_for_pixels;
         let (scene, cam, colors) = rods();
         let refs = scene.refs();
-        let (full, _) = render(&scene, &cam, RasterOptions { precision: PrecisionMode::Fixed(Precision::Bits30), cull: true });
+        let (full, _) = render(
+            &scene,
+            &cam,
+            RasterOptions { precision: PrecisionMode::Fixed(Precision::Bits30), cull: true },
+        );
         let (adaptive, stats) = render(&scene, &cam, RasterOptions::default());
         // The plain 500 px rule, drawn per group of its precision (the keys it drew before).
-        let rule500 = |b: &BatchRef<'_>| precision_for_pixels(cam.projected_size(&quantization_box(&scene.grid, &b.grid))).min(sufficient_precision(&b.grid));
+        let rule500 = |b: &BatchRef<'_>| {
+            precision_for_pixels(cam.projected_size(&quantization_box(&scene.grid, &b.grid)))
+                .min(sufficient_precision(&b.grid))
+        };
         let fb = Framebuffer::new(cam.width, cam.height);
         for p in [Precision::Bits10, Precision::Bits20, Precision::Bits30] {
-            let group: Vec<BatchRef<'_>> = refs.iter().filter(|b| rule500(b) == p).copied().collect();
-            rasterize(&fb, &group, &scene.grid, &cam, &RasterOptions { precision: PrecisionMode::Fixed(p), cull: true }).unwrap();
+            let group: Vec<BatchRef<'_>> =
+                refs.iter().filter(|b| rule500(b) == p).copied().collect();
+            rasterize(
+                &fb,
+                &group,
+                &scene.grid,
+                &cam,
+                &RasterOptions { precision: PrecisionMode::Fixed(p), cull: true },
+            )
+            .unwrap();
         }
         let old = fb.into_keys();
         // Per drawn batch: the bound of the chosen precision is under a pixel, and so is every
@@ -1060,28 +1317,46 @@ mod tests {
         let planner = Planner::new(&cam, &scene.grid, &RasterOptions::default()).unwrap();
         let (mut worst_old, mut worst_new, mut raised) = (0f64, 0f64, 0);
         for (b, bounds) in refs.iter().zip(&scene.batch_bounds) {
-            let BatchPlan::Draw { precision, .. } = planner.plan(&b.grid, bounds, b.len()) else { continue };
+            let BatchPlan::Draw { precision, .. } = planner.plan(&b.grid, bounds, b.len()) else {
+                continue;
+            };
             let bound = decode_error_px(&cam, &scene.grid, &b.grid, bounds, precision);
-            assert!(bound < MAX_ERROR_PX, "batch at {:?}: bound {bound} px at {precision:?}", b.grid.min);
+            assert!(
+                bound < MAX_ERROR_PX,
+                "batch at {:?}: bound {bound} px at {precision:?}",
+                b.grid.min
+            );
             if precision != rule500(b) {
                 raised += 1;
             }
             let measured = |p: Precision| {
-                let world = |rel: [f64; 3]| [0, 1, 2].map(|a| scene.grid.offset[a] + scene.grid.scale[a] * (b.grid.min[a] as f64 + rel[a]));
+                let world = |rel: [f64; 3]| {
+                    [0, 1, 2].map(|a| {
+                        scene.grid.offset[a] + scene.grid.scale[a] * (b.grid.min[a] as f64 + rel[a])
+                    })
+                };
                 (0..b.len())
                     .filter_map(|i| {
                         let w = [b.words[0][i], b.words[1][i], b.words[2][i]];
-                        let (d, e) = (cam.project(world(b.grid.decode_relative(w, p)))?, cam.project(world(b.grid.decode_relative(w, Precision::Bits30)))?);
+                        let (d, e) = (
+                            cam.project(world(b.grid.decode_relative(w, p)))?,
+                            cam.project(world(b.grid.decode_relative(w, Precision::Bits30)))?,
+                        );
                         Some(((d.x - e.x).powi(2) + (d.y - e.y).powi(2)).sqrt())
                     })
                     .fold(0f64, f64::max)
             };
             let m = measured(precision);
-            assert!(m <= bound + 1e-9, "batch at {:?}: measured {m} px above the bound {bound}", b.grid.min);
+            assert!(
+                m <= bound + 1e-9,
+                "batch at {:?}: measured {m} px above the bound {bound}",
+                b.grid.min
+            );
             worst_new = worst_new.max(m);
             worst_old = worst_old.max(measured(rule500(b)));
         }
-        let (p_old, p_new) = (psnr_covered(&old, &full, &colors), psnr_covered(&adaptive, &full, &colors));
+        let (p_old, p_new) =
+            (psnr_covered(&old, &full, &colors), psnr_covered(&adaptive, &full, &colors));
         eprintln!("rods: raised {raised} batches; worst error {worst_old:.3} px -> {worst_new:.3} px; PSNR over covered pixels {p_old:.1} -> {p_new:.1} dB; {stats:?}");
         assert!(raised >= 8, "{raised}");
         assert!(worst_old > 1.3, "the 500 px rule alone moved points by {worst_old} px");

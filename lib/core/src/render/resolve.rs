@@ -84,14 +84,31 @@ impl EyeDome {
 /// interpolated at Chebyshev nodes, rounded to f32; `t q(t)` is within 6e-8 of `log2(1 + t)`;
 /// the constant term rounds to the f32 of `log2(e)`).
 /// The GPU gets them in [`crate::render::gpu::EyeDomeUniforms`].
-pub const EDL_LOG2_COEFFS: [f32; 9] =
-    [std::f32::consts::LOG2_E, -0.721_347_45, 0.480_910_75, -0.360_693_28, 0.287_903_25, -0.239_169_88, 0.216_078_22, -0.205_861_88, 0.123_109_68];
+pub const EDL_LOG2_COEFFS: [f32; 9] = [
+    std::f32::consts::LOG2_E,
+    -0.721_347_45,
+    0.480_910_75,
+    -0.360_693_28,
+    0.287_903_25,
+    -0.239_169_88,
+    0.216_078_22,
+    -0.205_861_88,
+    0.123_109_68,
+];
 
 /// Coefficients of `r(f) = (2^f - 1) / f` on `[0, 1]` (degree 6, Chebyshev nodes, f32;
 /// `1 + f r(f)` is within 8e-8 of `2^f`, relative; the constant term rounds to the f32 of
 /// `ln 2`). The GPU gets them in
 /// [`crate::render::gpu::EyeDomeUniforms`].
-pub const EDL_EXP2_COEFFS: [f32; 7] = [std::f32::consts::LN_2, 0.240_226_49, 0.055_504_44, 0.009_616_16, 0.001_338_905_3, 0.000_146_096_32, 0.000_020_731_864];
+pub const EDL_EXP2_COEFFS: [f32; 7] = [
+    std::f32::consts::LN_2,
+    0.240_226_49,
+    0.055_504_44,
+    0.009_616_16,
+    0.001_338_905_3,
+    0.000_146_096_32,
+    0.000_020_731_864,
+];
 
 /// `p(t)` of the coefficients `c` (lowest first) by Horner's rule, every multiplication and
 /// addition rounded on its own (no fused multiply-add), as the GPU evaluates it.
@@ -192,7 +209,15 @@ pub fn fill_holes(keys: &[u64], width: u32, height: u32, fill: &HoleFill) -> Vec
 /// `(x, y)`: `2^(-scale * mean)` where `mean` sums, over the neighbours at `offsets` that lie in
 /// the image and hold a point, how far the pixel lies behind each in log2 depth, divided by 8.
 /// The WGSL twin is `shaders/eye_dome.wgsl`, operation for operation.
-fn eye_dome_factor(keys: &[u64], w: usize, h: usize, x: usize, y: usize, offsets: &[[i32; 2]; 8], scale: f32) -> f32 {
+fn eye_dome_factor(
+    keys: &[u64],
+    w: usize,
+    h: usize,
+    x: usize,
+    y: usize,
+    offsets: &[[i32; 2]; 8],
+    scale: f32,
+) -> f32 {
     let d = edl_log2(key_depth(keys[y * w + x]).to_bits());
     let mut sum = 0.0f32;
     for &[dx, dy] in offsets {
@@ -222,7 +247,13 @@ pub fn shade(c: u32, f: f32) -> u32 {
 /// the background; hole filling and eye-dome lighting as the options say. `color` is called once
 /// per covered pixel; pass a closure, a `&dyn Fn(u32) -> u32 + Sync`, or use
 /// [`resolve_with_colors`] for a slice of per-point colours.
-pub fn resolve<F: Fn(u32) -> u32 + Sync>(keys: &[u64], width: u32, height: u32, color: F, options: &ResolveOptions) -> Vec<u32> {
+pub fn resolve<F: Fn(u32) -> u32 + Sync>(
+    keys: &[u64],
+    width: u32,
+    height: u32,
+    color: F,
+    options: &ResolveOptions,
+) -> Vec<u32> {
     let (w, h) = (width as usize, height as usize);
     assert_eq!(keys.len(), w * h, "keys do not match {width}x{height}");
     let filled;
@@ -243,7 +274,9 @@ pub fn resolve<F: Fn(u32) -> u32 + Sync>(keys: &[u64], width: u32, height: u32, 
             }
             let c = color(key_index(k));
             *px = match &eye_dome {
-                Some((offsets, scale)) => shade(c, eye_dome_factor(keys, w, h, x, y, offsets, *scale)),
+                Some((offsets, scale)) => {
+                    shade(c, eye_dome_factor(keys, w, h, x, y, offsets, *scale))
+                }
                 None => c,
             };
         }
@@ -253,7 +286,13 @@ pub fn resolve<F: Fn(u32) -> u32 + Sync>(keys: &[u64], width: u32, height: u32, 
 
 /// [`resolve`] with a slice of colours indexed by point index; an index beyond the slice gets the
 /// background colour.
-pub fn resolve_with_colors(keys: &[u64], width: u32, height: u32, colors: &[u32], options: &ResolveOptions) -> Vec<u32> {
+pub fn resolve_with_colors(
+    keys: &[u64],
+    width: u32,
+    height: u32,
+    colors: &[u32],
+    options: &ResolveOptions,
+) -> Vec<u32> {
     let bg = options.background;
     resolve(keys, width, height, |i| colors.get(i as usize).copied().unwrap_or(bg), options)
 }
@@ -467,7 +506,13 @@ mod tests {
         // Off by default.
         let out = resolve(&keys, 5, 5, |_| 7, &ResolveOptions::default());
         assert_eq!(out.iter().filter(|&&c| c == 7).count(), 1);
-        let out = resolve(&keys, 5, 5, |_| 7, &ResolveOptions { hole_fill: Some(HoleFill::default()), ..Default::default() });
+        let out = resolve(
+            &keys,
+            5,
+            5,
+            |_| 7,
+            &ResolveOptions { hole_fill: Some(HoleFill::default()), ..Default::default() },
+        );
         assert_eq!(out.iter().filter(|&&c| c == 7).count(), 4);
     }
 
@@ -512,7 +557,8 @@ mod tests {
         for i in 0..200_000u32 {
             let v = 1e-3f32 * (1.0 + i as f32 * 0.013).powf(1.7);
             let want = (v as f64).log2();
-            let err = (edl_log2(v.to_bits()) as f64 - want).abs() - 0.5 * f64::from(want.abs() as f32 * f32::EPSILON);
+            let err = (edl_log2(v.to_bits()) as f64 - want).abs()
+                - 0.5 * f64::from(want.abs() as f32 * f32::EPSILON);
             worst_log = worst_log.max(err);
             let y = -(i as f32) * 3.1e-4;
             let want = 2f64.powf(y as f64);
@@ -527,8 +573,14 @@ mod tests {
 
     #[test]
     fn eye_dome_offsets_and_shading_are_integers_and_exact_rounding() {
-        assert_eq!(EyeDome::default().offsets(), [[1, 0], [1, 1], [0, 1], [-1, 1], [-1, 0], [-1, -1], [0, -1], [1, -1]]);
-        assert_eq!(EyeDome { strength: 1.0, radius: 3.0 }.offsets(), [[3, 0], [2, 2], [0, 3], [-2, 2], [-3, 0], [-2, -2], [0, -3], [2, -2]]);
+        assert_eq!(
+            EyeDome::default().offsets(),
+            [[1, 0], [1, 1], [0, 1], [-1, 1], [-1, 0], [-1, -1], [0, -1], [1, -1]]
+        );
+        assert_eq!(
+            EyeDome { strength: 1.0, radius: 3.0 }.offsets(),
+            [[3, 0], [2, 2], [0, 3], [-2, 2], [-3, 0], [-2, -2], [0, -3], [2, -2]]
+        );
         let c = rgba(255, 128, 1, 77);
         assert_eq!(shade(c, 1.0), c);
         assert_eq!(shade(c, 0.5), rgba(128, 64, 1, 77));
@@ -550,7 +602,13 @@ mod tests {
         rasterize(&fb, &scene.refs(), &scene.grid, &cam, &RasterOptions::default()).unwrap();
         let keys = fb.into_keys();
         let bg = rgba(0, 0, 255, 255);
-        let plain = resolve_with_colors(&keys, 240, 180, &scene.colors, &ResolveOptions { background: bg, ..Default::default() });
+        let plain = resolve_with_colors(
+            &keys,
+            240,
+            180,
+            &scene.colors,
+            &ResolveOptions { background: bg, ..Default::default() },
+        );
         for (k, c) in keys.iter().zip(&plain) {
             match unpack_key(*k) {
                 Some((_, i)) => assert_eq!(*c, scene.colors[i as usize]),
@@ -563,7 +621,11 @@ mod tests {
             240,
             180,
             &scene.colors,
-            &ResolveOptions { background: bg, hole_fill: Some(HoleFill { min_neighbors: 3 }), ..Default::default() },
+            &ResolveOptions {
+                background: bg,
+                hole_fill: Some(HoleFill { min_neighbors: 3 }),
+                ..Default::default()
+            },
         );
         assert!(holes(&plain) > 5_000, "{}", holes(&plain));
         assert!(holes(&filled) * 3 < holes(&plain), "{} -> {}", holes(&plain), holes(&filled));

@@ -71,7 +71,8 @@ impl Scene {
                 lo[a] = lo[a].min(min[a] as i64);
                 hi[a] = hi[a].max(max[a] as i64);
             }
-            let grid = crate::quantize::BatchGrid::for_bounds(min, max).expect("a group fits 30 bits");
+            let grid =
+                crate::quantize::BatchGrid::for_bounds(min, max).expect("a group fits 30 bits");
             batches.push(PlannedBatch { range: points.len()..points.len() + g.len(), grid, max });
             points.extend(g);
         }
@@ -79,7 +80,12 @@ impl Scene {
     }
 
     /// Words, bounds and colours of points already batched.
-    fn quantized(grid: Grid, points: Vec<[i32; 3]>, batches: Vec<PlannedBatch>, (lo, hi): ([i64; 3], [i64; 3])) -> Scene {
+    fn quantized(
+        grid: Grid,
+        points: Vec<[i32; 3]>,
+        batches: Vec<PlannedBatch>,
+        (lo, hi): ([i64; 3], [i64; 3]),
+    ) -> Scene {
         let mut words = [Vec::new(), Vec::new(), Vec::new()];
         let mut batch_bounds = Vec::new();
         for b in &batches {
@@ -101,7 +107,15 @@ impl Scene {
                 g | g << 8 | g << 16 | 255 << 24
             })
             .collect();
-        Scene { grid, points, batches, words, bounds: Aabb::new(world(lo), world(hi)), batch_bounds, colors }
+        Scene {
+            grid,
+            points,
+            batches,
+            words,
+            bounds: Aabb::new(world(lo), world(hi)),
+            batch_bounds,
+            colors,
+        }
     }
 
     /// `n` points of a hilly 200 m x 150 m terrain with 0.3 m of noise, placed at `grid.offset`.
@@ -173,19 +187,28 @@ impl Scene {
         let near = cam.near as f32;
         let far = cam.far as f32;
         // The rasterizer's own plan (precision and projection, in f32 as the GPU makes it).
-        let planner = Planner::new(cam, &self.grid, &RasterOptions { precision: mode, cull: false }).expect("a valid camera");
+        let planner =
+            Planner::new(cam, &self.grid, &RasterOptions { precision: mode, cull: false })
+                .expect("a valid camera");
         for (b, bounds) in self.batches.iter().zip(&self.batch_bounds) {
-            let BatchPlan::Draw { precision, projection: bp } = planner.plan(&b.grid, bounds, b.range.len()) else { continue };
+            let BatchPlan::Draw { precision, projection: bp } =
+                planner.plan(&b.grid, bounds, b.range.len())
+            else {
+                continue;
+            };
             c.by_precision[precision.words() - 1] += b.range.len();
             for i in b.range.clone() {
                 let words = [self.words[0][i], self.words[1][i], self.words[2][i]];
                 let rel = b.grid.decode_relative(words, precision);
-                let decoded = [0, 1, 2].map(|a| self.grid.offset[a] + self.grid.scale[a] * (b.grid.min[a] as f64 + rel[a]));
+                let decoded = [0, 1, 2].map(|a| {
+                    self.grid.offset[a] + self.grid.scale[a] * (b.grid.min[a] as f64 + rel[a])
+                });
                 let exact = [0, 1, 2].map(|a| self.grid.world(a, self.points[i][a] as i64));
                 let Some(r) = cam.project(decoded) else { continue };
                 if let Some(e) = cam.project(exact) {
                     if precision.bits() < 30 {
-                        c.worst_decode_px = c.worst_decode_px.max((r.x - e.x).abs()).max((r.y - e.y).abs());
+                        c.worst_decode_px =
+                            c.worst_decode_px.max((r.x - e.x).abs()).max((r.y - e.y).abs());
                     }
                 }
                 if !(r.x >= 0.0 && r.x < w && r.y >= 0.0 && r.y < h) {
@@ -198,9 +221,13 @@ impl Scene {
                 }
                 c.on_screen += 1;
                 let [x, y, d, wc] = bp.transform(bp.local(join_words(words, precision)));
-                let (fx, fy) = ((x / wc) as f64 + bp.pixel_origin[0] as f64, (y / wc) as f64 + bp.pixel_origin[1] as f64);
+                let (fx, fy) = (
+                    (x / wc) as f64 + bp.pixel_origin[0] as f64,
+                    (y / wc) as f64 + bp.pixel_origin[1] as f64,
+                );
                 c.worst_f32_px = c.worst_f32_px.max((fx - r.x).abs()).max((fy - r.y).abs());
-                let same = d >= near && d <= far && fx.floor() == r.x.floor() && fy.floor() == r.y.floor();
+                let same =
+                    d >= near && d <= far && fx.floor() == r.x.floor() && fy.floor() == r.y.floor();
                 if !same {
                     c.other_pixel += 1;
                 }
@@ -218,7 +245,9 @@ impl Scene {
             cams.push(Camera::frame_perspective(&self.bounds, preset, 0.8, 1920, 1080).unwrap());
             cams.push(Camera::frame_orthographic(&self.bounds, preset, 1920, 1080).unwrap());
         }
-        for (eye, target) in [([60.0, 40.0, 32.0], [110.0, 90.0, 15.0]), ([150.0, 20.0, 30.0], [140.0, 60.0, 22.0])] {
+        for (eye, target) in
+            [([60.0, 40.0, 32.0], [110.0, 90.0, 15.0]), ([150.0, 20.0, 30.0], [140.0, 60.0, 22.0])]
+        {
             cams.push(Camera {
                 eye: self.world(eye),
                 target: self.world(target),

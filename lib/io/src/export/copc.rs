@@ -24,9 +24,9 @@ use crate::las::{self, HeaderOut, Vlr};
 use crate::sort::{self, PieceStats};
 use laz::laszip::{ChunkTable, ChunkTableEntry};
 use laz::record::{LayeredPointRecordCompressor, RecordCompressor};
-use laz::{LazItem, LazVlr, LazVlrBuilder};
 #[cfg(test)]
 use laz::LazItemRecordBuilder;
+use laz::{LazItem, LazVlr, LazVlrBuilder};
 use mortar_core::octree::NodeKey;
 use rayon::prelude::*;
 use std::collections::HashMap;
@@ -69,7 +69,8 @@ fn info_data(f: &Frame, root_hier_offset: u64, root_hier_size: u64, gps: (f64, f
 
 /// One LAZ chunk (layered, LAZ 1.4 items) of `records`.
 pub(crate) fn encode_chunk(items: &Vec<LazItem>, records: &[u8]) -> std::io::Result<Vec<u8>> {
-    let mut c = LayeredPointRecordCompressor::new(Cursor::new(Vec::with_capacity(records.len() / 4)));
+    let mut c =
+        LayeredPointRecordCompressor::new(Cursor::new(Vec::with_capacity(records.len() / 4)));
     c.set_fields_from(items).map_err(std::io::Error::other)?;
     c.compress_many(records)?;
     c.done()?;
@@ -79,7 +80,14 @@ pub(crate) fn encode_chunk(items: &Vec<LazItem>, records: &[u8]) -> std::io::Res
 /// [`encode_chunk`] of a node's `points` records (`rl` bytes each) given in slices of `slice`
 /// points by `records(range)`, and the range of their GPS times (PDRF 6-8: at byte 22): the same
 /// bytes, with one slice of records in memory at a time.
-pub(crate) fn encode_chunk_slices(path: &Path, items: &Vec<LazItem>, rl: usize, points: usize, slice: usize, records: &dyn Fn(std::ops::Range<usize>) -> Vec<u8>) -> Result<(Vec<u8>, (f64, f64))> {
+pub(crate) fn encode_chunk_slices(
+    path: &Path,
+    items: &Vec<LazItem>,
+    rl: usize,
+    points: usize,
+    slice: usize,
+    records: &dyn Fn(std::ops::Range<usize>) -> Vec<u8>,
+) -> Result<(Vec<u8>, (f64, f64))> {
     let io = |e: std::io::Error| Error::io(path, e);
     let mut c = LayeredPointRecordCompressor::new(Cursor::new(Vec::new()));
     c.set_fields_from(items).map_err(|e| io(std::io::Error::other(e)))?;
@@ -158,7 +166,12 @@ pub(crate) struct CopcWriter<'a> {
 
 impl<'a> CopcWriter<'a> {
     /// Opens the temporary file and reserves the header; CRS notes go to `warnings`.
-    pub(crate) fn create(ds: &'a Dataset, frame: Frame, out: &Path, warnings: &mut Vec<String>) -> Result<CopcWriter<'a>> {
+    pub(crate) fn create(
+        ds: &'a Dataset,
+        frame: Frame,
+        out: &Path,
+        warnings: &mut Vec<String>,
+    ) -> Result<CopcWriter<'a>> {
         let rl = frame.out.record_len;
         let extra = (rl - mortar_core::layout::base_len(frame.out.format).unwrap_or(rl)) as u16;
         let laz_vlr: LazVlr = LazVlrBuilder::default()
@@ -197,9 +210,12 @@ impl<'a> CopcWriter<'a> {
         header.version = (1, 4);
         header.extra_header.clear();
         header.global_encoding &= !0x6; // no waveform data
-        // LAS 1.4 asks point formats 6-10 to set the WKT bit, and copclib refuses files without it.
+                                        // LAS 1.4 asks point formats 6-10 to set the WKT bit, and copclib refuses files without it.
         header.global_encoding |= 0x10;
-        let mut vlrs = vec![vlr("copc", 1, "copc info", info_data(&frame, 0, 0, (0.0, 0.0))), vlr("laszip encoded", 22204, "mortar (laz-rs)", laz_data)];
+        let mut vlrs = vec![
+            vlr("copc", 1, "copc info", info_data(&frame, 0, 0, (0.0, 0.0))),
+            vlr("laszip encoded", 22204, "mortar (laz-rs)", laz_data),
+        ];
         vlrs.extend(ds.vlrs.iter().cloned());
         vlrs.extend(wkt_vlr);
         let tmp = TempPath::beside(out);
@@ -268,7 +284,10 @@ impl NodeWriter for CopcWriter<'_> {
             .map(|(_, recs)| {
                 let c = encode_chunk(items, recs).map_err(|e| Error::io(&path, e))?;
                 // PDRF 6-8 keep the GPS time at byte 22.
-                let t = recs.chunks_exact(rl).map(|r| f64::from_le_bytes(r[22..30].try_into().expect("8 bytes"))).fold((f64::INFINITY, f64::NEG_INFINITY), |a, t| (a.0.min(t), a.1.max(t)));
+                let t = recs
+                    .chunks_exact(rl)
+                    .map(|r| f64::from_le_bytes(r[22..30].try_into().expect("8 bytes")))
+                    .fold((f64::INFINITY, f64::NEG_INFINITY), |a, t| (a.0.min(t), a.1.max(t)));
                 progress.add((recs.len() / rl) as u64);
                 Ok((c, t))
             })
@@ -288,7 +307,13 @@ impl NodeWriter for CopcWriter<'_> {
         Ok(())
     }
 
-    fn write_node_slices(&mut self, key: NodeKey, points: usize, slice: usize, records: &(dyn Fn(std::ops::Range<usize>) -> Vec<u8> + Sync)) -> Result<()> {
+    fn write_node_slices(
+        &mut self,
+        key: NodeKey,
+        points: usize,
+        slice: usize,
+        records: &(dyn Fn(std::ops::Range<usize>) -> Vec<u8> + Sync),
+    ) -> Result<()> {
         sort::check_interrupted()?;
         let rl = self.frame.out.record_len;
         let path = self.tmp.path().to_path_buf();
@@ -309,7 +334,12 @@ impl NodeWriter for CopcWriter<'_> {
         Ok(())
     }
 
-    fn finish(mut self: Box<Self>, tree: &[OutNode], stats: &PieceStats, report: &mut ExportReport) -> Result<()> {
+    fn finish(
+        mut self: Box<Self>,
+        tree: &[OutNode],
+        stats: &PieceStats,
+        report: &mut ExportReport,
+    ) -> Result<()> {
         let path = self.tmp.path().to_path_buf();
         let io = |e| Error::io(&path, e);
         let table_offset = self.pos;
@@ -392,7 +422,10 @@ mod tests {
         }
         let whole = encode_chunk(&items, &recs).unwrap();
         for slice in [1, 7, 1000, 3000, 10_000] {
-            let (got, t) = encode_chunk_slices(Path::new("t"), &items, rl, n, slice, &|r| recs[r.start * rl..r.end * rl].to_vec()).unwrap();
+            let (got, t) = encode_chunk_slices(Path::new("t"), &items, rl, n, slice, &|r| {
+                recs[r.start * rl..r.end * rl].to_vec()
+            })
+            .unwrap();
             assert!(got == whole, "slice {slice}");
             assert_eq!(t, (0.0, (n - 1) as f64 * 0.5));
         }
@@ -405,7 +438,8 @@ mod tests {
     #[test]
     fn pages_split_every_page_levels() {
         // a chain root -> ... -> level 9, octant 0 each time
-        let nodes: Vec<OutNode> = (0..10u8).map(|l| node(l, [0; 3], if l < 9 { 1 } else { 0 })).collect();
+        let nodes: Vec<OutNode> =
+            (0..10u8).map(|l| node(l, [0; 3], if l < 9 { 1 } else { 0 })).collect();
         let p = pages(&nodes);
         assert_eq!(p.len(), 3, "{p:?}");
         assert_eq!(p[0].0, NodeKey::ROOT);

@@ -120,7 +120,9 @@ pub fn export(ds: &Dataset, out: &Path, opts: &ExportOptions) -> Result<ExportRe
         ExportFormat::Copc => "copc",
         ExportFormat::Potree => "potree",
     };
-    let tree = if in_memory_need(ds, opts.memory) <= opts.memory && ds.declared_points() < u32::MAX as u64 {
+    let tree = if in_memory_need(ds, opts.memory) <= opts.memory
+        && ds.declared_points() < u32::MAX as u64
+    {
         report.engine = "memory";
         in_memory(ds, out, opts, &mut report)?
     } else {
@@ -135,13 +137,24 @@ pub fn export(ds: &Dataset, out: &Path, opts: &ExportOptions) -> Result<ExportRe
 
 /// The in-memory export: every point read, sorted and assigned, then the nodes written level
 /// by level. Returns the tree's shape.
-fn in_memory(ds: &Dataset, out: &Path, opts: &ExportOptions, report: &mut ExportReport) -> Result<Vec<OutNode>> {
+fn in_memory(
+    ds: &Dataset,
+    out: &Path,
+    opts: &ExportOptions,
+    report: &mut ExportReport,
+) -> Result<Vec<OutNode>> {
     let prep = prepare(ds, opts, report)?;
     let tw = Instant::now();
     let mut w = open_writer(ds, prep.frame.clone(), out, opts.format, report)?;
     let points: u64 = prep.nodes.iter().map(|n| n.points.len() as u64).sum();
     ds.progress.stage("writing", points, "points");
-    write_grouped(&mut *w, &prep.nodes, prep.frame.out.record_len, group_bytes(opts.memory), &|n, r| prep.node_records(n, r))?;
+    write_grouped(
+        &mut *w,
+        &prep.nodes,
+        prep.frame.out.record_len,
+        group_bytes(opts.memory),
+        &|n, r| prep.node_records(n, r),
+    )?;
     let shape: Vec<OutNode> = prep.nodes.iter().map(OutNode::shape).collect();
     w.finish(&shape, &prep.stats, report)?;
     report.write_seconds = tw.elapsed().as_secs_f64();
@@ -167,7 +180,8 @@ impl Frame {
     /// The frame of the tree over `root` (on the grid of `stretch`) for the records `out`.
     fn of(ds: &Dataset, out: RecordLayout, stretch: &Stretch, root: Cube) -> Frame {
         let smin = ds.grid.scale.iter().cloned().fold(f64::INFINITY, f64::min);
-        let origin = [0, 1, 2].map(|a| ds.grid.offset[a] + ds.grid.scale[a] * stretch.base[a] as f64);
+        let origin =
+            [0, 1, 2].map(|a| ds.grid.offset[a] + ds.grid.scale[a] * stretch.base[a] as f64);
         let cube_min = [0, 1, 2].map(|a| origin[a] + smin * (root.min[a] as f64 - 0.5));
         Frame { out, cube_min, halfsize: smin * root.size() as f64 / 2.0 }
     }
@@ -182,16 +196,35 @@ pub(crate) trait NodeWriter {
     /// `records(range)` giving those of the points `range`: a node larger than a group (points
     /// at one position, beyond the depth limit) is encoded without all its records in memory.
     /// The bytes written are those [`write_nodes`](Self::write_nodes) writes for the node.
-    fn write_node_slices(&mut self, key: NodeKey, points: usize, slice: usize, records: &(dyn Fn(std::ops::Range<usize>) -> Vec<u8> + Sync)) -> Result<()>;
+    fn write_node_slices(
+        &mut self,
+        key: NodeKey,
+        points: usize,
+        slice: usize,
+        records: &(dyn Fn(std::ops::Range<usize>) -> Vec<u8> + Sync),
+    ) -> Result<()>;
     /// Writes the hierarchy of `tree` (every node that holds points or has such nodes below,
     /// with its children mask; its points are not looked at) and the metadata, and moves the
     /// output into place; sets `report.points` and `report.bytes`.
-    fn finish(self: Box<Self>, tree: &[OutNode], stats: &PieceStats, report: &mut ExportReport) -> Result<()>;
+    fn finish(
+        self: Box<Self>,
+        tree: &[OutNode],
+        stats: &PieceStats,
+        report: &mut ExportReport,
+    ) -> Result<()>;
 }
 
-fn open_writer<'a>(ds: &'a Dataset, frame: Frame, out: &Path, format: ExportFormat, report: &mut ExportReport) -> Result<Box<dyn NodeWriter + 'a>> {
+fn open_writer<'a>(
+    ds: &'a Dataset,
+    frame: Frame,
+    out: &Path,
+    format: ExportFormat,
+    report: &mut ExportReport,
+) -> Result<Box<dyn NodeWriter + 'a>> {
     Ok(match format {
-        ExportFormat::Copc => Box::new(copc::CopcWriter::create(ds, frame, out, &mut report.warnings)?),
+        ExportFormat::Copc => {
+            Box::new(copc::CopcWriter::create(ds, frame, out, &mut report.warnings)?)
+        }
         ExportFormat::Potree => Box::new(potree::PotreeWriter::create(ds, frame, out)?),
     })
 }
@@ -251,13 +284,27 @@ impl Prepared {
     /// The output records of the points `range` of a node, in its order.
     pub(crate) fn node_records(&self, n: &OutNode, range: std::ops::Range<usize>) -> Vec<u8> {
         let pts = &n.points[range];
-        output_records(pts.iter().map(|&i| self.sorted.record(i as usize)), pts.len(), self.sorted.rl, self.out.record_len, &self.conv, &self.stretch)
+        output_records(
+            pts.iter().map(|&i| self.sorted.record(i as usize)),
+            pts.len(),
+            self.sorted.rl,
+            self.out.record_len,
+            &self.conv,
+            &self.stretch,
+        )
     }
 }
 
 /// The output records of the input records `src` (`n` of them, `rl` bytes each): converted
 /// to the output's format, positions back on the dataset's grid.
-pub(crate) fn output_records<'r>(src: impl Iterator<Item = &'r [u8]>, n: usize, rl: usize, out_rl: usize, conv: &Option<Conversion>, stretch: &Stretch) -> Vec<u8> {
+pub(crate) fn output_records<'r>(
+    src: impl Iterator<Item = &'r [u8]>,
+    n: usize,
+    rl: usize,
+    out_rl: usize,
+    conv: &Option<Conversion>,
+    stretch: &Stretch,
+) -> Vec<u8> {
     let mut b = vec![0u8; n * out_rl];
     for (d, s) in b.chunks_exact_mut(out_rl).zip(src) {
         match conv {
@@ -273,17 +320,27 @@ pub(crate) fn output_records<'r>(src: impl Iterator<Item = &'r [u8]>, n: usize, 
 
 /// The record layout COPC holds for `layout` (PDRF 6, 7 or 8 with the same extra bytes) and
 /// the conversion into it, or why there is none.
-pub(crate) fn output_layout(layout: &RecordLayout) -> std::result::Result<(RecordLayout, Option<Conversion>), ExportError> {
+pub(crate) fn output_layout(
+    layout: &RecordLayout,
+) -> std::result::Result<(RecordLayout, Option<Conversion>), ExportError> {
     match layout.format {
         6..=8 => Ok((layout.clone(), None)),
         4 | 5 | 9 | 10 => Err(ExportError::Waveforms {
             format: layout.format,
-            instead: if layout.format == 10 { 8 } else if layout.format == 5 { 7 } else { 6 },
+            instead: if layout.format == 10 {
+                8
+            } else if layout.format == 5 {
+                7
+            } else {
+                6
+            },
         }),
         f => {
             let extra = layout.record_len - base_len(f).unwrap_or(layout.record_len);
-            let six = RecordLayout::new(6, 30 + extra).map_err(|error| ExportError::Layout { error })?;
-            let (target, convs) = merge_layouts(&[layout.clone(), six]).map_err(|problem| ExportError::Convert { problem })?;
+            let six =
+                RecordLayout::new(6, 30 + extra).map_err(|error| ExportError::Layout { error })?;
+            let (target, convs) = merge_layouts(&[layout.clone(), six])
+                .map_err(|problem| ExportError::Convert { problem })?;
             Ok((target, convs.into_iter().next().flatten()))
         }
     }
@@ -308,16 +365,23 @@ fn stretch_factors(scale: [f64; 3]) -> std::result::Result<[i64; 3], ExportError
 }
 
 /// Reads, sorts and builds the tree, and assigns every point to one node.
-pub(crate) fn prepare(ds: &Dataset, opts: &ExportOptions, report: &mut ExportReport) -> Result<Prepared> {
+pub(crate) fn prepare(
+    ds: &Dataset,
+    opts: &ExportOptions,
+    report: &mut ExportReport,
+) -> Result<Prepared> {
     let t0 = Instant::now();
     let rl = ds.layout.record_len;
-    let (out, conv) = output_layout(&ds.layout).map_err(|error| Error::Export { path: ds.inputs[0].path().to_path_buf(), error })?;
-    let m = stretch_factors(ds.grid.scale).map_err(|error| Error::Export { path: ds.inputs[0].path().to_path_buf(), error })?;
+    let (out, conv) = output_layout(&ds.layout)
+        .map_err(|error| Error::Export { path: ds.inputs[0].path().to_path_buf(), error })?;
+    let m = stretch_factors(ds.grid.scale)
+        .map_err(|error| Error::Export { path: ds.inputs[0].path().to_path_buf(), error })?;
     let total = ds.declared_points();
     ds.progress.stage("reading", total, "points");
     let mut header_warnings = Vec::new();
     let header = crate::store::header_bounds_of(ds, &mut header_warnings);
-    let promised = header.map(|(l, h)| Cube::covering(l, h)).unwrap_or(Cube { min: [0; 3], size_log2: 32 });
+    let promised =
+        header.map(|(l, h)| Cube::covering(l, h)).unwrap_or(Cube { min: [0; 3], size_log2: 32 });
     let (slabs, mut hist) = eng::read_pieces(ds, promised)?;
     let mut all = PieceStats::default();
     for (_, st) in &slabs {
@@ -328,14 +392,22 @@ pub(crate) fn prepare(ds: &Dataset, opts: &ExportOptions, report: &mut ExportRep
     }
     report.read_seconds = t0.elapsed().as_secs_f64();
     let (lo, hi) = (all.min, all.max);
-    let stretch = if m == [1; 3] { Stretch { base: [0; 3], m } } else { Stretch { base: lo.map(|v| v as i64), m } };
+    let stretch = if m == [1; 3] {
+        Stretch { base: [0; 3], m }
+    } else {
+        Stretch { base: lo.map(|v| v as i64), m }
+    };
     // The stretched copy (rare: axes with different scales).
     let stretched: Vec<Vec<u8>> = if stretch.is_identity() {
         Vec::new()
     } else {
         for a in 0..3 {
             if (hi[a] as i64 - lo[a] as i64) * m[a] >= i32::MAX as i64 {
-                return Err(Error::ScalesDiffer { path: ds.inputs[0].path().to_path_buf(), scale: ds.grid.scale, axis: a });
+                return Err(Error::ScalesDiffer {
+                    path: ds.inputs[0].path().to_path_buf(),
+                    scale: ds.grid.scale,
+                    axis: a,
+                });
             }
         }
         slabs
@@ -350,10 +422,20 @@ pub(crate) fn prepare(ds: &Dataset, opts: &ExportOptions, report: &mut ExportRep
             })
             .collect()
     };
-    let records: Vec<&[u8]> = if stretch.is_identity() { slabs.iter().map(|(r, _)| &**r).collect() } else { stretched.iter().map(|v| &v[..]).collect() };
-    let (tlo, thi) = if stretch.is_identity() { (lo, hi) } else { ([0; 3], [0, 1, 2].map(|a| ((hi[a] as i64 - lo[a] as i64) * m[a]) as i32)) };
+    let records: Vec<&[u8]> = if stretch.is_identity() {
+        slabs.iter().map(|(r, _)| &**r).collect()
+    } else {
+        stretched.iter().map(|v| &v[..]).collect()
+    };
+    let (tlo, thi) = if stretch.is_identity() {
+        (lo, hi)
+    } else {
+        ([0; 3], [0, 1, 2].map(|a| ((hi[a] as i64 - lo[a] as i64) * m[a]) as i32))
+    };
     let root = match header {
-        Some((l, h)) if stretch.is_identity() && (0..3).all(|a| l[a] <= lo[a] && hi[a] <= h[a]) => Cube::covering(l, h),
+        Some((l, h)) if stretch.is_identity() && (0..3).all(|a| l[a] <= lo[a] && hi[a] <= h[a]) => {
+            Cube::covering(l, h)
+        }
         _ => Cube::covering(tlo, thi),
     };
     let g = eng::grid_of(root);
@@ -363,7 +445,9 @@ pub(crate) fn prepare(ds: &Dataset, opts: &ExportOptions, report: &mut ExportRep
     }
     let ts = Instant::now();
     ds.progress.stage("sorting", 2 * all.count, "points");
-    let sorted = eng::sort_records(&records, &hist, rl, &g, shift, &ds.progress, |p, i| (p as u64) << 32 | i as u64);
+    let sorted = eng::sort_records(&records, &hist, rl, &g, shift, &ds.progress, |p, i| {
+        (p as u64) << 32 | i as u64
+    });
     drop(records);
     drop(stretched);
     drop(slabs);
@@ -374,7 +458,8 @@ pub(crate) fn prepare(ds: &Dataset, opts: &ExportOptions, report: &mut ExportRep
     let n = sorted.arrival.len();
     let pos = |i: usize| read_xyz(sorted.record(i));
     let arrival = |i: usize| sorted.arrival[i];
-    let tree = build_sorted(root, n, &pos, &arrival, opts.config).map_err(|error| Error::Octree { error })?;
+    let tree = build_sorted(root, n, &pos, &arrival, opts.config)
+        .map_err(|error| Error::Octree { error })?;
     let nodes = assign(&tree.nodes, n, &sorted, &ds.layout, opts.order, &[]);
     report.tree_seconds = tt.elapsed().as_secs_f64();
     report.warnings.extend(header_warnings);
@@ -385,7 +470,14 @@ pub(crate) fn prepare(ds: &Dataset, opts: &ExportOptions, report: &mut ExportRep
 /// Every point to one node (module docs), empty subtrees dropped, children masks set. `tree`
 /// is a tree or a subtree, its nodes level by level (Morton order in a level); `taken` are the
 /// points that the nodes above a subtree hold (its candidates).
-pub(crate) fn assign(tree: &[SortedNode], n: usize, sorted: &Sorted, layout: &RecordLayout, order: PointOrder, taken_above: &[u32]) -> Vec<OutNode> {
+pub(crate) fn assign(
+    tree: &[SortedNode],
+    n: usize,
+    sorted: &Sorted,
+    layout: &RecordLayout,
+    order: PointOrder,
+    taken_above: &[u32],
+) -> Vec<OutNode> {
     let taken: Vec<AtomicU64> = (0..n.div_ceil(64)).map(|_| AtomicU64::new(0)).collect();
     for &i in taken_above {
         taken[i as usize / 64].fetch_or(1u64 << (i % 64), Ordering::Relaxed);
@@ -412,10 +504,18 @@ pub(crate) fn assign(tree: &[SortedNode], n: usize, sorted: &Sorted, layout: &Re
                             taken[i as usize / 64].fetch_or(bit, Ordering::Relaxed) & bit == 0
                         })
                         .collect(),
-                    SortedContent::Leaf(r) => r.clone().filter(|&i| taken[i / 64].load(Ordering::Relaxed) & (1u64 << (i % 64)) == 0).map(|i| i as u32).collect(),
+                    SortedContent::Leaf(r) => r
+                        .clone()
+                        .filter(|&i| {
+                            taken[i / 64].load(Ordering::Relaxed) & (1u64 << (i % 64)) == 0
+                        })
+                        .map(|i| i as u32)
+                        .collect(),
                 };
                 if let (PointOrder::GpsTime, Some(o)) = (order, gps) {
-                    let t = |i: u32| f64::from_le_bytes(sorted.record(i as usize)[o..o + 8].try_into().unwrap());
+                    let t = |i: u32| {
+                        f64::from_le_bytes(sorted.record(i as usize)[o..o + 8].try_into().unwrap())
+                    };
                     points.sort_by(|a, b| t(*a).total_cmp(&t(*b)));
                 }
                 OutNode { key: node.key, points, children: 0 }
@@ -439,7 +539,11 @@ pub(crate) fn assign(tree: &[SortedNode], n: usize, sorted: &Sorted, layout: &Re
 
 /// Groups of consecutive nodes of about `bytes` output bytes each (at least one node), so that
 /// the writers encode a group in parallel and hold one group at a time.
-pub(crate) fn groups(nodes: &[OutNode], record_len: usize, bytes: u64) -> Vec<std::ops::Range<usize>> {
+pub(crate) fn groups(
+    nodes: &[OutNode],
+    record_len: usize,
+    bytes: u64,
+) -> Vec<std::ops::Range<usize>> {
     let mut out = Vec::new();
     let mut start = 0;
     while start < nodes.len() {
@@ -459,7 +563,13 @@ pub(crate) fn groups(nodes: &[OutNode], record_len: usize, bytes: u64) -> Vec<st
 /// converted (`records(node, range)`: the output records of the node's points `range`) and
 /// encoded in parallel, a node larger than a group alone and in slices, so the records held
 /// at once stay within about `bytes` whatever the density.
-pub(crate) fn write_grouped(w: &mut dyn NodeWriter, nodes: &[OutNode], record_len: usize, bytes: u64, records: &(dyn Fn(&OutNode, std::ops::Range<usize>) -> Vec<u8> + Sync)) -> Result<()> {
+pub(crate) fn write_grouped(
+    w: &mut dyn NodeWriter,
+    nodes: &[OutNode],
+    record_len: usize,
+    bytes: u64,
+    records: &(dyn Fn(&OutNode, std::ops::Range<usize>) -> Vec<u8> + Sync),
+) -> Result<()> {
     let slice = (bytes / record_len.max(1) as u64).max(1) as usize;
     for grp in groups(nodes, record_len, bytes) {
         let big = grp.len() == 1 && nodes[grp.start].points.len() > slice;
@@ -467,7 +577,11 @@ pub(crate) fn write_grouped(w: &mut dyn NodeWriter, nodes: &[OutNode], record_le
             let n = &nodes[grp.start];
             w.write_node_slices(n.key, n.points.len(), slice, &|r| records(n, r))?;
         } else {
-            let batch: Vec<(NodeKey, Vec<u8>)> = nodes[grp].par_iter().filter(|n| !n.points.is_empty()).map(|n| (n.key, records(n, 0..n.points.len()))).collect();
+            let batch: Vec<(NodeKey, Vec<u8>)> = nodes[grp]
+                .par_iter()
+                .filter(|n| !n.points.is_empty())
+                .map(|n| (n.key, records(n, 0..n.points.len())))
+                .collect();
             w.write_nodes(batch)?;
         }
     }

@@ -52,8 +52,24 @@ struct Attr {
 }
 
 fn attributes(format: u8, record_len: usize) -> Vec<Attr> {
-    let a = |name, ty: &'static str, elem, num, at| Attr { name, ty, elem, num, at, bits: None, signed: ty == "int16" };
-    let b = |name, at, shift, mask| Attr { name, ty: "uint8", elem: 1, num: 1, at, bits: Some((shift, mask)), signed: false };
+    let a = |name, ty: &'static str, elem, num, at| Attr {
+        name,
+        ty,
+        elem,
+        num,
+        at,
+        bits: None,
+        signed: ty == "int16",
+    };
+    let b = |name, at, shift, mask| Attr {
+        name,
+        ty: "uint8",
+        elem: 1,
+        num: 1,
+        at,
+        bits: Some((shift, mask)),
+        signed: false,
+    };
     let mut v = vec![
         a("position", "int32", 4, 3, 0),
         a("intensity", "uint16", 2, 1, 12),
@@ -156,7 +172,12 @@ pub(crate) struct PotreeWriter<'a> {
 
 /// The DEFAULT encoding of output records `recs` (`rl` bytes each): the attributes of each
 /// point in turn, and each value's range.
-fn encode_records(attrs: &[Attr], nvals: usize, recs: &[u8], rl: usize) -> (Vec<u8>, Vec<f64>, Vec<f64>) {
+fn encode_records(
+    attrs: &[Attr],
+    nvals: usize,
+    recs: &[u8],
+    rl: usize,
+) -> (Vec<u8>, Vec<f64>, Vec<f64>) {
     let bpp: usize = attrs.iter().map(|a| a.elem * a.num).sum();
     let mut b = Vec::with_capacity(recs.len() / rl * bpp);
     let mut l = vec![f64::INFINITY; nvals];
@@ -188,7 +209,10 @@ impl<'a> PotreeWriter<'a> {
         let dir = tmp.path().to_path_buf();
         std::fs::create_dir_all(&dir).map_err(|e| Error::io(&dir, e))?;
         let octree_path = dir.join("octree.bin");
-        let w = BufWriter::with_capacity(1 << 20, File::create(&octree_path).map_err(|e| Error::io(&octree_path, e))?);
+        let w = BufWriter::with_capacity(
+            1 << 20,
+            File::create(&octree_path).map_err(|e| Error::io(&octree_path, e))?,
+        );
         Ok(PotreeWriter {
             ds,
             frame,
@@ -233,7 +257,13 @@ impl NodeWriter for PotreeWriter<'_> {
         Ok(())
     }
 
-    fn write_node_slices(&mut self, key: NodeKey, points: usize, slice: usize, records: &(dyn Fn(std::ops::Range<usize>) -> Vec<u8> + Sync)) -> Result<()> {
+    fn write_node_slices(
+        &mut self,
+        key: NodeKey,
+        points: usize,
+        slice: usize,
+        records: &(dyn Fn(std::ops::Range<usize>) -> Vec<u8> + Sync),
+    ) -> Result<()> {
         let rl = self.frame.out.record_len;
         let at = self.pos;
         for s in (0..points).step_by(slice) {
@@ -253,8 +283,27 @@ impl NodeWriter for PotreeWriter<'_> {
         Ok(())
     }
 
-    fn finish(self: Box<Self>, tree: &[OutNode], stats: &PieceStats, report: &mut ExportReport) -> Result<()> {
-        let PotreeWriter { ds, frame, out, tmp, octree_path, w, attrs, lo, hi, placed, pos, points, .. } = *self;
+    fn finish(
+        self: Box<Self>,
+        tree: &[OutNode],
+        stats: &PieceStats,
+        report: &mut ExportReport,
+    ) -> Result<()> {
+        let PotreeWriter {
+            ds,
+            frame,
+            out,
+            tmp,
+            octree_path,
+            w,
+            attrs,
+            lo,
+            hi,
+            placed,
+            pos,
+            points,
+            ..
+        } = *self;
         let dir = tmp.path().to_path_buf();
         let f = w.into_inner().map_err(|e| Error::io(&octree_path, e.into_error()))?;
         drop(f);
@@ -300,7 +349,10 @@ impl NodeWriter for PotreeWriter<'_> {
             .iter()
             .map(|a| {
                 let (mn, mx): (Vec<f64>, Vec<f64>) = if a.name == "position" {
-                    ((0..3).map(|k| world(k, s.min[k])).collect(), (0..3).map(|k| world(k, s.max[k])).collect())
+                    (
+                        (0..3).map(|k| world(k, s.min[k])).collect(),
+                        (0..3).map(|k| world(k, s.max[k])).collect(),
+                    )
                 } else {
                     (lo[v..v + a.num].to_vec(), hi[v..v + a.num].to_vec())
                 };
@@ -329,10 +381,12 @@ impl NodeWriter for PotreeWriter<'_> {
             "attributes": attributes,
         });
         let mp = dir.join("metadata.json");
-        let text = serde_json::to_vec_pretty(&meta).map_err(|error| Error::JsonFile { path: mp.clone(), error })?;
+        let text = serde_json::to_vec_pretty(&meta)
+            .map_err(|error| Error::JsonFile { path: mp.clone(), error })?;
         std::fs::write(&mp, text).map_err(|e| Error::io(&mp, e))?;
         report.points = points;
-        report.bytes = pos + hier.len() as u64 + std::fs::metadata(&mp).map(|m| m.len()).unwrap_or(0);
+        report.bytes =
+            pos + hier.len() as u64 + std::fs::metadata(&mp).map(|m| m.len()).unwrap_or(0);
         if out.is_dir() {
             // an empty directory given as the output (checked before the export began)
             std::fs::remove_dir(&out).map_err(|e| Error::io(&out, e))?;

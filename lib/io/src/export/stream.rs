@@ -20,24 +20,36 @@
 //! A partition cell denser than one unit's budget is partitioned again, or is a leaf written in
 //! slices, as the build does (`store/dense.rs`).
 
-use super::{assign, open_writer, output_layout, stretch_factors, ExportOptions, ExportReport, Frame, NodeWriter, OutNode, PointOrder, Stretch};
+use super::{
+    assign, open_writer, output_layout, stretch_factors, ExportOptions, ExportReport, Frame,
+    NodeWriter, OutNode, PointOrder, Stretch,
+};
 use crate::cleanup::TempPath;
 use crate::dataset::Dataset;
 use crate::error::{Error, Result};
 use crate::sort;
 use crate::store::dense::{self, Level};
-use crate::store::partitioned::{cell_depth, partition_all, read_unit, unit_bytes_per_point, Cands};
+use crate::store::partitioned::{
+    cell_depth, partition_all, read_unit, unit_bytes_per_point, Cands,
+};
 use mortar_core::layout::{read_xyz, Conversion};
 use mortar_core::octree::{build_subtree, splits, Cube, NodeKey};
 use std::path::Path;
 use std::time::Instant;
 
 /// Exports `ds` through run files; returns the tree's shape.
-pub(crate) fn export(ds: &Dataset, out: &Path, opts: &ExportOptions, report: &mut ExportReport) -> Result<Vec<OutNode>> {
+pub(crate) fn export(
+    ds: &Dataset,
+    out: &Path,
+    opts: &ExportOptions,
+    report: &mut ExportReport,
+) -> Result<Vec<OutNode>> {
     let t0 = Instant::now();
     let first = ds.inputs[0].path();
-    let (layout, conv) = output_layout(&ds.layout).map_err(|error| Error::Export { path: first.to_path_buf(), error })?;
-    let m = stretch_factors(ds.grid.scale).map_err(|error| Error::Export { path: first.to_path_buf(), error })?;
+    let (layout, conv) = output_layout(&ds.layout)
+        .map_err(|error| Error::Export { path: first.to_path_buf(), error })?;
+    let m = stretch_factors(ds.grid.scale)
+        .map_err(|error| Error::Export { path: first.to_path_buf(), error })?;
     let parent = out.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
     let state = TempPath::dir_in(parent, "export-runs").map_err(|e| Error::io(parent, e))?;
     let mut header_warnings = Vec::new();
@@ -50,7 +62,8 @@ pub(crate) fn export(ds: &Dataset, out: &Path, opts: &ExportOptions, report: &mu
         return Err(Error::NoPoints { path: first.to_path_buf(), action: "export" });
     }
     let rl = ds.layout.record_len;
-    let unit_points = ((opts.memory / 2) / unit_bytes_per_point(rl as u64)).max(opts.config.leaf_capacity as u64 + 1);
+    let unit_points = ((opts.memory / 2) / unit_bytes_per_point(rl as u64))
+        .max(opts.config.leaf_capacity as u64 + 1);
     let stretch = Stretch { base: part.base, m };
     let frame = Frame::of(ds, layout, &stretch, part.root);
     report.point_format = frame.out.format;
@@ -109,7 +122,14 @@ struct Walk<'a, 'w> {
 impl Walk<'_, '_> {
     /// Exports node `key` (cube `cube`, at `depth`, over the cells `cells` of `lv`) and
     /// everything under it; returns its candidates for its parent and whether it is kept.
-    fn visit(&mut self, lv: &Level, key: NodeKey, cube: Cube, depth: u8, cells: std::ops::Range<usize>) -> Result<(Cands, bool)> {
+    fn visit(
+        &mut self,
+        lv: &Level,
+        key: NodeKey,
+        cube: Cube,
+        depth: u8,
+        cells: std::ops::Range<usize>,
+    ) -> Result<(Cands, bool)> {
         sort::check_interrupted()?;
         let count: u64 = lv.hist[cells.clone()].iter().sum();
         if count == 0 {
@@ -123,11 +143,24 @@ impl Walk<'_, '_> {
         }
         // More points than a unit, so more than a leaf, in a cube that may split: inner.
         let step = cells.len() / 8;
-        self.inner(key, cube, |w, o| w.visit(lv, key.child(o), cube.child(o), depth + 1, cells.start + o * step..cells.start + (o + 1) * step))
+        self.inner(key, cube, |w, o| {
+            w.visit(
+                lv,
+                key.child(o),
+                cube.child(o),
+                depth + 1,
+                cells.start + o * step..cells.start + (o + 1) * step,
+            )
+        })
     }
 
     /// Exports the inner node `key` (cube `cube`) whose children `kid(o)` exports.
-    fn inner(&mut self, key: NodeKey, cube: Cube, mut kid: impl FnMut(&mut Self, usize) -> Result<(Cands, bool)>) -> Result<(Cands, bool)> {
+    fn inner(
+        &mut self,
+        key: NodeKey,
+        cube: Cube,
+        mut kid: impl FnMut(&mut Self, usize) -> Result<(Cands, bool)>,
+    ) -> Result<(Cands, bool)> {
         let mut voxels = Cands::default();
         let mut children = 0u8;
         for o in 0..8 {
@@ -146,11 +179,22 @@ impl Walk<'_, '_> {
         }
         let mut own: Vec<usize> = (0..n).filter(|&i| !above[i]).collect();
         if let Some(o) = self.gps {
-            let t = |i: usize| f64::from_le_bytes(voxels.records[i * rl + o..i * rl + o + 8].try_into().expect("8 bytes"));
+            let t = |i: usize| {
+                f64::from_le_bytes(
+                    voxels.records[i * rl + o..i * rl + o + 8].try_into().expect("8 bytes"),
+                )
+            };
             own.sort_by(|a, b| t(*a).total_cmp(&t(*b)));
         }
         if !own.is_empty() {
-            let recs = super::output_records(own.iter().map(|&i| &voxels.records[i * rl..(i + 1) * rl]), own.len(), rl, self.out_rl, &self.conv, &self.stretch);
+            let recs = super::output_records(
+                own.iter().map(|&i| &voxels.records[i * rl..(i + 1) * rl]),
+                own.len(),
+                rl,
+                self.out_rl,
+                &self.conv,
+                &self.stretch,
+            );
             let tw = Instant::now();
             self.writer.write_nodes(vec![(key, recs)])?;
             self.report.write_seconds += tw.elapsed().as_secs_f64();
@@ -164,7 +208,15 @@ impl Walk<'_, '_> {
 
     /// Exports node `key` over the `count` points of `cells` of `lv`, more than a unit holds
     /// (bounds `known` where known), as the build does (`store/dense.rs`).
-    fn dense(&mut self, lv: &Level, key: NodeKey, cube: Cube, cells: std::ops::Range<usize>, count: u64, known: Option<dense::Bounds>) -> Result<(Cands, bool)> {
+    fn dense(
+        &mut self,
+        lv: &Level,
+        key: NodeKey,
+        cube: Cube,
+        cells: std::ops::Range<usize>,
+        count: u64,
+        known: Option<dense::Bounds>,
+    ) -> Result<(Cands, bool)> {
         let rl = self.rl;
         let block = dense::block_points(self.opts.memory, rl);
         let b = match known {
@@ -191,18 +243,36 @@ impl Walk<'_, '_> {
         }
         // A leaf larger than a unit: its points less the candidates it hands up, in slices.
         let ts = Instant::now();
-        let leaf = dense::big_leaf(lv, cells, count, key, cube, b, rl, self.unit_points, block, &self.dir)?;
+        let leaf = dense::big_leaf(
+            lv,
+            cells,
+            count,
+            key,
+            cube,
+            b,
+            rl,
+            self.unit_points,
+            block,
+            &self.dir,
+        )?;
         self.report.large_leaves += 1;
         self.report.sort_seconds += ts.elapsed().as_secs_f64();
         let kept = count - leaf.cand_index.len() as u64;
         if kept > 0 {
             let tw = Instant::now();
             let (conv, stretch, out_rl) = (&self.conv, &self.stretch, self.out_rl);
-            let slice = (super::group_bytes(self.opts.memory) / out_rl.max(1) as u64).max(1) as usize;
+            let slice =
+                (super::group_bytes(self.opts.memory) / out_rl.max(1) as u64).max(1) as usize;
             let failed: std::sync::Mutex<Option<Error>> = std::sync::Mutex::new(None);
             // By GPS time: parts sorted and merged as the writer reads them (in order).
             let timed = match self.gps {
-                Some(o) => Some(std::sync::Mutex::new(leaf.time_order(kept, o, self.unit_points, block, &self.dir)?)),
+                Some(o) => Some(std::sync::Mutex::new(leaf.time_order(
+                    kept,
+                    o,
+                    self.unit_points,
+                    block,
+                    &self.dir,
+                )?)),
                 None => None,
             };
             let records = |r: std::ops::Range<usize>| -> Vec<u8> {
@@ -211,7 +281,14 @@ impl Walk<'_, '_> {
                     None => leaf.read_kept(r.start as u64..r.end as u64),
                 };
                 match recs {
-                    Ok(recs) => super::output_records(recs.chunks_exact(rl), r.len(), rl, out_rl, conv, stretch),
+                    Ok(recs) => super::output_records(
+                        recs.chunks_exact(rl),
+                        r.len(),
+                        rl,
+                        out_rl,
+                        conv,
+                        stretch,
+                    ),
                     Err(e) => {
                         failed.lock().unwrap_or_else(|p| p.into_inner()).get_or_insert(e);
                         vec![0u8; r.len() * out_rl]
@@ -229,7 +306,14 @@ impl Walk<'_, '_> {
     }
 
     /// Reads a unit's points back, builds, assigns and writes its subtree.
-    fn unit(&mut self, lv: &Level, key: NodeKey, cube: Cube, cells: std::ops::Range<usize>, count: u64) -> Result<(Cands, bool)> {
+    fn unit(
+        &mut self,
+        lv: &Level,
+        key: NodeKey,
+        cube: Cube,
+        cells: std::ops::Range<usize>,
+        count: u64,
+    ) -> Result<(Cands, bool)> {
         let rl = self.rl;
         let n = count as usize;
         let ts = Instant::now();
@@ -238,20 +322,35 @@ impl Walk<'_, '_> {
         let tt = Instant::now();
         let pos = |i: usize| read_xyz(sorted.record(i));
         let arr = |i: usize| sorted.arrival[i];
-        let sub = build_subtree(key, cube, n, &pos, &arr, self.opts.config).map_err(|error| Error::Octree { error })?;
+        let sub = build_subtree(key, cube, n, &pos, &arr, self.opts.config)
+            .map_err(|error| Error::Octree { error })?;
         let mut nodes = sub.nodes;
         // Level by level, depth-first (= Morton) order in a level, as `assign` wants.
         nodes.sort_by_key(|x| x.key.level);
-        let assigned = assign(&nodes, n, &sorted, &self.ds.layout, self.opts.order, &sub.candidates);
+        let assigned =
+            assign(&nodes, n, &sorted, &self.ds.layout, self.opts.order, &sub.candidates);
         drop(nodes);
         self.report.tree_seconds += tt.elapsed().as_secs_f64();
         let tw = Instant::now();
         let (conv, stretch, out_rl) = (&self.conv, &self.stretch, self.out_rl);
         let records = |x: &OutNode, r: std::ops::Range<usize>| {
             let pts = &x.points[r];
-            super::output_records(pts.iter().map(|&i| sorted.record(i as usize)), pts.len(), rl, out_rl, conv, stretch)
+            super::output_records(
+                pts.iter().map(|&i| sorted.record(i as usize)),
+                pts.len(),
+                rl,
+                out_rl,
+                conv,
+                stretch,
+            )
         };
-        super::write_grouped(&mut *self.writer, &assigned, self.out_rl, super::group_bytes(self.opts.memory), &records)?;
+        super::write_grouped(
+            &mut *self.writer,
+            &assigned,
+            self.out_rl,
+            super::group_bytes(self.opts.memory),
+            &records,
+        )?;
         self.report.write_seconds += tw.elapsed().as_secs_f64();
         let kept = assigned.iter().any(|x| x.key == key);
         self.tree.extend(assigned.iter().map(OutNode::shape));

@@ -6,9 +6,9 @@ use mortar_core::octree::BuilderConfig;
 use std::path::Path;
 use std::time::Instant;
 
-use super::writer::*;
-use super::record::BuildRecord;
 use super::incremental::build_into;
+use super::record::BuildRecord;
+use super::writer::*;
 
 /// Choices of `mortar build`.
 /// Which engine builds the store.
@@ -116,7 +116,10 @@ pub struct BuildReport {
 
 /// The integer bounds the inputs' headers declare (one unit of margin), on the merged grid, with
 /// a warning for each input whose header bounds are not usable; `None` when no header is.
-pub(crate) fn header_bounds(ds: &Dataset, warnings: &mut Vec<String>) -> Option<([i32; 3], [i32; 3])> {
+pub(crate) fn header_bounds(
+    ds: &Dataset,
+    warnings: &mut Vec<String>,
+) -> Option<([i32; 3], [i32; 3])> {
     let (mut lo, mut hi) = ([i32::MAX; 3], [i32::MIN; 3]);
     for src in &ds.inputs {
         if src.point_count() == 0 {
@@ -129,7 +132,10 @@ pub(crate) fn header_bounds(ds: &Dataset, warnings: &mut Vec<String>) -> Option<
                     hi[a] = hi[a].max(h[a]);
                 }
             }
-            Err(why) => warnings.push(format!("{}: {why}; the octree is placed from the points", src.path().display())),
+            Err(why) => warnings.push(format!(
+                "{}: {why}; the octree is placed from the points",
+                src.path().display()
+            )),
         }
     }
     (lo[0] <= hi[0]).then_some((lo, hi))
@@ -137,33 +143,58 @@ pub(crate) fn header_bounds(ds: &Dataset, warnings: &mut Vec<String>) -> Option<
 
 /// The integer box the header of `src` declares (one unit of margin), on the merged grid, or
 /// why it is not usable.
-pub(crate) fn header_box(ds: &Dataset, src: &dyn RecordSource) -> std::result::Result<([i32; 3], [i32; 3]), BoundsError> {
+pub(crate) fn header_box(
+    ds: &Dataset,
+    src: &dyn RecordSource,
+) -> std::result::Result<([i32; 3], [i32; 3]), BoundsError> {
     let h = src.header();
     if src.point_count() > 1 && (0..3).all(|a| h.min[a] == 0.0 && h.max[a] == 0.0) {
         return Err(BoundsError::AllZero);
     }
-    if let Some(a) = (0..3).find(|&a| !(h.min[a].is_finite() && h.max[a].is_finite()) || h.min[a] > h.max[a]) {
-        return Err(BoundsError::Unusable { axis: ['x', 'y', 'z'][a], min: h.min[a], max: h.max[a] });
+    if let Some(a) =
+        (0..3).find(|&a| !(h.min[a].is_finite() && h.max[a].is_finite()) || h.min[a] > h.max[a])
+    {
+        return Err(BoundsError::Unusable {
+            axis: ['x', 'y', 'z'][a],
+            min: h.min[a],
+            max: h.max[a],
+        });
     }
     let c = |v: i64| v.clamp(i32::MIN as i64, i32::MAX as i64) as i32;
-    Ok(([0, 1, 2].map(|a| c(ds.grid.to_int(a, h.min[a]).saturating_sub(1))), [0, 1, 2].map(|a| c(ds.grid.to_int(a, h.max[a]).saturating_add(1)))))
+    Ok((
+        [0, 1, 2].map(|a| c(ds.grid.to_int(a, h.min[a]).saturating_sub(1))),
+        [0, 1, 2].map(|a| c(ds.grid.to_int(a, h.max[a]).saturating_add(1))),
+    ))
 }
 
 /// A warning when the points of `src` (`st`, on the merged grid) reach outside the bounds its
 /// header declares, with both ranges in world coordinates on the file's grid.
-pub(crate) fn bounds_warning(ds: &Dataset, src: &dyn RecordSource, st: &crate::sort::PieceStats) -> Option<String> {
+pub(crate) fn bounds_warning(
+    ds: &Dataset,
+    src: &dyn RecordSource,
+    st: &crate::sort::PieceStats,
+) -> Option<String> {
     let h = src.header();
-    if st.count == 0 || (0..3).any(|a| !(h.min[a].is_finite() && h.max[a].is_finite()) || h.min[a] > h.max[a]) {
+    if st.count == 0
+        || (0..3).any(|a| !(h.min[a].is_finite() && h.max[a].is_finite()) || h.min[a] > h.max[a])
+    {
         return None;
     }
     let g = &ds.grid;
-    let outside = (0..3).any(|a| (st.min[a] as i64) < g.to_int(a, h.min[a]) - 1 || (st.max[a] as i64) > g.to_int(a, h.max[a]) + 1);
+    let outside = (0..3).any(|a| {
+        (st.min[a] as i64) < g.to_int(a, h.min[a]) - 1
+            || (st.max[a] as i64) > g.to_int(a, h.max[a]) + 1
+    });
     if !outside {
         return None;
     }
     let digits = |a: usize| (-h.scale[a].log10()).ceil().clamp(0.0, 12.0) as usize;
-    let range = |a: usize, lo: f64, hi: f64| format!("{} [{:.*}, {:.*}]", ['x', 'y', 'z'][a], digits(a), lo, digits(a), hi);
-    let real: Vec<String> = (0..3).map(|a| range(a, g.world(a, st.min[a] as i64), g.world(a, st.max[a] as i64))).collect();
+    let range = |a: usize, lo: f64, hi: f64| {
+        format!("{} [{:.*}, {:.*}]", ['x', 'y', 'z'][a], digits(a), lo, digits(a), hi)
+    };
+    let real: Vec<String> = (0..3)
+        .map(|a| range(a, g.world(a, st.min[a] as i64), g.world(a, st.max[a] as i64)))
+        .collect();
     let declared: Vec<String> = (0..3).map(|a| range(a, h.min[a], h.max[a])).collect();
     Some(format!(
         "{}: its points reach {}, outside the bounds its header declares ({}); the octree's root holds them (`mortar sort` writes the file with true bounds)",
@@ -181,7 +212,12 @@ pub(crate) fn bounds_warning(ds: &Dataset, src: &dyn RecordSource, st: &crate::s
 /// points; where points fall outside it (headers lie), the root grows (a new root above the old
 /// one) and the report warns about each such file with its points' real range. On an error the
 /// directory is removed; on Ctrl-C the last commit stays readable.
-pub fn build(ds: &Dataset, dir: &Path, opts: &BuildOptions, progress: &mut dyn FnMut(&BuildProgress)) -> Result<BuildReport> {
+pub fn build(
+    ds: &Dataset,
+    dir: &Path,
+    opts: &BuildOptions,
+    progress: &mut dyn FnMut(&BuildProgress),
+) -> Result<BuildReport> {
     let t0 = Instant::now();
     let meta = ds.source_meta();
     let mut warnings = Vec::new();
@@ -202,7 +238,11 @@ pub fn build(ds: &Dataset, dir: &Path, opts: &BuildOptions, progress: &mut dyn F
         _ => "incremental",
     };
     let mut record = BuildRecord::of(ds, &opts.config, name);
-    let mut writer = match if opts.resume { continue_store(dir, &meta, &record, &mut warnings)? } else { Continue::Fresh } {
+    let mut writer = match if opts.resume {
+        continue_store(dir, &meta, &record, &mut warnings)?
+    } else {
+        Continue::Fresh
+    } {
         Continue::Writer(w) => w,
         Continue::Complete(mut r) => {
             warnings.append(&mut r.warnings);
@@ -219,10 +259,14 @@ pub fn build(ds: &Dataset, dir: &Path, opts: &BuildOptions, progress: &mut dyn F
     writer.group_bytes = super::writer::group_bytes(opts.memory);
     // Continued from a commit, or from a partitioned build's state (no commit yet).
     let resumed = writer.commits() > 0 || (opts.resume && writer.guard.is_none());
-    let run = |writer: &mut StoreWriter, progress: &mut dyn FnMut(&BuildProgress)| -> Result<BuildReport> {
+    let run = |writer: &mut StoreWriter,
+               progress: &mut dyn FnMut(&BuildProgress)|
+     -> Result<BuildReport> {
         match engine {
             Engine::Sorted => super::engine::build_into(ds, writer, opts, progress, bounds, t0),
-            Engine::Partitioned => super::partitioned::build_into(ds, writer, opts, progress, bounds, t0),
+            Engine::Partitioned => {
+                super::partitioned::build_into(ds, writer, opts, progress, bounds, t0)
+            }
             _ => build_into(ds, writer, opts, progress, bounds, t0),
         }
     };
@@ -241,7 +285,11 @@ pub fn build(ds: &Dataset, dir: &Path, opts: &BuildOptions, progress: &mut dyn F
         Err(Error::Interrupted) => Err(Error::Interrupted),
         // Out of disk, or another failure of the file system, after a commit: the store keeps
         // its last commit, and `--resume` continues from it once there is room.
-        Err(e @ Error::Io { .. }) if writer.commits() > 0 => Err(Error::KeptCommit { error: Box::new(e), store: dir.to_path_buf(), commit: writer.commits() }),
+        Err(e @ Error::Io { .. }) if writer.commits() > 0 => Err(Error::KeptCommit {
+            error: Box::new(e),
+            store: dir.to_path_buf(),
+            commit: writer.commits(),
+        }),
         Err(e) if resumed => Err(e),
         Err(e) => {
             // Not a store the user asked for: remove what was written (also after commits).
@@ -263,8 +311,15 @@ enum Continue {
 
 /// Checks that the store `dir` was begun by a build of the same inputs and settings (its
 /// [`BuildRecord`]) and reopens it at its last commit.
-fn continue_store(dir: &Path, meta: &crate::dataset::SourceMeta, record: &BuildRecord, warnings: &mut Vec<String>) -> Result<Continue> {
-    let empty = !dir.exists() || (dir.is_dir() && std::fs::read_dir(dir).map_err(|e| Error::io(dir, e))?.next().is_none());
+fn continue_store(
+    dir: &Path,
+    meta: &crate::dataset::SourceMeta,
+    record: &BuildRecord,
+    warnings: &mut Vec<String>,
+) -> Result<Continue> {
+    let empty = !dir.exists()
+        || (dir.is_dir()
+            && std::fs::read_dir(dir).map_err(|e| Error::io(dir, e))?.next().is_none());
     if empty {
         return Ok(Continue::Fresh);
     }
@@ -272,7 +327,10 @@ fn continue_store(dir: &Path, meta: &crate::dataset::SourceMeta, record: &BuildR
         return Err(Error::Store { path: dir.to_path_buf(), error: StoreError::NoBuildRecord });
     };
     if let Some(m) = record.mismatch(&old) {
-        return Err(Error::Store { path: dir.to_path_buf(), error: StoreError::Settings { mismatch: m } });
+        return Err(Error::Store {
+            path: dir.to_path_buf(),
+            error: StoreError::Settings { mismatch: m },
+        });
     }
     if old.complete {
         let s = super::reader::Store::open(dir)?;
@@ -301,11 +359,13 @@ fn continue_store(dir: &Path, meta: &crate::dataset::SourceMeta, record: &BuildR
         };
     }
     if old.engine != "sorted" || record.engine != "sorted" {
-        return start_over("the incremental engine keeps its tree in memory and cannot continue a build".into(), warnings);
+        return start_over(
+            "the incremental engine keeps its tree in memory and cannot continue a build".into(),
+            warnings,
+        );
     }
     match StoreWriter::reopen(dir, meta)? {
         Some((w, _)) => Ok(Continue::Writer(w)),
         None => start_over("nothing was committed".into(), warnings),
     }
 }
-

@@ -42,7 +42,9 @@ pub fn compact(dir: &Path) -> Result<CompactReport> {
         }
     }
     let store = Store::open(dir)?;
-    let before = std::fs::metadata(dir.join(NODES_FILE)).map_err(|e| Error::io(dir.join(NODES_FILE), e))?.len();
+    let before = std::fs::metadata(dir.join(NODES_FILE))
+        .map_err(|e| Error::io(dir.join(NODES_FILE), e))?
+        .len();
     let guard = crate::cleanup::TempPath::adopt(tmp.clone());
     std::fs::create_dir(&tmp).map_err(|e| Error::io(&tmp, e))?;
     for f in [SOURCE_FILE, super::record::RECORD_FILE] {
@@ -52,7 +54,10 @@ pub fn compact(dir: &Path) -> Result<CompactReport> {
         }
     }
     let np = tmp.join(NODES_FILE);
-    let mut out = std::io::BufWriter::with_capacity(8 << 20, File::create(&np).map_err(|e| Error::io(&np, e))?);
+    let mut out = std::io::BufWriter::with_capacity(
+        8 << 20,
+        File::create(&np).map_err(|e| Error::io(&np, e))?,
+    );
     let mut entries = Vec::with_capacity(store.entries.len());
     let mut at = 0u64;
     for (i, e) in store.entries.iter().enumerate() {
@@ -87,7 +92,10 @@ pub fn compact(dir: &Path) -> Result<CompactReport> {
         return Err(Error::io(&tmp, e));
     }
     guard.keep();
-    if let Some(parent) = dir.parent().and_then(|p| File::open(if p.as_os_str().is_empty() { Path::new(".") } else { p }).ok()) {
+    if let Some(parent) = dir
+        .parent()
+        .and_then(|p| File::open(if p.as_os_str().is_empty() { Path::new(".") } else { p }).ok())
+    {
         let _ = parent.sync_all();
     }
     std::fs::remove_dir_all(&old).map_err(|e| Error::io(&old, e))?;

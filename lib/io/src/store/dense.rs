@@ -81,10 +81,16 @@ impl Level {
         }
         let mut b = EMPTY;
         stream(&self.runs, cells.clone(), rl, block, |recs, _| {
-            let part = recs.par_chunks(rl).fold(|| EMPTY, |mut x, r| {
-                grow(&mut x, read_xyz(r));
-                x
-            }).reduce(|| EMPTY, union);
+            let part = recs
+                .par_chunks(rl)
+                .fold(
+                    || EMPTY,
+                    |mut x, r| {
+                        grow(&mut x, read_xyz(r));
+                        x
+                    },
+                )
+                .reduce(|| EMPTY, union);
             b = union(b, part);
             Ok(())
         })?;
@@ -114,7 +120,8 @@ fn cell_below(cube: Cube, d: u8, p: [i32; 3]) -> usize {
     let mut c = 0usize;
     for k in 0..d as u32 {
         let bit = cube.size_log2 as u32 - 1 - k;
-        c = c << 3 | ((o[0] >> bit) & 1 | ((o[1] >> bit) & 1) << 1 | ((o[2] >> bit) & 1) << 2) as usize;
+        c = c << 3
+            | ((o[0] >> bit) & 1 | ((o[1] >> bit) & 1) << 1 | ((o[2] >> bit) & 1) << 2) as usize;
     }
     c
 }
@@ -130,7 +137,13 @@ fn cube_below(cube: Cube, d: u8, c: usize) -> Cube {
 
 /// Calls `f` with the records and arrival numbers of the cells `cells` of `runs` in arrival
 /// order (run after run), at most `block` points at a time.
-fn stream(runs: &[Run], cells: Range<usize>, rl: usize, block: usize, mut f: impl FnMut(&[u8], &[u64]) -> Result<()>) -> Result<()> {
+fn stream(
+    runs: &[Run],
+    cells: Range<usize>,
+    rl: usize,
+    block: usize,
+    mut f: impl FnMut(&[u8], &[u64]) -> Result<()>,
+) -> Result<()> {
     let (mut recs, mut arr) = (Vec::new(), Vec::new());
     for run in runs {
         let (a, b) = (run.starts[cells.start], run.starts[cells.end]);
@@ -146,7 +159,8 @@ fn stream(runs: &[Run], cells: Range<usize>, rl: usize, block: usize, mut f: imp
             recs.resize(m * rl, 0);
             arr.resize(m, 0u64);
             file.read_exact_at(&mut recs, at * rl as u64).map_err(|e| Error::io(&run.path, e))?;
-            file.read_exact_at(bytemuck::cast_slice_mut(&mut arr), total * rl as u64 + at * 8).map_err(|e| Error::io(&run.path, e))?;
+            file.read_exact_at(bytemuck::cast_slice_mut(&mut arr), total * rl as u64 + at * 8)
+                .map_err(|e| Error::io(&run.path, e))?;
             f(&recs, &arr)?;
             at += m as u64;
         }
@@ -159,7 +173,16 @@ fn stream(runs: &[Run], cells: Range<usize>, rl: usize, block: usize, mut f: imp
 /// time, each block one run, so that arrival order is kept. The new partition's cells are at
 /// level `level + d`.
 #[allow(clippy::too_many_arguments)]
-pub(crate) fn split(runs: &[Run], cells: Range<usize>, rl: usize, cube: Cube, level: u8, d: u8, block: usize, dir: &Path) -> Result<Level> {
+pub(crate) fn split(
+    runs: &[Run],
+    cells: Range<usize>,
+    rl: usize,
+    cube: Cube,
+    level: u8,
+    d: u8,
+    block: usize,
+    dir: &Path,
+) -> Result<Level> {
     debug_assert!((1..=5).contains(&d) && d <= cube.size_log2);
     let tmp = TempPath::dir_in(dir, "dense").map_err(|e| Error::io(dir, e))?;
     let nb = 1usize << (3 * d as u32);
@@ -169,7 +192,8 @@ pub(crate) fn split(runs: &[Run], cells: Range<usize>, rl: usize, cube: Cube, le
     let mut buf: Vec<u8> = Vec::new();
     stream(runs, cells, rl, block, |recs, arr| {
         let m = arr.len();
-        let which: Vec<u32> = recs.par_chunks(rl).map(|r| cell_below(cube, d, read_xyz(r)) as u32).collect();
+        let which: Vec<u32> =
+            recs.par_chunks(rl).map(|r| cell_below(cube, d, read_xyz(r)) as u32).collect();
         let mut starts = vec![0u64; nb + 1];
         for &c in &which {
             starts[c as usize + 1] += 1;
@@ -248,8 +272,20 @@ struct Order<'a> {
 /// The leaf `key` (cube `cube`) of the `count` points of `cells` of `lv` (bounds `bounds`) in
 /// the sorted engine's order, with no more than a unit of them in memory at once.
 #[allow(clippy::too_many_arguments)]
-pub(crate) fn big_leaf(lv: &Level, cells: Range<usize>, count: u64, key: NodeKey, cube: Cube, bounds: Bounds, rl: usize, unit_points: u64, block: usize, dir: &Path) -> Result<Leaf> {
-    let mut o = Order { rl, unit_points, block, dir, segs: Vec::new(), temps: Vec::new(), file: None };
+pub(crate) fn big_leaf(
+    lv: &Level,
+    cells: Range<usize>,
+    count: u64,
+    key: NodeKey,
+    cube: Cube,
+    bounds: Bounds,
+    rl: usize,
+    unit_points: u64,
+    block: usize,
+    dir: &Path,
+) -> Result<Leaf> {
+    let mut o =
+        Order { rl, unit_points, block, dir, segs: Vec::new(), temps: Vec::new(), file: None };
     o.order(&lv.runs, cells, count, cube, bounds)?;
     let Order { segs, temps, file, .. } = o;
     let mut seg_start = Vec::with_capacity(segs.len());
@@ -259,13 +295,26 @@ pub(crate) fn big_leaf(lv: &Level, cells: Range<usize>, count: u64, key: NodeKey
         n += s.count;
     }
     if n != count {
-        return Err(Error::Internal { path: dir.to_path_buf(), what: "a dense leaf's parts hold another count of points" });
+        return Err(Error::Internal {
+            path: dir.to_path_buf(),
+            what: "a dense leaf's parts hold another count of points",
+        });
     }
-    let mut leaf = Leaf { bounds, cands: Cands::default(), cand_index: Vec::new(), segs, seg_start, rl, _temps: temps, _file: file.map(|f| f.0) };
+    let mut leaf = Leaf {
+        bounds,
+        cands: Cands::default(),
+        cand_index: Vec::new(),
+        segs,
+        seg_start,
+        rl,
+        _temps: temps,
+        _file: file.map(|f| f.0),
+    };
     if key.level > 0 {
         // The earliest point in each cell of the parent's grid: cells are ranges of the order.
         let cell_log2 = cube.size_log2 - (GRID_LOG2 - 1);
-        let cell = |p: [i32; 3]| [0, 1, 2].map(|a| ((p[a] as i64 - cube.min[a]) as u64) >> cell_log2);
+        let cell =
+            |p: [i32; 3]| [0, 1, 2].map(|a| ((p[a] as i64 - cube.min[a]) as u64) >> cell_log2);
         // (cell, place in the leaf, arrival, position, record) of the earliest point so far
         let mut current: Option<Earliest> = None;
         let mut at = 0u64;
@@ -307,7 +356,14 @@ pub(crate) fn big_leaf(lv: &Level, cells: Range<usize>, count: u64, key: NodeKey
 
 impl Order<'_> {
     /// Appends the points of `cells` of `runs` (in `cube`, bounds `b`) in order.
-    fn order(&mut self, runs: &[Run], cells: Range<usize>, count: u64, cube: Cube, b: Bounds) -> Result<()> {
+    fn order(
+        &mut self,
+        runs: &[Run],
+        cells: Range<usize>,
+        count: u64,
+        cube: Cube,
+        b: Bounds,
+    ) -> Result<()> {
         if count == 0 {
             return Ok(());
         }
@@ -317,7 +373,12 @@ impl Order<'_> {
                 let (a, e) = (r.starts[cells.start], r.starts[cells.end]);
                 if a < e {
                     let total = *r.starts.last().expect("a run has an end");
-                    self.segs.push(Seg { path: Arc::new(r.path.clone()), rec_at: a * self.rl as u64, arr_at: total * self.rl as u64 + a * 8, count: e - a });
+                    self.segs.push(Seg {
+                        path: Arc::new(r.path.clone()),
+                        rec_at: a * self.rl as u64,
+                        arr_at: total * self.rl as u64 + a * 8,
+                        count: e - a,
+                    });
                 }
             }
             return Ok(());
@@ -342,7 +403,13 @@ impl Order<'_> {
 
     /// Reads a part that fits a unit, sorts it by full-resolution Morton order in `cube` (ties by
     /// arrival) and appends it to the leaf's file.
-    fn sorted_part(&mut self, runs: &[Run], cells: Range<usize>, count: u64, cube: Cube) -> Result<()> {
+    fn sorted_part(
+        &mut self,
+        runs: &[Run],
+        cells: Range<usize>,
+        count: u64,
+        cube: Cube,
+    ) -> Result<()> {
         let rl = self.rl;
         let n = count as usize;
         let mut recs = Vec::with_capacity(n * rl);
@@ -359,16 +426,19 @@ impl Order<'_> {
             let lo = mortar_core::morton::encode(o[0] & 0x7ff, o[1] & 0x7ff, o[2] & 0x7ff) as u128;
             hi << 33 | lo
         };
-        let mut keys: Vec<(u128, u64, u32)> = recs.par_chunks(rl).enumerate().map(|(i, r)| (key(r), arr[i], i as u32)).collect();
+        let mut keys: Vec<(u128, u64, u32)> =
+            recs.par_chunks(rl).enumerate().map(|(i, r)| (key(r), arr[i], i as u32)).collect();
         keys.par_sort_unstable();
         let mut out = vec![0u8; n * (rl + 8)];
         {
             let (o_rec, o_arr) = out.split_at_mut(n * rl);
-            o_rec.par_chunks_mut(rl).zip(o_arr.par_chunks_mut(8)).zip(keys.par_iter()).for_each(|((d, da), k)| {
-                let i = k.2 as usize;
-                d.copy_from_slice(&recs[i * rl..(i + 1) * rl]);
-                da.copy_from_slice(&k.1.to_ne_bytes());
-            });
+            o_rec.par_chunks_mut(rl).zip(o_arr.par_chunks_mut(8)).zip(keys.par_iter()).for_each(
+                |((d, da), k)| {
+                    let i = k.2 as usize;
+                    d.copy_from_slice(&recs[i * rl..(i + 1) * rl]);
+                    da.copy_from_slice(&k.1.to_ne_bytes());
+                },
+            );
         }
         drop((recs, arr, keys));
         if self.file.is_none() {
@@ -379,7 +449,12 @@ impl Order<'_> {
         }
         let (_, path, f, end) = self.file.as_mut().expect("created above");
         f.write_all_at(&out, *end).map_err(|e| Error::io(path.as_path(), e))?;
-        self.segs.push(Seg { path: path.clone(), rec_at: *end, arr_at: *end + (n * rl) as u64, count });
+        self.segs.push(Seg {
+            path: path.clone(),
+            rec_at: *end,
+            arr_at: *end + (n * rl) as u64,
+            count,
+        });
         *end += out.len() as u64;
         Ok(())
     }
@@ -396,14 +471,26 @@ impl Leaf {
         let mut k = first;
         let mut at = range.start;
         while at < range.end {
-            let s = self.segs.get(k).ok_or(Error::Internal { path: PathBuf::new(), what: "a read past a dense leaf's end" })?;
+            let s = self.segs.get(k).ok_or(Error::Internal {
+                path: PathBuf::new(),
+                what: "a read past a dense leaf's end",
+            })?;
             let off = at - self.seg_start[k];
             let m = (s.count - off).min(range.end - at);
-            let f = std::fs::File::open(s.path.as_path()).map_err(|e| Error::io(s.path.as_path(), e))?;
+            let f = std::fs::File::open(s.path.as_path())
+                .map_err(|e| Error::io(s.path.as_path(), e))?;
             let d = (at - range.start) as usize;
-            f.read_exact_at(&mut recs[d * self.rl..(d + m as usize) * self.rl], s.rec_at + off * rl).map_err(|e| Error::io(s.path.as_path(), e))?;
+            f.read_exact_at(
+                &mut recs[d * self.rl..(d + m as usize) * self.rl],
+                s.rec_at + off * rl,
+            )
+            .map_err(|e| Error::io(s.path.as_path(), e))?;
             if arrival {
-                f.read_exact_at(bytemuck::cast_slice_mut(&mut arr[d..d + m as usize]), s.arr_at + off * 8).map_err(|e| Error::io(s.path.as_path(), e))?;
+                f.read_exact_at(
+                    bytemuck::cast_slice_mut(&mut arr[d..d + m as usize]),
+                    s.arr_at + off * 8,
+                )
+                .map_err(|e| Error::io(s.path.as_path(), e))?;
             }
             at += m;
             k += 1;
@@ -493,7 +580,9 @@ impl TimeRun {
             }
             let m = (self.end - self.next).min(self.per_block);
             self.buf.resize(m as usize * el, 0);
-            self.file.read_exact_at(&mut self.buf, self.next * el as u64).map_err(|e| Error::io(&self.path, e))?;
+            self.file
+                .read_exact_at(&mut self.buf, self.next * el as u64)
+                .map_err(|e| Error::io(&self.path, e))?;
             self.next += m;
             self.at = 0;
         }
@@ -505,11 +594,19 @@ impl Leaf {
     /// The `kept` points [`read_kept`](Self::read_kept) gives, ordered by the GPS time at byte
     /// `gps` of each record: at most `unit_points` sorted at once, merged `block` entries at a
     /// time.
-    pub(crate) fn time_order(&self, kept: u64, gps: usize, unit_points: u64, block: usize, dir: &Path) -> Result<TimeOrder> {
+    pub(crate) fn time_order(
+        &self,
+        kept: u64,
+        gps: usize,
+        unit_points: u64,
+        block: usize,
+        dir: &Path,
+    ) -> Result<TimeOrder> {
         let rl = self.rl;
         let el = rl + 8;
         let tmp = TempPath::dir_in(dir, "leaf-time").map_err(|e| Error::io(dir, e))?;
-        let time = |r: &[u8]| time_key(f64::from_le_bytes(r[gps..gps + 8].try_into().expect("8 bytes")));
+        let time =
+            |r: &[u8]| time_key(f64::from_le_bytes(r[gps..gps + 8].try_into().expect("8 bytes")));
         let part = unit_points.max(1);
         let mut runs = Vec::new();
         let mut s = 0u64;
@@ -517,7 +614,8 @@ impl Leaf {
             sort::check_interrupted()?;
             let e = (s + part).min(kept);
             let recs = self.read_kept(s..e)?;
-            let mut keys: Vec<(u64, u64)> = recs.par_chunks(rl).enumerate().map(|(i, r)| (time(r), s + i as u64)).collect();
+            let mut keys: Vec<(u64, u64)> =
+                recs.par_chunks(rl).enumerate().map(|(i, r)| (time(r), s + i as u64)).collect();
             keys.par_sort_unstable();
             let mut out = vec![0u8; keys.len() * el];
             out.par_chunks_mut(el).zip(keys.par_iter()).for_each(|(d, &(_, j))| {
@@ -528,7 +626,15 @@ impl Leaf {
             let path = tmp.path().join(format!("time-{}.bin", runs.len()));
             std::fs::write(&path, &out).map_err(|e| Error::io(&path, e))?;
             let file = std::fs::File::open(&path).map_err(|e| Error::io(&path, e))?;
-            runs.push(TimeRun { file, path, next: 0, end: e - s, buf: Vec::new(), at: 0, per_block: 0 });
+            runs.push(TimeRun {
+                file,
+                path,
+                next: 0,
+                end: e - s,
+                buf: Vec::new(),
+                at: 0,
+                per_block: 0,
+            });
             s = e;
         }
         let per_block = (block / runs.len().max(1)).max(1024) as u64;
@@ -536,7 +642,11 @@ impl Leaf {
         for (k, r) in runs.iter_mut().enumerate() {
             r.per_block = per_block;
             if let Some(x) = r.front(el)? {
-                heap.push(std::cmp::Reverse((time(x), u64::from_le_bytes(x[rl..].try_into().expect("8 bytes")), k)));
+                heap.push(std::cmp::Reverse((
+                    time(x),
+                    u64::from_le_bytes(x[rl..].try_into().expect("8 bytes")),
+                    k,
+                )));
             }
         }
         Ok(TimeOrder { runs, heap, rl, gps, _dir: tmp })
@@ -550,7 +660,10 @@ impl TimeOrder {
         let mut out = Vec::with_capacity(n * rl);
         for _ in 0..n {
             let Some(std::cmp::Reverse((_, _, k))) = self.heap.pop() else {
-                return Err(Error::Internal { path: PathBuf::new(), what: "a dense leaf's time order ended early" });
+                return Err(Error::Internal {
+                    path: PathBuf::new(),
+                    what: "a dense leaf's time order ended early",
+                });
             };
             let r = &mut self.runs[k];
             let x = r.front(el)?.expect("a run in the heap has an entry");
@@ -558,7 +671,11 @@ impl TimeOrder {
             r.at += 1;
             if let Some(x) = r.front(el)? {
                 let t = time_key(f64::from_le_bytes(x[gps..gps + 8].try_into().expect("8 bytes")));
-                self.heap.push(std::cmp::Reverse((t, u64::from_le_bytes(x[rl..].try_into().expect("8 bytes")), k)));
+                self.heap.push(std::cmp::Reverse((
+                    t,
+                    u64::from_le_bytes(x[rl..].try_into().expect("8 bytes")),
+                    k,
+                )));
             }
         }
         Ok(out)
@@ -594,7 +711,8 @@ mod tests {
 
     #[test]
     fn time_keys_order_as_total_cmp() {
-        let mut v = [f64::NAN, f64::INFINITY, 2.0, 1e-300, 0.0, -0.0, -1.5, f64::NEG_INFINITY, -f64::NAN];
+        let mut v =
+            [f64::NAN, f64::INFINITY, 2.0, 1e-300, 0.0, -0.0, -1.5, f64::NEG_INFINITY, -f64::NAN];
         v.sort_by(|a, b| a.total_cmp(b));
         for w in v.windows(2) {
             assert!(time_key(w[0]) < time_key(w[1]), "{} {}", w[0], w[1]);
@@ -612,8 +730,20 @@ mod tests {
         let p = Arc::new(dir.join("leaf.bin"));
         std::fs::write(p.as_path(), &b).unwrap();
         let h = n / 3;
-        let segs = vec![Seg { path: p.clone(), rec_at: 0, arr_at: n * 12, count: h }, Seg { path: p, rec_at: h * 12, arr_at: n * 12 + h * 8, count: n - h }];
-        Leaf { bounds: EMPTY, cands: Cands::default(), cand_index: cands, segs, seg_start: vec![0, h], rl: 12, _temps: Vec::new(), _file: None }
+        let segs = vec![
+            Seg { path: p.clone(), rec_at: 0, arr_at: n * 12, count: h },
+            Seg { path: p, rec_at: h * 12, arr_at: n * 12 + h * 8, count: n - h },
+        ];
+        Leaf {
+            bounds: EMPTY,
+            cands: Cands::default(),
+            cand_index: cands,
+            segs,
+            seg_start: vec![0, h],
+            rl: 12,
+            _temps: Vec::new(),
+            _file: None,
+        }
     }
 
     #[test]
@@ -621,13 +751,24 @@ mod tests {
         let dir = std::env::temp_dir().join(format!("mortar-dense-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let n = 1000u64;
-        for cands in [vec![], vec![0], vec![999], vec![0, 1, 2, 500, 998, 999], (0..1000).step_by(7).collect()] {
+        for cands in [
+            vec![],
+            vec![0],
+            vec![999],
+            vec![0, 1, 2, 500, 998, 999],
+            (0..1000).step_by(7).collect(),
+        ] {
             let leaf = leaf_of(&dir, n, cands.clone());
             let kept: Vec<i32> = (0..n as i32).filter(|i| !cands.contains(&(*i as u64))).collect();
             let k = kept.len() as u64;
-            for (a, b) in [(0, k), (0, 1), (k - 1, k), (3, 17), (k / 2, k / 2 + 100), (k / 3 - 1, k / 3 + 1)] {
+            for (a, b) in
+                [(0, k), (0, 1), (k - 1, k), (3, 17), (k / 2, k / 2 + 100), (k / 3 - 1, k / 3 + 1)]
+            {
                 let r = leaf.read_kept(a..b).unwrap();
-                let got: Vec<i32> = r.chunks_exact(12).map(|c| i32::from_le_bytes(c[..4].try_into().unwrap())).collect();
+                let got: Vec<i32> = r
+                    .chunks_exact(12)
+                    .map(|c| i32::from_le_bytes(c[..4].try_into().unwrap()))
+                    .collect();
                 assert_eq!(got, kept[a as usize..b as usize], "{cands:?} {a}..{b}");
             }
         }

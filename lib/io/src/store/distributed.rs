@@ -110,22 +110,36 @@ impl Plan {
     }
 
     pub fn config(&self) -> BuilderConfig {
-        BuilderConfig { leaf_capacity: self.leaf_capacity, max_level: self.max_level, ..BuilderConfig::default() }
+        BuilderConfig {
+            leaf_capacity: self.leaf_capacity,
+            max_level: self.max_level,
+            ..BuilderConfig::default()
+        }
     }
 
     fn checksum(&self) -> String {
         let mut p = self.clone();
         p.id = String::new();
         let text = serde_json::to_vec(&p).unwrap_or_default();
-        format!("{:016x}", text.iter().fold(0xcbf2_9ce4_8422_2325u64, |h, &x| (h ^ x as u64).wrapping_mul(0x100_0000_01b3)))
+        format!(
+            "{:016x}",
+            text.iter().fold(0xcbf2_9ce4_8422_2325u64, |h, &x| (h ^ x as u64)
+                .wrapping_mul(0x100_0000_01b3))
+        )
     }
 
     /// Reads a plan and checks its checksum.
     pub fn read(path: &Path) -> Result<Plan> {
         let b = std::fs::read(path).map_err(|e| Error::io(path, e))?;
-        let p: Plan = serde_json::from_slice(&b).map_err(|error| Error::Plan { path: path.to_path_buf(), error: PlanError::NotPlan { error } })?;
+        let p: Plan = serde_json::from_slice(&b).map_err(|error| Error::Plan {
+            path: path.to_path_buf(),
+            error: PlanError::NotPlan { error },
+        })?;
         if p.format != PLAN_FORMAT {
-            return Err(Error::Plan { path: path.to_path_buf(), error: PlanError::Format { found: p.format, supported: PLAN_FORMAT } });
+            return Err(Error::Plan {
+                path: path.to_path_buf(),
+                error: PlanError::Format { found: p.format, supported: PLAN_FORMAT },
+            });
         }
         if p.checksum() != p.id {
             return Err(Error::Plan { path: path.to_path_buf(), error: PlanError::Checksum });
@@ -137,7 +151,11 @@ impl Plan {
             && p.leaf_capacity > 0
             && !p.jobs.is_empty()
             && p.jobs.iter().all(|j| {
-                j.inputs.iter().all(|&i| i < p.inputs.len()) && j.nodes.iter().all(|n| n[0] <= p.cell_depth as u32 && n[1..].iter().all(|&x| (x as u64) < 1u64 << n[0]))
+                j.inputs.iter().all(|&i| i < p.inputs.len())
+                    && j.nodes.iter().all(|n| {
+                        n[0] <= p.cell_depth as u32
+                            && n[1..].iter().all(|&x| (x as u64) < 1u64 << n[0])
+                    })
             });
         if !ok {
             return Err(Error::Plan { path: path.to_path_buf(), error: PlanError::OutOfRange });
@@ -148,7 +166,8 @@ impl Plan {
     /// Writes the plan (temporary name, then rename).
     pub fn write(&self, path: &Path) -> Result<()> {
         let tmp = TempPath::beside(path);
-        std::fs::write(tmp.path(), serde_json::to_vec_pretty(self).unwrap_or_default()).map_err(|e| Error::io(tmp.path(), e))?;
+        std::fs::write(tmp.path(), serde_json::to_vec_pretty(self).unwrap_or_default())
+            .map_err(|e| Error::io(tmp.path(), e))?;
         tmp.persist(path).map_err(|e| Error::io(path, e))
     }
 }
@@ -156,7 +175,10 @@ impl Plan {
 /// The cube of `key` in `root`.
 fn cube_of(root: Cube, key: NodeKey) -> Cube {
     let size = 1i64 << (root.size_log2 - key.level);
-    Cube { min: [0, 1, 2].map(|a| root.min[a] + key.index[a] as i64 * size), size_log2: root.size_log2 - key.level }
+    Cube {
+        min: [0, 1, 2].map(|a| root.min[a] + key.index[a] as i64 * size),
+        size_log2: root.size_log2 - key.level,
+    }
 }
 
 /// The partition cells (at `depth`) under `key`.
@@ -180,7 +202,9 @@ fn morton(index: [u32; 3], level: u8) -> u128 {
 
 /// Whether the inclusive box `[lo, hi]` meets `cube`.
 fn meets(b: &([i32; 3], [i32; 3]), cube: Cube) -> bool {
-    (0..3).all(|a| (b.1[a] as i64) >= cube.min[a] && (b.0[a] as i64) < cube.min[a] + cube.size() as i64)
+    (0..3).all(|a| {
+        (b.1[a] as i64) >= cube.min[a] && (b.0[a] as i64) < cube.min[a] + cube.size() as i64
+    })
 }
 
 /// Points of `inputs` estimated in `cube`: each input's points spread evenly over its box.
@@ -226,7 +250,10 @@ pub fn plan(ds: &Dataset, opts: &PlanOptions) -> Result<Plan> {
         } else if src.point_count() == 0 {
             None
         } else {
-            Some(header_box(ds, src.as_ref()).map_err(|error| Error::Plan { path: src.path().to_path_buf(), error: PlanError::HeaderBox { error } })?)
+            Some(header_box(ds, src.as_ref()).map_err(|error| Error::Plan {
+                path: src.path().to_path_buf(),
+                error: PlanError::HeaderBox { error },
+            })?)
         };
         let points = if opts.scan { real[i].count } else { src.point_count() };
         inputs.push(PlanInput { path: path.display().to_string(), bytes, points, bounds });
@@ -252,8 +279,16 @@ pub fn plan(ds: &Dataset, opts: &PlanOptions) -> Result<Plan> {
     // The cut: split the largest node while it is large against the jobs' share and surely inner.
     let fine = total as f64 / (4 * opts.jobs) as f64;
     let mut cut: Vec<(NodeKey, f64)> = vec![(NodeKey::ROOT, total as f64)];
-    while let Some((i, &(k, e))) = cut.iter().enumerate().filter(|(_, (k, _))| k.level < depth).max_by(|a, b| a.1 .1.total_cmp(&b.1 .1)) {
-        if e <= fine || e <= 4.0 * opts.config.leaf_capacity as f64 || cut.len() > 64 * opts.jobs + 4096 {
+    while let Some((i, &(k, e))) = cut
+        .iter()
+        .enumerate()
+        .filter(|(_, (k, _))| k.level < depth)
+        .max_by(|a, b| a.1 .1.total_cmp(&b.1 .1))
+    {
+        if e <= fine
+            || e <= 4.0 * opts.config.leaf_capacity as f64
+            || cut.len() > 64 * opts.jobs + 4096
+        {
             break;
         }
         cut.swap_remove(i);
@@ -264,7 +299,9 @@ pub fn plan(ds: &Dataset, opts: &PlanOptions) -> Result<Plan> {
     }
     cut.sort_by_key(|(k, _)| cells_of(*k, depth).start);
     // Runs of the cut to jobs, about the same estimate each.
-    let mut jobs: Vec<PlanJob> = (0..opts.jobs).map(|_| PlanJob { nodes: Vec::new(), inputs: Vec::new(), estimated_points: 0 }).collect();
+    let mut jobs: Vec<PlanJob> = (0..opts.jobs)
+        .map(|_| PlanJob { nodes: Vec::new(), inputs: Vec::new(), estimated_points: 0 })
+        .collect();
     let mut acc = 0.0;
     let mut j = 0;
     for (k, e) in &cut {
@@ -276,8 +313,17 @@ pub fn plan(ds: &Dataset, opts: &PlanOptions) -> Result<Plan> {
         acc += e;
     }
     for job in &mut jobs {
-        let cubes: Vec<Cube> = job.nodes.iter().map(|n| cube_of(root, NodeKey { level: n[0] as u8, index: [n[1], n[2], n[3]] })).collect();
-        job.inputs = inputs.iter().enumerate().filter(|(_, i)| i.bounds.is_some_and(|b| cubes.iter().any(|c| meets(&b, *c)))).map(|(k, _)| k).collect();
+        let cubes: Vec<Cube> = job
+            .nodes
+            .iter()
+            .map(|n| cube_of(root, NodeKey { level: n[0] as u8, index: [n[1], n[2], n[3]] }))
+            .collect();
+        job.inputs = inputs
+            .iter()
+            .enumerate()
+            .filter(|(_, i)| i.bounds.is_some_and(|b| cubes.iter().any(|c| meets(&b, *c))))
+            .map(|(k, _)| k)
+            .collect();
     }
     let mut p = Plan {
         format: PLAN_FORMAT.into(),
@@ -360,31 +406,51 @@ struct PartFile {
 
 fn color_of(rgb_offset: Option<usize>, max_rgb: u16, max_intensity: u16) -> ColorSource {
     match rgb_offset {
-        Some(offset) if max_rgb > 0 => ColorSource::Rgb { offset, depth: RgbDepth::detect(max_rgb) },
+        Some(offset) if max_rgb > 0 => {
+            ColorSource::Rgb { offset, depth: RgbDepth::detect(max_rgb) }
+        }
         _ => ColorSource::Intensity { max_intensity },
     }
 }
 
 /// Builds job `job` of `plan` from `ds` (the plan's inputs, opened in its order) into the part
 /// directory `out`, replacing an earlier attempt.
-pub fn build_job(ds: &Dataset, plan: &Plan, job: usize, out: &Path, memory: u64) -> Result<JobReport> {
+pub fn build_job(
+    ds: &Dataset,
+    plan: &Plan,
+    job: usize,
+    out: &Path,
+    memory: u64,
+) -> Result<JobReport> {
     let t0 = Instant::now();
     let Some(pj) = plan.jobs.get(job) else {
         return Err(Error::Job { error: JobError::NoSuchJob { job, last: plan.jobs.len() - 1 } });
     };
     if ds.inputs.len() != plan.inputs.len() {
-        return Err(Error::Job { error: JobError::Inputs { planned: plan.inputs.len(), opened: ds.inputs.len() } });
+        return Err(Error::Job {
+            error: JobError::Inputs { planned: plan.inputs.len(), opened: ds.inputs.len() },
+        });
     }
     for (src, pi) in ds.inputs.iter().zip(&plan.inputs) {
         let bytes = std::fs::metadata(src.path()).map(|m| m.len()).unwrap_or(0);
         if bytes != pi.bytes || (!plan.scanned && src.point_count() != pi.points) {
-            return Err(Error::Plan { path: src.path().to_path_buf(), error: PlanError::OtherFile { bytes, points: src.point_count(), plan_bytes: pi.bytes, plan_points: pi.points } });
+            return Err(Error::Plan {
+                path: src.path().to_path_buf(),
+                error: PlanError::OtherFile {
+                    bytes,
+                    points: src.point_count(),
+                    plan_bytes: pi.bytes,
+                    plan_points: pi.points,
+                },
+            });
         }
     }
     let root = plan.root();
     let depth = cell_depth(root, plan.max_level);
     if depth != plan.cell_depth {
-        return Err(Error::Job { error: JobError::CellDepth { planned: plan.cell_depth, ours: depth } });
+        return Err(Error::Job {
+            error: JobError::CellDepth { planned: plan.cell_depth, ours: depth },
+        });
     }
     let units: Vec<(NodeKey, Cube, std::ops::Range<usize>)> = pj
         .nodes
@@ -405,7 +471,10 @@ pub fn build_job(ds: &Dataset, plan: &Plan, job: usize, out: &Path, memory: u64)
     let filter = Filter { pieces: ds.pieces().iter().map(|p| read[p.input]).collect(), cells };
     let parent = out.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
     if !parent.is_dir() {
-        return Err(Error::NoParentDirectory { path: out.to_path_buf(), parent: parent.to_path_buf() });
+        return Err(Error::NoParentDirectory {
+            path: out.to_path_buf(),
+            parent: parent.to_path_buf(),
+        });
     }
     remove_stale_attempts(out);
     let tmp = TempPath::beside(out);
@@ -414,7 +483,8 @@ pub fn build_job(ds: &Dataset, plan: &Plan, job: usize, out: &Path, memory: u64)
     let state = tmp.path().join(".partition");
     std::fs::create_dir_all(&state).map_err(|e| Error::io(&state, e))?;
     ds.progress.stage("reading", pj.inputs.iter().map(|&i| plan.inputs[i].points).sum(), "points");
-    let (runs, hist, all, real) = partition_fixed(ds, root, plan.max_level, memory, &filter, &state)?;
+    let (runs, hist, all, real) =
+        partition_fixed(ds, root, plan.max_level, memory, &filter, &state)?;
     // Every input read lies in the box the plan took for it: a file the job skipped by its box
     // holds none of the job's points.
     for &i in &pj.inputs {
@@ -423,7 +493,13 @@ pub fn build_job(ds: &Dataset, plan: &Plan, job: usize, out: &Path, memory: u64)
             if (0..3).any(|a| st.min[a] < lo[a] || st.max[a] > hi[a]) {
                 return Err(Error::Plan {
                     path: ds.inputs[i].path().to_path_buf(),
-                    error: PlanError::OutsideBox { min: st.min, max: st.max, lo, hi, scanned: plan.scanned },
+                    error: PlanError::OutsideBox {
+                        min: st.min,
+                        max: st.max,
+                        lo,
+                        hi,
+                        scanned: plan.scanned,
+                    },
                 });
             }
         }
@@ -431,15 +507,28 @@ pub fn build_job(ds: &Dataset, plan: &Plan, job: usize, out: &Path, memory: u64)
     let rgb_offset = ds.layout.attribute("rgb").map(|a| a.offset);
     let color = color_of(rgb_offset, all.max_rgb, all.max_intensity);
     ds.progress.stage("building", hist.iter().sum(), "points");
-    let (entries, cands, points) = build_units(ds, &mut writer, plan.config(), memory, root, &runs, &hist, &units, color, &state)?;
+    let (entries, cands, points) = build_units(
+        ds,
+        &mut writer,
+        plan.config(),
+        memory,
+        root,
+        &runs,
+        &hist,
+        &units,
+        color,
+        &state,
+    )?;
     let _ = std::fs::remove_dir_all(&state);
     // entries.bin: the entries in the walk's order; candidates.bin: each subtree's candidates.
     let rl = ds.layout.record_len;
     let eb: Vec<NodeEntry> = entries.iter().map(|(_, _, e)| *e).collect();
     let ep = tmp.path().join(ENTRIES_FILE);
-    std::fs::write(&ep, bytemuck::cast_slice::<NodeEntry, u8>(&eb)).map_err(|e| Error::io(&ep, e))?;
+    std::fs::write(&ep, bytemuck::cast_slice::<NodeEntry, u8>(&eb))
+        .map_err(|e| Error::io(&ep, e))?;
     let cp = tmp.path().join(CANDIDATES_FILE);
-    let mut cf = std::io::BufWriter::new(std::fs::File::create(&cp).map_err(|e| Error::io(&cp, e))?);
+    let mut cf =
+        std::io::BufWriter::new(std::fs::File::create(&cp).map_err(|e| Error::io(&cp, e))?);
     let mut nodes = Vec::with_capacity(units.len());
     for ((k, _, r), c) in units.iter().zip(&cands) {
         for i in 0..c.pos.len() {
@@ -449,7 +538,11 @@ pub fn build_job(ds: &Dataset, plan: &Plan, job: usize, out: &Path, memory: u64)
             cf.write_all(&c.arrival[i].to_le_bytes()).map_err(|e| Error::io(&cp, e))?;
             cf.write_all(&c.records[i * rl..(i + 1) * rl]).map_err(|e| Error::io(&cp, e))?;
         }
-        nodes.push(PartNode { key: [k.level as u32, k.index[0], k.index[1], k.index[2]], points: hist[r.clone()].iter().sum(), candidates: c.pos.len() as u64 });
+        nodes.push(PartNode {
+            key: [k.level as u32, k.index[0], k.index[1], k.index[2]],
+            points: hist[r.clone()].iter().sum(),
+            candidates: c.pos.len() as u64,
+        });
     }
     cf.flush().map_err(|e| Error::io(&cp, e))?;
     drop(cf);
@@ -472,10 +565,13 @@ pub fn build_job(ds: &Dataset, plan: &Plan, job: usize, out: &Path, memory: u64)
     record.complete = true;
     record.write(tmp.path())?;
     let pp = tmp.path().join(PART_FILE);
-    std::fs::write(&pp, serde_json::to_vec_pretty(&part).unwrap_or_default()).map_err(|e| Error::io(&pp, e))?;
+    std::fs::write(&pp, serde_json::to_vec_pretty(&part).unwrap_or_default())
+        .map_err(|e| Error::io(&pp, e))?;
     // An earlier attempt is replaced whole.
     if out.exists() {
-        if !out.join(PART_FILE).is_file() && std::fs::read_dir(out).map_err(|e| Error::io(out, e))?.next().is_some() {
+        if !out.join(PART_FILE).is_file()
+            && std::fs::read_dir(out).map_err(|e| Error::io(out, e))?.next().is_some()
+        {
             return Err(Error::Part { path: out.to_path_buf(), error: PartError::NotEmpty });
         }
         std::fs::remove_dir_all(out).map_err(|e| Error::io(out, e))?;
@@ -488,13 +584,26 @@ pub fn build_job(ds: &Dataset, plan: &Plan, job: usize, out: &Path, memory: u64)
             warnings.push(w);
         }
     }
-    Ok(JobReport { job, jobs: plan.jobs.len(), points, nodes: eb.len() as u64, inputs_read: pj.inputs.len(), seconds: t0.elapsed().as_secs_f64(), warnings })
+    Ok(JobReport {
+        job,
+        jobs: plan.jobs.len(),
+        points,
+        nodes: eb.len() as u64,
+        inputs_read: pj.inputs.len(),
+        seconds: t0.elapsed().as_secs_f64(),
+        warnings,
+    })
 }
 
 /// Removes what killed attempts at the part `out` left beside it (temporary directories of
 /// processes that no longer run), so that re-running a job cleans up after the one it repeats.
 fn remove_stale_attempts(out: &Path) {
-    let (Some(parent), Some(name)) = (out.parent().map(|p| if p.as_os_str().is_empty() { Path::new(".") } else { p }), out.file_name()) else { return };
+    let (Some(parent), Some(name)) = (
+        out.parent().map(|p| if p.as_os_str().is_empty() { Path::new(".") } else { p }),
+        out.file_name(),
+    ) else {
+        return;
+    };
     let prefix = format!(".{}.mortar-tmp-", name.to_string_lossy());
     let Ok(rd) = std::fs::read_dir(parent) else { return };
     for e in rd.flatten() {
@@ -529,18 +638,30 @@ struct Part {
 
 fn read_part(dir: &Path) -> Result<Part> {
     let pp = dir.join(PART_FILE);
-    let b = std::fs::read(&pp).map_err(|_| Error::Part { path: dir.to_path_buf(), error: PartError::NotPart })?;
-    let file: PartFile = serde_json::from_slice(&b).map_err(|error| Error::Part { path: pp.clone(), error: PartError::BadDescription { error } })?;
+    let b = std::fs::read(&pp)
+        .map_err(|_| Error::Part { path: dir.to_path_buf(), error: PartError::NotPart })?;
+    let file: PartFile = serde_json::from_slice(&b).map_err(|error| Error::Part {
+        path: pp.clone(),
+        error: PartError::BadDescription { error },
+    })?;
     let ep = dir.join(ENTRIES_FILE);
     let eb = std::fs::read(&ep).map_err(|e| Error::io(&ep, e))?;
     let es = std::mem::size_of::<NodeEntry>();
     if eb.len() as u64 != file.entries * es as u64 {
-        return Err(Error::Part { path: ep, error: PartError::Damaged { what: "another size than part.json says" } });
+        return Err(Error::Part {
+            path: ep,
+            error: PartError::Damaged { what: "another size than part.json says" },
+        });
     }
     let entries: Vec<NodeEntry> = eb.chunks_exact(es).map(bytemuck::pod_read_unaligned).collect();
     let nl = std::fs::metadata(dir.join(NODES_FILE)).map(|m| m.len()).unwrap_or(u64::MAX);
-    if nl != file.nodes_len || entries.iter().any(|e| e.offset.checked_add(e.length).is_none_or(|end| end > nl)) {
-        return Err(Error::Part { path: dir.to_path_buf(), error: PartError::Damaged { what: "nodes.bin is not what part.json says" } });
+    if nl != file.nodes_len
+        || entries.iter().any(|e| e.offset.checked_add(e.length).is_none_or(|end| end > nl))
+    {
+        return Err(Error::Part {
+            path: dir.to_path_buf(),
+            error: PartError::Damaged { what: "nodes.bin is not what part.json says" },
+        });
     }
     Ok(Part { dir: dir.to_path_buf(), file, entries })
 }
@@ -556,35 +677,69 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> Result<MergeReport> {
     let mut by_job: Vec<Option<usize>> = vec![None; plan.jobs.len()];
     for (i, p) in parts.iter().enumerate() {
         if p.file.plan.id != plan.id || p.file.plan != *plan {
-            return Err(Error::Part { path: p.dir.clone(), error: PartError::OtherPlan { id: p.file.plan.id.clone(), first: parts[0].dir.clone(), first_id: plan.id.clone() } });
+            return Err(Error::Part {
+                path: p.dir.clone(),
+                error: PartError::OtherPlan {
+                    id: p.file.plan.id.clone(),
+                    first: parts[0].dir.clone(),
+                    first_id: plan.id.clone(),
+                },
+            });
         }
         match by_job.get_mut(p.file.job) {
-            Some(Some(o)) => return Err(Error::Part { path: p.dir.clone(), error: PartError::Repeated { job: p.file.job, first: parts[*o].dir.clone() } }),
+            Some(Some(o)) => {
+                return Err(Error::Part {
+                    path: p.dir.clone(),
+                    error: PartError::Repeated { job: p.file.job, first: parts[*o].dir.clone() },
+                })
+            }
             Some(slot) => *slot = Some(i),
-            None => return Err(Error::Part { path: p.dir.clone(), error: PartError::NoSuchJob { job: p.file.job, jobs: plan.jobs.len() } }),
+            None => {
+                return Err(Error::Part {
+                    path: p.dir.clone(),
+                    error: PartError::NoSuchJob { job: p.file.job, jobs: plan.jobs.len() },
+                })
+            }
         }
     }
     if let Some(j) = by_job.iter().position(|s| s.is_none()) {
-        let missing: Vec<usize> = by_job.iter().enumerate().filter(|(_, s)| s.is_none()).map(|(j, _)| j).collect();
-        return Err(Error::Job { error: JobError::MissingParts { jobs: plan.jobs.len(), first: j, missing } });
+        let missing: Vec<usize> =
+            by_job.iter().enumerate().filter(|(_, s)| s.is_none()).map(|(j, _)| j).collect();
+        return Err(Error::Job {
+            error: JobError::MissingParts { jobs: plan.jobs.len(), first: j, missing },
+        });
     }
-    let source = std::fs::read(parts[0].dir.join(SOURCE_FILE)).map_err(|e| Error::io(&parts[0].dir, e))?;
+    let source =
+        std::fs::read(parts[0].dir.join(SOURCE_FILE)).map_err(|e| Error::io(&parts[0].dir, e))?;
     for p in &parts[1..] {
         if std::fs::read(p.dir.join(SOURCE_FILE)).ok().as_deref() != Some(&source[..]) {
-            return Err(Error::Part { path: p.dir.clone(), error: PartError::OtherInputs { first: parts[0].dir.clone() } });
+            return Err(Error::Part {
+                path: p.dir.clone(),
+                error: PartError::OtherInputs { first: parts[0].dir.clone() },
+            });
         }
     }
-    if out.exists() && !(out.is_dir() && std::fs::read_dir(out).map_err(|e| Error::io(out, e))?.next().is_none()) {
-        return Err(Error::Store { path: out.to_path_buf(), error: crate::error::StoreError::NotEmpty });
+    if out.exists()
+        && !(out.is_dir()
+            && std::fs::read_dir(out).map_err(|e| Error::io(out, e))?.next().is_none())
+    {
+        return Err(Error::Store {
+            path: out.to_path_buf(),
+            error: crate::error::StoreError::NotEmpty,
+        });
     }
     let parent = out.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
     if !parent.is_dir() {
-        return Err(Error::NoParentDirectory { path: out.to_path_buf(), parent: parent.to_path_buf() });
+        return Err(Error::NoParentDirectory {
+            path: out.to_path_buf(),
+            parent: parent.to_path_buf(),
+        });
     }
     // The whole input's statistics and colours.
     let f0 = &parts[0].file;
     let rl = f0.record_len;
-    let (mut lo, mut hi, mut max_rgb, mut max_int, mut points) = ([i32::MAX; 3], [i32::MIN; 3], 0u16, 0u16, 0u64);
+    let (mut lo, mut hi, mut max_rgb, mut max_int, mut points) =
+        ([i32::MAX; 3], [i32::MIN; 3], 0u16, 0u16, 0u64);
     for p in &parts {
         let f = &p.file;
         if f.points > 0 || f.min[0] <= f.max[0] {
@@ -606,11 +761,26 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> Result<MergeReport> {
     let dir = tmp.path().to_path_buf();
     std::fs::create_dir_all(&dir).map_err(|e| Error::io(&dir, e))?;
     std::fs::write(dir.join(SOURCE_FILE), &source).map_err(|e| Error::io(&dir, e))?;
-    std::fs::copy(parts[0].dir.join(super::record::RECORD_FILE), dir.join(super::record::RECORD_FILE)).map_err(|e| Error::io(&parts[0].dir, e))?;
+    std::fs::copy(
+        parts[0].dir.join(super::record::RECORD_FILE),
+        dir.join(super::record::RECORD_FILE),
+    )
+    .map_err(|e| Error::io(&parts[0].dir, e))?;
     let np = dir.join(NODES_FILE);
     let nodes_file = std::fs::File::create(&np).map_err(|e| Error::io(&np, e))?;
     let reader = std::fs::File::open(&np).map_err(|e| Error::io(&np, e))?;
-    let mut writer = StoreWriter { dir: dir.clone(), nodes: nodes_file, reader, nodes_len: 0, entries: Vec::new(), commit: 0, last_revision: None, record_len: rl, guard: None, group_bytes: super::writer::COMMIT_GROUP_BYTES };
+    let mut writer = StoreWriter {
+        dir: dir.clone(),
+        nodes: nodes_file,
+        reader,
+        nodes_len: 0,
+        entries: Vec::new(),
+        commit: 0,
+        last_revision: None,
+        record_len: rl,
+        guard: None,
+        group_bytes: super::writer::COMMIT_GROUP_BYTES,
+    };
     // The subtrees' candidates and counts.
     let mut subtrees: HashMap<NodeKey, (u64, Cands, usize)> = HashMap::new();
     for (pi, p) in parts.iter().enumerate() {
@@ -622,18 +792,38 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> Result<MergeReport> {
             let mut c = Cands::default();
             let end = at + n.candidates as usize * one;
             if end > b.len() {
-                return Err(Error::Part { path: cp.clone(), error: PartError::Damaged { what: "shorter than part.json says" } });
+                return Err(Error::Part {
+                    path: cp.clone(),
+                    error: PartError::Damaged { what: "shorter than part.json says" },
+                });
             }
             while at < end {
-                let q = [0, 1, 2].map(|a| i32::from_le_bytes(b[at + 4 * a..at + 4 * a + 4].try_into().expect("4 bytes")));
-                c.push(q, u64::from_le_bytes(b[at + 12..at + 20].try_into().expect("8 bytes")), &b[at + 20..at + one]);
+                let q = [0, 1, 2].map(|a| {
+                    i32::from_le_bytes(b[at + 4 * a..at + 4 * a + 4].try_into().expect("4 bytes"))
+                });
+                c.push(
+                    q,
+                    u64::from_le_bytes(b[at + 12..at + 20].try_into().expect("8 bytes")),
+                    &b[at + 20..at + one],
+                );
                 at += one;
             }
-            subtrees.insert(NodeKey { level: n.key[0] as u8, index: [n.key[1], n.key[2], n.key[3]] }, (n.points, c, pi));
+            subtrees.insert(
+                NodeKey { level: n.key[0] as u8, index: [n.key[1], n.key[2], n.key[3]] },
+                (n.points, c, pi),
+            );
         }
     }
     // The nodes above the cut, from the subtrees' candidates; written after the parts' nodes.
-    let mut top = Top { subtrees, parts: &parts, plan, color, rl, made: Vec::new(), absorbed: std::collections::HashSet::new() };
+    let mut top = Top {
+        subtrees,
+        parts: &parts,
+        plan,
+        color,
+        rl,
+        made: Vec::new(),
+        absorbed: std::collections::HashSet::new(),
+    };
     if let Visit::Small { records, unit: false, .. } = top.visit(NodeKey::ROOT, plan.root())? {
         // Few points in all: the root is a leaf (held as it is where the cut is the root).
         top.leaf(NodeKey::ROOT, &records)?;
@@ -659,7 +849,8 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> Result<MergeReport> {
         } else {
             recoloured += !same_color as usize;
             let bytes = std::fs::read(&src).map_err(|e| Error::io(&src, e))?;
-            let keep: Vec<&NodeEntry> = p.entries.iter().filter(|e| !absorbed.contains(&(e.level, e.index))).collect();
+            let keep: Vec<&NodeEntry> =
+                p.entries.iter().filter(|e| !absorbed.contains(&(e.level, e.index))).collect();
             let lens: Vec<u64> = keep.iter().map(|e| e.length).collect();
             let offs = writer.reserve(&lens);
             let w = &writer;
@@ -669,7 +860,8 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> Result<MergeReport> {
                 .map(|(e, off)| {
                     let mut b = bytes[e.offset as usize..(e.offset + e.length) as usize].to_vec();
                     if !same_color {
-                        recolour(&mut b, &color, rl).map_err(|error| Error::Payload { path: p.dir.clone(), error })?;
+                        recolour(&mut b, &color, rl)
+                            .map_err(|error| Error::Payload { path: p.dir.clone(), error })?;
                     }
                     w.write_at(off, &b)?;
                     Ok(NodeEntry { offset: off, ..**e })
@@ -693,7 +885,14 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> Result<MergeReport> {
     writer.write_hierarchy(plan.root(), points, plan.leaf_capacity, (lo, hi))?;
     drop(writer);
     tmp.persist(out).map_err(|e| Error::io(out, e))?;
-    Ok(MergeReport { parts: parts.len(), points, nodes: all.len() as u64, top_nodes, recoloured_parts: recoloured, seconds: t0.elapsed().as_secs_f64() })
+    Ok(MergeReport {
+        parts: parts.len(),
+        points,
+        nodes: all.len() as u64,
+        top_nodes,
+        recoloured_parts: recoloured,
+        seconds: t0.elapsed().as_secs_f64(),
+    })
 }
 
 /// Rewrites the colours of a payload with `color` (from its records: position and attributes).
@@ -756,7 +955,10 @@ impl Top<'_> {
                 .entries
                 .iter()
                 .find(|e| e.level == key.level as u32 && e.index == key.index && e.kind == LEAF)
-                .ok_or_else(|| Error::Part { path: p.dir.clone(), error: PartError::NoLeaf { subtree: key.name() } })?;
+                .ok_or_else(|| Error::Part {
+                    path: p.dir.clone(),
+                    error: PartError::NoLeaf { subtree: key.name() },
+                })?;
             let src = p.dir.join(NODES_FILE);
             let mut b = vec![0u8; e.length as usize];
             {
@@ -764,7 +966,8 @@ impl Top<'_> {
                 let f = std::fs::File::open(&src).map_err(|x| Error::io(&src, x))?;
                 f.read_exact_at(&mut b, e.offset).map_err(|x| Error::io(&src, x))?;
             }
-            let records = records_of(&b, self.rl).map_err(|error| Error::Payload { path: p.dir.clone(), error })?;
+            let records = records_of(&b, self.rl)
+                .map_err(|error| Error::Payload { path: p.dir.clone(), error })?;
             return Ok(Visit::Small { cands, count, records, unit: true });
         }
         if key.level >= self.plan.cell_depth {
@@ -809,8 +1012,16 @@ impl Top<'_> {
             }
         }
         let color = &self.color;
-        let (e, b) = encode_payload(key, INNER, voxels.pos.len(), rl - 12, |i| voxels.pos[i], |i| color.rgba(&voxels.records[i * rl..(i + 1) * rl]), |i| &voxels.records[i * rl + 12..(i + 1) * rl])
-            .map_err(|m| Error::MergePayload { error: m.in_node(key.name()) })?;
+        let (e, b) = encode_payload(
+            key,
+            INNER,
+            voxels.pos.len(),
+            rl - 12,
+            |i| voxels.pos[i],
+            |i| color.rgba(&voxels.records[i * rl..(i + 1) * rl]),
+            |i| &voxels.records[i * rl + 12..(i + 1) * rl],
+        )
+        .map_err(|m| Error::MergePayload { error: m.in_node(key.name()) })?;
         self.made.push((e, b));
         Ok(Visit::Big { cands: up(&voxels), count })
     }
@@ -820,7 +1031,9 @@ impl Top<'_> {
         for p in self.parts {
             for n in &p.file.nodes {
                 let k = NodeKey { level: n.key[0] as u8, index: [n.key[1], n.key[2], n.key[3]] };
-                if k.level >= key.level && (0..3).all(|a| k.index[a] >> (k.level - key.level) == key.index[a]) {
+                if k.level >= key.level
+                    && (0..3).all(|a| k.index[a] >> (k.level - key.level) == key.index[a])
+                {
                     self.absorbed.insert((k.level as u32, k.index));
                 }
             }
@@ -832,8 +1045,16 @@ impl Top<'_> {
         let rl = self.rl;
         let n = records.len() / rl;
         let color = &self.color;
-        let (e, b) = encode_payload(key, LEAF, n, rl - 12, |i| read_xyz(&records[i * rl..]), |i| color.rgba(&records[i * rl..(i + 1) * rl]), |i| &records[i * rl + 12..(i + 1) * rl])
-            .map_err(|m| Error::MergePayload { error: m.in_node(key.name()) })?;
+        let (e, b) = encode_payload(
+            key,
+            LEAF,
+            n,
+            rl - 12,
+            |i| read_xyz(&records[i * rl..]),
+            |i| color.rgba(&records[i * rl..(i + 1) * rl]),
+            |i| &records[i * rl + 12..(i + 1) * rl],
+        )
+        .map_err(|m| Error::MergePayload { error: m.in_node(key.name()) })?;
         self.made.push((e, b));
         Ok(())
     }
@@ -863,7 +1084,12 @@ mod tests {
     #[test]
     fn morton_orders_a_level_depth_first() {
         // children of the root in octant order
-        let kids: Vec<u128> = (0..8).map(|o| { let k = NodeKey::ROOT.child(o); morton(k.index, 1) }).collect();
+        let kids: Vec<u128> = (0..8)
+            .map(|o| {
+                let k = NodeKey::ROOT.child(o);
+                morton(k.index, 1)
+            })
+            .collect();
         assert_eq!(kids, (0..8).collect::<Vec<u128>>());
         // grandchildren: all of child 0 before any of child 1
         let k = NodeKey::ROOT.child(1).child(0);

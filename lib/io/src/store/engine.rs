@@ -16,8 +16,8 @@ use super::build::{BuildOptions, BuildProgress, BuildReport};
 use super::format::*;
 use super::writer::*;
 use crate::dataset::Dataset;
-use crate::progress::Progress;
 use crate::error::{Error, Result, StoreError};
+use crate::progress::Progress;
 use crate::sort::{self, Key, PieceStats};
 use mortar_core::color::{ColorSource, RgbDepth};
 use mortar_core::layout::read_xyz;
@@ -46,16 +46,33 @@ pub fn in_memory_need(ds: &Dataset, memory: u64) -> u64 {
 pub(crate) fn held_in_memory(ds: &Dataset, per_point: u64) -> u64 {
     let rl = ds.layout.record_len as u64;
     let points = ds.declared_points();
-    let read: u64 = ds.inputs.iter().map(|s| s.point_count().saturating_mul(s.layout().record_len as u64)).sum();
+    let read: u64 = ds
+        .inputs
+        .iter()
+        .map(|s| s.point_count().saturating_mul(s.layout().record_len as u64))
+        .sum();
     // a mapped LAS file whose records are converted is held mapped and converted
-    let converted: u64 = ds.inputs.iter().enumerate().filter(|(i, s)| ds.needs_buffer(*i) && !s.is_compressed()).map(|(_, s)| s.point_count().saturating_mul(rl)).sum();
+    let converted: u64 = ds
+        .inputs
+        .iter()
+        .enumerate()
+        .filter(|(i, s)| ds.needs_buffer(*i) && !s.is_compressed())
+        .map(|(_, s)| s.point_count().saturating_mul(rl))
+        .sum();
     read.saturating_add(converted).saturating_add(points.saturating_mul(rl + per_point))
 }
 
 /// Writes the payload of node `n` (of the records `sorted`) at `off` in slices of about the
 /// writer's group: a node larger than a group (points at one position, beyond the depth limit)
 /// is never encoded whole in memory. The same bytes as [`encode_payload`].
-pub(crate) fn write_sliced(w: &StoreWriter, off: u64, n: &SortedNode, attr_len: usize, sorted: &Sorted, color: &ColorSource) -> Result<NodeEntry> {
+pub(crate) fn write_sliced(
+    w: &StoreWriter,
+    off: u64,
+    n: &SortedNode,
+    attr_len: usize,
+    sorted: &Sorted,
+    color: &ColorSource,
+) -> Result<NodeEntry> {
     let (kind, idx): (u32, Box<dyn Fn(usize) -> usize + Sync>) = match &n.content {
         SortedContent::Leaf(r) => {
             let s = r.start;
@@ -64,20 +81,35 @@ pub(crate) fn write_sliced(w: &StoreWriter, off: u64, n: &SortedNode, attr_len: 
         SortedContent::Inner(v) => (INNER, Box::new(move |i| v[i] as usize)),
     };
     let slice = (w.group_bytes / (16 + attr_len as u64)).max(1) as usize;
-    let r = write_payload_sliced(n.key, kind, n.count(), attr_len, slice, |i| read_xyz(sorted.record(idx(i))), |i| color.rgba(sorted.record(idx(i))), |i| &sorted.record(idx(i))[12..], |at, b| w.write_at(off + at, b))?;
+    let r = write_payload_sliced(
+        n.key,
+        kind,
+        n.count(),
+        attr_len,
+        slice,
+        |i| read_xyz(sorted.record(idx(i))),
+        |i| color.rgba(sorted.record(idx(i))),
+        |i| &sorted.record(idx(i))[12..],
+        |at, b| w.write_at(off + at, b),
+    )?;
     r.map_err(|error| Error::Payload { path: w.dir.clone(), error })
 }
 
 /// Whether the sorted engine builds `ds` with `opts`.
 pub fn applies(ds: &Dataset, opts: &BuildOptions) -> bool {
-    opts.config.color_mode == ColorMode::FirstCome && in_memory_need(ds, opts.memory) <= opts.memory && ds.declared_points() < u32::MAX as u64
+    opts.config.color_mode == ColorMode::FirstCome
+        && in_memory_need(ds, opts.memory) <= opts.memory
+        && ds.declared_points() < u32::MAX as u64
 }
 
 /// The Morton grid whose codes order points as the octree over `root` needs: origin at the
 /// root's corner, one shift so that the root fits 21 bits per axis (ties of a shifted code are
 /// ordered by the bits the shift dropped).
 pub(crate) fn grid_of(root: Cube) -> MortonGrid {
-    MortonGrid { origin: root.min, shift: (root.size_log2 as u32).saturating_sub(mortar_core::morton::BITS_PER_AXIS) }
+    MortonGrid {
+        origin: root.min,
+        shift: (root.size_log2 as u32).saturating_sub(mortar_core::morton::BITS_PER_AXIS),
+    }
 }
 
 /// The shift that gives a code's bucket.
@@ -113,7 +145,15 @@ impl Sorted {
 ///
 /// Buckets are the `BUCKET_BITS` code bits from `shift` up (the bits above are shared, as in a
 /// unit of the partitioned engine); `arrival_of(slab, index)` numbers each record.
-pub(crate) fn sort_records(slabs: &[&[u8]], hist: &[Vec<u32>], rl: usize, g: &MortonGrid, shift: u32, prog: &Progress, arrival_of: impl Fn(usize, usize) -> u64 + Sync) -> Sorted {
+pub(crate) fn sort_records(
+    slabs: &[&[u8]],
+    hist: &[Vec<u32>],
+    rl: usize,
+    g: &MortonGrid,
+    shift: u32,
+    prog: &Progress,
+    arrival_of: impl Fn(usize, usize) -> u64 + Sync,
+) -> Sorted {
     let nb = 1usize << BUCKET_BITS;
     let n: usize = slabs.iter().map(|s| s.len() / rl).sum();
     let mut starts = vec![0usize; nb + 1];
@@ -135,20 +175,22 @@ pub(crate) fn sort_records(slabs: &[&[u8]], hist: &[Vec<u32>], rl: usize, g: &Mo
     {
         let rp = SendPtr(records.as_mut_ptr());
         let ap = SendPtr(arrival.as_mut_ptr() as *mut u8);
-        slabs.par_iter().zip(cursors.into_par_iter()).enumerate().for_each(|(p, (slab, mut cur))| {
-            let (rp, ap) = (&rp, &ap);
-            prog.add((slab.len() / rl) as u64);
-            for (i, r) in slab.chunks_exact(rl).enumerate() {
-                let b = ((code_of(r, g) >> shift) as usize) & (nb - 1);
-                let at = cur[b];
-                cur[b] += 1;
-                // SAFETY: the cursors of all pieces partition 0..n; each slot is written once.
-                unsafe {
-                    std::ptr::copy_nonoverlapping(r.as_ptr(), rp.0.add(at * rl), rl);
-                    (ap.0 as *mut u64).add(at).write(arrival_of(p, i));
+        slabs.par_iter().zip(cursors.into_par_iter()).enumerate().for_each(
+            |(p, (slab, mut cur))| {
+                let (rp, ap) = (&rp, &ap);
+                prog.add((slab.len() / rl) as u64);
+                for (i, r) in slab.chunks_exact(rl).enumerate() {
+                    let b = ((code_of(r, g) >> shift) as usize) & (nb - 1);
+                    let at = cur[b];
+                    cur[b] += 1;
+                    // SAFETY: the cursors of all pieces partition 0..n; each slot is written once.
+                    unsafe {
+                        std::ptr::copy_nonoverlapping(r.as_ptr(), rp.0.add(at * rl), rl);
+                        (ap.0 as *mut u64).add(at).write(arrival_of(p, i));
+                    }
                 }
-            }
-        });
+            },
+        );
     }
     sort::trace("  sort: scattered", t);
     // Each bucket: keys (code, local index) sorted stably by code, then the bucket permuted.
@@ -183,7 +225,11 @@ pub(crate) fn sort_records(slabs: &[&[u8]], hist: &[Vec<u32>], rl: usize, g: &Mo
                 return;
             }
             keys.clear();
-            keys.extend(recs.chunks_exact(rl).enumerate().map(|(i, r)| Key { code: code_of(r, g), slab: i as u32, idx: 0 }));
+            keys.extend(recs.chunks_exact(rl).enumerate().map(|(i, r)| Key {
+                code: code_of(r, g),
+                slab: i as u32,
+                idx: 0,
+            }));
             sort::sort_bucket(keys, shift, scratch);
             if g.shift > 0 {
                 // Ties of the shifted code: by the dropped bits, then arrival (local order).
@@ -226,12 +272,20 @@ unsafe impl Send for SendPtr {}
 
 /// Builds the store in `writer` from `ds` with the sorted engine; `header` is the headers' box
 /// (see [`super::build`]).
-pub(crate) fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOptions, progress: &mut dyn FnMut(&BuildProgress), header: Option<([i32; 3], [i32; 3])>, t0: Instant) -> Result<BuildReport> {
+pub(crate) fn build_into(
+    ds: &Dataset,
+    writer: &mut StoreWriter,
+    opts: &BuildOptions,
+    progress: &mut dyn FnMut(&BuildProgress),
+    header: Option<([i32; 3], [i32; 3])>,
+    t0: Instant,
+) -> Result<BuildReport> {
     let rl = ds.layout.record_len;
     let total = ds.declared_points();
     let mut report = BuildReport { engine: "sorted", ..BuildReport::default() };
     // The root the headers promise; checked against the points once they are read.
-    let promised = header.map(|(l, h)| Cube::covering(l, h)).unwrap_or(Cube { min: [0; 3], size_log2: 32 });
+    let promised =
+        header.map(|(l, h)| Cube::covering(l, h)).unwrap_or(Cube { min: [0; 3], size_log2: 32 });
     let tr = Instant::now();
     ds.progress.stage("reading", total, "points");
     let (slabs, mut hist) = read_pieces(ds, promised)?;
@@ -255,7 +309,9 @@ pub(crate) fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOpt
     // points' own box (the incremental engine grows its root instead).
     let (lo, hi) = if all.count == 0 { ([0; 3], [0; 3]) } else { (all.min, all.max) };
     let root = match header {
-        Some((l, h)) if all.count > 0 && (0..3).all(|a| l[a] <= lo[a] && hi[a] <= h[a]) => Cube::covering(l, h),
+        Some((l, h)) if all.count > 0 && (0..3).all(|a| l[a] <= lo[a] && hi[a] <= h[a]) => {
+            Cube::covering(l, h)
+        }
         _ => Cube::covering(lo, hi),
     };
     let g = grid_of(root);
@@ -267,7 +323,9 @@ pub(crate) fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOpt
     let ts = Instant::now();
     // Counted twice: once scattered into buckets, once sorted in its bucket.
     ds.progress.stage("sorting", 2 * all.count, "points");
-    let sorted = sort_records(&records, &hist, rl, &g, shift, &ds.progress, |p, i| (p as u64) << 32 | i as u64);
+    let sorted = sort_records(&records, &hist, rl, &g, shift, &ds.progress, |p, i| {
+        (p as u64) << 32 | i as u64
+    });
     drop(records);
     drop(slabs);
     report.sort_seconds = ts.elapsed().as_secs_f64();
@@ -275,7 +333,9 @@ pub(crate) fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOpt
     sort::check_interrupted()?;
     // The colour source from the whole input, as batch files choose it.
     let color = match ds.layout.attribute("rgb") {
-        Some(a) if all.max_rgb > 0 => ColorSource::Rgb { offset: a.offset, depth: RgbDepth::detect(all.max_rgb) },
+        Some(a) if all.max_rgb > 0 => {
+            ColorSource::Rgb { offset: a.offset, depth: RgbDepth::detect(all.max_rgb) }
+        }
         _ => ColorSource::Intensity { max_intensity: all.max_intensity },
     };
     let tt = Instant::now();
@@ -283,12 +343,26 @@ pub(crate) fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOpt
     let n = sorted.arrival.len();
     let pos = |i: usize| read_xyz(sorted.record(i));
     let arrival = |i: usize| sorted.arrival[i];
-    let tree = build_sorted(root, n, &pos, &arrival, opts.config).map_err(|error| Error::Octree { error })?;
+    let tree = build_sorted(root, n, &pos, &arrival, opts.config)
+        .map_err(|error| Error::Octree { error })?;
     report.tree_seconds = tt.elapsed().as_secs_f64();
     report.batch_seconds.push(report.tree_seconds);
     sort::trace("tree", t0);
     ds.progress.stage("writing", tree.nodes.len() as u64, "nodes");
-    write_tree(writer, &tree, root, opts, &sorted, &color, (lo, hi), &mut report, progress, &ds.progress, total, t0)?;
+    write_tree(
+        writer,
+        &tree,
+        root,
+        opts,
+        &sorted,
+        &color,
+        (lo, hi),
+        &mut report,
+        progress,
+        &ds.progress,
+        total,
+        t0,
+    )?;
     sort::trace("written", t0);
     report.seconds = t0.elapsed().as_secs_f64();
     Ok(report)
@@ -306,7 +380,10 @@ pub(crate) fn histogram(slab: &[u8], rl: usize, g: &MortonGrid, shift: u32) -> V
 /// Reads every piece in parallel (LAZ decoded once, mapped LAS borrowed in place), with its
 /// statistics and its bucket counts on the grid of `root` made while it is in cache.
 #[allow(clippy::type_complexity)]
-pub(crate) fn read_pieces(ds: &Dataset, root: Cube) -> Result<(Vec<(std::borrow::Cow<'_, [u8]>, PieceStats)>, Vec<Vec<u32>>)> {
+pub(crate) fn read_pieces(
+    ds: &Dataset,
+    root: Cube,
+) -> Result<(Vec<(std::borrow::Cow<'_, [u8]>, PieceStats)>, Vec<Vec<u32>>)> {
     let rl = ds.layout.record_len;
     let g = grid_of(root);
     let shift = bucket_shift(root);
@@ -321,13 +398,17 @@ pub(crate) fn read_pieces(ds: &Dataset, root: Cube) -> Result<(Vec<(std::borrow:
             sort::check_interrupted()?;
             let slab = ds.read_piece(p)?;
             if slab.len() as u64 != p.piece.points * rl as u64 {
-                return Err(Error::PieceCount { path: ds.inputs[p.input].path().to_path_buf(), piece: p.piece.index });
+                return Err(Error::PieceCount {
+                    path: ds.inputs[p.input].path().to_path_buf(),
+                    piece: p.piece.index,
+                });
             }
             let mut h = vec![0u32; 1 << BUCKET_BITS];
             let st = PieceStats::of_with(&slab, &ds.layout, |_, q| {
                 // Points outside the promised root land in the last bucket: the histograms are made again
                 // on the real root when the headers lie.
-                h[((g.code([q[0] as i64, q[1] as i64, q[2] as i64]) >> shift) as usize).min((1 << BUCKET_BITS) - 1)] += 1;
+                h[((g.code([q[0] as i64, q[1] as i64, q[2] as i64]) >> shift) as usize)
+                    .min((1 << BUCKET_BITS) - 1)] += 1;
             });
             Ok(((slab, st), h))
         })
@@ -360,9 +441,17 @@ fn write_tree(
     if !kept.is_empty() {
         let whole = levels.iter().any(|l| l.end == kept.len());
         let same = kept.len() <= tree.nodes.len()
-            && kept.iter().zip(&tree.nodes).all(|(e, n)| e.level == n.key.level as u32 && e.index == n.key.index && (e.kind == LEAF) == n.is_leaf() && e.count == n.count() as u64);
+            && kept.iter().zip(&tree.nodes).all(|(e, n)| {
+                e.level == n.key.level as u32
+                    && e.index == n.key.index
+                    && (e.kind == LEAF) == n.is_leaf()
+                    && e.count == n.count() as u64
+            });
         if !whole || !same {
-            return Err(Error::Store { path: writer.dir.clone(), error: StoreError::CommittedNodes });
+            return Err(Error::Store {
+                path: writer.dir.clone(),
+                error: StoreError::CommittedNodes,
+            });
         }
         report.kept_nodes = kept.len() as u64;
         prog.add(kept.len() as u64);
@@ -376,13 +465,25 @@ fn write_tree(
             }
             SortedContent::Inner(v) => (INNER, Box::new(move |i| v[i] as usize)),
         };
-        encode_payload(n.key, kind, n.count(), attr_len, |i| read_xyz(sorted.record(idx(i))), |i| color.rgba(sorted.record(idx(i))), |i| &sorted.record(idx(i))[12..])
-            .map(|(e, b)| (id, e, b))
-            .map_err(|error| Error::Payload { path: dir.clone(), error })
+        encode_payload(
+            n.key,
+            kind,
+            n.count(),
+            attr_len,
+            |i| read_xyz(sorted.record(idx(i))),
+            |i| color.rgba(sorted.record(idx(i))),
+            |i| &sorted.record(idx(i))[12..],
+        )
+        .map(|(e, b)| (id, e, b))
+        .map_err(|error| Error::Payload { path: dir.clone(), error })
     };
     for level in &levels {
         if level.end <= kept.len() {
-            points += tree.nodes[level.clone()].iter().filter(|n| n.is_leaf()).map(|n| n.count() as u64).sum::<u64>();
+            points += tree.nodes[level.clone()]
+                .iter()
+                .filter(|n| n.is_leaf())
+                .map(|n| n.count() as u64)
+                .sum::<u64>();
             continue;
         }
         let tw = Instant::now();
@@ -395,7 +496,9 @@ fn write_tree(
                 bytes += payload_len(tree.nodes[end].count() as u64, attr_len as u64);
                 end += 1;
             }
-            let lens: Vec<u64> = (start..end).map(|i| payload_len(tree.nodes[i].count() as u64, attr_len as u64)).collect();
+            let lens: Vec<u64> = (start..end)
+                .map(|i| payload_len(tree.nodes[i].count() as u64, attr_len as u64))
+                .collect();
             let offsets = writer.reserve(&lens);
             let w = &*writer;
             let entries: Vec<NodeEntry> = (start..end)
@@ -420,7 +523,11 @@ fn write_tree(
             }
             start = end;
         }
-        points += tree.nodes[level.clone()].iter().filter(|n| n.is_leaf()).map(|n| n.count() as u64).sum::<u64>();
+        points += tree.nodes[level.clone()]
+            .iter()
+            .filter(|n| n.is_leaf())
+            .map(|n| n.count() as u64)
+            .sum::<u64>();
         report.write_seconds += tw.elapsed().as_secs_f64();
         let tc = Instant::now();
         writer.write_hierarchy(root, points, opts.config.leaf_capacity, bounds)?;

@@ -3,7 +3,6 @@
 use mortar_core::octree::NodeKey;
 use mortar_core::quantize::BatchGrid;
 
-
 /// The source's LAS header, VLRs and EVLRs (no points).
 pub const SOURCE_FILE: &str = "source.las";
 /// Node payloads, append-only.
@@ -116,7 +115,6 @@ pub(crate) fn read_xyz(r: &[u8]) -> [i32; 3] {
     [0, 4, 8].map(|o| i32::from_le_bytes([r[o], r[o + 1], r[o + 2], r[o + 3]]))
 }
 
-
 /// A node payload read back from `nodes.bin` (leaf points or an inner node's voxel points).
 pub(crate) struct DecodedLeaf<'a> {
     pub(crate) count: usize,
@@ -170,7 +168,11 @@ impl<'a> DecodedLeaf<'a> {
         }
         let h: NodeHeader = bytemuck::pod_read_unaligned(&b[..64]);
         let (n, al) = (h.count as usize, h.attr_len as usize);
-        if h.magic != NODE_MAGIC || h.kind > INNER || (b.len() as u64) < payload_len(n as u64, al as u64) || h.bits[..3].iter().any(|&x| x > 30) {
+        if h.magic != NODE_MAGIC
+            || h.kind > INNER
+            || (b.len() as u64) < payload_len(n as u64, al as u64)
+            || h.bits[..3].iter().any(|&x| x > 30)
+        {
             return Err(PayloadError::Damaged);
         }
         let w = |k: usize| &b[64 + 4 * n * k..64 + 4 * n * (k + 1)];
@@ -201,7 +203,6 @@ impl<'a> DecodedLeaf<'a> {
     }
 }
 
-
 /// Encodes one node's payload (entry offset left 0) from its `count` points: `pos(i)`,
 /// `color(i)` and `attrs(i)` (the record's bytes after X, Y, Z: `attr_len` of them). One pass
 /// for the bounds, one that writes every column in place.
@@ -229,7 +230,8 @@ pub(crate) fn encode_payload<'r>(
     if count == 0 {
         (lo, hi) = ([0; 3], [0; 3]);
     }
-    let grid = BatchGrid::for_bounds(lo, hi).ok_or_else(|| PayloadError::TooWide { node: key.name() })?;
+    let grid =
+        BatchGrid::for_bounds(lo, hi).ok_or_else(|| PayloadError::TooWide { node: key.name() })?;
     let len = payload_len(count as u64, attr_len as u64) as usize;
     let mut out = vec![0u8; len];
     let header = node_header(key, kind, count, &grid, attr_len);
@@ -248,12 +250,26 @@ pub(crate) fn encode_payload<'r>(
         debug_assert_eq!(a.len(), attr_len);
         rest[i * attr_len..(i + 1) * attr_len].copy_from_slice(a);
     }
-    let entry = NodeEntry { level: key.level as u32, kind, index: key.index, _pad: 0, count: count as u64, offset: 0, length: len as u64 };
+    let entry = NodeEntry {
+        level: key.level as u32,
+        kind,
+        index: key.index,
+        _pad: 0,
+        count: count as u64,
+        offset: 0,
+        length: len as u64,
+    };
     Ok((entry, out))
 }
 
 /// The 64-byte header of a payload.
-fn node_header(key: NodeKey, kind: u32, count: usize, grid: &BatchGrid, attr_len: usize) -> NodeHeader {
+fn node_header(
+    key: NodeKey,
+    kind: u32,
+    count: usize,
+    grid: &BatchGrid,
+    attr_len: usize,
+) -> NodeHeader {
     NodeHeader {
         magic: NODE_MAGIC,
         level: key.level as u32,
@@ -287,19 +303,27 @@ pub(crate) fn write_payload_sliced<'r, E>(
     if count > u32::MAX as usize {
         return Ok(Err(PayloadError::TooManyPoints { node: key.name(), count }));
     }
-    let (lo, hi) = (0..count).into_par_iter().fold(
-        || ([i32::MAX; 3], [i32::MIN; 3]),
-        |(mut lo, mut hi), i| {
-            let p = pos(i);
-            for a in 0..3 {
-                lo[a] = lo[a].min(p[a]);
-                hi[a] = hi[a].max(p[a]);
-            }
-            (lo, hi)
-        },
-    ).reduce(|| ([i32::MAX; 3], [i32::MIN; 3]), |a, b| ([0, 1, 2].map(|k| a.0[k].min(b.0[k])), [0, 1, 2].map(|k| a.1[k].max(b.1[k]))));
+    let (lo, hi) = (0..count)
+        .into_par_iter()
+        .fold(
+            || ([i32::MAX; 3], [i32::MIN; 3]),
+            |(mut lo, mut hi), i| {
+                let p = pos(i);
+                for a in 0..3 {
+                    lo[a] = lo[a].min(p[a]);
+                    hi[a] = hi[a].max(p[a]);
+                }
+                (lo, hi)
+            },
+        )
+        .reduce(
+            || ([i32::MAX; 3], [i32::MIN; 3]),
+            |a, b| ([0, 1, 2].map(|k| a.0[k].min(b.0[k])), [0, 1, 2].map(|k| a.1[k].max(b.1[k]))),
+        );
     let (lo, hi) = if count == 0 { ([0; 3], [0; 3]) } else { (lo, hi) };
-    let Some(grid) = BatchGrid::for_bounds(lo, hi) else { return Ok(Err(PayloadError::TooWide { node: key.name() })) };
+    let Some(grid) = BatchGrid::for_bounds(lo, hi) else {
+        return Ok(Err(PayloadError::TooWide { node: key.name() }));
+    };
     let len = payload_len(count as u64, attr_len as u64);
     let header = node_header(key, kind, count, &grid, attr_len);
     write(0, bytemuck::bytes_of(&header))?;
@@ -307,13 +331,31 @@ pub(crate) fn write_payload_sliced<'r, E>(
     let slice = slice.max(1);
     for s in (0..count).step_by(slice) {
         let e = (s + slice).min(count);
-        write_slice(&grid, n, s, e - s, attr_len, |k| pos(s + k), |k| color(s + k), |k| attrs(s + k), &mut write)?;
+        write_slice(
+            &grid,
+            n,
+            s,
+            e - s,
+            attr_len,
+            |k| pos(s + k),
+            |k| color(s + k),
+            |k| attrs(s + k),
+            &mut write,
+        )?;
     }
     let end = 64 + n * (16 + attr_len as u64);
     if len > end {
         write(end, &vec![0u8; (len - end) as usize])?;
     }
-    Ok(Ok(NodeEntry { level: key.level as u32, kind, index: key.index, _pad: 0, count: n, offset: 0, length: len }))
+    Ok(Ok(NodeEntry {
+        level: key.level as u32,
+        kind,
+        index: key.index,
+        _pad: 0,
+        count: n,
+        offset: 0,
+        length: len,
+    }))
 }
 
 /// Writes the columns of the points `s..s + m` of a payload of `n` points on `grid` (`pos`,
@@ -368,7 +410,9 @@ pub(crate) fn write_payload_blocks<E>(
         return Ok(Err(PayloadError::TooManyPoints { node: key.name(), count }));
     }
     let (lo, hi) = if count == 0 { ([0; 3], [0; 3]) } else { bounds };
-    let Some(grid) = BatchGrid::for_bounds(lo, hi) else { return Ok(Err(PayloadError::TooWide { node: key.name() })) };
+    let Some(grid) = BatchGrid::for_bounds(lo, hi) else {
+        return Ok(Err(PayloadError::TooWide { node: key.name() }));
+    };
     let len = payload_len(count as u64, attr_len as u64);
     let header = node_header(key, kind, count, &grid, attr_len);
     write(0, bytemuck::bytes_of(&header))?;
@@ -379,13 +423,31 @@ pub(crate) fn write_payload_blocks<E>(
         let e = (s + slice).min(count);
         let recs = records(s..e)?;
         let rec = |k: usize| &recs[k * rl..(k + 1) * rl];
-        write_slice(&grid, n, s, e - s, attr_len, |k| mortar_core::layout::read_xyz(rec(k)), |k| color(rec(k)), |k| &rec(k)[12..], &mut write)?;
+        write_slice(
+            &grid,
+            n,
+            s,
+            e - s,
+            attr_len,
+            |k| mortar_core::layout::read_xyz(rec(k)),
+            |k| color(rec(k)),
+            |k| &rec(k)[12..],
+            &mut write,
+        )?;
     }
     let end = 64 + n * (16 + attr_len as u64);
     if len > end {
         write(end, &vec![0u8; (len - end) as usize])?;
     }
-    Ok(Ok(NodeEntry { level: key.level as u32, kind, index: key.index, _pad: 0, count: n, offset: 0, length: len }))
+    Ok(Ok(NodeEntry {
+        level: key.level as u32,
+        kind,
+        index: key.index,
+        _pad: 0,
+        count: n,
+        offset: 0,
+        length: len,
+    }))
 }
 
 #[cfg(test)]
@@ -398,7 +460,9 @@ mod tests {
     fn sliced_payload_equals_whole_payload() {
         let attr_len = 7;
         let n = 1000;
-        let pos = |i: usize| [(i as i32 * 37) % 1001 - 500, (i as i32 * 11) % 97, 123_456 + (i as i32 % 5)];
+        let pos = |i: usize| {
+            [(i as i32 * 37) % 1001 - 500, (i as i32 * 11) % 97, 123_456 + (i as i32 % 5)]
+        };
         let color = |i: usize| 0x0102_0304u32.wrapping_mul(i as u32 + 1);
         let attrs: Vec<u8> = (0..n * attr_len).map(|b| (b * 31 % 251) as u8).collect();
         let attr = |i: usize| &attrs[i * attr_len..(i + 1) * attr_len];
@@ -406,14 +470,27 @@ mod tests {
         let (want_entry, want) = encode_payload(key, LEAF, n, attr_len, pos, color, attr).unwrap();
         for slice in [1, 3, 64, 999, 1000, 5000] {
             let mut got = vec![0xAAu8; want.len()];
-            let entry = write_payload_sliced::<()>(key, LEAF, n, attr_len, slice, pos, color, attr, |at, b| {
-                got[at as usize..at as usize + b.len()].copy_from_slice(b);
-                Ok(())
-            })
+            let entry = write_payload_sliced::<()>(
+                key,
+                LEAF,
+                n,
+                attr_len,
+                slice,
+                pos,
+                color,
+                attr,
+                |at, b| {
+                    got[at as usize..at as usize + b.len()].copy_from_slice(b);
+                    Ok(())
+                },
+            )
             .unwrap()
             .unwrap();
             assert!(got == want, "slice {slice}: the bytes differ");
-            assert_eq!((entry.count, entry.length, entry.kind), (want_entry.count, want_entry.length, want_entry.kind));
+            assert_eq!(
+                (entry.count, entry.length, entry.kind),
+                (want_entry.count, want_entry.length, want_entry.kind)
+            );
         }
     }
 }

@@ -8,11 +8,18 @@ use mortar_core::octree::{Builder, NodeId, OctreeError, Point};
 use rayon::prelude::*;
 use std::time::Instant;
 
+use super::build::*;
 use super::format::*;
 use super::writer::*;
-use super::build::*;
 
-pub(crate) fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOptions, progress: &mut dyn FnMut(&BuildProgress), header: Option<([i32; 3], [i32; 3])>, t0: Instant) -> Result<BuildReport> {
+pub(crate) fn build_into(
+    ds: &Dataset,
+    writer: &mut StoreWriter,
+    opts: &BuildOptions,
+    progress: &mut dyn FnMut(&BuildProgress),
+    header: Option<([i32; 3], [i32; 3])>,
+    t0: Instant,
+) -> Result<BuildReport> {
     let rl = ds.layout.record_len;
     let pieces = ds.pieces();
     let total: u64 = pieces.iter().map(|p| p.piece.points).sum();
@@ -25,10 +32,13 @@ pub(crate) fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOpt
     // Made with the first points: its root covers the headers' bounds and those points.
     let mut builder: Option<Builder> = None;
     // The real bounds of each input's points, for the warnings about headers that lie.
-    let mut real: Vec<crate::sort::PieceStats> = vec![crate::sort::PieceStats::default(); ds.inputs.len()];
+    let mut real: Vec<crate::sort::PieceStats> =
+        vec![crate::sort::PieceStats::default(); ds.inputs.len()];
     // Records of the points added since the last commit (index = Point::record) and of points
     // paged back in (PAGED | index).
-    let mut records: Vec<u8> = Vec::with_capacity((interval_points.min(total) as usize + batch).saturating_mul(rl).min(1 << 30));
+    let mut records: Vec<u8> = Vec::with_capacity(
+        (interval_points.min(total) as usize + batch).saturating_mul(rl).min(1 << 30),
+    );
     let paged = std::sync::Mutex::new(Vec::<u8>::new());
     let mut color: Option<ColorSource> = None;
     let (mut lo, mut hi) = ([i32::MAX; 3], [i32::MIN; 3]);
@@ -41,13 +51,18 @@ pub(crate) fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOpt
         // The next pieces, up to about one batch of points.
         let first = next;
         let mut n = 0u64;
-        while next < pieces.len() && (next == first || n + pieces[next].piece.points <= batch as u64) {
+        while next < pieces.len()
+            && (next == first || n + pieces[next].piece.points <= batch as u64)
+        {
             n += pieces[next].piece.points;
             next += 1;
         }
         let tr = Instant::now();
         let base = records.len();
-        let bytes = usize::try_from(n).ok().and_then(|n| n.checked_mul(rl)).ok_or(Error::PieceTooLarge { points: n })?;
+        let bytes = usize::try_from(n)
+            .ok()
+            .and_then(|n| n.checked_mul(rl))
+            .ok_or(Error::PieceTooLarge { points: n })?;
         records.resize(base + bytes, 0);
         {
             let mut slices = Vec::with_capacity(next - first);
@@ -72,10 +87,13 @@ pub(crate) fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOpt
             }
         }
         let recs = &records[base..];
-        let st = recs.par_chunks(rl * 65_536).map(|c| crate::sort::PieceStats::of(c, &ds.layout)).reduce(crate::sort::PieceStats::default, |mut a, b| {
-            a.merge(&b);
-            a
-        });
+        let st = recs
+            .par_chunks(rl * 65_536)
+            .map(|c| crate::sort::PieceStats::of(c, &ds.layout))
+            .reduce(crate::sort::PieceStats::default, |mut a, b| {
+                a.merge(&b);
+                a
+            });
         report.read_seconds += tr.elapsed().as_secs_f64();
         if builder.is_none() && st.count > 0 {
             // The headers' box when it holds the first points; otherwise the headers lie, and
@@ -84,7 +102,9 @@ pub(crate) fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOpt
                 Some((l, h)) if (0..3).all(|a| l[a] <= st.min[a] && st.max[a] <= h[a]) => (l, h),
                 _ => (st.min, st.max),
             };
-            builder = Some(Builder::for_bounds(l, h, opts.config).map_err(|error| Error::Octree { error })?);
+            builder = Some(
+                Builder::for_bounds(l, h, opts.config).map_err(|error| Error::Octree { error })?,
+            );
         }
         let Some(builder) = builder.as_mut() else { continue };
         if st.count > 0 {
@@ -96,7 +116,9 @@ pub(crate) fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOpt
         // The colour source is chosen once, from the first batch (as batch files choose it from
         // the whole input).
         let color = *color.get_or_insert_with(|| match ds.layout.attribute("rgb") {
-            Some(a) if st.max_rgb > 0 => ColorSource::Rgb { offset: a.offset, depth: RgbDepth::detect(st.max_rgb) },
+            Some(a) if st.max_rgb > 0 => {
+                ColorSource::Rgb { offset: a.offset, depth: RgbDepth::detect(st.max_rgb) }
+            }
             _ => ColorSource::Intensity { max_intensity: st.max_intensity },
         });
         // Updates of about `batch` points each; a commit may come between two of them.
@@ -106,7 +128,13 @@ pub(crate) fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOpt
             let end = (cursor + batch * rl).min(records.len());
             let first_index = (cursor / rl) as u64;
             points.clear();
-            points.par_extend(records[cursor..end].par_chunks_exact(rl).enumerate().map(|(i, r)| Point { pos: read_xyz(r), color: color.rgba(r), record: first_index + i as u64 }));
+            points.par_extend(records[cursor..end].par_chunks_exact(rl).enumerate().map(
+                |(i, r)| Point {
+                    pos: read_xyz(r),
+                    color: color.rgba(r),
+                    record: first_index + i as u64,
+                },
+            ));
             let tb = Instant::now();
             let paged_in = std::sync::atomic::AtomicU64::new(0);
             {
@@ -125,18 +153,37 @@ pub(crate) fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOpt
             report.batch_seconds.push(tb.elapsed().as_secs_f64());
             done += points.len() as u64;
             cursor = end;
-            let held = records.len() as u64 + paged.lock().map_or(0, |p| p.len() as u64) + builder.resident_points() * 24;
+            let held = records.len() as u64
+                + paged.lock().map_or(0, |p| p.len() as u64)
+                + builder.resident_points() * 24;
             report.peak_interval_bytes = report.peak_interval_bytes.max(held);
             let since = last_commit.elapsed().as_secs_f64();
-            let first_due = writer.commits() == 0 && opts.first_commit_after.is_some_and(|f| since >= f);
-            let due = since >= opts.commit_every || first_due || builder.resident_points() >= interval_points;
+            let first_due =
+                writer.commits() == 0 && opts.first_commit_after.is_some_and(|f| since >= f);
+            let due = since >= opts.commit_every
+                || first_due
+                || builder.resident_points() >= interval_points;
             let last = next == pieces.len() && cursor == records.len();
             if due && !last {
-                commit_and_page_out(writer, builder, (lo, hi), &mut records, cursor, &paged, rl, &mut report)?;
+                commit_and_page_out(
+                    writer,
+                    builder,
+                    (lo, hi),
+                    &mut records,
+                    cursor,
+                    &paged,
+                    rl,
+                    &mut report,
+                )?;
                 cursor = 0;
                 last_commit = Instant::now();
             }
-            progress(&BuildProgress { points: done, total, nodes: builder.node_count(), commits: writer.commits() });
+            progress(&BuildProgress {
+                points: done,
+                total,
+                nodes: builder.node_count(),
+                commits: writer.commits(),
+            });
         }
     }
     if done == 0 {
@@ -144,7 +191,10 @@ pub(crate) fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOpt
     }
     let builder = match builder.as_mut() {
         Some(b) => b,
-        None => builder.insert(Builder::for_bounds([0; 3], [0; 3], opts.config).map_err(|error| Error::Octree { error })?),
+        None => builder.insert(
+            Builder::for_bounds([0; 3], [0; 3], opts.config)
+                .map_err(|error| Error::Octree { error })?,
+        ),
     };
     let all = records.len();
     commit_and_page_out(writer, builder, (lo, hi), &mut records, all, &paged, rl, &mut report)?;
@@ -168,7 +218,16 @@ pub(crate) fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOpt
 /// Commits, then pages out every leaf's points and drops the records they needed: the first
 /// `added` bytes of `records` (the rest, not added yet, moves to the front).
 #[allow(clippy::too_many_arguments)]
-pub(crate) fn commit_and_page_out(writer: &mut StoreWriter, builder: &mut Builder, bounds: ([i32; 3], [i32; 3]), records: &mut Vec<u8>, added: usize, paged: &std::sync::Mutex<Vec<u8>>, rl: usize, report: &mut BuildReport) -> Result<()> {
+pub(crate) fn commit_and_page_out(
+    writer: &mut StoreWriter,
+    builder: &mut Builder,
+    bounds: ([i32; 3], [i32; 3]),
+    records: &mut Vec<u8>,
+    added: usize,
+    paged: &std::sync::Mutex<Vec<u8>>,
+    rl: usize,
+    report: &mut BuildReport,
+) -> Result<()> {
     let tc = Instant::now();
     {
         let paged = paged.lock().map_err(|_| Error::ThreadPanicked { thread: "a page-in" })?;
@@ -193,4 +252,3 @@ pub(crate) fn commit_and_page_out(writer: &mut StoreWriter, builder: &mut Builde
     report.commit_seconds += tc.elapsed().as_secs_f64();
     Ok(())
 }
-

@@ -28,11 +28,11 @@
 mod build;
 mod compact;
 pub(crate) mod dense;
-pub(crate) mod engine;
-pub(crate) mod partitioned;
 pub mod distributed;
+pub(crate) mod engine;
 mod format;
 mod incremental;
+pub(crate) mod partitioned;
 mod reader;
 mod record;
 mod writer;
@@ -41,7 +41,10 @@ pub(crate) use build::header_bounds as header_bounds_of;
 pub use build::{build, BuildOptions, BuildProgress, BuildReport, Engine};
 pub use compact::{compact, CompactReport};
 pub use engine::in_memory_need;
-pub use format::{HierarchyHeader, NodeEntry, NodeHeader, PayloadError, HIERARCHY_FILE, INNER, LEAF, NODES_FILE, SOURCE_FILE};
+pub use format::{
+    HierarchyHeader, NodeEntry, NodeHeader, PayloadError, HIERARCHY_FILE, INNER, LEAF, NODES_FILE,
+    SOURCE_FILE,
+};
 pub use reader::{is_store, NodeData, Store};
 pub use record::{BuildRecord, InputPrint, RECORD_FILE};
 pub use writer::{CommitStats, StoreWriter, COMMIT_GROUP_BYTES, PAGED};

@@ -42,7 +42,10 @@ use crate::sort::{self, PieceStats};
 use mortar_core::color::{ColorSource, RgbDepth};
 use mortar_core::layout::read_xyz;
 use mortar_core::morton::MortonGrid;
-use mortar_core::octree::{build_subtree, earliest_in_parent_cells, splits, Cube, NodeKey, SortedContent, MIN_INNER_SIZE_LOG2};
+use mortar_core::octree::{
+    build_subtree, earliest_in_parent_cells, splits, Cube, NodeKey, SortedContent,
+    MIN_INNER_SIZE_LOG2,
+};
 use rayon::prelude::*;
 use std::io::{Read, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
@@ -100,37 +103,67 @@ fn write_manifest(state: &Path, p: &Partition) -> Result<()> {
     });
     let mp = state.join(MANIFEST);
     let tmp = state.join(format!("{MANIFEST}.tmp"));
-    std::fs::write(&tmp, serde_json::to_vec_pretty(&j).unwrap_or_default()).map_err(|e| Error::io(&tmp, e))?;
+    std::fs::write(&tmp, serde_json::to_vec_pretty(&j).unwrap_or_default())
+        .map_err(|e| Error::io(&tmp, e))?;
     std::fs::rename(&tmp, &mp).map_err(|e| Error::io(&mp, e))?;
     Ok(())
 }
 
 /// A checksum of what the manifest says (its JSON is checked field by field against it).
 fn manifest_sum(p: &Partition, tables: u64) -> u64 {
-    let names: Vec<String> = p.runs.iter().map(|r| r.path.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default()).collect();
+    let names: Vec<String> = p
+        .runs
+        .iter()
+        .map(|r| r.path.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default())
+        .collect();
     let hashes: Vec<u64> = p.runs.iter().map(|r| r.hash).collect();
     let a = &p.all;
-    let text = format!("{:?} {} {} {names:?} {hashes:?} {} {:?} {:?} {} {} {tables} {:?}", p.root.min, p.root.size_log2, p.hist.len(), a.count, a.min, a.max, a.max_rgb, a.max_intensity, p.warnings);
+    let text = format!(
+        "{:?} {} {} {names:?} {hashes:?} {} {:?} {:?} {} {} {tables} {:?}",
+        p.root.min,
+        p.root.size_log2,
+        p.hist.len(),
+        a.count,
+        a.min,
+        a.max,
+        a.max_rgb,
+        a.max_intensity,
+        p.warnings
+    );
     checksum(text.as_bytes())
 }
 
 /// The manifest of a stopped build, if it is whole and its run files are all there.
 fn read_manifest(state: &Path, rl: usize) -> Option<Partition> {
-    let j: serde_json::Value = serde_json::from_slice(&std::fs::read(state.join(MANIFEST)).ok()?).ok()?;
-    let arr3 = |v: &serde_json::Value| -> Option<[i64; 3]> { Some([v.get(0)?.as_i64()?, v.get(1)?.as_i64()?, v.get(2)?.as_i64()?]) };
+    let j: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(state.join(MANIFEST)).ok()?).ok()?;
+    let arr3 = |v: &serde_json::Value| -> Option<[i64; 3]> {
+        Some([v.get(0)?.as_i64()?, v.get(1)?.as_i64()?, v.get(2)?.as_i64()?])
+    };
     let root = Cube { min: arr3(&j["root_min"])?, size_log2: j["root_size_log2"].as_u64()? as u8 };
     let cells = j["cells"].as_u64()? as usize;
-    let names: Vec<String> = j["runs"].as_array()?.iter().map(|v| v.as_str().map(str::to_string)).collect::<Option<_>>()?;
-    let hashes: Vec<u64> = j["run_checksums"].as_array()?.iter().map(|v| v.as_u64()).collect::<Option<_>>()?;
+    let names: Vec<String> = j["runs"]
+        .as_array()?
+        .iter()
+        .map(|v| v.as_str().map(str::to_string))
+        .collect::<Option<_>>()?;
+    let hashes: Vec<u64> =
+        j["run_checksums"].as_array()?.iter().map(|v| v.as_u64()).collect::<Option<_>>()?;
     if hashes.len() != names.len() {
         return None;
     }
     let t = std::fs::read(state.join(TABLES)).ok()?;
-    let want = cells.checked_add(names.len().checked_mul(cells.checked_add(1)?)?)?.checked_mul(8)?;
-    if t.len() != want || checksum(&t) != j["tables_checksum"].as_u64()? || cells == 0 || !cells.is_power_of_two() {
+    let want =
+        cells.checked_add(names.len().checked_mul(cells.checked_add(1)?)?)?.checked_mul(8)?;
+    if t.len() != want
+        || checksum(&t) != j["tables_checksum"].as_u64()?
+        || cells == 0
+        || !cells.is_power_of_two()
+    {
         return None;
     }
-    let t: Vec<u64> = t.chunks_exact(8).map(|c| u64::from_le_bytes(c.try_into().expect("8 bytes"))).collect();
+    let t: Vec<u64> =
+        t.chunks_exact(8).map(|c| u64::from_le_bytes(c.try_into().expect("8 bytes"))).collect();
     let hist = t[..cells].to_vec();
     let mut runs = Vec::new();
     if names.iter().any(|n| !(n.starts_with("run-") && n.ends_with(".bin")) || n.contains('/')) {
@@ -149,17 +182,29 @@ fn read_manifest(state: &Path, rl: usize) -> Option<Partition> {
         runs.push(Run { path, starts, hash: hashes[k] });
     }
     // The cells' counts are the runs' counts summed.
-    if (0..cells).any(|c| runs.iter().map(|r| r.starts[c + 1] - r.starts[c]).sum::<u64>() != hist[c]) {
+    if (0..cells)
+        .any(|c| runs.iter().map(|r| r.starts[c + 1] - r.starts[c]).sum::<u64>() != hist[c])
+    {
         return None;
     }
     // Every run as it was written (a power loss may have kept the sizes but not the bytes).
-    let whole = runs.par_iter().all(|r| std::fs::read(&r.path).is_ok_and(|b| checksum(&b) == r.hash));
+    let whole =
+        runs.par_iter().all(|r| std::fs::read(&r.path).is_ok_and(|b| checksum(&b) == r.hash));
     if !whole {
         return None;
     }
-    let i32x3 = |v: &serde_json::Value| -> Option<[i32; 3]> { arr3(v).map(|a| a.map(|x| x as i32)) };
-    let all = PieceStats { count: j["count"].as_u64()?, min: i32x3(&j["min"])?, max: i32x3(&j["max"])?, max_rgb: j["max_rgb"].as_u64()? as u16, max_intensity: j["max_intensity"].as_u64()? as u16, ..PieceStats::default() };
-    let warnings = j["warnings"].as_array()?.iter().filter_map(|w| w.as_str().map(str::to_string)).collect();
+    let i32x3 =
+        |v: &serde_json::Value| -> Option<[i32; 3]> { arr3(v).map(|a| a.map(|x| x as i32)) };
+    let all = PieceStats {
+        count: j["count"].as_u64()?,
+        min: i32x3(&j["min"])?,
+        max: i32x3(&j["max"])?,
+        max_rgb: j["max_rgb"].as_u64()? as u16,
+        max_intensity: j["max_intensity"].as_u64()? as u16,
+        ..PieceStats::default()
+    };
+    let warnings =
+        j["warnings"].as_array()?.iter().filter_map(|w| w.as_str().map(str::to_string)).collect();
     let p = Partition { root, runs, hist, all, warnings, base: [0; 3] };
     (manifest_sum(&p, j["tables_checksum"].as_u64()?) == j["checksum"].as_u64()?).then_some(p)
 }
@@ -176,9 +221,26 @@ fn fnv(b: &[u8]) -> u64 {
 
 /// One log record: the visit's key, where the walk stood after it, its nodes and candidates.
 #[allow(clippy::too_many_arguments)]
-fn log_record(key: NodeKey, seq_after: u64, points: u64, nodes_end: u64, entries: &[(u32, u64, NodeEntry)], hashes: &[u64], cands: &Cands, rl: usize) -> Vec<u8> {
+fn log_record(
+    key: NodeKey,
+    seq_after: u64,
+    points: u64,
+    nodes_end: u64,
+    entries: &[(u32, u64, NodeEntry)],
+    hashes: &[u64],
+    cands: &Cands,
+    rl: usize,
+) -> Vec<u8> {
     let mut b = Vec::new();
-    for v in [LOG_MAGIC, key.level as u32, key.index[0], key.index[1], key.index[2], entries.len() as u32, cands.pos.len() as u32] {
+    for v in [
+        LOG_MAGIC,
+        key.level as u32,
+        key.index[0],
+        key.index[1],
+        key.index[2],
+        entries.len() as u32,
+        cands.pos.len() as u32,
+    ] {
         b.extend_from_slice(&v.to_le_bytes());
     }
     for v in [seq_after, points, nodes_end] {
@@ -203,14 +265,21 @@ fn log_record(key: NodeKey, seq_after: u64, points: u64, nodes_end: u64, entries
 
 /// What a stopped walk left: the visits by key, every logged entry with its payload checksum,
 /// the points they added, and where `nodes.bin` ended after the last one.
-type LogState = (std::collections::HashMap<(u32, [u32; 3]), Logged>, Vec<(u32, u64, NodeEntry)>, Vec<u64>, u64, u64);
+type LogState = (
+    std::collections::HashMap<(u32, [u32; 3]), Logged>,
+    Vec<(u32, u64, NodeEntry)>,
+    Vec<u64>,
+    u64,
+    u64,
+);
 
 /// The log's records up to the first that is not whole or whose payloads in `nodes` are not
 /// what it wrote; the log is cut after them.
 fn read_log(path: &Path, nodes: &Path, rl: usize) -> Result<LogState> {
     let b = std::fs::read(path).unwrap_or_default();
     let mut visits = std::collections::HashMap::new();
-    let (mut entries, mut hashes, mut points, mut end, mut at) = (Vec::new(), Vec::new(), 0u64, 0u64, 0usize);
+    let (mut entries, mut hashes, mut points, mut end, mut at) =
+        (Vec::new(), Vec::new(), 0u64, 0u64, 0usize);
     let nf = std::fs::File::open(nodes).ok();
     let payload_ok = |e: &NodeEntry, h: u64| -> bool {
         use std::os::unix::fs::FileExt;
@@ -249,7 +318,9 @@ fn read_log(path: &Path, nodes: &Path, rl: usize) -> Result<LogState> {
         }
         let mut cands = Cands::default();
         for _ in 0..nc {
-            let q = [0, 1, 2].map(|a| i32::from_le_bytes(b[o + 4 * a..o + 4 * a + 4].try_into().expect("4 bytes")));
+            let q = [0, 1, 2].map(|a| {
+                i32::from_le_bytes(b[o + 4 * a..o + 4 * a + 4].try_into().expect("4 bytes"))
+            });
             cands.push(q, u64_at(o + 12), &b[o + 20..o + 20 + rl]);
             o += 20 + rl;
         }
@@ -259,7 +330,8 @@ fn read_log(path: &Path, nodes: &Path, rl: usize) -> Result<LogState> {
         at += len + 8;
     }
     if at < b.len() {
-        let f = std::fs::OpenOptions::new().write(true).open(path).map_err(|e| Error::io(path, e))?;
+        let f =
+            std::fs::OpenOptions::new().write(true).open(path).map_err(|e| Error::io(path, e))?;
         f.set_len(at as u64).map_err(|e| Error::io(path, e))?;
     }
     Ok((visits, entries, hashes, points, end))
@@ -298,7 +370,10 @@ fn checksum_at(w: &StoreWriter, off: u64, len: u64) -> Result<u64> {
     if len <= 1 << 20 {
         return Ok(checksum(&read(0, len as usize)?));
     }
-    let parts: Vec<u64> = (0..len.div_ceil(1 << 20)).into_par_iter().map(|k| Ok(checksum_block(&read(k << 20, ((len - (k << 20)).min(1 << 20)) as usize)?))).collect::<Result<_>>()?;
+    let parts: Vec<u64> = (0..len.div_ceil(1 << 20))
+        .into_par_iter()
+        .map(|k| Ok(checksum_block(&read(k << 20, ((len - (k << 20)).min(1 << 20)) as usize)?)))
+        .collect::<Result<_>>()?;
     Ok(checksum_block(bytemuck::cast_slice(&parts)))
 }
 
@@ -306,7 +381,9 @@ fn checksum_block(b: &[u8]) -> u64 {
     let mut h = 0x243f_6a88_85a3_08d3u64 ^ b.len() as u64;
     let mut words = b.chunks_exact(8);
     for w in &mut words {
-        h = (h ^ u64::from_le_bytes(w.try_into().expect("8 bytes"))).wrapping_mul(0x9e37_79b9_7f4a_7c15).rotate_left(29);
+        h = (h ^ u64::from_le_bytes(w.try_into().expect("8 bytes")))
+            .wrapping_mul(0x9e37_79b9_7f4a_7c15)
+            .rotate_left(29);
     }
     for &x in words.remainder() {
         h = (h ^ x as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15).rotate_left(29);
@@ -376,7 +453,14 @@ pub(crate) fn cell_depth(root: Cube, max_level: u8) -> u8 {
 }
 
 /// Builds the store in `writer` from `ds` (a cell denser than a unit: [`dense`]).
-pub(crate) fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOptions, progress: &mut dyn FnMut(&BuildProgress), header: Option<([i32; 3], [i32; 3])>, t0: Instant) -> Result<BuildReport> {
+pub(crate) fn build_into(
+    ds: &Dataset,
+    writer: &mut StoreWriter,
+    opts: &BuildOptions,
+    progress: &mut dyn FnMut(&BuildProgress),
+    header: Option<([i32; 3], [i32; 3])>,
+    t0: Instant,
+) -> Result<BuildReport> {
     let rl = ds.layout.record_len;
     let total = ds.declared_points();
     let mut report = BuildReport { engine: "partitioned", ..BuildReport::default() };
@@ -384,7 +468,9 @@ pub(crate) fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOpt
     let tr = Instant::now();
     let kept = if opts.resume { read_manifest(&state, rl) } else { None };
     // A partition made for another tree shape (another --max-level) is not used.
-    let kept = kept.filter(|p| p.hist.len() == 1usize << (3 * cell_depth(p.root, opts.config.max_level) as u32));
+    let kept = kept.filter(|p| {
+        p.hist.len() == 1usize << (3 * cell_depth(p.root, opts.config.max_level) as u32)
+    });
     let resumed = kept.is_some();
     let part = match kept {
         Some(p) => p,
@@ -401,24 +487,52 @@ pub(crate) fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOpt
     report.read_seconds = tr.elapsed().as_secs_f64();
     sort::trace("partitioned", t0);
     let (lo, hi) = if all.count == 0 { ([0; 3], [0; 3]) } else { (all.min, all.max) };
-    let unit_points = ((opts.memory / 2) / unit_bytes_per_point(rl as u64)).max(opts.config.leaf_capacity as u64 + 1);
+    let unit_points = ((opts.memory / 2) / unit_bytes_per_point(rl as u64))
+        .max(opts.config.leaf_capacity as u64 + 1);
     // A resumed walk: what the log holds is taken as it is; nodes.bin is cut after it.
     let log_path = state.join(LOG);
-    let (replay, logged, logged_hashes, logged_points, nodes_end) = if resumed { read_log(&log_path, &writer.dir.join(NODES_FILE), rl)? } else { Default::default() };
+    let (replay, logged, logged_hashes, logged_points, nodes_end) = if resumed {
+        read_log(&log_path, &writer.dir.join(NODES_FILE), rl)?
+    } else {
+        Default::default()
+    };
     writer.cut_nodes(nodes_end)?;
     report.kept_nodes = logged.len() as u64;
     ds.progress.stage("building", all.count, "points");
     ds.progress.add(logged_points);
-    let log = std::fs::OpenOptions::new().create(true).append(true).open(&log_path).map_err(|e| Error::io(&log_path, e))?;
+    let log = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(&log_path)
+        .map_err(|e| Error::io(&log_path, e))?;
     let color = match ds.layout.attribute("rgb") {
-        Some(a) if all.max_rgb > 0 => ColorSource::Rgb { offset: a.offset, depth: RgbDepth::detect(all.max_rgb) },
+        Some(a) if all.max_rgb > 0 => {
+            ColorSource::Rgb { offset: a.offset, depth: RgbDepth::detect(all.max_rgb) }
+        }
         _ => ColorSource::Intensity { max_intensity: all.max_intensity },
     };
     ds.progress.stage("building", all.count, "points");
     let depth = cell_depth(root, opts.config.max_level);
     let cells = hist.len();
     let lv = Level::new(runs, hist, depth);
-    let mut w = Walk { ds, writer, opts, root, unit_points, color, rl, entries: logged, hashes: logged_hashes, seq: 0, points: logged_points, report: &mut report, replay, log, log_path, state: state.clone() };
+    let mut w = Walk {
+        ds,
+        writer,
+        opts,
+        root,
+        unit_points,
+        color,
+        rl,
+        entries: logged,
+        hashes: logged_hashes,
+        seq: 0,
+        points: logged_points,
+        report: &mut report,
+        replay,
+        log,
+        log_path,
+        state: state.clone(),
+    };
     w.visit(&lv, NodeKey::ROOT, root, 0, 0..cells)?;
     let Walk { mut entries, points, .. } = w;
     // The sorted engine's order: level by level, depth-first (= Morton) order in a level.
@@ -433,7 +547,8 @@ pub(crate) fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOpt
     report.points = points;
     report.nodes = entries.len() as u64;
     report.leaves = entries.iter().filter(|(_, _, e)| e.kind == LEAF).count() as u64;
-    report.voxels = entries.iter().filter(|(_, _, e)| e.kind != LEAF).map(|(_, _, e)| e.count).sum();
+    report.voxels =
+        entries.iter().filter(|(_, _, e)| e.kind != LEAF).map(|(_, _, e)| e.count).sum();
     report.commits = writer.commits();
     report.nodes_bytes = writer.nodes_len;
     report.resumed = resumed;
@@ -447,19 +562,35 @@ pub(crate) fn build_into(ds: &Dataset, writer: &mut StoreWriter, opts: &BuildOpt
 /// export of axes with different scales) the records in the runs are on the stretched grid
 /// `(p - base) * stretch` with `base` the points' smallest position, and the root is the
 /// points' own box on it.
-pub(crate) fn partition_all(ds: &Dataset, memory: u64, max_level: u8, stretch: [i64; 3], header: Option<([i32; 3], [i32; 3])>, state: &Path) -> Result<Partition> {
+pub(crate) fn partition_all(
+    ds: &Dataset,
+    memory: u64,
+    max_level: u8,
+    stretch: [i64; 3],
+    header: Option<([i32; 3], [i32; 3])>,
+    state: &Path,
+) -> Result<Partition> {
     let rl = ds.layout.record_len;
     let total = ds.declared_points();
     let stretched = stretch != [1; 3];
     let guess = match header {
-        Some((l, h)) if stretched => (Grid { base: l.map(|v| v as i64), m: stretch }, Cube::covering([0; 3], [0, 1, 2].map(|a| Grid::clamp((h[a] as i64 - l[a] as i64) * stretch[a])))),
+        Some((l, h)) if stretched => (
+            Grid { base: l.map(|v| v as i64), m: stretch },
+            Cube::covering(
+                [0; 3],
+                [0, 1, 2].map(|a| Grid::clamp((h[a] as i64 - l[a] as i64) * stretch[a])),
+            ),
+        ),
         Some((l, h)) => (Grid::IDENTITY, Cube::covering(l, h)),
-        None if stretched => (Grid { base: [0; 3], m: stretch }, Cube { min: [0; 3], size_log2: 32 }),
+        None if stretched => {
+            (Grid { base: [0; 3], m: stretch }, Cube { min: [0; 3], size_log2: 32 })
+        }
         None => (Grid::IDENTITY, Cube { min: [0; 3], size_log2: 32 }),
     };
     let block_bytes = ((memory / 4).max(rl as u64 * 4096)) as usize;
     ds.progress.stage("partitioning", total, "points");
-    let (mut runs, mut hist, all, real) = partition(ds, guess.1, guess.0, max_level, block_bytes, state, None)?;
+    let (mut runs, mut hist, all, real) =
+        partition(ds, guess.1, guess.0, max_level, block_bytes, state, None)?;
     let mut warnings = Vec::new();
     for (src, st) in ds.inputs.iter().zip(&real) {
         if let Some(w) = super::build::bounds_warning(ds, src.as_ref(), st) {
@@ -472,14 +603,20 @@ pub(crate) fn partition_all(ds: &Dataset, memory: u64, max_level: u8, stretch: [
         for a in 0..3 {
             let v = (hi[a] as i64 - lo[a] as i64) * stretch[a];
             if v >= i32::MAX as i64 {
-                return Err(Error::ScalesDiffer { path: ds.inputs[0].path().to_path_buf(), scale: ds.grid.scale, axis: a });
+                return Err(Error::ScalesDiffer {
+                    path: ds.inputs[0].path().to_path_buf(),
+                    scale: ds.grid.scale,
+                    axis: a,
+                });
             }
             t[a] = v as i32;
         }
         (Grid { base: lo.map(|v| v as i64), m: stretch }, Cube::covering([0; 3], t))
     } else {
         let root = match header {
-            Some((l, h)) if all.count > 0 && (0..3).all(|a| l[a] <= lo[a] && hi[a] <= h[a]) => Cube::covering(l, h),
+            Some((l, h)) if all.count > 0 && (0..3).all(|a| l[a] <= lo[a] && hi[a] <= h[a]) => {
+                Cube::covering(l, h)
+            }
             _ => Cube::covering(lo, hi),
         };
         (Grid::IDENTITY, root)
@@ -530,7 +667,15 @@ fn cell_of(q: [i32; 3], g: &MortonGrid, root: Cube, depth: u8) -> usize {
 
 /// Pass 1: reads every piece once and writes the run files; the cells' counts, the statistics
 /// of all points and of each input.
-fn partition(ds: &Dataset, root: Cube, grid: Grid, max_level: u8, block_bytes: usize, dir: &Path, filter: Option<&Filter>) -> Result<Partitioned> {
+fn partition(
+    ds: &Dataset,
+    root: Cube,
+    grid: Grid,
+    max_level: u8,
+    block_bytes: usize,
+    dir: &Path,
+    filter: Option<&Filter>,
+) -> Result<Partitioned> {
     let rl = ds.layout.record_len;
     let el = rl + 8;
     let depth = cell_depth(root, max_level);
@@ -538,7 +683,12 @@ fn partition(ds: &Dataset, root: Cube, grid: Grid, max_level: u8, block_bytes: u
     let g = grid_of(root);
     // The pieces read (all, or those a filter keeps), each with its number in the dataset: the
     // arrival numbers are those of a build that reads every piece.
-    let pieces: Vec<(usize, crate::dataset::DatasetPiece)> = ds.pieces().into_iter().enumerate().filter(|(k, _)| filter.is_none_or(|f| f.pieces[*k])).collect();
+    let pieces: Vec<(usize, crate::dataset::DatasetPiece)> = ds
+        .pieces()
+        .into_iter()
+        .enumerate()
+        .filter(|(k, _)| filter.is_none_or(|f| f.pieces[*k]))
+        .collect();
     let wanted = |c: usize| filter.is_none_or(|f| f.cells[c]);
     let mut runs = Vec::new();
     let mut hist = vec![0u64; cells];
@@ -549,7 +699,9 @@ fn partition(ds: &Dataset, root: Cube, grid: Grid, max_level: u8, block_bytes: u
         sort::check_interrupted()?;
         let mut j = i;
         let mut bytes = 0usize;
-        while j < pieces.len() && (j == i || bytes + pieces[j].1.piece.points as usize * rl <= block_bytes) {
+        while j < pieces.len()
+            && (j == i || bytes + pieces[j].1.piece.points as usize * rl <= block_bytes)
+        {
             bytes += pieces[j].1.piece.points as usize * rl;
             j += 1;
         }
@@ -560,7 +712,10 @@ fn partition(ds: &Dataset, root: Cube, grid: Grid, max_level: u8, block_bytes: u
                 let p = &pieces[k].1;
                 let slab = ds.read_piece(p)?;
                 if slab.len() as u64 != p.piece.points * rl as u64 {
-                    return Err(Error::PieceCount { path: ds.inputs[p.input].path().to_path_buf(), piece: p.piece.index });
+                    return Err(Error::PieceCount {
+                        path: ds.inputs[p.input].path().to_path_buf(),
+                        piece: p.piece.index,
+                    });
                 }
                 let mut h = vec![0u32; cells];
                 for r in slab.chunks_exact(rl) {
@@ -589,30 +744,40 @@ fn partition(ds: &Dataset, root: Cube, grid: Grid, max_level: u8, block_bytes: u
         let mut buf = sort::zeroed_huge::<u8>(n * el);
         {
             let bp = super::engine::SendPtr(buf.as_mut_ptr());
-            group.par_iter().zip(cursors.into_par_iter()).enumerate().for_each(|(k, ((slab, _, _), mut cur))| {
-                let bp = &bp;
-                let piece = pieces[i + k].0 as u64;
-                for (x, r) in slab.chunks_exact(rl).enumerate() {
-                    let q = grid.apply(read_xyz(r));
-                    let c = cell_of(q, &g, root, depth);
-                    if !wanted(c) {
-                        continue;
-                    }
-                    let at = cur[c];
-                    cur[c] += 1;
-                    // SAFETY: the cursors of all pieces partition 0..n; each slot is written once.
-                    unsafe {
-                        std::ptr::copy_nonoverlapping(r.as_ptr(), bp.0.add(at * rl), rl);
-                        if !grid.is_identity() {
-                            let q = q.map(i32::to_le_bytes);
-                            for (a, b) in q.iter().enumerate() {
-                                std::ptr::copy_nonoverlapping(b.as_ptr(), bp.0.add(at * rl + 4 * a), 4);
-                            }
+            group.par_iter().zip(cursors.into_par_iter()).enumerate().for_each(
+                |(k, ((slab, _, _), mut cur))| {
+                    let bp = &bp;
+                    let piece = pieces[i + k].0 as u64;
+                    for (x, r) in slab.chunks_exact(rl).enumerate() {
+                        let q = grid.apply(read_xyz(r));
+                        let c = cell_of(q, &g, root, depth);
+                        if !wanted(c) {
+                            continue;
                         }
-                        std::ptr::copy_nonoverlapping((piece << 32 | x as u64).to_ne_bytes().as_ptr(), bp.0.add(n * rl + at * 8), 8);
+                        let at = cur[c];
+                        cur[c] += 1;
+                        // SAFETY: the cursors of all pieces partition 0..n; each slot is written once.
+                        unsafe {
+                            std::ptr::copy_nonoverlapping(r.as_ptr(), bp.0.add(at * rl), rl);
+                            if !grid.is_identity() {
+                                let q = q.map(i32::to_le_bytes);
+                                for (a, b) in q.iter().enumerate() {
+                                    std::ptr::copy_nonoverlapping(
+                                        b.as_ptr(),
+                                        bp.0.add(at * rl + 4 * a),
+                                        4,
+                                    );
+                                }
+                            }
+                            std::ptr::copy_nonoverlapping(
+                                (piece << 32 | x as u64).to_ne_bytes().as_ptr(),
+                                bp.0.add(n * rl + at * 8),
+                                8,
+                            );
+                        }
                     }
-                }
-            });
+                },
+            );
         }
         for (k, (_, st, h)) in group.iter().enumerate() {
             all.merge(st);
@@ -626,7 +791,10 @@ fn partition(ds: &Dataset, root: Cube, grid: Grid, max_level: u8, block_bytes: u
         }
         drop(group);
         let path = dir.join(format!("run-{}.bin", runs.len()));
-        let mut f = std::io::BufWriter::with_capacity(8 << 20, std::fs::File::create(&path).map_err(|e| Error::io(&path, e))?);
+        let mut f = std::io::BufWriter::with_capacity(
+            8 << 20,
+            std::fs::File::create(&path).map_err(|e| Error::io(&path, e))?,
+        );
         f.write_all(&buf).map_err(|e| Error::io(&path, e))?;
         f.flush().map_err(|e| Error::io(&path, e))?;
         let hash = checksum(&buf);
@@ -664,7 +832,14 @@ struct Walk<'a, 'w> {
 impl Walk<'_, '_> {
     /// Builds the node `key` (cube `cube`, at `depth`, over the cells `cells` of `lv`) and
     /// everything under it; returns its candidates for its parent.
-    fn visit(&mut self, lv: &Level, key: NodeKey, cube: Cube, depth: u8, cells: std::ops::Range<usize>) -> Result<Cands> {
+    fn visit(
+        &mut self,
+        lv: &Level,
+        key: NodeKey,
+        cube: Cube,
+        depth: u8,
+        cells: std::ops::Range<usize>,
+    ) -> Result<Cands> {
         sort::check_interrupted()?;
         if let Some(l) = self.replay.remove(&(key.level as u32, key.index)) {
             self.seq = l.seq_after;
@@ -683,12 +858,25 @@ impl Walk<'_, '_> {
         }
         // More points than a unit, so more than a leaf, in a cube that may split: inner.
         let step = cells.len() / 8;
-        self.inner(key, cube, |w, o| w.visit(lv, key.child(o), cube.child(o), depth + 1, cells.start + o * step..cells.start + (o + 1) * step))
+        self.inner(key, cube, |w, o| {
+            w.visit(
+                lv,
+                key.child(o),
+                cube.child(o),
+                depth + 1,
+                cells.start + o * step..cells.start + (o + 1) * step,
+            )
+        })
     }
 
     /// Builds the inner node `key` (cube `cube`) whose children `kid(o)` builds; returns its
     /// candidates for its parent.
-    fn inner(&mut self, key: NodeKey, cube: Cube, mut kid: impl FnMut(&mut Self, usize) -> Result<Cands>) -> Result<Cands> {
+    fn inner(
+        &mut self,
+        key: NodeKey,
+        cube: Cube,
+        mut kid: impl FnMut(&mut Self, usize) -> Result<Cands>,
+    ) -> Result<Cands> {
         let seq = self.seq;
         self.seq += 1;
         let mut voxels = Cands::default();
@@ -698,8 +886,16 @@ impl Walk<'_, '_> {
         }
         let rl = self.rl;
         let color = &self.color;
-        let (e, b) = encode_payload(key, INNER, voxels.pos.len(), rl - 12, |i| voxels.pos[i], |i| color.rgba(&voxels.records[i * rl..(i + 1) * rl]), |i| &voxels.records[i * rl + 12..(i + 1) * rl])
-            .map_err(|error| Error::Payload { path: self.writer.dir.clone(), error })?;
+        let (e, b) = encode_payload(
+            key,
+            INNER,
+            voxels.pos.len(),
+            rl - 12,
+            |i| voxels.pos[i],
+            |i| color.rgba(&voxels.records[i * rl..(i + 1) * rl]),
+            |i| &voxels.records[i * rl + 12..(i + 1) * rl],
+        )
+        .map_err(|error| Error::Payload { path: self.writer.dir.clone(), error })?;
         let before = self.entries.len();
         self.put(seq, e, &b)?;
         let out = voxels.pick(&voxels.for_parent(key, cube), rl);
@@ -711,7 +907,15 @@ impl Walk<'_, '_> {
 
     /// Builds the node `key` over the `count` points of `cells` of `lv`, more than a unit holds
     /// (bounds `known` where known): see [`dense`].
-    fn dense(&mut self, lv: &Level, key: NodeKey, cube: Cube, cells: std::ops::Range<usize>, count: u64, known: Option<dense::Bounds>) -> Result<Cands> {
+    fn dense(
+        &mut self,
+        lv: &Level,
+        key: NodeKey,
+        cube: Cube,
+        cells: std::ops::Range<usize>,
+        count: u64,
+        known: Option<dense::Bounds>,
+    ) -> Result<Cands> {
         let rl = self.rl;
         let block = dense::block_points(self.opts.memory, rl);
         let b = match known {
@@ -737,7 +941,18 @@ impl Walk<'_, '_> {
         }
         // A leaf larger than a unit.
         let before = self.entries.len();
-        let leaf = dense::big_leaf(lv, cells, count, key, cube, b, rl, self.unit_points, block, &self.state)?;
+        let leaf = dense::big_leaf(
+            lv,
+            cells,
+            count,
+            key,
+            cube,
+            b,
+            rl,
+            self.unit_points,
+            block,
+            &self.state,
+        )?;
         self.report.large_leaves += 1;
         let seq = self.seq;
         self.seq += 1;
@@ -746,7 +961,17 @@ impl Walk<'_, '_> {
         let off = self.writer.reserve(&[payload_len(count, attr_len as u64)])[0];
         let slice = (self.writer.group_bytes / (16 + attr_len as u64)).max(1) as usize;
         let (w, color) = (&*self.writer, &self.color);
-        let r = write_payload_blocks(key, LEAF, count as usize, attr_len, leaf.bounds, slice, |r| leaf.read(r.start as u64..r.end as u64, false).map(|x| x.0), |rec| color.rgba(rec), |at, bytes| w.write_at(off + at, bytes))?;
+        let r = write_payload_blocks(
+            key,
+            LEAF,
+            count as usize,
+            attr_len,
+            leaf.bounds,
+            slice,
+            |r| leaf.read(r.start as u64..r.end as u64, false).map(|x| x.0),
+            |rec| color.rgba(rec),
+            |at, bytes| w.write_at(off + at, bytes),
+        )?;
         let mut e = r.map_err(|error| Error::Payload { path: w.dir.clone(), error })?;
         e.offset = off;
         let h = checksum_at(w, off, e.length)?;
@@ -762,7 +987,16 @@ impl Walk<'_, '_> {
 
     /// Logs a finished visit (its entries from `before` on). Not synced: see the module docs.
     fn logged(&mut self, key: NodeKey, before: usize, points: u64, out: &Cands) -> Result<()> {
-        let rec = log_record(key, self.seq, points, self.writer.nodes_len, &self.entries[before..], &self.hashes[before..], out, self.rl);
+        let rec = log_record(
+            key,
+            self.seq,
+            points,
+            self.writer.nodes_len,
+            &self.entries[before..],
+            &self.hashes[before..],
+            out,
+            self.rl,
+        );
         self.log.write_all(&rec).map_err(|e| Error::io(&self.log_path, e))
     }
 
@@ -777,7 +1011,14 @@ impl Walk<'_, '_> {
     }
 
     /// Reads the points of `cells` back, sorts them and builds their subtree.
-    fn unit(&mut self, lv: &Level, key: NodeKey, cube: Cube, cells: std::ops::Range<usize>, count: u64) -> Result<Cands> {
+    fn unit(
+        &mut self,
+        lv: &Level,
+        key: NodeKey,
+        cube: Cube,
+        cells: std::ops::Range<usize>,
+        count: u64,
+    ) -> Result<Cands> {
         let rl = self.rl;
         let n = count as usize;
         let ts = Instant::now();
@@ -787,7 +1028,8 @@ impl Walk<'_, '_> {
         let tt = Instant::now();
         let pos = |i: usize| read_xyz(sorted.record(i));
         let arr = |i: usize| sorted.arrival[i];
-        let sub = build_subtree(key, cube, n, &pos, &arr, self.opts.config).map_err(|error| Error::Octree { error })?;
+        let sub = build_subtree(key, cube, n, &pos, &arr, self.opts.config)
+            .map_err(|error| Error::Octree { error })?;
         self.report.tree_seconds += tt.elapsed().as_secs_f64();
         let tw = Instant::now();
         let base = self.seq;
@@ -803,7 +1045,9 @@ impl Walk<'_, '_> {
                 bytes += payload_len(sub.nodes[end].count() as u64, attr_len as u64);
                 end += 1;
             }
-            let lens: Vec<u64> = (start..end).map(|i| payload_len(sub.nodes[i].count() as u64, attr_len as u64)).collect();
+            let lens: Vec<u64> = (start..end)
+                .map(|i| payload_len(sub.nodes[i].count() as u64, attr_len as u64))
+                .collect();
             let offsets = self.writer.reserve(&lens);
             let w = &*self.writer;
             let done: Vec<(NodeEntry, u64)> = (start..end)
@@ -812,7 +1056,8 @@ impl Walk<'_, '_> {
                 .map(|(i, off)| {
                     let nd = &sub.nodes[i];
                     if payload_len(nd.count() as u64, attr_len as u64) > w.group_bytes {
-                        let mut e = super::engine::write_sliced(w, off, nd, attr_len, &sorted, color)?;
+                        let mut e =
+                            super::engine::write_sliced(w, off, nd, attr_len, &sorted, color)?;
                         e.offset = off;
                         return Ok((e, checksum_at(w, off, e.length)?));
                     }
@@ -823,8 +1068,16 @@ impl Walk<'_, '_> {
                         }
                         SortedContent::Inner(v) => (INNER, Box::new(move |i| v[i] as usize)),
                     };
-                    let (mut e, b) = encode_payload(nd.key, kind, nd.count(), attr_len, |i| read_xyz(sorted.record(idx(i))), |i| color.rgba(sorted.record(idx(i))), |i| &sorted.record(idx(i))[12..])
-                        .map_err(|error| Error::Payload { path: dir.clone(), error })?;
+                    let (mut e, b) = encode_payload(
+                        nd.key,
+                        kind,
+                        nd.count(),
+                        attr_len,
+                        |i| read_xyz(sorted.record(idx(i))),
+                        |i| color.rgba(sorted.record(idx(i))),
+                        |i| &sorted.record(idx(i))[12..],
+                    )
+                    .map_err(|error| Error::Payload { path: dir.clone(), error })?;
                     w.write_at(off, &b)?;
                     e.offset = off;
                     Ok((e, checksum(&b)))
@@ -836,7 +1089,8 @@ impl Walk<'_, '_> {
             }
             start = end;
         }
-        self.points += sub.nodes.iter().filter(|x| x.is_leaf()).map(|x| x.count() as u64).sum::<u64>();
+        self.points +=
+            sub.nodes.iter().filter(|x| x.is_leaf()).map(|x| x.count() as u64).sum::<u64>();
         self.report.write_seconds += tw.elapsed().as_secs_f64();
         let mut out = Cands::default();
         for &i in &sub.candidates {
@@ -850,7 +1104,15 @@ impl Walk<'_, '_> {
 /// The points of the partition cells `cells` (those of node `key`, `count` of them) read back
 /// from every run and sorted as the sorted engine sorts: a unit's points, ready for
 /// [`build_subtree`]. `dir` names the place in errors.
-pub(crate) fn read_unit(runs: &[Run], root: Cube, key: NodeKey, cells: std::ops::Range<usize>, count: u64, rl: usize, dir: &Path) -> Result<Sorted> {
+pub(crate) fn read_unit(
+    runs: &[Run],
+    root: Cube,
+    key: NodeKey,
+    cells: std::ops::Range<usize>,
+    count: u64,
+    rl: usize,
+    dir: &Path,
+) -> Result<Sorted> {
     let n = count as usize;
     let mut records = sort::zeroed_huge::<u8>(n * rl);
     let mut arrival = sort::zeroed_huge::<u64>(n);
@@ -861,7 +1123,10 @@ pub(crate) fn read_unit(runs: &[Run], root: Cube, key: NodeKey, cells: std::ops:
         for run in runs {
             let m = (run.starts[cells.end] - run.starts[cells.start]) as usize;
             if m > ar.len() {
-                return Err(Error::Internal { path: dir.to_path_buf(), what: "the run files hold more points than counted" });
+                return Err(Error::Internal {
+                    path: dir.to_path_buf(),
+                    what: "the run files hold more points than counted",
+                });
             }
             let (x, y) = std::mem::take(&mut rr).split_at_mut(m * rl);
             let (u, v) = std::mem::take(&mut ar).split_at_mut(m);
@@ -870,7 +1135,10 @@ pub(crate) fn read_unit(runs: &[Run], root: Cube, key: NodeKey, cells: std::ops:
             ar = v;
         }
         if !ar.is_empty() {
-            return Err(Error::Internal { path: dir.to_path_buf(), what: "the run files hold fewer points than counted" });
+            return Err(Error::Internal {
+                path: dir.to_path_buf(),
+                what: "the run files hold fewer points than counted",
+            });
         }
     }
     let cs = cells.start;
@@ -883,7 +1151,8 @@ pub(crate) fn read_unit(runs: &[Run], root: Cube, key: NodeKey, cells: std::ops:
         let mut f = std::fs::File::open(&run.path).map_err(|e| Error::io(&run.path, e))?;
         f.seek(SeekFrom::Start(first * rl as u64)).map_err(|e| Error::io(&run.path, e))?;
         f.read_exact(recs).map_err(|e| Error::io(&run.path, e))?;
-        f.seek(SeekFrom::Start(total * rl as u64 + first * 8)).map_err(|e| Error::io(&run.path, e))?;
+        f.seek(SeekFrom::Start(total * rl as u64 + first * 8))
+            .map_err(|e| Error::io(&run.path, e))?;
         f.read_exact(bytemuck::cast_slice_mut(arr)).map_err(|e| Error::io(&run.path, e))
     })?;
     // Sorted as the sorted engine sorts (buckets below the unit's own prefix): local order
@@ -899,7 +1168,9 @@ pub(crate) fn read_unit(runs: &[Run], root: Cube, key: NodeKey, cells: std::ops:
         const SLAB: usize = 1 << 16;
         let slabs: Vec<&[u8]> = records.chunks(SLAB * rl).collect();
         let hist: Vec<Vec<u32>> = slabs.par_iter().map(|s| histogram(s, rl, &g, shift)).collect();
-        sort_records(&slabs, &hist, rl, &g, shift, &crate::progress::Progress::new(), |p, i| arrival[p * SLAB + i])
+        sort_records(&slabs, &hist, rl, &g, shift, &crate::progress::Progress::new(), |p, i| {
+            arrival[p * SLAB + i]
+        })
     };
     Ok(sorted)
 }
@@ -918,7 +1189,14 @@ pub(crate) type Partitioned = (Vec<Run>, Vec<u64>, PieceStats, Vec<PieceStats>);
 /// Pass 1 on a root fixed beforehand (a plan's), reading only what `filter` keeps: the runs,
 /// the cells' counts of the points kept, their statistics and those of every piece read, per
 /// input (to check the files against the bounds the plan took for them).
-pub(crate) fn partition_fixed(ds: &Dataset, root: Cube, max_level: u8, memory: u64, filter: &Filter, dir: &Path) -> Result<Partitioned> {
+pub(crate) fn partition_fixed(
+    ds: &Dataset,
+    root: Cube,
+    max_level: u8,
+    memory: u64,
+    filter: &Filter,
+    dir: &Path,
+) -> Result<Partitioned> {
     let block_bytes = ((memory / 4).max(ds.layout.record_len as u64 * 4096)) as usize;
     partition(ds, root, Grid::IDENTITY, max_level, block_bytes, dir, Some(filter))
 }
@@ -931,16 +1209,57 @@ pub(crate) type Units = (Vec<(u32, u64, NodeEntry)>, Vec<Cands>, u64);
 /// as the partitioned engine builds a node and everything under it, with `color` for the
 /// payloads.
 #[allow(clippy::too_many_arguments)]
-pub(crate) fn build_units(ds: &Dataset, writer: &mut StoreWriter, config: mortar_core::octree::BuilderConfig, memory: u64, root: Cube, runs: &[Run], hist: &[u64], units: &[(NodeKey, Cube, std::ops::Range<usize>)], color: ColorSource, state: &Path) -> Result<Units> {
+pub(crate) fn build_units(
+    ds: &Dataset,
+    writer: &mut StoreWriter,
+    config: mortar_core::octree::BuilderConfig,
+    memory: u64,
+    root: Cube,
+    runs: &[Run],
+    hist: &[u64],
+    units: &[(NodeKey, Cube, std::ops::Range<usize>)],
+    color: ColorSource,
+    state: &Path,
+) -> Result<Units> {
     let rl = ds.layout.record_len;
-    let opts = BuildOptions { config, batch_points: 0, commit_every: f64::INFINITY, first_commit_after: None, memory, engine: super::build::Engine::Partitioned, resume: false };
-    let unit_points = ((memory / 2) / unit_bytes_per_point(rl as u64)).max(config.leaf_capacity as u64 + 1);
+    let opts = BuildOptions {
+        config,
+        batch_points: 0,
+        commit_every: f64::INFINITY,
+        first_commit_after: None,
+        memory,
+        engine: super::build::Engine::Partitioned,
+        resume: false,
+    };
+    let unit_points =
+        ((memory / 2) / unit_bytes_per_point(rl as u64)).max(config.leaf_capacity as u64 + 1);
     let log_path = state.join(LOG);
-    let log = std::fs::OpenOptions::new().create(true).append(true).open(&log_path).map_err(|e| Error::io(&log_path, e))?;
+    let log = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(&log_path)
+        .map_err(|e| Error::io(&log_path, e))?;
     let mut report = BuildReport::default();
     let depth = cell_depth(root, config.max_level);
     let lv = Level::new(runs.to_vec(), hist.to_vec(), depth);
-    let mut w = Walk { ds, writer, opts: &opts, root, unit_points, color, rl, entries: Vec::new(), hashes: Vec::new(), seq: 0, points: 0, report: &mut report, replay: Default::default(), log, log_path, state: state.to_path_buf() };
+    let mut w = Walk {
+        ds,
+        writer,
+        opts: &opts,
+        root,
+        unit_points,
+        color,
+        rl,
+        entries: Vec::new(),
+        hashes: Vec::new(),
+        seq: 0,
+        points: 0,
+        report: &mut report,
+        replay: Default::default(),
+        log,
+        log_path,
+        state: state.to_path_buf(),
+    };
     let mut cands = Vec::with_capacity(units.len());
     for (key, cube, cells) in units {
         // An empty subtree too: it is an empty leaf where its parent is inner.

@@ -50,7 +50,10 @@ pub struct NodeData<'a> {
 impl NodeData<'_> {
     /// The quantization frame.
     pub fn grid(&self) -> BatchGrid {
-        BatchGrid { min: self.header.min, bits: [self.header.bits[0], self.header.bits[1], self.header.bits[2]] }
+        BatchGrid {
+            min: self.header.min,
+            bits: [self.header.bits[0], self.header.bits[1], self.header.bits[2]],
+        }
     }
 }
 
@@ -70,7 +73,10 @@ impl Store {
             return Err(bad(StoreError::NotHierarchy));
         }
         if header.version != VERSION || header.entry_size != 48 {
-            return Err(bad(StoreError::Version { version: header.version, entry_size: header.entry_size }));
+            return Err(bad(StoreError::Version {
+                version: header.version,
+                entry_size: header.entry_size,
+            }));
         }
         let avail = (hb.len() - HIERARCHY_HEADER) as u64 / 48;
         if header.node_count != avail || !(hb.len() - HIERARCHY_HEADER).is_multiple_of(48) {
@@ -85,19 +91,40 @@ impl Store {
         }
         // SAFETY: the file is only appended to while it is mapped (by a builder); the part read
         // (up to nodes_len) never changes after its commit.
-        let nodes = if file_len == 0 { None } else { Some(unsafe { Mmap::map(&f) }.map_err(|e| Error::io(&np, e))?) };
+        let nodes = if file_len == 0 {
+            None
+        } else {
+            Some(unsafe { Mmap::map(&f) }.map_err(|e| Error::io(&np, e))?)
+        };
         let layout = src.layout.clone();
         let attr_len = layout.record_len as u64 - 12;
         let mut leaves = Vec::new();
         let mut points = 0u64;
         for (i, e) in entries.iter().enumerate() {
             let al = attr_len;
-            if e.kind > INNER || e.offset % 8 != 0 || e.count > u32::MAX as u64 || e.length != payload_len(e.count, al) || e.offset.checked_add(e.length).is_none_or(|end| end > header.nodes_len) {
-                return Err(bad(StoreError::EntryDamaged { node: i, kind: e.kind, count: e.count, length: e.length, offset: e.offset }));
+            if e.kind > INNER
+                || e.offset % 8 != 0
+                || e.count > u32::MAX as u64
+                || e.length != payload_len(e.count, al)
+                || e.offset.checked_add(e.length).is_none_or(|end| end > header.nodes_len)
+            {
+                return Err(bad(StoreError::EntryDamaged {
+                    node: i,
+                    kind: e.kind,
+                    count: e.count,
+                    length: e.length,
+                    offset: e.offset,
+                }));
             }
-            let nb = &nodes.as_ref().expect("non-empty")[e.offset as usize..(e.offset + e.length) as usize];
+            let nb = &nodes.as_ref().expect("non-empty")
+                [e.offset as usize..(e.offset + e.length) as usize];
             let h: NodeHeader = bytemuck::pod_read_unaligned(&nb[..64]);
-            if h.magic != NODE_MAGIC || h.count as u64 != e.count || h.kind != e.kind || h.attr_len as u64 != al || h.bits[..3].iter().any(|&b| b > 30) {
+            if h.magic != NODE_MAGIC
+                || h.count as u64 != e.count
+                || h.kind != e.kind
+                || h.attr_len as u64 != al
+                || h.bits[..3].iter().any(|&b| b > 30)
+            {
                 return Err(bad(StoreError::PayloadMismatch { node: i }));
             }
             if e.kind == LEAF {
@@ -135,19 +162,27 @@ impl Store {
     /// The bytes of node entry `i`'s payload (its header first).
     pub fn node_bytes(&self, i: usize) -> &[u8] {
         let e = &self.entries[i];
-        &self.nodes.as_ref().expect("checked at open")[e.offset as usize..(e.offset + e.length) as usize]
+        &self.nodes.as_ref().expect("checked at open")
+            [e.offset as usize..(e.offset + e.length) as usize]
     }
 
     /// The payload of node entry `i`.
     pub fn node(&self, i: usize) -> NodeData<'_> {
         let e = &self.entries[i];
-        let b = &self.nodes.as_ref().expect("checked at open")[e.offset as usize..(e.offset + e.length) as usize];
+        let b = &self.nodes.as_ref().expect("checked at open")
+            [e.offset as usize..(e.offset + e.length) as usize];
         let header: NodeHeader = bytemuck::pod_read_unaligned(&b[..64]);
         let n = header.count as usize;
         // Offsets are multiples of 8 in a page-aligned map: the u32 arrays are aligned.
-        let words_at = |k: usize| -> &[u32] { bytemuck::cast_slice(&b[64 + 4 * n * k..64 + 4 * n * (k + 1)]) };
+        let words_at =
+            |k: usize| -> &[u32] { bytemuck::cast_slice(&b[64 + 4 * n * k..64 + 4 * n * (k + 1)]) };
         let attributes = &b[64 + 16 * n..64 + 16 * n + n * header.attr_len as usize];
-        NodeData { header, words: [words_at(0), words_at(1), words_at(2)], colors: words_at(3), attributes }
+        NodeData {
+            header,
+            words: [words_at(0), words_at(1), words_at(2)],
+            colors: words_at(3),
+            attributes,
+        }
     }
 }
 
@@ -189,7 +224,10 @@ impl RecordSource for Store {
     fn read_piece(&self, piece: &Piece) -> Result<Cow<'_, [u8]>> {
         let rl = self.layout.record_len;
         let start = piece.index * LEAVES_PER_PIECE;
-        let leaves = self.leaves.get(start..(start + LEAVES_PER_PIECE).min(self.leaves.len())).unwrap_or(&[]);
+        let leaves = self
+            .leaves
+            .get(start..(start + LEAVES_PER_PIECE).min(self.leaves.len()))
+            .unwrap_or(&[]);
         let mut out = Vec::with_capacity(piece.points as usize * rl);
         for &l in leaves {
             let d = self.node(l);
@@ -204,7 +242,10 @@ impl RecordSource for Store {
             }
         }
         if out.len() != piece.points as usize * rl {
-            return Err(Error::Store { path: self.path.clone(), error: StoreError::PieceCount { piece: piece.index } });
+            return Err(Error::Store {
+                path: self.path.clone(),
+                error: StoreError::PieceCount { piece: piece.index },
+            });
         }
         Ok(Cow::Owned(out))
     }
@@ -212,4 +253,3 @@ impl RecordSource for Store {
         false
     }
 }
-

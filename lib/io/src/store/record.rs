@@ -82,7 +82,8 @@ impl BuildRecord {
     pub fn write(&self, dir: &Path) -> Result<()> {
         let p = dir.join(RECORD_FILE);
         let tmp = dir.join(format!("{RECORD_FILE}.tmp"));
-        let bytes = serde_json::to_vec_pretty(self).map_err(|error| Error::JsonFile { path: p.clone(), error })?;
+        let bytes = serde_json::to_vec_pretty(self)
+            .map_err(|error| Error::JsonFile { path: p.clone(), error })?;
         std::fs::write(&tmp, bytes).map_err(|e| Error::io(&tmp, e))?;
         std::fs::rename(&tmp, &p).map_err(|e| Error::io(&p, e))
     }
@@ -91,9 +92,10 @@ impl BuildRecord {
     pub fn read(dir: &Path) -> Result<Option<BuildRecord>> {
         let p = dir.join(RECORD_FILE);
         match std::fs::read(&p) {
-            Ok(b) => serde_json::from_slice(&b)
-                .map(Some)
-                .map_err(|error| Error::Store { path: p.clone(), error: StoreError::BadBuildRecord { error } }),
+            Ok(b) => serde_json::from_slice(&b).map(Some).map_err(|error| Error::Store {
+                path: p.clone(),
+                error: StoreError::BadBuildRecord { error },
+            }),
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
             Err(e) => Err(Error::io(&p, e)),
         }

@@ -43,7 +43,8 @@ impl StoreWriter {
     /// metadata.
     pub fn create(dir: &Path, meta: &SourceMeta) -> Result<StoreWriter> {
         if dir.exists() {
-            let empty = dir.is_dir() && std::fs::read_dir(dir).map_err(|e| Error::io(dir, e))?.next().is_none();
+            let empty = dir.is_dir()
+                && std::fs::read_dir(dir).map_err(|e| Error::io(dir, e))?.next().is_none();
             if !empty {
                 return Err(Error::Store { path: dir.to_path_buf(), error: StoreError::NotEmpty });
             }
@@ -88,7 +89,8 @@ impl StoreWriter {
         }
         let store = super::reader::Store::open(dir)?;
         let np = dir.join(NODES_FILE);
-        let nodes = std::fs::OpenOptions::new().write(true).open(&np).map_err(|e| Error::io(&np, e))?;
+        let nodes =
+            std::fs::OpenOptions::new().write(true).open(&np).map_err(|e| Error::io(&np, e))?;
         nodes.set_len(store.header.nodes_len).map_err(|e| Error::io(&np, e))?;
         let reader = File::open(&np).map_err(|e| Error::io(&np, e))?;
         let _ = std::fs::remove_file(dir.join(format!("{HIERARCHY_FILE}.tmp")));
@@ -121,10 +123,22 @@ impl StoreWriter {
         if have != want {
             return Err(Error::Store { path: dir.to_path_buf(), error: StoreError::OtherInputs });
         }
-        let nodes = std::fs::OpenOptions::new().write(true).open(&np).map_err(|e| Error::io(&np, e))?;
+        let nodes =
+            std::fs::OpenOptions::new().write(true).open(&np).map_err(|e| Error::io(&np, e))?;
         let nodes_len = nodes.metadata().map_err(|e| Error::io(&np, e))?.len();
         let reader = File::open(&np).map_err(|e| Error::io(&np, e))?;
-        Ok(Some(StoreWriter { dir: dir.to_path_buf(), nodes, reader, nodes_len, entries: Vec::new(), commit: 0, last_revision: None, record_len: meta.layout.record_len, guard: None, group_bytes: COMMIT_GROUP_BYTES }))
+        Ok(Some(StoreWriter {
+            dir: dir.to_path_buf(),
+            nodes,
+            reader,
+            nodes_len,
+            entries: Vec::new(),
+            commit: 0,
+            last_revision: None,
+            record_len: meta.layout.record_len,
+            guard: None,
+            group_bytes: COMMIT_GROUP_BYTES,
+        }))
     }
 
     /// Cuts `nodes.bin` to `len` bytes (what a resumed build keeps of it).
@@ -148,7 +162,12 @@ impl StoreWriter {
     /// is written whole: its last payload is read back and the new points appended. Payloads are
     /// encoded in parallel in groups of at most `group_bytes`, so a commit needs little
     /// memory beyond the nodes themselves. `bounds` are the integer bounds of the points so far.
-    pub fn commit<'r>(&mut self, snap: &Snapshot, bounds: ([i32; 3], [i32; 3]), record: &(dyn Fn(u64) -> &'r [u8] + Sync)) -> Result<CommitStats> {
+    pub fn commit<'r>(
+        &mut self,
+        snap: &Snapshot,
+        bounds: ([i32; 3], [i32; 3]),
+        record: &(dyn Fn(u64) -> &'r [u8] + Sync),
+    ) -> Result<CommitStats> {
         let changed: Vec<(usize, &NodeView)> = match self.last_revision {
             None => snap.iter().map(|(id, n)| (id.index(), n)).collect(),
             Some(rev) => snap.changed_since(rev).map(|(id, n)| (id.index(), n)).collect(),
@@ -176,7 +195,12 @@ impl StoreWriter {
                 e.index = k.index;
             }
         }
-        self.write_hierarchy(snap.root_cube(), snap.total_points(), snap.config().leaf_capacity, bounds)?;
+        self.write_hierarchy(
+            snap.root_cube(),
+            snap.total_points(),
+            snap.config().leaf_capacity,
+            bounds,
+        )?;
         self.last_revision = Some(snap.revision());
         Ok(stats)
     }
@@ -184,7 +208,13 @@ impl StoreWriter {
     /// Makes what was appended since the last commit the store's new state: syncs `nodes.bin`,
     /// then writes the hierarchy of every node appended so far (entries in id order) to a
     /// temporary file, syncs it and renames it over `hierarchy.bin`.
-    pub fn write_hierarchy(&mut self, root: Cube, points: u64, leaf_capacity: u32, bounds: ([i32; 3], [i32; 3])) -> Result<()> {
+    pub fn write_hierarchy(
+        &mut self,
+        root: Cube,
+        points: u64,
+        leaf_capacity: u32,
+        bounds: ([i32; 3], [i32; 3]),
+    ) -> Result<()> {
         let np = self.dir.join(NODES_FILE);
         self.nodes.sync_data().map_err(|e| Error::io(&np, e))?;
         self.commit += 1;
@@ -229,7 +259,12 @@ impl StoreWriter {
     }
 
     /// Encodes `nodes` in parallel and appends them in order.
-    fn write_group<'r>(&mut self, nodes: &[(usize, &NodeView)], record: &(dyn Fn(u64) -> &'r [u8] + Sync), stats: &mut CommitStats) -> Result<()> {
+    fn write_group<'r>(
+        &mut self,
+        nodes: &[(usize, &NodeView)],
+        record: &(dyn Fn(u64) -> &'r [u8] + Sync),
+        stats: &mut CommitStats,
+    ) -> Result<()> {
         let record_len = self.record_len;
         let this = &*self;
         let payloads: Vec<(usize, NodeEntry, Vec<u8>)> = nodes
@@ -237,7 +272,9 @@ impl StoreWriter {
             .map(|&(id, n)| {
                 let kept = n.paged_points() + n.saved_voxels();
                 let old = if kept > 0 { Some(this.read_payload(id, Some(kept))?) } else { None };
-                encode_node(n, old.as_deref(), record_len, record).map(|(e, b)| (id, e, b)).map_err(|error| Error::Payload { path: this.dir.clone(), error })
+                encode_node(n, old.as_deref(), record_len, record)
+                    .map(|(e, b)| (id, e, b))
+                    .map_err(|error| Error::Payload { path: this.dir.clone(), error })
             })
             .collect::<Result<_>>()?;
         self.append(payloads, stats)
@@ -245,7 +282,11 @@ impl StoreWriter {
 
     /// Appends encoded payloads to `nodes.bin` in order; `id` is the node's place among the
     /// hierarchy's entries (the root 0). Not visible to readers before the next commit.
-    pub fn append(&mut self, payloads: Vec<(usize, NodeEntry, Vec<u8>)>, stats: &mut CommitStats) -> Result<()> {
+    pub fn append(
+        &mut self,
+        payloads: Vec<(usize, NodeEntry, Vec<u8>)>,
+        stats: &mut CommitStats,
+    ) -> Result<()> {
         let np = self.dir.join(NODES_FILE);
         let mut w = std::io::BufWriter::with_capacity(8 << 20, &self.nodes);
         for (id, mut entry, bytes) in payloads {
@@ -293,9 +334,15 @@ impl StoreWriter {
     fn read_payload(&self, id: usize, count: Option<u64>) -> Result<Vec<u8>> {
         use std::os::unix::fs::FileExt;
         let np = self.dir.join(NODES_FILE);
-        let e = self.entries.get(id).copied().flatten().ok_or_else(|| Error::Store { path: np.clone(), error: StoreError::NoPayload { node: id } })?;
+        let e = self.entries.get(id).copied().flatten().ok_or_else(|| Error::Store {
+            path: np.clone(),
+            error: StoreError::NoPayload { node: id },
+        })?;
         if count.is_some_and(|c| c != e.count) {
-            return Err(Error::Store { path: np, error: StoreError::PayloadCount { node: id, held: e.count, saved: count } });
+            return Err(Error::Store {
+                path: np,
+                error: StoreError::PayloadCount { node: id, held: e.count, saved: count },
+            });
         }
         let mut buf = vec![0u8; e.length as usize];
         self.reader.read_exact_at(&mut buf, e.offset).map_err(|err| Error::io(&np, err))?;
@@ -306,9 +353,17 @@ impl StoreWriter {
     /// payload for a split, or the saved voxels of inner node `id` (for a root that grows): their
     /// full records are appended to `records` and each point's [`Point::record`] is
     /// `PAGED | index` of its record there.
-    pub fn page_in(&self, id: usize, count: Option<u64>, records: &std::sync::Mutex<Vec<u8>>) -> Result<Vec<Point>> {
+    pub fn page_in(
+        &self,
+        id: usize,
+        count: Option<u64>,
+        records: &std::sync::Mutex<Vec<u8>>,
+    ) -> Result<Vec<Point>> {
         let buf = self.read_payload(id, count)?;
-        let leaf = DecodedLeaf::parse(&buf).map_err(|m| Error::Payload { path: self.dir.join(NODES_FILE), error: m.in_node(id) })?;
+        let leaf = DecodedLeaf::parse(&buf).map_err(|m| Error::Payload {
+            path: self.dir.join(NODES_FILE),
+            error: m.in_node(id),
+        })?;
         let rl = self.record_len;
         let mut recs = vec![0u8; leaf.count * rl];
         for (i, r) in recs.chunks_exact_mut(rl).enumerate() {
@@ -322,7 +377,13 @@ impl StoreWriter {
         let base = (all.len() / rl) as u64;
         all.extend_from_slice(&recs);
         drop(all);
-        Ok((0..leaf.count).map(|i| Point { pos: leaf.position(i), color: leaf.color(i), record: PAGED | (base + i as u64) }).collect())
+        Ok((0..leaf.count)
+            .map(|i| Point {
+                pos: leaf.position(i),
+                color: leaf.color(i),
+                record: PAGED | (base + i as u64),
+            })
+            .collect())
     }
 }
 
@@ -341,11 +402,15 @@ pub fn group_bytes(memory: u64) -> u64 {
     (memory / 16).clamp(4 << 20, COMMIT_GROUP_BYTES)
 }
 
-
 /// attributes are taken from it; positions and colours from the voxels in memory).
 /// Encodes one node's payload (entry offset left 0). `old` is the node's last payload when it is
 /// a leaf with paged-out points (those come first) or an inner node with saved voxels (their
-pub(crate) fn encode_node<'r>(n: &NodeView, old: Option<&[u8]>, record_len: usize, record: &(dyn Fn(u64) -> &'r [u8] + Sync)) -> std::result::Result<(NodeEntry, Vec<u8>), PayloadError> {
+pub(crate) fn encode_node<'r>(
+    n: &NodeView,
+    old: Option<&[u8]>,
+    record_len: usize,
+    record: &(dyn Fn(u64) -> &'r [u8] + Sync),
+) -> std::result::Result<(NodeEntry, Vec<u8>), PayloadError> {
     let key = n.key();
     let attr_len = record_len - 12;
     let old = old.map(DecodedLeaf::parse).transpose().map_err(|m| m.in_node(key.name()))?;
@@ -385,7 +450,15 @@ pub(crate) fn encode_node<'r>(n: &NodeView, old: Option<&[u8]>, record_len: usiz
     if attrs.len() != count * attr_len {
         return Err(PayloadError::AttributeBytes { node: key.name(), bytes: attrs.len(), count });
     }
-    encode_payload(key, kind, count, attr_len, |i| positions[i], |i| colors[i], |i| &attrs[i * attr_len..(i + 1) * attr_len])
+    encode_payload(
+        key,
+        kind,
+        count,
+        attr_len,
+        |i| positions[i],
+        |i| colors[i],
+        |i| &attrs[i * attr_len..(i + 1) * attr_len],
+    )
 }
 
 /// The bytes of `source.las`: the source's LAS header, VLRs and EVLRs, no points.
@@ -406,11 +479,13 @@ pub(crate) fn source_bytes(dir: &Path, meta: &SourceMeta) -> Result<Vec<u8>> {
         evlr_start: 0,
         evlr_count: 0,
     };
-    let mut bytes = las::write_header(&h).map_err(|error| Error::Las { path: dir.to_path_buf(), error })?;
+    let mut bytes =
+        las::write_header(&h).map_err(|error| Error::Las { path: dir.to_path_buf(), error })?;
     if !meta.evlrs.is_empty() {
         let start = bytes.len() as u64;
         let h = HeaderOut { evlr_start: start, evlr_count: meta.evlrs.len() as u32, ..h };
-        bytes = las::write_header(&h).map_err(|error| Error::Las { path: dir.to_path_buf(), error })?;
+        bytes =
+            las::write_header(&h).map_err(|error| Error::Las { path: dir.to_path_buf(), error })?;
         bytes.extend_from_slice(&las::write_evlrs(&meta.evlrs));
     }
     Ok(bytes)
