@@ -61,10 +61,10 @@ pub fn run(a: Args) -> Result<()> {
     let bar = common::progress_bar("mortar batch", &ds.progress);
     let report = sort(&ds, &opts, &mut sink)?;
     drop(bar);
-    mortar_io::sort::trace("sorted", start);
+    mortar_io::cleanup::trace("sorted", start);
     let points = sink.finish()?;
     common::warn_points_by_return(&ds, &report.summary.points_by_return);
-    mortar_io::sort::trace("finished", start);
+    mortar_io::cleanup::trace("finished", start);
     let secs = start.elapsed().as_secs_f64();
     if a.json {
         let j = serde_json::json!({

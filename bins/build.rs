@@ -6,6 +6,26 @@ use mortar_core::octree::{BuilderConfig, ColorMode, DEFAULT_LEAF_CAPACITY};
 use mortar_io::store::{build, BuildOptions, BuildProgress, Engine};
 use std::path::PathBuf;
 
+/// `--engine`, parsed apart from the library's [`Engine`] (which knows no command line).
+#[derive(clap::ValueEnum, Clone, Copy, Debug)]
+pub enum EngineArg {
+    Auto,
+    Sorted,
+    Partitioned,
+    Incremental,
+}
+
+impl From<EngineArg> for Engine {
+    fn from(e: EngineArg) -> Engine {
+        match e {
+            EngineArg::Auto => Engine::Auto,
+            EngineArg::Sorted => Engine::Sorted,
+            EngineArg::Partitioned => Engine::Partitioned,
+            EngineArg::Incremental => Engine::Incremental,
+        }
+    }
+}
+
 #[derive(clap::Args)]
 pub struct Args {
     /// LAS/LAZ files, batch files, stores, directories, glob patterns, or - for stdin.
@@ -42,13 +62,13 @@ pub struct Args {
     /// Memory budget, e.g. 2G (the default). An input that fits it is sorted in memory and the
     /// tree made in one pass (the sorted engine); a larger one is partitioned by Morton cell into
     /// run files in the store and built one unit of the budget's size at a time (the partitioned
-    /// engine; the incremental engine where one cell holds more than a unit).
+    /// engine; a cell denser than a unit is partitioned again).
     #[arg(long, value_parser = common::parse_size, default_value = "2G")]
     pub memory: u64,
     /// The build engine: auto (sorted when the input fits --memory, else partitioned; incremental
     /// for --averaged-colors), sorted, partitioned or incremental. All build the same tree.
-    #[arg(long, default_value = "auto")]
-    pub engine: String,
+    #[arg(long, value_enum, default_value_t = EngineArg::Auto)]
+    pub engine: EngineArg,
     /// Continue the store at --output from its last commit, if a build of the same inputs and
     /// settings began it and was stopped (kill -9, power loss, full disk); a complete store is
     /// left as it is.
@@ -124,13 +144,7 @@ pub fn run(a: Args) -> Result<()> {
         first_commit_after: None,
         commit_every: a.commit_every.max(0.0),
         memory: a.memory,
-        engine: match a.engine.as_str() {
-            "auto" => Engine::Auto,
-            "sorted" => Engine::Sorted,
-            "partitioned" => Engine::Partitioned,
-            "incremental" => Engine::Incremental,
-            e => anyhow::bail!("--engine {e}: give auto, sorted, partitioned or incremental"),
-        },
+        engine: a.engine.into(),
         resume: a.resume,
     };
     let mut recorder = mortar_app::frames::FrameRecorder::new(&a.frames, &ds, &output)?;
@@ -182,32 +196,12 @@ pub fn run(a: Args) -> Result<()> {
         frames_json = mortar_app::frames::frames_json(rec, &sheet);
     }
     if a.json {
+        // The report as it is, and the figures derived from it (the per-batch times summed up).
         let n = r.batch_seconds.len().max(1) as f64;
-        let j = serde_json::json!({
+        let mut j = serde_json::to_value(&r)?;
+        let derived = serde_json::json!({
             "output": output,
-            "points": r.points,
-            "nodes": r.nodes,
-            "leaves": r.leaves,
-            "voxels": r.voxels,
-            "commits": r.commits,
-            "nodes_bytes": r.nodes_bytes,
-            "seconds": r.seconds,
-            "read_seconds": r.read_seconds,
             "build_seconds": r.batch_seconds.iter().sum::<f64>(),
-            "commit_seconds": r.commit_seconds,
-            "engine": r.engine,
-            "resumed": r.resumed,
-            "kept_nodes": r.kept_nodes,
-            "dense_cells": r.dense_cells,
-            "large_leaves": r.large_leaves,
-            "sort_seconds": r.sort_seconds,
-            "tree_seconds": r.tree_seconds,
-            "write_seconds": r.write_seconds,
-            "encode_seconds": r.encode_seconds,
-            "paged_in_leaves": r.paged_in_leaves,
-            "root_growths": r.root_growths,
-            "warnings": r.warnings,
-            "peak_interval_bytes": r.peak_interval_bytes,
             "points_per_second": r.points as f64 / r.seconds.max(1e-9),
             "batches": r.batch_seconds.len(),
             "batch_seconds_mean": r.batch_seconds.iter().sum::<f64>() / n,
@@ -217,6 +211,9 @@ pub fn run(a: Args) -> Result<()> {
             "frames": frames_json,
             "preview": preview_json,
         });
+        if let (Some(j), serde_json::Value::Object(d)) = (j.as_object_mut(), derived) {
+            j.extend(d);
+        }
         println!("{}", serde_json::to_string_pretty(&j)?);
     }
     Ok(())

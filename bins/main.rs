@@ -71,7 +71,7 @@ fn main() {
     // have made one between the flag and its next check, which would stay); work that sees the
     // flag first returns an error, and main exits 130 below.
     let _ = ctrlc::set_handler(|| {
-        mortar_io::sort::INTERRUPTED.store(true, std::sync::atomic::Ordering::Relaxed);
+        mortar_io::cleanup::INTERRUPTED.store(true, std::sync::atomic::Ordering::Relaxed);
         mortar_io::cleanup::remove_all();
         std::thread::sleep(std::time::Duration::from_millis(300));
         mortar_io::cleanup::remove_all();
@@ -91,7 +91,7 @@ fn main() {
     };
     if let Err(e) = r {
         mortar_io::cleanup::remove_all();
-        if mortar_io::sort::INTERRUPTED.load(std::sync::atomic::Ordering::Relaxed) {
+        if mortar_io::cleanup::INTERRUPTED.load(std::sync::atomic::Ordering::Relaxed) {
             eprintln!("mortar: interrupted");
             std::process::exit(130);
         }

@@ -198,7 +198,7 @@ fn a_sorted_build_is_readable_at_every_commit_coarse_first() {
         seen.push((p.commits, p.points, nodes, deepest));
     };
     let r = build(&ds, &store, &opts, &mut check).unwrap();
-    assert_eq!(r.engine, "sorted");
+    assert_eq!(r.engine, mortar_io::store::BuiltBy::Sorted);
     assert_eq!(r.points, 110_000);
     // One level per commit, from the root down; the points arrive with the levels of leaves.
     assert!(seen.len() >= 4, "{seen:?}");

@@ -16,6 +16,8 @@
 //! and `build --frames` and the benchmark binaries share them, so each is defined once (as
 //! rerun's `RerunArgs` is defined in its library); the binaries parse them and make one call.
 
+#![forbid(unsafe_code)]
+
 pub mod bench;
 pub mod cli;
 pub mod frames;

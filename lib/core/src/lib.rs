@@ -7,7 +7,10 @@
 //! the render colour derived from the source's fields ([`color`]), the incremental octree LOD builder
 //! of paper 004 §3-5 with its snapshots ([`octree`]) and the rendering logic of paper 003 §3.2-3.4:
 //! camera, culling, adaptive precision, the CPU rasterizer and the resolve ([`render`]); and the
-//! statistics every benchmark and accuracy test reports: medians, percentiles, PSNR ([`metrics`]).
+//! statistics every benchmark and accuracy test reports: medians, percentiles, PSNR ([`metrics`]);
+//! and the one pointer type the parallel scatters share ([`par`]).
+
+#![deny(unsafe_op_in_unsafe_fn)]
 
 pub mod batch;
 pub mod batching;
@@ -17,6 +20,7 @@ pub mod layout;
 pub mod metrics;
 pub mod morton;
 pub mod octree;
+pub mod par;
 pub mod quantize;
 pub mod render;
 

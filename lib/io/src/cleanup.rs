@@ -3,8 +3,13 @@
 //! Every partial output is written under a temporary name and registered here; the binary's
 //! Ctrl-C handler calls [`remove_all`]. [`TempPath`] removes its path when dropped (error paths),
 //! and [`TempPath::persist`] renames it into place when the work succeeded.
+//!
+//! Here too: the Ctrl-C flag the handler sets and long loops poll ([`INTERRUPTED`],
+//! [`check_interrupted`]), and the phase timer `MORTAR_TRACE` prints ([`trace`]).
 
+use crate::error::{Error, Result};
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Mutex;
 
 static REGISTRY: Mutex<Vec<PathBuf>> = Mutex::new(Vec::new());
@@ -95,5 +100,24 @@ impl Drop for TempPath {
             remove(&self.path);
             unregister(&self.path);
         }
+    }
+}
+
+/// Set by the binary's Ctrl-C handler; long loops check it and stop with [`Error::Interrupted`].
+pub static INTERRUPTED: AtomicBool = AtomicBool::new(false);
+
+/// [`Error::Interrupted`] once the binary's Ctrl-C handler has set [`INTERRUPTED`].
+pub fn check_interrupted() -> Result<()> {
+    if INTERRUPTED.load(Ordering::Relaxed) {
+        Err(Error::Interrupted)
+    } else {
+        Ok(())
+    }
+}
+
+/// Prints the time since `t0` when `MORTAR_TRACE` is set (for profiling phases).
+pub fn trace(phase: &str, t0: std::time::Instant) {
+    if std::env::var_os("MORTAR_TRACE").is_some() {
+        eprintln!("mortar: trace: {phase} done at {:.3} s", t0.elapsed().as_secs_f64());
     }
 }

@@ -11,12 +11,12 @@
 //! The Morton grid is defined by the points' actual bounds. Pass 1 uses the bounds the headers
 //! declare; if the points disagree with them, pass 1 runs again with the real ones.
 
-use crate::cleanup::TempPath;
+use crate::cleanup::{check_interrupted, TempPath};
 use crate::dataset::Dataset;
 use crate::error::{Error, Result};
 use crate::sort::{
-    check_interrupted, declared_grid, emit, in_memory_need, make_keys, refine_ties, sort_keys,
-    OrderedSink, PieceStats, SortOptions, SortReport,
+    declared_grid, emit, in_memory_need, make_keys, refine_ties, sort_keys, OrderedSink,
+    PieceStats, SortOptions, SortReport,
 };
 use mortar_core::layout::read_xyz;
 use mortar_core::morton::MortonGrid;

@@ -2,11 +2,11 @@
 //! stable: fields are only ever added (documented in `docs/info-json.md`).
 
 use crate::batchfile::BatchFile;
+use crate::cleanup::check_interrupted;
 use crate::crs::{self, CrsInfo};
 use crate::dataset::RecordSource;
 use crate::error::Result;
 use crate::las::{c_str, Vlr};
-use crate::sort::check_interrupted;
 use mortar_core::layout::{read_xyz, Family, RecordLayout};
 use rayon::prelude::*;
 use serde::Serialize;

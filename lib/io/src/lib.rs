@@ -44,6 +44,8 @@
 //! # Ok::<(), Box<dyn std::error::Error>>(())
 //! ```
 
+#![deny(unsafe_op_in_unsafe_fn)]
+
 pub mod cleanup;
 pub mod error;
 pub mod las;

@@ -10,33 +10,16 @@
 //! The Morton grid is defined by the actual integer bounds of the points, and ties are broken by
 //! input order, so the output is the same on every path and on every run.
 
+use crate::cleanup::{check_interrupted, trace};
 use crate::dataset::{Dataset, DatasetPiece};
 use crate::error::{Error, Result};
 use crate::progress::Progress;
 use mortar_core::layout::{read_xyz, RecordLayout};
 use mortar_core::morton::MortonGrid;
+use mortar_core::par::SendPtr;
 use rayon::prelude::*;
 use std::borrow::Cow;
 use std::path::PathBuf;
-use std::sync::atomic::{AtomicBool, Ordering};
-
-/// Set by the binary's Ctrl-C handler; long loops check it and stop with [`Error::Interrupted`].
-pub static INTERRUPTED: AtomicBool = AtomicBool::new(false);
-
-pub fn check_interrupted() -> Result<()> {
-    if INTERRUPTED.load(Ordering::Relaxed) {
-        Err(Error::Interrupted)
-    } else {
-        Ok(())
-    }
-}
-
-/// Prints the time since `t0` when `MORTAR_TRACE` is set (for profiling phases).
-pub fn trace(phase: &str, t0: std::time::Instant) {
-    if std::env::var_os("MORTAR_TRACE").is_some() {
-        eprintln!("mortar: trace: {phase} done at {:.3} s", t0.elapsed().as_secs_f64());
-    }
-}
 
 /// Sort key of one point. Ordering: code, then input order (ties of a shifted code are refined
 /// by [`refine_ties`] after sorting).
@@ -409,7 +392,7 @@ pub fn make_keys(slabs: &[&[u8]], record_len: usize, morton: &MortonGrid) -> Res
                 idx: idx as u32,
             };
             // SAFETY: slab ranges [start, start + len) partition 0..n; each slot written once.
-            unsafe { p.0.add(start + idx).write(k) };
+            unsafe { p.write(start + idx, k) };
         }
     });
     // SAFETY: all n keys were written above.
@@ -445,10 +428,6 @@ fn key_buffer(n: usize) -> Vec<Key> {
     advise_huge(v.as_ptr() as usize, n * std::mem::size_of::<Key>());
     v
 }
-
-struct SendPtr(*mut Key);
-unsafe impl Send for SendPtr {}
-unsafe impl Sync for SendPtr {}
 
 /// Orders the runs of keys that share a Morton code by the bits the code's shift dropped (the
 /// full-resolution Morton order of their integer coordinates), then by input order.
@@ -558,7 +537,7 @@ pub fn sort_keys(mut keys: Vec<Key>) -> Vec<Key> {
         for k in c {
             let b = (k.code >> shift) as usize;
             // SAFETY: the cursors of all parts partition 0..n, each position is written once.
-            unsafe { p.0.add(cur[b]).write(*k) };
+            unsafe { p.write(cur[b], *k) };
             cur[b] += 1;
         }
     });

@@ -23,6 +23,8 @@
 //!
 //! This crate opens no files: callers hand it in-memory batches ([`mortar_core::render::BatchRef`]).
 
+#![deny(unsafe_op_in_unsafe_fn)]
+
 pub mod context;
 mod pipeline;
 pub mod present;

@@ -53,6 +53,7 @@ use super::raster::{
     RasterOptions, RasterStats,
 };
 use crate::grid::Grid;
+use crate::par::SendPtr;
 use crate::quantize::BatchGrid;
 use rayon::prelude::*;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -478,13 +479,10 @@ impl Gathered {
 
 /// Raw pointers into the slot arrays for the parallel scatter of [`ProgressiveRenderer::insert`].
 struct Slots {
-    words: [*mut u32; 3],
-    payload: *mut u64,
+    words: [SendPtr<u32>; 3],
+    payload: SendPtr<u64>,
     len: usize,
 }
-
-// SAFETY: only used while the arrays are borrowed mutably, with distinct slots per thread.
-unsafe impl Sync for Slots {}
 
 impl Slots {
     /// Writes one slot.
@@ -494,10 +492,13 @@ impl Slots {
     #[inline]
     unsafe fn write(&self, slot: usize, w: [u32; 3], v: u64) {
         debug_assert!(slot < self.len);
-        for (dst, v) in self.words.iter().zip(w) {
-            *dst.add(slot) = v;
+        // SAFETY: the caller's promise above.
+        unsafe {
+            for (dst, v) in self.words.iter().zip(w) {
+                dst.write(slot, v);
+            }
+            self.payload.write(slot, v);
         }
-        *self.payload.add(slot) = v;
     }
 }
 
@@ -655,8 +656,8 @@ impl ProgressiveRenderer {
         let frame = self.frame.quant;
         let [c, m, f] = &mut self.words;
         let out = Slots {
-            words: [c.as_mut_ptr(), m.as_mut_ptr(), f.as_mut_ptr()],
-            payload: self.payload.as_mut_ptr(),
+            words: [SendPtr(c.as_mut_ptr()), SendPtr(m.as_mut_ptr()), SendPtr(f.as_mut_ptr())],
+            payload: SendPtr(self.payload.as_mut_ptr()),
             len: c.len(),
         };
         (0..xyz.len()).into_par_iter().with_min_len(4096).for_each(|k| {

@@ -696,6 +696,9 @@ fn draw_loop<const WORDS: usize, const PERSPECTIVE: bool, I: PointIndices, S: Si
 /// [`draw_points_impl`] compiled for AVX2 (8 points per instruction in the projection phase).
 /// Only integer and single-rounding IEEE operations are used (no fused multiply-add), so the keys
 /// are bit for bit those of the baseline build.
+///
+/// # Safety
+/// The CPU runs AVX2 (callers check [`use_avx2`] first); the body itself is safe code.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 unsafe fn draw_points_avx2<const WORDS: usize, const PERSPECTIVE: bool, S: Sink>(
@@ -707,6 +710,9 @@ unsafe fn draw_points_avx2<const WORDS: usize, const PERSPECTIVE: bool, S: Sink>
 }
 
 /// [`draw_loop`] over a [`GatheredRef`], compiled for AVX2 (see [`draw_points_avx2`]).
+///
+/// # Safety
+/// The CPU runs AVX2 (callers check [`use_avx2`] first); the body itself is safe code.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 unsafe fn draw_listed_avx2<const WORDS: usize, const PERSPECTIVE: bool, S: Sink>(

@@ -21,7 +21,7 @@ use crate::cleanup::TempPath;
 use crate::dataset::Dataset;
 use crate::error::{Error, Result};
 use crate::las::{self, HeaderOut, Vlr};
-use crate::sort::{self, PieceStats};
+use crate::sort::PieceStats;
 use laz::laszip::{ChunkTable, ChunkTableEntry};
 use laz::record::{LayeredPointRecordCompressor, RecordCompressor};
 #[cfg(test)]
@@ -93,7 +93,7 @@ pub(crate) fn encode_chunk_slices(
     c.set_fields_from(items).map_err(|e| io(std::io::Error::other(e)))?;
     let mut t = (f64::INFINITY, f64::NEG_INFINITY);
     for s in (0..points).step_by(slice.max(1)) {
-        sort::check_interrupted()?;
+        crate::cleanup::check_interrupted()?;
         let recs = records(s..(s + slice.max(1)).min(points));
         c.compress_many(&recs).map_err(io)?;
         for r in recs.chunks_exact(rl) {
@@ -274,7 +274,7 @@ impl<'a> CopcWriter<'a> {
 
 impl NodeWriter for CopcWriter<'_> {
     fn write_nodes(&mut self, nodes: Vec<(NodeKey, Vec<u8>)>) -> Result<()> {
-        sort::check_interrupted()?;
+        crate::cleanup::check_interrupted()?;
         let rl = self.frame.out.record_len;
         let path = self.tmp.path().to_path_buf();
         let items = &self.items;
@@ -314,7 +314,7 @@ impl NodeWriter for CopcWriter<'_> {
         slice: usize,
         records: &(dyn Fn(std::ops::Range<usize>) -> Vec<u8> + Sync),
     ) -> Result<()> {
-        sort::check_interrupted()?;
+        crate::cleanup::check_interrupted()?;
         let rl = self.frame.out.record_len;
         let path = self.tmp.path().to_path_buf();
         let io = |e: std::io::Error| Error::io(&path, e);

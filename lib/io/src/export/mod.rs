@@ -42,7 +42,7 @@ mod stream;
 
 use crate::dataset::Dataset;
 use crate::error::{Error, ExportError, Result};
-use crate::sort::{self, PieceStats};
+use crate::sort::PieceStats;
 use crate::store::engine::{self as eng, Sorted};
 use mortar_core::layout::{base_len, merge_layouts, read_xyz, write_xyz, Conversion, RecordLayout};
 use mortar_core::octree::{build_sorted, BuilderConfig, Cube, NodeKey, SortedContent, SortedNode};
@@ -452,7 +452,7 @@ pub(crate) fn prepare(
     drop(stretched);
     drop(slabs);
     report.sort_seconds = ts.elapsed().as_secs_f64();
-    sort::check_interrupted()?;
+    crate::cleanup::check_interrupted()?;
     let tt = Instant::now();
     ds.progress.stage("indexing", 0, "");
     let n = sorted.arrival.len();

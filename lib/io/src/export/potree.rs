@@ -22,7 +22,7 @@ use super::{ExportReport, Frame, NodeWriter, OutNode};
 use crate::cleanup::TempPath;
 use crate::dataset::Dataset;
 use crate::error::{Error, Result};
-use crate::sort::{self, PieceStats};
+use crate::sort::PieceStats;
 use mortar_core::octree::NodeKey;
 use rayon::prelude::*;
 use serde_json::json;
@@ -233,7 +233,7 @@ impl<'a> PotreeWriter<'a> {
 
 impl NodeWriter for PotreeWriter<'_> {
     fn write_nodes(&mut self, nodes: Vec<(NodeKey, Vec<u8>)>) -> Result<()> {
-        sort::check_interrupted()?;
+        crate::cleanup::check_interrupted()?;
         let rl = self.frame.out.record_len;
         let (attrs, nvals, progress) = (&self.attrs, self.nvals, &self.ds.progress);
         let enc: Vec<(Vec<u8>, Vec<f64>, Vec<f64>)> = nodes
@@ -267,7 +267,7 @@ impl NodeWriter for PotreeWriter<'_> {
         let rl = self.frame.out.record_len;
         let at = self.pos;
         for s in (0..points).step_by(slice) {
-            sort::check_interrupted()?;
+            crate::cleanup::check_interrupted()?;
             let recs = records(s..(s + slice).min(points));
             let (b, l, h) = encode_records(&self.attrs, self.nvals, &recs, rl);
             self.w.write_all(&b).map_err(|e| Error::io(&self.octree_path, e))?;

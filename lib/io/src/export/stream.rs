@@ -27,7 +27,6 @@ use super::{
 use crate::cleanup::TempPath;
 use crate::dataset::Dataset;
 use crate::error::{Error, Result};
-use crate::sort;
 use crate::store::dense::{self, Level};
 use crate::store::partitioned::{
     cell_depth, partition_all, read_unit, unit_bytes_per_point, Cands,
@@ -130,7 +129,7 @@ impl Walk<'_, '_> {
         depth: u8,
         cells: std::ops::Range<usize>,
     ) -> Result<(Cands, bool)> {
-        sort::check_interrupted()?;
+        crate::cleanup::check_interrupted()?;
         let count: u64 = lv.hist[cells.clone()].iter().sum();
         if count == 0 {
             return Ok((Cands::default(), false));

@@ -1,208 +1,16 @@
-//! `mortar build`: options, report, and the choice of engine.
+//! `mortar build`: the choice of engine, and the start, resumption and end of a build (the
+//! options and the report are in [`super::options`]).
 
-use crate::dataset::{Dataset, RecordSource};
-use crate::error::{BoundsError, Error, Result, StoreError};
-use mortar_core::octree::BuilderConfig;
+use crate::dataset::Dataset;
+use crate::error::{Error, Result, StoreError};
 use std::path::Path;
 use std::time::Instant;
 
+use super::bounds::header_bounds;
 use super::incremental::build_into;
+use super::options::{BuildOptions, BuildProgress, BuildReport, BuiltBy, Engine};
 use super::record::BuildRecord;
 use super::writer::*;
-
-/// Choices of `mortar build`.
-/// Which engine builds the store.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub enum Engine {
-    /// The sorted engine when the input fits the memory budget and voxels take the first
-    /// point's colour, the partitioned one when it does not, the incremental one for averaged
-    /// colours (and where one cell is denser than the budget allows).
-    #[default]
-    Auto,
-    /// Sort, then make the tree in one pass (ARCHITECTURE.md, "The build engine").
-    Sorted,
-    /// The sorted engine over a partition of the input into cells written to run files: for
-    /// inputs larger than the memory budget.
-    Partitioned,
-    /// Paper 004's batch updates with paged leaves (bounded memory for any input).
-    Incremental,
-}
-
-#[derive(Clone, Debug)]
-pub struct BuildOptions {
-    /// The builder's configuration (leaf capacity, colour mode).
-    pub config: BuilderConfig,
-    /// Points per `add_batch`.
-    pub batch_points: usize,
-    /// Seconds between commits (the last one is always made).
-    pub commit_every: f64,
-    /// Seconds after the start at which the first commit is made, when sooner than
-    /// `commit_every` (a preview shows the store from its first commit on).
-    pub first_commit_after: Option<f64>,
-    /// Memory budget in bytes: a commit (after which the builder pages out every leaf's points)
-    /// is also made when the points and records held since the last one exceed a third of it.
-    pub memory: u64,
-    /// The engine.
-    pub engine: Engine,
-    /// Continue the store the output names, if a build of the same inputs and settings began
-    /// it and did not finish (killed, power loss, disk full): from its last commit.
-    pub resume: bool,
-}
-
-/// Progress of a build, reported after every batch.
-#[derive(Clone, Copy, Debug, Default)]
-pub struct BuildProgress {
-    /// Points added so far.
-    pub points: u64,
-    /// Points in all (as the headers declare).
-    pub total: u64,
-    /// Nodes so far.
-    pub nodes: usize,
-    /// Commits so far.
-    pub commits: u64,
-}
-
-/// What a build did.
-#[derive(Clone, Debug, Default)]
-pub struct BuildReport {
-    /// Points in the store.
-    pub points: u64,
-    /// Nodes, leaves.
-    pub nodes: u64,
-    /// Leaves.
-    pub leaves: u64,
-    /// Voxels of the inner nodes.
-    pub voxels: u64,
-    /// Commits.
-    pub commits: u64,
-    /// Bytes of `nodes.bin`.
-    pub nodes_bytes: u64,
-    /// Seconds reading (decoding) the input.
-    pub read_seconds: f64,
-    /// Seconds in `add_batch`, per batch.
-    pub batch_seconds: Vec<f64>,
-    /// Seconds committing.
-    pub commit_seconds: f64,
-    /// Leaves paged back in for splits.
-    pub paged_in_leaves: u64,
-    /// Most bytes of points and records held between two commits.
-    pub peak_interval_bytes: u64,
-    /// Seconds in all.
-    pub seconds: f64,
-    /// Times the octree's root grew for points outside it.
-    pub root_growths: u64,
-    /// Problems that did not stop the build (headers that lie about the bounds).
-    pub warnings: Vec<String>,
-    /// The engine that built the store: `sorted` (the input fits `--memory`) or `incremental`.
-    pub engine: &'static str,
-    /// Seconds sorting the keys (sorted engine).
-    pub sort_seconds: f64,
-    /// Seconds gathering positions and colours and making the tree (sorted engine).
-    pub tree_seconds: f64,
-    /// Seconds encoding and appending payloads (sorted engine).
-    pub write_seconds: f64,
-    /// Of those, seconds encoding.
-    pub encode_seconds: f64,
-    /// Whether the build continued a store begun before (`--resume`).
-    pub resumed: bool,
-    /// Nodes the resumed build found committed and kept.
-    pub kept_nodes: u64,
-    /// Partition cells denser than a unit that were partitioned again on disk (partitioned
-    /// engine).
-    pub dense_cells: u64,
-    /// Leaves larger than a unit, ordered on disk and written in slices (partitioned engine).
-    pub large_leaves: u64,
-}
-
-/// The integer bounds the inputs' headers declare (one unit of margin), on the merged grid, with
-/// a warning for each input whose header bounds are not usable; `None` when no header is.
-pub(crate) fn header_bounds(
-    ds: &Dataset,
-    warnings: &mut Vec<String>,
-) -> Option<([i32; 3], [i32; 3])> {
-    let (mut lo, mut hi) = ([i32::MAX; 3], [i32::MIN; 3]);
-    for src in &ds.inputs {
-        if src.point_count() == 0 {
-            continue;
-        }
-        match header_box(ds, src.as_ref()) {
-            Ok((l, h)) => {
-                for a in 0..3 {
-                    lo[a] = lo[a].min(l[a]);
-                    hi[a] = hi[a].max(h[a]);
-                }
-            }
-            Err(why) => warnings.push(format!(
-                "{}: {why}; the octree is placed from the points",
-                src.path().display()
-            )),
-        }
-    }
-    (lo[0] <= hi[0]).then_some((lo, hi))
-}
-
-/// The integer box the header of `src` declares (one unit of margin), on the merged grid, or
-/// why it is not usable.
-pub(crate) fn header_box(
-    ds: &Dataset,
-    src: &dyn RecordSource,
-) -> std::result::Result<([i32; 3], [i32; 3]), BoundsError> {
-    let h = src.header();
-    if src.point_count() > 1 && (0..3).all(|a| h.min[a] == 0.0 && h.max[a] == 0.0) {
-        return Err(BoundsError::AllZero);
-    }
-    if let Some(a) =
-        (0..3).find(|&a| !(h.min[a].is_finite() && h.max[a].is_finite()) || h.min[a] > h.max[a])
-    {
-        return Err(BoundsError::Unusable {
-            axis: ['x', 'y', 'z'][a],
-            min: h.min[a],
-            max: h.max[a],
-        });
-    }
-    let c = |v: i64| v.clamp(i32::MIN as i64, i32::MAX as i64) as i32;
-    Ok((
-        [0, 1, 2].map(|a| c(ds.grid.to_int(a, h.min[a]).saturating_sub(1))),
-        [0, 1, 2].map(|a| c(ds.grid.to_int(a, h.max[a]).saturating_add(1))),
-    ))
-}
-
-/// A warning when the points of `src` (`st`, on the merged grid) reach outside the bounds its
-/// header declares, with both ranges in world coordinates on the file's grid.
-pub(crate) fn bounds_warning(
-    ds: &Dataset,
-    src: &dyn RecordSource,
-    st: &crate::sort::PieceStats,
-) -> Option<String> {
-    let h = src.header();
-    if st.count == 0
-        || (0..3).any(|a| !(h.min[a].is_finite() && h.max[a].is_finite()) || h.min[a] > h.max[a])
-    {
-        return None;
-    }
-    let g = &ds.grid;
-    let outside = (0..3).any(|a| {
-        (st.min[a] as i64) < g.to_int(a, h.min[a]) - 1
-            || (st.max[a] as i64) > g.to_int(a, h.max[a]) + 1
-    });
-    if !outside {
-        return None;
-    }
-    let digits = |a: usize| (-h.scale[a].log10()).ceil().clamp(0.0, 12.0) as usize;
-    let range = |a: usize, lo: f64, hi: f64| {
-        format!("{} [{:.*}, {:.*}]", ['x', 'y', 'z'][a], digits(a), lo, digits(a), hi)
-    };
-    let real: Vec<String> = (0..3)
-        .map(|a| range(a, g.world(a, st.min[a] as i64), g.world(a, st.max[a] as i64)))
-        .collect();
-    let declared: Vec<String> = (0..3).map(|a| range(a, h.min[a], h.max[a])).collect();
-    Some(format!(
-        "{}: its points reach {}, outside the bounds its header declares ({}); the octree's root holds them (`mortar sort` writes the file with true bounds)",
-        src.path().display(),
-        real.join(", "),
-        declared.join(", ")
-    ))
-}
 
 /// Builds the store `dir` from `ds`: reads the input piece by piece (pieces of a batch in
 /// parallel) and adds the points to the octree in batches of about `batch_points` in input order,
@@ -232,12 +40,12 @@ pub fn build(
         }
         e => e,
     };
-    let name = match engine {
-        Engine::Sorted => "sorted",
-        Engine::Partitioned => "partitioned",
-        _ => "incremental",
+    let built_by = match engine {
+        Engine::Sorted => BuiltBy::Sorted,
+        Engine::Partitioned => BuiltBy::Partitioned,
+        _ => BuiltBy::Incremental,
     };
-    let mut record = BuildRecord::of(ds, &opts.config, name);
+    let mut record = BuildRecord::of(ds, &opts.config, built_by.name());
     let mut writer = match if opts.resume {
         continue_store(dir, &meta, &record, &mut warnings)?
     } else {
@@ -335,7 +143,7 @@ fn continue_store(
     if old.complete {
         let s = super::reader::Store::open(dir)?;
         let r = BuildReport {
-            engine: "none",
+            engine: BuiltBy::None,
             points: s.header.points,
             nodes: s.entries.len() as u64,
             leaves: s.leaves().len() as u64,
@@ -352,13 +160,13 @@ fn continue_store(
         std::fs::remove_dir_all(dir).map_err(|e| Error::io(dir, e))?;
         Ok(Continue::Fresh)
     };
-    if old.engine == "partitioned" && record.engine == "partitioned" {
+    if old.engine == BuiltBy::Partitioned.name() && record.engine == BuiltBy::Partitioned.name() {
         return match StoreWriter::reopen_uncommitted(dir, meta)? {
             Some(w) if super::partitioned::has_state(dir) => Ok(Continue::Writer(w)),
             _ => start_over("nothing of its partition was kept".into(), warnings),
         };
     }
-    if old.engine != "sorted" || record.engine != "sorted" {
+    if old.engine != BuiltBy::Sorted.name() || record.engine != BuiltBy::Sorted.name() {
         return start_over(
             "the incremental engine keeps its tree in memory and cannot continue a build".into(),
             warnings,

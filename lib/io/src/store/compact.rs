@@ -61,7 +61,7 @@ pub fn compact(dir: &Path) -> Result<CompactReport> {
     let mut entries = Vec::with_capacity(store.entries.len());
     let mut at = 0u64;
     for (i, e) in store.entries.iter().enumerate() {
-        crate::sort::check_interrupted()?;
+        crate::cleanup::check_interrupted()?;
         let d = store.node_bytes(i);
         out.write_all(d).map_err(|err| Error::io(&np, err))?;
         entries.push(NodeEntry { offset: at, ..*e });

@@ -26,7 +26,6 @@
 use super::partitioned::{Cands, Run};
 use crate::cleanup::TempPath;
 use crate::error::{Error, Result};
-use crate::sort;
 use mortar_core::layout::read_xyz;
 use mortar_core::octree::{Cube, NodeKey, GRID_LOG2, MIN_INNER_SIZE_LOG2};
 use rayon::prelude::*;
@@ -154,7 +153,7 @@ fn stream(
         let file = std::fs::File::open(&run.path).map_err(|e| Error::io(&run.path, e))?;
         let mut at = a;
         while at < b {
-            sort::check_interrupted()?;
+            crate::cleanup::check_interrupted()?;
             let m = (b - at).min(block as u64) as usize;
             recs.resize(m * rl, 0);
             arr.resize(m, 0u64);
@@ -611,7 +610,7 @@ impl Leaf {
         let mut runs = Vec::new();
         let mut s = 0u64;
         while s < kept {
-            sort::check_interrupted()?;
+            crate::cleanup::check_interrupted()?;
             let e = (s + part).min(kept);
             let recs = self.read_kept(s..e)?;
             let mut keys: Vec<(u64, u64)> =

@@ -37,7 +37,7 @@
 //! tables hold no bounds) and `--scan` counting the cells exactly (it takes each input's own
 //! box and spreads its points over it).
 
-use super::build::header_box;
+use super::bounds::header_box;
 use super::format::*;
 use super::partitioned::{build_units, cell_depth, partition_fixed, Cands, Filter};
 use super::record::BuildRecord;
@@ -349,7 +349,7 @@ fn scan(ds: &Dataset) -> Result<Vec<PieceStats>> {
     let per: Vec<(usize, PieceStats)> = pieces
         .par_iter()
         .map(|p| {
-            crate::sort::check_interrupted()?;
+            crate::cleanup::check_interrupted()?;
             let slab = ds.read_piece(p)?;
             let st = PieceStats::of(&slab, &ds.layout);
             ds.inputs[p.input].release_piece(&p.piece);
@@ -580,7 +580,7 @@ pub fn build_job(
     drop(writer);
     let mut warnings = Vec::new();
     for &i in &pj.inputs {
-        if let Some(w) = super::build::bounds_warning(ds, ds.inputs[i].as_ref(), &real[i]) {
+        if let Some(w) = super::bounds::bounds_warning(ds, ds.inputs[i].as_ref(), &real[i]) {
             warnings.push(w);
         }
     }

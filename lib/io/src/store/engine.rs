@@ -12,8 +12,8 @@
 //! Used when the input fits the memory budget ([`in_memory_need`]) and voxels take the first
 //! point's colour; otherwise the incremental engine runs.
 
-use super::build::{BuildOptions, BuildProgress, BuildReport};
 use super::format::*;
+use super::options::{BuildOptions, BuildProgress, BuildReport, BuiltBy};
 use super::writer::*;
 use crate::dataset::Dataset;
 use crate::error::{Error, Result, StoreError};
@@ -23,6 +23,7 @@ use mortar_core::color::{ColorSource, RgbDepth};
 use mortar_core::layout::read_xyz;
 use mortar_core::morton::MortonGrid;
 use mortar_core::octree::{build_sorted, ColorMode, Cube, SortedContent, SortedNode};
+use mortar_core::par::SendPtr;
 use rayon::prelude::*;
 use std::time::Instant;
 
@@ -171,10 +172,10 @@ pub(crate) fn sort_records(
     let t = Instant::now();
     let mut records = sort::zeroed_huge::<u8>(n * rl);
     let mut arrival = sort::zeroed_huge::<u64>(n);
-    sort::trace("  sort: allocated", t);
+    crate::cleanup::trace("  sort: allocated", t);
     {
         let rp = SendPtr(records.as_mut_ptr());
-        let ap = SendPtr(arrival.as_mut_ptr() as *mut u8);
+        let ap = SendPtr(arrival.as_mut_ptr());
         slabs.par_iter().zip(cursors.into_par_iter()).enumerate().for_each(
             |(p, (slab, mut cur))| {
                 let (rp, ap) = (&rp, &ap);
@@ -186,13 +187,13 @@ pub(crate) fn sort_records(
                     // SAFETY: the cursors of all pieces partition 0..n; each slot is written once.
                     unsafe {
                         std::ptr::copy_nonoverlapping(r.as_ptr(), rp.0.add(at * rl), rl);
-                        (ap.0 as *mut u64).add(at).write(arrival_of(p, i));
+                        ap.write(at, arrival_of(p, i));
                     }
                 }
             },
         );
     }
-    sort::trace("  sort: scattered", t);
+    crate::cleanup::trace("  sort: scattered", t);
     // Each bucket: keys (code, local index) sorted stably by code, then the bucket permuted.
     let mask = (1i64 << g.shift) - 1;
     let mut rb: Vec<&mut [u8]> = Vec::with_capacity(nb);
@@ -261,14 +262,9 @@ pub(crate) fn sort_records(
             }
         },
     );
-    sort::trace("  sort: buckets sorted", t);
+    crate::cleanup::trace("  sort: buckets sorted", t);
     Sorted { records, arrival, rl }
 }
-
-pub(super) struct SendPtr(pub(super) *mut u8);
-// SAFETY: used only for disjoint writes (see sort_records).
-unsafe impl Sync for SendPtr {}
-unsafe impl Send for SendPtr {}
 
 /// Builds the store in `writer` from `ds` with the sorted engine; `header` is the headers' box
 /// (see [`super::build`]).
@@ -282,7 +278,7 @@ pub(crate) fn build_into(
 ) -> Result<BuildReport> {
     let rl = ds.layout.record_len;
     let total = ds.declared_points();
-    let mut report = BuildReport { engine: "sorted", ..BuildReport::default() };
+    let mut report = BuildReport { engine: BuiltBy::Sorted, ..BuildReport::default() };
     // The root the headers promise; checked against the points once they are read.
     let promised =
         header.map(|(l, h)| Cube::covering(l, h)).unwrap_or(Cube { min: [0; 3], size_log2: 32 });
@@ -298,12 +294,12 @@ pub(crate) fn build_into(
     }
     // Headers that lie: the points' real range, per file.
     for (src, st) in ds.inputs.iter().zip(&real) {
-        if let Some(w) = super::build::bounds_warning(ds, src.as_ref(), st) {
+        if let Some(w) = super::bounds::bounds_warning(ds, src.as_ref(), st) {
             report.warnings.push(w);
         }
     }
     report.read_seconds = tr.elapsed().as_secs_f64();
-    sort::trace("read", t0);
+    crate::cleanup::trace("read", t0);
     let records: Vec<&[u8]> = slabs.iter().map(|(r, _)| &**r).collect();
     // The headers' box when it holds every point; otherwise the headers lie, and the root is the
     // points' own box (the incremental engine grows its root instead).
@@ -318,7 +314,7 @@ pub(crate) fn build_into(
     let shift = bucket_shift(root);
     if root != promised {
         hist = records.par_iter().map(|s| histogram(s, rl, &g, shift)).collect();
-        sort::trace("histograms again (header bounds differ from the points)", t0);
+        crate::cleanup::trace("histograms again (header bounds differ from the points)", t0);
     }
     let ts = Instant::now();
     // Counted twice: once scattered into buckets, once sorted in its bucket.
@@ -329,8 +325,8 @@ pub(crate) fn build_into(
     drop(records);
     drop(slabs);
     report.sort_seconds = ts.elapsed().as_secs_f64();
-    sort::trace("sort", t0);
-    sort::check_interrupted()?;
+    crate::cleanup::trace("sort", t0);
+    crate::cleanup::check_interrupted()?;
     // The colour source from the whole input, as batch files choose it.
     let color = match ds.layout.attribute("rgb") {
         Some(a) if all.max_rgb > 0 => {
@@ -347,7 +343,7 @@ pub(crate) fn build_into(
         .map_err(|error| Error::Octree { error })?;
     report.tree_seconds = tt.elapsed().as_secs_f64();
     report.batch_seconds.push(report.tree_seconds);
-    sort::trace("tree", t0);
+    crate::cleanup::trace("tree", t0);
     ds.progress.stage("writing", tree.nodes.len() as u64, "nodes");
     write_tree(
         writer,
@@ -363,7 +359,7 @@ pub(crate) fn build_into(
         total,
         t0,
     )?;
-    sort::trace("written", t0);
+    crate::cleanup::trace("written", t0);
     report.seconds = t0.elapsed().as_secs_f64();
     Ok(report)
 }
@@ -395,7 +391,7 @@ pub(crate) fn read_pieces(
     let out: Vec<((std::borrow::Cow<'_, [u8]>, PieceStats), Vec<u32>)> = pieces
         .par_iter()
         .map(|p| {
-            sort::check_interrupted()?;
+            crate::cleanup::check_interrupted()?;
             let slab = ds.read_piece(p)?;
             if slab.len() as u64 != p.piece.points * rl as u64 {
                 return Err(Error::PieceCount {
@@ -489,7 +485,7 @@ fn write_tree(
         let tw = Instant::now();
         let mut start = level.start;
         while start < level.end {
-            sort::check_interrupted()?;
+            crate::cleanup::check_interrupted()?;
             let mut end = start;
             let mut bytes = 0u64;
             while end < level.end && (end == start || bytes < writer.group_bytes) {
@@ -533,7 +529,7 @@ fn write_tree(
         writer.write_hierarchy(root, points, opts.config.leaf_capacity, bounds)?;
         report.commit_seconds += tc.elapsed().as_secs_f64();
         progress(&BuildProgress { points, total, nodes: level.end, commits: writer.commits() });
-        sort::trace("level committed", t0);
+        crate::cleanup::trace("level committed", t0);
     }
     report.points = points;
     report.nodes = tree.nodes.len() as u64;

@@ -8,8 +8,9 @@ use mortar_core::octree::{Builder, NodeId, OctreeError, Point};
 use rayon::prelude::*;
 use std::time::Instant;
 
-use super::build::*;
+use super::bounds::bounds_warning;
 use super::format::*;
+use super::options::{BuildOptions, BuildProgress, BuildReport, BuiltBy};
 use super::writer::*;
 
 pub(crate) fn build_into(
@@ -27,7 +28,7 @@ pub(crate) fn build_into(
     // Bytes held per point between commits: its record, its Point in a leaf, the batch's work.
     let per_point = rl as u64 + 24 + 48;
     let interval_points = ((opts.memory / 3) / per_point).max(batch as u64);
-    let mut report = BuildReport { engine: "incremental", ..BuildReport::default() };
+    let mut report = BuildReport { engine: BuiltBy::Incremental, ..BuildReport::default() };
     ds.progress.stage("building", total, "points");
     // Made with the first points: its root covers the headers' bounds and those points.
     let mut builder: Option<Builder> = None;
@@ -47,7 +48,7 @@ pub(crate) fn build_into(
     let mut done = 0u64;
     let mut next = 0usize;
     while next < pieces.len() {
-        crate::sort::check_interrupted()?;
+        crate::cleanup::check_interrupted()?;
         // The next pieces, up to about one batch of points.
         let first = next;
         let mut n = 0u64;
@@ -75,7 +76,7 @@ pub(crate) fn build_into(
             let stats: Vec<(usize, crate::sort::PieceStats)> = slices
                 .into_par_iter()
                 .map(|(p, out)| {
-                    crate::sort::check_interrupted()?;
+                    crate::cleanup::check_interrupted()?;
                     ds.read_piece_into(p, out)?;
                     // Read once: a mapped input's pages leave this process's memory.
                     ds.inputs[p.input].release_piece(&p.piece);
@@ -124,7 +125,7 @@ pub(crate) fn build_into(
         // Updates of about `batch` points each; a commit may come between two of them.
         let mut cursor = base;
         while cursor < records.len() {
-            crate::sort::check_interrupted()?;
+            crate::cleanup::check_interrupted()?;
             let end = (cursor + batch * rl).min(records.len());
             let first_index = (cursor / rl) as u64;
             points.clear();

@@ -25,6 +25,7 @@
 //! receives points in many commit intervals is rewritten whole each time, so `nodes.bin` grows
 //! with input order as much as with input size (measured in BENCHMARKS.md).
 
+mod bounds;
 mod build;
 mod compact;
 pub(crate) mod dense;
@@ -32,19 +33,21 @@ pub mod distributed;
 pub(crate) mod engine;
 mod format;
 mod incremental;
+mod options;
 pub(crate) mod partitioned;
 mod reader;
 mod record;
 mod writer;
 
-pub(crate) use build::header_bounds as header_bounds_of;
-pub use build::{build, BuildOptions, BuildProgress, BuildReport, Engine};
+pub(crate) use bounds::header_bounds as header_bounds_of;
+pub use build::build;
 pub use compact::{compact, CompactReport};
 pub use engine::in_memory_need;
 pub use format::{
     HierarchyHeader, NodeEntry, NodeHeader, PayloadError, HIERARCHY_FILE, INNER, LEAF, NODES_FILE,
     SOURCE_FILE,
 };
+pub use options::{BuildOptions, BuildProgress, BuildReport, BuiltBy, Engine};
 pub use reader::{is_store, NodeData, Store};
 pub use record::{BuildRecord, InputPrint, RECORD_FILE};
 pub use writer::{CommitStats, StoreWriter, COMMIT_GROUP_BYTES, PAGED};

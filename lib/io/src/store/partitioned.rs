@@ -31,10 +31,10 @@
 //! commits while it builds (a reader sees the store at the end only), and units built in
 //! parallel with one another (each unit's tree and encoding are parallel inside).
 
-use super::build::{BuildOptions, BuildProgress, BuildReport};
 use super::dense::{self, Level};
 use super::engine::{grid_of, histogram, sort_records, Sorted, BUCKET_BITS};
 use super::format::*;
+use super::options::{BuildOptions, BuildProgress, BuildReport, BuiltBy};
 use super::writer::*;
 use crate::dataset::Dataset;
 use crate::error::{Error, Result};
@@ -463,7 +463,7 @@ pub(crate) fn build_into(
 ) -> Result<BuildReport> {
     let rl = ds.layout.record_len;
     let total = ds.declared_points();
-    let mut report = BuildReport { engine: "partitioned", ..BuildReport::default() };
+    let mut report = BuildReport { engine: BuiltBy::Partitioned, ..BuildReport::default() };
     let state = writer.dir.join(STATE_DIR);
     let tr = Instant::now();
     let kept = if opts.resume { read_manifest(&state, rl) } else { None };
@@ -485,7 +485,7 @@ pub(crate) fn build_into(
     let Partition { root, runs, hist, all, warnings, .. } = part;
     report.warnings = warnings;
     report.read_seconds = tr.elapsed().as_secs_f64();
-    sort::trace("partitioned", t0);
+    crate::cleanup::trace("partitioned", t0);
     let (lo, hi) = if all.count == 0 { ([0; 3], [0; 3]) } else { (all.min, all.max) };
     let unit_points = ((opts.memory / 2) / unit_bytes_per_point(rl as u64))
         .max(opts.config.leaf_capacity as u64 + 1);
@@ -593,7 +593,7 @@ pub(crate) fn partition_all(
         partition(ds, guess.1, guess.0, max_level, block_bytes, state, None)?;
     let mut warnings = Vec::new();
     for (src, st) in ds.inputs.iter().zip(&real) {
-        if let Some(w) = super::build::bounds_warning(ds, src.as_ref(), st) {
+        if let Some(w) = super::bounds::bounds_warning(ds, src.as_ref(), st) {
             warnings.push(w);
         }
     }
@@ -696,7 +696,7 @@ fn partition(
     let mut real = vec![PieceStats::default(); ds.inputs.len()];
     let mut i = 0;
     while i < pieces.len() {
-        sort::check_interrupted()?;
+        crate::cleanup::check_interrupted()?;
         let mut j = i;
         let mut bytes = 0usize;
         while j < pieces.len()
@@ -743,7 +743,7 @@ fn partition(
         }
         let mut buf = sort::zeroed_huge::<u8>(n * el);
         {
-            let bp = super::engine::SendPtr(buf.as_mut_ptr());
+            let bp = mortar_core::par::SendPtr(buf.as_mut_ptr());
             group.par_iter().zip(cursors.into_par_iter()).enumerate().for_each(
                 |(k, ((slab, _, _), mut cur))| {
                     let bp = &bp;
@@ -840,7 +840,7 @@ impl Walk<'_, '_> {
         depth: u8,
         cells: std::ops::Range<usize>,
     ) -> Result<Cands> {
-        sort::check_interrupted()?;
+        crate::cleanup::check_interrupted()?;
         if let Some(l) = self.replay.remove(&(key.level as u32, key.index)) {
             self.seq = l.seq_after;
             return Ok(l.cands);
@@ -1228,7 +1228,7 @@ pub(crate) fn build_units(
         commit_every: f64::INFINITY,
         first_commit_after: None,
         memory,
-        engine: super::build::Engine::Partitioned,
+        engine: super::options::Engine::Partitioned,
         resume: false,
     };
     let unit_points =
