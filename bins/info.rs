@@ -2,9 +2,10 @@
 
 use anyhow::Result;
 use mortar_app::cli as common;
-use mortar_io::batchfile::{is_batch_file, BatchFile};
+use mortar_io::batchfile::BatchFile;
 use mortar_io::info::{describe, FileInfo};
-use mortar_io::source::{expand_inputs, LasInput};
+use mortar_io::inputs::{self, InputKind};
+use mortar_io::source::LasInput;
 use std::io::Write;
 use std::path::Path;
 
@@ -22,15 +23,18 @@ pub struct Args {
 }
 
 fn info_of(p: &Path, stats: bool) -> Result<FileInfo> {
-    if mortar_io::store::is_store(p) {
-        let s = mortar_io::store::Store::open(p)?;
-        let mut info = describe(&s, "store", stats, None)?;
-        info.store = Some(mortar_io::info::store_info(&s));
-        return Ok(info);
-    }
-    if p != Path::new("-") && is_batch_file(p) {
-        let b = BatchFile::open(p)?;
-        return Ok(describe(&b, "batch", stats, Some(&b))?);
+    match InputKind::of(p) {
+        InputKind::Store => {
+            let s = mortar_io::store::Store::open(p)?;
+            let mut info = describe(&s, "store", stats, None)?;
+            info.store = Some(mortar_io::info::store_info(&s));
+            return Ok(info);
+        }
+        InputKind::BatchFile => {
+            let b = BatchFile::open(p)?;
+            return Ok(describe(&b, "batch", stats, Some(&b))?);
+        }
+        InputKind::Stdin | InputKind::Las => {}
     }
     let i = LasInput::open(p)?;
     let mut info = describe(&i, if i.is_laz() { "laz" } else { "las" }, stats, None)?;
@@ -41,7 +45,7 @@ fn info_of(p: &Path, stats: bool) -> Result<FileInfo> {
 }
 
 pub fn run(a: Args) -> Result<()> {
-    let paths = expand_inputs(&a.inputs)?;
+    let paths = inputs::expand(&a.inputs)?;
     let infos = paths.iter().map(|p| info_of(p, a.stats)).collect::<Result<Vec<_>>>()?;
     let mut out = std::io::stdout().lock();
     if a.json {

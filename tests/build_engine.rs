@@ -171,8 +171,7 @@ fn a_sorted_build_is_readable_at_every_commit_coarse_first() {
     use mortar_io::store::{build, BuildOptions, Engine};
     let dir = tempdir("sorted-commits");
     let store = dir.join("s");
-    let ds =
-        mortar_io::dataset::Dataset::open(&[root().join("data-samples/autzen_trim.laz")]).unwrap();
+    let ds = mortar_io::inputs::open(&[root().join("data-samples/autzen_trim.laz")]).unwrap();
     let opts = BuildOptions {
         config: BuilderConfig {
             leaf_capacity: 2000,

@@ -205,7 +205,7 @@ fn gpu_keys_equal_cpu_keys_on_real_fixtures_and_a_benchmark_set() {
     }
     for (name, files) in sets {
         let paths: Vec<PathBuf> = files.iter().map(|f| data.join(f)).collect();
-        let ds = mortar_io::dataset::Dataset::open(&paths).unwrap();
+        let ds = mortar_io::inputs::open(&paths).unwrap();
         let opts = mortar_io::sort::SortOptions::with_memory(1 << 30, tmp.clone());
         let src =
             RenderSource::batch_dataset(&ds, &opts, &mortar_io::batchfile::AttributeSelection::All)

@@ -42,8 +42,8 @@ struct Raw {
 }
 
 fn read(path: &Path) -> Raw {
-    let ds =
-        Dataset::open(&[path.to_path_buf()]).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    let ds = mortar_io::inputs::open(&[path.to_path_buf()])
+        .unwrap_or_else(|e| panic!("{}: {e}", path.display()));
     let view = mortar_io::framing::view_box(&ds).unwrap();
     let pieces = Mutex::new(Vec::new());
     load_pieces(&ds, Payload::Intensity, 2, &AtomicBool::new(false), |p| {

@@ -556,7 +556,7 @@ fn adaptive_precision_against_full_precision_on_benchmark_sets() {
     let (w, h) = (1920, 1080);
     for set in sets {
         let path = data.join(set);
-        let ds = mortar_io::dataset::Dataset::open(std::slice::from_ref(&path)).unwrap();
+        let ds = mortar_io::inputs::open(std::slice::from_ref(&path)).unwrap();
         let opts = mortar_io::sort::SortOptions::with_memory(1 << 30, tmp.clone());
         let src =
             RenderSource::batch_dataset(&ds, &opts, &mortar_io::batchfile::AttributeSelection::All)

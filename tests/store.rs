@@ -97,7 +97,7 @@ fn store_round_trip_is_exact_on_fixtures() {
 fn store_is_readable_at_every_commit_while_it_grows() {
     let dir = tempdir("store-grow");
     let store = dir.join("s");
-    let ds = mortar_io::dataset::Dataset::open(&[sample()]).unwrap();
+    let ds = mortar_io::inputs::open(&[sample()]).unwrap();
     let opts = BuildOptions {
         config: BuilderConfig {
             leaf_capacity: 2000,

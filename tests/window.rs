@@ -440,8 +440,10 @@ fn build_preview_shows_the_store_while_it_grows() {
         let p = &j["preview"];
         assert_eq!(p["renderer"]["backend"], backend, "{p}");
         let frames = p["frames"].as_array().unwrap();
-        // Frames were drawn while the store grew, not only at the end.
-        assert!(frames.len() >= 3, "{} preview frames", frames.len());
+        // Frames were drawn while the store grew, not only at the end: at least one before the
+        // last (how many depends on how the two threads are scheduled; on a loaded 2-core
+        // machine a build of 22 commits has been seen with 2), and one of them partial (below).
+        assert!(frames.len() >= 2, "{} preview frames", frames.len());
         let drawn: Vec<u64> = frames.iter().map(|f| f["points_drawn"].as_u64().unwrap()).collect();
         assert!(
             drawn.iter().any(|&d| d > 0 && d < *drawn.last().unwrap()),

@@ -201,7 +201,7 @@ pub fn twice_apart(las: &Path, out: &Path) -> PathBuf {
 /// The box of the points of the first piece of `las` (world coordinates), as the framing rule
 /// reads it.
 pub fn first_piece_box(las: &Path) -> ([f64; 3], [f64; 3]) {
-    let ds = mortar_io::dataset::Dataset::open(&[las.to_path_buf()]).unwrap();
+    let ds = mortar_io::inputs::open(&[las.to_path_buf()]).unwrap();
     let first = mortar_io::framing::first_points(&ds).unwrap();
     let b = mortar_core::render::framing::IntBox::of(&first).unwrap().world(&ds.grid);
     (b.min, b.max)

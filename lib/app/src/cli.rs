@@ -139,8 +139,8 @@ pub fn open_dataset(
     inputs: &[String],
     crs: &CrsArgs,
 ) -> anyhow::Result<mortar_io::dataset::Dataset> {
-    let paths = mortar_io::source::expand_inputs(inputs)?;
-    Ok(mortar_io::dataset::Dataset::open_with(&paths, &crs.options())?)
+    let paths = mortar_io::inputs::expand(inputs)?;
+    Ok(mortar_io::inputs::open_with(&paths, &crs.options())?)
 }
 
 /// How merged inputs get their CRS, shared by every command that merges inputs.

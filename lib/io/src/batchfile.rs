@@ -94,15 +94,7 @@ pub enum AttributeSelection {
     Only(Vec<String>),
 }
 
-/// An attribute named in an [`AttributeSelection`] that the point format does not have.
-#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
-#[error("point format {format} has no attribute '{name}' (it has: {})", have.join(", "))]
-pub struct UnknownAttribute {
-    pub format: u8,
-    pub name: String,
-    /// The attributes the point format has.
-    pub have: Vec<String>,
-}
+pub use crate::error::UnknownAttribute;
 
 impl AttributeSelection {
     /// Parses `all`, `none` or a comma-separated list of names.

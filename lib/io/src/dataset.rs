@@ -8,7 +8,7 @@ use crate::source::{LasInput, Piece};
 use mortar_core::grid::{self, Grid, GridInput, GridMap};
 use mortar_core::layout::{base_len, merge_layouts, read_xyz, write_xyz, Conversion, RecordLayout};
 use std::borrow::Cow;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 /// Something that yields LAS records in pieces: a LAS/LAZ file, or a batch file read back.
 pub trait RecordSource: Send + Sync {
@@ -287,34 +287,6 @@ impl Dataset {
             warnings,
             progress: Progress::new(),
         })
-    }
-
-    /// Opens LAS/LAZ files and batch files and merges them; warnings about each file come first.
-    pub fn open(paths: &[PathBuf]) -> Result<Dataset> {
-        Self::open_with(paths, &OpenOptions::default())
-    }
-
-    /// [`open`](Self::open) with the user's choices.
-    pub fn open_with(paths: &[PathBuf], opts: &OpenOptions) -> Result<Dataset> {
-        let mut warnings = Vec::new();
-        let mut inputs: Vec<Box<dyn RecordSource>> = Vec::new();
-        for p in paths {
-            if p != Path::new("-") && crate::store::is_store(p) {
-                inputs.push(Box::new(crate::store::Store::open(p)?));
-                continue;
-            }
-            if p != Path::new("-") && crate::batchfile::is_batch_file(p) {
-                inputs.push(Box::new(crate::batchfile::BatchFile::open(p)?));
-                continue;
-            }
-            let i = LasInput::open(p)?;
-            warnings.extend(i.meta.warnings.iter().map(|w| format!("{}: {w}", p.display())));
-            inputs.push(Box::new(i));
-        }
-        let mut ds = Dataset::with_options(inputs, opts)?;
-        warnings.append(&mut ds.warnings);
-        ds.warnings = warnings;
-        Ok(ds)
     }
 
     /// The metadata the writers need.

@@ -14,7 +14,6 @@ use std::path::{Path, PathBuf};
 
 pub use crate::crs::CrsError;
 pub use crate::las::LasError;
-pub use crate::store::PayloadError;
 use mortar_core::grid::GridError;
 use mortar_core::layout::LayoutError;
 use mortar_core::octree::{LodIndexError, OctreeError};
@@ -41,7 +40,7 @@ pub enum Error {
     NoInput,
     /// An attribute named in a selection (`--attributes`) is not in the point format.
     #[error("{0}")]
-    UnknownAttribute(#[from] crate::batchfile::UnknownAttribute),
+    UnknownAttribute(#[from] UnknownAttribute),
 
     // ---- reading and writing files
     /// Reading, writing, creating or renaming a file failed (out of disk, permissions, a closed
@@ -659,3 +658,42 @@ impl Error {
 }
 
 pub type Result<T> = std::result::Result<T, Error>;
+
+/// An attribute named in an [`AttributeSelection`](crate::batchfile::AttributeSelection) that the point format does not have.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+#[error("point format {format} has no attribute '{name}' (it has: {})", have.join(", "))]
+pub struct UnknownAttribute {
+    pub format: u8,
+    pub name: String,
+    /// The attributes the point format has.
+    pub have: Vec<String>,
+}
+
+/// Why a node payload cannot be read or written.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum PayloadError {
+    /// The payload is shorter than its header.
+    #[error("payload shorter than its header")]
+    Short,
+    /// The payload's header is damaged (magic, kind, length or bit widths).
+    #[error("damaged payload")]
+    Damaged,
+    /// The payload holds records of another length than the store's.
+    #[error("damaged payload: another record length")]
+    RecordLength,
+    /// More points than a payload can count.
+    #[error("node {node} holds {count} points, more than a payload can (2^32 - 1)")]
+    TooManyPoints { node: String, count: usize },
+    /// The node's points span more than a payload's grid.
+    #[error("node {node} spans more than 2^30 grid units on an axis")]
+    TooWide { node: String },
+    /// A node's last payload does not hold the points the builder saved in it.
+    #[error("node {node}: its last payload does not match the points saved")]
+    Stale { node: String },
+    /// The attributes gathered for a node are not those of its points.
+    #[error("node {node}: {bytes} bytes of attributes for {count} points")]
+    AttributeBytes { node: String, bytes: usize, count: usize },
+    /// A payload error of node `node`.
+    #[error("node {node}: {error}")]
+    InNode { node: String, error: Box<PayloadError> },
+}

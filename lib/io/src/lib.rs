@@ -1,7 +1,8 @@
 //! mortar-io: everything that touches files. LAS/LAZ sources and sinks, the Morton sort (in
 //! memory or external), the batch file format and its memory-mapped reader.
 //!
-//! The main entry points, on the shipped sample (110,000 points of LAZ): open inputs as one
+//! The main entry points, on the shipped sample (110,000 points of LAZ): open inputs through the
+//! front door ([`inputs`]: what kind each path is, directories and globs) as one
 //! [`Dataset`](dataset::Dataset), write them Morton-sorted as LAZ ([`sort::sort`] into a
 //! [`LasSink`](sink_las::LasSink)) or as a batch file ([`BatchSink`](batchfile::BatchSink), read
 //! back with [`BatchFile`](batchfile::BatchFile)), build the octree store
@@ -10,14 +11,14 @@
 //!
 //! ```
 //! use mortar_io::batchfile::{AttributeSelection, BatchFile, BatchSink, Compression};
-//! use mortar_io::dataset::Dataset;
+//! use mortar_io::inputs;
 //! use mortar_io::export::{export, ExportFormat, ExportOptions, PointOrder};
 //! use mortar_io::sink_las::{LasSink, Target};
 //! use mortar_io::sort::{sort, SortOptions};
 //! use mortar_io::store::{build, BuildOptions, Engine, Store};
 //! # let out = std::env::temp_dir().join(format!("mortar-io-doctest-{}", std::process::id()));
 //! # std::fs::create_dir_all(&out)?;
-//! let ds = Dataset::open(&["../../data-samples/autzen_trim.laz".into()])?;
+//! let ds = inputs::open(&["../../data-samples/autzen_trim.laz".into()])?;
 //! assert_eq!(ds.declared_points(), 110_000);
 //! let opts = SortOptions::with_memory(1 << 30, out.clone());
 //!
@@ -56,9 +57,9 @@ pub mod batchfile;
 pub mod crs;
 pub mod dataset;
 pub mod export;
-pub mod external;
 pub mod framing;
 pub mod info;
+pub mod inputs;
 pub mod progress;
 pub mod progressive;
 pub mod render_input;

@@ -66,64 +66,6 @@ impl std::ops::Deref for Bytes {
     }
 }
 
-/// Expands command-line inputs: files as given, directories to their `.las`/`.laz` files (sorted,
-/// recursive), glob patterns to their matches (sorted), `-` to stdin.
-pub fn expand_inputs(args: &[String]) -> Result<Vec<PathBuf>> {
-    let mut out = Vec::new();
-    for a in args {
-        if a == "-" {
-            out.push(PathBuf::from("-"));
-            continue;
-        }
-        let p = Path::new(a);
-        if crate::store::is_store(p) {
-            out.push(p.to_path_buf());
-        } else if p.is_dir() {
-            let mut found = Vec::new();
-            collect_dir(p, &mut found)?;
-            if found.is_empty() {
-                return Err(Error::NoLasInDirectory { path: p.to_path_buf() });
-            }
-            found.sort();
-            out.extend(found);
-        } else if p.exists() {
-            out.push(p.to_path_buf());
-        } else if a.contains(['*', '?', '[']) {
-            let paths =
-                glob::glob(a).map_err(|error| Error::BadPattern { pattern: a.clone(), error })?;
-            let mut found: Vec<PathBuf> =
-                paths.filter_map(|r| r.ok()).filter(|p| p.is_file()).collect();
-            if found.is_empty() {
-                return Err(Error::NoMatch { pattern: a.clone() });
-            }
-            found.sort();
-            out.extend(found);
-        } else {
-            return Err(Error::NotFound { path: p.to_path_buf() });
-        }
-    }
-    if out.is_empty() {
-        return Err(Error::NoInput);
-    }
-    Ok(out)
-}
-
-fn collect_dir(dir: &Path, out: &mut Vec<PathBuf>) -> Result<()> {
-    let rd = std::fs::read_dir(dir).map_err(|e| Error::io(dir, e))?;
-    for entry in rd {
-        let entry = entry.map_err(|e| Error::io(dir, e))?;
-        let p = entry.path();
-        if p.is_dir() {
-            collect_dir(&p, out)?;
-        } else if let Some(ext) = p.extension().and_then(|e| e.to_str()) {
-            if ext.eq_ignore_ascii_case("las") || ext.eq_ignore_ascii_case("laz") {
-                out.push(p);
-            }
-        }
-    }
-    Ok(())
-}
-
 /// Reads a whole file (or stdin for `-`) as bytes.
 pub fn open_bytes(path: &Path) -> Result<Bytes> {
     if path == Path::new("-") {

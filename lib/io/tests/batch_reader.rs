@@ -3,7 +3,7 @@
 
 use mortar_core::layout::{read_xyz, RecordLayout};
 use mortar_io::batchfile::{AttributeSelection, BatchFile, BatchSink, Compression};
-use mortar_io::dataset::{Dataset, SourceMeta};
+use mortar_io::dataset::SourceMeta;
 use mortar_io::sink_las::{LasSink, Target};
 use mortar_io::sort::{sort, OrderedSink, SortOptions};
 use mortar_io::synth::{self, SynthOptions};
@@ -35,7 +35,7 @@ fn make_batch_file(
     sink.begin(&stats.summary()).unwrap();
     sink.write(&records).unwrap();
     sink.finish().unwrap();
-    let ds = Dataset::open(&[las]).unwrap();
+    let ds = mortar_io::inputs::open(&[las]).unwrap();
     let attrs = AttributeSelection::All.resolve(&ds.layout).unwrap();
     let t = ds.source_meta();
     let out = dir.join(format!("{compression:?}.mbat"));

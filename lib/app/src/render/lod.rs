@@ -9,6 +9,7 @@ use crate::render::{build_camera, encode_png, write_atomic, Args};
 use anyhow::{anyhow, bail, Result};
 use mortar_core::octree::{LodOptions, LodSelection, DEFAULT_THRESHOLD_PX};
 use mortar_core::render::Camera;
+use mortar_io::inputs::InputKind;
 use mortar_io::render_input::{RenderSettings, Rendered};
 use mortar_io::store_lod::{self, LodBatches, LodColor, StoreLod};
 use mortar_render::{GpuContext, GpuError};
@@ -47,9 +48,7 @@ impl LodArgs {
 /// not given. LOD options given for any other input are an error.
 pub fn store_input(a: &Args) -> Result<Option<PathBuf>> {
     let store = match &a.inputs[..] {
-        [one] if one != "-" && mortar_io::store::is_store(Path::new(one)) => {
-            Some(PathBuf::from(one))
-        }
+        [one] if InputKind::of(Path::new(one)) == InputKind::Store => Some(PathBuf::from(one)),
         _ => None,
     };
     if store.is_none()

@@ -17,6 +17,7 @@ use mortar_core::render::BatchRef;
 use mortar_core::render::{Aabb, Camera, PrecisionMode, Projection, RasterOptions, ViewPreset};
 use mortar_io::batchfile::{AttributeSelection, BatchFile};
 use mortar_io::cleanup::TempPath;
+use mortar_io::inputs::InputKind;
 use mortar_io::render_input::{self, ColorChoice, RenderSettings, RenderSource, Rendered};
 use mortar_render::{
     AtomicPath, GpuContext, GpuError, GpuFrame, GpuOptions, GpuRasterizer, GpuScene, SceneOptions,
@@ -265,7 +266,7 @@ pub fn open_source(
 ) -> Result<(RenderSource, Aabb)> {
     if let [one] = inputs {
         let p = Path::new(one);
-        if one != "-" && p.is_file() && mortar_io::batchfile::is_batch_file(p) {
+        if InputKind::of(p) == InputKind::BatchFile {
             let source = RenderSource::open_batch_file(p)?;
             let bounds = render_input::file_bounds(&source.file);
             return Ok((source, bounds));

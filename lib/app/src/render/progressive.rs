@@ -24,7 +24,7 @@ use mortar_core::render::progressive::{
 };
 use mortar_core::render::resolve::{resolve, ColorMode, EyeDome, HoleFill, ResolveOptions};
 use mortar_core::render::{Camera, RasterOptions};
-use mortar_io::dataset::Dataset;
+use mortar_io::inputs::InputKind;
 use mortar_io::progressive::{
     load_pieces, payload_colors, payload_for, payload_range, point_count, resolve_choice,
     ColorStats, LoadedPiece,
@@ -442,21 +442,16 @@ pub fn run(a: &Args) -> Result<()> {
     if p.load_threads == Some(0) {
         bail!("--load-threads 0: at least one thread must decode the input");
     }
-    let paths = mortar_io::source::expand_inputs(&a.inputs)?;
+    let paths = mortar_io::inputs::expand(&a.inputs)?;
     for path in &paths {
-        if path.as_os_str() == "-" {
-            continue;
-        }
-        let what = if mortar_io::store::is_store(path) {
-            "an octree store"
-        } else if path.is_file() && mortar_io::batchfile::is_batch_file(path) {
-            "a batch file"
-        } else {
-            continue;
+        let what = match InputKind::of(path) {
+            InputKind::Store => "an octree store",
+            InputKind::BatchFile => "a batch file",
+            InputKind::Stdin | InputKind::Las => continue,
         };
         bail!("{}: --progressive draws raw LAS/LAZ (paper 000), and this is {what}; draw it without --progressive", path.display());
     }
-    let mut ds = Dataset::open_with(&paths, &a.sort.crs.options())?;
+    let mut ds = mortar_io::inputs::open_with(&paths, &a.sort.crs.options())?;
     common::print_warnings(&ds.warnings);
     let keep = a.color.attributes(&ds.layout);
     ds.decode_only(&keep);

@@ -1,13 +1,18 @@
-//! `mortar view`: a window showing a batch file (or LAS/LAZ or an octree store, batched on the fly
-//! into a temporary batch file as `mortar render` does). Each frame is drawn by the GPU rasterizer
-//! (paper 003 §3.2-3.3: clear, draw, resolve in compute shaders) and put on the window's surface
-//! by one render pass, without the image leaving the GPU; where no hardware GPU can present to
-//! the window (or with `--backend cpu`) the CPU reference rasterizer draws and the image is
-//! uploaded to the window as a plain pixel buffer (softbuffer), which needs no GPU at all.
+//! `mortar view`: a window on one of three kinds of content ([`Content`]): a batch file (every
+//! point; other non-LAS inputs are batched on the fly as `mortar render` does), an octree store
+//! ([`store::StoreView`]: LOD selection per frame, nodes uploaded on first selection) or raw
+//! LAS/LAZ ([`progressive::ProgressiveView`]: the progressive renderer of paper 000, the window
+//! open at once and points appearing as they are decoded); and the window of `mortar build
+//! --preview`, which reads the growing store's commits. Each frame is drawn by the GPU
+//! rasterizer (paper 003 §3.2-3.3: clear, draw, resolve in compute shaders) and put on the
+//! window's surface by one render pass, without the image leaving the GPU; where no hardware GPU
+//! can present to the window (or with `--backend cpu`) the CPU reference rasterizer draws and
+//! the image is uploaded to the window as a plain pixel buffer (softbuffer).
 //!
-//! Frames are drawn on input only (orbit, pan, zoom, keys, resizes). `--screenshot out.png
-//! --frames N` draws N frames in the real window, writes what the last one put on the surface
-//! and exits (tests run it under Xvfb).
+//! Frames are drawn on input (orbit, pan, zoom, keys, resizes) and when the content changes
+//! (points decoded, a new commit of the previewed store). `--screenshot out.png --frames N`
+//! draws N frames in the real window, writes what the last one put on the surface and exits
+//! (tests run it under Xvfb).
 
 pub mod content;
 pub mod progressive;
@@ -26,6 +31,7 @@ use anyhow::{anyhow, bail, Context as _, Result};
 use mortar_core::layout::RecordLayout;
 use mortar_core::render::resolve::ResolveOptions;
 use mortar_core::render::{Aabb, Orbit, RasterOptions};
+use mortar_io::inputs::InputKind;
 use mortar_io::render_input::{self, ColorChoice};
 use mortar_io::store::{BuildProgress, BuildReport};
 use mortar_render::{
@@ -225,11 +231,7 @@ pub fn run(a: Args) -> Result<()> {
     // The display first: no point in batching a large LAZ file for a window that cannot open.
     let event_loop = event_loop()?;
     let store = match &a.inputs[..] {
-        [one]
-            if one != "-"
-                && !a.lod.no_lod
-                && mortar_io::store::is_store(std::path::Path::new(one)) =>
-        {
+        [one] if !a.lod.no_lod && InputKind::of(std::path::Path::new(one)) == InputKind::Store => {
             Some(PathBuf::from(one))
         }
         _ => None,
@@ -244,13 +246,8 @@ pub fn run(a: Args) -> Result<()> {
         return show(&a, event_loop, Box::new(view), label, None).map(drop);
     }
     if !a.no_progressive {
-        let paths = mortar_io::source::expand_inputs(&a.inputs)?;
-        let raw = !paths.is_empty()
-            && paths.iter().all(|p| {
-                p.as_os_str() != "-"
-                    && !mortar_io::store::is_store(p)
-                    && !(p.is_file() && mortar_io::batchfile::is_batch_file(p))
-            });
+        let paths = mortar_io::inputs::expand(&a.inputs)?;
+        let raw = !paths.is_empty() && paths.iter().all(|p| InputKind::of(p) == InputKind::Las);
         if raw {
             let threads = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
             let view = ProgressiveView::open(&paths, a.color, a.range, threads)?;

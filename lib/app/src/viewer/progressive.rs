@@ -200,7 +200,7 @@ impl ProgressiveView {
         range: Option<[f64; 2]>,
         threads: usize,
     ) -> Result<ProgressiveView> {
-        let ds = Dataset::open(paths)?;
+        let ds = mortar_io::inputs::open(paths)?;
         crate::cli::print_warnings(&ds.warnings);
         let label = paths.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(" ");
         let points = point_count(&ds);

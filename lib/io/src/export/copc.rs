@@ -16,7 +16,8 @@
 //! (level by level), the chunk table, the hierarchy EVLR, the dataset's EVLRs. Written to a
 //! temporary name and renamed.
 
-use super::{ExportReport, Frame, NodeWriter, OutNode};
+use super::nodes::{Frame, NodeWriter, OutNode};
+use super::options::ExportReport;
 use crate::cleanup::TempPath;
 use crate::dataset::Dataset;
 use crate::error::{Error, Result};

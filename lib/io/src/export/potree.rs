@@ -18,7 +18,8 @@
 //! classification, user data, scan angle, point source id, gps-time, rgb, nir, and the extra
 //! bytes as one `uint8` array. Written into a temporary directory and renamed.
 
-use super::{ExportReport, Frame, NodeWriter, OutNode};
+use super::nodes::{Frame, NodeWriter, OutNode};
+use super::options::ExportReport;
 use crate::cleanup::TempPath;
 use crate::dataset::Dataset;
 use crate::error::{Error, Result};

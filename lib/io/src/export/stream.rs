@@ -5,7 +5,7 @@
 //!    cell at depth `D` of the root into run files in a temporary directory beside the output.
 //! 2. The tree's top is walked depth first. A node whose points fit one unit's budget is a unit:
 //!    its points are read back and sorted, [`build_subtree`] makes its subtree, and
-//!    [`assign`](super::assign) gives each of its points to one node, starting with the unit's
+//!    [`assign`](super::nodes::assign) gives each of its points to one node, starting with the unit's
 //!    candidates marked as taken. That is exact: an inner node's voxels are its children's
 //!    candidates end to end, so every candidate a unit hands up is a voxel of the node above
 //!    it and is held there or higher, and no other point of the unit is held above it. The
@@ -20,17 +20,15 @@
 //! A partition cell denser than one unit's budget is partitioned again, or is a leaf written in
 //! slices, as the build does (`store/dense.rs`).
 
-use super::{
-    assign, open_writer, output_layout, stretch_factors, ExportOptions, ExportReport, Frame,
-    NodeWriter, OutNode, PointOrder, Stretch,
-};
+use super::nodes::{assign, output_layout, stretch_factors, Frame, NodeWriter, OutNode, Stretch};
+use super::options::{ExportOptions, ExportReport, PointOrder};
+use super::writer::open_writer;
 use crate::cleanup::TempPath;
 use crate::dataset::Dataset;
 use crate::error::{Error, Result};
 use crate::store::dense::{self, Level};
-use crate::store::partitioned::{
-    cell_depth, partition_all, read_unit, unit_bytes_per_point, Cands,
-};
+use crate::store::partitioned::{cell_depth, partition_all, read_unit, unit_bytes_per_point};
+use crate::store::runs::Cands;
 use mortar_core::layout::{read_xyz, Conversion};
 use mortar_core::octree::{build_subtree, splits, Cube, NodeKey};
 use std::path::Path;
@@ -186,7 +184,7 @@ impl Walk<'_, '_> {
             own.sort_by(|a, b| t(*a).total_cmp(&t(*b)));
         }
         if !own.is_empty() {
-            let recs = super::output_records(
+            let recs = super::nodes::output_records(
                 own.iter().map(|&i| &voxels.records[i * rl..(i + 1) * rl]),
                 own.len(),
                 rl,
@@ -260,8 +258,8 @@ impl Walk<'_, '_> {
         if kept > 0 {
             let tw = Instant::now();
             let (conv, stretch, out_rl) = (&self.conv, &self.stretch, self.out_rl);
-            let slice =
-                (super::group_bytes(self.opts.memory) / out_rl.max(1) as u64).max(1) as usize;
+            let slice = (super::nodes::group_bytes(self.opts.memory) / out_rl.max(1) as u64).max(1)
+                as usize;
             let failed: std::sync::Mutex<Option<Error>> = std::sync::Mutex::new(None);
             // By GPS time: parts sorted and merged as the writer reads them (in order).
             let timed = match self.gps {
@@ -280,7 +278,7 @@ impl Walk<'_, '_> {
                     None => leaf.read_kept(r.start as u64..r.end as u64),
                 };
                 match recs {
-                    Ok(recs) => super::output_records(
+                    Ok(recs) => super::nodes::output_records(
                         recs.chunks_exact(rl),
                         r.len(),
                         rl,
@@ -334,7 +332,7 @@ impl Walk<'_, '_> {
         let (conv, stretch, out_rl) = (&self.conv, &self.stretch, self.out_rl);
         let records = |x: &OutNode, r: std::ops::Range<usize>| {
             let pts = &x.points[r];
-            super::output_records(
+            super::nodes::output_records(
                 pts.iter().map(|&i| sorted.record(i as usize)),
                 pts.len(),
                 rl,
@@ -343,11 +341,11 @@ impl Walk<'_, '_> {
                 stretch,
             )
         };
-        super::write_grouped(
+        super::nodes::write_grouped(
             &mut *self.writer,
             &assigned,
             self.out_rl,
-            super::group_bytes(self.opts.memory),
+            super::nodes::group_bytes(self.opts.memory),
             &records,
         )?;
         self.report.write_seconds += tw.elapsed().as_secs_f64();

@@ -23,7 +23,7 @@
 //! stores node by node; `tests/export.rs` the exports). An exported leaf larger than a unit is
 //! ordered by GPS time (the default `--order`) by an external merge sort ([`TimeOrder`]).
 
-use super::partitioned::{Cands, Run};
+use super::runs::{Cands, Run};
 use crate::cleanup::TempPath;
 use crate::error::{Error, Result};
 use mortar_core::layout::read_xyz;

@@ -39,8 +39,9 @@
 
 use super::bounds::header_box;
 use super::format::*;
-use super::partitioned::{build_units, cell_depth, partition_fixed, Cands, Filter};
+use super::partitioned::{build_units, cell_depth, partition_fixed, Filter};
 use super::record::BuildRecord;
+use super::runs::Cands;
 use super::writer::StoreWriter;
 use crate::cleanup::TempPath;
 use crate::dataset::Dataset;

@@ -125,34 +125,7 @@ pub(crate) struct DecodedLeaf<'a> {
     pub(crate) attr_len: usize,
 }
 
-/// Why a node payload cannot be read or written.
-#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
-pub enum PayloadError {
-    /// The payload is shorter than its header.
-    #[error("payload shorter than its header")]
-    Short,
-    /// The payload's header is damaged (magic, kind, length or bit widths).
-    #[error("damaged payload")]
-    Damaged,
-    /// The payload holds records of another length than the store's.
-    #[error("damaged payload: another record length")]
-    RecordLength,
-    /// More points than a payload can count.
-    #[error("node {node} holds {count} points, more than a payload can (2^32 - 1)")]
-    TooManyPoints { node: String, count: usize },
-    /// The node's points span more than a payload's grid.
-    #[error("node {node} spans more than 2^30 grid units on an axis")]
-    TooWide { node: String },
-    /// A node's last payload does not hold the points the builder saved in it.
-    #[error("node {node}: its last payload does not match the points saved")]
-    Stale { node: String },
-    /// The attributes gathered for a node are not those of its points.
-    #[error("node {node}: {bytes} bytes of attributes for {count} points")]
-    AttributeBytes { node: String, bytes: usize, count: usize },
-    /// A payload error of node `node`.
-    #[error("node {node}: {error}")]
-    InNode { node: String, error: Box<PayloadError> },
-}
+pub use crate::error::PayloadError;
 
 impl PayloadError {
     /// `self` as an error of node `node`.

@@ -21,9 +21,11 @@
 //! last payload. So what is held is the inner nodes' voxels, the hierarchy and the points of one
 //! commit interval: a commit is also made when those exceed a third of `--memory`.
 //!
-//! Not done yet: old versions of changed nodes stay in `nodes.bin` (no compaction): a leaf that
+//! The incremental engine leaves old versions of changed nodes in `nodes.bin`: a leaf that
 //! receives points in many commit intervals is rewritten whole each time, so `nodes.bin` grows
-//! with input order as much as with input size (measured in BENCHMARKS.md).
+//! with input order as much as with input size (measured in BENCHMARKS.md); `mortar build
+//! --compact` ([`compact`]) rewrites it with only the live payloads. The sorted and partitioned
+//! engines write each node once.
 
 mod bounds;
 mod build;
@@ -37,6 +39,7 @@ mod options;
 pub(crate) mod partitioned;
 mod reader;
 mod record;
+pub(crate) mod runs;
 mod writer;
 
 pub(crate) use bounds::header_bounds as header_bounds_of;

@@ -35,6 +35,7 @@ use super::dense::{self, Level};
 use super::engine::{grid_of, histogram, sort_records, Sorted, BUCKET_BITS};
 use super::format::*;
 use super::options::{BuildOptions, BuildProgress, BuildReport, BuiltBy};
+use super::runs::{Cands, Run};
 use super::writer::*;
 use crate::dataset::Dataset;
 use crate::error::{Error, Result};
@@ -43,8 +44,7 @@ use mortar_core::color::{ColorSource, RgbDepth};
 use mortar_core::layout::read_xyz;
 use mortar_core::morton::MortonGrid;
 use mortar_core::octree::{
-    build_subtree, earliest_in_parent_cells, splits, Cube, NodeKey, SortedContent,
-    MIN_INNER_SIZE_LOG2,
+    build_subtree, splits, Cube, NodeKey, SortedContent, MIN_INNER_SIZE_LOG2,
 };
 use rayon::prelude::*;
 use std::io::{Read, Seek, SeekFrom, Write};
@@ -337,25 +337,6 @@ fn read_log(path: &Path, nodes: &Path, rl: usize) -> Result<LogState> {
     Ok((visits, entries, hashes, points, end))
 }
 
-/// One run file: the records of a group of pieces grouped by cell, then their arrival numbers
-/// (8 bytes each, native order) in the same order, so that a range of cells is one contiguous
-/// read of records and one of arrival numbers, straight into the unit's buffers.
-#[derive(Clone)]
-pub(crate) struct Run {
-    pub(crate) path: PathBuf,
-    /// Index of the first record of cell `c` (one more than the cells: the end).
-    pub(crate) starts: Vec<u64>,
-    /// [`checksum`] of the file.
-    hash: u64,
-}
-
-impl Run {
-    /// A run of a finer partition of a dense cell (not in the manifest: no checksum).
-    pub(crate) fn new(path: PathBuf, starts: Vec<u64>) -> Run {
-        Run { path, starts, hash: 0 }
-    }
-}
-
 /// A fast 64-bit checksum (8 bytes per step), in parallel over 1 MiB blocks for large inputs.
 /// [`checksum`] of the `len` bytes of `nodes.bin` at `off` (a payload written in slices), read
 /// back a block at a time.
@@ -397,46 +378,6 @@ fn checksum(b: &[u8]) -> u64 {
     }
     let parts: Vec<u64> = b.par_chunks(1 << 20).map(checksum_block).collect();
     checksum_block(bytemuck::cast_slice(&parts))
-}
-
-/// Points taken from a finished unit or node for its parent: positions, arrival numbers and
-/// whole records.
-#[derive(Default)]
-pub(crate) struct Cands {
-    pub pos: Vec<[i32; 3]>,
-    pub arrival: Vec<u64>,
-    pub records: Vec<u8>,
-}
-
-impl Cands {
-    pub(crate) fn push(&mut self, pos: [i32; 3], arrival: u64, record: &[u8]) {
-        self.pos.push(pos);
-        self.arrival.push(arrival);
-        self.records.extend_from_slice(record);
-    }
-    /// Which of these (a node's voxels, in Morton order) the node `key` with cube `cube` hands
-    /// its parent: the earliest in each cell of the parent's grid; none for the root.
-    pub(crate) fn for_parent(&self, key: NodeKey, cube: Cube) -> Vec<usize> {
-        if key.level == 0 {
-            return Vec::new();
-        }
-        earliest_in_parent_cells(cube, 0..self.pos.len(), |i| self.pos[i], |i| self.arrival[i])
-    }
-
-    /// The candidates at `idx` (records of `rl` bytes).
-    pub(crate) fn pick(&self, idx: &[usize], rl: usize) -> Cands {
-        let mut out = Cands::default();
-        for &i in idx {
-            out.push(self.pos[i], self.arrival[i], &self.records[i * rl..(i + 1) * rl]);
-        }
-        out
-    }
-
-    pub(crate) fn append(&mut self, o: Cands) {
-        self.pos.extend(o.pos);
-        self.arrival.extend(o.arrival);
-        self.records.extend(o.records);
-    }
 }
 
 /// Bytes per point of a unit held in memory: the entry read back (record + 8), the sorted copy

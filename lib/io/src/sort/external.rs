@@ -3,7 +3,7 @@
 //! Pass 1 reads the dataset in blocks of about a quarter of the budget and partitions each block
 //! by the top 10 bits of the Morton code (a stable counting sort) into one run file per block.
 //! Pass 2 takes the buckets in code order: a bucket that fits the budget is read from every run,
-//! sorted in memory ([`crate::sort`]) and emitted; a larger one (skewed data) is partitioned again
+//! sorted in memory ([`super::memory`]) and emitted; a larger one (skewed data) is partitioned again
 //! on the next 10 bits. Ties keep input order (runs are read in order, partitions are stable), so
 //! the output equals the in-memory sort's. Temporary files live in one directory that is removed
 //! on success, on error and on Ctrl-C ([`crate::cleanup`]).
@@ -11,13 +11,13 @@
 //! The Morton grid is defined by the points' actual bounds. Pass 1 uses the bounds the headers
 //! declare; if the points disagree with them, pass 1 runs again with the real ones.
 
-use crate::cleanup::{check_interrupted, TempPath};
-use crate::dataset::Dataset;
-use crate::error::{Error, Result};
-use crate::sort::{
+use super::memory::{
     declared_grid, emit, in_memory_need, make_keys, refine_ties, sort_keys, OrderedSink,
     PieceStats, SortOptions, SortReport,
 };
+use crate::cleanup::{check_interrupted, TempPath};
+use crate::dataset::Dataset;
+use crate::error::{Error, Result};
 use mortar_core::layout::read_xyz;
 use mortar_core::morton::MortonGrid;
 use rayon::prelude::*;
@@ -176,7 +176,7 @@ pub fn sort_external(
         runs = pass1(ds, opts, &summary.morton, tmp.path())?.0;
     }
     ds.progress.stage("writing", summary.count, "points");
-    let mut sink = crate::sort::Counted { sink, progress: &ds.progress, record_len: rl };
+    let mut sink = super::memory::Counted { sink, progress: &ds.progress, record_len: rl };
     sink.begin(&summary)?;
     let mut buckets = 0;
     drain(&runs, 0, &summary.morton, rl, opts, tmp.path(), &mut sink, &mut buckets)?;

@@ -1,15 +1,7 @@
-//! The Morton sort: every point of a dataset, in Morton order (paper 003 §3.1), handed to a sink
-//! as ordered chunks of records.
-//!
-//! In memory when the dataset fits the memory budget: pieces are read (LAZ decoded) in parallel,
-//! a key `(morton code, piece, index)` is made per point, the keys are sorted by a parallel
-//! radix partition on the top code bits followed by a sort of each bucket, and records are
-//! gathered in key order. Otherwise an external sort ([`crate::external`]): points are bucketed
-//! by Morton prefix into temporary files, and each bucket is sorted in memory in turn.
-//!
-//! The Morton grid is defined by the actual integer bounds of the points, and ties are broken by
-//! input order, so the output is the same on every path and on every run.
-
+//! The in-memory Morton sort and what every sort shares: keys `(morton code, piece, index)`,
+//! the parallel radix partition and per-bucket sort, the refinement of ties of a shifted code,
+//! piece statistics, and the sinks the ordered records go to. The external sort
+//! ([`super::external`]) sorts each of its buckets with these.
 use crate::cleanup::{check_interrupted, trace};
 use crate::dataset::{Dataset, DatasetPiece};
 use crate::error::{Error, Result};
@@ -209,7 +201,7 @@ pub fn in_memory_need(points: u64, record_len: usize, chunk_points: usize) -> u6
         + 4 * chunk * record_len as u64
 }
 
-/// What [`sort`] did.
+/// What [`super::sort`] did.
 #[derive(Clone, Debug)]
 pub struct SortReport {
     pub summary: Summary,
@@ -217,12 +209,12 @@ pub struct SortReport {
     pub buckets: usize,
 }
 
-/// Sorts the dataset and feeds the sink.
-pub fn sort(ds: &Dataset, opts: &SortOptions, sink: &mut dyn OrderedSink) -> Result<SortReport> {
-    let need = in_memory_need(ds.declared_points(), ds.layout.record_len, opts.chunk_points);
-    if need > opts.memory {
-        return crate::external::sort_external(ds, opts, sink);
-    }
+/// Sorts the dataset in memory and feeds the sink (the dataset fits the budget).
+pub(crate) fn sort_in_memory(
+    ds: &Dataset,
+    opts: &SortOptions,
+    sink: &mut dyn OrderedSink,
+) -> Result<SortReport> {
     let t0 = std::time::Instant::now();
     let rl = ds.layout.record_len;
     let guess = declared_grid(ds);
