@@ -77,6 +77,25 @@ def expand(head, rest):
     return out
 
 
+def inline_depths(code: str):
+    """For each position of `code`, how many inline `mod name { ... }` blocks enclose it."""
+    out = [0] * (len(code) + 1)
+    depth, mods = 0, []
+    starts = {m.end() - 1 for m in re.finditer(rf"\bmod\s+{IDENT}\s*\{{", code)}
+    for i, ch in enumerate(code):
+        if ch == "{":
+            depth += 1
+            if i in starts:
+                mods.append(depth)
+        elif ch == "}":
+            if mods and mods[-1] == depth:
+                mods.pop()
+            depth -= 1
+        out[i] = len(mods)
+    out[len(code)] = len(mods)
+    return out
+
+
 def graph(src: Path):
     files = sorted(src.rglob("*.rs"))
     mods = {module_of(src, f): f for f in files}
@@ -85,14 +104,18 @@ def graph(src: Path):
         code = strip(f.read_text())
         children = {k[-1] for k in mods if len(k) == len(m) + 1 and k[: len(m)] == m}
         paths = []
+        inline = inline_depths(code)
         for mt in re.finditer(rf"\b(crate|super|self)((?:::super)*)::", code):
             kind, supers = mt.group(1), mt.group(2).count("super")
+            # inside `mod x { ... }` blocks of this file, `self` and the first `super`s stay here
+            k = inline[mt.start()]
             if kind == "crate":
                 base = []
-            elif kind == "self":
+            elif kind == "self" or supers + 1 <= k:
                 base = list(m)
             else:
-                base = list(m[: len(m) - 1 - supers]) if len(m) > supers else []
+                up = supers + 1 - k
+                base = list(m[: len(m) - up]) if len(m) >= up else []
             paths += expand(base, code[mt.end():mt.end() + 400])
         for mt in re.finditer(rf"(?<![:\w])({IDENT})::", code):
             if mt.group(1) in children:

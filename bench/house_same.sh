@@ -2,7 +2,8 @@
 # Issue 27's check: a redesign with no change of behaviour. Runs each command with the binary
 # before the change (OLD) and this one (NEW), alternating, REPEATS times; compares every output
 # byte for byte (files, stdout with the volatile timing fields removed, stderr) on the first
-# round, then prints the median wall time of each and NEW/OLD.
+# round, then prints the median wall time of each and NEW/OLD (which binary runs first
+# alternates by round: use an even REPEATS).
 # Usage: OLD=path/to/old/mortar NEW=target/release/mortar bash bench/house_same.sh INPUT.las [REPEATS]
 set -euo pipefail
 IN=$(realpath "$1")
@@ -15,6 +16,7 @@ trap 'rm -rf "$T"' EXIT
 PY=${PYTHON:-python3}
 head -c 50000 "$IN" > "$T/trunc.las"
 "$NEW" batch "$IN" -o "$T/in.mbat" --quiet
+"$NEW" build "$IN" -o "$T/in.store" --quiet
 # name|arguments (OUT is the output path, a directory per binary and round)
 cmds=(
   "sort|sort $IN -o OUT/s.laz --quiet"
@@ -25,6 +27,8 @@ cmds=(
   "export-potree|export $IN -o OUT/potree --format potree --quiet --json"
   "info|info $IN --json --stats"
   "render-cpu|render $T/in.mbat -o OUT/r.png --backend cpu --quiet"
+  "render-lod|render $T/in.store -o OUT/l.png --backend cpu --quiet --json"
+  "render-progressive|render $IN -o OUT/p.png --progressive converge --backend cpu --quiet"
   "bad-truncated|export $T/trunc.las -o OUT/t.copc.laz"
   "bad-missing|info $T/missing.laz"
 )
@@ -49,7 +53,10 @@ same=0; differ=0
 for i in $(seq 1 "$N"); do
   for c in "${cmds[@]}"; do
     name=${c%%|*}; args=${c#*|}
-    for who in OLD NEW; do
+    # Alternate which binary goes first: the second one runs while the first one's output is
+    # still being written back by the kernel.
+    order="OLD NEW"; [ $((i % 2)) = 0 ] && order="NEW OLD"
+    for who in $order; do
       bin=${!who}; out="$T/$who-$i-$name"; mkdir -p "$out"
       a=${args//OUT/$out}
       s=$(date +%s.%N)

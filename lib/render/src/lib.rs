@@ -25,6 +25,7 @@
 
 #![deny(unsafe_op_in_unsafe_fn)]
 
+mod buffers;
 pub mod context;
 mod pipeline;
 pub mod present;

@@ -6,9 +6,10 @@
 //! This module knows no window library: the caller creates the surface with
 //! [`GpuContext::for_window`] from any window that has raw window and display handles.
 
+use crate::buffers::map_read;
 use crate::context::{GpuContext, GpuError};
 use crate::pipeline::{bind_group_layout, entry};
-use crate::raster::{map_read, GpuRasterizer};
+use crate::raster::GpuRasterizer;
 use crate::shaders::{binding, PRESENT_BINDINGS};
 
 /// The present pass's uniforms, defined with the other records the GPU reads in
@@ -372,7 +373,7 @@ impl WindowSurface {
                 out
             }
             _ => {
-                let mut img = crate::raster::read_image_buffer(ctx, image, width, height)?;
+                let mut img = crate::buffers::read_image_buffer(ctx, image, width, height)?;
                 if let Some(o) = overlay {
                     blend_overlay(&mut img, width, &o);
                 }

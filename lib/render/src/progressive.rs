@@ -66,11 +66,11 @@
 //! Deviations from the paper: no MSAA; 12 bytes of words per point (16 with colours) instead of
 //! 16 bytes of floats and attributes; [`RasterStats`] counts one "batch" per dispatch.
 
+use crate::buffers::{map_read, read_image_buffer, readback};
 use crate::context::{AtomicPath, GpuContext, GpuError};
 use crate::pipeline::{
     batches_group, entry, storage, uniform, PassPipeline, SharedLayouts, Timestamps,
 };
-use crate::raster::{map_read, read_image_buffer, readback};
 use crate::scene::MAX_CHUNK_POINTS;
 use crate::shaders::{binding, Pass};
 use mortar_core::grid::Grid;

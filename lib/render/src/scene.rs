@@ -311,7 +311,7 @@ impl GpuScene {
         let size = std::mem::size_of::<PlanBatch>() as u64;
         let needed = self.plan.len() as u64 * size;
         if self.plan_buffer.as_ref().is_none_or(|b| b.size() < needed) {
-            let grown = crate::raster::grown_size(
+            let grown = crate::buffers::grown_size(
                 ctx,
                 self.plan_buffer.as_ref().map_or(0, |b| b.size()),
                 needed,

@@ -5,9 +5,10 @@
 //! stored colours (or elevation), hole filling and eye-dome lighting. `--no-lod` draws every
 //! point through a temporary batch file instead (the path of LAS/LAZ inputs; every colour mode).
 
-use crate::render::{build_camera, encode_png, write_atomic, Args};
+use super::args::Args;
+use super::output::{build_camera, encode_png, write_atomic};
 use anyhow::{anyhow, bail, Result};
-use mortar_core::octree::{LodOptions, LodSelection, DEFAULT_THRESHOLD_PX};
+use mortar_core::octree::{LodOptions, LodSelection};
 use mortar_core::render::Camera;
 use mortar_io::inputs::InputKind;
 use mortar_io::render_input::{RenderSettings, Rendered};
@@ -15,34 +16,6 @@ use mortar_io::store_lod::{self, LodBatches, LodColor, StoreLod};
 use mortar_render::{GpuContext, GpuError};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
-
-/// The LOD options of `mortar render` (stores only).
-#[derive(clap::Args, Clone, Debug, Default)]
-pub struct LodArgs {
-    /// Stores: an inner node is replaced by its children while its cube is wider than PX pixels
-    /// on screen (paper 004 §6; default 128, the voxel grid's edge). 0 draws every visible leaf:
-    /// full detail.
-    #[arg(long, value_name = "PX", allow_hyphen_values = true)]
-    pub lod_threshold: Option<f64>,
-    /// Stores: most points and voxels to draw; the nodes largest on screen are refined first.
-    #[arg(long, value_name = "N")]
-    pub point_budget: Option<u64>,
-    /// Stores: draw every point through a temporary batch file instead of LOD nodes (allows the
-    /// attribute colour modes: intensity, classification, return number, GPS time).
-    #[arg(long, conflicts_with_all = ["lod_threshold", "point_budget"])]
-    pub no_lod: bool,
-}
-
-impl LodArgs {
-    /// The selection options (culling as the rasterizer's).
-    pub fn options(&self, cull: bool) -> Result<LodOptions> {
-        let threshold_px = self.lod_threshold.unwrap_or(DEFAULT_THRESHOLD_PX);
-        if threshold_px.is_nan() || threshold_px < 0.0 {
-            bail!("--lod-threshold {threshold_px}: must be 0 or more pixels");
-        }
-        Ok(LodOptions { threshold_px, point_budget: self.point_budget, cull })
-    }
-}
 
 /// The store to draw with LOD: the input when it is a single store directory and `--no-lod` is
 /// not given. LOD options given for any other input are an error.
@@ -78,8 +51,8 @@ pub fn run(a: &Args, dir: &Path) -> Result<()> {
     let t = Instant::now();
     let batches = lod.batches(&selection.nodes)?;
     let prepare_seconds = t.elapsed().as_secs_f64();
-    let settings = crate::render::render_settings(a);
-    let gpu = crate::render::gpu_context(a)?;
+    let settings = super::output::render_settings(a);
+    let gpu = super::output::gpu_context(a)?;
     let (r, gpu_json) = match &gpu {
         None => (store_lod::render(&lod, &batches, &camera, &settings)?, serde_json::Value::Null),
         Some(ctx) => {
@@ -93,7 +66,7 @@ pub fn run(a: &Args, dir: &Path) -> Result<()> {
     write_atomic(&a.output, &png)?;
     let png_seconds = t.elapsed().as_secs_f64();
     if a.json {
-        let mut j = crate::render::rendered_json(
+        let mut j = super::output::rendered_json(
             a,
             &label,
             &r,
@@ -105,7 +78,7 @@ pub fn run(a: &Args, dir: &Path) -> Result<()> {
         );
         j["lod"] = lod_json(&selection, &options, selection_seconds, prepare_seconds);
         j["open_seconds"] = serde_json::json!(open_seconds);
-        crate::render::print_json(a, &j)?;
+        super::output::print_json(a, &j)?;
     }
     Ok(())
 }
@@ -145,7 +118,7 @@ pub(crate) fn render_gpu(
     camera: &Camera,
     settings: &RenderSettings,
 ) -> std::result::Result<(mortar_io::Result<Rendered>, serde_json::Value), GpuError> {
-    let (keys, frame, j) = super::draw_keys_gpu(
+    let (keys, frame, j) = super::output::draw_keys_gpu(
         ctx,
         lod.grid(),
         batches.samples,

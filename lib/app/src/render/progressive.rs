@@ -12,10 +12,9 @@
 //! The interactive window (`mortar view` on raw LAS/LAZ) draws progressively too:
 //! [`crate::viewer::progressive`].
 
+use super::args::{Args, Backend, ProgressiveArgs};
+use super::output::{build_camera, camera_json, encode_png, gpu_context, write_atomic};
 use crate::cli as common;
-use crate::render::{
-    build_camera, camera_json, encode_png, gpu_context, write_atomic, Args, Backend,
-};
 use anyhow::{anyhow, bail, Result};
 use mortar_core::metrics::median;
 use mortar_core::render::framing::{IntBox, ViewBox};
@@ -39,39 +38,6 @@ use std::time::Instant;
 
 /// Default fill budget (the paper's basic fixed budget).
 const DEFAULT_BUDGET: u64 = 1_000_000;
-
-/// The progressive options of `mortar render` (raw LAS/LAZ only).
-#[derive(clap::Args, Clone, Debug, Default)]
-pub struct ProgressiveArgs {
-    /// LAS/LAZ: draw progressively (paper 000) while the points load: N frames with a still
-    /// camera, writing the last; `converge` draws until the image is final (every point loaded
-    /// and drawn), which is the brute-force image.
-    #[arg(long, value_name = "N|converge")]
-    pub progressive: Option<String>,
-    /// With --progressive: slots of the shuffled buffer the Fill pass draws per frame (default
-    /// 1000000), or `auto` for the adaptive budget of paper 000 §3.4.1 (see --target-ms).
-    #[arg(long, value_name = "POINTS|auto", requires = "progressive")]
-    pub budget: Option<String>,
-    /// With --budget auto: the frame time to stay within; with --pace: the frame period, in ms
-    /// (default 16.6).
-    #[arg(long, value_name = "MS", requires = "progressive")]
-    pub target_ms: Option<f64>,
-    /// With --progressive: wait out each frame to --target-ms, as a display at that rate would,
-    /// so that the loader threads get the cores in between (frames are otherwise drawn back to
-    /// back, which on a CPU renderer takes cores from decoding).
-    #[arg(long, requires = "progressive")]
-    pub pace: bool,
-    /// With --budget auto: points filled first to measure the fill rate (default 100000).
-    #[arg(long, value_name = "POINTS", requires = "progressive")]
-    pub probe: Option<u64>,
-    /// With --progressive: read every point before the first frame, so that frame k draws
-    /// exactly the k-th budget of the shuffled buffer (reproducible frames for tests).
-    #[arg(long, requires = "progressive")]
-    pub preload: bool,
-    /// With --progressive: threads decoding the input (default: one per core).
-    #[arg(long, value_name = "N", requires = "progressive")]
-    pub load_threads: Option<usize>,
-}
 
 /// How many frames to draw.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -541,7 +507,7 @@ pub fn run(a: &Args) -> Result<()> {
     let state = renderer.frame_state();
     if let ViewBox::Header(h) = view {
         if renderer.loaded() == renderer.capacity() {
-            crate::render::warn_outside_header(&label, &h, &state.data, &ds.grid);
+            super::output::warn_outside_header(&label, &h, &state.data, &ds.grid);
         }
     }
     let loaded_all = renderer.loaded() == renderer.capacity();
@@ -680,7 +646,7 @@ pub fn run(a: &Args) -> Result<()> {
         "png_seconds": png_seconds,
         "frames": frame_json,
     });
-    crate::render::print_json(a, &j)?;
+    super::output::print_json(a, &j)?;
     Ok(())
 }
 

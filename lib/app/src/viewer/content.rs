@@ -197,7 +197,7 @@ impl Content for BatchContent<'_> {
     }
 
     fn status(&self) -> Vec<String> {
-        vec![format!("{} points", super::group_digits(self.file.header.point_count))]
+        vec![format!("{} points", group_digits(self.file.header.point_count))]
     }
 
     fn busy(&self) -> bool {
@@ -283,4 +283,18 @@ impl Content for BatchContent<'_> {
         };
         Ok(GpuDrawn::of(&frame))
     }
+}
+
+/// `1234567` as `1,234,567`.
+pub fn group_digits(n: u64) -> String {
+    let s = n.to_string();
+    let mut groups = Vec::new();
+    let mut end = s.len();
+    while end > 3 {
+        groups.push(&s[end - 3..end]);
+        end -= 3;
+    }
+    groups.push(&s[..end]);
+    groups.reverse();
+    groups.join(",")
 }

@@ -18,7 +18,7 @@ pub mod content;
 pub mod progressive;
 pub mod store;
 
-pub use content::{BatchContent, Content, GpuDrawn};
+pub use content::{group_digits, BatchContent, Content, GpuDrawn};
 
 use crate::cli as common;
 use crate::render::{
@@ -119,7 +119,7 @@ pub struct Args {
     #[command(flatten)]
     pub sort: common::SortArgs,
     #[command(flatten)]
-    pub lod: crate::render::lod::LodArgs,
+    pub lod: crate::render::LodArgs,
     /// Raw LAS/LAZ: batch the points into a temporary batch file first and draw every point each
     /// frame, instead of the progressive renderer (paper 000) that shows them as they load.
     #[arg(long)]
@@ -184,7 +184,7 @@ impl PreviewArgs {
             json: false,
             no_status: false,
             sort: common::SortArgs::default(),
-            lod: crate::render::lod::LodArgs::default(),
+            lod: crate::render::LodArgs::default(),
             no_progressive: false,
         }
     }
@@ -1049,20 +1049,6 @@ impl ApplicationHandler<Wake> for App<'_> {
             _ => {}
         }
     }
-}
-
-/// `1234567` as `1,234,567`.
-pub fn group_digits(n: u64) -> String {
-    let s = n.to_string();
-    let mut groups = Vec::new();
-    let mut end = s.len();
-    while end > 3 {
-        groups.push(&s[end - 3..end]);
-        end -= 3;
-    }
-    groups.push(&s[..end]);
-    groups.reverse();
-    groups.join(",")
 }
 
 /// The status line as an RGBA8 overlay (white 8x8 glyphs, doubled on wide windows, on a

@@ -321,7 +321,7 @@ impl ProgressiveView {
                 100.0 * w.points as f64 / self.capacity().max(1) as f64
             );
         }
-        s += &format!(", budget {}", crate::viewer::group_digits(self.last.filled));
+        s += &format!(", budget {}", super::content::group_digits(self.last.filled));
         s
     }
 
@@ -740,8 +740,8 @@ impl Content for ProgressiveView {
         vec![
             format!(
                 "{} of {} points",
-                super::group_digits(self.loaded()),
-                super::group_digits(self.capacity())
+                super::content::group_digits(self.loaded()),
+                super::content::group_digits(self.capacity())
             ),
             self.load_status(),
         ]

@@ -262,7 +262,7 @@ impl Content for StoreView {
     }
 
     fn status(&self) -> Vec<String> {
-        use super::group_digits;
+        use super::content::group_digits;
         vec![
             format!(
                 "{} points, {} nodes, commit {}",

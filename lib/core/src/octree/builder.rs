@@ -10,13 +10,14 @@
 //! Nothing depends on the thread count.
 
 use super::chunks::Chunks;
-use super::cube::{Cube, NodeKey, MAX_ROOT_SIZE_LOG2};
+use super::cube::{Cube, NodeKey};
 use super::snapshot::{NodeView, Payload, Snapshot};
-use super::voxels::{Sample, Sampler, VoxelState};
-use super::{
+use super::types::MAX_ROOT_SIZE_LOG2;
+use super::types::{
     BuilderConfig, NodeId, OctreeError, Point, Voxel, GRID_LOG2, MIN_INNER_SIZE_LOG2,
     POINT_CHUNK_MAX,
 };
+use super::voxels::{Sample, Sampler, VoxelState};
 use bytemuck::Zeroable;
 use rayon::prelude::*;
 use std::sync::atomic::{AtomicU64, Ordering};

@@ -1,11 +1,8 @@
 //! Octree cubes in the LAS integer grid and node keys (paper 004 §3.1).
 
-use super::{GRID_LOG2, GRID_SIZE};
+use super::types::{GRID_LOG2, GRID_SIZE};
 use crate::grid::Grid;
 use crate::render::math::Aabb;
-
-/// Widest root cube: `2^32` grid units cover any set of `i32` coordinates.
-pub const MAX_ROOT_SIZE_LOG2: u8 = 32;
 
 /// An axis-aligned cube of the integer grid: the integer coordinates `min[a] <= p[a] < min[a] +
 /// 2^size_log2`.

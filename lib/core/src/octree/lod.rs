@@ -68,14 +68,16 @@
 //! - Voxels are drawn as pixel-sized points like the paper's splats; growing their size to the
 //!   cell's projected size (to fill holes in coarse selections) is left to the renderer.
 
-use super::cube::{Cube, NodeKey, MAX_ROOT_SIZE_LOG2};
+use super::cube::{Cube, NodeKey};
 use super::snapshot::{NodeView, Payload, Snapshot};
-use super::NodeId;
+use super::types::NodeId;
+use super::types::MAX_ROOT_SIZE_LOG2;
 use crate::grid::Grid;
 use crate::quantize::{bits_for_extent, BatchGrid, MAX_BITS};
 use crate::render::frustum::{Containment, Frustum};
 use crate::render::math::Aabb;
-use crate::render::raster::{BatchRef, CULL_MARGIN_PX};
+use crate::render::plan::CULL_MARGIN_PX;
+use crate::render::raster::BatchRef;
 use crate::render::{Camera, CameraError};
 use std::cmp::Ordering;
 use std::collections::BinaryHeap;

@@ -7,7 +7,7 @@
 
 use super::chunks::Chunks;
 use super::cube::{Cube, NodeKey};
-use super::{BuilderConfig, NodeId, Point, Voxel};
+use super::types::{BuilderConfig, NodeId, Point, Voxel};
 use std::sync::Arc;
 
 /// What a node holds.

@@ -27,7 +27,8 @@
 //! subtree under a Morton prefix depends on the points in its cube alone.
 
 use super::cube::{Cube, NodeKey};
-use super::{BuilderConfig, ColorMode, OctreeError, GRID_LOG2, MIN_INNER_SIZE_LOG2};
+use super::types::MAX_ROOT_SIZE_LOG2;
+use super::types::{BuilderConfig, ColorMode, OctreeError, GRID_LOG2, MIN_INNER_SIZE_LOG2};
 use rayon::prelude::*;
 use std::ops::Range;
 
@@ -122,7 +123,7 @@ where
     if config.leaf_capacity == 0 {
         return Err(OctreeError::ZeroCapacity);
     }
-    if root.size_log2 > super::MAX_ROOT_SIZE_LOG2 {
+    if root.size_log2 > MAX_ROOT_SIZE_LOG2 {
         return Err(OctreeError::RootTooLarge { size_log2: root.size_log2 });
     }
     let mut nodes = build_subtree(NodeKey::ROOT, root, n, pos, arrival, config)?.nodes;

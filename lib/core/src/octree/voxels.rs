@@ -10,7 +10,8 @@
 //! nearby points in one cache line or a few.
 
 use super::chunks::Chunks;
-use super::{ColorMode, Point, Voxel, GRID_LOG2, VOXEL_CHUNK_MAX};
+use super::cube::Cube;
+use super::types::{ColorMode, Point, Voxel, GRID_LOG2, VOXEL_CHUNK_MAX};
 use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
 
 /// Averaged voxels are published in fixed chunks of this many voxels: chunk `k` holds voxels
@@ -369,7 +370,7 @@ impl VoxelState {
     /// their order, and publishes the result: each new voxel is the first of `reps` in its cell
     /// (in averaged mode with the mean of their colours, each counted once: the old root's sums
     /// are not kept, so a coarse voxel averages the finer voxels, not their points).
-    pub(crate) fn seed(&mut self, cube: &super::Cube, reps: &[Voxel]) {
+    pub(crate) fn seed(&mut self, cube: &Cube, reps: &[Voxel]) {
         let shift = (cube.size_log2 - GRID_LOG2) as u32;
         for (i, v) in reps.iter().enumerate() {
             let off = cube.offset(v.pos);

@@ -32,6 +32,10 @@ use crate::quantize::{BatchGrid, Precision, MAX_BITS};
 pub const MAX_VIEWPORT: u32 = 1 << 15;
 
 /// The lens of a camera.
+/// Grid units from the eye beyond which a batch is anchored at its own point nearest to the eye
+/// rather than at the eye (`p - eye` must stay far inside i32 for the per-point local coordinate).
+pub const FAR_UNITS: f32 = (1u32 << 30) as f32;
+
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Projection {
     /// Perspective with the vertical field of view `fov_y` in radians, `0 < fov_y < pi`.
@@ -696,7 +700,7 @@ impl Camera {
     /// position and the pixel origin the viewport's centre, whatever the batch, so a point's
     /// local coordinate is `p - eye` in integers and its projection does not depend on the batch
     /// holding it; only a batch whose `bounds` (the world bounds of its points) reach
-    /// [`FAR_UNITS`](super::plan::FAR_UNITS) grid units from the eye is anchored at its point
+    /// [`FAR_UNITS`] grid units from the eye is anchored at its point
     /// nearest to the eye, with the pixel origin at the centre of its on-screen rectangle. The
     /// f32 twin the rasterizers run is [`super::plan::plan_batch`].
     pub fn batch_projection(
@@ -710,7 +714,7 @@ impl Camera {
         let mut anchor = [0i32; 3];
         let mut shift = [0u32; 3];
         let eye_units = |a: usize| (self.eye[a] - grid.offset[a]) / grid.scale[a];
-        let limit = super::plan::FAR_UNITS as f64;
+        let limit = FAR_UNITS as f64;
         let far = bounds.is_empty()
             || (0..3).any(|a| {
                 let e = eye_units(a);

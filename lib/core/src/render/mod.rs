@@ -8,6 +8,7 @@
 //! No files and no GPU here: the GPU crate uploads the `#[repr(C)]` records defined in these modules.
 
 pub mod camera;
+pub mod error;
 pub mod framebuffer;
 pub mod framing;
 pub mod frustum;
@@ -25,12 +26,14 @@ pub mod testutil;
 pub use camera::{
     BatchProjection, Camera, CameraError, ProjectedPoint, Projection, ViewAxes, ViewPreset,
 };
+pub use error::RasterError;
 pub use framebuffer::{pack_key, unpack_key, Framebuffer, EMPTY_KEY};
 pub use frustum::{Containment, Frustum, Plane};
 pub use math::{Aabb, DMat4, DVec3};
 pub use orbit::Orbit;
+pub use plan::{BatchPlan, Planner, RasterOptions};
 pub use precision::{choose_precision, precision_for_pixels, PrecisionMode};
 pub use raster::{
-    count_depth_ties, rasterize, rasterize_gathered, validate_batches, BatchPlan, BatchRef,
-    GatheredRef, Planner, RasterError, RasterOptions, RasterStats, RasterUniforms,
+    count_depth_ties, rasterize, rasterize_gathered, validate_batches, BatchRef, GatheredRef,
+    RasterStats, RasterUniforms,
 };

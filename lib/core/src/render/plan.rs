@@ -15,7 +15,7 @@
 //! 6.4e6 m.
 //!
 //! - Culling: the eight corners of the points' integer bounds in view space, tested against the
-//!   six planes of the frustum widened by [`CULL_MARGIN_PX`](super::raster::CULL_MARGIN_PX),
+//!   six planes of the frustum widened by [`CULL_MARGIN_PX`](CULL_MARGIN_PX),
 //!   each corner moved by the decode error and a relative slack for f32 rounding towards the
 //!   plane: a batch is culled only if all of its decoded points are outside one plane.
 //! - Precision: the fewest words whose decode error moves no point more than
@@ -37,10 +37,11 @@
 //! it) and its division is made correct ([`super::gpu::DIVISION_REFINED`]).
 
 use super::camera::{BatchProjection, Camera};
+use super::error::RasterError;
+use super::gpu::DIVISION_REFINED;
 use super::gpu::{PlanBatch, PlanUniforms};
 use super::math::Aabb;
 use super::precision::{PrecisionMode, MAX_ERROR_PX};
-use super::raster::{BatchPlan, RasterOptions, CULL_MARGIN_PX};
 use crate::grid::Grid;
 use crate::quantize::{BatchGrid, Precision, MAX_BITS};
 
@@ -48,9 +49,91 @@ use crate::quantize::{BatchGrid, Precision, MAX_BITS};
 /// rounding of the per-point depth and pixel against the planes.
 pub const CULL_SLACK: f32 = 1e-5;
 
-/// Grid units from the eye beyond which a batch is anchored at its own point nearest to the eye
-/// rather than at the eye (`p - eye` must stay far inside i32 for the per-point local coordinate).
-pub const FAR_UNITS: f32 = (1u32 << 30) as f32;
+pub use super::camera::FAR_UNITS;
+
+/// Pixels by which the culling frustum is wider than the viewport on each side: a batch is culled
+/// only if every point of it would land at least this far outside, so f32 rounding in the
+/// per-point projection can never bring a culled point on screen.
+pub const CULL_MARGIN_PX: f64 = 1.0;
+
+/// Choices of a rasterization.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct RasterOptions {
+    /// How each batch's precision is chosen.
+    pub precision: PrecisionMode,
+    /// Whether batches outside the view frustum are skipped (the image is the same either way).
+    pub cull: bool,
+}
+
+impl Default for RasterOptions {
+    fn default() -> Self {
+        RasterOptions { precision: PrecisionMode::Adaptive, cull: true }
+    }
+}
+
+/// What a rasterizer does with one batch in one view.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum BatchPlan {
+    /// The batch has no points.
+    Empty,
+    /// Frustum culling skipped it.
+    Culled,
+    /// Draw it at `precision` with `projection`.
+    Draw {
+        /// How many words per point are read.
+        precision: Precision,
+        /// The per-batch transform of the per-point loop.
+        projection: BatchProjection,
+    },
+}
+
+/// The per-view decisions about whole batches, shared by the CPU rasterizer and the GPU one so
+/// that both cull the same batches, choose the same precision and project with the same
+/// [`BatchProjection`] (paper 003 §3.2-3.3). The decisions are those of [`super::plan`]: made in
+/// f32 from camera-relative integer offsets, as the GPU's plan pass makes them, so that the GPU
+/// can plan every batch itself and still leave the CPU's keys.
+#[derive(Clone, Debug)]
+pub struct Planner {
+    camera: Camera,
+    grid: Grid,
+    uniforms: PlanUniforms,
+}
+
+impl Planner {
+    /// The planner of a view; fails if the camera is unusable.
+    pub fn new(
+        camera: &Camera,
+        grid: &Grid,
+        options: &RasterOptions,
+    ) -> Result<Planner, RasterError> {
+        camera.validate()?;
+        Ok(Planner {
+            camera: *camera,
+            grid: *grid,
+            uniforms: PlanUniforms::new(camera, grid, options, DIVISION_REFINED),
+        })
+    }
+
+    /// The camera planned for.
+    pub fn camera(&self) -> &Camera {
+        &self.camera
+    }
+
+    /// The f32 constants the plan is made from (the plan pass's uniforms).
+    pub fn uniforms(&self) -> &PlanUniforms {
+        &self.uniforms
+    }
+
+    /// Culls one batch of `len` points with quantization frame `batch` and world `bounds`, and
+    /// chooses its precision and projection.
+    pub fn plan(&self, batch: &BatchGrid, bounds: &Aabb, len: usize) -> BatchPlan {
+        if len == 0 {
+            return BatchPlan::Empty;
+        }
+        let count = len.min(u32::MAX as usize) as u32;
+        plan_batch(&PlanBatch::new(&self.grid, batch, bounds, count, 0, 0, 0), &self.uniforms)
+    }
+}
 
 /// The eye's grid units are clamped to this magnitude (a camera 2^31 units from the origin of
 /// the grid is drawn as if it were here).

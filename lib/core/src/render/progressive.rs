@@ -45,12 +45,13 @@
 //! supersampling).
 
 use super::camera::Camera;
+use super::error::RasterError;
 use super::framebuffer::{key_index, Framebuffer, EMPTY_KEY};
 use super::framing::IntBox;
 use super::math::Aabb;
+use super::plan::RasterOptions;
 use super::raster::{
-    count_depth_ties, rasterize, rasterize_gathered, BatchRef, GatheredRef, RasterError,
-    RasterOptions, RasterStats,
+    count_depth_ties, rasterize, rasterize_gathered, BatchRef, GatheredRef, RasterStats,
 };
 use crate::grid::Grid;
 use crate::par::SendPtr;

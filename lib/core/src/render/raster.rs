@@ -12,20 +12,14 @@
 //! no dynamic dispatch. As in §3.4, the word arrays are read as linear streams (struct of arrays,
 //! one loop per batch) and the early depth test keeps most points away from the atomic.
 
-use super::camera::{BatchProjection, Camera, CameraError};
+use super::camera::{BatchProjection, Camera};
+use super::error::RasterError;
 use super::framebuffer::Framebuffer;
-use super::gpu::{PlanBatch, PlanUniforms, DIVISION_REFINED};
 use super::math::Aabb;
-use super::plan::plan_batch;
-use super::precision::PrecisionMode;
+use super::plan::{BatchPlan, Planner, RasterOptions};
 use crate::grid::Grid;
 use crate::quantize::{BatchGrid, Precision};
 use rayon::prelude::*;
-
-/// Pixels by which the culling frustum is wider than the viewport on each side: a batch is culled
-/// only if every point of it would land at least this far outside, so f32 rounding in the
-/// per-point projection can never bring a culled point on screen.
-pub const CULL_MARGIN_PX: f64 = 1.0;
 
 /// One batch to draw: its quantization frame, world bounds and packed coordinate words.
 #[derive(Clone, Copy, Debug)]
@@ -56,21 +50,6 @@ impl BatchRef<'_> {
     /// The world bounds as a box.
     pub fn bounds(&self) -> Aabb {
         Aabb::new(self.bounds_min, self.bounds_max)
-    }
-}
-
-/// Choices of a rasterization.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
-pub struct RasterOptions {
-    /// How each batch's precision is chosen.
-    pub precision: PrecisionMode,
-    /// Whether batches outside the view frustum are skipped (the image is the same either way).
-    pub cull: bool,
-}
-
-impl Default for RasterOptions {
-    fn default() -> Self {
-        RasterOptions { precision: PrecisionMode::Adaptive, cull: true }
     }
 }
 
@@ -106,56 +85,6 @@ impl RasterStats {
         self.points_drawn += o.points_drawn;
         self
     }
-}
-
-/// Why a rasterization was refused (before anything was drawn).
-#[derive(Debug, Clone, PartialEq, thiserror::Error)]
-pub enum RasterError {
-    /// The camera is not usable.
-    #[error(transparent)]
-    Camera(#[from] CameraError),
-    /// Framebuffer and camera viewport differ.
-    #[error("framebuffer is {fb_width}x{fb_height} but the camera's viewport is {width}x{height}")]
-    Viewport {
-        /// Framebuffer width.
-        fb_width: u32,
-        /// Framebuffer height.
-        fb_height: u32,
-        /// Camera width.
-        width: u32,
-        /// Camera height.
-        height: u32,
-    },
-    /// A batch's three word arrays have different lengths.
-    #[error("batch {batch}: coarse, medium and fine words have different lengths {lengths:?}")]
-    WordCounts {
-        /// Position of the batch in the slice.
-        batch: usize,
-        /// The three lengths.
-        lengths: [usize; 3],
-    },
-    /// A batch's point indices do not fit in 32 bits.
-    #[error(
-        "batch {batch}: points {first_index}.. ({count} points) exceed the 32-bit point index"
-    )]
-    IndexOverflow {
-        /// Position of the batch in the slice.
-        batch: usize,
-        /// Its first index.
-        first_index: u32,
-        /// Its point count.
-        count: usize,
-    },
-    /// A gathered batch has another number of point indices than points.
-    #[error("gathered batch {batch}: {points} points but {indices} point indices")]
-    IndexCount {
-        /// Position of the batch in the slice.
-        batch: usize,
-        /// Its number of points (word count).
-        points: usize,
-        /// Its number of indices.
-        indices: usize,
-    },
 }
 
 /// Viewport and depth range as the CPU per-point loop reads them (the same f32 values the GPU
@@ -203,70 +132,6 @@ pub fn validate_batches(batches: &[BatchRef<'_>]) -> Result<(), RasterError> {
         }
     }
     Ok(())
-}
-
-/// What a rasterizer does with one batch in one view.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub enum BatchPlan {
-    /// The batch has no points.
-    Empty,
-    /// Frustum culling skipped it.
-    Culled,
-    /// Draw it at `precision` with `projection`.
-    Draw {
-        /// How many words per point are read.
-        precision: Precision,
-        /// The per-batch transform of the per-point loop.
-        projection: BatchProjection,
-    },
-}
-
-/// The per-view decisions about whole batches, shared by the CPU rasterizer and the GPU one so
-/// that both cull the same batches, choose the same precision and project with the same
-/// [`BatchProjection`] (paper 003 §3.2-3.3). The decisions are those of [`super::plan`]: made in
-/// f32 from camera-relative integer offsets, as the GPU's plan pass makes them, so that the GPU
-/// can plan every batch itself and still leave the CPU's keys.
-#[derive(Clone, Debug)]
-pub struct Planner {
-    camera: Camera,
-    grid: Grid,
-    uniforms: PlanUniforms,
-}
-
-impl Planner {
-    /// The planner of a view; fails if the camera is unusable.
-    pub fn new(
-        camera: &Camera,
-        grid: &Grid,
-        options: &RasterOptions,
-    ) -> Result<Planner, RasterError> {
-        camera.validate()?;
-        Ok(Planner {
-            camera: *camera,
-            grid: *grid,
-            uniforms: PlanUniforms::new(camera, grid, options, DIVISION_REFINED),
-        })
-    }
-
-    /// The camera planned for.
-    pub fn camera(&self) -> &Camera {
-        &self.camera
-    }
-
-    /// The f32 constants the plan is made from (the plan pass's uniforms).
-    pub fn uniforms(&self) -> &PlanUniforms {
-        &self.uniforms
-    }
-
-    /// Culls one batch of `len` points with quantization frame `batch` and world `bounds`, and
-    /// chooses its precision and projection.
-    pub fn plan(&self, batch: &BatchGrid, bounds: &Aabb, len: usize) -> BatchPlan {
-        if len == 0 {
-            return BatchPlan::Empty;
-        }
-        let count = len.min(u32::MAX as usize) as u32;
-        plan_batch(&PlanBatch::new(&self.grid, batch, bounds, count, 0, 0, 0), &self.uniforms)
-    }
 }
 
 /// Draws `batches` into `fb` (which is not cleared: several calls accumulate, e.g. progressive or
@@ -339,7 +204,7 @@ fn plan_and_draw(
     };
     stats.batches_drawn = 1;
     stats.points_by_precision[precision.words() - 1] = len as u64;
-    stats.points_drawn = draw(precision, &bp, planner.camera.is_perspective());
+    stats.points_drawn = draw(precision, &bp, planner.camera().is_perspective());
     stats
 }
 
@@ -798,6 +663,7 @@ mod tests {
     use super::*;
     use crate::render::camera::{Projection, ViewPreset};
     use crate::render::framebuffer::{key_index, EMPTY_KEY};
+    use crate::render::precision::PrecisionMode;
     use crate::render::testutil::Scene;
 
     fn render(scene: &Scene, camera: &Camera, options: RasterOptions) -> (Vec<u64>, RasterStats) {

@@ -593,7 +593,8 @@ mod tests {
         use crate::grid::Grid;
         use crate::render::camera::{Camera, ViewPreset};
         use crate::render::framebuffer::Framebuffer;
-        use crate::render::raster::{rasterize, RasterOptions};
+        use crate::render::plan::RasterOptions;
+        use crate::render::raster::rasterize;
         use crate::render::testutil::Scene;
         // Sparse (~1 point per pixel), so plain resolve leaves holes that filling closes.
         let scene = Scene::terrain(40_000, 4, Grid { scale: [0.01; 3], offset: [0.0; 3] });

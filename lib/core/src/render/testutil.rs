@@ -150,8 +150,8 @@ impl Scene {
 }
 
 use super::camera::Camera;
+use super::plan::{BatchPlan, Planner, RasterOptions};
 use super::precision::PrecisionMode;
-use super::raster::{BatchPlan, Planner, RasterOptions};
 use crate::quantize::join_words;
 
 /// Per-point comparison of the f32 batch projection with the f64 reference, over a scene.
