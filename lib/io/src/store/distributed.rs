@@ -1097,4 +1097,99 @@ mod tests {
         assert_eq!(morton(k.index, 2), 8);
         assert_eq!(cells_of(NodeKey::ROOT.child(3), 2), 24..32);
     }
+
+    fn a_plan() -> Plan {
+        let mut p = Plan {
+            format: PLAN_FORMAT.into(),
+            id: String::new(),
+            scanned: false,
+            root_min: [-1024, 0, 0],
+            root_size_log2: 11,
+            cell_depth: 2,
+            leaf_capacity: 5000,
+            max_level: 32,
+            points: 300,
+            inputs: vec![PlanInput {
+                path: "/data/a.las".into(),
+                bytes: 10_000,
+                points: 300,
+                bounds: Some(([-1024, 0, 0], [1023, 2047, 2047])),
+            }],
+            jobs: vec![PlanJob {
+                nodes: vec![[1, 0, 0, 0], [2, 3, 3, 3]],
+                inputs: vec![0],
+                estimated_points: 300,
+            }],
+            warnings: Vec::new(),
+        };
+        p.id = p.checksum();
+        p
+    }
+
+    #[test]
+    fn a_plan_is_read_back_and_an_edited_or_out_of_range_plan_is_refused() {
+        let dir = std::env::temp_dir().join(format!("mortar-plan-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("plan.json");
+        let p = a_plan();
+        p.write(&path).unwrap();
+        assert_eq!(Plan::read(&path).unwrap(), p);
+        // An edit without a new id: the checksum names it.
+        let text = std::fs::read_to_string(&path).unwrap();
+        std::fs::write(&path, text.replace("\"leaf_capacity\": 5000", "\"leaf_capacity\": 6000"))
+            .unwrap();
+        assert!(matches!(Plan::read(&path), Err(Error::Plan { error: PlanError::Checksum, .. })));
+        // Consistent checksums do not make indices safe: a node outside its level, an input
+        // that does not exist, a cut deeper than the root.
+        for edit in [
+            (|p: &mut Plan| p.jobs[0].nodes[1] = [2, 4, 0, 0]) as fn(&mut Plan),
+            |p: &mut Plan| p.jobs[0].inputs = vec![1],
+            |p: &mut Plan| p.cell_depth = 12,
+            |p: &mut Plan| p.jobs.clear(),
+        ] {
+            let mut q = a_plan();
+            edit(&mut q);
+            q.id = q.checksum();
+            q.write(&path).unwrap();
+            assert!(
+                matches!(Plan::read(&path), Err(Error::Plan { error: PlanError::OutOfRange, .. })),
+                "{:?}",
+                q.jobs
+            );
+        }
+        // Another format, and not a plan at all.
+        let mut q = a_plan();
+        q.format = "mortar-plan/0".into();
+        q.id = q.checksum();
+        q.write(&path).unwrap();
+        assert!(matches!(
+            Plan::read(&path),
+            Err(Error::Plan { error: PlanError::Format { .. }, .. })
+        ));
+        std::fs::write(&path, b"{}").unwrap();
+        assert!(matches!(
+            Plan::read(&path),
+            Err(Error::Plan { error: PlanError::NotPlan { .. }, .. })
+        ));
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn cubes_cells_and_estimates_of_the_cut() {
+        let root = Cube { min: [-1024, 0, 0], size_log2: 11 };
+        let k = NodeKey::ROOT.child(7).child(0);
+        let c = cube_of(root, k);
+        assert_eq!((c.min, c.size_log2), ([0, 1024, 1024], 9));
+        assert_eq!(cells_of(k, 2), 56..57);
+        assert_eq!(cells_of(NodeKey::ROOT, 2), 0..64);
+        // An inclusive box meets a cube it touches on its last unit, not one it stops short of.
+        assert!(meets(&([-5, 0, 0], [0, 1024, 1024]), c));
+        assert!(!meets(&([-5, 0, 0], [-1, 2000, 2000]), c));
+        // Points spread evenly over their box: an eighth of the root's box in each child.
+        let inputs = a_plan().inputs;
+        let e: Vec<f64> =
+            (0..8).map(|o| estimate(&inputs, cube_of(root, NodeKey::ROOT.child(o)))).collect();
+        assert!(e.iter().all(|&x| (x - 37.5).abs() < 1e-9), "{e:?}");
+        assert!((estimate(&inputs, root) - 300.0).abs() < 1e-9);
+    }
 }

@@ -1209,3 +1209,166 @@ pub(crate) fn build_units(
     let Walk { entries, points, .. } = w;
     Ok((entries, cands, points))
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A fresh directory under the system's temporary directory.
+    fn scratch(tag: &str) -> PathBuf {
+        let d = std::env::temp_dir().join(format!("mortar-part-{tag}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&d);
+        std::fs::create_dir_all(&d).unwrap();
+        d
+    }
+
+    /// Bytes that differ from run to run of the generator but not between runs of the test.
+    fn bytes(n: usize, seed: u64) -> Vec<u8> {
+        let mut x = seed.wrapping_mul(0x9e37_79b9_7f4a_7c15) | 1;
+        (0..n)
+            .map(|_| {
+                x ^= x << 13;
+                x ^= x >> 7;
+                x ^= x << 17;
+                x as u8
+            })
+            .collect()
+    }
+
+    /// A partition of two runs over 8 cells, as pass 1 leaves it, with its run files.
+    fn partition(state: &Path, rl: usize) -> Partition {
+        let starts = [vec![0u64, 3, 3, 5, 9, 9, 9, 10, 12], vec![0u64, 0, 1, 1, 1, 4, 6, 6, 6]];
+        let mut runs = Vec::new();
+        for (k, s) in starts.iter().enumerate() {
+            let path = state.join(format!("run-{k}.bin"));
+            let b = bytes(*s.last().unwrap() as usize * (rl + 8), k as u64 + 1);
+            std::fs::write(&path, &b).unwrap();
+            runs.push(Run { path, starts: s.clone(), hash: checksum(&b) });
+        }
+        let hist =
+            (0..8).map(|c| runs.iter().map(|r| r.starts[c + 1] - r.starts[c]).sum()).collect();
+        let all = PieceStats {
+            count: 18,
+            min: [-5, 0, 7],
+            max: [900, 1000, 70],
+            max_rgb: 65535,
+            max_intensity: 4000,
+            ..PieceStats::default()
+        };
+        let root = Cube { min: [-8, -8, -8], size_log2: 11 };
+        Partition { root, runs, hist, all, warnings: vec!["a.las: lies".into()], base: [0; 3] }
+    }
+
+    #[test]
+    fn a_manifest_is_read_back_as_written_and_any_damage_refuses_it() {
+        let (state, rl) = (scratch("manifest"), 26);
+        let p = partition(&state, rl);
+        write_manifest(&state, &p).unwrap();
+        let q = read_manifest(&state, rl).expect("a whole manifest is read back");
+        assert_eq!((q.root, &q.hist, q.all.count, &q.warnings), (p.root, &p.hist, 18, &p.warnings));
+        assert_eq!(
+            (q.all.min, q.all.max, q.all.max_rgb, q.all.max_intensity),
+            ([-5, 0, 7], [900, 1000, 70], 65535, 4000)
+        );
+        for (a, b) in q.runs.iter().zip(&p.runs) {
+            assert_eq!((&a.path, &a.starts, a.hash), (&b.path, &b.starts, b.hash));
+        }
+        // Another record length: the run files' sizes do not match.
+        assert!(read_manifest(&state, rl + 1).is_none());
+        // A run file whose bytes changed but not its size (a power loss after the rename).
+        let run0 = state.join("run-0.bin");
+        let good = std::fs::read(&run0).unwrap();
+        let mut bad = good.clone();
+        bad[7] ^= 1;
+        std::fs::write(&run0, &bad).unwrap();
+        assert!(read_manifest(&state, rl).is_none(), "a changed run is refused");
+        std::fs::write(&run0, &good).unwrap();
+        // The tables cut short.
+        let tables = state.join(TABLES);
+        let t = std::fs::read(&tables).unwrap();
+        std::fs::write(&tables, &t[..t.len() - 8]).unwrap();
+        assert!(read_manifest(&state, rl).is_none(), "short tables are refused");
+        std::fs::write(&tables, &t).unwrap();
+        // A field of the JSON edited: the manifest's own checksum no longer matches.
+        let mp = state.join(MANIFEST);
+        let text = std::fs::read_to_string(&mp).unwrap();
+        std::fs::write(&mp, text.replace("\"count\": 18", "\"count\": 19")).unwrap();
+        assert!(read_manifest(&state, rl).is_none(), "an edited manifest is refused");
+        std::fs::write(&mp, &text).unwrap();
+        // A run file gone.
+        std::fs::remove_file(state.join("run-1.bin")).unwrap();
+        assert!(read_manifest(&state, rl).is_none(), "a missing run is refused");
+        std::fs::remove_dir_all(&state).unwrap();
+    }
+
+    #[test]
+    fn the_log_keeps_whole_records_whose_payloads_are_there_and_cuts_the_rest() {
+        let (dir, rl) = (scratch("log"), 20);
+        let nodes = dir.join("nodes.bin");
+        let payloads = [bytes(96, 5), bytes(40, 6), bytes(64, 7)];
+        std::fs::write(&nodes, payloads.concat()).unwrap();
+        let entry = |i: usize, off: u64| NodeEntry {
+            level: 3,
+            kind: LEAF,
+            index: [i as u32, 1, 2],
+            _pad: 0,
+            count: 4,
+            offset: off,
+            length: payloads[i].len() as u64,
+        };
+        let mut cands = Cands::default();
+        cands.push([1, 2, 3], 77, &bytes(rl, 8));
+        cands.push([-4, 5, 6], 78, &bytes(rl, 9));
+        let key = |i: u32| NodeKey { level: 3, index: [i, 1, 2] };
+        let r0 = log_record(
+            key(0),
+            1,
+            10,
+            96,
+            &[(3, 0, entry(0, 0))],
+            &[checksum(&payloads[0])],
+            &cands,
+            rl,
+        );
+        let r1 = log_record(
+            key(1),
+            2,
+            20,
+            136,
+            &[(3, 1, entry(1, 96))],
+            &[checksum(&payloads[1])],
+            &Cands::default(),
+            rl,
+        );
+        let log = dir.join(LOG);
+        std::fs::write(&log, [r0.clone(), r1.clone()].concat()).unwrap();
+        let (visits, entries, hashes, points, end) = read_log(&log, &nodes, rl).unwrap();
+        assert_eq!((visits.len(), entries.len(), hashes.len(), points, end), (2, 2, 2, 30, 136));
+        let v = &visits[&(3, [0, 1, 2])];
+        assert_eq!((v.seq_after, &v.cands.pos, &v.cands.arrival), (1, &cands.pos, &cands.arrival));
+        assert_eq!(v.cands.records, cands.records);
+        // A record torn by a kill: the whole records before it are kept, the log is cut there.
+        let r2 = log_record(
+            key(2),
+            3,
+            5,
+            200,
+            &[(3, 2, entry(2, 136))],
+            &[checksum(&payloads[2])],
+            &Cands::default(),
+            rl,
+        );
+        std::fs::write(&log, [r0.clone(), r1.clone(), r2[..r2.len() - 3].to_vec()].concat())
+            .unwrap();
+        let (visits, _, _, points, end) = read_log(&log, &nodes, rl).unwrap();
+        assert_eq!((visits.len(), points, end), (2, 30, 136));
+        assert_eq!(std::fs::metadata(&log).unwrap().len(), (r0.len() + r1.len()) as u64);
+        // A record whose payload in nodes.bin is not what it logged (written, not synced).
+        let mut nb = std::fs::read(&nodes).unwrap();
+        nb[100] ^= 0xff;
+        std::fs::write(&nodes, &nb).unwrap();
+        let (visits, _, _, points, _) = read_log(&log, &nodes, rl).unwrap();
+        assert_eq!((visits.len(), points), (1, 10), "the second visit's payload changed");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}
