@@ -192,7 +192,7 @@ fn a_sorted_build_is_readable_at_every_commit_coarse_first() {
         let deepest = s.entries.iter().map(|e| e.level as u8).max().unwrap();
         let nodes = s.entries.len();
         // Drawable at every commit: the deepest level's inner nodes are a frontier.
-        let lod = mortar_io::store_lod::StoreLod::new(s).expect("every commit is a drawable tree");
+        let lod = mortar_io::store::StoreLod::new(s).expect("every commit is a drawable tree");
         assert!(lod.index().point_count() > 0);
         seen.push((p.commits, p.points, nodes, deepest));
     };

@@ -48,7 +48,7 @@ fn check_stopped(dir: &Path, render: bool) {
         .map(|p| s.read_piece(p).unwrap().len() as u64 / s.layout.record_len as u64)
         .sum();
     assert_eq!(read, pts);
-    let lod = mortar_io::store_lod::StoreLod::new(s).expect("the last commit is a drawable tree");
+    let lod = mortar_io::store::StoreLod::new(s).expect("the last commit is a drawable tree");
     assert!(lod.index().point_count() > 0 || pts == 0);
     if render {
         let png = dir.with_extension("png");
@@ -203,7 +203,7 @@ fn readers_never_see_a_torn_commit() {
                     .map(|p| s.read_piece(p).unwrap().len() as u64 / s.layout.record_len as u64)
                     .sum();
                 assert_eq!(read, pts, "{engine}");
-                mortar_io::store_lod::StoreLod::new(s)
+                mortar_io::store::StoreLod::new(s)
                     .unwrap_or_else(|e| panic!("{engine}: a commit that does not draw: {e}"));
                 opened += 1;
             }

@@ -16,7 +16,7 @@ use mortar_core::render::framebuffer::{key_depth, EMPTY_KEY};
 use mortar_core::render::{
     rasterize, Camera, Framebuffer, PrecisionMode, RasterOptions, ViewPreset,
 };
-use mortar_io::render_input::{self, RenderSource};
+use mortar_io::batch_input::{self, RenderSource};
 use mortar_render::{AtomicPath, GpuContext, GpuRasterizer, GpuScene, SceneOptions};
 use std::path::{Path, PathBuf};
 
@@ -132,14 +132,14 @@ fn missing_adapter_is_an_error_for_gpu_and_a_fallback_for_auto() {
 /// keys; returns the number of exact depth ties that differ.
 fn compare_keys(name: &str, src: &RenderSource, ctx: &GpuContext) -> usize {
     let file = &src.file;
-    let views = render_input::load_words(file).unwrap();
-    let refs = render_input::batch_refs(file, &views).unwrap();
+    let views = batch_input::load_words(file).unwrap();
+    let refs = batch_input::batch_refs(file, &views).unwrap();
     let mut scene =
         GpuScene::new(ctx, file.grid(), file.header.point_count, SceneOptions::default()).unwrap();
     for b in &refs {
         scene.push(ctx, b, None).unwrap();
     }
-    let bounds = render_input::file_bounds(file);
+    let bounds = batch_input::file_bounds(file);
     let fov = 50f64.to_radians();
     let (w, h) = (960, 540);
     let cams = [

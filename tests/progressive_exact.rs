@@ -12,6 +12,7 @@
 mod common;
 
 use common::*;
+use mortar_app::draw::raw::{load_pieces, LoadedPiece, Payload};
 use mortar_core::quantize::Precision;
 use mortar_core::render::framebuffer::{key_depth, key_index};
 use mortar_core::render::framing::{IntBox, ViewBox};
@@ -20,10 +21,9 @@ use mortar_core::render::progressive::{FillBudget, ProgressiveRenderer};
 use mortar_core::render::{
     rasterize, Camera, Framebuffer, PrecisionMode, RasterOptions, ViewPreset, EMPTY_KEY,
 };
+use mortar_io::batch_input::{self, RenderSource};
 use mortar_io::batchfile::AttributeSelection;
 use mortar_io::dataset::Dataset;
-use mortar_io::progressive::{load_pieces, LoadedPiece, Payload};
-use mortar_io::render_input::{self, RenderSource};
 use mortar_io::sort::SortOptions;
 use mortar_render::{AtomicPath, GpuProgressive, ProgressiveOptions};
 use std::path::{Path, PathBuf};
@@ -79,8 +79,8 @@ fn brute_force(raw: &Raw, cam: &Camera, tmp: &Path) -> Image {
     let source =
         RenderSource::batch_dataset(&raw.ds, &opts, &AttributeSelection::Only(vec![])).unwrap();
     let file = &source.file;
-    let views = render_input::load_words(file).unwrap();
-    let refs = render_input::batch_refs(file, &views).unwrap();
+    let views = batch_input::load_words(file).unwrap();
+    let refs = batch_input::batch_refs(file, &views).unwrap();
     let fb = Framebuffer::new(cam.width, cam.height);
     rasterize(&fb, &refs, &file.grid(), cam, &FULL).unwrap();
     let keys = fb.into_keys();

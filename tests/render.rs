@@ -6,10 +6,12 @@
 mod common;
 
 use common::*;
+use mortar_app::draw;
+use mortar_app::draw::RenderSettings;
 use mortar_core::quantize::Precision;
 use mortar_core::render::framebuffer::{key_index, EMPTY_KEY};
 use mortar_core::render::{Camera, PrecisionMode, RasterOptions, ViewPreset};
-use mortar_io::render_input::{self, RenderSettings, RenderSource};
+use mortar_io::batch_input::{self, RenderSource};
 use std::path::{Path, PathBuf};
 use std::process::Output;
 
@@ -505,13 +507,13 @@ fn compare(
     precision: PrecisionMode,
     cull: bool,
 ) -> Accuracy {
-    let views = render_input::load_words(file).unwrap();
-    let refs = render_input::batch_refs(file, &views).unwrap();
+    let views = batch_input::load_words(file).unwrap();
+    let refs = batch_input::batch_refs(file, &views).unwrap();
     let settings = |precision, cull| RenderSettings {
         raster: RasterOptions { precision, cull },
         ..RenderSettings::default()
     };
-    let full = render_input::render(
+    let full = draw::batch::render(
         file,
         &refs,
         cam,
@@ -521,7 +523,7 @@ fn compare(
     // The same colour range for both, so that only the points differ.
     let mut s = settings(precision, cull);
     s.range = full.color_range;
-    let test = render_input::render(file, &refs, cam, &s).unwrap();
+    let test = draw::batch::render(file, &refs, cam, &s).unwrap();
     let covered = full.keys.iter().filter(|&&k| k != EMPTY_KEY).count();
     let mut a = Accuracy {
         covered,
@@ -562,7 +564,7 @@ fn adaptive_precision_against_full_precision_on_benchmark_sets() {
             RenderSource::batch_dataset(&ds, &opts, &mortar_io::batchfile::AttributeSelection::All)
                 .unwrap();
         let file = &src.file;
-        let bounds = render_input::file_bounds(file);
+        let bounds = batch_input::file_bounds(file);
         let fov = 50f64.to_radians();
         let views = [
             ("overview", Camera::frame_perspective(&bounds, ViewPreset::Iso, fov, w, h).unwrap()),
@@ -608,14 +610,14 @@ fn adaptive_precision_against_full_precision_on_benchmark_sets() {
                 }
             }
             // Culling never changes a pixel.
-            let views = render_input::load_words(file).unwrap();
-            let refs = render_input::batch_refs(file, &views).unwrap();
+            let views = batch_input::load_words(file).unwrap();
+            let refs = batch_input::batch_refs(file, &views).unwrap();
             let keys = |cull| {
                 let s = RenderSettings {
                     raster: RasterOptions { precision: PrecisionMode::Adaptive, cull },
                     ..RenderSettings::default()
                 };
-                render_input::render(file, &refs, cam, &s).unwrap().keys
+                draw::batch::render(file, &refs, cam, &s).unwrap().keys
             };
             assert!(keys(true) == keys(false), "{set} {name}: culling changed the image");
         }

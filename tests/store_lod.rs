@@ -13,8 +13,8 @@ use mortar_core::render::framebuffer::{key_depth, key_index, EMPTY_KEY};
 use mortar_core::render::{
     rasterize, BatchRef, Camera, Framebuffer, PrecisionMode, RasterOptions, ViewPreset,
 };
-use mortar_io::render_input::{self, RenderSource};
-use mortar_io::store_lod::{LodBatches, StoreLod};
+use mortar_io::batch_input::{self, RenderSource};
+use mortar_io::store::{LodBatches, StoreLod};
 use mortar_render::{AtomicPath, GpuContext, GpuRasterizer, GpuScene, SceneOptions};
 use std::path::{Path, PathBuf};
 
@@ -92,8 +92,8 @@ fn lod_threshold_zero_is_the_full_detail_render() {
     let f = fixture("lod-full");
     let lod = StoreLod::open(&f.store).unwrap();
     let src = RenderSource::open_batch_file(&f.mbat).unwrap();
-    let views = render_input::load_words(&src.file).unwrap();
-    let file_refs = render_input::batch_refs(&src.file, &views).unwrap();
+    let views = batch_input::load_words(&src.file).unwrap();
+    let file_refs = batch_input::batch_refs(&src.file, &views).unwrap();
     let leaves: Vec<NodeId> = (0..lod.node_count() as u32)
         .map(NodeId)
         .filter(|&id| lod.is_leaf(id) && lod.samples(id) > 0)

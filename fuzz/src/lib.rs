@@ -20,7 +20,7 @@ use mortar_io::dataset::RecordSource;
 use mortar_io::las::{self, Vlr};
 use mortar_io::source::{Bytes, LasInput};
 use mortar_io::store::Store;
-use mortar_io::store_lod::StoreLod;
+use mortar_io::store::StoreLod;
 use mortar_io::{crs, info};
 use std::path::{Path, PathBuf};
 

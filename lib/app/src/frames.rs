@@ -8,13 +8,14 @@
 //! while a frame is drawn (measured: `frame_seconds` in `--json`). Every frame uses one camera
 //! framing the bounds the headers declare, so frames of one build line up.
 
+use crate::draw;
+use crate::draw::RenderSettings;
 use crate::render::{build_camera, encode_png, write_atomic, CameraArgs};
 use anyhow::{bail, Context, Result};
 use mortar_core::octree::LodOptions;
 use mortar_core::render::{Aabb, Camera};
 use mortar_io::dataset::Dataset;
-use mortar_io::render_input::RenderSettings;
-use mortar_io::store_lod::{self, StoreLod};
+use mortar_io::store::StoreLod;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -192,7 +193,7 @@ impl FrameRecorder {
                     .map_err(|e| anyhow::anyhow!("{}: GPU: {e}", self.store.display()))?
                     .0?
             }
-            None => store_lod::render(&lod, &batches, &camera, &settings)?,
+            None => draw::lod::render(&lod, &batches, &camera, &settings)?,
         };
         let file = self.dir.join(format!("frame-{:04}.png", self.frames.len() + 1));
         write_atomic(&file, &encode_png(img.width, img.height, &img.rgba)?)?;

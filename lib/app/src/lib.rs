@@ -20,6 +20,7 @@
 
 pub mod bench;
 pub mod cli;
+pub mod draw;
 pub mod frames;
 pub mod render;
 pub mod viewer;

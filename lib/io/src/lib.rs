@@ -53,6 +53,7 @@ pub mod las;
 pub mod source;
 
 pub use error::{Error, Result};
+pub mod batch_input;
 pub mod batchfile;
 pub mod crs;
 pub mod dataset;
@@ -61,10 +62,7 @@ pub mod framing;
 pub mod info;
 pub mod inputs;
 pub mod progress;
-pub mod progressive;
-pub mod render_input;
 pub mod sink_las;
 pub mod sort;
 pub mod store;
-pub mod store_lod;
 pub mod synth;

@@ -193,7 +193,7 @@ fn root_min_overflow() {
     for (name, bytes) in [("source.las", src), ("hierarchy.bin", hier), ("nodes.bin", nodes)] {
         std::fs::write(dir.join(name), bytes).unwrap();
     }
-    let r = mortar_io::store::Store::open(&dir).map(mortar_io::store_lod::StoreLod::new);
+    let r = mortar_io::store::Store::open(&dir).map(mortar_io::store::StoreLod::new);
     std::fs::remove_dir_all(&dir).unwrap();
     let e = r.expect("the store opens").unwrap_err();
     assert!(e.to_string().contains("outside the 32-bit grid"), "{e}");

@@ -6,6 +6,8 @@
 //! of the stored colours. Writes a markdown table to stdout (and `--out DIR`), with `--images`
 //! every render too.
 
+use crate::draw;
+use crate::draw::{ColorChoice, RenderSettings};
 use anyhow::{bail, Context, Result};
 use clap::Parser;
 use mortar_core::metrics::{median, psnr};
@@ -14,8 +16,8 @@ use mortar_core::render::framebuffer::{key_index, EMPTY_KEY};
 use mortar_core::render::{
     rasterize, Camera, Framebuffer, PrecisionMode, RasterOptions, RasterStats, ViewPreset,
 };
-use mortar_io::render_input::{self, ColorChoice, RenderSettings, RenderSource};
-use mortar_io::store_lod::{self, StoreLod};
+use mortar_io::batch_input::{self, RenderSource};
+use mortar_io::store::StoreLod;
 use std::fmt::Write as _;
 use std::path::PathBuf;
 use std::time::Instant;
@@ -126,11 +128,11 @@ pub fn run(a: Args) -> Result<()> {
         None => None,
     };
     let words = match &source {
-        Some(s) => render_input::load_words(&s.file)?,
+        Some(s) => batch_input::load_words(&s.file)?,
         None => Vec::new(),
     };
     let file_refs = match &source {
-        Some(s) => render_input::batch_refs(&s.file, &words)?,
+        Some(s) => batch_input::batch_refs(&s.file, &words)?,
         None => Vec::new(),
     };
     if let Some(s) = &source {
@@ -174,7 +176,7 @@ pub fn run(a: Args) -> Result<()> {
             if let (true, Some(src)) = (threshold.is_nan(), &source) {
                 let fb = Framebuffer::new(cam.width, cam.height);
                 let stats = rasterize(&fb, &file_refs, &src.file.grid(), &cam, &opts)?;
-                let r = render_input::resolve_keys(
+                let r = draw::batch::resolve_keys(
                     &src.file,
                     fb.into_keys(),
                     stats,
@@ -203,7 +205,7 @@ pub fn run(a: Args) -> Result<()> {
             let fb = Framebuffer::new(cam.width, cam.height);
             let stats = rasterize(&fb, &batches.refs, &lod.grid(), &cam, &opts)?;
             let keys = fb.into_keys();
-            let r = store_lod::resolve_keys(&lod, &batches, keys, stats, 0.0, &cam, &settings)?;
+            let r = draw::lod::resolve_keys(&lod, &batches, keys, stats, 0.0, &cam, &settings)?;
             rows.push(Row {
                 threshold,
                 nodes: sel.stats.selected,

@@ -7,6 +7,8 @@
 //! time against error per view (PNG, drawn here with a built-in bitmap font).
 
 use crate::cli as common;
+use crate::draw;
+use crate::draw::ColorChoice;
 use crate::render;
 use crate::render::{CameraArgs, PrecisionArg, ViewArg};
 use anyhow::{bail, Result};
@@ -23,8 +25,8 @@ use mortar_core::render::{
     precision_for_pixels, rasterize, BatchRef, Camera, Framebuffer, PrecisionMode, RasterOptions,
     RasterStats,
 };
+use mortar_io::batch_input;
 use mortar_io::batchfile::BatchFile;
-use mortar_io::render_input::{self, ColorChoice};
 use rayon::prelude::*;
 use std::fmt::Write as _;
 use std::path::PathBuf;
@@ -252,7 +254,7 @@ fn colorize(
     color: ColorChoice,
     range: Option<[f64; 2]>,
 ) -> Result<(Vec<u32>, Option<[f64; 2]>)> {
-    let colors = render_input::colors_for_keys(file, keys, color, range)?;
+    let colors = draw::batch::colors_for_keys(file, keys, color, range)?;
     let opts = ResolveOptions::default();
     let bg = opts.background;
     Ok((resolve(keys, cam.width, cam.height, |i| colors.get(i).unwrap_or(bg), &opts), colors.range))
@@ -275,15 +277,15 @@ pub fn run(a: Args) -> Result<()> {
     if file.header.point_count == 0 {
         bail!("{}: no points to draw", a.inputs.join(" "));
     }
-    render_input::check_color(file, color)?;
+    draw::batch::check_color(file, color)?;
     let label = a.label.clone().unwrap_or_else(|| {
         PathBuf::from(&a.inputs[0])
             .file_stem()
             .map(|s| s.to_string_lossy().split('.').next().unwrap_or("input").to_string())
             .unwrap_or_else(|| "input".into())
     });
-    let views = render_input::load_words(file)?;
-    let refs = render_input::batch_refs(file, &views)?;
+    let views = batch_input::load_words(file)?;
+    let refs = batch_input::batch_refs(file, &views)?;
     let threads = rayon::current_num_threads();
     let mut md = String::new();
     writeln!(

@@ -2,11 +2,12 @@
 //! renderer), and the parsers of their values.
 
 use crate::cli as common;
+use crate::draw::ColorChoice;
 use anyhow::{bail, Result};
 use mortar_core::octree::{LodOptions, DEFAULT_THRESHOLD_PX};
 use mortar_core::quantize::Precision;
+use mortar_core::render::resolve::{EyeDome, HoleFill, ResolveOptions};
 use mortar_core::render::PrecisionMode;
-use mortar_io::render_input::ColorChoice;
 use std::path::PathBuf;
 
 /// Which rasterizer draws.
@@ -164,43 +165,30 @@ pub(crate) fn parse_color_choice(s: &str) -> std::result::Result<ColorChoice, St
     })
 }
 
-/// Arguments of `mortar render`.
-#[derive(clap::Args)]
-pub struct Args {
-    /// A batch file, an octree store (drawn with LOD, see --lod-threshold), or LAS/LAZ files,
-    /// directories, glob patterns or - (batched on the fly into a temporary batch file, as
-    /// `mortar batch` would).
-    #[arg(required = true)]
-    pub inputs: Vec<String>,
-    /// Output PNG (- for stdout).
-    #[arg(short, long)]
-    pub output: PathBuf,
-    /// Image width in pixels.
+/// The options of a view that `mortar render` and `mortar view` share, defined once: the size,
+/// the camera, the colours, the precision, the atomics and the resolve.
+#[derive(clap::Args, Clone, Debug)]
+pub struct ViewArgs {
+    /// Width in pixels (of the image; of the window when it opens).
     #[arg(long, default_value_t = 1280)]
     pub width: u32,
-    /// Image height in pixels.
+    /// Height in pixels (of the image; of the window when it opens).
     #[arg(long, default_value_t = 720)]
     pub height: u32,
     #[command(flatten)]
     pub camera: CameraArgs,
     /// Colour mode: auto (RGB if the points have colours, else intensity), stored (the batch
-    /// file's render colour), rgb, intensity, classification, elevation, return-number, gps-time.
+    /// file's render colour), rgb, intensity, classification, elevation, return-number, gps-time
+    /// (in the window, C cycles through the modes the input has).
     #[arg(long, default_value = "auto", value_parser = parse_color_choice)]
     pub color: ColorChoice,
     /// Range lo,hi of intensity, elevation and gps-time colours (default: 1st to 99th percentile
-    /// of the visible points).
+    /// of all the points).
     #[arg(long, value_parser = parse_range, allow_hyphen_values = true)]
     pub range: Option<[f64; 2]>,
     /// Coordinate precision: adaptive (paper 003's 500 px rule) or 10, 20, 30 bits for every batch.
     #[arg(long, value_enum, default_value = "adaptive")]
     pub precision: PrecisionArg,
-    /// Draw every batch, also those outside the view (same image, slower).
-    #[arg(long)]
-    pub no_cull: bool,
-    /// Rasterizer: cpu, gpu (any adapter, software included) or auto (a hardware GPU if there is
-    /// one, else cpu).
-    #[arg(long, value_enum, default_value = "auto")]
-    pub backend: Backend,
     /// Atomics of the GPU rasterizer: auto, 64 or 32 (the two-pass fallback).
     #[arg(long, value_enum, default_value = "auto")]
     pub atomics: AtomicsArg,
@@ -214,6 +202,40 @@ pub struct Args {
     /// Background colour: black, white, grey, transparent, #rrggbb or #rrggbbaa.
     #[arg(long, default_value = "black", value_parser = parse_color)]
     pub background: u32,
+}
+
+impl ViewArgs {
+    /// The resolve's choices of `--background`, `--hole-fill [N]` and `--edl [STRENGTH]`
+    /// (shared by `mortar render`, `mortar view` and `build --preview`).
+    pub fn resolve_options(&self) -> ResolveOptions {
+        ResolveOptions {
+            background: self.background,
+            hole_fill: self.hole_fill.map(|n| HoleFill { min_neighbors: n }),
+            eye_dome: self.edl.map(|strength| EyeDome { strength, ..EyeDome::default() }),
+        }
+    }
+}
+
+/// Arguments of `mortar render`.
+#[derive(clap::Args)]
+pub struct Args {
+    /// A batch file, an octree store (drawn with LOD, see --lod-threshold), or LAS/LAZ files,
+    /// directories, glob patterns or - (batched on the fly into a temporary batch file, as
+    /// `mortar batch` would).
+    #[arg(required = true)]
+    pub inputs: Vec<String>,
+    /// Output PNG (- for stdout).
+    #[arg(short, long)]
+    pub output: PathBuf,
+    #[command(flatten)]
+    pub view: ViewArgs,
+    /// Draw every batch, also those outside the view (same image, slower).
+    #[arg(long)]
+    pub no_cull: bool,
+    /// Rasterizer: cpu, gpu (any adapter, software included) or auto (a hardware GPU if there is
+    /// one, else cpu).
+    #[arg(long, value_enum, default_value = "auto")]
+    pub backend: Backend,
     /// Print statistics as JSON on stdout (on stderr when the PNG goes to stdout).
     #[arg(long)]
     pub json: bool,

@@ -7,12 +7,14 @@
 
 use super::args::Args;
 use super::output::{build_camera, encode_png, write_atomic};
+use crate::draw;
+use crate::draw::lod::LodColor;
+use crate::draw::{RenderSettings, Rendered};
 use anyhow::{anyhow, bail, Result};
 use mortar_core::octree::{LodOptions, LodSelection};
 use mortar_core::render::Camera;
 use mortar_io::inputs::InputKind;
-use mortar_io::render_input::{RenderSettings, Rendered};
-use mortar_io::store_lod::{self, LodBatches, LodColor, StoreLod};
+use mortar_io::store::{LodBatches, StoreLod};
 use mortar_render::{GpuContext, GpuError};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -41,9 +43,9 @@ pub fn run(a: &Args, dir: &Path) -> Result<()> {
     if lod.drawable() == 0 {
         bail!("{label}: no points to draw");
     }
-    let color = LodColor::of(lod.store(), a.color)?;
+    let color = LodColor::of(lod.store(), a.view.color)?;
     let options = a.lod.options(!a.no_cull)?;
-    let camera = build_camera(&a.camera, &lod.bounds(), a.width, a.height)
+    let camera = build_camera(&a.view.camera, &lod.bounds(), a.view.width, a.view.height)
         .map_err(|e| anyhow!("{label}: {e:#}"))?;
     let t = Instant::now();
     let selection = lod.select(&camera, &options)?;
@@ -54,7 +56,7 @@ pub fn run(a: &Args, dir: &Path) -> Result<()> {
     let settings = super::output::render_settings(a);
     let gpu = super::output::gpu_context(a)?;
     let (r, gpu_json) = match &gpu {
-        None => (store_lod::render(&lod, &batches, &camera, &settings)?, serde_json::Value::Null),
+        None => (draw::lod::render(&lod, &batches, &camera, &settings)?, serde_json::Value::Null),
         Some(ctx) => {
             let (r, j) = render_gpu(ctx, &lod, &batches, &camera, &settings)
                 .map_err(|e| anyhow!("{label}: GPU: {e}"))?;
@@ -127,7 +129,7 @@ pub(crate) fn render_gpu(
         &settings.raster,
     )?;
     Ok((
-        store_lod::resolve_keys(
+        draw::lod::resolve_keys(
             lod,
             batches,
             keys,

@@ -12,18 +12,23 @@ pub mod progressive;
 pub use args::*;
 pub use output::*;
 
+use crate::draw;
 use anyhow::{anyhow, bail, Result};
-use mortar_io::render_input::{self};
+use mortar_io::batch_input;
 use std::time::Instant;
 
 /// Opens the input, draws the view, writes the PNG and (with `--json`) the statistics.
 pub fn run(a: Args) -> Result<()> {
-    if a.width == 0 || a.height == 0 || a.width > 16384 || a.height > 16384 {
-        bail!("--width {} --height {}: each side must be 1 to 16384 pixels", a.width, a.height);
+    if a.view.width == 0 || a.view.height == 0 || a.view.width > 16384 || a.view.height > 16384 {
+        bail!(
+            "--width {} --height {}: each side must be 1 to 16384 pixels",
+            a.view.width,
+            a.view.height
+        );
     }
     // Checked again by build_camera; here so that a typo fails before LAS input is batched.
-    if !(a.camera.fov > 0.0 && a.camera.fov < 180.0) {
-        bail!("--fov {}: must be between 0 and 180 degrees", a.camera.fov);
+    if !(a.view.camera.fov > 0.0 && a.view.camera.fov < 180.0) {
+        bail!("--fov {}: must be between 0 and 180 degrees", a.view.camera.fov);
     }
     if a.progressive.progressive.is_some() {
         return crate::render::progressive::run(&a);
@@ -32,7 +37,7 @@ pub fn run(a: Args) -> Result<()> {
         return crate::render::lod::run(&a, &store);
     }
     let start = Instant::now();
-    let (source, bounds) = open_source(&a.inputs, &a.sort, Some(a.color))?;
+    let (source, bounds) = open_source(&a.inputs, &a.sort, Some(a.view.color))?;
     let batch_seconds = start.elapsed().as_secs_f64();
     let file = &source.file;
     let own = |e| source.own_error(e);
@@ -40,16 +45,16 @@ pub fn run(a: Args) -> Result<()> {
     if file.header.point_count == 0 {
         bail!("{label}: no points to draw");
     }
-    render_input::check_color(file, a.color).map_err(own)?;
-    let camera = build_camera(&a.camera, &bounds, a.width, a.height)
+    draw::batch::check_color(file, a.view.color).map_err(own)?;
+    let camera = build_camera(&a.view.camera, &bounds, a.view.width, a.view.height)
         .map_err(|e| anyhow!("{label}: {e:#}"))?;
-    let views = render_input::load_words(file).map_err(own)?;
-    let refs = render_input::batch_refs(file, &views).map_err(own)?;
+    let views = batch_input::load_words(file).map_err(own)?;
+    let refs = batch_input::batch_refs(file, &views).map_err(own)?;
     let settings = render_settings(&a);
     let gpu = gpu_context(&a)?;
     let (r, gpu_json) = match &gpu {
         None => (
-            render_input::render(file, &refs, &camera, &settings).map_err(own)?,
+            draw::batch::render(file, &refs, &camera, &settings).map_err(own)?,
             serde_json::Value::Null,
         ),
         Some(ctx) => {
@@ -69,7 +74,7 @@ pub fn run(a: Args) -> Result<()> {
             &label,
             &r,
             &gpu_json,
-            a.color.resolved(file).name(),
+            a.view.color.resolved(file).name(),
             &camera,
             file.header.point_count,
             png_seconds,

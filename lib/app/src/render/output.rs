@@ -4,16 +4,17 @@
 
 use super::args::*;
 use crate::cli as common;
+use crate::draw;
+use crate::draw::{ColorChoice, RenderSettings, Rendered};
 use anyhow::{anyhow, bail, Context, Result};
 use mortar_core::grid::Grid;
 use mortar_core::render::framing::{IntBox, ViewBox};
-use mortar_core::render::resolve::{EyeDome, HoleFill, ResolveOptions};
 use mortar_core::render::BatchRef;
 use mortar_core::render::{Aabb, Camera, Projection, RasterOptions, ViewPreset};
+use mortar_io::batch_input::{self, RenderSource};
 use mortar_io::batchfile::{AttributeSelection, BatchFile};
 use mortar_io::cleanup::TempPath;
 use mortar_io::inputs::InputKind;
-use mortar_io::render_input::{self, ColorChoice, RenderSettings, RenderSource, Rendered};
 use mortar_render::{
     AtomicPath, GpuContext, GpuError, GpuFrame, GpuOptions, GpuRasterizer, GpuScene, SceneOptions,
 };
@@ -47,7 +48,7 @@ pub fn open_source(
         let p = Path::new(one);
         if InputKind::of(p) == InputKind::BatchFile {
             let source = RenderSource::open_batch_file(p)?;
-            let bounds = render_input::file_bounds(&source.file);
+            let bounds = batch_input::file_bounds(&source.file);
             return Ok((source, bounds));
         }
     }
@@ -63,7 +64,7 @@ pub fn open_source(
         None => AttributeSelection::All,
     };
     let source = RenderSource::batch_dataset(&ds, &sort.options(), &attributes)?;
-    let points = render_input::file_bounds(&source.file);
+    let points = batch_input::file_bounds(&source.file);
     let label = source.name.display().to_string();
     let bounds = match view {
         ViewBox::Header(h) => {
@@ -173,34 +174,20 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
     Ok(())
 }
 
-/// The resolve's choices of `--background`, `--hole-fill [N]` and `--edl [STRENGTH]` (shared by
-/// `mortar render`, `mortar view` and `build --preview`).
-pub fn resolve_options(
-    background: u32,
-    hole_fill: Option<u32>,
-    edl: Option<f32>,
-) -> ResolveOptions {
-    ResolveOptions {
-        background,
-        hole_fill: hole_fill.map(|n| HoleFill { min_neighbors: n }),
-        eye_dome: edl.map(|strength| EyeDome { strength, ..EyeDome::default() }),
-    }
-}
-
 /// The raster and resolve choices of the arguments.
 pub(crate) fn render_settings(a: &Args) -> RenderSettings {
     RenderSettings {
-        raster: RasterOptions { precision: a.precision.mode(), cull: !a.no_cull },
-        color: a.color,
-        range: a.range,
-        resolve: resolve_options(a.background, a.hole_fill, a.edl),
+        raster: RasterOptions { precision: a.view.precision.mode(), cull: !a.no_cull },
+        color: a.view.color,
+        range: a.view.range,
+        resolve: a.view.resolve_options(),
     }
 }
 
 /// The GPU `--backend` asks for: none for cpu, any adapter (an error if none) for gpu, a
 /// hardware GPU if there is one for auto.
 pub(crate) fn gpu_context(a: &Args) -> Result<Option<GpuContext>> {
-    let atomics = match a.atomics {
+    let atomics = match a.view.atomics {
         AtomicsArg::Auto => None,
         AtomicsArg::U64 => Some(AtomicPath::U64),
         AtomicsArg::U32 => Some(AtomicPath::TwoPass32),
@@ -251,7 +238,7 @@ pub(crate) fn rendered_json(
         "height": r.height,
         "backend": if gpu_json.is_null() { "cpu" } else { "gpu" },
         "gpu": gpu_json,
-        "precision": a.precision.name(),
+        "precision": a.view.precision.name(),
         "cull": !a.no_cull,
         "color": color,
         "color_range": r.color_range,
@@ -271,6 +258,50 @@ pub(crate) fn rendered_json(
     })
 }
 
+/// What one GPU draw of `mortar render` leaves: the scene and rasterizer (for a GPU resolve), the
+/// frame, its keys read back and its `gpu` statistics for `--json`.
+struct GpuDraw {
+    scene: GpuScene,
+    raster: GpuRasterizer,
+    frame: GpuFrame,
+    keys: Vec<u64>,
+    json: serde_json::Value,
+}
+
+/// Uploads `refs` (batches on `grid` holding `points` points, indexed so that the keys' indices
+/// are the points'; with room for a colour per point where `colors`, zeros until the visible
+/// points' colours are known), draws one frame and reads its keys back: the one upload -> draw ->
+/// read-back path of [`draw_keys_gpu`] and the batch files' GPU render.
+fn draw_gpu(
+    ctx: &GpuContext,
+    grid: Grid,
+    points: u64,
+    refs: &[BatchRef<'_>],
+    colors: bool,
+    camera: &Camera,
+    options: &RasterOptions,
+) -> std::result::Result<GpuDraw, GpuError> {
+    let t = Instant::now();
+    let mut scene =
+        GpuScene::new(ctx, grid, points, SceneOptions { colors, ..Default::default() })?;
+    let zeros = if colors {
+        vec![0u32; refs.iter().map(BatchRef::len).max().unwrap_or(0)]
+    } else {
+        Vec::new()
+    };
+    for b in refs {
+        scene.push(ctx, b, colors.then(|| &zeros[..b.len()]))?;
+    }
+    scene.flush(ctx)?;
+    ctx.wait()?;
+    let upload_seconds = t.elapsed().as_secs_f64();
+    let mut raster = GpuRasterizer::new(ctx, camera.width, camera.height)?;
+    let frame = raster.draw(ctx, &mut scene, camera, options, None)?;
+    let keys = raster.read_keys(ctx)?;
+    let json = gpu_json(ctx, &scene, upload_seconds, &frame);
+    Ok(GpuDraw { scene, raster, frame, keys, json })
+}
+
 /// Draws `refs` (batches on `grid` holding `points` points, indexed so that the keys' indices
 /// are the points') with the GPU rasterizer: uploads them, draws one frame and reads the keys
 /// back, for callers that resolve on the host exactly as their CPU path does (`mortar render`
@@ -284,19 +315,8 @@ pub fn draw_keys_gpu(
     camera: &Camera,
     options: &RasterOptions,
 ) -> std::result::Result<(Vec<u64>, GpuFrame, serde_json::Value), GpuError> {
-    let t = Instant::now();
-    let mut scene = GpuScene::new(ctx, grid, points, SceneOptions::default())?;
-    for b in refs {
-        scene.push(ctx, b, None)?;
-    }
-    scene.flush(ctx)?;
-    ctx.wait()?;
-    let upload_seconds = t.elapsed().as_secs_f64();
-    let mut raster = GpuRasterizer::new(ctx, camera.width, camera.height)?;
-    let frame = raster.draw(ctx, &mut scene, camera, options, None)?;
-    let keys = raster.read_keys(ctx)?;
-    let j = gpu_json(ctx, &scene, upload_seconds, &frame);
-    Ok((keys, frame, j))
+    let d = draw_gpu(ctx, grid, points, refs, false, camera, options)?;
+    Ok((d.keys, d.frame, d.json))
 }
 
 /// A batch file drawn and resolved on the GPU: the batches uploaded (with room for colours),
@@ -311,31 +331,15 @@ pub(crate) fn render_gpu(
     camera: &Camera,
     settings: &RenderSettings,
 ) -> std::result::Result<(mortar_io::Result<Rendered>, serde_json::Value), GpuError> {
-    if let Err(e) = render_input::check_color(file, settings.color) {
+    if let Err(e) = draw::batch::check_color(file, settings.color) {
         return Ok((Err(e), serde_json::Value::Null));
     }
     let points = file.header.point_count;
-    let t = Instant::now();
-    let mut scene = GpuScene::new(
-        ctx,
-        file.grid(),
-        points,
-        SceneOptions { colors: true, ..Default::default() },
-    )?;
     // The colours depend on the visible points: placeholders now, the real ones after the draw.
-    let zeros = vec![0u32; refs.iter().map(BatchRef::len).max().unwrap_or(0)];
-    for b in refs {
-        scene.push(ctx, b, Some(&zeros[..b.len()]))?;
-    }
-    scene.flush(ctx)?;
-    ctx.wait()?;
-    let upload_seconds = t.elapsed().as_secs_f64();
-    let mut raster = GpuRasterizer::new(ctx, camera.width, camera.height)?;
-    let frame = raster.draw(ctx, &mut scene, camera, &settings.raster, None)?;
-    let keys = raster.read_keys(ctx)?;
-    let mut j = gpu_json(ctx, &scene, upload_seconds, &frame);
+    let GpuDraw { mut scene, mut raster, frame, keys, json: mut j } =
+        draw_gpu(ctx, file.grid(), points, refs, true, camera, &settings.raster)?;
     let t = Instant::now();
-    let colors = match render_input::colors_for_keys(file, &keys, settings.color, settings.range) {
+    let colors = match draw::batch::colors_for_keys(file, &keys, settings.color, settings.range) {
         Ok(c) => c,
         Err(e) => return Ok((Err(e), j)),
     };

@@ -15,6 +15,11 @@
 use super::args::{Args, Backend, ProgressiveArgs};
 use super::output::{build_camera, camera_json, encode_png, gpu_context, write_atomic};
 use crate::cli as common;
+use crate::draw::raw::{
+    load_pieces, payload_colors, payload_for, payload_range, point_count, resolve_choice,
+    ColorStats, LoadedPiece,
+};
+use crate::draw::ColorChoice;
 use anyhow::{anyhow, bail, Result};
 use mortar_core::metrics::median;
 use mortar_core::render::framing::{IntBox, ViewBox};
@@ -24,11 +29,6 @@ use mortar_core::render::progressive::{
 use mortar_core::render::resolve::{resolve, ColorMode, EyeDome, HoleFill, ResolveOptions};
 use mortar_core::render::{Camera, RasterOptions};
 use mortar_io::inputs::InputKind;
-use mortar_io::progressive::{
-    load_pieces, payload_colors, payload_for, payload_range, point_count, resolve_choice,
-    ColorStats, LoadedPiece,
-};
-use mortar_io::render_input::ColorChoice;
 use mortar_render::{
     AtomicPath, GpuContext, GpuProgressive, GpuProgressiveFrame, ProgressiveOptions,
 };
@@ -419,7 +419,7 @@ pub fn run(a: &Args) -> Result<()> {
     }
     let mut ds = mortar_io::inputs::open_with(&paths, &a.sort.crs.options())?;
     common::print_warnings(&ds.warnings);
-    let keep = a.color.attributes(&ds.layout);
+    let keep = a.view.color.attributes(&ds.layout);
     ds.decode_only(&keep);
     let label = paths.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(" ");
     let points = point_count(&ds);
@@ -427,7 +427,7 @@ pub fn run(a: &Args) -> Result<()> {
         bail!("{label}: no points to draw");
     }
     let first_path = ds.inputs[0].path().to_path_buf();
-    let payload = payload_for(&ds.layout, a.color, &first_path)?;
+    let payload = payload_for(&ds.layout, a.view.color, &first_path)?;
     // The one framing rule: the headers' box, or (when the first piece lies far outside it)
     // the points' box, which needs every point before the first frame.
     let view = mortar_io::framing::view_box(&ds)?;
@@ -441,15 +441,15 @@ pub fn run(a: &Args) -> Result<()> {
         }
     };
     let frame = frame.map_err(|e| anyhow!("{label}: {e}"))?;
-    let (width, height, grid) = (a.width, a.height, ds.grid);
+    let (width, height, grid) = (a.view.width, a.view.height, ds.grid);
     let make_camera = |r: &dyn ProgressiveEngine| -> Result<Camera> {
         let bounds = view.bounds(&grid, || r.frame_state().data);
-        build_camera(&a.camera, &bounds, width, height).map_err(|e| anyhow!("{label}: {e:#}"))
+        build_camera(&a.view.camera, &bounds, width, height).map_err(|e| anyhow!("{label}: {e:#}"))
     };
     // Checked before anything is loaded.
-    build_camera(&a.camera, &frame.data.world(&grid), width, height)
+    build_camera(&a.view.camera, &frame.data.world(&grid), width, height)
         .map_err(|e| anyhow!("{label}: {e:#}"))?;
-    let options = RasterOptions { precision: a.precision.mode(), cull: !a.no_cull };
+    let options = RasterOptions { precision: a.view.precision.mode(), cull: !a.no_cull };
     // `auto` takes a hardware GPU only if it has the 64-bit atomics the GPU renderer needs.
     let gpu = match gpu_context(a)? {
         Some(ctx) if a.backend == Backend::Auto && ctx.atomic_path() != AtomicPath::U64 => None,
@@ -511,23 +511,26 @@ pub fn run(a: &Args) -> Result<()> {
         }
     }
     let loaded_all = renderer.loaded() == renderer.capacity();
-    if loaded_all && a.color == ColorChoice::Mode(ColorMode::Rgb) && outcome.colors.max_rgb == 0 {
+    if loaded_all
+        && a.view.color == ColorChoice::Mode(ColorMode::Rgb)
+        && outcome.colors.max_rgb == 0
+    {
         bail!("{}: --color rgb: the points have no colour (every RGB value is zero, point format {}); try --color intensity", first_path.display(), ds.layout.format);
     }
     let (keys, slots) = renderer.keys_and_visible().map_err(|e| anyhow!("{label}: GPU: {e}"))?;
     let payloads: Vec<u64> =
         slots.iter().map(|&s| renderer.payload(s).expect("visible points are loaded")).collect();
-    let range = a.range.or_else(|| {
-        payload_range(&renderer.loaded_payloads(), a.color, payload, &outcome.colors, &ds.grid)
+    let range = a.view.range.or_else(|| {
+        payload_range(&renderer.loaded_payloads(), a.view.color, payload, &outcome.colors, &ds.grid)
     });
     let (colors, color_range) =
-        payload_colors(&payloads, a.color, payload, &outcome.colors, &ds.grid, range);
+        payload_colors(&payloads, a.view.color, payload, &outcome.colors, &ds.grid, range);
     let resolve_options = ResolveOptions {
-        background: a.background,
-        hole_fill: a.hole_fill.map(|n| HoleFill { min_neighbors: n }),
-        eye_dome: a.edl.map(|strength| EyeDome { strength, ..EyeDome::default() }),
+        background: a.view.background,
+        hole_fill: a.view.hole_fill.map(|n| HoleFill { min_neighbors: n }),
+        eye_dome: a.view.edl.map(|strength| EyeDome { strength, ..EyeDome::default() }),
     };
-    let bg = a.background;
+    let bg = a.view.background;
     let color_of = |i: u32| slots.binary_search(&i).map(|k| colors[k]).unwrap_or(bg);
     let rgba = resolve(&keys, camera.width, camera.height, color_of, &resolve_options);
     let resolve_seconds = t.elapsed().as_secs_f64();
@@ -603,9 +606,9 @@ pub fn run(a: &Args) -> Result<()> {
         "backend": if gpu.is_some() { "gpu" } else { "cpu" },
         "gpu": gpu_json,
         "renderer": "progressive",
-        "precision": a.precision.name(),
+        "precision": a.view.precision.name(),
         "cull": !a.no_cull,
-        "color": resolve_choice(a.color, payload, &outcome.colors).name(),
+        "color": resolve_choice(a.view.color, payload, &outcome.colors).name(),
         "color_range": color_range,
         "camera": camera_json(&camera),
         "points": renderer.capacity(),

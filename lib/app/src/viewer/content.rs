@@ -1,4 +1,4 @@
-//! What a window shows, behind one trait: [`Content`]. The window ([`super::show`]) knows
+//! What a window shows, behind one trait: [`Content`]. The window (`viewer::window`) knows
 //! nothing of the kind of data; each kind keeps its own CPU and GPU state and draws itself on the
 //! backend it is given:
 //!
@@ -9,11 +9,12 @@
 //! - [`ProgressiveView`](super::progressive::ProgressiveView): raw LAS/LAZ by the progressive
 //!   renderer of paper 000, loading while it draws.
 
+use crate::draw;
+use crate::draw::ColorChoice;
 use anyhow::{anyhow, Result};
 use mortar_core::render::resolve::{resolve, ColorMode, ResolveOptions};
 use mortar_core::render::{rasterize, Aabb, BatchRef, Camera, Framebuffer, RasterOptions};
 use mortar_io::batchfile::BatchFile;
-use mortar_io::render_input::{self, ColorChoice};
 use mortar_render::{wgpu, GpuContext, GpuError, GpuFrame, GpuRasterizer, GpuScene, SceneOptions};
 use std::time::Instant;
 
@@ -137,11 +138,11 @@ impl<'a> BatchContent<'a> {
         range: Option<[f64; 2]>,
     ) -> mortar_io::Result<BatchContent<'a>> {
         let initial = color.resolved(file);
-        render_input::check_color(file, initial)?;
+        draw::batch::check_color(file, initial)?;
         let mut modes: Vec<ColorChoice> = ColorMode::ALL
             .iter()
             .map(|&m| ColorChoice::Mode(m))
-            .filter(|&c| render_input::check_color(file, c).is_ok())
+            .filter(|&c| draw::batch::check_color(file, c).is_ok())
             .collect();
         if !modes.contains(&initial) {
             modes.insert(0, initial);
@@ -166,7 +167,7 @@ impl<'a> BatchContent<'a> {
     fn colors(&mut self) -> Result<&[u32]> {
         if self.colors[self.mode].is_none() {
             let (c, _range) =
-                render_input::point_colors(self.file, self.modes[self.mode], self.range)
+                draw::batch::point_colors(self.file, self.modes[self.mode], self.range)
                     .map_err(|e| anyhow!("{}: {e}", self.label))?;
             self.colors[self.mode] = Some(c);
         }

@@ -24,6 +24,11 @@
 //! keep their colour.
 
 use super::content::{Content, GpuDrawn};
+use crate::draw::raw::{
+    load_pieces, payload_colors, payload_for, payload_range, point_count, ColorStats, LoadedPiece,
+    Payload,
+};
+use crate::draw::ColorChoice;
 use anyhow::{anyhow, bail, Result};
 use mortar_core::render::framing::{IntBox, ViewBox};
 use mortar_core::render::progressive::ProgressiveFrame;
@@ -33,11 +38,6 @@ use mortar_core::render::progressive::{
 use mortar_core::render::resolve::{resolve, ColorMode, ResolveOptions};
 use mortar_core::render::{Aabb, Camera, RasterOptions};
 use mortar_io::dataset::Dataset;
-use mortar_io::progressive::{
-    load_pieces, payload_colors, payload_for, payload_range, point_count, ColorStats, LoadedPiece,
-    Payload,
-};
-use mortar_io::render_input::ColorChoice;
 use mortar_render::{
     wgpu, AtomicPath, GpuContext, GpuError, GpuProgressive, GpuRasterizer, ProgressiveOptions,
 };

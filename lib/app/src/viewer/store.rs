@@ -2,7 +2,7 @@
 //! selection of paper 004 §6 for the window's camera, straight from the mapped `nodes.bin`.
 //!
 //! - CPU: the selection's nodes are borrowed from the map and drawn by the CPU rasterizer
-//!   ([`store_lod::render`]), as `mortar render store/` does.
+//!   ([`draw::lod::render`]), as `mortar render store/` does.
 //! - GPU: a node is uploaded the first time a selection needs it and stays on the GPU; every frame
 //!   draws the selected nodes' batches out of the one scene ([`GpuRasterizer::draw_selected`]).
 //!   Uploads are keyed by the payload's offset in `nodes.bin`: the file only grows and a payload
@@ -13,20 +13,22 @@
 //!   colour mode its point format has (C cycles them): `auto` (RGB where the source has it, else
 //!   intensity), elevation, intensity, classification, return number, GPS time. Scalar modes map
 //!   over a range fixed when the store's first commit is opened (`--range`, else the 1st to 99th
-//!   percentile of all its points' values, [`StoreLod::color_range`], the rule of every renderer:
+//!   percentile of all its points' values, [`draw::lod::color_range`](crate::draw::lod::color_range), the rule of every renderer:
 //!   `mortar render` of the store, with or without LOD, colours alike; for a store a build is
 //!   still writing, the points of that first commit), so that both rasterizers colour a sample
 //!   alike and a growing store's colours do not shift from frame to frame.
 
 use super::content::{Content, GpuDrawn};
+use crate::draw;
+use crate::draw::lod::LodColor;
+use crate::draw::{ColorChoice, RenderSettings};
 use anyhow::{anyhow, Result};
 use mortar_core::grid::Grid;
 use mortar_core::layout::RecordLayout;
 use mortar_core::octree::{LodOptions, LodTree};
 use mortar_core::render::resolve::{ColorMode, ResolveOptions};
 use mortar_core::render::{Aabb, BatchRef, Camera, RasterOptions};
-use mortar_io::render_input::{ColorChoice, RenderSettings};
-use mortar_io::store_lod::{self, LodColor, StoreLod};
+use mortar_io::store::StoreLod;
 use mortar_render::{GpuContext, GpuError, GpuFrame, GpuRasterizer, GpuScene, SceneOptions};
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -143,11 +145,10 @@ impl StoreView {
     fn set_ranges(&mut self, lod: &StoreLod) {
         for (m, r) in self.modes.iter().zip(self.ranges.iter_mut()) {
             *r = match LodColor::of(lod.store(), *m) {
-                Ok(c) if c.uses_range() => {
-                    self.given
-                        .or_else(|| lod.color_range(c))
-                        .or(matches!(c, LodColor::Elevation).then_some(self.range))
-                }
+                Ok(c) if c.uses_range() => self
+                    .given
+                    .or_else(|| draw::lod::color_range(lod, c))
+                    .or(matches!(c, LodColor::Elevation).then_some(self.range)),
                 _ => None,
             };
         }
@@ -319,7 +320,7 @@ impl Content for StoreView {
         let sel = lod.select(camera, &self.options)?;
         let batches = lod.batches(&sel.nodes)?;
         let img =
-            store_lod::render(lod, &batches, camera, &self.settings(self.mode, options, resolve))?;
+            draw::lod::render(lod, &batches, camera, &self.settings(self.mode, options, resolve))?;
         self.selected =
             Selected { nodes: sel.nodes.len() as u64, samples: batches.samples, uploaded_nodes: 0 };
         Ok((img.rgba, batches.samples))
@@ -381,7 +382,7 @@ impl Content for StoreView {
             }
             let first = g.scene.points();
             let batch = lod.node_batch(id, first as u32);
-            let c = lod.node_colors(id, color, range)?;
+            let c = draw::lod::node_colors(lod, id, color, range)?;
             // A node can hold millions of samples, and the rasterizer gives one workgroup to a
             // batch: nodes go to the GPU in slices of at most SLICE samples (same frame and
             // bounds, consecutive indices), so that a large node keeps the whole GPU busy.

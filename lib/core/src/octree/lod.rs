@@ -55,7 +55,7 @@
 //! The walk needs only a node's cube, children, sample count and subtree point count: the
 //! [`LodTree`] trait. [`Snapshot`] implements it, and so does [`LodIndex`], the structure of a
 //! tree rebuilt (and checked) from its nodes' keys, which is how a store on disk is selected from
-//! (`mortar_io::store_lod`) without loading its payloads.
+//! (`mortar_io::store::StoreLod`) without loading its payloads.
 //!
 //! Differences from the paper: the paper picks nodes on the GPU by the parent's size only, with
 //! no budget; mortar selects on the host in f64 (as it plans batches, see

@@ -35,6 +35,7 @@ pub mod distributed;
 pub(crate) mod engine;
 mod format;
 mod incremental;
+pub mod lod;
 mod options;
 pub(crate) mod partitioned;
 mod reader;
@@ -50,6 +51,7 @@ pub use format::{
     HierarchyHeader, NodeEntry, NodeHeader, PayloadError, HIERARCHY_FILE, INNER, LEAF, NODES_FILE,
     SOURCE_FILE,
 };
+pub use lod::{LodBatches, StoreLod};
 pub use options::{BuildOptions, BuildProgress, BuildReport, BuiltBy, Engine};
 pub use reader::{is_store, NodeData, Store};
 pub use record::{BuildRecord, InputPrint, RECORD_FILE};

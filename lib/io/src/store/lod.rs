@@ -1,7 +1,7 @@
-//! LOD rendering of an octree store on disk (paper 004 §6): the view-dependent node selection of
-//! [`mortar_core::octree::lod`] run on a store's hierarchy, and the selected nodes drawn straight
-//! from the memory-mapped `nodes.bin` by either rasterizer (paper 003 §3.5: "a node is a
-//! variable-size batch").
+//! A store read for LOD rendering (paper 004 §6): the structure the view-dependent node
+//! selection of [`mortar_core::octree::lod`] walks, and the selected nodes as the rasterizers'
+//! batches, straight from the memory-mapped `nodes.bin` (paper 003 §3.5: "a node is a
+//! variable-size batch"). What colours and draws them is mortar-app's (`draw::lod`).
 //!
 //! - [`StoreLod::new`] rebuilds the tree's structure from the hierarchy's keys
 //!   ([`LodIndex`]: children found by key, subtree point counts summed from the leaves, every
@@ -17,32 +17,20 @@
 //!   minimum (the samples' integer minimum) but not their maximum: it is taken from the coarse
 //!   words on first use (exact for frames of up to 10 bits, otherwise at most `2^(bits - 10)`
 //!   units above the true maximum: conservative, so culling stays correct) and cached.
-//! - [`resolve_keys`] colours the visible samples at draw time: every sample is a real source
-//!   point with its record (leaf points, and the point each voxel stands for), so every colour
-//!   mode works under LOD: the source's RGB (the payload's colour), elevation from the exact
-//!   decoded height, and intensity, classification, return number and GPS time from the
-//!   record's attributes, with scalar modes mapped over a given range or that of all the points
-//!   ([`StoreLod::color_range`], over the leaves: the rule of every renderer, so LOD and
-//!   `--no-lod` colour alike), the same in `mortar render` and the window. `auto` is RGB
-//!   where the source has colours, else intensity. Hole filling and eye-dome lighting work as
-//!   for batch files: they read only the keys.
+//! - [`LodBatches`] gives a selected sample's stored colour, record attributes and exact
+//!   position by its point index: what the colour rules of a renderer read.
 
+use super::format::LEAF;
+use super::reader::{NodeData, Store};
 use crate::error::{Error, RenderError, Result, StoreError};
-use crate::render_input::{
-    attribute_value, percentile_range, scalar_colors, ColorChoice, RenderSettings, Rendered,
-};
-use crate::store::{NodeData, Store, LEAF};
 use mortar_core::grid::Grid;
 use mortar_core::octree::{
     select_nodes, Cube, IndexEntry, LodIndex, LodOptions, LodSelection, LodTree, NodeId, NodeKey,
 };
-use mortar_core::render::framebuffer::{key_index, EMPTY_KEY};
-use mortar_core::render::resolve::{resolve, ColorMode};
-use mortar_core::render::{rasterize, Aabb, BatchRef, Camera, Framebuffer, RasterStats};
+use mortar_core::render::{Aabb, BatchRef, Camera};
 use rayon::prelude::*;
 use std::path::Path;
 use std::sync::OnceLock;
-use std::time::Instant;
 
 /// A store opened for LOD rendering: the store, its tree structure and the cached sample maxima.
 pub struct StoreLod {
@@ -316,240 +304,4 @@ impl LodBatches<'_> {
             r.grid.decode_exact([r.words[0][i], r.words[1][i], r.words[2][i]])
         })
     }
-}
-
-/// What an LOD render colours samples by.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum LodColor {
-    /// The payload's RGBA8 colour: the source's RGB (or, without RGB, the intensity grey baked
-    /// at build time).
-    Stored,
-    /// Height, from the exact decoded position.
-    Elevation,
-    /// An attribute mode (intensity, classification, return number, GPS time) from the samples'
-    /// records.
-    Attribute(ColorMode),
-}
-
-/// Whether the store's payload colours are the source's RGB: its format has RGB and the root's
-/// samples (real points spread over the whole cloud) are not all black.
-fn rgb_in_use(store: &Store) -> bool {
-    let Some(rgb) = store.layout.attribute("rgb") else { return false };
-    if store.entries.is_empty() || store.entries[0].count == 0 {
-        return true;
-    }
-    let d = store.node(0);
-    let al = d.header.attr_len as usize;
-    let off = rgb.offset - 12;
-    (0..d.header.count as usize)
-        .any(|i| d.attributes[i * al + off..i * al + off + 6].iter().any(|&b| b != 0))
-}
-
-impl LodColor {
-    /// The colour source of `choice` for `store`, or an error naming the store for modes its
-    /// point format cannot show. `auto` is RGB where the source has colours, else intensity.
-    pub fn of(store: &Store, choice: ColorChoice) -> Result<LodColor> {
-        match choice {
-            ColorChoice::Auto if rgb_in_use(store) => Ok(LodColor::Stored),
-            ColorChoice::Auto if store.layout.attribute("intensity").is_some() => {
-                Ok(LodColor::Attribute(ColorMode::Intensity))
-            }
-            ColorChoice::Auto | ColorChoice::Stored => Ok(LodColor::Stored),
-            ColorChoice::Mode(ColorMode::Elevation) => Ok(LodColor::Elevation),
-            ColorChoice::Mode(ColorMode::Rgb) if rgb_in_use(store) => Ok(LodColor::Stored),
-            ColorChoice::Mode(ColorMode::Rgb) => Err(Error::Render {
-                path: store.path.clone(),
-                error: RenderError::NoColour {
-                    format: store.layout.format,
-                    has_rgb: store.layout.has_rgb(),
-                },
-            }),
-            ColorChoice::Mode(m) if store.layout.attribute(m.attribute()).is_some() => {
-                Ok(LodColor::Attribute(m))
-            }
-            ColorChoice::Mode(m) => Err(Error::Render {
-                path: store.path.clone(),
-                error: RenderError::MissingAttribute {
-                    mode: m.name(),
-                    attribute: m.attribute(),
-                    format: store.layout.format,
-                    not_kept: false,
-                },
-            }),
-        }
-    }
-
-    /// The name reported for it.
-    pub fn name(self) -> &'static str {
-        match self {
-            LodColor::Stored => "stored",
-            LodColor::Elevation => "elevation",
-            LodColor::Attribute(m) => m.name(),
-        }
-    }
-
-    /// Whether it maps a scalar over a range (elevation, intensity, GPS time).
-    pub fn uses_range(self) -> bool {
-        matches!(
-            self,
-            LodColor::Elevation | LodColor::Attribute(ColorMode::Intensity | ColorMode::GpsTime)
-        )
-    }
-}
-
-/// The value of sample `index` of `batches` in `color`: a colour, or for scalar modes the
-/// value's `f64` bits (`None` outside the selection).
-fn sample_value(
-    store: &Store,
-    grid: &Grid,
-    batches: &LodBatches<'_>,
-    color: LodColor,
-    index: u32,
-) -> Option<u64> {
-    match color {
-        LodColor::Stored => batches.color(index).map(u64::from),
-        LodColor::Elevation => {
-            batches.position(index).map(|p| grid.world(2, p[2] as i64).to_bits())
-        }
-        LodColor::Attribute(m) => {
-            let f = store.layout.attribute(m.attribute()).expect("checked by LodColor::of");
-            let at = f.offset - 12;
-            batches
-                .attributes(index)
-                .map(|a| attribute_value(m, store.layout.family(), &a[at..at + f.width]))
-        }
-    }
-}
-
-impl StoreLod {
-    /// The colours of node `id`'s samples in `color`, scalar modes over `range` (or the 1st to
-    /// 99th percentile of the node's own values): what a viewer uploads with the node.
-    pub fn node_colors(
-        &self,
-        id: NodeId,
-        color: LodColor,
-        range: Option<[f64; 2]>,
-    ) -> Result<Vec<u32>> {
-        let b = self.batches(&[id])?;
-        let v: Vec<u64> = (0..b.samples as u32)
-            .map(|i| sample_value(&self.store, &self.grid, &b, color, i).unwrap_or(0))
-            .collect();
-        Ok(match color {
-            LodColor::Stored
-            | LodColor::Attribute(ColorMode::Classification | ColorMode::ReturnNumber) => {
-                v.into_iter().map(|c| c as u32).collect()
-            }
-            LodColor::Elevation => scalar_colors(ColorMode::Elevation, &v, range).0,
-            LodColor::Attribute(m) => scalar_colors(m, &v, range).0,
-        })
-    }
-
-    /// The range scalar colour mode `color` maps over when none is given: the 1st to 99th
-    /// percentile of the values of every point of the store (the samples of the nodes without
-    /// children: the leaves, which hold every point, and in a commit of a build under way the
-    /// frontier whose levels below are not written yet), the one colour-range rule of every
-    /// renderer, so that LOD, `--no-lod` and the raw file colour alike. Reads every leaf once.
-    /// `None` for the other modes.
-    pub fn color_range(&self, color: LodColor) -> Option<[f64; 2]> {
-        if !color.uses_range() || self.store.entries.is_empty() {
-            return None;
-        }
-        let leaves: Vec<NodeId> = (0..self.index.node_count() as u32)
-            .map(NodeId)
-            .filter(|&id| self.index.children(id).is_none())
-            .collect();
-        let mut v = Vec::with_capacity(self.index.point_count() as usize);
-        for group in leaves.chunks(4096) {
-            let b = self.batches(group).ok()?;
-            v.par_extend(
-                (0..b.samples as u32)
-                    .into_par_iter()
-                    .filter_map(|i| sample_value(&self.store, &self.grid, &b, color, i)),
-            );
-        }
-        Some(percentile_range(&v))
-    }
-}
-
-/// Rasterizes `batches` (from [`StoreLod::batches`]) with the CPU rasterizer for `camera` and
-/// resolves the image ([`resolve_keys`]).
-pub fn render(
-    lod: &StoreLod,
-    batches: &LodBatches<'_>,
-    camera: &Camera,
-    settings: &RenderSettings,
-) -> Result<Rendered> {
-    LodColor::of(&lod.store, settings.color)?;
-    let fb = Framebuffer::new(camera.width, camera.height);
-    let t0 = Instant::now();
-    let stats =
-        rasterize(&fb, &batches.refs, &lod.grid, camera, &settings.raster).map_err(|error| {
-            Error::Render { path: lod.store.path.clone(), error: RenderError::Raster { error } }
-        })?;
-    let raster_seconds = t0.elapsed().as_secs_f64();
-    resolve_keys(lod, batches, fb.into_keys(), stats, raster_seconds, camera, settings)
-}
-
-/// Resolves a visibility buffer of `batches`' samples (drawn by either rasterizer with `stats`
-/// in `raster_seconds`) into the image: stored colours or elevation (over `settings.range`, or
-/// the range of all points, [`StoreLod::color_range`], that the store's window uses too), then hole
-/// filling and eye-dome lighting as asked.
-pub fn resolve_keys(
-    lod: &StoreLod,
-    batches: &LodBatches<'_>,
-    keys: Vec<u64>,
-    stats: RasterStats,
-    raster_seconds: f64,
-    camera: &Camera,
-    settings: &RenderSettings,
-) -> Result<Rendered> {
-    let color = LodColor::of(&lod.store, settings.color)?;
-    let t1 = Instant::now();
-    if keys.par_iter().any(|&k| k != EMPTY_KEY && key_index(k) as u64 >= batches.samples) {
-        return Err(Error::Render {
-            path: lod.store.path.clone(),
-            error: RenderError::StrayIndex { beyond: "the selected samples" },
-        });
-    }
-    let bg = settings.resolve.background;
-    // The visible samples, their values, then their colours.
-    let mut idx: Vec<u32> =
-        keys.par_iter().filter(|&&k| k != EMPTY_KEY).map(|&k| key_index(k)).collect();
-    idx.par_sort_unstable();
-    idx.dedup();
-    let values: Vec<u64> = idx
-        .par_iter()
-        .map(|&i| sample_value(&lod.store, &lod.grid, batches, color, i).unwrap_or(0))
-        .collect();
-    // Scalar modes over the range of all the store's points, as its window and `--no-lod` map them.
-    let range = settings.range.or_else(|| lod.color_range(color));
-    let (colors, color_range) = match color {
-        LodColor::Stored
-        | LodColor::Attribute(ColorMode::Classification | ColorMode::ReturnNumber) => {
-            (values.iter().map(|&c| c as u32).collect::<Vec<u32>>(), None)
-        }
-        LodColor::Elevation => {
-            let (c, r) = scalar_colors(ColorMode::Elevation, &values, range);
-            (c, Some(r))
-        }
-        LodColor::Attribute(m) => {
-            let (c, r) = scalar_colors(m, &values, range);
-            (c, Some(r))
-        }
-    };
-    let color_of = |i: u32| idx.binary_search(&i).map_or(bg, |k| colors[k]);
-    let rgba = resolve(&keys, camera.width, camera.height, color_of, &settings.resolve);
-    let resolve_seconds = t1.elapsed().as_secs_f64();
-    let covered = keys.iter().filter(|&&k| k != EMPTY_KEY).count() as u64;
-    Ok(Rendered {
-        width: camera.width,
-        height: camera.height,
-        keys,
-        rgba,
-        stats,
-        covered,
-        raster_seconds,
-        resolve_seconds,
-        color_range,
-    })
 }

@@ -1,4 +1,4 @@
-//! Raw LAS/LAZ for the progressive renderer of paper 000 ([`mortar_core::render::progressive`]):
+//! Raw LAS/LAZ points for the progressive renderers of paper 000 ([`mortar_core::render::progressive`]):
 //! parallel loading that hands over points as they are decoded
 //! (§3.2: "files are loaded and transformed to GPU-ready buffers in parallel, and the task of the
 //! main thread is simplified to sending batches that are ready"), and the colours of the visible
@@ -6,13 +6,11 @@
 //!
 //! Each point carries one 64-bit payload: the raw value the colour mode needs, kept in its
 //! original form as the paper keeps attributes (§3.1, §3.5), and turned into a colour only for the
-//! points that won a pixel, with the same rules as [`crate::render_input::colors_for_keys`] (so a
+//! points that won a pixel, with the same rules as [`super::batch::colors_for_keys`] (so a
 //! converged progressive image is coloured like `mortar render`'s): RGB with the dataset's 8/16-bit
 //! decision, scalar modes over the 1st to 99th percentile of the visible points.
 
-use crate::dataset::Dataset;
-use crate::error::{Error, RenderError, Result};
-use crate::render_input::{quantile, ColorChoice};
+use super::color::{quantile, ColorChoice};
 use mortar_core::color::RgbDepth;
 use mortar_core::grid::Grid;
 use mortar_core::layout::{read_xyz, Family, RecordLayout};
@@ -20,6 +18,8 @@ use mortar_core::render::resolve::{
     classification_color, elevation_color, gps_time_color, intensity_color, return_number_color,
     rgb_color, ColorMode,
 };
+use mortar_io::dataset::Dataset;
+use mortar_io::error::{Error, RenderError, Result};
 use rayon::prelude::*;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
@@ -231,7 +231,7 @@ pub fn resolve_choice(choice: ColorChoice, payload: Payload, stats: &ColorStats)
 
 /// The range scalar colour modes map over when none is given, for points with payloads
 /// `payloads` (all the points: the rule of every renderer, view-independent, as
-/// [`crate::render_input::color_range`] takes it for a batch file): the 1st to 99th percentile
+/// [`super::batch::color_range`] takes it for a batch file): the 1st to 99th percentile
 /// of their values; `None` for modes without a range.
 pub fn payload_range(
     payloads: &[u64],
