@@ -1,7 +1,7 @@
-//! `mortar-bench-progressive`: see [`mortar_app::bench::progressive`] for what it measures.
+//! `mortar-bench-progressive`: see [`mortar_app::bench::progressive_bench`] for what it measures.
 
 use clap::Parser;
 
 fn main() -> anyhow::Result<()> {
-    mortar_app::bench::progressive::run(mortar_app::bench::progressive::Args::parse())
+    mortar_app::bench::progressive_bench::run(mortar_app::bench::progressive_bench::Args::parse())
 }

@@ -3,5 +3,5 @@
 
 pub mod gpu;
 pub mod lod;
-pub mod progressive;
+pub mod progressive_bench;
 pub mod render;

@@ -7,7 +7,7 @@
 mod args;
 pub mod lod;
 mod output;
-pub mod progressive;
+pub mod progressive_render;
 
 pub use args::*;
 pub use output::*;
@@ -31,7 +31,7 @@ pub fn run(a: Args) -> Result<()> {
         bail!("--fov {}: must be between 0 and 180 degrees", a.view.camera.fov);
     }
     if a.progressive.progressive.is_some() {
-        return crate::render::progressive::run(&a);
+        return crate::render::progressive_render::run(&a);
     }
     if let Some(store) = crate::render::lod::store_input(&a)? {
         return crate::render::lod::run(&a, &store);

@@ -6,7 +6,7 @@
 //!   rasterizer; on the GPU the batches stream in a time slice per frame.
 //! - [`StoreView`](super::store::StoreView): an octree store, maybe growing, drawn with the LOD
 //!   selection of each frame; nodes go to the GPU as first selected.
-//! - [`ProgressiveView`](super::progressive::ProgressiveView): raw LAS/LAZ by the progressive
+//! - [`ProgressiveView`](super::progressive_view::ProgressiveView): raw LAS/LAZ by the progressive
 //!   renderer of paper 000, loading while it draws.
 
 use crate::draw;

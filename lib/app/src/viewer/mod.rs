@@ -1,7 +1,7 @@
 //! `mortar view`: a window on one of three kinds of content ([`Content`]): a batch file (every
 //! point; other non-LAS inputs are batched on the fly as `mortar render` does), an octree store
 //! ([`store::StoreView`]: LOD selection per frame, nodes uploaded on first selection) or raw
-//! LAS/LAZ ([`progressive::ProgressiveView`]: the progressive renderer of paper 000, the window
+//! LAS/LAZ ([`progressive_view::ProgressiveView`]: the progressive renderer of paper 000, the window
 //! open at once and points appearing as they are decoded); and the window of `mortar build
 //! --preview`, which reads the growing store's commits. Each frame is drawn by the GPU
 //! rasterizer (paper 003 §3.2-3.3: clear, draw, resolve in compute shaders) and put on the
@@ -19,7 +19,7 @@ mod build_state;
 pub mod content;
 mod overlay;
 mod preview;
-pub mod progressive;
+pub mod progressive_view;
 pub mod store;
 mod window;
 
@@ -29,7 +29,7 @@ pub use preview::{run_preview, run_preview_offscreen};
 pub use window::Wake;
 
 use crate::draw;
-use crate::viewer::progressive::ProgressiveView;
+use crate::viewer::progressive_view::ProgressiveView;
 use crate::viewer::store::StoreView;
 use anyhow::{bail, Result};
 use args::check_window;

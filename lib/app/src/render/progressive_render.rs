@@ -10,7 +10,7 @@
 //! when the image converged.
 //!
 //! The interactive window (`mortar view` on raw LAS/LAZ) draws progressively too:
-//! [`crate::viewer::progressive`].
+//! [`crate::viewer::progressive_view`].
 
 use super::args::{Args, Backend, ProgressiveArgs};
 use super::output::{build_camera, camera_json, encode_png, gpu_context, write_atomic};
