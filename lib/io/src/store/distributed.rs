@@ -50,6 +50,8 @@ mod job;
 mod merge;
 mod part;
 mod plan;
+#[cfg(test)]
+mod testing;
 
 pub use job::{build_job, JobReport};
 pub use merge::{merge, MergeReport};

@@ -233,3 +233,34 @@ fn remove_stale_attempts(out: &Path) {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::store::distributed::testing::scratch;
+
+    #[test]
+    fn a_rerun_job_removes_only_the_attempts_of_dead_processes_at_its_part() {
+        let dir = scratch("stale");
+        let out = dir.join("part-3");
+        // Above the kernel's largest pid (PID_MAX_LIMIT, 2^22): no such process ever runs.
+        let dead = 4_194_305u32;
+        let names = [
+            format!(".part-3.mortar-tmp-{dead}"),
+            format!(".part-3.mortar-tmp-{}", std::process::id()),
+            ".part-3.mortar-tmp-1".to_string(),
+            ".part-3.mortar-tmp-x".to_string(),
+            format!(".part-30.mortar-tmp-{dead}"),
+            format!("part-3.mortar-tmp-{dead}"),
+        ];
+        for n in &names {
+            std::fs::create_dir_all(dir.join(n).join("inner")).unwrap();
+        }
+        remove_stale_attempts(&out);
+        let left: Vec<bool> = names.iter().map(|n| dir.join(n).exists()).collect();
+        assert_eq!(left, [false, true, true, true, true, true], "{names:?}");
+        // No directory beside it at all: nothing to do, no error.
+        remove_stale_attempts(&dir.join("missing").join("part"));
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}

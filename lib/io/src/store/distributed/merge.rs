@@ -443,3 +443,137 @@ fn records_of(b: &[u8], rl: usize) -> std::result::Result<Vec<u8>, PayloadError>
     }
     Ok(out)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::store::distributed::testing::{
+        part_file, plan_of, scratch, two_entries, write_part,
+    };
+
+    /// The part error of merging `dirs` into `out`, with the directory it names.
+    fn refusal(dirs: &[PathBuf], out: &Path) -> (PathBuf, PartError) {
+        match merge(dirs, out) {
+            Err(Error::Part { path, error }) => (path, error),
+            Err(e) => panic!("another error: {e}"),
+            Ok(_) => panic!("merged"),
+        }
+    }
+
+    #[test]
+    fn parts_that_are_not_every_job_of_one_plan_once_are_refused_before_anything_is_written() {
+        let dir = scratch("merge");
+        let out = dir.join("store");
+        let (plan, entries) = (plan_of(3, "p"), two_entries());
+        let part = |name: &str, plan: &Plan, job: usize, source: &[u8]| {
+            let d = dir.join(name);
+            write_part(&d, &part_file(plan, job, 2, 100), &entries, source);
+            d
+        };
+        let (a, b, c) =
+            (part("a", &plan, 0, b"S"), part("b", &plan, 1, b"S"), part("c", &plan, 2, b"S"));
+        assert!(matches!(merge(&[], &out), Err(Error::Job { error: JobError::NoParts })));
+        // A part of another plan (another id, or the same id on another plan).
+        let other = part("other", &plan_of(3, "q"), 1, b"S");
+        let (path, e) = refusal(&[a.clone(), other.clone()], &out);
+        assert_eq!(path, other);
+        assert!(matches!(e, PartError::OtherPlan { ref id, ref first, ref first_id }
+            if id == "q" && *first == a && first_id == "p"));
+        let mut edited = plan_of(3, "p");
+        edited.leaf_capacity += 1;
+        let forged = part("forged", &edited, 1, b"S");
+        assert!(matches!(refusal(&[a.clone(), forged], &out).1, PartError::OtherPlan { .. }));
+        // A job twice, a job the plan does not have, a job missing.
+        let again = part("again", &plan, 0, b"S");
+        let (path, e) = refusal(&[a.clone(), b.clone(), again.clone()], &out);
+        assert_eq!(path, again);
+        assert!(matches!(e, PartError::Repeated { job: 0, ref first } if *first == a));
+        let beyond = part("beyond", &plan, 3, b"S");
+        assert!(matches!(
+            refusal(&[a.clone(), beyond], &out).1,
+            PartError::NoSuchJob { job: 3, jobs: 3 }
+        ));
+        assert!(matches!(
+            merge(std::slice::from_ref(&b), &out),
+            Err(Error::Job { error: JobError::MissingParts { jobs: 3, first: 0, ref missing } })
+                if *missing == [0, 2]
+        ));
+        // Every job once, but from other inputs.
+        let d = part("d", &plan, 2, b"T");
+        let (path, e) = refusal(&[a.clone(), b.clone(), d.clone()], &out);
+        assert_eq!(path, d);
+        assert!(matches!(e, PartError::OtherInputs { ref first } if *first == a));
+        // Every job once, of one plan and one input, in any order: the output must be new.
+        let all = [c.clone(), a.clone(), b.clone()];
+        std::fs::create_dir_all(out.join("x")).unwrap();
+        assert!(matches!(
+            merge(&all, &out),
+            Err(Error::Store { ref path, error: crate::error::StoreError::NotEmpty })
+                if *path == out
+        ));
+        std::fs::remove_dir_all(&out).unwrap();
+        let nowhere = dir.join("no").join("store");
+        assert!(matches!(merge(&all, &nowhere), Err(Error::NoParentDirectory { .. })));
+        // Nothing written by any refusal.
+        assert!(!out.exists() && !dir.join("no").exists());
+        let left: Vec<_> = std::fs::read_dir(&dir)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().to_string())
+            .filter(|n| n.contains("mortar-tmp"))
+            .collect();
+        assert!(left.is_empty(), "{left:?}");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    /// Three records of 20 bytes (position, intensity, 6 more bytes) and their leaf payload.
+    fn a_leaf() -> (Vec<u8>, Vec<u8>) {
+        let rl = 20;
+        let mut records = vec![0u8; 3 * rl];
+        for (i, r) in records.chunks_exact_mut(rl).enumerate() {
+            let p = [100 + i as i32, -7 * i as i32, 3];
+            for a in 0..3 {
+                r[4 * a..4 * a + 4].copy_from_slice(&p[a].to_le_bytes());
+            }
+            r[12..14].copy_from_slice(&(1000 * i as u16 + 10).to_le_bytes());
+            r[14..].copy_from_slice(&[i as u8 + 1; 6]);
+        }
+        let key = NodeKey { level: 3, index: [1, 2, 3] };
+        let (_, b) = encode_payload(
+            key,
+            LEAF,
+            3,
+            rl - 12,
+            |i| read_xyz(&records[i * rl..]),
+            |_| 0x1234_5678,
+            |i| &records[i * rl + 12..(i + 1) * rl],
+        )
+        .unwrap();
+        (records, b)
+    }
+
+    #[test]
+    fn a_payload_gives_back_its_records_and_is_recoloured_in_place() {
+        let (records, b) = a_leaf();
+        assert_eq!(records_of(&b, 20).unwrap(), records);
+        assert!(matches!(records_of(&b, 21), Err(PayloadError::RecordLength)));
+        assert!(matches!(records_of(&b[..40], 20), Err(PayloadError::Short)));
+        // Recoloured: every colour from its record, nothing else changed.
+        let color = ColorSource::Intensity { max_intensity: 2010 };
+        let mut c = b.clone();
+        recolour(&mut c, &color, 20).unwrap();
+        let d = DecodedLeaf::parse(&c).unwrap();
+        for (i, r) in records.chunks_exact(20).enumerate() {
+            assert_eq!(d.color(i), color.rgba(r), "point {i}");
+            assert_ne!(d.color(i), 0x1234_5678);
+        }
+        let colours = 64 + 12 * 3..64 + 16 * 3;
+        assert_eq!(
+            (&c[..colours.start], &c[colours.end..]),
+            (&b[..colours.start], &b[colours.end..])
+        );
+        assert_eq!(records_of(&c, 20).unwrap(), records);
+        let mut short = b.clone();
+        assert!(matches!(recolour(&mut short, &color, 26), Err(PayloadError::RecordLength)));
+        assert_eq!(short, b, "a refused payload is left as it was");
+    }
+}

@@ -89,3 +89,81 @@ pub(super) fn read_part(dir: &Path) -> Result<Part> {
     }
     Ok(Part { dir: dir.to_path_buf(), file, entries })
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::store::distributed::testing::{
+        part_file, plan_of, scratch, two_entries, write_part,
+    };
+
+    #[test]
+    fn a_part_takes_rgb_at_its_depth_or_else_intensity() {
+        let rgb = |depth| ColorSource::Rgb { offset: 28, depth };
+        assert_eq!(color_of(Some(28), 255, 9), rgb(RgbDepth::Eight));
+        assert_eq!(color_of(Some(28), 4000, 9), rgb(RgbDepth::Sixteen));
+        // No colour in the points read, or no RGB field: grey from intensity.
+        assert_eq!(color_of(Some(28), 0, 9), ColorSource::Intensity { max_intensity: 9 });
+        assert_eq!(color_of(None, 4000, 700), ColorSource::Intensity { max_intensity: 700 });
+    }
+
+    #[test]
+    fn a_part_is_read_back_and_one_whose_files_disagree_is_refused() {
+        let dir = scratch("part");
+        let plan = plan_of(2, "p");
+        let entries = two_entries();
+        let part = dir.join("a");
+        write_part(&part, &part_file(&plan, 1, 2, 100), &entries, b"LASF");
+        let p = read_part(&part).unwrap();
+        assert_eq!((&p.dir, p.file.job, &p.file.plan, &p.entries), (&part, 1, &plan, &entries));
+        let damaged = |what: &str| -> PartError {
+            match read_part(&part) {
+                Err(Error::Part { error, .. }) => error,
+                Err(e) => panic!("{what}: another error: {e}"),
+                Ok(_) => panic!("{what}: read"),
+            }
+        };
+        let is_damaged = |e: PartError, says: &str| match e {
+            PartError::Damaged { what } => what.contains(says),
+            _ => false,
+        };
+        // entries.bin of another size than part.json says.
+        write_part(&part, &part_file(&plan, 1, 3, 100), &entries, b"LASF");
+        assert!(is_damaged(damaged("3 entries"), "another size"));
+        let mut eb = bytemuck::cast_slice::<NodeEntry, u8>(&entries).to_vec();
+        eb.push(0);
+        write_part(&part, &part_file(&plan, 1, 2, 100), &entries, b"LASF");
+        std::fs::write(part.join(ENTRIES_FILE), &eb).unwrap();
+        assert!(is_damaged(damaged("a byte more"), "another size"));
+        // nodes.bin of another length, or an entry past its end (or past u64).
+        write_part(&part, &part_file(&plan, 1, 2, 99), &entries, b"LASF");
+        assert!(is_damaged(damaged("an entry past the end"), "nodes.bin"));
+        write_part(&part, &part_file(&plan, 1, 2, 100), &entries, b"LASF");
+        std::fs::write(part.join(NODES_FILE), [0u8; 101]).unwrap();
+        assert!(is_damaged(damaged("nodes.bin longer"), "nodes.bin"));
+        let mut far = entries.clone();
+        far[1].offset = u64::MAX - 10;
+        write_part(&part, &part_file(&plan, 1, 2, 100), &far, b"LASF");
+        assert!(is_damaged(damaged("an offset near u64::MAX"), "nodes.bin"));
+        std::fs::remove_file(part.join(NODES_FILE)).unwrap();
+        assert!(is_damaged(damaged("no nodes.bin"), "nodes.bin"));
+        // entries.bin missing: the file named.
+        write_part(&part, &part_file(&plan, 1, 2, 100), &entries, b"LASF");
+        std::fs::remove_file(part.join(ENTRIES_FILE)).unwrap();
+        assert!(matches!(read_part(&part), Err(Error::Io { ref path, .. })
+                if path.ends_with(ENTRIES_FILE)));
+        // part.json that does not parse, or none.
+        std::fs::write(part.join(PART_FILE), b"{\"format\": 1}").unwrap();
+        assert!(matches!(
+            read_part(&part),
+            Err(Error::Part { ref path, error: PartError::BadDescription { .. } })
+                if path.ends_with(PART_FILE)
+        ));
+        std::fs::remove_file(part.join(PART_FILE)).unwrap();
+        assert!(matches!(
+            read_part(&part),
+            Err(Error::Part { ref path, error: PartError::NotPart }) if *path == part
+        ));
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}
