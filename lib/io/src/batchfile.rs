@@ -824,3 +824,417 @@ impl RecordSource for BatchFile {
         self.meta.compression != Compression::None
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::synth::{self, SynthOptions};
+
+    /// Points of the test files: one full batch and a partial one.
+    const N: usize = BATCH_SIZE + 1_500;
+
+    /// A fresh directory under the system's temporary directory.
+    fn scratch(tag: &str) -> PathBuf {
+        let d = std::env::temp_dir().join(format!("mortar-batchfile-{tag}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&d);
+        std::fs::create_dir_all(&d).unwrap();
+        d
+    }
+
+    fn vlr(record_id: u16, data: &[u8]) -> Vlr {
+        let mut user_id = [0u8; 16];
+        user_id[..6].copy_from_slice(b"mortar");
+        Vlr { reserved: 0, user_id, record_id, description: [7; 32], data: data.to_vec() }
+    }
+
+    /// What a test file was written from: the source and its records in Morton order.
+    struct Written {
+        path: PathBuf,
+        t: SourceMeta,
+        records: Vec<u8>,
+        summary: Summary,
+    }
+
+    /// Writes `N` synthetic points (point format 3) as a batch file keeping `keep`.
+    fn write(dir: &Path, compression: Compression, keep: &AttributeSelection) -> Written {
+        let o =
+            SynthOptions { points: N as u64, seed: 3, extent: 200.0, ..SynthOptions::default() };
+        let layout = o.layout();
+        let header = synth::header(&o);
+        let grid = Grid { scale: header.scale, offset: header.offset };
+        let t = SourceMeta {
+            header,
+            vlrs: vec![vlr(1, b"a vlr")],
+            evlrs: vec![vlr(2, b"an evlr"), vlr(3, &[])],
+            layout,
+            grid,
+        };
+        let (records, stats) = synth::records(&o, 0, N as u64);
+        let summary = stats.summary();
+        // Morton order, as the sort hands them over.
+        let rl = t.layout.record_len;
+        let mut order: Vec<usize> = (0..N).collect();
+        let code = |i: usize| {
+            let p = read_xyz(&records[i * rl..]);
+            summary.morton.code(p.map(|v| v as i64))
+        };
+        order.sort_by_key(|&i| (code(i), i));
+        let records: Vec<u8> =
+            order.iter().flat_map(|&i| records[i * rl..(i + 1) * rl].to_vec()).collect();
+        let path = dir.join(format!("{compression:?}.mbat"));
+        let attrs = keep.resolve(&t.layout).unwrap();
+        let mut sink = BatchSink::new(&path, t.clone(), attrs, compression);
+        sink.begin(&summary).unwrap();
+        // In two writes that do not end on a batch: the carry joins them.
+        let cut = 3_000 * rl;
+        sink.write(&records[..cut]).unwrap();
+        sink.write(&records[cut..]).unwrap();
+        assert_eq!(sink.finish().unwrap(), N as u64);
+        Written { path, t, records, summary }
+    }
+
+    /// The error `BatchFile::from_bytes` gives for `bytes`.
+    fn refusal(bytes: Vec<u8>) -> BatchError {
+        let path = Path::new("damaged.mbat");
+        match BatchFile::from_bytes(path, Bytes::Owned(bytes)) {
+            Err(Error::Batch { path: p, error }) => {
+                assert_eq!(p, path);
+                error
+            }
+            Err(e) => panic!("another error: {e}"),
+            Ok(_) => panic!("a damaged file was opened"),
+        }
+    }
+
+    fn header_of(b: &[u8]) -> FileHeader {
+        bytemuck::pod_read_unaligned(&b[..std::mem::size_of::<FileHeader>()])
+    }
+
+    /// `b` with its header changed by `f`.
+    fn with_header(b: &[u8], f: impl Fn(&mut FileHeader)) -> Vec<u8> {
+        let mut h = header_of(b);
+        f(&mut h);
+        let mut out = b.to_vec();
+        out[..std::mem::size_of::<FileHeader>()].copy_from_slice(bytemuck::bytes_of(&h));
+        out
+    }
+
+    /// `b` with batch entry `i` changed by `f`.
+    fn with_entry(b: &[u8], i: usize, f: impl Fn(&mut BatchEntry)) -> Vec<u8> {
+        let at = header_of(b).table_offset as usize + 96 * i;
+        let mut e: BatchEntry = bytemuck::pod_read_unaligned(&b[at..at + 96]);
+        f(&mut e);
+        let mut out = b.to_vec();
+        out[at..at + 96].copy_from_slice(bytemuck::bytes_of(&e));
+        out
+    }
+
+    /// `b` with the section entry of batch `i`, section `s` changed by `f`.
+    fn with_section(b: &[u8], i: usize, s: usize, f: impl Fn(&mut SectionEntry)) -> Vec<u8> {
+        let h = header_of(b);
+        let sc = h.section_count as usize;
+        let at = (h.table_offset + 96 * h.batch_count) as usize + 16 * (i * sc + s);
+        let mut e: SectionEntry = bytemuck::pod_read_unaligned(&b[at..at + 16]);
+        f(&mut e);
+        let mut out = b.to_vec();
+        out[at..at + 16].copy_from_slice(bytemuck::bytes_of(&e));
+        out
+    }
+
+    /// `b` with its metadata changed by `f` (the new JSON appended, the header pointed at it).
+    fn with_meta(b: &[u8], f: impl Fn(&mut Meta)) -> Vec<u8> {
+        let h = header_of(b);
+        let mut m: Meta = serde_json::from_slice(
+            &b[h.meta_offset as usize..(h.meta_offset + h.meta_len) as usize],
+        )
+        .unwrap();
+        f(&mut m);
+        let json = serde_json::to_vec(&m).unwrap();
+        let mut out = b.to_vec();
+        let at = out.len() as u64;
+        out.extend_from_slice(&json);
+        with_header(&out, |h| (h.meta_offset, h.meta_len) = (at, json.len() as u64))
+    }
+
+    #[test]
+    fn a_batch_file_is_read_back_as_written() {
+        let dir = scratch("roundtrip");
+        let keep = AttributeSelection::parse("gps_time,intensity,classification");
+        for compression in [Compression::None, Compression::Zstd] {
+            let w = write(&dir, compression, &keep);
+            let rl = w.t.layout.record_len;
+            let f = BatchFile::open(&w.path).unwrap();
+            // The header.
+            assert_eq!((f.header.magic, f.header.version), (MAGIC, VERSION));
+            let zstd = compression == Compression::Zstd;
+            assert_eq!(f.header.flags, if zstd { FLAG_ZSTD } else { 0 });
+            assert_eq!(f.header.point_count, N as u64);
+            assert_eq!(f.batch_count(), 2);
+            assert_eq!(f.header.section_count as usize, FIRST_ATTRIBUTE_SECTION + 3);
+            assert_eq!(f.header.table_offset % 8, 0);
+            assert_eq!(f.is_compressed(), zstd);
+            // The metadata: kept attributes in record order, the others dropped.
+            let m = &f.meta;
+            assert_eq!((m.batch_size, m.compression), (BATCH_SIZE, compression));
+            assert_eq!((m.point_format, m.record_len), (3, 34));
+            assert_eq!((m.scale, m.offset), (w.t.grid.scale, w.t.grid.offset));
+            assert_eq!((m.int_min, m.int_max), (w.summary.min, w.summary.max));
+            assert_eq!(
+                (m.morton_origin, m.morton_shift),
+                (w.summary.morton.origin, w.summary.morton.shift)
+            );
+            assert_eq!(m.points_by_return, w.summary.points_by_return);
+            assert!(m.generator.starts_with("mortar "));
+            // Synthetic colours are 16-bit.
+            assert_eq!(
+                m.color,
+                ColorMeta {
+                    source: "rgb".into(),
+                    rgb_bits: Some(16),
+                    max_intensity: w.summary.max_intensity
+                }
+            );
+            let kept: Vec<(&str, usize, usize)> =
+                m.attributes.iter().map(|a| (a.name.as_str(), a.offset, a.width)).collect();
+            assert_eq!(
+                kept,
+                [("intensity", 12, 2), ("classification", 15, 1), ("gps_time", 20, 8)]
+            );
+            assert_eq!(m.dropped, ["flags", "scan_angle", "user_data", "point_source_id", "rgb"]);
+            // The LAS front matter, whole.
+            assert_eq!(f.las.header.point_count, N as u64);
+            assert_eq!(f.las.header.point_format, 3);
+            assert_eq!(f.las.vlrs, w.t.vlrs);
+            assert_eq!(f.las.evlrs, w.t.evlrs);
+            assert_eq!(f.layout, w.t.layout);
+            // Batches: consecutive, a full one then the rest.
+            let e = f.entries();
+            assert_eq!((e[0].count, e[0].first_point), (BATCH_SIZE as u32, 0));
+            assert_eq!(
+                (e[1].count, e[1].first_point),
+                ((N - BATCH_SIZE) as u32, BATCH_SIZE as u64)
+            );
+            // Every word, colour and attribute as the records say.
+            let color = ColorSource::Rgb { offset: 28, depth: RgbDepth::Sixteen };
+            let mut at = 0;
+            for i in 0..f.batch_count() {
+                let b = f.batch(i).unwrap();
+                let g = b.entry.grid();
+                assert_eq!(b.len(), b.entry.count as usize);
+                for k in 0..b.len() {
+                    let r = &w.records[(at + k) * rl..(at + k + 1) * rl];
+                    let p = g.decode_exact([b.words(0)[k], b.words(1)[k], b.words(2)[k]]);
+                    assert_eq!(p, read_xyz(r), "batch {i} point {k}");
+                    assert!((0..3).all(|a| b.entry.min[a] <= p[a] && p[a] <= b.entry.max[a]));
+                    assert_eq!(b.colors()[k], color.rgba(r));
+                    assert_eq!(&b.attribute(0)[2 * k..2 * k + 2], &r[12..14]);
+                    assert_eq!(b.attribute(1)[k], r[15]);
+                    assert_eq!(&b.attribute(2)[8 * k..8 * k + 8], &r[20..28]);
+                }
+                // Only the sections asked for.
+                let v = f.batch_sections(i, &[SECTION_FINE]).unwrap();
+                assert_eq!(v.words(2), b.words(2));
+                assert!(v.words(0).is_empty() && v.colors().is_empty());
+                at += b.len();
+            }
+            assert_eq!(at, N);
+            // Records rebuilt: positions and kept attributes as written, dropped ones zero.
+            let back = f.records(0..f.batch_count()).unwrap();
+            assert_eq!(back.len(), N * rl);
+            let mut expect = vec![0u8; N * rl];
+            for (o, r) in expect.chunks_exact_mut(rl).zip(w.records.chunks_exact(rl)) {
+                for (a, n) in [(0, 12), (12, 2), (15, 1), (20, 8)] {
+                    o[a..a + n].copy_from_slice(&r[a..a + n]);
+                }
+            }
+            assert!(back == expect, "records rebuilt from {compression:?}");
+            // As a record source: its pieces cover every point, in order.
+            let pieces = f.pieces();
+            assert_eq!(pieces.len(), 1);
+            assert_eq!((pieces[0].first_point, pieces[0].points), (0, N as u64));
+            assert!(f.read_piece(&pieces[0]).unwrap()[..] == back[..]);
+            assert!(is_batch_file(&w.path));
+        }
+        std::fs::write(dir.join("short"), &MAGIC[..7]).unwrap();
+        assert!(!is_batch_file(&dir.join("short")));
+        assert!(!is_batch_file(&dir.join("missing")));
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn attribute_selections_parse_and_resolve_in_record_order() {
+        assert_eq!(AttributeSelection::parse("all"), AttributeSelection::All);
+        assert_eq!(AttributeSelection::parse("none"), AttributeSelection::Only(Vec::new()));
+        assert_eq!(AttributeSelection::parse(""), AttributeSelection::Only(Vec::new()));
+        let sel = AttributeSelection::parse("rgb, intensity,rgb");
+        assert_eq!(
+            sel,
+            AttributeSelection::Only(vec!["rgb".into(), "intensity".into(), "rgb".into()])
+        );
+        let layout = RecordLayout::new(3, 34).unwrap();
+        let names = |s: &AttributeSelection| -> Vec<String> {
+            s.resolve(&layout).unwrap().into_iter().map(|a| a.name).collect()
+        };
+        // Sorted by offset, each once.
+        assert_eq!(names(&sel), ["intensity", "rgb"]);
+        assert_eq!(names(&AttributeSelection::All).len(), layout.attributes.len());
+        assert!(names(&AttributeSelection::parse("none")).is_empty());
+        let e = AttributeSelection::parse("intensity,colour").resolve(&layout).unwrap_err();
+        assert_eq!((e.format, e.name.as_str()), (3, "colour"));
+        assert!(e.have.iter().any(|n| n == "rgb") && e.have.len() == layout.attributes.len());
+    }
+
+    #[test]
+    fn damaged_files_are_refused_with_the_reason_and_no_panic() {
+        let dir = scratch("damaged");
+        let w = write(&dir, Compression::None, &AttributeSelection::All);
+        let good = std::fs::read(&w.path).unwrap();
+        assert!(BatchFile::from_bytes(&w.path, Bytes::Owned(good.clone())).is_ok());
+        let h = header_of(&good);
+        let sc = h.section_count as usize;
+        assert_eq!(sc, FIRST_ATTRIBUTE_SECTION + 8);
+        // Not a batch file: empty, shorter than a header, another magic.
+        assert!(matches!(refusal(Vec::new()), BatchError::NotBatchFile));
+        assert!(matches!(refusal(good[..40].to_vec()), BatchError::NotBatchFile));
+        let mut b = good.clone();
+        b[0] = b'L';
+        assert!(matches!(refusal(b), BatchError::NotBatchFile));
+        assert!(matches!(
+            refusal(with_header(&good, |h| h.version = 2)),
+            BatchError::Version { found: 2, supported: VERSION }
+        ));
+        // Truncated: the metadata (written after the sections) is gone.
+        assert!(matches!(refusal(good[..good.len() / 2].to_vec()), BatchError::MetaOutside));
+        // Offsets and lengths that lie, also past u64.
+        assert!(matches!(
+            refusal(with_header(&good, |h| h.meta_len = u64::MAX)),
+            BatchError::MetaOutside
+        ));
+        assert!(matches!(
+            refusal(with_header(&good, |h| h.meta_offset = good.len() as u64)),
+            BatchError::MetaOutside
+        ));
+        assert!(matches!(
+            refusal(with_header(&good, |h| h.meta_offset += 1)),
+            BatchError::BadMeta { .. }
+        ));
+        assert!(matches!(
+            refusal(with_header(&good, |h| h.section_count += 1)),
+            BatchError::SectionCount
+        ));
+        // Batch counts whose table would not fit (no allocation of that size is tried).
+        for n in [h.batch_count + 1, 1 << 40, u64::MAX / 96 + 1, u64::MAX] {
+            assert!(
+                matches!(
+                    refusal(with_header(&good, |h| h.batch_count = n)),
+                    BatchError::TableOutside
+                ),
+                "batch count {n}"
+            );
+        }
+        assert!(matches!(
+            refusal(with_header(&good, |h| h.table_offset += 4)),
+            BatchError::TableOutside
+        ));
+        assert!(matches!(
+            refusal(with_header(&good, |h| h.point_count += 1)),
+            BatchError::PointCount { total, declared }
+                if total == N as u64 && declared == N as u64 + 1
+        ));
+        // Batch and section entries that lie.
+        assert!(matches!(
+            refusal(with_entry(&good, 0, |e| e.bits[1] = 31)),
+            BatchError::BadEntry { batch: 0 }
+        ));
+        assert!(matches!(
+            refusal(with_entry(&good, 1, |e| e.count = 1 << 25)),
+            BatchError::BadEntry { batch: 1 }
+        ));
+        assert!(matches!(
+            refusal(with_entry(&good, 1, |e| e.first_point += 1)),
+            BatchError::BatchStart { batch: 1, first, preceding }
+                if first == BATCH_SIZE as u64 + 1 && preceding == BATCH_SIZE as u64
+        ));
+        assert!(matches!(
+            refusal(with_section(&good, 1, 2, |s| s.offset = u64::MAX - 2)),
+            BatchError::SectionOutside { batch: 1, section: 2 }
+        ));
+        assert!(matches!(
+            refusal(with_section(&good, 0, 5, |s| s.offset = good.len() as u64 - 1)),
+            BatchError::SectionOutside { batch: 0, section: 5 }
+        ));
+        assert!(matches!(
+            refusal(with_section(&good, 0, SECTION_COLOR, |s| s.stored_len -= 4)),
+            BatchError::SectionLen { batch: 0, section: SECTION_COLOR, len, expected }
+                if expected == 4 * BATCH_SIZE as u64 && len == expected - 4
+        ));
+        assert!(matches!(
+            refusal(with_section(&good, 0, 0, |s| s.offset += 2)),
+            BatchError::SectionLen { batch: 0, section: 0, .. }
+        ));
+        // Metadata that lies about the records (a new one appended, the header pointed at it).
+        assert!(BatchFile::from_bytes(&w.path, Bytes::Owned(with_meta(&good, |_| {}))).is_ok());
+        let meta = |f: fn(&mut Meta)| refusal(with_meta(&good, f));
+        assert!(matches!(
+            meta(|m| {
+                m.attributes.pop();
+            }),
+            BatchError::SectionCount
+        ));
+        assert!(matches!(
+            meta(|m| m.attributes[0].offset = 4),
+            BatchError::AttributeOutside { offset: 4, width: 2, record_len: 34, .. }
+        ));
+        assert!(matches!(
+            meta(|m| m.attributes[7].offset = 30),
+            BatchError::AttributeOutside { ref name, offset: 30, width: 6, record_len: 34 }
+                if name == "rgb"
+        ));
+        assert!(matches!(
+            meta(|m| m.attributes[7].width = usize::MAX),
+            BatchError::AttributeOutside { .. }
+        ));
+        assert!(matches!(
+            meta(|m| m.record_len = 70_000),
+            BatchError::RecordTooLong { record_len: 70_000 }
+        ));
+        assert!(matches!(meta(|m| m.record_len = 20), BatchError::Layout { .. }));
+        assert!(matches!(meta(|m| m.point_format = 42), BatchError::Layout { .. }));
+        assert!(matches!(meta(|m| m.las_header.len = u64::MAX), BatchError::LasHeaderOutside));
+        assert!(matches!(meta(|m| m.evlrs.offset = 1 << 50), BatchError::LasHeaderOutside));
+        assert!(matches!(meta(|m| m.las_header.offset += 1), BatchError::BadLasHeader { .. }));
+        assert!(matches!(meta(|m| m.evlrs.len -= 1), BatchError::BadEvlrs { .. }));
+        // Sections said to be compressed that are not: opened, refused when read.
+        let b = with_meta(&good, |m| m.compression = Compression::Zstd);
+        let f = BatchFile::from_bytes(&w.path, Bytes::Owned(b)).unwrap();
+        assert!(matches!(
+            f.batch(0),
+            Err(Error::Batch {
+                error: BatchError::SectionCorrupt { batch: 0, section: 0, .. },
+                ..
+            })
+        ));
+        // A compressed section that holds another section's bytes: refused by its size.
+        let z = write(&dir, Compression::Zstd, &AttributeSelection::All);
+        let zb = std::fs::read(&z.path).unwrap();
+        let f = BatchFile::from_bytes(&z.path, Bytes::Owned(zb.clone())).unwrap();
+        assert!(f.batch(1).is_ok());
+        // Section 6 is the classification: one byte a point, where the words have four.
+        let zh = header_of(&zb);
+        let at =
+            (zh.table_offset + 96 * zh.batch_count) as usize + 16 * (zh.section_count as usize + 6);
+        let class: SectionEntry = bytemuck::pod_read_unaligned(&zb[at..at + 16]);
+        let swapped = with_section(&zb, 1, SECTION_MEDIUM, |s| *s = class);
+        let f = BatchFile::from_bytes(&z.path, Bytes::Owned(swapped)).unwrap();
+        let n = N - BATCH_SIZE;
+        assert!(matches!(
+            f.batch(1),
+            Err(Error::Batch {
+                error: BatchError::SectionSize { batch: 1, section: SECTION_MEDIUM, len, expected },
+                ..
+            }) if len == n && expected == 4 * n
+        ));
+        assert!(f.batch_sections(1, &[SECTION_COARSE]).is_ok(), "other sections still read");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}

@@ -1,0 +1,579 @@
+//! The merge of a distributed build (`mortar merge`): the parts checked to be every job of one
+//! plan once, their payloads copied (recoloured where a part's colour scale is not the whole
+//! input's), the nodes above the cut made from the subtrees' candidates, and the entries
+//! committed in the one-machine order.
+
+use super::cut::morton;
+use super::part::{color_of, read_part, Part, CANDIDATES_FILE};
+use super::plan::Plan;
+use crate::cleanup::TempPath;
+use crate::error::{Error, JobError, PartError, Result};
+use crate::store::format::*;
+use crate::store::runs::Cands;
+use crate::store::writer::StoreWriter;
+use mortar_core::color::ColorSource;
+use mortar_core::layout::read_xyz;
+use mortar_core::octree::{splits, Cube, NodeKey};
+use rayon::prelude::*;
+use serde::Serialize;
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// What a merge reports.
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct MergeReport {
+    pub parts: usize,
+    pub points: u64,
+    pub nodes: u64,
+    /// Nodes above the cut, made by the merge.
+    pub top_nodes: u64,
+    /// Parts whose payloads were recoloured.
+    pub recoloured_parts: usize,
+    pub seconds: f64,
+}
+
+/// Merges the parts `dirs` (every job of one plan, once each) into the store `out`.
+pub fn merge(dirs: &[PathBuf], out: &Path) -> Result<MergeReport> {
+    let t0 = Instant::now();
+    if dirs.is_empty() {
+        return Err(Error::Job { error: JobError::NoParts });
+    }
+    let parts: Vec<Part> = dirs.iter().map(|d| read_part(d)).collect::<Result<_>>()?;
+    let plan = &parts[0].file.plan;
+    let mut by_job: Vec<Option<usize>> = vec![None; plan.jobs.len()];
+    for (i, p) in parts.iter().enumerate() {
+        if p.file.plan.id != plan.id || p.file.plan != *plan {
+            return Err(Error::Part {
+                path: p.dir.clone(),
+                error: PartError::OtherPlan {
+                    id: p.file.plan.id.clone(),
+                    first: parts[0].dir.clone(),
+                    first_id: plan.id.clone(),
+                },
+            });
+        }
+        match by_job.get_mut(p.file.job) {
+            Some(Some(o)) => {
+                return Err(Error::Part {
+                    path: p.dir.clone(),
+                    error: PartError::Repeated { job: p.file.job, first: parts[*o].dir.clone() },
+                })
+            }
+            Some(slot) => *slot = Some(i),
+            None => {
+                return Err(Error::Part {
+                    path: p.dir.clone(),
+                    error: PartError::NoSuchJob { job: p.file.job, jobs: plan.jobs.len() },
+                })
+            }
+        }
+    }
+    if let Some(j) = by_job.iter().position(|s| s.is_none()) {
+        let missing: Vec<usize> =
+            by_job.iter().enumerate().filter(|(_, s)| s.is_none()).map(|(j, _)| j).collect();
+        return Err(Error::Job {
+            error: JobError::MissingParts { jobs: plan.jobs.len(), first: j, missing },
+        });
+    }
+    let source =
+        std::fs::read(parts[0].dir.join(SOURCE_FILE)).map_err(|e| Error::io(&parts[0].dir, e))?;
+    for p in &parts[1..] {
+        if std::fs::read(p.dir.join(SOURCE_FILE)).ok().as_deref() != Some(&source[..]) {
+            return Err(Error::Part {
+                path: p.dir.clone(),
+                error: PartError::OtherInputs { first: parts[0].dir.clone() },
+            });
+        }
+    }
+    if out.exists()
+        && !(out.is_dir()
+            && std::fs::read_dir(out).map_err(|e| Error::io(out, e))?.next().is_none())
+    {
+        return Err(Error::Store {
+            path: out.to_path_buf(),
+            error: crate::error::StoreError::NotEmpty,
+        });
+    }
+    let parent = out.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    if !parent.is_dir() {
+        return Err(Error::NoParentDirectory {
+            path: out.to_path_buf(),
+            parent: parent.to_path_buf(),
+        });
+    }
+    // The whole input's statistics and colours.
+    let f0 = &parts[0].file;
+    let rl = f0.record_len;
+    let (mut lo, mut hi, mut max_rgb, mut max_int, mut points) =
+        ([i32::MAX; 3], [i32::MIN; 3], 0u16, 0u16, 0u64);
+    for p in &parts {
+        let f = &p.file;
+        if f.points > 0 || f.min[0] <= f.max[0] {
+            for a in 0..3 {
+                lo[a] = lo[a].min(f.min[a]);
+                hi[a] = hi[a].max(f.max[a]);
+            }
+        }
+        max_rgb = max_rgb.max(f.max_rgb);
+        max_int = max_int.max(f.max_intensity);
+        points += f.points;
+    }
+    if lo[0] > hi[0] {
+        (lo, hi) = ([0; 3], [0; 3]);
+    }
+    let color = color_of(f0.rgb_offset, max_rgb, max_int);
+    // The store, in a temporary directory.
+    let tmp = TempPath::beside(out);
+    let dir = tmp.path().to_path_buf();
+    std::fs::create_dir_all(&dir).map_err(|e| Error::io(&dir, e))?;
+    std::fs::write(dir.join(SOURCE_FILE), &source).map_err(|e| Error::io(&dir, e))?;
+    std::fs::copy(
+        parts[0].dir.join(crate::store::record::RECORD_FILE),
+        dir.join(crate::store::record::RECORD_FILE),
+    )
+    .map_err(|e| Error::io(&parts[0].dir, e))?;
+    let np = dir.join(NODES_FILE);
+    let nodes_file = std::fs::File::create(&np).map_err(|e| Error::io(&np, e))?;
+    let reader = std::fs::File::open(&np).map_err(|e| Error::io(&np, e))?;
+    let mut writer = StoreWriter {
+        dir: dir.clone(),
+        nodes: nodes_file,
+        reader,
+        nodes_len: 0,
+        entries: Vec::new(),
+        commit: 0,
+        last_revision: None,
+        record_len: rl,
+        guard: None,
+        group_bytes: crate::store::writer::COMMIT_GROUP_BYTES,
+    };
+    // The subtrees' candidates and counts.
+    let mut subtrees: HashMap<NodeKey, (u64, Cands, usize)> = HashMap::new();
+    for (pi, p) in parts.iter().enumerate() {
+        let cp = p.dir.join(CANDIDATES_FILE);
+        let b = std::fs::read(&cp).map_err(|e| Error::io(&cp, e))?;
+        let mut at = 0usize;
+        let one = 20 + rl;
+        for n in &p.file.nodes {
+            let mut c = Cands::default();
+            let end = at + n.candidates as usize * one;
+            if end > b.len() {
+                return Err(Error::Part {
+                    path: cp.clone(),
+                    error: PartError::Damaged { what: "shorter than part.json says" },
+                });
+            }
+            while at < end {
+                let q = [0, 1, 2].map(|a| {
+                    i32::from_le_bytes(b[at + 4 * a..at + 4 * a + 4].try_into().expect("4 bytes"))
+                });
+                c.push(
+                    q,
+                    u64::from_le_bytes(b[at + 12..at + 20].try_into().expect("8 bytes")),
+                    &b[at + 20..at + one],
+                );
+                at += one;
+            }
+            subtrees.insert(
+                NodeKey { level: n.key[0] as u8, index: [n.key[1], n.key[2], n.key[3]] },
+                (n.points, c, pi),
+            );
+        }
+    }
+    // The nodes above the cut, from the subtrees' candidates; written after the parts' nodes.
+    let mut top = Top {
+        subtrees,
+        parts: &parts,
+        plan,
+        color,
+        rl,
+        made: Vec::new(),
+        absorbed: std::collections::HashSet::new(),
+    };
+    if let Visit::Small { records, unit: false, .. } = top.visit(NodeKey::ROOT, plan.root())? {
+        // Few points in all: the root is a leaf (held as it is where the cut is the root).
+        top.leaf(NodeKey::ROOT, &records)?;
+    }
+    let Top { made, absorbed, .. } = top;
+    let mut all: Vec<NodeEntry> = Vec::new();
+    let mut recoloured = 0;
+    for p in &parts {
+        let f = &p.file;
+        let same_color = color_of(f.rgb_offset, f.max_rgb, f.max_intensity) == color;
+        let src = p.dir.join(NODES_FILE);
+        let base = writer.nodes_len;
+        let absorbs = p.entries.iter().any(|e| absorbed.contains(&(e.level, e.index)));
+        if same_color && !absorbs {
+            // The payloads as they are, in one copy.
+            let off = writer.reserve(&[f.nodes_len])[0];
+            debug_assert_eq!(off, base);
+            let mut from = std::fs::File::open(&src).map_err(|e| Error::io(&src, e))?;
+            use std::io::Seek;
+            writer.nodes.seek(std::io::SeekFrom::Start(off)).map_err(|e| Error::io(&np, e))?;
+            std::io::copy(&mut from, &mut writer.nodes).map_err(|e| Error::io(&np, e))?;
+            all.extend(p.entries.iter().map(|e| NodeEntry { offset: e.offset + base, ..*e }));
+        } else {
+            recoloured += !same_color as usize;
+            let bytes = std::fs::read(&src).map_err(|e| Error::io(&src, e))?;
+            let keep: Vec<&NodeEntry> =
+                p.entries.iter().filter(|e| !absorbed.contains(&(e.level, e.index))).collect();
+            let lens: Vec<u64> = keep.iter().map(|e| e.length).collect();
+            let offs = writer.reserve(&lens);
+            let w = &writer;
+            let done: Vec<NodeEntry> = keep
+                .par_iter()
+                .zip(offs)
+                .map(|(e, off)| {
+                    let mut b = bytes[e.offset as usize..(e.offset + e.length) as usize].to_vec();
+                    if !same_color {
+                        recolour(&mut b, &color, rl)
+                            .map_err(|error| Error::Payload { path: p.dir.clone(), error })?;
+                    }
+                    w.write_at(off, &b)?;
+                    Ok(NodeEntry { offset: off, ..**e })
+                })
+                .collect::<Result<_>>()?;
+            all.extend(done);
+        }
+    }
+    let top_nodes = made.len() as u64;
+    for (mut e, b) in made {
+        let off = writer.reserve(&[b.len() as u64])[0];
+        writer.write_at(off, &b)?;
+        e.offset = off;
+        all.push(e);
+    }
+    // The one-machine order: level by level, Morton order in a level.
+    all.sort_by_key(|e| (e.level, morton(e.index, e.level as u8)));
+    for (i, e) in all.iter().enumerate() {
+        writer.set_entry(i, *e);
+    }
+    writer.write_hierarchy(plan.root(), points, plan.leaf_capacity, (lo, hi))?;
+    drop(writer);
+    tmp.persist(out).map_err(|e| Error::io(out, e))?;
+    Ok(MergeReport {
+        parts: parts.len(),
+        points,
+        nodes: all.len() as u64,
+        top_nodes,
+        recoloured_parts: recoloured,
+        seconds: t0.elapsed().as_secs_f64(),
+    })
+}
+
+/// Rewrites the colours of a payload with `color` (from its records: position and attributes).
+fn recolour(b: &mut [u8], color: &ColorSource, rl: usize) -> std::result::Result<(), PayloadError> {
+    let d = DecodedLeaf::parse(b)?;
+    let n = d.count;
+    if d.attr_len + 12 != rl {
+        return Err(PayloadError::RecordLength);
+    }
+    let mut rec = vec![0u8; rl];
+    let cols: Vec<u32> = (0..n)
+        .map(|i| {
+            let p = d.position(i);
+            for a in 0..3 {
+                rec[4 * a..4 * a + 4].copy_from_slice(&p[a].to_le_bytes());
+            }
+            rec[12..].copy_from_slice(d.attributes(i));
+            color.rgba(&rec)
+        })
+        .collect();
+    let at = 64 + 12 * n;
+    for (i, c) in cols.iter().enumerate() {
+        b[at + 4 * i..at + 4 * i + 4].copy_from_slice(&c.to_le_bytes());
+    }
+    Ok(())
+}
+
+/// What the walk above the cut gives a parent.
+enum Visit {
+    /// A node with more points than a leaf holds (inner, written): its candidates.
+    Big { cands: Cands, count: u64 },
+    /// A node with at most a leaf's points: a leaf, unless its parent is a leaf too. Its
+    /// candidates and its records in Morton order (ties in arrival order); `unit` when it is a
+    /// subtree of the cut whose part holds it as a leaf already.
+    Small { cands: Cands, count: u64, records: Vec<u8>, unit: bool },
+}
+
+/// The walk over the nodes above the cut.
+struct Top<'a> {
+    subtrees: HashMap<NodeKey, (u64, Cands, usize)>,
+    parts: &'a [Part],
+    plan: &'a Plan,
+    color: ColorSource,
+    rl: usize,
+    /// Payloads made here (offsets set when written).
+    made: Vec<(NodeEntry, Vec<u8>)>,
+    /// Nodes of the parts that a leaf above them holds: not copied.
+    absorbed: std::collections::HashSet<(u32, [u32; 3])>,
+}
+
+impl Top<'_> {
+    fn visit(&mut self, key: NodeKey, cube: Cube) -> Result<Visit> {
+        if let Some((count, cands, pi)) = self.subtrees.remove(&key) {
+            if count > self.plan.leaf_capacity as u64 {
+                return Ok(Visit::Big { cands, count });
+            }
+            // A leaf in its part: its records, in case the node above is a leaf too.
+            let p = &self.parts[pi];
+            let e = p
+                .entries
+                .iter()
+                .find(|e| e.level == key.level as u32 && e.index == key.index && e.kind == LEAF)
+                .ok_or_else(|| Error::Part {
+                    path: p.dir.clone(),
+                    error: PartError::NoLeaf { subtree: key.name() },
+                })?;
+            let src = p.dir.join(NODES_FILE);
+            let mut b = vec![0u8; e.length as usize];
+            {
+                use std::os::unix::fs::FileExt;
+                let f = std::fs::File::open(&src).map_err(|x| Error::io(&src, x))?;
+                f.read_exact_at(&mut b, e.offset).map_err(|x| Error::io(&src, x))?;
+            }
+            let records = records_of(&b, self.rl)
+                .map_err(|error| Error::Payload { path: p.dir.clone(), error })?;
+            return Ok(Visit::Small { cands, count, records, unit: true });
+        }
+        if key.level >= self.plan.cell_depth {
+            return Err(Error::Job { error: JobError::Uncovered { node: key.name() } });
+        }
+        let mut kids = Vec::with_capacity(8);
+        let mut voxels = Cands::default();
+        let mut count = 0;
+        for o in 0..8 {
+            match self.visit(key.child(o), cube.child(o))? {
+                Visit::Big { cands, count: n } => {
+                    voxels.append(cands);
+                    count += n;
+                    kids.push(None);
+                }
+                Visit::Small { cands, count: n, records, unit } => {
+                    voxels.append(cands);
+                    count += n;
+                    kids.push(Some((records, unit)));
+                }
+            }
+        }
+        let rl = self.rl;
+        let up = |voxels: &Cands| voxels.pick(&voxels.for_parent(key, cube), rl);
+        if count <= self.plan.leaf_capacity as u64 {
+            // A leaf of the one-machine tree (unless its parent is one too): the points below,
+            // children in octant order, which is Morton order.
+            let mut records = Vec::with_capacity(count as usize * rl);
+            for (r, _) in kids.into_iter().flatten() {
+                records.extend_from_slice(&r);
+            }
+            self.absorb_below(key);
+            return Ok(Visit::Small { cands: up(&voxels), count, records, unit: false });
+        }
+        if !splits(count, key, cube, &self.plan.config()) {
+            return Err(Error::Job { error: JobError::CannotSplit { node: key.name(), count } });
+        }
+        // Inner: small children are leaves; those the parts hold as leaves stay as they are.
+        for (o, k) in kids.into_iter().enumerate() {
+            if let Some((records, false)) = k {
+                self.leaf(key.child(o), &records)?;
+            }
+        }
+        let color = &self.color;
+        let (e, b) = encode_payload(
+            key,
+            INNER,
+            voxels.pos.len(),
+            rl - 12,
+            |i| voxels.pos[i],
+            |i| color.rgba(&voxels.records[i * rl..(i + 1) * rl]),
+            |i| &voxels.records[i * rl + 12..(i + 1) * rl],
+        )
+        .map_err(|m| Error::MergePayload { error: m.in_node(key.name()) })?;
+        self.made.push((e, b));
+        Ok(Visit::Big { cands: up(&voxels), count })
+    }
+
+    /// Marks every subtree of the cut under `key` as held by a leaf above.
+    fn absorb_below(&mut self, key: NodeKey) {
+        for p in self.parts {
+            for n in &p.file.nodes {
+                let k = NodeKey { level: n.key[0] as u8, index: [n.key[1], n.key[2], n.key[3]] };
+                if k.level >= key.level
+                    && (0..3).all(|a| k.index[a] >> (k.level - key.level) == key.index[a])
+                {
+                    self.absorbed.insert((k.level as u32, k.index));
+                }
+            }
+        }
+    }
+
+    /// Writes `records` as the leaf `key`.
+    fn leaf(&mut self, key: NodeKey, records: &[u8]) -> Result<()> {
+        let rl = self.rl;
+        let n = records.len() / rl;
+        let color = &self.color;
+        let (e, b) = encode_payload(
+            key,
+            LEAF,
+            n,
+            rl - 12,
+            |i| read_xyz(&records[i * rl..]),
+            |i| color.rgba(&records[i * rl..(i + 1) * rl]),
+            |i| &records[i * rl + 12..(i + 1) * rl],
+        )
+        .map_err(|m| Error::MergePayload { error: m.in_node(key.name()) })?;
+        self.made.push((e, b));
+        Ok(())
+    }
+}
+
+/// The records (position and attributes) of a payload, in its order.
+fn records_of(b: &[u8], rl: usize) -> std::result::Result<Vec<u8>, PayloadError> {
+    let d = DecodedLeaf::parse(b)?;
+    if d.attr_len + 12 != rl {
+        return Err(PayloadError::RecordLength);
+    }
+    let mut out = vec![0u8; d.count * rl];
+    for (i, r) in out.chunks_exact_mut(rl).enumerate() {
+        let p = d.position(i);
+        for a in 0..3 {
+            r[4 * a..4 * a + 4].copy_from_slice(&p[a].to_le_bytes());
+        }
+        r[12..].copy_from_slice(d.attributes(i));
+    }
+    Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::store::distributed::testing::{
+        part_file, plan_of, scratch, two_entries, write_part,
+    };
+
+    /// The part error of merging `dirs` into `out`, with the directory it names.
+    fn refusal(dirs: &[PathBuf], out: &Path) -> (PathBuf, PartError) {
+        match merge(dirs, out) {
+            Err(Error::Part { path, error }) => (path, error),
+            Err(e) => panic!("another error: {e}"),
+            Ok(_) => panic!("merged"),
+        }
+    }
+
+    #[test]
+    fn parts_that_are_not_every_job_of_one_plan_once_are_refused_before_anything_is_written() {
+        let dir = scratch("merge");
+        let out = dir.join("store");
+        let (plan, entries) = (plan_of(3, "p"), two_entries());
+        let part = |name: &str, plan: &Plan, job: usize, source: &[u8]| {
+            let d = dir.join(name);
+            write_part(&d, &part_file(plan, job, 2, 100), &entries, source);
+            d
+        };
+        let (a, b, c) =
+            (part("a", &plan, 0, b"S"), part("b", &plan, 1, b"S"), part("c", &plan, 2, b"S"));
+        assert!(matches!(merge(&[], &out), Err(Error::Job { error: JobError::NoParts })));
+        // A part of another plan (another id, or the same id on another plan).
+        let other = part("other", &plan_of(3, "q"), 1, b"S");
+        let (path, e) = refusal(&[a.clone(), other.clone()], &out);
+        assert_eq!(path, other);
+        assert!(matches!(e, PartError::OtherPlan { ref id, ref first, ref first_id }
+            if id == "q" && *first == a && first_id == "p"));
+        let mut edited = plan_of(3, "p");
+        edited.leaf_capacity += 1;
+        let forged = part("forged", &edited, 1, b"S");
+        assert!(matches!(refusal(&[a.clone(), forged], &out).1, PartError::OtherPlan { .. }));
+        // A job twice, a job the plan does not have, a job missing.
+        let again = part("again", &plan, 0, b"S");
+        let (path, e) = refusal(&[a.clone(), b.clone(), again.clone()], &out);
+        assert_eq!(path, again);
+        assert!(matches!(e, PartError::Repeated { job: 0, ref first } if *first == a));
+        let beyond = part("beyond", &plan, 3, b"S");
+        assert!(matches!(
+            refusal(&[a.clone(), beyond], &out).1,
+            PartError::NoSuchJob { job: 3, jobs: 3 }
+        ));
+        assert!(matches!(
+            merge(std::slice::from_ref(&b), &out),
+            Err(Error::Job { error: JobError::MissingParts { jobs: 3, first: 0, ref missing } })
+                if *missing == [0, 2]
+        ));
+        // Every job once, but from other inputs.
+        let d = part("d", &plan, 2, b"T");
+        let (path, e) = refusal(&[a.clone(), b.clone(), d.clone()], &out);
+        assert_eq!(path, d);
+        assert!(matches!(e, PartError::OtherInputs { ref first } if *first == a));
+        // Every job once, of one plan and one input, in any order: the output must be new.
+        let all = [c.clone(), a.clone(), b.clone()];
+        std::fs::create_dir_all(out.join("x")).unwrap();
+        assert!(matches!(
+            merge(&all, &out),
+            Err(Error::Store { ref path, error: crate::error::StoreError::NotEmpty })
+                if *path == out
+        ));
+        std::fs::remove_dir_all(&out).unwrap();
+        let nowhere = dir.join("no").join("store");
+        assert!(matches!(merge(&all, &nowhere), Err(Error::NoParentDirectory { .. })));
+        // Nothing written by any refusal.
+        assert!(!out.exists() && !dir.join("no").exists());
+        let left: Vec<_> = std::fs::read_dir(&dir)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().to_string())
+            .filter(|n| n.contains("mortar-tmp"))
+            .collect();
+        assert!(left.is_empty(), "{left:?}");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    /// Three records of 20 bytes (position, intensity, 6 more bytes) and their leaf payload.
+    fn a_leaf() -> (Vec<u8>, Vec<u8>) {
+        let rl = 20;
+        let mut records = vec![0u8; 3 * rl];
+        for (i, r) in records.chunks_exact_mut(rl).enumerate() {
+            let p = [100 + i as i32, -7 * i as i32, 3];
+            for a in 0..3 {
+                r[4 * a..4 * a + 4].copy_from_slice(&p[a].to_le_bytes());
+            }
+            r[12..14].copy_from_slice(&(1000 * i as u16 + 10).to_le_bytes());
+            r[14..].copy_from_slice(&[i as u8 + 1; 6]);
+        }
+        let key = NodeKey { level: 3, index: [1, 2, 3] };
+        let (_, b) = encode_payload(
+            key,
+            LEAF,
+            3,
+            rl - 12,
+            |i| read_xyz(&records[i * rl..]),
+            |_| 0x1234_5678,
+            |i| &records[i * rl + 12..(i + 1) * rl],
+        )
+        .unwrap();
+        (records, b)
+    }
+
+    #[test]
+    fn a_payload_gives_back_its_records_and_is_recoloured_in_place() {
+        let (records, b) = a_leaf();
+        assert_eq!(records_of(&b, 20).unwrap(), records);
+        assert!(matches!(records_of(&b, 21), Err(PayloadError::RecordLength)));
+        assert!(matches!(records_of(&b[..40], 20), Err(PayloadError::Short)));
+        // Recoloured: every colour from its record, nothing else changed.
+        let color = ColorSource::Intensity { max_intensity: 2010 };
+        let mut c = b.clone();
+        recolour(&mut c, &color, 20).unwrap();
+        let d = DecodedLeaf::parse(&c).unwrap();
+        for (i, r) in records.chunks_exact(20).enumerate() {
+            assert_eq!(d.color(i), color.rgba(r), "point {i}");
+            assert_ne!(d.color(i), 0x1234_5678);
+        }
+        let colours = 64 + 12 * 3..64 + 16 * 3;
+        assert_eq!(
+            (&c[..colours.start], &c[colours.end..]),
+            (&b[..colours.start], &b[colours.end..])
+        );
+        assert_eq!(records_of(&c, 20).unwrap(), records);
+        let mut short = b.clone();
+        assert!(matches!(recolour(&mut short, &color, 26), Err(PayloadError::RecordLength)));
+        assert_eq!(short, b, "a refused payload is left as it was");
+    }
+}
