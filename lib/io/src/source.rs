@@ -825,10 +825,13 @@ fn read_chunk_table(
         return if point_count == 0 { Ok(Some(Vec::new())) } else { Err(LazError::NoPointData) };
     }
     let mut table_at = i64::from_le_bytes(b[start..start + 8].try_into().unwrap());
-    if table_at <= start as i64 || table_at as u64 + 8 > data_end as u64 {
+    // The table follows the 8-byte offset itself: an offset inside those 8 bytes is no table
+    // (fuzz regression laz-chunk-table-in-offset).
+    let first = start as i64 + 8;
+    if table_at < first || table_at as u64 + 8 > data_end as u64 {
         // writers that could not seek back put the offset in the last 8 bytes
         let tail = i64::from_le_bytes(b[data_end - 8..data_end].try_into().unwrap());
-        if tail > start as i64 && (tail as u64) + 8 <= data_end as u64 {
+        if tail >= first && (tail as u64) + 8 <= data_end as u64 {
             table_at = tail;
         } else if table_at > start as i64 && table_at as u64 + 8 > b.len() as u64 && point_count > 0
         {

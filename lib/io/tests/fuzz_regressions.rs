@@ -162,6 +162,15 @@ fn laz_chunk_points() {
     targets::las_input(&b);
 }
 
+/// A LAZ chunk-table offset pointing inside the 8 bytes of the offset itself: the size of the
+/// point data before the table was computed as `table - start - 8` and underflowed (CI fuzz run
+/// of 2026-12-04). Now such an offset is no table.
+#[test]
+fn laz_chunk_table_in_offset() {
+    let b = regression("las_input", "laz-chunk-table-in-offset");
+    targets::las_input(&b);
+}
+
 /// A LAS 1.4 LAZ chunk whose layer sizes claim 2 GiB: laz-rs allocated that before reading.
 /// Now the sizes are checked against the chunk's bytes first.
 #[test]
