@@ -47,7 +47,9 @@
 //!   read-back per frame, which the statistics need anyway), and the `usable` share of the frame
 //!   time covers the round trip.
 //! - **Convergence** as in the CPU renderer: a bit per slot drawn since the view (camera and
-//!   options) last changed; converged once every slot is loaded and drawn.
+//!   options) last changed; converged once every slot is loaded and drawn. The shuffle, the
+//!   frame, the points loaded, Fill's cursor, the view and these bits are one
+//!   [`ProgressiveState`] that both renderers hold and drive alike.
 //! - **The frame grows** as the CPU renderer's ([`ProgressiveFrame`]): points inserted outside it
 //!   grow it, and `progressive_reframe.wgsl` re-encodes every loaded slot in the new frame.
 //! - **Depth ties** ([`GpuProgressive::depth_ties`], `progressive_ties.wgsl`): the pixels whose
@@ -82,6 +84,7 @@
 //! [`ProbeTimings`]: mortar_core::render::progressive::ProbeTimings
 //! [`AdaptiveBudget::extra_points`]: mortar_core::render::progressive::AdaptiveBudget::extra_points
 //! [`ProgressiveFrame`]: mortar_core::render::progressive::ProgressiveFrame
+//! [`ProgressiveState`]: mortar_core::render::progressive::ProgressiveState
 //! [`RasterStats`]: mortar_core::render::RasterStats
 
 mod device;

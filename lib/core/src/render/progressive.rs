@@ -51,6 +51,8 @@
 //! - `frame`: the quantization frame that grows ([`ProgressiveFrame`], [`piece_box`]).
 //! - `error`: why a renderer refused something ([`ProgressiveError`]).
 //! - `stats`: what one frame did ([`FrameStats`]).
+//! - `state`: the state the CPU renderer and its GPU twin share ([`ProgressiveState`]: shuffle,
+//!   frame, points loaded, Fill's cursor, view, slots drawn since it changed).
 //! - `cpu`: the CPU renderer ([`ProgressiveRenderer`]) and the [`UNLOADED`] sentinel.
 
 mod budget;
@@ -58,6 +60,7 @@ mod cpu;
 mod error;
 mod frame;
 mod shuffle;
+mod state;
 mod stats;
 
 pub use budget::{AdaptiveBudget, FillBudget, ProbeTimings};
@@ -65,4 +68,5 @@ pub use cpu::{ProgressiveRenderer, UNLOADED};
 pub use error::ProgressiveError;
 pub use frame::{piece_box, ProgressiveFrame};
 pub use shuffle::{is_prime, largest_prime_3_mod_4, Shuffle};
+pub use state::ProgressiveState;
 pub use stats::FrameStats;

@@ -26,8 +26,7 @@ use mortar_core::render::gpu::{
     ResolveUniforms, ScatterUniforms,
 };
 use mortar_core::render::progressive::{
-    piece_box, AdaptiveBudget, FillBudget, FrameStats, ProbeTimings, ProgressiveError,
-    ProgressiveFrame, Shuffle,
+    FillBudget, ProbeTimings, ProgressiveError, ProgressiveFrame, ProgressiveState, Shuffle,
 };
 use mortar_core::render::resolve::ResolveOptions;
 use mortar_core::render::{
@@ -40,16 +39,13 @@ use std::time::Instant;
 /// The progressive renderer of paper 000 on the GPU (see the documentation of
 /// [`progressive`](super)).
 pub struct GpuProgressive {
-    frame: ProgressiveFrame,
-    /// Times the frame grew.
-    grown: u32,
-    shuffle: Shuffle,
+    /// The shuffle, the frame, the points loaded, Fill's cursor, the view and the slots drawn
+    /// since it changed: the state the CPU renderer shares.
+    state: ProgressiveState,
     options: ProgressiveOptions,
     chunk_slots: u32,
     slots: SlotBook,
     payload: Option<Vec<AtomicU64>>,
-    frames: u64,
-    view: Option<(Camera, RasterOptions)>,
     gpu: GpuState,
     /// `None` until the first frame gives the viewport size.
     target: Option<Target>,
@@ -57,8 +53,6 @@ pub struct GpuProgressive {
     resolved: Option<Resolved>,
     /// Entries of each chunk's list after the last Prepare.
     list_counts: Vec<u32>,
-    /// Time of the last frame's Prepare and resolve, ms (the adaptive budget's `after_fill_ms`).
-    last_after_fill_ms: f64,
     /// The staging memory of the uploads and those in flight.
     uploads: Uploads,
     /// Record buffers of prepared inserts, handed back for the next ones.
@@ -96,7 +90,8 @@ impl GpuProgressive {
                 adapter: ctx.adapter().name.clone(),
             });
         }
-        let len = u32::try_from(capacity).map_err(|_| ProgressiveError::TooManyPoints(capacity))?;
+        let state = ProgressiveState::new(frame, capacity)?;
+        let len = state.shuffle().len();
         let by_device =
             ((ctx.max_binding() / 4).min(MAX_CHUNK_POINTS as u64) as u32 & !255).max(256);
         let chunk_slots = options.chunk_slots.unwrap_or(by_device).clamp(1, by_device);
@@ -204,9 +199,7 @@ impl GpuProgressive {
             .then(|| Timestamps::new(ctx, "progressive pass times", QUERIES));
         let n = len as usize;
         let r = GpuProgressive {
-            frame,
-            grown: 0,
-            shuffle: Shuffle::new(len),
+            state,
             options,
             chunk_slots,
             list_counts: vec![0; chunks.len()],
@@ -221,55 +214,59 @@ impl GpuProgressive {
             },
             slots: SlotBook::new(n),
             payload: options.payloads.then(|| (0..n).map(|_| AtomicU64::new(0)).collect()),
-            frames: 0,
-            view: None,
             target: None,
             resolved: None,
             uploads: Uploads::new(ctx),
-            last_after_fill_ms: 0.0,
             record_pool: Default::default(),
         };
         ctx.wait()?;
         Ok(r)
     }
+
+    /// The state the renderer shares with the CPU renderer: shuffle, frame, points loaded,
+    /// Fill's cursor, view, slots drawn since it changed.
+    pub fn state(&self) -> &ProgressiveState {
+        &self.state
+    }
+
     /// Number of points the renderer holds once everything arrived.
     pub fn capacity(&self) -> u64 {
-        self.shuffle.len() as u64
+        self.state.capacity()
     }
 
     /// Points inserted so far.
     pub fn loaded(&self) -> u64 {
-        self.slots.loaded
+        self.state.loaded()
     }
 
     /// The shuffle placing input index `i` at slot `shuffle().target(i)`.
     pub fn shuffle(&self) -> &Shuffle {
-        &self.shuffle
+        self.state.shuffle()
     }
 
     /// The quantization frame of the words.
     pub fn quantization(&self) -> &BatchGrid {
-        &self.frame.quant
+        &self.state.frame().quant
     }
 
     /// The frame: quantization, bounds, and the box of the points expected and arrived.
     pub fn frame_state(&self) -> &ProgressiveFrame {
-        &self.frame
+        self.state.frame()
     }
 
     /// World bounds of the frame.
     pub fn bounds(&self) -> &Aabb {
-        &self.frame.bounds
+        &self.state.frame().bounds
     }
 
     /// How often the frame grew to hold points outside it.
     pub fn growths(&self) -> u32 {
-        self.grown
+        self.state.growths()
     }
 
     /// Frames drawn so far.
     pub fn frames(&self) -> u64 {
-        self.frames
+        self.state.frames()
     }
 
     /// Chunks of the shuffled buffer.
@@ -303,9 +300,10 @@ impl GpuProgressive {
         self.is_loaded(slot).then(|| p[slot as usize].load(Ordering::Relaxed))
     }
 
-    /// Whether the last frame's image is final (see [`FrameStats::converged`]).
+    /// Whether the last frame's image is final (see
+    /// [`FrameStats::converged`](mortar_core::render::progressive::FrameStats::converged)).
     pub fn converged(&self) -> bool {
-        self.slots.converged(self.capacity())
+        self.state.converged()
     }
 
     /// The payloads of every point inserted so far, in slot order (empty when the renderer keeps
@@ -354,16 +352,14 @@ impl GpuProgressive {
             return Err(ProgressiveError::Duplicate(k).into());
         }
         // Points outside the frame grow it: the slots held are re-encoded on the GPU first.
-        if let Some(b) = piece_box(xyz) {
-            if let Some(grown) = self.frame.grown(b)? {
-                self.reframe(ctx, grown)?;
-            }
-            self.frame.data = self.frame.data.union(b);
-        }
+        let gpu = &self.gpu;
+        self.state.grow_for(xyz, |from, to| {
+            Self::reframe(ctx, gpu, &from.quant, to).map_err(ProgressiveGpuError::from)
+        })?;
         let prep = self.preparer();
         // The words encoded straight into the staging memory, then the slots for the bits
         // (the GPU copies and scatters the last uploads meanwhile).
-        let frame = self.frame.quant;
+        let frame = self.state.frame().quant;
         let stride = 3 + colors.is_some() as usize;
         let mut s = 0;
         while s < n {
@@ -371,7 +367,7 @@ impl GpuProgressive {
             self.uploads.upload(
                 ctx,
                 &self.gpu,
-                self.shuffle.prime().unwrap_or(0),
+                self.state.shuffle().prime().unwrap_or(0),
                 first + s as u64,
                 e - s,
                 stride,
@@ -406,21 +402,23 @@ impl GpuProgressive {
         payload: Option<&[u64]>,
     ) {
         if let (Some(store), Some(values)) = (&self.payload, payload) {
-            let shuffle = self.shuffle;
+            let shuffle = *self.state.shuffle();
             values.par_iter().enumerate().with_min_len(4096).for_each(|(k, &v)| {
                 store[shuffle.target((first + k as u64) as u32) as usize]
                     .store(v, Ordering::Relaxed)
             });
         }
         self.slots.arrive(first, n, slots);
+        self.state.add_loaded(n);
     }
 
     /// What [`InsertPreparer::prepare`] needs of this renderer (a few numbers, `Send`).
     pub fn preparer(&self) -> InsertPreparer {
+        let frame = self.state.frame();
         InsertPreparer {
-            frame: self.frame.quant,
-            frame_max: self.frame.max,
-            shuffle: self.shuffle,
+            frame: frame.quant,
+            frame_max: frame.max,
+            shuffle: *self.state.shuffle(),
             options: self.options,
             bit_words: self.slots.loaded_bits.len(),
             pool: self.record_pool.clone(),
@@ -469,7 +467,7 @@ impl GpuProgressive {
             self.uploads.upload(
                 ctx,
                 &self.gpu,
-                self.shuffle.prime().unwrap_or(0),
+                self.state.shuffle().prime().unwrap_or(0),
                 first + s as u64,
                 e - s,
                 stride,
@@ -506,12 +504,7 @@ impl GpuProgressive {
             return Err(GpuError::Colors("the renderer was made without colours".into()).into());
         }
         let n = colors.len();
-        let end = first.saturating_add(n as u64);
-        if end > self.capacity() {
-            return Err(
-                ProgressiveError::IndexRange { first, end, capacity: self.capacity() }.into()
-            );
-        }
+        let end = self.state.check_range(first, n)?;
         if let Some(k) = self.slots.arrived.first_missing(first, end) {
             return Err(ProgressiveError::NotLoaded(k).into());
         }
@@ -522,7 +515,7 @@ impl GpuProgressive {
             self.uploads.upload(
                 ctx,
                 &self.gpu,
-                self.shuffle.prime().unwrap_or(0),
+                self.state.shuffle().prime().unwrap_or(0),
                 first + s as u64,
                 e - s,
                 1,
@@ -534,12 +527,16 @@ impl GpuProgressive {
         Ok(())
     }
 
-    /// Re-encodes every loaded slot in the frame `to` (the reframe pass, one dispatch per chunk,
-    /// after the uploads in flight) and starts convergence over, as the CPU renderer does.
-    fn reframe(&mut self, ctx: &GpuContext, to: ProgressiveFrame) -> Result<(), GpuError> {
-        let from = self.frame.quant;
-        let buffers: Vec<(wgpu::Buffer, wgpu::BindGroup, u32)> = self
-            .gpu
+    /// Re-encodes every loaded slot of `gpu`'s chunks from the frame `from` in the frame `to`
+    /// (the reframe pass, one dispatch per chunk, after the uploads in flight), as the CPU
+    /// renderer does when its frame grows (the state then starts convergence over).
+    fn reframe(
+        ctx: &GpuContext,
+        gpu: &GpuState,
+        from: &BatchGrid,
+        to: &ProgressiveFrame,
+    ) -> Result<(), GpuError> {
+        let buffers: Vec<(wgpu::Buffer, wgpu::BindGroup, u32)> = gpu
             .chunks
             .iter()
             .map(|c| {
@@ -547,9 +544,9 @@ impl GpuProgressive {
                 ctx.queue.write_buffer(
                     &u,
                     0,
-                    bytemuck::bytes_of(&ReframeUniforms::new(&from, &to.quant, c.len)),
+                    bytemuck::bytes_of(&ReframeUniforms::new(from, &to.quant, c.len)),
                 );
-                let g = self.gpu.passes.reframe.bind_group(
+                let g = gpu.passes.reframe.bind_group(
                     ctx,
                     0,
                     &[
@@ -570,7 +567,7 @@ impl GpuProgressive {
                 label: Some("reframe"),
                 timestamp_writes: None,
             });
-            pass.set_pipeline(self.gpu.passes.reframe.pipeline());
+            pass.set_pipeline(gpu.passes.reframe.pipeline());
             for (_, g, n) in &buffers {
                 let (x, y) = ctx.split_dispatch(*n);
                 pass.set_bind_group(0, g, &[]);
@@ -578,11 +575,7 @@ impl GpuProgressive {
             }
         }
         ctx.queue.submit([enc.finish()]);
-        ctx.check()?;
-        self.frame = to;
-        self.view = None;
-        self.grown += 1;
-        Ok(())
+        ctx.check()
     }
 
     fn read_queries(ctx: &GpuContext, buf: &wgpu::Buffer) -> Result<Vec<f64>, GpuError> {
@@ -614,7 +607,7 @@ impl GpuProgressive {
             )
             .into());
         }
-        let planner = Planner::new(camera, &self.frame.grid, options)?;
+        let planner = Planner::new(camera, &self.state.frame().grid, options)?;
         let n = self.capacity();
         let gpu = &self.gpu;
         let t = Target::ensure(
@@ -630,15 +623,9 @@ impl GpuProgressive {
             Some(post) => Some((post, Resolved::ensure(&mut self.resolved, ctx, gpu, t)?)),
             None => None,
         };
-        if self.view != Some((*camera, *options)) {
-            self.view = Some((*camera, *options));
-            self.slots.restart();
-        }
-        self.frames += 1;
-        let mut st =
-            FrameStats { frame: self.frames, loaded: self.slots.loaded, ..FrameStats::default() };
+        let mut st = self.state.begin_frame(camera, options);
         // One plan for every slot: one frame, one set of bounds.
-        let plan = planner.plan(&self.frame.quant, &self.frame.bounds, n as usize);
+        let plan = planner.plan(&self.state.frame().quant, &self.state.frame().bounds, n as usize);
         let projection = match plan {
             BatchPlan::Draw { precision, projection } => Some((precision, projection)),
             _ => None,
@@ -690,11 +677,8 @@ impl GpuProgressive {
         );
 
         // Fill, first step: the fixed budget or the probe.
-        let (first, adaptive): (u64, Option<AdaptiveBudget>) = match budget {
-            FillBudget::Fixed(b) => (*b, None),
-            FillBudget::Adaptive(a) => (a.probe_points.min(n), Some(*a)),
-        };
-        let (runs, points) = self.slots.sweep(first, self.chunk_slots, n);
+        let (first, adaptive) = self.state.first_fill(budget);
+        let (runs, points) = self.slots.sweep(&mut self.state, first, self.chunk_slots);
         st.filled = first.min(n);
         st.fill_points = points;
         count_batches(&mut raster, runs.len(), points);
@@ -745,7 +729,7 @@ impl GpuProgressive {
                         probe_points: st.probe,
                         probe_ms: t[3] - t[2],
                         elapsed_ms: t[3],
-                        after_fill_ms: self.last_after_fill_ms,
+                        after_fill_ms: self.state.after_fill_ms(),
                     }
                 }
                 None => {
@@ -758,12 +742,12 @@ impl GpuProgressive {
                         probe_points: st.probe,
                         probe_ms: host_ms(t_fill),
                         elapsed_ms: host_ms(start),
-                        after_fill_ms: self.last_after_fill_ms,
+                        after_fill_ms: self.state.after_fill_ms(),
                     }
                 }
             };
             let more = a.extra_points(&timings).min(n - st.filled);
-            let (runs, points) = self.slots.sweep(more, self.chunk_slots, n);
+            let (runs, points) = self.slots.sweep(&mut self.state, more, self.chunk_slots);
             st.filled += more;
             st.fill_points += points;
             count_batches(&mut raster, runs.len(), points);
@@ -836,18 +820,18 @@ impl GpuProgressive {
                 st.reproject_ms = g.reproject_ms;
                 st.fill_ms = g.probe_ms + g.extra_fill_ms;
                 st.prepare_ms = g.prepare_ms;
-                self.last_after_fill_ms = g.prepare_ms + g.resolve_ms.unwrap_or(0.0);
+                self.state.set_after_fill_ms(g.prepare_ms + g.resolve_ms.unwrap_or(0.0));
             }
             None => {
                 st.reproject_ms = host_times[0];
                 st.fill_ms = host_times[1];
                 st.prepare_ms = host_times[2];
-                self.last_after_fill_ms = host_times[2] + host_times[3];
+                self.state.set_after_fill_ms(host_times[2] + host_times[3]);
             }
         }
         st.raster = raster;
         st.total_ms = host_ms(start);
-        st.converged = self.slots.converged(n);
+        st.converged = self.state.converged();
         ctx.check()?;
         Ok(GpuProgressiveFrame { stats: st, timing: gpu.timing(), gpu: gpu_times })
     }
@@ -858,13 +842,16 @@ impl GpuProgressive {
     /// [`depth_ties`](mortar_core::render::progressive::ProgressiveRenderer::depth_ties)).
     /// `None` until every point arrived and a frame was drawn.
     pub fn depth_ties(&mut self, ctx: &GpuContext) -> Result<Option<u64>, ProgressiveGpuError> {
-        let (Some((camera, options)), Some(t)) = (self.view, &self.target) else { return Ok(None) };
-        if self.slots.loaded != self.capacity() {
+        let (Some((camera, options)), Some(t)) = (self.state.view(), &self.target) else {
+            return Ok(None);
+        };
+        if !self.state.all_loaded() {
             return Ok(None);
         }
-        let planner = Planner::new(&camera, &self.frame.grid, &options)?;
+        let frame = self.state.frame();
+        let planner = Planner::new(&camera, &frame.grid, &options)?;
         let BatchPlan::Draw { projection, .. } =
-            planner.plan(&self.frame.quant, &self.frame.bounds, self.capacity() as usize)
+            planner.plan(&frame.quant, &frame.bounds, self.capacity() as usize)
         else {
             return Ok(Some(0));
         };

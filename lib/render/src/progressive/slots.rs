@@ -1,24 +1,19 @@
-//! The host's bookkeeping of the GPU progressive renderer's slots ([`SlotBook`]): a bit per slot
-//! of what arrived, the ranges of input indices that arrived ([`Ranges`]: duplicates and
-//! recolouring are checked there), a bit per slot drawn since the view last changed (the
-//! convergence test) and Fill's cursor.
+//! The host's bookkeeping of the GPU progressive renderer's slots ([`SlotBook`]), besides the
+//! state it shares with the CPU renderer ([`ProgressiveState`]: points loaded, Fill's cursor, the
+//! slots drawn since the view changed): a bit per slot of what arrived (the CPU renderer reads it
+//! from its words), the ranges of input indices that arrived ([`Ranges`]: duplicates and
+//! recolouring are checked there), and Fill's runs split at the chunks of the shuffled buffer.
 
 use super::insert::SortedSlots;
-use rayon::prelude::*;
+use mortar_core::render::progressive::ProgressiveState;
 use std::sync::atomic::{AtomicU64, Ordering};
 
-/// The host's bookkeeping of the slots, as the CPU renderer keeps it.
+/// The host's bookkeeping of the slots that only the GPU renderer needs.
 pub(super) struct SlotBook {
     /// A bit per slot: its point arrived.
     pub(super) loaded_bits: Vec<AtomicU64>,
-    pub(super) loaded: u64,
     /// The input indices that arrived, as ranges (duplicates and recolouring are checked here).
     pub(super) arrived: Ranges,
-    /// A bit per slot: drawn since the view last changed, and how many.
-    pub(super) done: Vec<u64>,
-    pub(super) done_count: u64,
-    /// The next slot Fill draws.
-    pub(super) cursor: u64,
 }
 
 /// A set of `u64` indices kept as disjoint, non-adjacent ranges `[start, end)`.
@@ -66,16 +61,11 @@ impl Ranges {
 }
 
 impl SlotBook {
-    /// The bookkeeping of `slots` slots, none loaded or drawn, Fill's cursor at slot 0.
+    /// The bookkeeping of `slots` slots, none loaded.
     pub(super) fn new(slots: usize) -> SlotBook {
-        let words64 = slots.div_ceil(64);
         SlotBook {
-            loaded_bits: (0..words64).map(|_| AtomicU64::new(0)).collect(),
-            loaded: 0,
+            loaded_bits: (0..slots.div_ceil(64)).map(|_| AtomicU64::new(0)).collect(),
             arrived: Ranges::default(),
-            done: vec![0; words64],
-            done_count: 0,
-            cursor: 0,
         }
     }
 
@@ -87,98 +77,68 @@ impl SlotBook {
     }
 
     /// Records that input points `first..first + n`, whose slots are `slots`, arrived: their
-    /// loaded bits, the count, the range of input indices.
+    /// loaded bits and the range of input indices (the state counts them).
     pub(super) fn arrive(&mut self, first: u64, n: usize, slots: &SortedSlots) {
         slots.apply(&mut self.loaded_bits);
-        self.loaded += n as u64;
         self.arrived.insert(first, first + n as u64);
     }
 
-    /// Starts convergence over (the view changed): no slot drawn since.
-    pub(super) fn restart(&mut self) {
-        self.done.par_iter_mut().with_min_len(1 << 14).for_each(|w| *w = 0);
-        self.done_count = 0;
-    }
-
-    /// The runs of Fill for `count` slots from the cursor (wrapping around), split at chunk
+    /// The runs of Fill for `count` slots from `state`'s cursor (wrapping around), split at chunk
     /// boundaries, as `(chunk, offset in chunk, slots)`; advances the cursor and marks the loaded
     /// slots drawn. Returns the runs and the points (loaded slots) among them. The chunks are
-    /// those of the renderer: `chunk_slots` slots each, the last one the rest of `capacity`.
+    /// those of the renderer: `chunk_slots` slots each, the last one the rest of the capacity.
     pub(super) fn sweep(
-        &mut self,
+        &self,
+        state: &mut ProgressiveState,
         count: u64,
         chunk_slots: u32,
-        capacity: u64,
     ) -> (Vec<(usize, u32, u32)>, u64) {
-        let n = capacity;
-        let mut left = count.min(n);
+        let mut left = count.min(state.capacity());
         let mut runs = Vec::new();
         let mut points = 0;
+        let bits = &self.loaded_bits;
         while left > 0 {
-            let s = self.cursor;
-            let c = (s / chunk_slots as u64) as usize;
+            let c = (state.cursor() / chunk_slots as u64) as usize;
             let chunk_first = c as u64 * chunk_slots as u64;
-            let chunk_end = (chunk_first + chunk_slots as u64).min(n);
-            let e = (s + left).min(chunk_end);
+            let (s, e) = state.next_run(left, chunk_first + chunk_slots as u64);
             runs.push((c, (s - chunk_first) as u32, (e - s) as u32));
-            points += self.mark(s as usize, e as usize, capacity);
+            points += state.mark_drawn(s as usize, e as usize, |w| bits[w].load(Ordering::Relaxed));
             left -= e - s;
-            self.cursor = if e == n { 0 } else { e };
+            state.advance(e);
         }
         (runs, points)
-    }
-
-    /// Marks the loaded slots of `[s, e)` drawn since the view changed; returns how many there are.
-    pub(super) fn mark(&mut self, s: usize, e: usize, capacity: u64) -> u64 {
-        let all = self.loaded == capacity;
-        let (ws, we) = (s / 64, e.div_ceil(64));
-        let bits = &self.loaded_bits[ws..we];
-        let (points, new): (u64, u64) = self.done[ws..we]
-            .par_iter_mut()
-            .zip(bits)
-            .enumerate()
-            .with_min_len(1024)
-            .map(|(k, (d, l))| {
-                let w = ws + k;
-                let lo = s.max(w * 64) - w * 64;
-                let hi = e.min(w * 64 + 64) - w * 64;
-                let range = if hi - lo == 64 { u64::MAX } else { ((1u64 << (hi - lo)) - 1) << lo };
-                let mask = if all { range } else { range & l.load(Ordering::Relaxed) };
-                let new = (mask & !*d).count_ones() as u64;
-                *d |= mask;
-                (mask.count_ones() as u64, new)
-            })
-            .reduce(|| (0, 0), |a, b| (a.0 + b.0, a.1 + b.1));
-        self.done_count += new;
-        points
-    }
-
-    /// Whether every slot is loaded and drawn since the view last changed.
-    pub(super) fn converged(&self, capacity: u64) -> bool {
-        self.loaded == capacity && self.done_count == capacity
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use mortar_core::render::progressive::Shuffle;
+    use mortar_core::grid::Grid;
+    use mortar_core::render::progressive::{ProgressiveFrame, Shuffle};
+    use mortar_core::render::{Aabb, Camera, RasterOptions, ViewPreset};
 
-    /// A book of `capacity` slots in which input points `first..first + n` arrived at the slots
-    /// `target` gives them.
+    /// The shared state of `capacity` slots.
+    fn state(capacity: u64) -> ProgressiveState {
+        let grid = Grid { scale: [0.01; 3], offset: [0.0; 3] };
+        ProgressiveState::new(ProgressiveFrame::exact(grid, [0; 3], [100; 3]).unwrap(), capacity)
+            .unwrap()
+    }
+
+    /// Input points `first..first + n` arrive at the slots `target` gives them.
     fn arrived(
         book: &mut SlotBook,
+        state: &mut ProgressiveState,
         first: u32,
         n: usize,
         target: impl Fn(u32) -> u32 + Sync,
-    ) -> SortedSlots {
+    ) {
         let slots = SortedSlots::new(book.loaded_bits.len(), first, n, target);
         book.arrive(first as u64, n, &slots);
-        slots
+        state.add_loaded(n);
     }
 
-    fn done_bits(book: &SlotBook, capacity: u32) -> Vec<u32> {
-        (0..capacity).filter(|&s| book.done[s as usize / 64] >> (s % 64) & 1 == 1).collect()
+    fn drawn(state: &ProgressiveState) -> Vec<u32> {
+        (0..state.capacity() as u32).filter(|&s| state.is_drawn(s)).collect()
     }
 
     #[test]
@@ -254,15 +214,16 @@ mod tests {
     }
 
     #[test]
-    fn arrivals_set_loaded_bits_counts_and_ranges() {
+    fn arrivals_set_loaded_bits_and_ranges() {
         let capacity = 1000u32;
         let shuffle = Shuffle::new(capacity);
         let mut book = SlotBook::new(capacity as usize);
+        let mut st = state(capacity as u64);
         assert_eq!(book.loaded_bits.len(), 16);
         assert!((0..capacity).all(|s| !book.is_loaded(s)));
-        arrived(&mut book, 100, 250, |i| shuffle.target(i));
-        arrived(&mut book, 350, 50, |i| shuffle.target(i));
-        assert_eq!(book.loaded, 300);
+        arrived(&mut book, &mut st, 100, 250, |i| shuffle.target(i));
+        arrived(&mut book, &mut st, 350, 50, |i| shuffle.target(i));
+        assert_eq!(st.loaded(), 300);
         for i in 0..capacity {
             assert_eq!(book.is_loaded(shuffle.target(i)), (100..400).contains(&i), "point {i}");
         }
@@ -281,44 +242,32 @@ mod tests {
     fn fill_runs_split_at_chunks_and_wrap_around() {
         // 10 slots in chunks of 4: [0, 4), [4, 8), [8, 10).
         let mut book = SlotBook::new(10);
-        arrived(&mut book, 0, 10, |i| i);
-        assert_eq!(book.sweep(6, 4, 10), (vec![(0, 0, 4), (1, 0, 2)], 6));
-        assert_eq!(book.cursor, 6);
-        assert!(!book.converged(10));
+        let mut st = state(10);
+        arrived(&mut book, &mut st, 0, 10, |i| i);
+        assert_eq!(book.sweep(&mut st, 6, 4), (vec![(0, 0, 4), (1, 0, 2)], 6));
+        assert_eq!(st.cursor(), 6);
+        assert!(!st.converged());
         // Through the end of the buffer and around.
-        assert_eq!(book.sweep(6, 4, 10), (vec![(1, 2, 2), (2, 0, 2), (0, 0, 2)], 6));
-        assert_eq!(book.cursor, 2);
-        assert!(book.converged(10));
+        assert_eq!(book.sweep(&mut st, 6, 4), (vec![(1, 2, 2), (2, 0, 2), (0, 0, 2)], 6));
+        assert_eq!(st.cursor(), 2);
+        assert!(st.converged());
         // A budget past the capacity sweeps the buffer once.
-        assert_eq!(book.sweep(25, 4, 10), (vec![(0, 2, 2), (1, 0, 4), (2, 0, 2), (0, 0, 2)], 10));
-        assert_eq!(book.cursor, 2);
+        assert_eq!(
+            book.sweep(&mut st, 25, 4),
+            (vec![(0, 2, 2), (1, 0, 4), (2, 0, 2), (0, 0, 2)], 10)
+        );
+        assert_eq!(st.cursor(), 2);
         // Ending exactly at the end puts the cursor back at 0; a budget of 0 draws nothing.
-        assert_eq!(book.sweep(8, 4, 10), (vec![(0, 2, 2), (1, 0, 4), (2, 0, 2)], 8));
-        assert_eq!(book.cursor, 0);
-        assert_eq!(book.sweep(0, 4, 10), (vec![], 0));
-        assert_eq!(book.cursor, 0);
+        assert_eq!(book.sweep(&mut st, 8, 4), (vec![(0, 2, 2), (1, 0, 4), (2, 0, 2)], 8));
+        assert_eq!(st.cursor(), 0);
+        assert_eq!(book.sweep(&mut st, 0, 4), (vec![], 0));
+        assert_eq!(st.cursor(), 0);
         // One chunk of every slot.
         let mut one = SlotBook::new(10);
-        arrived(&mut one, 0, 10, |i| i);
-        assert_eq!(one.sweep(7, 16, 10), (vec![(0, 0, 7)], 7));
-        assert_eq!(one.sweep(7, 16, 10), (vec![(0, 7, 3), (0, 0, 4)], 7));
-    }
-
-    #[test]
-    fn marks_count_new_slots_across_words() {
-        let mut book = SlotBook::new(200);
-        arrived(&mut book, 0, 200, |i| i);
-        assert_eq!(book.mark(60, 130, 200), 70);
-        assert_eq!(book.done_count, 70);
-        // Overlapping: every slot of the run is a point, only the new ones are counted as drawn.
-        assert_eq!(book.mark(100, 140, 200), 40);
-        assert_eq!(book.done_count, 80);
-        assert_eq!(done_bits(&book, 200), (60..140).collect::<Vec<_>>());
-        // Whole words, and the last, partial one.
-        assert_eq!(book.mark(0, 200, 200), 200);
-        assert_eq!(book.done_count, 200);
-        assert!(book.converged(200));
-        assert_eq!(book.mark(64, 64, 200), 0);
+        let mut st = state(10);
+        arrived(&mut one, &mut st, 0, 10, |i| i);
+        assert_eq!(one.sweep(&mut st, 7, 16), (vec![(0, 0, 7)], 7));
+        assert_eq!(one.sweep(&mut st, 7, 16), (vec![(0, 7, 3), (0, 0, 4)], 7));
     }
 
     #[test]
@@ -328,35 +277,43 @@ mod tests {
         let capacity = 300u32;
         let shuffle = Shuffle::new(capacity);
         let mut book = SlotBook::new(capacity as usize);
-        arrived(&mut book, 0, 150, |i| shuffle.target(i));
-        let (runs, points) = book.sweep(capacity as u64, 128, capacity as u64);
+        let mut st = state(capacity as u64);
+        let view = |w| {
+            Camera::frame_orthographic(&Aabb::new([0.0; 3], [1.0; 3]), ViewPreset::Top, w, 16)
+                .unwrap()
+        };
+        let options = RasterOptions::default();
+        st.begin_frame(&view(16), &options);
+        arrived(&mut book, &mut st, 0, 150, |i| shuffle.target(i));
+        let (runs, points) = book.sweep(&mut st, capacity as u64, 128);
         assert_eq!(runs, vec![(0, 0, 128), (1, 0, 128), (2, 0, 44)]);
         assert_eq!(points, 150);
-        assert_eq!(book.done_count, 150);
-        let drawn = done_bits(&book, capacity);
-        assert!(drawn.iter().all(|&s| book.is_loaded(s)) && drawn.len() == 150);
-        assert!(!book.converged(capacity as u64));
+        assert_eq!(st.drawn(), 150);
+        let d = drawn(&st);
+        assert!(d.iter().all(|&s| book.is_loaded(s)) && d.len() == 150);
+        assert!(!st.converged());
         // The rest arrives: the slots drawn stay drawn, the new ones are not yet, so no
         // convergence until Fill swept them.
-        arrived(&mut book, 150, 150, |i| shuffle.target(i));
-        assert_eq!(book.loaded, capacity as u64);
-        assert!(!book.converged(capacity as u64));
-        let (_, points) = book.sweep(100, 128, capacity as u64);
+        arrived(&mut book, &mut st, 150, 150, |i| shuffle.target(i));
+        assert_eq!(st.loaded(), capacity as u64);
+        st.begin_frame(&view(16), &options);
+        assert!(!st.converged());
+        let (_, points) = book.sweep(&mut st, 100, 128);
         assert_eq!(points, 100, "every slot holds a point now");
-        assert!(!book.converged(capacity as u64));
-        book.sweep(200, 128, capacity as u64);
-        assert!(book.converged(capacity as u64));
+        assert!(!st.converged());
+        book.sweep(&mut st, 200, 128);
+        assert!(st.converged());
         // A new view starts over: nothing drawn since, the cursor stays where it was.
-        let cursor = book.cursor;
-        book.restart();
-        assert_eq!((book.done_count, book.cursor), (0, cursor));
-        assert!(book.done.iter().all(|&w| w == 0));
-        assert!(!book.converged(capacity as u64));
-        book.sweep(capacity as u64, 128, capacity as u64);
-        assert!(book.converged(capacity as u64));
+        let cursor = st.cursor();
+        st.begin_frame(&view(32), &options);
+        assert_eq!((st.drawn(), st.cursor()), (0, cursor));
+        assert!(drawn(&st).is_empty() && !st.converged());
+        book.sweep(&mut st, capacity as u64, 128);
+        assert!(st.converged());
         // No slots: converged from the start, Fill draws nothing.
-        let mut empty = SlotBook::new(0);
-        assert!(empty.converged(0));
-        assert_eq!(empty.sweep(10, 128, 0), (vec![], 0));
+        let empty = SlotBook::new(0);
+        let mut st = state(0);
+        assert!(st.converged());
+        assert_eq!(empty.sweep(&mut st, 10, 128), (vec![], 0));
     }
 }

@@ -9,8 +9,9 @@
 
 use super::budget::{FillBudget, ProbeTimings};
 use super::error::ProgressiveError;
-use super::frame::{piece_box, ProgressiveFrame};
+use super::frame::ProgressiveFrame;
 use super::shuffle::Shuffle;
+use super::state::ProgressiveState;
 use super::stats::FrameStats;
 use crate::grid::Grid;
 use crate::par::SendPtr;
@@ -56,10 +57,11 @@ impl Gathered {
             .step_by(CHUNK)
             .map(|s| {
                 let e = (s + CHUNK).min(self.indices.len());
+                let frame = r.state.frame();
                 GatheredRef {
-                    grid: r.frame.quant,
-                    bounds_min: r.frame.bounds.min,
-                    bounds_max: r.frame.bounds.max,
+                    grid: frame.quant,
+                    bounds_min: frame.bounds.min,
+                    bounds_max: frame.bounds.max,
                     words: [0, 1, 2].map(|k| &self.words[k][s..e]),
                     indices: &self.indices[s..e],
                 }
@@ -98,27 +100,43 @@ impl Slots {
 /// keys and resolve as the batch rasterizer). See the documentation of [`progressive`](super).
 #[derive(Debug)]
 pub struct ProgressiveRenderer {
-    frame: ProgressiveFrame,
-    shuffle: Shuffle,
+    /// The shuffle, the frame, the points loaded, Fill's cursor, the view and the slots drawn
+    /// since it changed: the state the GPU twin shares.
+    state: ProgressiveState,
     /// Coarse, medium, fine words in shuffled order; an empty slot's coarse word is [`UNLOADED`].
     words: [Vec<u32>; 3],
     payload: Vec<u64>,
-    loaded: u64,
     /// The Reproject buffer, in parts made in parallel (slot order).
     reproject: Vec<Gathered>,
-    /// Next slot Fill draws.
-    cursor: u64,
     fb: Option<Framebuffer>,
-    view: Option<(Camera, RasterOptions)>,
-    /// Slots drawn since the view last changed (bit per slot), and how many.
-    done: Vec<u64>,
     /// Scratch bitmap of the visible slots for Prepare (all zero between frames).
     visible_bits: Vec<AtomicU64>,
-    done_count: u64,
-    frames: u64,
-    last_prepare_ms: f64,
-    /// Times the frame grew.
-    grown: u32,
+}
+
+/// Moves every word held (the shuffled buffer's and the Reproject buffer's) from the frame
+/// `from` into the frame `to`, exactly (what the renderer does when its frame grows; the state
+/// then starts convergence over, as the planner's bounds changed, so its precision choices may
+/// have).
+fn reencode(
+    words: &mut [Vec<u32>; 3],
+    reproject: &mut [Gathered],
+    from: &BatchGrid,
+    to: &ProgressiveFrame,
+) {
+    let [c, m, f] = words;
+    c.par_iter_mut().zip(m.par_iter_mut()).zip(f.par_iter_mut()).with_min_len(4096).for_each(
+        |((c, m), f)| {
+            if *c != UNLOADED {
+                [*c, *m, *f] = to.reencode(from, [*c, *m, *f]);
+            }
+        },
+    );
+    for g in reproject {
+        let [c, m, f] = &mut g.words;
+        for i in 0..c.len() {
+            [c[i], m[i], f[i]] = to.reencode(from, [c[i], m[i], f[i]]);
+        }
+    }
 }
 
 impl ProgressiveRenderer {
@@ -140,67 +158,64 @@ impl ProgressiveRenderer {
         frame: ProgressiveFrame,
         capacity: u64,
     ) -> Result<ProgressiveRenderer, ProgressiveError> {
-        let len = u32::try_from(capacity).map_err(|_| ProgressiveError::TooManyPoints(capacity))?;
-        let n = len as usize;
+        let state = ProgressiveState::new(frame, capacity)?;
+        let n = state.capacity() as usize;
         let mut coarse = Vec::with_capacity(n);
         coarse.resize(n, UNLOADED);
         Ok(ProgressiveRenderer {
-            frame,
-            shuffle: Shuffle::new(len),
+            state,
             words: [coarse, vec![0; n], vec![0; n]],
             payload: vec![0; n],
-            loaded: 0,
             reproject: Vec::new(),
-            cursor: 0,
             fb: None,
-            view: None,
-            done: vec![0; n.div_ceil(64)],
             visible_bits: (0..n.div_ceil(64)).map(|_| AtomicU64::new(0)).collect(),
-            done_count: 0,
-            frames: 0,
-            last_prepare_ms: 0.0,
-            grown: 0,
         })
+    }
+
+    /// The state the renderer shares with its GPU twin: shuffle, frame, points loaded, Fill's
+    /// cursor, view, slots drawn since it changed.
+    pub fn state(&self) -> &ProgressiveState {
+        &self.state
     }
 
     /// Number of points the renderer holds once everything arrived.
     pub fn capacity(&self) -> u64 {
-        self.shuffle.len() as u64
+        self.state.capacity()
     }
 
     /// Points inserted so far.
     pub fn loaded(&self) -> u64 {
-        self.loaded
+        self.state.loaded()
     }
 
     /// The shuffle placing input index `i` at slot `shuffle().target(i)`.
     pub fn shuffle(&self) -> &Shuffle {
-        &self.shuffle
+        self.state.shuffle()
     }
 
     /// The quantization frame of the words.
     pub fn quantization(&self) -> &BatchGrid {
-        &self.frame.quant
+        &self.state.frame().quant
     }
 
     /// The frame: quantization, bounds, and the box of the points expected and arrived.
     pub fn frame_state(&self) -> &ProgressiveFrame {
-        &self.frame
+        self.state.frame()
     }
 
     /// World bounds of the frame.
     pub fn bounds(&self) -> &Aabb {
-        &self.frame.bounds
+        &self.state.frame().bounds
     }
 
     /// The integer grid of the points.
     pub fn grid(&self) -> &Grid {
-        &self.frame.grid
+        &self.state.frame().grid
     }
 
     /// Frames drawn so far.
     pub fn frames(&self) -> u64 {
-        self.frames
+        self.state.frames()
     }
 
     /// Inserts points `first..first + xyz.len()` of the input (integer coordinates on the grid)
@@ -218,11 +233,8 @@ impl ProgressiveRenderer {
                 payloads: payload.len(),
             });
         }
-        let end = first.saturating_add(xyz.len() as u64);
-        if end > self.capacity() {
-            return Err(ProgressiveError::IndexRange { first, end, capacity: self.capacity() });
-        }
-        let shuffle = self.shuffle;
+        self.state.check_range(first, xyz.len())?;
+        let shuffle = *self.state.shuffle();
         let targets: Vec<u32> = (0..xyz.len())
             .into_par_iter()
             .with_min_len(4096)
@@ -233,13 +245,12 @@ impl ProgressiveRenderer {
         }
         // Points outside the frame grow it (the words held are re-encoded; fails unchanged past
         // 30 bits).
-        if let Some(b) = piece_box(xyz) {
-            if let Some(grown) = self.frame.grown(b)? {
-                self.reframe(grown);
-            }
-            self.frame.data = self.frame.data.union(b);
-        }
-        let frame = self.frame.quant;
+        let (words, reproject) = (&mut self.words, &mut self.reproject);
+        self.state.grow_for(xyz, |from, to| {
+            reencode(words, reproject, &from.quant, to);
+            Ok::<(), ProgressiveError>(())
+        })?;
+        let frame = self.state.frame().quant;
         let [c, m, f] = &mut self.words;
         let out = Slots {
             words: [SendPtr(c.as_mut_ptr()), SendPtr(m.as_mut_ptr()), SendPtr(f.as_mut_ptr())],
@@ -253,36 +264,13 @@ impl ProgressiveRenderer {
             // the same slot; the buffers are borrowed mutably for the whole loop.
             unsafe { out.write(targets[k] as usize, frame.encode(xyz[k]), payload[k]) };
         });
-        self.loaded += xyz.len() as u64;
+        self.state.add_loaded(xyz.len());
         Ok(())
-    }
-
-    /// Moves every word held into the frame `to` (exactly) and starts convergence over (the
-    /// planner's bounds changed, so its precision choices may have).
-    fn reframe(&mut self, to: ProgressiveFrame) {
-        let from = self.frame.quant;
-        let [c, m, f] = &mut self.words;
-        c.par_iter_mut().zip(m.par_iter_mut()).zip(f.par_iter_mut()).with_min_len(4096).for_each(
-            |((c, m), f)| {
-                if *c != UNLOADED {
-                    [*c, *m, *f] = to.reencode(&from, [*c, *m, *f]);
-                }
-            },
-        );
-        for g in &mut self.reproject {
-            let [c, m, f] = &mut g.words;
-            for i in 0..c.len() {
-                [c[i], m[i], f[i]] = to.reencode(&from, [c[i], m[i], f[i]]);
-            }
-        }
-        self.frame = to;
-        self.view = None;
-        self.grown += 1;
     }
 
     /// How often the frame grew to hold points outside it.
     pub fn growths(&self) -> u32 {
-        self.grown
+        self.state.growths()
     }
 
     /// Replaces the payloads of points `first..first + payload.len()` of the input (already
@@ -294,11 +282,8 @@ impl ProgressiveRenderer {
         first: u64,
         payload: &[u64],
     ) -> Result<(), ProgressiveError> {
-        let end = first.saturating_add(payload.len() as u64);
-        if end > self.capacity() {
-            return Err(ProgressiveError::IndexRange { first, end, capacity: self.capacity() });
-        }
-        let shuffle = self.shuffle;
+        self.state.check_range(first, payload.len())?;
+        let shuffle = *self.state.shuffle();
         let targets: Vec<u32> = (0..payload.len())
             .into_par_iter()
             .with_min_len(4096)
@@ -338,14 +323,15 @@ impl ProgressiveRenderer {
     pub fn position(&self, slot: u32) -> Option<[i32; 3]> {
         let s = slot as usize;
         self.is_loaded(slot).then(|| {
-            self.frame.quant.decode_exact([self.words[0][s], self.words[1][s], self.words[2][s]])
+            let quant = &self.state.frame().quant;
+            quant.decode_exact([self.words[0][s], self.words[1][s], self.words[2][s]])
         })
     }
 
     /// Every point as [`BatchRef`]s over the shuffled buffer, for the brute-force [`rasterize`] of
     /// all points in this renderer's frame; `None` until every point arrived.
     pub fn all_points(&self) -> Option<Vec<BatchRef<'_>>> {
-        (self.loaded == self.capacity()).then(|| self.slot_refs(0, self.capacity() as usize))
+        self.state.all_loaded().then(|| self.slot_refs(0, self.capacity() as usize))
     }
 
     /// The visibility buffer of the last frame (row-major depth|index keys; indices are slots),
@@ -365,16 +351,17 @@ impl ProgressiveRenderer {
     /// point arrived and a frame was drawn.
     pub fn depth_ties(&self) -> Result<Option<u64>, ProgressiveError> {
         let (Some(all), Some((camera, options)), Some(fb)) =
-            (self.all_points(), self.view, &self.fb)
+            (self.all_points(), self.state.view(), &self.fb)
         else {
             return Ok(None);
         };
-        Ok(Some(count_depth_ties(&fb.keys(), &all, &self.frame.grid, &camera, &options)?))
+        let grid = &self.state.frame().grid;
+        Ok(Some(count_depth_ties(&fb.keys(), &all, grid, &camera, &options)?))
     }
 
     /// Whether the last frame's image is final (see [`FrameStats::converged`]).
     pub fn converged(&self) -> bool {
-        self.loaded == self.capacity() && self.done_count == self.capacity()
+        self.state.converged()
     }
 
     fn slot_refs(&self, s: usize, e: usize) -> Vec<BatchRef<'_>> {
@@ -382,38 +369,16 @@ impl ProgressiveRenderer {
             .step_by(CHUNK)
             .map(|a| {
                 let b = (a + CHUNK).min(e);
+                let frame = self.state.frame();
                 BatchRef {
-                    grid: self.frame.quant,
-                    bounds_min: self.frame.bounds.min,
-                    bounds_max: self.frame.bounds.max,
+                    grid: frame.quant,
+                    bounds_min: frame.bounds.min,
+                    bounds_max: frame.bounds.max,
                     words: [0, 1, 2].map(|k| &self.words[k][a..b]),
                     first_index: a as u32,
                 }
             })
             .collect()
-    }
-
-    /// Marks slots `[s, e)` drawn since the view changed.
-    fn mark_range(&mut self, s: usize, e: usize) {
-        let mut i = s;
-        while i < e {
-            let w = i / 64;
-            let lo = i % 64;
-            let hi = (e - w * 64).min(64);
-            let mask = if hi - lo == 64 { u64::MAX } else { ((1u64 << (hi - lo)) - 1) << lo };
-            self.done_count += (mask & !self.done[w]).count_ones() as u64;
-            self.done[w] |= mask;
-            i = w * 64 + hi;
-        }
-    }
-
-    /// Marks one slot drawn since the view changed.
-    fn mark(&mut self, slot: u32) {
-        let (w, b) = (slot as usize / 64, slot % 64);
-        if self.done[w] & (1 << b) == 0 {
-            self.done[w] |= 1 << b;
-            self.done_count += 1;
-        }
     }
 
     /// Fill: draws slots `[cursor, cursor + count)` (wrapping) into the framebuffer. Returns the
@@ -430,14 +395,15 @@ impl ProgressiveRenderer {
         let mut stats = RasterStats::default();
         let mut left = count;
         while left > 0 {
-            let s = self.cursor as usize;
-            let e = (self.cursor + left).min(n) as usize;
+            let (s, e) = self.state.next_run(left, n);
+            let (s, e) = (s as usize, e as usize);
             let fb = self.fb.as_ref().expect("framebuffer made before the passes");
-            if self.loaded == n {
-                let st = rasterize(fb, &self.slot_refs(s, e), &self.frame.grid, camera, options)?;
+            let grid = &self.state.frame().grid;
+            if self.state.all_loaded() {
+                let st = rasterize(fb, &self.slot_refs(s, e), grid, camera, options)?;
                 stats = stats.merge(st);
                 points += (e - s) as u64;
-                self.mark_range(s, e);
+                self.state.mark_drawn(s, e, |_| u64::MAX);
             } else {
                 // Loading in progress: draw the slots whose point arrived (the paper discards the
                 // others in the vertex shader).
@@ -460,17 +426,17 @@ impl ProgressiveRenderer {
                     })
                     .collect();
                 let refs: Vec<GatheredRef<'_>> = parts.iter().flat_map(|g| g.refs(self)).collect();
-                let st = rasterize_gathered(fb, &refs, &self.frame.grid, camera, options)?;
+                let st = rasterize_gathered(fb, &refs, grid, camera, options)?;
                 stats = stats.merge(st);
                 for g in &parts {
                     points += g.indices.len() as u64;
                     for &slot in &g.indices {
-                        self.mark(slot);
+                        self.state.mark_slot(slot);
                     }
                 }
             }
             left -= (e - s) as u64;
-            self.cursor = if e as u64 == n { 0 } else { e as u64 };
+            self.state.advance(e as u64);
         }
         Ok((points, stats))
     }
@@ -491,29 +457,19 @@ impl ProgressiveRenderer {
             Some(fb) if fb.width() == camera.width && fb.height() == camera.height => fb.clear(),
             fb => *fb = Some(Framebuffer::new(camera.width, camera.height)),
         }
-        if self.view != Some((*camera, *options)) {
-            self.view = Some((*camera, *options));
-            self.done.iter_mut().for_each(|w| *w = 0);
-            self.done_count = 0;
-        }
-        self.frames += 1;
-        let mut st =
-            FrameStats { frame: self.frames, loaded: self.loaded, ..FrameStats::default() };
+        let mut st = self.state.begin_frame(camera, options);
 
         // Reproject: the points visible at the end of the last frame, from their coordinates.
         let fb = self.fb.as_ref().expect("made above");
         let refs: Vec<GatheredRef<'_>> = self.reproject.iter().flat_map(|g| g.refs(self)).collect();
-        st.raster = rasterize_gathered(fb, &refs, &self.frame.grid, camera, options)?;
+        st.raster = rasterize_gathered(fb, &refs, &self.state.frame().grid, camera, options)?;
         st.reprojected = refs.iter().map(|g| g.len() as u64).sum();
         let t_reproject = start.elapsed();
         st.reproject_ms = t_reproject.as_secs_f64() * 1e3;
 
         // Fill: the next slots of the shuffled buffer.
         let t = Instant::now();
-        let (first, extra) = match budget {
-            FillBudget::Fixed(b) => (*b, None),
-            FillBudget::Adaptive(a) => (a.probe_points.min(n), Some(a)),
-        };
+        let (first, extra) = self.state.first_fill(budget);
         let (points, stats) = self.sweep(first, camera, options)?;
         st.filled = first.min(n);
         st.fill_points = points;
@@ -524,7 +480,7 @@ impl ProgressiveRenderer {
                 probe_points: st.probe,
                 probe_ms: t.elapsed().as_secs_f64() * 1e3,
                 elapsed_ms: start.elapsed().as_secs_f64() * 1e3,
-                after_fill_ms: self.last_prepare_ms,
+                after_fill_ms: self.state.after_fill_ms(),
             };
             let more = a.extra_points(&timings).min(n - st.filled);
             let (points, stats) = self.sweep(more, camera, options)?;
@@ -566,10 +522,10 @@ impl ProgressiveRenderer {
             .collect();
         st.visible = self.reproject.iter().map(|g| g.indices.len() as u64).sum();
         st.prepare_ms = t.elapsed().as_secs_f64() * 1e3;
-        self.last_prepare_ms = st.prepare_ms;
+        self.state.set_after_fill_ms(st.prepare_ms);
 
         st.total_ms = start.elapsed().as_secs_f64() * 1e3;
-        st.converged = self.converged();
+        st.converged = self.state.converged();
         Ok(st)
     }
 }
