@@ -42,7 +42,7 @@
 //! feeding [`AdaptiveBudget`]); its keys equal this renderer's frame by frame for the same budgets.
 //!
 //! The interactive window (`mortar view` on raw LAS/LAZ) drives this renderer or its GPU twin
-//! (mortar-app's `viewer::progressive`). Not implemented: MSAA (paper §3.4: it acts as
+//! (mortar-app's `viewer::progressive_view`). Not implemented: MSAA (paper §3.4: it acts as
 //! supersampling).
 //!
 //! The files, one concept each:
