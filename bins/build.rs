@@ -59,12 +59,13 @@ pub struct Args {
     /// Points per octree update.
     #[arg(long, default_value_t = 1_000_000)]
     pub batch_points: usize,
-    /// Memory budget, e.g. 2G (the default). An input that fits it is sorted in memory and the
-    /// tree made in one pass (the sorted engine); a larger one is partitioned by Morton cell into
-    /// run files in the store and built one unit of the budget's size at a time (the partitioned
-    /// engine; a cell denser than a unit is partitioned again).
-    #[arg(long, value_parser = common::parse_size, default_value = "2G")]
-    pub memory: u64,
+    /// Memory budget, e.g. 8G (default: half the machine's memory, at most 16G, at least 256M,
+    /// as for `sort`). An input that fits it is sorted in memory and the tree made in one pass
+    /// (the sorted engine); a larger one is partitioned by Morton cell into run files in the
+    /// store and built one unit of the budget's size at a time (the partitioned engine; a cell
+    /// denser than a unit is partitioned again).
+    #[arg(long, value_parser = common::parse_size)]
+    pub memory: Option<u64>,
     /// The build engine: auto (sorted when the input fits --memory, else partitioned; incremental
     /// for --averaged-colors), sorted, partitioned or incremental. All build the same tree.
     #[arg(long, value_enum, default_value_t = EngineArg::Auto)]
@@ -92,6 +93,7 @@ const PREVIEW_COMMIT_EVERY: f64 = 1.0;
 const PREVIEW_FIRST_COMMIT: f64 = 0.25;
 
 pub fn run(a: Args) -> Result<()> {
+    let memory = a.memory.unwrap_or_else(mortar_io::sort::default_memory);
     if let Some(dir) = &a.compact {
         let r = mortar_io::store::compact(dir)?;
         if a.json {
@@ -118,7 +120,7 @@ pub fn run(a: Args) -> Result<()> {
         let paths: Vec<String> = plan.inputs.iter().map(|i| i.path.clone()).collect();
         let ds = common::open_dataset(&paths, &common::CrsArgs::default())?;
         let bar = common::progress_bar("mortar build (job)", &ds.progress);
-        let r = mortar_io::store::distributed::build_job(&ds, &plan, job, &output, a.memory)?;
+        let r = mortar_io::store::distributed::build_job(&ds, &plan, job, &output, memory)?;
         drop(bar);
         common::print_warnings(&r.warnings);
         if a.json {
@@ -143,7 +145,7 @@ pub fn run(a: Args) -> Result<()> {
         batch_points: a.batch_points.max(1),
         first_commit_after: None,
         commit_every: a.commit_every.max(0.0),
-        memory: a.memory,
+        memory,
         engine: a.engine.into(),
         resume: a.resume,
     };

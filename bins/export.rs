@@ -18,10 +18,11 @@ pub struct Args {
     /// copc, potree, or auto: copc for an output ending in .laz, else potree.
     #[arg(long, default_value = "auto")]
     pub format: String,
-    /// Memory budget, e.g. 8G (the default 2G). A larger input is exported through run files
-    /// on disk (beside the output), one subtree at a time.
-    #[arg(long, value_parser = common::parse_size, default_value = "2G")]
-    pub memory: u64,
+    /// Memory budget, e.g. 8G (default: half the machine's memory, at most 16G, at least 256M,
+    /// as for `sort`). A larger input is exported through run files on disk (beside the output),
+    /// one subtree at a time.
+    #[arg(long, value_parser = common::parse_size)]
+    pub memory: Option<u64>,
     /// Most points per leaf (default: 200,000 for COPC, where larger LAZ chunks compress
     /// better, 20 % smaller than at 50,000 (BENCHMARKS.md); 50,000 for Potree, whose viewers
     /// load nodes one request each).
@@ -93,7 +94,7 @@ pub fn run(a: Args) -> Result<()> {
     common::print_warnings(&ds.warnings);
     let opts = ExportOptions {
         format,
-        memory: a.memory,
+        memory: a.memory.unwrap_or_else(mortar_io::sort::default_memory),
         config: BuilderConfig { leaf_capacity, ..BuilderConfig::default() },
         order,
     };

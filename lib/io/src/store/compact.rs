@@ -1,6 +1,9 @@
 //! `mortar build --compact store/`: rewrites a store so that `nodes.bin` holds only the
 //! payloads its last commit uses (stores of the incremental engine keep superseded versions of
-//! nodes that changed between commits; the sorted engine writes each node once).
+//! nodes that changed between commits; the sorted engine writes each node once), and upgrades
+//! it: raw (version 2) payloads are coded (`codec.rs`; those larger than
+//! [`CODE_LIMIT`](super::codec::CODE_LIMIT) stay raw) and the hierarchy says
+//! version 3. So a version 2 store becomes a version 3 store of the same points.
 //!
 //! The compacted store is written beside the old one (`<store>.compacting`, every payload copied
 //! in hierarchy order, the commit protocol as in a build), then the directories are swapped by
@@ -63,13 +66,18 @@ pub fn compact(dir: &Path) -> Result<CompactReport> {
     for (i, e) in store.entries.iter().enumerate() {
         crate::cleanup::check_interrupted()?;
         let d = store.node_bytes(i);
+        // Raw (version 2) payloads are coded on the way, up to the size a build codes in memory.
+        let raw =
+            super::codec::codec_of(&bytemuck::pod_read_unaligned(&d[..64])) == super::codec::RAW;
+        let coded = raw.then(|| super::codec::encode(d.to_vec()));
+        let d = coded.as_deref().unwrap_or(d);
         out.write_all(d).map_err(|err| Error::io(&np, err))?;
-        entries.push(NodeEntry { offset: at, ..*e });
+        entries.push(NodeEntry { offset: at, length: d.len() as u64, ..*e });
         at += d.len() as u64;
     }
     let f = out.into_inner().map_err(|e| Error::io(&np, e.into_error()))?;
     f.sync_all().map_err(|e| Error::io(&np, e))?;
-    let header = HierarchyHeader { nodes_len: at, ..store.header };
+    let header = HierarchyHeader { nodes_len: at, version: VERSION, ..store.header };
     let mut bytes = bytemuck::bytes_of(&header).to_vec();
     bytes.extend_from_slice(bytemuck::cast_slice(&entries));
     let hp = tmp.join(HIERARCHY_FILE);

@@ -492,22 +492,36 @@ fn write_tree(
                 bytes += payload_len(tree.nodes[end].count() as u64, attr_len as u64);
                 end += 1;
             }
+            // Coded lengths are known once encoded: encode (in parallel), place, then write
+            // (nodes too large to encode in memory are written raw, in slices, in place).
+            let big = |i: usize| {
+                payload_len(tree.nodes[i].count() as u64, attr_len as u64)
+                    > writer.group_bytes.max(super::codec::CODE_LIMIT)
+            };
+            let coded: Vec<Option<(usize, NodeEntry, Vec<u8>)>> = (start..end)
+                .into_par_iter()
+                .map(|i| if big(i) { Ok(None) } else { encode(i, &tree.nodes[i]).map(Some) })
+                .collect::<Result<_>>()?;
             let lens: Vec<u64> = (start..end)
-                .map(|i| payload_len(tree.nodes[i].count() as u64, attr_len as u64))
+                .zip(&coded)
+                .map(|(i, c)| match c {
+                    Some((_, _, b)) => b.len() as u64,
+                    None => payload_len(tree.nodes[i].count() as u64, attr_len as u64),
+                })
                 .collect();
             let offsets = writer.reserve(&lens);
             let w = &*writer;
             let entries: Vec<NodeEntry> = (start..end)
                 .into_par_iter()
+                .zip(coded.into_par_iter())
                 .zip(offsets.into_par_iter())
-                .map(|(i, off)| {
-                    let n = &tree.nodes[i];
-                    let mut e = if payload_len(n.count() as u64, attr_len as u64) > w.group_bytes {
-                        write_sliced(w, off, n, attr_len, sorted, color)?
-                    } else {
-                        let (_, e, b) = encode(i, n)?;
-                        w.write_at(off, &b)?;
-                        e
+                .map(|((i, c), off)| {
+                    let mut e = match c {
+                        None => write_sliced(w, off, &tree.nodes[i], attr_len, sorted, color)?,
+                        Some((_, e, b)) => {
+                            w.write_at(off, &b)?;
+                            e
+                        }
                     };
                     prog.add(1);
                     e.offset = off;

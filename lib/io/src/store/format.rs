@@ -12,9 +12,12 @@ pub const HIERARCHY_FILE: &str = "hierarchy.bin";
 
 pub(crate) const NODE_MAGIC: [u8; 8] = *b"MORTNODE";
 pub(crate) const HIERARCHY_MAGIC: [u8; 8] = *b"MORTHIER";
-/// Version 2: inner nodes' voxels are real source points with their records (version 1 stored
-/// cell centres and colours only).
-pub(crate) const VERSION: u32 = 2;
+/// Version 3: payloads coded (`codec.rs`). Version 2: inner nodes' voxels are real source points
+/// with their records (version 1 stored cell centres and colours only). A version 3 store may hold
+/// raw (version 2) payloads: a version 2 store resumed or merged by this version is one.
+pub(crate) const VERSION: u32 = 3;
+/// The oldest version read: version 2 payloads are version 3's raw ones.
+pub(crate) const OLDEST_READ: u32 = 2;
 
 /// Node kinds.
 pub const LEAF: u32 = 0;
@@ -42,7 +45,8 @@ pub struct NodeHeader {
     /// Bytes of attributes per point after the colours (record length - 12 for leaves, 0 for
     /// inner nodes).
     pub attr_len: u32,
-    /// Zero.
+    /// Version 3 coding (`codec.rs`): codec, bytes of the coded body, colour mode; zero in raw
+    /// (version 2) payloads.
     pub _pad: [u32; 3],
 }
 
@@ -143,6 +147,7 @@ impl<'a> DecodedLeaf<'a> {
         let (n, al) = (h.count as usize, h.attr_len as usize);
         if h.magic != NODE_MAGIC
             || h.kind > INNER
+            || h._pad[0] != super::codec::RAW
             || (b.len() as u64) < payload_len(n as u64, al as u64)
             || h.bits[..3].iter().any(|&x| x > 30)
         {
@@ -178,9 +183,26 @@ impl<'a> DecodedLeaf<'a> {
 
 /// Encodes one node's payload (entry offset left 0) from its `count` points: `pos(i)`,
 /// `color(i)` and `attrs(i)` (the record's bytes after X, Y, Z: `attr_len` of them). One pass
-/// for the bounds, one that writes every column in place.
+/// for the bounds, one that writes every column in place, then the version 3 coding
+/// ([`codec::encode`](super::codec::encode)); [`encode_raw_payload`] stops before it.
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn encode_payload<'r>(
+    key: NodeKey,
+    kind: u32,
+    count: usize,
+    attr_len: usize,
+    pos: impl Fn(usize) -> [i32; 3],
+    color: impl Fn(usize) -> u32,
+    attrs: impl Fn(usize) -> &'r [u8],
+) -> std::result::Result<(NodeEntry, Vec<u8>), PayloadError> {
+    let (entry, raw) = encode_raw_payload(key, kind, count, attr_len, pos, color, attrs)?;
+    let coded = super::codec::encode(raw);
+    Ok((NodeEntry { length: coded.len() as u64, ..entry }, coded))
+}
+
+/// [`encode_payload`] without the coding: the version 2 bytes.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn encode_raw_payload<'r>(
     key: NodeKey,
     kind: u32,
     count: usize,
@@ -440,7 +462,8 @@ mod tests {
         let attrs: Vec<u8> = (0..n * attr_len).map(|b| (b * 31 % 251) as u8).collect();
         let attr = |i: usize| &attrs[i * attr_len..(i + 1) * attr_len];
         let key = NodeKey { level: 3, index: [1, 2, 3] };
-        let (want_entry, want) = encode_payload(key, LEAF, n, attr_len, pos, color, attr).unwrap();
+        let (want_entry, want) =
+            encode_raw_payload(key, LEAF, n, attr_len, pos, color, attr).unwrap();
         for slice in [1, 3, 64, 999, 1000, 5000] {
             let mut got = vec![0xAAu8; want.len()];
             let entry = write_payload_sliced::<()>(

@@ -184,6 +184,8 @@ impl StoreLod {
                 error: RenderError::TooManySamples { samples },
             });
         }
+        // Coded payloads are decoded here, in parallel, and a damaged one is an error.
+        nodes.par_iter().try_for_each(|&id| self.store.try_node(id.index()).map(|_| ()))?;
         nodes.par_iter().for_each(|&id| {
             self.sample_max(id);
         });

@@ -29,6 +29,7 @@
 
 mod bounds;
 mod build;
+pub(crate) mod codec;
 mod compact;
 pub(crate) mod dense;
 pub mod distributed;

@@ -12,7 +12,9 @@ use std::borrow::Cow;
 use std::fs::File;
 use std::path::{Path, PathBuf};
 
+use super::codec;
 use super::format::*;
+use crate::error::PayloadError;
 
 pub fn is_store(path: &Path) -> bool {
     path.is_dir() && path.join(HIERARCHY_FILE).is_file() && path.join(SOURCE_FILE).is_file()
@@ -32,6 +34,9 @@ pub struct Store {
     pub entries: Vec<NodeEntry>,
     nodes: Option<Mmap>,
     leaves: Vec<usize>,
+    /// Coded payloads decoded on first use by [`node`](Store::node) (raw ones are read in the
+    /// map). Kept while the store is open: a view holds what it has drawn (not bounded yet).
+    decoded: Vec<std::sync::OnceLock<Vec<u64>>>,
 }
 
 /// One node's payload, borrowed from the memory map.
@@ -72,7 +77,7 @@ impl Store {
         if header.magic != HIERARCHY_MAGIC {
             return Err(bad(StoreError::NotHierarchy));
         }
-        if header.version != VERSION || header.entry_size != 48 {
+        if !(OLDEST_READ..=VERSION).contains(&header.version) || header.entry_size != 48 {
             return Err(bad(StoreError::Version {
                 version: header.version,
                 entry_size: header.entry_size,
@@ -102,19 +107,22 @@ impl Store {
         let mut points = 0u64;
         for (i, e) in entries.iter().enumerate() {
             let al = attr_len;
-            if e.kind > INNER
-                || e.offset % 8 != 0
-                || e.count > u32::MAX as u64
-                || e.length != payload_len(e.count, al)
-                || e.offset.checked_add(e.length).is_none_or(|end| end > header.nodes_len)
-            {
-                return Err(bad(StoreError::EntryDamaged {
+            let damaged = || {
+                bad(StoreError::EntryDamaged {
                     node: i,
                     kind: e.kind,
                     count: e.count,
                     length: e.length,
                     offset: e.offset,
-                }));
+                })
+            };
+            if e.kind > INNER
+                || e.offset % 8 != 0
+                || e.count > u32::MAX as u64
+                || e.length < 64
+                || e.offset.checked_add(e.length).is_none_or(|end| end > header.nodes_len)
+            {
+                return Err(damaged());
             }
             let nb = &nodes.as_ref().expect("non-empty")
                 [e.offset as usize..(e.offset + e.length) as usize];
@@ -124,8 +132,12 @@ impl Store {
                 || h.kind != e.kind
                 || h.attr_len as u64 != al
                 || h.bits[..3].iter().any(|&b| b > 30)
+                || (header.version < VERSION && codec::codec_of(&h) != codec::RAW)
             {
                 return Err(bad(StoreError::PayloadMismatch { node: i }));
+            }
+            if codec::stored_len(&h) != Some(e.length) {
+                return Err(damaged());
             }
             if e.kind == LEAF {
                 leaves.push(i);
@@ -146,7 +158,8 @@ impl Store {
                 h.max[a] = x.max(y);
             }
         }
-        Ok(Store { path: dir.to_path_buf(), meta, layout, header, entries, nodes, leaves })
+        let decoded = (0..entries.len()).map(|_| std::sync::OnceLock::new()).collect();
+        Ok(Store { path: dir.to_path_buf(), meta, layout, header, entries, nodes, leaves, decoded })
     }
 
     /// Indices of the leaf entries.
@@ -159,30 +172,76 @@ impl Store {
         Cube { min: self.header.root_min, size_log2: self.header.root_size_log2 as u8 }
     }
 
-    /// The bytes of node entry `i`'s payload (its header first).
+    /// The bytes of node entry `i`'s payload as stored (its header first; coded or raw).
     pub fn node_bytes(&self, i: usize) -> &[u8] {
         let e = &self.entries[i];
         &self.nodes.as_ref().expect("checked at open")
             [e.offset as usize..(e.offset + e.length) as usize]
     }
 
-    /// The payload of node entry `i`.
+    /// The version 2 bytes of node entry `i`'s payload, decoded where it is coded (not kept).
+    pub(crate) fn raw_node(&self, i: usize) -> Result<codec::Decoded<'_>> {
+        codec::decode(self.node_bytes(i)).map_err(|error| self.damaged(i, error))
+    }
+
+    fn damaged(&self, i: usize, error: PayloadError) -> Error {
+        Error::Payload { path: self.path.join(NODES_FILE), error: error.in_node(i) }
+    }
+
+    /// The payload of node entry `i`: in the map where it is raw, else decoded once and kept
+    /// while the store is open. An error names the store's `nodes.bin` where the payload does
+    /// not decode.
+    pub fn try_node(&self, i: usize) -> Result<NodeData<'_>> {
+        let b: &[u8] =
+            match codec::codec_of(&bytemuck::pod_read_unaligned(&self.node_bytes(i)[..64])) {
+                codec::RAW => self.node_bytes(i),
+                _ => {
+                    let w = match self.decoded[i].get() {
+                        Some(w) => w,
+                        None => {
+                            let w = self.raw_node(i)?.into_words();
+                            self.decoded[i].get_or_init(|| w)
+                        }
+                    };
+                    bytemuck::cast_slice(w)
+                }
+            };
+        Ok(node_data(b))
+    }
+
+    /// [`try_node`](Self::try_node) for callers that cannot fail: a payload that does not decode
+    /// reads as a node without points (the error is printed once per node).
     pub fn node(&self, i: usize) -> NodeData<'_> {
-        let e = &self.entries[i];
-        let b = &self.nodes.as_ref().expect("checked at open")
-            [e.offset as usize..(e.offset + e.length) as usize];
-        let header: NodeHeader = bytemuck::pod_read_unaligned(&b[..64]);
-        let n = header.count as usize;
-        // Offsets are multiples of 8 in a page-aligned map: the u32 arrays are aligned.
-        let words_at =
-            |k: usize| -> &[u32] { bytemuck::cast_slice(&b[64 + 4 * n * k..64 + 4 * n * (k + 1)]) };
-        let attributes = &b[64 + 16 * n..64 + 16 * n + n * header.attr_len as usize];
-        NodeData {
-            header,
-            words: [words_at(0), words_at(1), words_at(2)],
-            colors: words_at(3),
-            attributes,
+        match self.try_node(i) {
+            Ok(d) => d,
+            Err(e) => {
+                let w = self.decoded[i].get_or_init(|| {
+                    eprintln!("warning: {e}");
+                    let h: NodeHeader = bytemuck::pod_read_unaligned(&self.node_bytes(i)[..64]);
+                    let empty = NodeHeader { count: 0, _pad: [0; 3], ..h };
+                    let mut w = vec![0u64; 8];
+                    bytemuck::cast_slice_mut::<u64, u8>(&mut w)
+                        .copy_from_slice(bytemuck::bytes_of(&empty));
+                    w
+                });
+                node_data(bytemuck::cast_slice(w))
+            }
         }
+    }
+}
+
+/// The columns of the version 2 payload `b` (8-aligned: in the map, or decoded into words).
+fn node_data(b: &[u8]) -> NodeData<'_> {
+    let header: NodeHeader = bytemuck::pod_read_unaligned(&b[..64]);
+    let n = header.count as usize;
+    let words_at =
+        |k: usize| -> &[u32] { bytemuck::cast_slice(&b[64 + 4 * n * k..64 + 4 * n * (k + 1)]) };
+    let attributes = &b[64 + 16 * n..64 + 16 * n + n * header.attr_len as usize];
+    NodeData {
+        header,
+        words: [words_at(0), words_at(1), words_at(2)],
+        colors: words_at(3),
+        attributes,
     }
 }
 
@@ -230,7 +289,8 @@ impl RecordSource for Store {
             .unwrap_or(&[]);
         let mut out = Vec::with_capacity(piece.points as usize * rl);
         for &l in leaves {
-            let d = self.node(l);
+            let raw = self.raw_node(l)?;
+            let d = node_data(&raw);
             let g = d.grid();
             let al = d.header.attr_len as usize;
             for i in 0..d.header.count as usize {

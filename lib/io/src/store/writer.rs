@@ -288,6 +288,7 @@ impl StoreWriter {
         stats: &mut CommitStats,
     ) -> Result<()> {
         let np = self.dir.join(NODES_FILE);
+        let start = self.nodes_len;
         let mut w = std::io::BufWriter::with_capacity(8 << 20, &self.nodes);
         for (id, mut entry, bytes) in payloads {
             entry.offset = self.nodes_len;
@@ -301,6 +302,8 @@ impl StoreWriter {
             self.entries[id] = Some(entry);
         }
         w.flush().map_err(|e| Error::io(&np, e))?;
+        drop(w);
+        self.start_writeback(start, self.nodes_len - start);
         Ok(())
     }
 
@@ -319,7 +322,34 @@ impl StoreWriter {
     /// Writes `bytes` at `offset` of `nodes.bin` (a place [`reserve`](Self::reserve) gave).
     pub fn write_at(&self, offset: u64, bytes: &[u8]) -> Result<()> {
         use std::os::unix::fs::FileExt;
-        self.nodes.write_all_at(bytes, offset).map_err(|e| Error::io(self.dir.join(NODES_FILE), e))
+        self.nodes
+            .write_all_at(bytes, offset)
+            .map_err(|e| Error::io(self.dir.join(NODES_FILE), e))?;
+        self.start_writeback(offset, bytes.len() as u64);
+        Ok(())
+    }
+
+    /// Starts writing `len` bytes of `nodes.bin` from `offset` to the disk without waiting
+    /// (Linux `sync_file_range(SYNC_FILE_RANGE_WRITE)`), so the disk works while the build
+    /// encodes the next payloads and the commit's `fdatasync` finds little left to write. It
+    /// promises nothing: durability is the commit's `fdatasync`, as before. Errors are ignored
+    /// (the call is advice; the `fdatasync` reports what failed).
+    fn start_writeback(&self, offset: u64, len: u64) {
+        // Pieces under 1 MiB wait for the commit (or for the next large write).
+        if len < 1 << 20 {
+            return;
+        }
+        use std::os::fd::AsRawFd;
+        // SAFETY: sync_file_range reads no memory of ours; the descriptor is open for the
+        // writer's lifetime.
+        unsafe {
+            libc::sync_file_range(
+                self.nodes.as_raw_fd(),
+                offset as libc::off64_t,
+                len as libc::off64_t,
+                libc::SYNC_FILE_RANGE_WRITE,
+            );
+        }
     }
 
     /// Records node `id`'s payload for the next commit.
@@ -360,10 +390,12 @@ impl StoreWriter {
         records: &std::sync::Mutex<Vec<u8>>,
     ) -> Result<Vec<Point>> {
         let buf = self.read_payload(id, count)?;
-        let leaf = DecodedLeaf::parse(&buf).map_err(|m| Error::Payload {
+        let bad = |m: PayloadError| Error::Payload {
             path: self.dir.join(NODES_FILE),
             error: m.in_node(id),
-        })?;
+        };
+        let raw = super::codec::decode(&buf).map_err(bad)?;
+        let leaf = DecodedLeaf::parse(&raw).map_err(bad)?;
         let rl = self.record_len;
         let mut recs = vec![0u8; leaf.count * rl];
         for (i, r) in recs.chunks_exact_mut(rl).enumerate() {
@@ -413,7 +445,9 @@ pub(crate) fn encode_node<'r>(
 ) -> std::result::Result<(NodeEntry, Vec<u8>), PayloadError> {
     let key = n.key();
     let attr_len = record_len - 12;
-    let old = old.map(DecodedLeaf::parse).transpose().map_err(|m| m.in_node(key.name()))?;
+    let old = old.map(super::codec::decode).transpose().map_err(|m| m.in_node(key.name()))?;
+    let old =
+        old.as_deref().map(DecodedLeaf::parse).transpose().map_err(|m| m.in_node(key.name()))?;
     let kept = if n.is_leaf() { n.paged_points() } else { n.saved_voxels() };
     if old.as_ref().is_some_and(|o| o.attr_len != attr_len || o.count as u64 != kept) {
         return Err(PayloadError::Stale { node: key.name() });

@@ -218,20 +218,29 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> Result<MergeReport> {
             let bytes = std::fs::read(&src).map_err(|e| Error::io(&src, e))?;
             let keep: Vec<&NodeEntry> =
                 p.entries.iter().filter(|e| !absorbed.contains(&(e.level, e.index))).collect();
-            let lens: Vec<u64> = keep.iter().map(|e| e.length).collect();
+            // Recoloured payloads may code to other lengths: made first, then placed.
+            let made: Vec<Vec<u8>> = keep
+                .par_iter()
+                .map(|e| {
+                    let b = &bytes[e.offset as usize..(e.offset + e.length) as usize];
+                    if same_color {
+                        Ok(b.to_vec())
+                    } else {
+                        recolour(b, &color, rl)
+                            .map_err(|error| Error::Payload { path: p.dir.clone(), error })
+                    }
+                })
+                .collect::<Result<_>>()?;
+            let lens: Vec<u64> = made.iter().map(|b| b.len() as u64).collect();
             let offs = writer.reserve(&lens);
             let w = &writer;
             let done: Vec<NodeEntry> = keep
                 .par_iter()
+                .zip(made)
                 .zip(offs)
-                .map(|(e, off)| {
-                    let mut b = bytes[e.offset as usize..(e.offset + e.length) as usize].to_vec();
-                    if !same_color {
-                        recolour(&mut b, &color, rl)
-                            .map_err(|error| Error::Payload { path: p.dir.clone(), error })?;
-                    }
+                .map(|((e, b), off)| {
                     w.write_at(off, &b)?;
-                    Ok(NodeEntry { offset: off, ..**e })
+                    Ok(NodeEntry { offset: off, length: b.len() as u64, ..**e })
                 })
                 .collect::<Result<_>>()?;
             all.extend(done);
@@ -262,9 +271,15 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> Result<MergeReport> {
     })
 }
 
-/// Rewrites the colours of a payload with `color` (from its records: position and attributes).
-fn recolour(b: &mut [u8], color: &ColorSource, rl: usize) -> std::result::Result<(), PayloadError> {
-    let d = DecodedLeaf::parse(b)?;
+/// The payload `b` (coded or raw) with its colours rewritten by `color` (from its records:
+/// position and attributes), coded again.
+fn recolour(
+    b: &[u8],
+    color: &ColorSource,
+    rl: usize,
+) -> std::result::Result<Vec<u8>, PayloadError> {
+    let raw = crate::store::codec::decode(b)?;
+    let d = DecodedLeaf::parse(&raw)?;
     let n = d.count;
     if d.attr_len + 12 != rl {
         return Err(PayloadError::RecordLength);
@@ -280,11 +295,12 @@ fn recolour(b: &mut [u8], color: &ColorSource, rl: usize) -> std::result::Result
             color.rgba(&rec)
         })
         .collect();
+    let mut out = raw.to_vec();
     let at = 64 + 12 * n;
     for (i, c) in cols.iter().enumerate() {
-        b[at + 4 * i..at + 4 * i + 4].copy_from_slice(&c.to_le_bytes());
+        out[at + 4 * i..at + 4 * i + 4].copy_from_slice(&c.to_le_bytes());
     }
-    Ok(())
+    Ok(crate::store::codec::encode(out))
 }
 
 /// What the walk above the cut gives a parent.
@@ -429,7 +445,8 @@ impl Top<'_> {
 
 /// The records (position and attributes) of a payload, in its order.
 fn records_of(b: &[u8], rl: usize) -> std::result::Result<Vec<u8>, PayloadError> {
-    let d = DecodedLeaf::parse(b)?;
+    let raw = crate::store::codec::decode(b)?;
+    let d = DecodedLeaf::parse(&raw)?;
     if d.attr_len + 12 != rl {
         return Err(PayloadError::RecordLength);
     }
@@ -552,28 +569,27 @@ mod tests {
     }
 
     #[test]
-    fn a_payload_gives_back_its_records_and_is_recoloured_in_place() {
+    fn a_payload_gives_back_its_records_and_is_recoloured() {
         let (records, b) = a_leaf();
         assert_eq!(records_of(&b, 20).unwrap(), records);
         assert!(matches!(records_of(&b, 21), Err(PayloadError::RecordLength)));
         assert!(matches!(records_of(&b[..40], 20), Err(PayloadError::Short)));
         // Recoloured: every colour from its record, nothing else changed.
         let color = ColorSource::Intensity { max_intensity: 2010 };
-        let mut c = b.clone();
-        recolour(&mut c, &color, 20).unwrap();
-        let d = DecodedLeaf::parse(&c).unwrap();
+        let c = recolour(&b, &color, 20).unwrap();
+        let raw_c = crate::store::codec::decode(&c).unwrap();
+        let d = DecodedLeaf::parse(&raw_c).unwrap();
         for (i, r) in records.chunks_exact(20).enumerate() {
             assert_eq!(d.color(i), color.rgba(r), "point {i}");
             assert_ne!(d.color(i), 0x1234_5678);
         }
         let colours = 64 + 12 * 3..64 + 16 * 3;
+        let raw_b = crate::store::codec::decode(&b).unwrap();
         assert_eq!(
-            (&c[..colours.start], &c[colours.end..]),
-            (&b[..colours.start], &b[colours.end..])
+            (&raw_c[..colours.start], &raw_c[colours.end..]),
+            (&raw_b[..colours.start], &raw_b[colours.end..])
         );
         assert_eq!(records_of(&c, 20).unwrap(), records);
-        let mut short = b.clone();
-        assert!(matches!(recolour(&mut short, &color, 26), Err(PayloadError::RecordLength)));
-        assert_eq!(short, b, "a refused payload is left as it was");
+        assert!(matches!(recolour(&b, &color, 26), Err(PayloadError::RecordLength)));
     }
 }

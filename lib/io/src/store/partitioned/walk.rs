@@ -176,6 +176,29 @@ impl Walk<'_, '_> {
         self.seq += 1;
         let tw = Instant::now();
         let attr_len = rl - 12;
+        if payload_len(count, attr_len as u64) <= crate::store::codec::CODE_LIMIT {
+            // Small enough to be coded, as the sorted engine codes it: in memory.
+            let recs = leaf.read(0..count, false)?.0;
+            let rec = |i: usize| &recs[i * rl..(i + 1) * rl];
+            let (e, b) = encode_payload(
+                key,
+                LEAF,
+                count as usize,
+                attr_len,
+                |i| read_xyz(rec(i)),
+                |i| self.color.rgba(rec(i)),
+                |i| &rec(i)[12..],
+            )
+            .map_err(|error| Error::Payload { path: self.writer.dir.clone(), error })?;
+            drop(recs);
+            self.put(seq, e, &b)?;
+            self.points += count;
+            self.ds.progress.add(count);
+            self.report.write_seconds += tw.elapsed().as_secs_f64();
+            let out = leaf.cands;
+            self.logged(key, before, count, &out)?;
+            return Ok(out);
+        }
         let off = self.writer.reserve(&[payload_len(count, attr_len as u64)])[0];
         let slice = (self.writer.group_bytes / (16 + attr_len as u64)).max(1) as usize;
         let (w, color) = (&*self.writer, &self.color);
@@ -263,23 +286,17 @@ impl Walk<'_, '_> {
                 bytes += payload_len(sub.nodes[end].count() as u64, attr_len as u64);
                 end += 1;
             }
-            let lens: Vec<u64> = (start..end)
-                .map(|i| payload_len(sub.nodes[i].count() as u64, attr_len as u64))
-                .collect();
-            let offsets = self.writer.reserve(&lens);
-            let w = &*self.writer;
-            let done: Vec<(NodeEntry, u64)> = (start..end)
+            // Coded lengths are known once encoded: encode (in parallel), place, then write
+            // (nodes too large to encode in memory are written raw, in slices, in place).
+            let group = self.writer.group_bytes.max(crate::store::codec::CODE_LIMIT);
+            let big = |i: usize| payload_len(sub.nodes[i].count() as u64, attr_len as u64) > group;
+            let coded: Vec<Option<(NodeEntry, Vec<u8>)>> = (start..end)
                 .into_par_iter()
-                .zip(offsets.into_par_iter())
-                .map(|(i, off)| {
-                    let nd = &sub.nodes[i];
-                    if payload_len(nd.count() as u64, attr_len as u64) > w.group_bytes {
-                        let mut e = crate::store::engine::write_sliced(
-                            w, off, nd, attr_len, &sorted, color,
-                        )?;
-                        e.offset = off;
-                        return Ok((e, checksum_at(w, off, e.length)?));
+                .map(|i| {
+                    if big(i) {
+                        return Ok(None);
                     }
+                    let nd = &sub.nodes[i];
                     let (kind, idx): (u32, Box<dyn Fn(usize) -> usize + Sync>) = match &nd.content {
                         SortedContent::Leaf(r) => {
                             let s = r.start;
@@ -287,7 +304,7 @@ impl Walk<'_, '_> {
                         }
                         SortedContent::Inner(v) => (INNER, Box::new(move |i| v[i] as usize)),
                     };
-                    let (mut e, b) = encode_payload(
+                    encode_payload(
                         nd.key,
                         kind,
                         nd.count(),
@@ -296,10 +313,41 @@ impl Walk<'_, '_> {
                         |i| color.rgba(sorted.record(idx(i))),
                         |i| &sorted.record(idx(i))[12..],
                     )
-                    .map_err(|error| Error::Payload { path: dir.clone(), error })?;
-                    w.write_at(off, &b)?;
-                    e.offset = off;
-                    Ok((e, checksum(&b)))
+                    .map(Some)
+                    .map_err(|error| Error::Payload { path: dir.clone(), error })
+                })
+                .collect::<Result<_>>()?;
+            let lens: Vec<u64> = (start..end)
+                .zip(&coded)
+                .map(|(i, c)| match c {
+                    Some((_, b)) => b.len() as u64,
+                    None => payload_len(sub.nodes[i].count() as u64, attr_len as u64),
+                })
+                .collect();
+            let offsets = self.writer.reserve(&lens);
+            let w = &*self.writer;
+            let done: Vec<(NodeEntry, u64)> = (start..end)
+                .into_par_iter()
+                .zip(coded.into_par_iter())
+                .zip(offsets.into_par_iter())
+                .map(|((i, c), off)| match c {
+                    None => {
+                        let mut e = crate::store::engine::write_sliced(
+                            w,
+                            off,
+                            &sub.nodes[i],
+                            attr_len,
+                            &sorted,
+                            color,
+                        )?;
+                        e.offset = off;
+                        Ok((e, checksum_at(w, off, e.length)?))
+                    }
+                    Some((mut e, b)) => {
+                        w.write_at(off, &b)?;
+                        e.offset = off;
+                        Ok((e, checksum(&b)))
+                    }
                 })
                 .collect::<Result<_>>()?;
             for (i, (e, h)) in (start..end).zip(done) {
