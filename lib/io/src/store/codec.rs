@@ -25,8 +25,9 @@
 //! Decoding never allocates by what a header claims before the data is there: the frame is read
 //! as a stream into a buffer that grows with what it yields, cut at the size the header implies.
 
-use super::format::{payload_len, NodeHeader, NODE_MAGIC};
+use super::format::{payload_len, NodeEntry, NodeHeader, NODE_MAGIC};
 use crate::error::PayloadError;
+use mortar_core::octree::NodeKey;
 use mortar_core::quantize::BatchGrid;
 use std::io::Read;
 
@@ -128,6 +129,26 @@ pub(crate) fn encode(raw: Vec<u8>) -> Vec<u8> {
     out.extend_from_slice(&z);
     out.resize(total, 0);
     out
+}
+
+/// Encodes one node's payload (entry offset left 0) from its `count` points: `pos(i)`,
+/// `color(i)` and `attrs(i)` (the record's bytes after X, Y, Z: `attr_len` of them). One pass
+/// for the bounds, one that writes every column in place, then the version 3 coding
+/// ([`encode`]); [`encode_raw_payload`](super::format::encode_raw_payload) stops before it.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn encode_payload<'r>(
+    key: NodeKey,
+    kind: u32,
+    count: usize,
+    attr_len: usize,
+    pos: impl Fn(usize) -> [i32; 3],
+    color: impl Fn(usize) -> u32,
+    attrs: impl Fn(usize) -> &'r [u8],
+) -> std::result::Result<(NodeEntry, Vec<u8>), PayloadError> {
+    let (entry, raw) =
+        super::format::encode_raw_payload(key, kind, count, attr_len, pos, color, attrs)?;
+    let coded = encode(raw);
+    Ok((NodeEntry { length: coded.len() as u64, ..entry }, coded))
 }
 
 /// The header (colour mode set) and uncompressed body of `raw`, or `None` where it stays raw.

@@ -461,7 +461,7 @@ fn write_tree(
             }
             SortedContent::Inner(v) => (INNER, Box::new(move |i| v[i] as usize)),
         };
-        encode_payload(
+        crate::store::codec::encode_payload(
             n.key,
             kind,
             n.count(),

@@ -147,7 +147,7 @@ impl<'a> DecodedLeaf<'a> {
         let (n, al) = (h.count as usize, h.attr_len as usize);
         if h.magic != NODE_MAGIC
             || h.kind > INNER
-            || h._pad[0] != super::codec::RAW
+            || h._pad[0] != 0
             || (b.len() as u64) < payload_len(n as u64, al as u64)
             || h.bits[..3].iter().any(|&x| x > 30)
         {
@@ -181,26 +181,10 @@ impl<'a> DecodedLeaf<'a> {
     }
 }
 
-/// Encodes one node's payload (entry offset left 0) from its `count` points: `pos(i)`,
-/// `color(i)` and `attrs(i)` (the record's bytes after X, Y, Z: `attr_len` of them). One pass
-/// for the bounds, one that writes every column in place, then the version 3 coding
-/// ([`codec::encode`](super::codec::encode)); [`encode_raw_payload`] stops before it.
-#[allow(clippy::too_many_arguments)]
-pub(crate) fn encode_payload<'r>(
-    key: NodeKey,
-    kind: u32,
-    count: usize,
-    attr_len: usize,
-    pos: impl Fn(usize) -> [i32; 3],
-    color: impl Fn(usize) -> u32,
-    attrs: impl Fn(usize) -> &'r [u8],
-) -> std::result::Result<(NodeEntry, Vec<u8>), PayloadError> {
-    let (entry, raw) = encode_raw_payload(key, kind, count, attr_len, pos, color, attrs)?;
-    let coded = super::codec::encode(raw);
-    Ok((NodeEntry { length: coded.len() as u64, ..entry }, coded))
-}
-
-/// [`encode_payload`] without the coding: the version 2 bytes.
+/// Encodes one node's raw (version 2) payload (entry offset left 0) from its `count` points:
+/// `pos(i)`, `color(i)` and `attrs(i)` (the record's bytes after X, Y, Z: `attr_len` of them).
+/// One pass for the bounds, one that writes every column in place. `codec::encode_payload`
+/// codes it (what the engines write).
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn encode_raw_payload<'r>(
     key: NodeKey,
@@ -278,7 +262,7 @@ fn node_header(
     }
 }
 
-/// [`encode_payload`] for a node too large to hold encoded in memory (points at one position,
+/// `codec::encode_payload` for a node too large to hold encoded in memory (points at one position,
 /// beyond the depth limit): the same bytes, written by `write(offset in the payload, bytes)`
 /// column by column in slices of `slice` points, each slice encoded in parallel. Returns the
 /// entry (its `offset` left 0).
@@ -385,7 +369,7 @@ fn write_slice<'r, E>(
     write(64 + 16 * n + (s * attr_len) as u64, &at)
 }
 
-/// The payload [`encode_payload`] makes of a node of `count` points inside `bounds` (their
+/// The payload `codec::encode_payload` makes of a node of `count` points inside `bounds` (their
 /// smallest and largest position) whose records (`12 + attr_len` bytes: position, then the
 /// attributes) `records(range)` reads, `slice` points at a time, in order: a leaf larger than
 /// memory (`dense.rs`). `color` gives a record's packed colour.

@@ -484,7 +484,7 @@ pub(crate) fn encode_node<'r>(
     if attrs.len() != count * attr_len {
         return Err(PayloadError::AttributeBytes { node: key.name(), bytes: attrs.len(), count });
     }
-    encode_payload(
+    crate::store::codec::encode_payload(
         key,
         kind,
         count,

@@ -395,7 +395,7 @@ impl Top<'_> {
             }
         }
         let color = &self.color;
-        let (e, b) = encode_payload(
+        let (e, b) = crate::store::codec::encode_payload(
             key,
             INNER,
             voxels.pos.len(),
@@ -428,7 +428,7 @@ impl Top<'_> {
         let rl = self.rl;
         let n = records.len() / rl;
         let color = &self.color;
-        let (e, b) = encode_payload(
+        let (e, b) = crate::store::codec::encode_payload(
             key,
             LEAF,
             n,
@@ -555,7 +555,7 @@ mod tests {
             r[14..].copy_from_slice(&[i as u8 + 1; 6]);
         }
         let key = NodeKey { level: 3, index: [1, 2, 3] };
-        let (_, b) = encode_payload(
+        let (_, b) = crate::store::codec::encode_payload(
             key,
             LEAF,
             3,

@@ -104,7 +104,7 @@ impl Walk<'_, '_> {
         }
         let rl = self.rl;
         let color = &self.color;
-        let (e, b) = encode_payload(
+        let (e, b) = crate::store::codec::encode_payload(
             key,
             INNER,
             voxels.pos.len(),
@@ -180,7 +180,7 @@ impl Walk<'_, '_> {
             // Small enough to be coded, as the sorted engine codes it: in memory.
             let recs = leaf.read(0..count, false)?.0;
             let rec = |i: usize| &recs[i * rl..(i + 1) * rl];
-            let (e, b) = encode_payload(
+            let (e, b) = crate::store::codec::encode_payload(
                 key,
                 LEAF,
                 count as usize,
@@ -304,7 +304,7 @@ impl Walk<'_, '_> {
                         }
                         SortedContent::Inner(v) => (INNER, Box::new(move |i| v[i] as usize)),
                     };
-                    encode_payload(
+                    crate::store::codec::encode_payload(
                         nd.key,
                         kind,
                         nd.count(),
