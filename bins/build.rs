@@ -100,16 +100,17 @@ pub fn run(a: Args) -> Result<()> {
             println!(
                 "{}",
                 serde_json::to_string_pretty(
-                    &serde_json::json!({"store": dir, "nodes": r.nodes, "bytes_before": r.before, "bytes_after": r.after})
+                    &serde_json::json!({"store": dir, "nodes": r.nodes, "bytes_before": r.before, "bytes_after": r.after, "segments_rewritten": r.segments})
                 )?
             );
         } else {
             eprintln!(
-                "mortar: {}: nodes.bin {} -> {} bytes ({} nodes)",
+                "mortar: {}: payloads {} -> {} bytes ({} nodes, {} segments rewritten)",
                 dir.display(),
                 r.before,
                 r.after,
-                r.nodes
+                r.nodes,
+                r.segments
             );
         }
         return Ok(());

@@ -342,9 +342,12 @@ pub enum StoreError {
     /// The hierarchy holds another number of entries than it declares.
     #[error("hierarchy.bin declares {declared} nodes but holds {held}")]
     NodeCount { declared: u64, held: u64 },
-    /// `nodes.bin` is shorter than the hierarchy covers.
-    #[error("nodes.bin holds {held} bytes, fewer than the {covered} the hierarchy covers")]
-    NodesShort { held: u64, covered: u64 },
+    /// A payload segment (`nodes.bin`, `nodes-<s>.bin`) is shorter than the hierarchy covers.
+    #[error("{file} holds {held} bytes, fewer than the {covered} the hierarchy covers")]
+    NodesShort { file: String, held: u64, covered: u64 },
+    /// The bytes after the entries are no segment table.
+    #[error("hierarchy.bin: the bytes after the node entries are no segment table")]
+    SegmentTable,
     /// A hierarchy entry is out of range.
     #[error(
         "node entry {node} is damaged (kind {kind}, {count} points, {length} bytes at {offset})"
@@ -398,12 +401,6 @@ pub enum StoreError {
     /// A node's last payload holds another number of points than were saved.
     #[error("node {node}: the last payload holds {held} points, {saved:?} were saved")]
     PayloadCount { node: usize, held: u64, saved: Option<u64> },
-    /// A compaction that stopped left this directory.
-    #[error("is left from an earlier compaction that stopped; remove it (the store is the one without this suffix, or this one if that is missing)")]
-    CompactionLeft,
-    /// The compacted copy does not read back as the store.
-    #[error("the compacted copy does not hold the store's nodes")]
-    CompactionCheck,
 }
 
 /// Why an export cannot be made.

@@ -72,7 +72,7 @@ pub fn store_info(s: &crate::store::Store) -> StoreInfo {
         depth: s.entries.iter().map(|e| e.level).max().unwrap_or(0),
         leaf_capacity: s.header.leaf_capacity,
         largest_leaf: leaves.iter().map(|e| e.count).max().unwrap_or(0),
-        nodes_bytes: s.header.nodes_len,
+        nodes_bytes: s.covered.iter().sum(),
         root_min: s.header.root_min,
         root_size_log2: s.header.root_size_log2,
     }

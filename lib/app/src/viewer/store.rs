@@ -28,7 +28,7 @@ use mortar_core::layout::RecordLayout;
 use mortar_core::octree::{LodOptions, LodTree};
 use mortar_core::render::resolve::{ColorMode, ResolveOptions};
 use mortar_core::render::{Aabb, BatchRef, Camera, RasterOptions};
-use mortar_io::store::StoreLod;
+use mortar_io::store::{PayloadPlace, StoreLod};
 use mortar_render::{GpuContext, GpuError, GpuFrame, GpuRasterizer, GpuScene, SceneOptions};
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -65,9 +65,9 @@ pub struct Selected {
 /// The GPU side of a store view: the scene and which payloads it holds.
 struct StoreGpu {
     scene: GpuScene,
-    /// Scene batches of each uploaded payload (by offset in `nodes.bin`: the first batch and how
+    /// Scene batches of each uploaded payload (by its place in the store: the first batch and how
     /// many), with its samples.
-    batches: HashMap<u64, (u32, u32, u64)>,
+    batches: HashMap<PayloadPlace, (u32, u32, u64)>,
     /// Colour mode of the uploaded colours.
     mode: usize,
     /// Samples in the scene that no node of the current commit uses.
@@ -205,8 +205,8 @@ impl StoreView {
             self.set_ranges(&lod);
         }
         if let Some(g) = &mut self.gpu {
-            let live: std::collections::HashSet<u64> = (0..lod.node_count())
-                .map(|i| lod.payload_offset(mortar_core::octree::NodeId(i as u32)))
+            let live: std::collections::HashSet<PayloadPlace> = (0..lod.node_count())
+                .map(|i| lod.payload_place(mortar_core::octree::NodeId(i as u32)))
                 .collect();
             let before = g.batches.len();
             let mut dropped = 0;
@@ -375,7 +375,7 @@ impl Content for StoreView {
         let mut ids = Vec::with_capacity(sel.nodes.len());
         let mut uploaded = 0;
         for &id in &sel.nodes {
-            let off = lod.payload_offset(id);
+            let off = lod.payload_place(id);
             if let Some(&(b, k, _)) = g.batches.get(&off) {
                 ids.extend(b..b + k);
                 continue;

@@ -51,7 +51,8 @@ pub(crate) fn export(
     let state = TempPath::dir_in(parent, "export-runs").map_err(|e| Error::io(parent, e))?;
     let mut header_warnings = Vec::new();
     let header = crate::store::header_bounds_of(ds, &mut header_warnings);
-    let part = partition_all(ds, opts.memory, opts.config.max_level, m, header, state.path())?;
+    let part =
+        partition_all(ds, opts.memory, opts.config.max_level, m, header, state.path(), None)?;
     report.warnings.extend(header_warnings);
     report.warnings.extend(part.warnings.iter().cloned());
     report.read_seconds = t0.elapsed().as_secs_f64();

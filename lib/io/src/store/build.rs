@@ -161,6 +161,10 @@ fn continue_store(
         Ok(Continue::Fresh)
     };
     if old.engine == BuiltBy::Partitioned.name() && record.engine == BuiltBy::Partitioned.name() {
+        if super::partitioned::has_state(dir) {
+            // Its provisional commits: the build goes on from its state, not from them.
+            super::partitioned::drop_provisional(dir)?;
+        }
         return match StoreWriter::reopen_uncommitted(dir, meta)? {
             Some(w) if super::partitioned::has_state(dir) => Ok(Continue::Writer(w)),
             _ => start_over("nothing of its partition was kept".into(), warnings),

@@ -17,6 +17,19 @@
 //!    rule makes them (`mortar_core::color`), so they are computed again from the records;
 //! 3. attributes transposed: byte `j` of every point's attributes, for `j` in `0..attr_len`.
 //!
+//! [`ZSTD_GPS_ORDER`] codes the same columns with the points in acquisition order (a stable sort
+//! by GPS time), where the records keep GPS time: consecutive pulses are near each other and their
+//! times differ little, which zstd codes far better than Morton order's jumps (real scans 1.5x
+//! smaller, BENCHMARKS.md "Store v3"). The body starts with the node cube's corner (3 `i64`) and
+//! the GPS time's attribute offset (`u32`); then the positions (as above, in coded order), the
+//! colours, GPS time as the wrapping differences of its order-preserving `u64` key (eight byte
+//! planes) and the other attribute bytes as planes. Decoding puts the points back in the node's
+//! order by a stable sort of their full-resolution Morton keys relative to the cube's corner,
+//! which is the order every engine gives a node (Morton order of the root's grid, points at one
+//! position by arrival); the encoder takes this codec only where that sort gives the payload's
+//! order back exactly (not where points at one position arrived out of GPS time order, nor for
+//! the incremental engine's leaves, which keep arrival order), so decoding stays exact.
+//!
 //! The coded words are not stored: a payload's words are `BatchGrid::encode` of its exact
 //! positions, so they are computed again. A payload whose words are not that (none that mortar
 //! writes) or that holds no point stays [`RAW`]: the version 2 bytes, padding words zero. So
@@ -35,6 +48,9 @@ use std::io::Read;
 pub(crate) const RAW: u32 = 0;
 /// Columns coded as the module docs say, in one zstd frame.
 pub(crate) const ZSTD_COLUMNS: u32 = 1;
+/// Columns coded in acquisition order (GPS time), the node's order recomputed on decoding
+/// ([`Order`]).
+pub(crate) const ZSTD_GPS_ORDER: u32 = 2;
 /// Largest raw payload that is coded: larger ones (nodes beyond the depth limit, or inner nodes
 /// of extreme density) stay raw, so every engine writes them in slices without holding them,
 /// and every engine gives a node the same bytes whatever its memory budget. An engine codes
@@ -112,19 +128,22 @@ fn zstd_compress(body: &[u8]) -> Option<Vec<u8>> {
 }
 
 /// The version 3 payload of the version 2 payload `raw` (made by `encode_payload`): coded, or
-/// `raw` itself where coding does not apply (see the module docs).
-pub(crate) fn encode(raw: Vec<u8>) -> Vec<u8> {
+/// `raw` itself where coding does not apply (see the module docs). With `order` (the node's cube
+/// and where its records keep GPS time) the points are coded in GPS time order where the
+/// node's own order can be recomputed from them ([`ZSTD_GPS_ORDER`]), else in their order.
+pub(crate) fn encode(raw: Vec<u8>, order: Option<Order>) -> Vec<u8> {
     if raw.len() as u64 > CODE_LIMIT {
         return raw;
     }
-    let Some((h, body)) = body_of(&raw) else { return raw };
+    let order = order.filter(|_| !morton_only());
+    let Some((codec, h, body)) = body_of(&raw, order) else { return raw };
     let Some(z) = zstd_compress(&body) else { return raw };
     let total = (64 + z.len()).next_multiple_of(8);
     if total >= raw.len() || z.len() > u32::MAX as usize {
         return raw;
     }
     let mut out = Vec::with_capacity(total);
-    let h = NodeHeader { _pad: [ZSTD_COLUMNS, z.len() as u32, h._pad[2]], ..h };
+    let h = NodeHeader { _pad: [codec, z.len() as u32, h._pad[2]], ..h };
     out.extend_from_slice(bytemuck::bytes_of(&h));
     out.extend_from_slice(&z);
     out.resize(total, 0);
@@ -144,15 +163,18 @@ pub(crate) fn encode_payload<'r>(
     pos: impl Fn(usize) -> [i32; 3],
     color: impl Fn(usize) -> u32,
     attrs: impl Fn(usize) -> &'r [u8],
+    order: Option<Order>,
 ) -> std::result::Result<(NodeEntry, Vec<u8>), PayloadError> {
     let (entry, raw) =
         super::format::encode_raw_payload(key, kind, count, attr_len, pos, color, attrs)?;
-    let coded = encode(raw);
+    let coded = encode(raw, order);
     Ok((NodeEntry { length: coded.len() as u64, ..entry }, coded))
 }
 
-/// The header (colour mode set) and uncompressed body of `raw`, or `None` where it stays raw.
-fn body_of(raw: &[u8]) -> Option<(NodeHeader, Vec<u8>)> {
+/// The codec, the header (colour mode set) and the uncompressed body of `raw`, or `None` where
+/// it stays raw: [`ZSTD_GPS_ORDER`] where `order` applies and the node's order can be recomputed
+/// from the coded sequence, else [`ZSTD_COLUMNS`].
+fn body_of(raw: &[u8], order: Option<Order>) -> Option<(u32, NodeHeader, Vec<u8>)> {
     if raw.len() < 64 {
         return None;
     }
@@ -170,53 +192,105 @@ fn body_of(raw: &[u8]) -> Option<(NodeHeader, Vec<u8>)> {
     let col = |k: usize| &raw[64 + 4 * n * k..64 + 4 * n * (k + 1)];
     let (w, colors) = ([col(0), col(1), col(2)], col(3));
     let attrs = &raw[64 + 16 * n..64 + 16 * n + n * al];
+    // Positions are decoded from the words where they are needed (no copy: a payload of
+    // CODE_LIMIT bytes is coded under tight budgets, two at a time).
+    let pos = |i: usize| grid.decode_exact([u32_at(w[0], i), u32_at(w[1], i), u32_at(w[2], i)]);
+    if (0..n).any(|i| grid.encode(pos(i)) != [u32_at(w[0], i), u32_at(w[1], i), u32_at(w[2], i)]) {
+        return None;
+    }
+    let ordered = order.filter(|o| o.gps + 8 <= al && n >= 2).and_then(|o| {
+        let gk: Vec<u64> = (0..n).map(|i| gps_key(&attrs[i * al + o.gps..])).collect();
+        let seq = time_order(&gk);
+        let mut rank = vec![0u32; n];
+        for (t, &i) in seq.iter().enumerate() {
+            rank[i as usize] = t as u32;
+        }
+        // The node's order must be the stable sort of the coded sequence by the Morton key.
+        let mut last = (morton96(offset_in(pos(0), o.cube_min)?), rank[0]);
+        for (i, &r) in rank.iter().enumerate().skip(1) {
+            let k = (morton96(offset_in(pos(i), o.cube_min)?), r);
+            if k <= last {
+                return None;
+            }
+            last = k;
+        }
+        Some((o, seq, gk))
+    });
+    let (codec, seq, gps) = match ordered {
+        Some((o, seq, gk)) => (ZSTD_GPS_ORDER, seq, Some((o, gk))),
+        None => (ZSTD_COLUMNS, (0..n as u32).collect(), None),
+    };
     let mode = color_mode(colors, attrs, n, al);
     let color_bytes = match mode & 0xff {
         COLOR_PLANES => 4 * n,
         COLOR_GREY => n,
         _ => 0,
     };
-    let mut body = vec![0u8; 12 * n + color_bytes + n * al];
-    let (pos, rest) = body.split_at_mut(12 * n);
-    let (cb, ab) = rest.split_at_mut(color_bytes);
-    let mut prev = [0u32; 3];
-    for i in 0..n {
-        let words = [u32_at(w[0], i), u32_at(w[1], i), u32_at(w[2], i)];
-        let p = grid.decode_exact(words);
-        if grid.encode(p) != words {
-            return None;
+    let prefix = if gps.is_some() { ORDER_PREFIX } else { 0 };
+    let mut body = vec![0u8; prefix + 12 * n + color_bytes + n * al];
+    let (head, rest) = body.split_at_mut(prefix);
+    let (pb, rest) = rest.split_at_mut(12 * n);
+    let (cb, rest) = rest.split_at_mut(color_bytes);
+    // GPS time's planes (ordered) first, then the other attribute bytes' planes.
+    let (gb, ab) = rest.split_at_mut(if gps.is_some() { 8 * n } else { 0 });
+    let g = gps.as_ref().map(|(o, _)| o.gps);
+    if let Some((o, gk)) = &gps {
+        for a in 0..3 {
+            head[8 * a..8 * a + 8].copy_from_slice(&o.cube_min[a].to_le_bytes());
         }
+        head[24..28].copy_from_slice(&(o.gps as u32).to_le_bytes());
+        let mut prev = 0u64;
+        for (t, &i) in seq.iter().enumerate() {
+            let d = gk[i as usize].wrapping_sub(prev);
+            prev = gk[i as usize];
+            for b in 0..8 {
+                gb[b * n + t] = (d >> (8 * b)) as u8;
+            }
+        }
+    }
+    let mut prev = [0u32; 3];
+    for (t, &i) in seq.iter().enumerate() {
+        let i = i as usize;
+        let p = pos(i);
         for a in 0..3 {
             let u = (p[a] as i64 - grid.min[a] as i64) as u32;
             let d = u.wrapping_sub(prev[a]) as i32;
             let z = ((d << 1) ^ (d >> 31)) as u32;
             prev[a] = u;
             for b in 0..4 {
-                pos[(4 * a + b) * n + i] = (z >> (8 * b)) as u8;
+                pb[(4 * a + b) * n + t] = (z >> (8 * b)) as u8;
             }
         }
-    }
-    match mode & 0xff {
-        COLOR_PLANES => {
-            for i in 0..n {
+        match mode & 0xff {
+            COLOR_PLANES => {
                 for b in 0..4 {
-                    cb[b * n + i] = colors[4 * i + b];
+                    cb[b * n + t] = colors[4 * i + b];
                 }
             }
-        }
-        COLOR_GREY => {
-            for i in 0..n {
-                cb[i] = colors[4 * i];
-            }
-        }
-        _ => {}
-    }
-    for i in 0..n {
-        for j in 0..al {
-            ab[j * n + i] = attrs[i * al + j];
+            COLOR_GREY => cb[t] = colors[4 * i],
+            _ => {}
         }
     }
-    Some((NodeHeader { _pad: [0, 0, mode], ..h }, body))
+    for (j, k) in kept_bytes(al, g).enumerate() {
+        let plane = &mut ab[j * n..(j + 1) * n];
+        for (t, &i) in seq.iter().enumerate() {
+            plane[t] = attrs[i as usize * al + k];
+        }
+    }
+    Some((codec, NodeHeader { _pad: [0, 0, mode], ..h }, body))
+}
+
+/// The attribute bytes coded as planes of their own: all `al`, less GPS time's 8 at `g`.
+fn kept_bytes(al: usize, g: Option<usize>) -> impl Iterator<Item = usize> {
+    (0..al).filter(move |&k| g.is_none_or(|g| k < g || k >= g + 8))
+}
+
+/// The points' order by GPS time key `gk`, ties in their order.
+fn time_order(gk: &[u64]) -> Vec<u32> {
+    // (key, place) pairs are unique: an unstable sort gives the stable order.
+    let mut seq: Vec<u32> = (0..gk.len() as u32).collect();
+    seq.sort_unstable_by_key(|&i| (gk[i as usize], i));
+    seq
 }
 
 /// The codec of a stored payload's header.
@@ -229,7 +303,7 @@ pub(crate) fn codec_of(h: &NodeHeader) -> u32 {
 pub(crate) fn stored_len(h: &NodeHeader) -> Option<u64> {
     match codec_of(h) {
         RAW => Some(payload_len(h.count as u64, h.attr_len as u64)),
-        ZSTD_COLUMNS => Some((64 + h._pad[1] as u64).next_multiple_of(8)),
+        ZSTD_COLUMNS | ZSTD_GPS_ORDER => Some((64 + h._pad[1] as u64).next_multiple_of(8)),
         _ => None,
     }
 }
@@ -274,14 +348,19 @@ pub(crate) fn decode(b: &[u8]) -> Result<Decoded<'_>, PayloadError> {
         return Err(PayloadError::Short);
     }
     let h: NodeHeader = bytemuck::pod_read_unaligned(&b[..64]);
-    match codec_of(&h) {
+    let ordered = match codec_of(&h) {
         RAW => return Ok(Decoded::Borrowed(b)),
-        ZSTD_COLUMNS => {}
+        ZSTD_COLUMNS => false,
+        ZSTD_GPS_ORDER => true,
         _ => return Err(PayloadError::Damaged),
-    }
+    };
     let (n, al) = (h.count as usize, h.attr_len as usize);
     let z = h._pad[1] as usize;
-    if h.magic != NODE_MAGIC || b.len() < 64 + z || h.bits[..3].iter().any(|&x| x > 30) {
+    if h.magic != NODE_MAGIC
+        || b.len() < 64 + z
+        || h.bits[..3].iter().any(|&x| x > 30)
+        || (ordered && al < 8)
+    {
         return Err(PayloadError::Damaged);
     }
     let mode = h._pad[2];
@@ -291,7 +370,8 @@ pub(crate) fn decode(b: &[u8]) -> Result<Decoded<'_>, PayloadError> {
         COLOR_RGB8 | COLOR_RGB16 if (mode >> 8) as usize + 6 <= al => 0,
         _ => return Err(PayloadError::Damaged),
     };
-    let want = 12 * n as u64 + color_bytes as u64 + (n * al) as u64;
+    let prefix = if ordered { ORDER_PREFIX } else { 0 };
+    let want = (prefix + 12 * n + color_bytes) as u64 + n as u64 * al as u64;
     let mut body = Vec::new();
     zstd::stream::read::Decoder::with_buffer(&b[64..64 + z])
         .map_err(|_| PayloadError::Damaged)?
@@ -302,25 +382,29 @@ pub(crate) fn decode(b: &[u8]) -> Result<Decoded<'_>, PayloadError> {
         return Err(PayloadError::Damaged);
     }
     // The body is there: the raw payload is about its size.
-    let grid = BatchGrid { min: h.min, bits: [h.bits[0], h.bits[1], h.bits[2]] };
-    let mut store = vec![0u64; payload_len(n as u64, al as u64) as usize / 8];
-    let raw: &mut [u8] = bytemuck::cast_slice_mut(&mut store);
-    raw[..64].copy_from_slice(bytemuck::bytes_of(&NodeHeader { _pad: [0; 3], ..h }));
-    let (pos, rest) = body.split_at(12 * n);
-    let (cb, ab) = rest.split_at(color_bytes);
-    let (head, out_attrs) = raw[64..].split_at_mut(16 * n);
-    let out_attrs = &mut out_attrs[..n * al];
-    for j in 0..al {
-        for i in 0..n {
-            out_attrs[i * al + j] = ab[j * n + i];
+    let (head, rest) = body.split_at(prefix);
+    let (pb, rest) = rest.split_at(12 * n);
+    let (cb, rest) = rest.split_at(color_bytes);
+    let order = if ordered {
+        let cube_min: [i64; 3] =
+            [0, 1, 2].map(|a| i64::from_le_bytes(head[8 * a..8 * a + 8].try_into().expect("8")));
+        let g = u32::from_le_bytes(head[24..28].try_into().expect("4")) as usize;
+        if g + 8 > al {
+            return Err(PayloadError::Damaged);
         }
-    }
-    let (words, out_colors) = head.split_at_mut(12 * n);
+        Some(Order { cube_min, gps: g })
+    } else {
+        None
+    };
+    let (gb, ab) = rest.split_at(if ordered { 8 * n } else { 0 });
+    let grid = BatchGrid { min: h.min, bits: [h.bits[0], h.bits[1], h.bits[2]] };
+    // The points in coded order.
+    let mut pos = Vec::with_capacity(n);
     let mut prev = [0u32; 3];
-    for i in 0..n {
+    for t in 0..n {
         let mut p = [0i32; 3];
         for a in 0..3 {
-            let z = (0..4).fold(0u32, |z, k| z | (pos[(4 * a + k) * n + i] as u32) << (8 * k));
+            let z = (0..4).fold(0u32, |z, k| z | (pb[(4 * a + k) * n + t] as u32) << (8 * k));
             let d = ((z >> 1) as i32) ^ -((z & 1) as i32);
             let u = prev[a].wrapping_add(d as u32);
             prev[a] = u;
@@ -330,14 +414,59 @@ pub(crate) fn decode(b: &[u8]) -> Result<Decoded<'_>, PayloadError> {
             }
             p[a] = (grid.min[a] as i64 + u as i64) as i32;
         }
-        let w = grid.encode(p);
+        pos.push(p);
+    }
+    // The node's order: coded order, or the stable sort of the Morton keys from the cube's
+    // corner (the key above the coded place: unique, so an unstable sort is the stable one).
+    let seq: Vec<u32> = match &order {
+        None => (0..n as u32).collect(),
+        Some(o) => {
+            let mut keys = Vec::with_capacity(n);
+            for (t, p) in pos.iter().enumerate() {
+                let m = morton96(offset_in(*p, o.cube_min).ok_or(PayloadError::Damaged)?);
+                keys.push(m << 32 | t as u128);
+            }
+            keys.sort_unstable();
+            keys.iter().map(|&k| k as u32).collect()
+        }
+    };
+    let mut store = vec![0u64; payload_len(n as u64, al as u64) as usize / 8];
+    let raw: &mut [u8] = bytemuck::cast_slice_mut(&mut store);
+    raw[..64].copy_from_slice(bytemuck::bytes_of(&NodeHeader { _pad: [0; 3], ..h }));
+    let (out_head, out_attrs) = raw[64..].split_at_mut(16 * n);
+    let out_attrs = &mut out_attrs[..n * al];
+    let (words, out_colors) = out_head.split_at_mut(12 * n);
+    // Attributes plane by plane (each plane read at the permuted places: it is in cache); GPS
+    // time from its key differences.
+    if let Some(o) = &order {
+        let mut key = 0u64;
+        let mut gps = Vec::with_capacity(n);
+        for t in 0..n {
+            key = key.wrapping_add((0..8).fold(0u64, |d, k| d | (gb[k * n + t] as u64) << (8 * k)));
+            gps.push(gps_of_key(key));
+        }
+        for (i, &t) in seq.iter().enumerate() {
+            let at = i * al + o.gps;
+            out_attrs[at..at + 8].copy_from_slice(&gps[t as usize].to_le_bytes());
+        }
+    }
+    let g = order.map(|o| o.gps);
+    for (j, k) in kept_bytes(al, g).enumerate() {
+        let plane = &ab[j * n..(j + 1) * n];
+        for (i, &t) in seq.iter().enumerate() {
+            out_attrs[i * al + k] = plane[t as usize];
+        }
+    }
+    for (i, &t) in seq.iter().enumerate() {
+        let t = t as usize;
+        let w = grid.encode(pos[t]);
         for (k, wk) in w.iter().enumerate() {
             words[4 * (k * n + i)..4 * (k * n + i) + 4].copy_from_slice(&wk.to_le_bytes());
         }
         let c = match mode & 0xff {
-            COLOR_PLANES => u32::from_le_bytes([cb[i], cb[n + i], cb[2 * n + i], cb[3 * n + i]]),
+            COLOR_PLANES => u32::from_le_bytes([cb[t], cb[n + t], cb[2 * n + t], cb[3 * n + t]]),
             COLOR_GREY => {
-                let r = cb[i] as u32;
+                let r = cb[t] as u32;
                 r | r << 8 | r << 16 | 255 << 24
             }
             m => rgb_of(&out_attrs[i * al..(i + 1) * al], (mode >> 8) as usize, m == COLOR_RGB16),
@@ -345,6 +474,73 @@ pub(crate) fn decode(b: &[u8]) -> Result<Decoded<'_>, PayloadError> {
         out_colors[4 * i..4 * i + 4].copy_from_slice(&c.to_le_bytes());
     }
     Ok(Decoded::Owned(store))
+}
+
+/// What coding in acquisition order needs to know of a node: its cube's corner (so that its
+/// points' order is recomputed as the Morton order of their offsets from it) and the attribute
+/// offset of the records' GPS time.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) struct Order {
+    pub cube_min: [i64; 3],
+    pub gps: usize,
+}
+
+impl Order {
+    /// The order of node `key` of the tree over `root` for records of `layout`; `None` where
+    /// the records keep no GPS time.
+    pub(crate) fn of(
+        root: mortar_core::octree::Cube,
+        key: NodeKey,
+        layout: &mortar_core::layout::RecordLayout,
+    ) -> Option<Order> {
+        let g = layout.attribute("gps_time")?;
+        (g.offset >= 12).then(|| Order { cube_min: key.cube_in(root).min, gps: g.offset - 12 })
+    }
+}
+
+/// Whether `MORTAR_STORE_CODEC=1` asks for payloads coded in their own order only (codec 1): the
+/// benchmarks' and tests' way to compare the two codings of one store.
+fn morton_only() -> bool {
+    static ONLY: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    *ONLY.get_or_init(|| std::env::var("MORTAR_STORE_CODEC").is_ok_and(|v| v == "1"))
+}
+
+/// Bytes of the ordered body's prefix: the cube's corner and the GPS offset.
+const ORDER_PREFIX: usize = 28;
+
+/// The full-resolution Morton key of offset `u` from a cube's corner: the order the engines give
+/// a node's points (ties, points at one position, by arrival).
+fn morton96(u: [u32; 3]) -> u128 {
+    let hi = mortar_core::morton::encode(u[0] >> 21, u[1] >> 21, u[2] >> 21) as u128;
+    let lo = mortar_core::morton::encode(u[0] & 0x1f_ffff, u[1] & 0x1f_ffff, u[2] & 0x1f_ffff);
+    hi << 63 | lo as u128
+}
+
+/// GPS time's f64 bits as a key that orders as the times do.
+fn gps_key(b: &[u8]) -> u64 {
+    let v = u64::from_le_bytes(b[..8].try_into().expect("8 bytes"));
+    if v >> 63 == 1 {
+        !v
+    } else {
+        v | 1 << 63
+    }
+}
+
+fn gps_of_key(k: u64) -> u64 {
+    if k >> 63 == 1 {
+        k & !(1 << 63)
+    } else {
+        !k
+    }
+}
+
+/// The offset of `p` from `cube_min`, where it lies in a cube of mortar's (at most 2^32 wide).
+fn offset_in(p: [i32; 3], cube_min: [i64; 3]) -> Option<[u32; 3]> {
+    let mut u = [0u32; 3];
+    for a in 0..3 {
+        u[a] = u32::try_from(p[a] as i64 - cube_min[a]).ok()?;
+    }
+    Some(u)
 }
 
 #[cfg(test)]
@@ -381,7 +577,7 @@ mod tests {
         for (name, mode, color) in cases {
             for n in [1, 2, 1000] {
                 let raw = payload(n, al, &color);
-                let coded = encode(raw.clone());
+                let coded = encode(raw.clone(), None);
                 let h: NodeHeader = bytemuck::pod_read_unaligned(&coded[..64]);
                 assert!(*decode(&coded).unwrap() == *raw, "{name} {n}: the bytes differ");
                 if n < 10 && codec_of(&h) == RAW {
@@ -421,7 +617,7 @@ mod tests {
         )
         .unwrap()
         .1;
-        let coded = encode(raw.clone());
+        let coded = encode(raw.clone(), None);
         let h: NodeHeader = bytemuck::pod_read_unaligned(&coded[..64]);
         assert_eq!(h._pad[2], COLOR_RGB8 | 16 << 8);
         assert!(*decode(&coded).unwrap() == *raw);
@@ -431,8 +627,8 @@ mod tests {
     #[test]
     fn empty_stays_raw_and_damage_is_an_error() {
         let raw = payload(0, 7, |_, _| 0);
-        assert!(encode(raw.clone()) == raw);
-        let coded = encode(payload(500, 7, |i, _| i as u32));
+        assert!(encode(raw.clone(), None) == raw);
+        let coded = encode(payload(500, 7, |i, _| i as u32), None);
         for cut in [63, 64, 70, coded.len() - 9] {
             assert!(decode(&coded[..cut]).is_err(), "cut at {cut}");
         }
@@ -444,5 +640,83 @@ mod tests {
         let mut big = coded.clone();
         big[28..32].copy_from_slice(&u32::MAX.to_le_bytes());
         assert!(decode(&big).is_err());
+    }
+}
+
+#[cfg(test)]
+mod order_tests {
+    use super::*;
+    use crate::store::format::{encode_raw_payload, LEAF};
+    use mortar_core::octree::{Cube, NodeKey};
+
+    /// Records of point format 1 after XYZ (8 bytes, then GPS time at 8): attribute length 16.
+    const AL: usize = 16;
+    const GPS: usize = 8;
+
+    /// A leaf of `n` points in Morton order of their offsets from `cube`'s corner, GPS times by
+    /// `gps(i)`; its raw payload.
+    fn leaf(n: usize, cube: Cube, gps: impl Fn(usize) -> f64, dup: bool) -> Vec<u8> {
+        let mut pts: Vec<[i32; 3]> = (0..n)
+            .map(|i| {
+                let i = if dup { i / 2 } else { i } as i64;
+                [0, 1, 2].map(|a| (cube.min[a] + (i * (7 + 3 * a as i64) * 7919) % 4096) as i32)
+            })
+            .collect();
+        pts.sort_by_key(|p| morton96(offset_in(*p, cube.min).unwrap()));
+        let mut attrs = vec![0u8; n * AL];
+        for (i, a) in attrs.chunks_exact_mut(AL).enumerate() {
+            a[0] = (i % 251) as u8;
+            a[1] = 7;
+            a[GPS..GPS + 8].copy_from_slice(&gps(i).to_le_bytes());
+        }
+        let at = |i: usize| &attrs[i * AL..(i + 1) * AL];
+        let key = NodeKey { level: 2, index: [1, 0, 3] };
+        encode_raw_payload(key, LEAF, n, AL, |i| pts[i], |i| (i as u32) * 0x10101, at).unwrap().1
+    }
+
+    #[test]
+    fn gps_ordered_payloads_decode_to_the_raw_bytes_and_unordered_ones_fall_back() {
+        let cube = Cube { min: [1_000_000, -2_000, 6_400_000], size_log2: 12 };
+        let order = Some(Order { cube_min: cube.min, gps: GPS });
+        // GPS times that are no function of the order (negative ones too: adjusted GPS time).
+        let shuffled = |i: usize| ((i * 7_654_321) % 10_007) as f64 * 0.25 - 1_000.0;
+        for n in [2, 3, 1000, 4000] {
+            let raw = leaf(n, cube, shuffled, false);
+            let coded = encode(raw.clone(), order);
+            let h: NodeHeader = bytemuck::pod_read_unaligned(&coded[..64]);
+            assert!(*decode(&coded).unwrap() == *raw, "{n}: the bytes differ");
+            if n >= 1000 {
+                assert_eq!(codec_of(&h), ZSTD_GPS_ORDER, "{n}");
+                assert_eq!(stored_len(&h), Some(coded.len() as u64));
+            }
+        }
+        // Points at one position whose GPS times run against their order: that order cannot
+        // be recomputed, so they are coded in it.
+        let raw = leaf(1000, cube, |i| -(i as f64), true);
+        let coded = encode(raw.clone(), order);
+        let h: NodeHeader = bytemuck::pod_read_unaligned(&coded[..64]);
+        assert_eq!(codec_of(&h), ZSTD_COLUMNS);
+        assert!(*decode(&coded).unwrap() == *raw);
+        // ... and with their times in their order, recomputed.
+        let raw = leaf(1000, cube, |i| i as f64, true);
+        let coded = encode(raw.clone(), order);
+        let h: NodeHeader = bytemuck::pod_read_unaligned(&coded[..64]);
+        assert_eq!(codec_of(&h), ZSTD_GPS_ORDER);
+        assert!(*decode(&coded).unwrap() == *raw);
+        // A cube that does not hold the points: no ordered coding.
+        let far = Some(Order { cube_min: [0; 3], gps: GPS });
+        let raw = leaf(1000, Cube { min: [0, 0, 0], size_log2: 12 }, shuffled, false);
+        let _ = encode(raw.clone(), far);
+        // Damage is an error, never a panic.
+        let raw = leaf(1000, cube, shuffled, false);
+        let coded = encode(raw, order);
+        for cut in [63, 64, 70, coded.len() - 9] {
+            assert!(decode(&coded[..cut]).is_err(), "cut at {cut}");
+        }
+        for at in (64..coded.len()).step_by(5) {
+            let mut bad = coded.clone();
+            bad[at] ^= 0x5a;
+            let _ = decode(&bad);
+        }
     }
 }

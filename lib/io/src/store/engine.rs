@@ -453,6 +453,8 @@ fn write_tree(
         prog.add(kept.len() as u64);
     }
     let dir = writer.dir.clone();
+    let layout = writer.layout.clone();
+    let order = |key| crate::store::codec::Order::of(root, key, &layout);
     let encode = |id: usize, n: &SortedNode| -> Result<(usize, NodeEntry, Vec<u8>)> {
         let (kind, idx): (u32, Box<dyn Fn(usize) -> usize + Sync>) = match &n.content {
             SortedContent::Leaf(r) => {
@@ -469,6 +471,7 @@ fn write_tree(
             |i| read_xyz(sorted.record(idx(i))),
             |i| color.rgba(sorted.record(idx(i))),
             |i| &sorted.record(idx(i))[12..],
+            order(n.key),
         )
         .map(|(e, b)| (id, e, b))
         .map_err(|error| Error::Payload { path: dir.clone(), error })

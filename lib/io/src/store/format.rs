@@ -10,6 +10,53 @@ pub const NODES_FILE: &str = "nodes.bin";
 /// The committed hierarchy.
 pub const HIERARCHY_FILE: &str = "hierarchy.bin";
 
+/// The file of payload segment `s`: `nodes.bin` for 0 (where builds append), `nodes-<s>.bin`
+/// for the others (a merged part's payloads, or a compacted segment).
+pub fn segment_file(s: u32) -> String {
+    if s == 0 {
+        NODES_FILE.to_string()
+    } else {
+        format!("nodes-{s}.bin")
+    }
+}
+
+/// Magic of the segment table that follows the entries in `hierarchy.bin` when some entry's
+/// payload lies in a segment other than 0.
+pub(crate) const SEGMENTS_MAGIC: [u8; 8] = *b"MORTSEGS";
+
+/// The segment table of a hierarchy: the bytes each segment's file holds for this commit,
+/// segment 0 (`nodes.bin`) first. Segment 0's is the header's `nodes_len`; a table follows the
+/// entries only when there is more than one segment: `MORTSEGS`, the count of segments after
+/// segment 0 (u64), then their covered lengths (u64 each; 0 for a number not in use).
+pub(crate) fn segments_bytes(covered: &[u64]) -> Vec<u8> {
+    if covered.len() <= 1 {
+        return Vec::new();
+    }
+    let mut b = SEGMENTS_MAGIC.to_vec();
+    b.extend_from_slice(&(covered.len() as u64 - 1).to_le_bytes());
+    for c in &covered[1..] {
+        b.extend_from_slice(&c.to_le_bytes());
+    }
+    b
+}
+
+/// The covered lengths of segments 1.. from the bytes after the entries (empty: none), or
+/// `None` where they are no segment table.
+pub(crate) fn parse_segments(b: &[u8]) -> Option<Vec<u64>> {
+    if b.is_empty() {
+        return Some(Vec::new());
+    }
+    if b.len() < 16 || b[..8] != SEGMENTS_MAGIC {
+        return None;
+    }
+    let n = u64::from_le_bytes(b[8..16].try_into().ok()?);
+    // Sized by the bytes that are there, never by the count alone.
+    if n == 0 || (b.len() - 16) as u64 != n.checked_mul(8)? {
+        return None;
+    }
+    Some(b[16..].chunks_exact(8).map(|c| u64::from_le_bytes(c.try_into().expect("8"))).collect())
+}
+
 pub(crate) const NODE_MAGIC: [u8; 8] = *b"MORTNODE";
 pub(crate) const HIERARCHY_MAGIC: [u8; 8] = *b"MORTHIER";
 /// Version 3: payloads coded (`codec.rs`). Version 2: inner nodes' voxels are real source points
@@ -97,11 +144,12 @@ pub struct NodeEntry {
     pub kind: u32,
     /// Cube index at its level.
     pub index: [u32; 3],
-    /// Zero.
-    pub _pad: u32,
+    /// The payload file ([`segment_file`]): 0 is `nodes.bin`, where builds append; a merge
+    /// links each part's `nodes.bin` in as a segment of its own.
+    pub segment: u32,
     /// Points or voxels.
     pub count: u64,
-    /// Offset of the payload ([`NodeHeader`] first) in `nodes.bin`.
+    /// Offset of the payload ([`NodeHeader`] first) in its segment.
     pub offset: u64,
     /// Bytes of the payload.
     pub length: u64,
@@ -233,7 +281,7 @@ pub(crate) fn encode_raw_payload<'r>(
         level: key.level as u32,
         kind,
         index: key.index,
-        _pad: 0,
+        segment: 0,
         count: count as u64,
         offset: 0,
         length: len as u64,
@@ -330,7 +378,7 @@ pub(crate) fn write_payload_sliced<'r, E>(
         level: key.level as u32,
         kind,
         index: key.index,
-        _pad: 0,
+        segment: 0,
         count: n,
         offset: 0,
         length: len,
@@ -422,7 +470,7 @@ pub(crate) fn write_payload_blocks<E>(
         level: key.level as u32,
         kind,
         index: key.index,
-        _pad: 0,
+        segment: 0,
         count: n,
         offset: 0,
         length: len,
@@ -472,5 +520,32 @@ mod tests {
                 (want_entry.count, want_entry.length, want_entry.kind)
             );
         }
+    }
+}
+
+#[cfg(test)]
+mod segment_tests {
+    use super::*;
+
+    #[test]
+    fn a_segment_table_reads_back_and_damaged_ones_are_refused() {
+        assert!(segments_bytes(&[5]).is_empty(), "one segment: no table");
+        assert_eq!(parse_segments(&[]), Some(vec![]));
+        let b = segments_bytes(&[8, 0, 64]);
+        assert_eq!(b.len(), 16 + 16);
+        assert_eq!(parse_segments(&b), Some(vec![0, 64]));
+        // Short, another magic, a count that lies, a count of zero: no table.
+        assert_eq!(parse_segments(&b[..b.len() - 1]), None);
+        let mut m = b.clone();
+        m[0] = b'X';
+        assert_eq!(parse_segments(&m), None);
+        let mut c = b.clone();
+        c[8..16].copy_from_slice(&u64::MAX.to_le_bytes());
+        assert_eq!(parse_segments(&c), None);
+        let mut z = b[..16].to_vec();
+        z[8..16].copy_from_slice(&0u64.to_le_bytes());
+        assert_eq!(parse_segments(&z), None);
+        assert_eq!(segment_file(0), NODES_FILE);
+        assert_eq!(segment_file(12), "nodes-12.bin");
     }
 }

@@ -203,6 +203,9 @@ impl StoreLod {
             next += d.header.count as u64;
         }
         let attr_len = self.store.layout.record_len - 12;
+        // The samples the batches hold: a payload that did not decode reads as a node without
+        // points (`Store::node`), fewer than its entry declares.
+        let samples = next;
         Ok(LodBatches { refs, colors, attributes, attr_len, first, nodes: nodes.to_vec(), samples })
     }
 
@@ -215,13 +218,19 @@ impl StoreLod {
         BatchRef { grid: g, bounds_min: b.min, bounds_max: b.max, words: d.words, first_index }
     }
 
-    /// Where node `id`'s payload lies in `nodes.bin` (byte offset). `nodes.bin` only grows and
-    /// a payload is never rewritten in place, so across commits of one store an equal offset
-    /// means the same node contents: what a viewer of a growing store keys its uploads by.
-    pub fn payload_offset(&self, id: NodeId) -> u64 {
-        self.store.entries[id.index()].offset
+    /// Where node `id`'s payload lies (segment, byte offset, length) and the key it has there.
+    /// Segments only grow and a payload is never rewritten in place, so across commits of one
+    /// store an equal place means the same node contents: what a viewer of a growing store keys
+    /// its uploads by. (The key and length are part of it because a segment number can come back
+    /// after its file was removed: a partitioned build's provisional segment, then a compaction's.)
+    pub fn payload_place(&self, id: NodeId) -> PayloadPlace {
+        let e = &self.store.entries[id.index()];
+        (e.segment, e.offset, e.length, e.level, e.index)
     }
 }
+
+/// Segment, offset, length, level and index of a node's payload ([`StoreLod::payload_place`]).
+pub type PayloadPlace = (u32, u64, u64, u32, [u32; 3]);
 
 /// World box of the integer bounds `lo..=hi` on `grid` (ordered for negative scales).
 fn world_box(grid: &Grid, lo: [i32; 3], hi: [i32; 3]) -> Aabb {

@@ -49,10 +49,10 @@ pub use build::build;
 pub use compact::{compact, CompactReport};
 pub use engine::in_memory_need;
 pub use format::{
-    HierarchyHeader, NodeEntry, NodeHeader, PayloadError, HIERARCHY_FILE, INNER, LEAF, NODES_FILE,
-    SOURCE_FILE,
+    segment_file, HierarchyHeader, NodeEntry, NodeHeader, PayloadError, HIERARCHY_FILE, INNER,
+    LEAF, NODES_FILE, SOURCE_FILE,
 };
-pub use lod::{LodBatches, StoreLod};
+pub use lod::{LodBatches, PayloadPlace, StoreLod};
 pub use options::{BuildOptions, BuildProgress, BuildReport, BuiltBy, Engine};
 pub use reader::{is_store, NodeData, Store};
 pub use record::{BuildRecord, InputPrint, RECORD_FILE};

@@ -50,6 +50,7 @@ mod checksum;
 mod log;
 mod manifest;
 mod partition;
+mod preview;
 #[cfg(test)]
 mod testing;
 mod unit;
@@ -58,5 +59,6 @@ mod walk;
 pub(crate) use build::build_into;
 pub(crate) use manifest::has_state;
 pub(crate) use partition::{cell_depth, partition_all, partition_fixed, Filter};
+pub(crate) use preview::drop_provisional;
 pub(crate) use unit::{read_unit, unit_bytes_per_point};
 pub(crate) use walk::build_units;

@@ -32,7 +32,10 @@ pub struct Store {
     pub header: HierarchyHeader,
     /// Every node.
     pub entries: Vec<NodeEntry>,
-    nodes: Option<Mmap>,
+    /// Bytes of each payload segment this commit covers (segment 0, `nodes.bin`, first).
+    pub covered: Vec<u64>,
+    /// Each segment's map (`None` where it covers nothing).
+    nodes: Vec<Option<Mmap>>,
     leaves: Vec<usize>,
     /// Coded payloads decoded on first use by [`node`](Store::node) (raw ones are read in the
     /// map). Kept while the store is open: a view holds what it has drawn (not bounded yet).
@@ -64,8 +67,27 @@ impl NodeData<'_> {
 
 impl Store {
     /// Opens the last commit of the store `dir`, checking every length against the bytes that
-    /// exist.
+    /// exist. A segment that a compaction removed between reading the hierarchy and opening
+    /// the segment is found by reading the new hierarchy (a few tries).
     pub fn open(dir: &Path) -> Result<Store> {
+        let mut tries = 0;
+        loop {
+            match Store::open_once(dir) {
+                Err(Error::Io { path, source })
+                    if tries < 3
+                        && source.kind() == std::io::ErrorKind::NotFound
+                        && path
+                            .file_name()
+                            .is_some_and(|n| n.to_string_lossy().starts_with("nodes-")) =>
+                {
+                    tries += 1;
+                }
+                r => return r,
+            }
+        }
+    }
+
+    fn open_once(dir: &Path) -> Result<Store> {
         let bad = |error: StoreError| Error::Store { path: dir.to_path_buf(), error };
         let src = LasInput::open(&dir.join(SOURCE_FILE))?;
         let hp = dir.join(HIERARCHY_FILE);
@@ -84,23 +106,48 @@ impl Store {
             }));
         }
         let avail = (hb.len() - HIERARCHY_HEADER) as u64 / 48;
-        if header.node_count != avail || !(hb.len() - HIERARCHY_HEADER).is_multiple_of(48) {
-            return Err(bad(StoreError::NodeCount { declared: header.node_count, held: avail }));
-        }
-        let entries: Vec<NodeEntry> = bytemuck::pod_collect_to_vec(&hb[HIERARCHY_HEADER..]);
-        let np = dir.join(NODES_FILE);
-        let f = File::open(&np).map_err(|e| Error::io(&np, e))?;
-        let file_len = f.metadata().map_err(|e| Error::io(&np, e))?.len();
-        if header.nodes_len > file_len {
-            return Err(bad(StoreError::NodesShort { held: file_len, covered: header.nodes_len }));
-        }
-        // SAFETY: the file is only appended to while it is mapped (by a builder); the part read
-        // (up to nodes_len) never changes after its commit.
-        let nodes = if file_len == 0 {
-            None
-        } else {
-            Some(unsafe { Mmap::map(&f) }.map_err(|e| Error::io(&np, e))?)
+        let end = (header.node_count as usize)
+            .checked_mul(48)
+            .and_then(|b| b.checked_add(HIERARCHY_HEADER))
+            .filter(|&e| e <= hb.len())
+            .ok_or_else(|| {
+                bad(StoreError::NodeCount { declared: header.node_count, held: avail })
+            })?;
+        let entries: Vec<NodeEntry> = bytemuck::pod_collect_to_vec(&hb[HIERARCHY_HEADER..end]);
+        let Some(more) = parse_segments(&hb[end..]) else {
+            // Extra bytes that are no table: a hierarchy of another entry count, or damaged.
+            if !(hb.len() - HIERARCHY_HEADER).is_multiple_of(48) || avail != header.node_count {
+                return Err(bad(StoreError::NodeCount {
+                    declared: header.node_count,
+                    held: avail,
+                }));
+            }
+            return Err(bad(StoreError::SegmentTable));
         };
+        let mut covered = vec![header.nodes_len];
+        covered.extend(more);
+        let mut nodes = Vec::with_capacity(covered.len());
+        for (s, &c) in covered.iter().enumerate() {
+            let name = segment_file(s as u32);
+            let np = dir.join(&name);
+            if c == 0 && !np.exists() {
+                nodes.push(None);
+                continue;
+            }
+            let f = File::open(&np).map_err(|e| Error::io(&np, e))?;
+            let file_len = f.metadata().map_err(|e| Error::io(&np, e))?.len();
+            if c > file_len {
+                return Err(bad(StoreError::NodesShort { file: name, held: file_len, covered: c }));
+            }
+            // SAFETY: segment 0 is only appended to while it is mapped (by a builder) and the
+            // others never change once linked in; the part read (up to the covered length)
+            // never changes after its commit.
+            nodes.push(if c == 0 {
+                None
+            } else {
+                Some(unsafe { Mmap::map(&f) }.map_err(|e| Error::io(&np, e))?)
+            });
+        }
         let layout = src.layout.clone();
         let attr_len = layout.record_len as u64 - 12;
         let mut leaves = Vec::new();
@@ -116,15 +163,16 @@ impl Store {
                     offset: e.offset,
                 })
             };
+            let seg = covered.get(e.segment as usize).copied().unwrap_or(0);
             if e.kind > INNER
                 || e.offset % 8 != 0
                 || e.count > u32::MAX as u64
                 || e.length < 64
-                || e.offset.checked_add(e.length).is_none_or(|end| end > header.nodes_len)
+                || e.offset.checked_add(e.length).is_none_or(|end| end > seg)
             {
                 return Err(damaged());
             }
-            let nb = &nodes.as_ref().expect("non-empty")
+            let nb = &nodes[e.segment as usize].as_ref().expect("covered bytes are mapped")
                 [e.offset as usize..(e.offset + e.length) as usize];
             let h: NodeHeader = bytemuck::pod_read_unaligned(&nb[..64]);
             if h.magic != NODE_MAGIC
@@ -159,7 +207,17 @@ impl Store {
             }
         }
         let decoded = (0..entries.len()).map(|_| std::sync::OnceLock::new()).collect();
-        Ok(Store { path: dir.to_path_buf(), meta, layout, header, entries, nodes, leaves, decoded })
+        Ok(Store {
+            path: dir.to_path_buf(),
+            meta,
+            layout,
+            header,
+            entries,
+            covered,
+            nodes,
+            leaves,
+            decoded,
+        })
     }
 
     /// Indices of the leaf entries.
@@ -175,7 +233,7 @@ impl Store {
     /// The bytes of node entry `i`'s payload as stored (its header first; coded or raw).
     pub fn node_bytes(&self, i: usize) -> &[u8] {
         let e = &self.entries[i];
-        &self.nodes.as_ref().expect("checked at open")
+        &self.nodes[e.segment as usize].as_ref().expect("checked at open")
             [e.offset as usize..(e.offset + e.length) as usize]
     }
 
@@ -185,7 +243,8 @@ impl Store {
     }
 
     fn damaged(&self, i: usize, error: PayloadError) -> Error {
-        Error::Payload { path: self.path.join(NODES_FILE), error: error.in_node(i) }
+        let file = segment_file(self.entries[i].segment);
+        Error::Payload { path: self.path.join(file), error: error.in_node(i) }
     }
 
     /// The payload of node entry `i`: in the map where it is raw, else decoded once and kept

@@ -32,10 +32,15 @@ pub struct StoreWriter {
     pub(crate) commit: u64,
     pub(crate) last_revision: Option<u64>,
     pub(crate) record_len: usize,
+    /// The records' layout.
+    pub(crate) layout: mortar_core::layout::RecordLayout,
     /// Registered for removal until the first commit.
     pub(crate) guard: Option<TempPath>,
     /// Payload bytes encoded at once ([`group_bytes`] of the build's budget).
     pub(crate) group_bytes: u64,
+    /// Bytes covered of segments 1.. (files linked in whole by a merge, or written by a
+    /// compaction; the engines append to segment 0 alone).
+    pub(crate) segments: Vec<u64>,
 }
 
 impl StoreWriter {
@@ -67,8 +72,10 @@ impl StoreWriter {
             commit: 0,
             last_revision: None,
             record_len: meta.layout.record_len,
+            layout: meta.layout.clone(),
             guard: Some(guard),
             group_bytes: COMMIT_GROUP_BYTES,
+            segments: Vec::new(),
         })
     }
 
@@ -103,8 +110,10 @@ impl StoreWriter {
             commit: store.header.commit,
             last_revision: None,
             record_len: meta.layout.record_len,
+            layout: meta.layout.clone(),
             guard: None,
             group_bytes: COMMIT_GROUP_BYTES,
+            segments: store.covered[1..].to_vec(),
         };
         Ok(Some((w, store.header)))
     }
@@ -136,8 +145,10 @@ impl StoreWriter {
             commit: 0,
             last_revision: None,
             record_len: meta.layout.record_len,
+            layout: meta.layout.clone(),
             guard: None,
             group_bytes: COMMIT_GROUP_BYTES,
+            segments: Vec::new(),
         }))
     }
 
@@ -235,6 +246,9 @@ impl StoreWriter {
         };
         let mut bytes = bytemuck::bytes_of(&header).to_vec();
         bytes.extend_from_slice(bytemuck::cast_slice(&entries));
+        let mut covered = vec![self.nodes_len];
+        covered.extend_from_slice(&self.segments);
+        bytes.extend_from_slice(&segments_bytes(&covered));
         let hp = self.dir.join(HIERARCHY_FILE);
         let tmp = self.dir.join(format!("{HIERARCHY_FILE}.tmp"));
         {
@@ -492,6 +506,8 @@ pub(crate) fn encode_node<'r>(
         |i| positions[i],
         |i| colors[i],
         |i| &attrs[i * attr_len..(i + 1) * attr_len],
+        // The incremental engine's leaves are in arrival order: coded as they are.
+        None,
     )
 }
 

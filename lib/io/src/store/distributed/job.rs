@@ -101,7 +101,7 @@ pub fn build_job(
     let state = tmp.path().join(".partition");
     std::fs::create_dir_all(&state).map_err(|e| Error::io(&state, e))?;
     ds.progress.stage("reading", pj.inputs.iter().map(|&i| plan.inputs[i].points).sum(), "points");
-    let (runs, hist, all, real) =
+    let (runs, hist, all, real, _) =
         partition_fixed(ds, root, plan.max_level, memory, &filter, &state)?;
     // Every input read lies in the box the plan took for it: a file the job skipped by its box
     // holds none of the job's points.

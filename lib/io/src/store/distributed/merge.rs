@@ -1,13 +1,17 @@
 //! The merge of a distributed build (`mortar merge`): the parts checked to be every job of one
-//! plan once, their payloads copied (recoloured where a part's colour scale is not the whole
-//! input's), the nodes above the cut made from the subtrees' candidates, and the entries
-//! committed in the one-machine order.
+//! plan once, each part's `nodes.bin` linked into the store as a payload segment of its own (a
+//! hard link: no byte copied, the part stays intact until it is removed; copied where the part
+//! lies on another file system), or its payloads coded again into the store's `nodes.bin` where
+//! its colour scale is not the whole input's or a leaf above the cut absorbs some of its nodes;
+//! the nodes above the cut made from the subtrees' candidates, and the entries committed in the
+//! one-machine order.
 
 use super::cut::morton;
 use super::part::{color_of, read_part, Part, CANDIDATES_FILE};
 use super::plan::Plan;
 use crate::cleanup::TempPath;
 use crate::error::{Error, JobError, PartError, Result};
+use crate::store::codec::Order;
 use crate::store::format::*;
 use crate::store::runs::Cands;
 use crate::store::writer::StoreWriter;
@@ -28,8 +32,13 @@ pub struct MergeReport {
     pub nodes: u64,
     /// Nodes above the cut, made by the merge.
     pub top_nodes: u64,
-    /// Parts whose payloads were recoloured.
+    /// Parts whose payloads were recoloured (coded again into the store's `nodes.bin`).
     pub recoloured_parts: usize,
+    /// Parts whose `nodes.bin` was linked into the store as a segment, no byte copied.
+    pub linked_parts: usize,
+    /// Bytes of parts' payloads copied (parts on another file system than the store, where a
+    /// link cannot be made, and parts with recoloured or absorbed nodes).
+    pub copied_bytes: u64,
     pub seconds: f64,
 }
 
@@ -123,6 +132,7 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> Result<MergeReport> {
         (lo, hi) = ([0; 3], [0; 3]);
     }
     let color = color_of(f0.rgb_offset, max_rgb, max_int);
+    let layout = crate::source::LasInput::open(&parts[0].dir.join(SOURCE_FILE))?.layout.clone();
     // The store, in a temporary directory.
     let tmp = TempPath::beside(out);
     let dir = tmp.path().to_path_buf();
@@ -145,8 +155,10 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> Result<MergeReport> {
         commit: 0,
         last_revision: None,
         record_len: rl,
+        layout: layout.clone(),
         guard: None,
         group_bytes: crate::store::writer::COMMIT_GROUP_BYTES,
+        segments: Vec::new(),
     };
     // The subtrees' candidates and counts.
     let mut subtrees: HashMap<NodeKey, (u64, Cands, usize)> = HashMap::new();
@@ -188,6 +200,7 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> Result<MergeReport> {
         plan,
         color,
         rl,
+        layout: layout.clone(),
         made: Vec::new(),
         absorbed: std::collections::HashSet::new(),
     };
@@ -197,22 +210,29 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> Result<MergeReport> {
     }
     let Top { made, absorbed, .. } = top;
     let mut all: Vec<NodeEntry> = Vec::new();
-    let mut recoloured = 0;
+    let (mut recoloured, mut linked, mut copied_bytes) = (0, 0, 0u64);
     for p in &parts {
         let f = &p.file;
         let same_color = color_of(f.rgb_offset, f.max_rgb, f.max_intensity) == color;
         let src = p.dir.join(NODES_FILE);
-        let base = writer.nodes_len;
         let absorbs = p.entries.iter().any(|e| absorbed.contains(&(e.level, e.index)));
         if same_color && !absorbs {
-            // The payloads as they are, in one copy.
-            let off = writer.reserve(&[f.nodes_len])[0];
-            debug_assert_eq!(off, base);
-            let mut from = std::fs::File::open(&src).map_err(|e| Error::io(&src, e))?;
-            use std::io::Seek;
-            writer.nodes.seek(std::io::SeekFrom::Start(off)).map_err(|e| Error::io(&np, e))?;
-            std::io::copy(&mut from, &mut writer.nodes).map_err(|e| Error::io(&np, e))?;
-            all.extend(p.entries.iter().map(|e| NodeEntry { offset: e.offset + base, ..*e }));
+            // The part's payloads as they are: its nodes.bin becomes a segment of the store,
+            // linked in (no byte copied; the part can be removed afterwards) or, across file
+            // systems, copied whole.
+            let seg = writer.segments.len() as u32 + 1;
+            let to = dir.join(segment_file(seg));
+            if std::fs::hard_link(&src, &to).is_ok() {
+                linked += 1;
+            } else {
+                std::fs::copy(&src, &to).map_err(|e| Error::io(&src, e))?;
+                std::fs::File::open(&to)
+                    .and_then(|f| f.sync_all())
+                    .map_err(|e| Error::io(&to, e))?;
+                copied_bytes += f.nodes_len;
+            }
+            writer.segments.push(f.nodes_len);
+            all.extend(p.entries.iter().map(|e| NodeEntry { segment: seg, ..*e }));
         } else {
             recoloured += !same_color as usize;
             let bytes = std::fs::read(&src).map_err(|e| Error::io(&src, e))?;
@@ -226,12 +246,14 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> Result<MergeReport> {
                     if same_color {
                         Ok(b.to_vec())
                     } else {
-                        recolour(b, &color, rl)
+                        let key = NodeKey { level: e.level as u8, index: e.index };
+                        recolour(b, &color, rl, Order::of(plan.root(), key, &layout))
                             .map_err(|error| Error::Payload { path: p.dir.clone(), error })
                     }
                 })
                 .collect::<Result<_>>()?;
             let lens: Vec<u64> = made.iter().map(|b| b.len() as u64).collect();
+            copied_bytes += lens.iter().sum::<u64>();
             let offs = writer.reserve(&lens);
             let w = &writer;
             let done: Vec<NodeEntry> = keep
@@ -267,6 +289,8 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> Result<MergeReport> {
         nodes: all.len() as u64,
         top_nodes,
         recoloured_parts: recoloured,
+        linked_parts: linked,
+        copied_bytes,
         seconds: t0.elapsed().as_secs_f64(),
     })
 }
@@ -277,6 +301,7 @@ fn recolour(
     b: &[u8],
     color: &ColorSource,
     rl: usize,
+    order: Option<Order>,
 ) -> std::result::Result<Vec<u8>, PayloadError> {
     let raw = crate::store::codec::decode(b)?;
     let d = DecodedLeaf::parse(&raw)?;
@@ -300,7 +325,7 @@ fn recolour(
     for (i, c) in cols.iter().enumerate() {
         out[at + 4 * i..at + 4 * i + 4].copy_from_slice(&c.to_le_bytes());
     }
-    Ok(crate::store::codec::encode(out))
+    Ok(crate::store::codec::encode(out, order))
 }
 
 /// What the walk above the cut gives a parent.
@@ -320,6 +345,7 @@ struct Top<'a> {
     plan: &'a Plan,
     color: ColorSource,
     rl: usize,
+    layout: mortar_core::layout::RecordLayout,
     /// Payloads made here (offsets set when written).
     made: Vec<(NodeEntry, Vec<u8>)>,
     /// Nodes of the parts that a leaf above them holds: not copied.
@@ -403,6 +429,7 @@ impl Top<'_> {
             |i| voxels.pos[i],
             |i| color.rgba(&voxels.records[i * rl..(i + 1) * rl]),
             |i| &voxels.records[i * rl + 12..(i + 1) * rl],
+            Order::of(self.plan.root(), key, &self.layout),
         )
         .map_err(|m| Error::MergePayload { error: m.in_node(key.name()) })?;
         self.made.push((e, b));
@@ -436,6 +463,7 @@ impl Top<'_> {
             |i| read_xyz(&records[i * rl..]),
             |i| color.rgba(&records[i * rl..(i + 1) * rl]),
             |i| &records[i * rl + 12..(i + 1) * rl],
+            Order::of(self.plan.root(), key, &self.layout),
         )
         .map_err(|m| Error::MergePayload { error: m.in_node(key.name()) })?;
         self.made.push((e, b));
@@ -563,6 +591,7 @@ mod tests {
             |i| read_xyz(&records[i * rl..]),
             |_| 0x1234_5678,
             |i| &records[i * rl + 12..(i + 1) * rl],
+            None,
         )
         .unwrap();
         (records, b)
@@ -576,7 +605,7 @@ mod tests {
         assert!(matches!(records_of(&b[..40], 20), Err(PayloadError::Short)));
         // Recoloured: every colour from its record, nothing else changed.
         let color = ColorSource::Intensity { max_intensity: 2010 };
-        let c = recolour(&b, &color, 20).unwrap();
+        let c = recolour(&b, &color, 20, None).unwrap();
         let raw_c = crate::store::codec::decode(&c).unwrap();
         let d = DecodedLeaf::parse(&raw_c).unwrap();
         for (i, r) in records.chunks_exact(20).enumerate() {
@@ -590,6 +619,6 @@ mod tests {
             (&raw_b[..colours.start], &raw_b[colours.end..])
         );
         assert_eq!(records_of(&c, 20).unwrap(), records);
-        assert!(matches!(recolour(&b, &color, 26), Err(PayloadError::RecordLength)));
+        assert!(matches!(recolour(&b, &color, 26, None), Err(PayloadError::RecordLength)));
     }
 }

@@ -60,7 +60,7 @@ pub(super) fn two_entries() -> Vec<NodeEntry> {
         level: 2,
         kind: LEAF,
         index: [i, 0, 0],
-        _pad: 0,
+        segment: 0,
         count: 1,
         offset,
         length,

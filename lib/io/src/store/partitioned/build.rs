@@ -5,6 +5,7 @@
 use super::log::{read_log, LOG};
 use super::manifest::{read_manifest, write_manifest, STATE_DIR};
 use super::partition::{cell_depth, partition_all, Partition};
+use super::preview::{Preview, RootSample};
 use super::unit::unit_bytes_per_point;
 use super::walk::Walk;
 use crate::dataset::Dataset;
@@ -39,17 +40,43 @@ pub(crate) fn build_into(
         p.hist.len() == 1usize << (3 * cell_depth(p.root, opts.config.max_level) as u32)
     });
     let resumed = kept.is_some();
+    // Provisional commits while the build runs (readers and --preview see it grow).
+    let mut preview = if opts.commit_every.is_finite() {
+        Some(Preview::new(writer, ds.layout.clone(), opts.commit_every, opts.config.leaf_capacity)?)
+    } else {
+        None
+    };
     let part = match kept {
         Some(p) => p,
         None => {
             let _ = std::fs::remove_dir_all(&state);
             std::fs::create_dir_all(&state).map_err(|e| Error::io(&state, e))?;
-            let p = partition_all(ds, opts.memory, opts.config.max_level, [1; 3], header, &state)?;
+            let previewed = preview.is_some();
+            let mut commit = |s: &RootSample| -> Result<()> {
+                match preview.as_mut() {
+                    Some(pv) if pv.due() => pv.commit_sample(writer, s),
+                    _ => Ok(()),
+                }
+            };
+            let on_group = previewed
+                .then_some((&mut commit as &mut dyn FnMut(&RootSample) -> Result<()>, opts.memory));
+            let p = partition_all(
+                ds,
+                opts.memory,
+                opts.config.max_level,
+                [1; 3],
+                header,
+                &state,
+                on_group,
+            )?;
             write_manifest(&state, &p)?;
             p
         }
     };
-    let Partition { root, runs, hist, all, warnings, .. } = part;
+    let Partition { root, runs, hist, all, warnings, sample, .. } = part;
+    if let (Some(pv), Some(s)) = (preview.as_mut(), sample) {
+        pv.set_sample(s);
+    }
     report.warnings = warnings;
     report.read_seconds = tr.elapsed().as_secs_f64();
     crate::cleanup::trace("partitioned", t0);
@@ -99,17 +126,25 @@ pub(crate) fn build_into(
         log,
         log_path,
         state: state.clone(),
+        preview,
+        bounds: (lo, hi),
     };
     w.visit(&lv, NodeKey::ROOT, root, 0, 0..cells)?;
-    let Walk { mut entries, points, .. } = w;
+    let Walk { mut entries, points, preview, .. } = w;
     // The sorted engine's order: level by level, depth-first (= Morton) order in a level.
     entries.sort_by_key(|&(level, seq, _)| (level, seq));
+    // The final commit names no provisional node and no scratch segment.
+    writer.entries.clear();
+    writer.segments.clear();
     for (i, (_, _, e)) in entries.iter().enumerate() {
         writer.set_entry(i, *e);
     }
     let tc = Instant::now();
     writer.write_hierarchy(root, points, opts.config.leaf_capacity, (lo, hi))?;
     report.commit_seconds += tc.elapsed().as_secs_f64();
+    if let Some(pv) = preview {
+        pv.remove();
+    }
     progress(&BuildProgress { points, total, nodes: entries.len(), commits: writer.commits() });
     report.points = points;
     report.nodes = entries.len() as u64;

@@ -158,7 +158,7 @@ mod tests {
             level: 3,
             kind: LEAF,
             index: [i as u32, 1, 2],
-            _pad: 0,
+            segment: 0,
             count: 4,
             offset: off,
             length: payloads[i].len() as u64,

@@ -149,7 +149,7 @@ pub(super) fn read_manifest(state: &Path, rl: usize) -> Option<Partition> {
     };
     let warnings =
         j["warnings"].as_array()?.iter().filter_map(|w| w.as_str().map(str::to_string)).collect();
-    let p = Partition { root, runs, hist, all, warnings, base: [0; 3] };
+    let p = Partition { root, runs, hist, all, warnings, base: [0; 3], sample: None };
     (manifest_sum(&p, j["tables_checksum"].as_u64()?) == j["checksum"].as_u64()?).then_some(p)
 }
 
@@ -179,7 +179,15 @@ mod tests {
             ..PieceStats::default()
         };
         let root = Cube { min: [-8, -8, -8], size_log2: 11 };
-        Partition { root, runs, hist, all, warnings: vec!["a.las: lies".into()], base: [0; 3] }
+        Partition {
+            root,
+            runs,
+            hist,
+            all,
+            warnings: vec!["a.las: lies".into()],
+            base: [0; 3],
+            sample: None,
+        }
     }
 
     #[test]

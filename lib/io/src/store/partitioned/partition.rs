@@ -4,6 +4,7 @@
 //! own root where the headers lie, or on a plan's fixed root for a distributed job.
 
 use super::checksum::checksum;
+use super::preview::RootSample;
 use crate::dataset::Dataset;
 use crate::error::{Error, Result};
 use crate::sort::{self, PieceStats};
@@ -28,7 +29,13 @@ pub(crate) struct Partition {
     pub warnings: Vec<String>,
     /// The `base` of a stretched grid ([`partition_all`]); zeros for builds.
     pub base: [i64; 3],
+    /// The first point of each cell of the root's grid (when asked for: a build's preview).
+    pub sample: Option<RootSample>,
 }
+
+/// What pass 1 reports after each group of pieces, with the memory its sample may take: the
+/// root's sample so far (a build's provisional commits, [`super::preview`]).
+pub(crate) type OnGroup<'a, 'b> = (&'a mut (dyn FnMut(&RootSample) -> Result<()> + 'b), u64);
 
 /// The depth of the partition cells for `root`: cells must still be able to split (so that
 /// every node above them is inner when it holds more than a unit).
@@ -49,6 +56,7 @@ pub(crate) fn partition_all(
     stretch: [i64; 3],
     header: Option<([i32; 3], [i32; 3])>,
     state: &Path,
+    mut on_group: Option<OnGroup<'_, '_>>,
 ) -> Result<Partition> {
     let rl = ds.layout.record_len;
     let total = ds.declared_points();
@@ -69,8 +77,12 @@ pub(crate) fn partition_all(
     };
     let block_bytes = ((memory / 4).max(rl as u64 * 4096)) as usize;
     ds.progress.stage("partitioning", total, "points");
-    let (mut runs, mut hist, all, real) =
-        partition(ds, guess.1, guess.0, max_level, block_bytes, state, None)?;
+    // Every point read into runs of cells of `root`'s grid (and `root`'s sample, when asked).
+    let mut pass = |root: Cube, grid: Grid| {
+        let g = on_group.as_mut().map(|(f, m)| (&mut **f, *m));
+        partition(ds, root, grid, max_level, block_bytes, state, None, g)
+    };
+    let (mut runs, mut hist, all, real, mut sample) = pass(guess.1, guess.0)?;
     let mut warnings = Vec::new();
     for (src, st) in ds.inputs.iter().zip(&real) {
         if let Some(w) = crate::store::bounds::bounds_warning(ds, src.as_ref(), st) {
@@ -107,9 +119,9 @@ pub(crate) fn partition_all(
             let _ = std::fs::remove_file(&r.path);
         }
         ds.progress.stage("partitioning again (the headers' bounds are wrong)", total, "points");
-        (runs, hist, _, _) = partition(ds, root, grid, max_level, block_bytes, state, None)?;
+        (runs, hist, _, _, sample) = pass(root, grid)?;
     }
-    Ok(Partition { root, runs, hist, all, warnings, base: grid.base })
+    Ok(Partition { root, runs, hist, all, warnings, base: grid.base, sample })
 }
 
 /// The integer grid the runs hold positions on: `(p - base) * m` per axis (the identity for
@@ -146,7 +158,9 @@ fn cell_of(q: [i32; 3], g: &MortonGrid, root: Cube, depth: u8) -> usize {
 }
 
 /// Pass 1: reads every piece once and writes the run files; the cells' counts, the statistics
-/// of all points and of each input.
+/// of all points and of each input, and with `on_group` the root's sample (reported after each
+/// group of pieces).
+#[allow(clippy::too_many_arguments)]
 fn partition(
     ds: &Dataset,
     root: Cube,
@@ -155,6 +169,7 @@ fn partition(
     block_bytes: usize,
     dir: &Path,
     filter: Option<&Filter>,
+    mut on_group: Option<OnGroup<'_, '_>>,
 ) -> Result<Partitioned> {
     let rl = ds.layout.record_len;
     let el = rl + 8;
@@ -174,6 +189,7 @@ fn partition(
     let mut hist = vec![0u64; cells];
     let mut all = PieceStats::default();
     let mut real = vec![PieceStats::default(); ds.inputs.len()];
+    let mut sample = on_group.as_ref().map(|(_, m)| RootSample::new(root, rl, *m));
     let mut i = 0;
     while i < pieces.len() {
         crate::cleanup::check_interrupted()?;
@@ -186,7 +202,8 @@ fn partition(
             j += 1;
         }
         // Decoded (or borrowed) in parallel, with the counts per cell made while in cache.
-        let group: Vec<(std::borrow::Cow<'_, [u8]>, PieceStats, Vec<u32>)> = (i..j)
+        let sampled = sample.as_ref();
+        let group: Vec<ReadPiece<'_>> = (i..j)
             .into_par_iter()
             .map(|k| {
                 let p = &pieces[k].1;
@@ -205,17 +222,18 @@ fn partition(
                     }
                 }
                 let st = PieceStats::of(&slab, &ds.layout);
-                Ok((slab, st, h))
+                let firsts = sampled.map(|s| s.firsts(&slab)).unwrap_or_default();
+                Ok((slab, st, h, firsts))
             })
             .collect::<Result<_>>()?;
         let mut starts = vec![0u64; cells + 1];
         for c in 0..cells {
-            starts[c + 1] = starts[c] + group.iter().map(|(_, _, h)| h[c] as u64).sum::<u64>();
+            starts[c + 1] = starts[c] + group.iter().map(|(_, _, h, _)| h[c] as u64).sum::<u64>();
         }
         let n = starts[cells] as usize;
         let mut cursors: Vec<Vec<usize>> = Vec::with_capacity(group.len());
         let mut running: Vec<usize> = starts[..cells].iter().map(|&s| s as usize).collect();
-        for (_, _, h) in &group {
+        for (_, _, h, _) in &group {
             cursors.push(running.clone());
             for c in 0..cells {
                 running[c] += h[c] as usize;
@@ -225,7 +243,7 @@ fn partition(
         {
             let bp = mortar_core::par::SendPtr(buf.as_mut_ptr());
             group.par_iter().zip(cursors.into_par_iter()).enumerate().for_each(
-                |(k, ((slab, _, _), mut cur))| {
+                |(k, ((slab, _, _, _), mut cur))| {
                     let bp = &bp;
                     let piece = pieces[i + k].0 as u64;
                     for (x, r) in slab.chunks_exact(rl).enumerate() {
@@ -259,7 +277,13 @@ fn partition(
                 },
             );
         }
-        for (k, (_, st, h)) in group.iter().enumerate() {
+        if let Some(s) = sample.as_mut() {
+            // In arrival order: the first point of a cell wins.
+            for (slab, _, _, firsts) in &group {
+                s.absorb(slab, firsts);
+            }
+        }
+        for (k, (_, st, h, _)) in group.iter().enumerate() {
             all.merge(st);
             real[pieces[i + k].1.input].merge(st);
             for c in 0..cells {
@@ -279,10 +303,21 @@ fn partition(
         f.flush().map_err(|e| Error::io(&path, e))?;
         let hash = checksum(&buf);
         runs.push(Run { path, starts, hash });
+        // The group's records are written: their memory is free before a commit codes the
+        // sample.
+        drop(buf);
+        drop(f);
+        if let (Some((f, _)), Some(s)) = (on_group.as_mut(), sample.as_ref()) {
+            f(s)?;
+        }
         i = j;
     }
-    Ok((runs, hist, all, real))
+    Ok((runs, hist, all, real, sample))
 }
+
+/// A piece read in pass 1: its records, statistics, counts per cell and the records that are
+/// the first of a root cell ([`RootSample::firsts`]).
+type ReadPiece<'a> = (std::borrow::Cow<'a, [u8]>, PieceStats, Vec<u32>, Vec<u32>);
 
 /// What a job of a distributed build reads ([`crate::store::distributed`]): the dataset's pieces
 /// (by number) and the partition cells it keeps.
@@ -292,8 +327,8 @@ pub(crate) struct Filter {
 }
 
 /// What pass 1 gives: the runs, the cells' counts, the statistics of every point read and of
-/// each input's.
-pub(crate) type Partitioned = (Vec<Run>, Vec<u64>, PieceStats, Vec<PieceStats>);
+/// each input's, and the root's sample where one was asked for.
+pub(crate) type Partitioned = (Vec<Run>, Vec<u64>, PieceStats, Vec<PieceStats>, Option<RootSample>);
 
 /// Pass 1 on a root fixed beforehand (a plan's), reading only what `filter` keeps: the runs,
 /// the cells' counts of the points kept, their statistics and those of every piece read, per
@@ -307,5 +342,5 @@ pub(crate) fn partition_fixed(
     dir: &Path,
 ) -> Result<Partitioned> {
     let block_bytes = ((memory / 4).max(ds.layout.record_len as u64 * 4096)) as usize;
-    partition(ds, root, Grid::IDENTITY, max_level, block_bytes, dir, Some(filter))
+    partition(ds, root, Grid::IDENTITY, max_level, block_bytes, dir, Some(filter), None)
 }

@@ -9,6 +9,7 @@ use super::partition::cell_depth;
 use super::unit::{read_unit, unit_bytes_per_point};
 use crate::dataset::Dataset;
 use crate::error::{Error, Result};
+use crate::store::codec::Order;
 use crate::store::dense::{self, Level};
 use crate::store::format::*;
 use crate::store::options::{BuildOptions, BuildReport};
@@ -45,6 +46,10 @@ pub(super) struct Walk<'a, 'w> {
     pub(super) hashes: Vec<u64>,
     /// Where finer partitions of dense cells go.
     pub(super) state: PathBuf,
+    /// Provisional commits as visits finish ([`super::preview`]); none for a distributed job.
+    pub(super) preview: Option<super::preview::Preview>,
+    /// The integer bounds of every point (pass 1).
+    pub(super) bounds: ([i32; 3], [i32; 3]),
 }
 
 impl Walk<'_, '_> {
@@ -112,6 +117,7 @@ impl Walk<'_, '_> {
             |i| voxels.pos[i],
             |i| color.rgba(&voxels.records[i * rl..(i + 1) * rl]),
             |i| &voxels.records[i * rl + 12..(i + 1) * rl],
+            Order::of(self.root, key, &self.ds.layout),
         )
         .map_err(|error| Error::Payload { path: self.writer.dir.clone(), error })?;
         let before = self.entries.len();
@@ -188,6 +194,7 @@ impl Walk<'_, '_> {
                 |i| read_xyz(rec(i)),
                 |i| self.color.rgba(rec(i)),
                 |i| &rec(i)[12..],
+                Order::of(self.root, key, &self.ds.layout),
             )
             .map_err(|error| Error::Payload { path: self.writer.dir.clone(), error })?;
             drop(recs);
@@ -238,7 +245,12 @@ impl Walk<'_, '_> {
             out,
             self.rl,
         );
-        self.log.write_all(&rec).map_err(|e| Error::io(&self.log_path, e))
+        self.log.write_all(&rec).map_err(|e| Error::io(&self.log_path, e))?;
+        if let Some(pv) = self.preview.as_mut().filter(|p| p.due()) {
+            let done: Vec<NodeEntry> = self.entries.iter().map(|&(_, _, e)| e).collect();
+            pv.commit(self.writer, self.root, &done, self.points, Some(self.bounds))?;
+        }
+        Ok(())
     }
 
     /// Writes one payload at the end of `nodes.bin` and keeps its entry.
@@ -278,6 +290,7 @@ impl Walk<'_, '_> {
         let attr_len = rl - 12;
         let dir = self.writer.dir.clone();
         let color = &self.color;
+        let root = self.root;
         let mut start = 0;
         while start < sub.nodes.len() {
             let mut end = start;
@@ -312,6 +325,7 @@ impl Walk<'_, '_> {
                         |i| read_xyz(sorted.record(idx(i))),
                         |i| color.rgba(sorted.record(idx(i))),
                         |i| &sorted.record(idx(i))[12..],
+                        Order::of(root, nd.key, &self.ds.layout),
                     )
                     .map(Some)
                     .map_err(|error| Error::Payload { path: dir.clone(), error })
@@ -426,6 +440,8 @@ pub(crate) fn build_units(
         log,
         log_path,
         state: state.to_path_buf(),
+        preview: None,
+        bounds: ([0; 3], [0; 3]),
     };
     let mut cands = Vec::with_capacity(units.len());
     for (key, cube, cells) in units {
