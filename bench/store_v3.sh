@@ -4,7 +4,8 @@
 # BEFORE_DIR holds a version 2 `mortar` (e.g. a build of 5e09b4e), AFTER_DIR this version's
 # `mortar`, `mortar-gen` and `mortar-bench-decode`. POTREE (default
 # ../shared/tools/potree-converter/run) is PotreeConverter 2.1.2; DATA (default ../shared/data)
-# the real scans. Default settings everywhere (no --memory).
+# the real scans. Default settings everywhere (no --memory). B and A (default v2 and v3) name
+# the two binaries in the tables (e.g. B=codec1 A=codec2 for two version 3 binaries).
 #
 # 1. Sizes: for each input (two synthetic generators at POINTS points, LAS and LAZ, and real
 #    scans), the input, the version 2 and version 3 stores' nodes.bin, the COPC and Potree
@@ -32,7 +33,8 @@ for f in PDAL/test/data/las/autzen_trim.las lidR/inst/extdata/Megaplot@39ac7951.
   [ -f "$data/$f" ] && inputs+=("$data/$f")
 done
 bytes() { du -sb "$1" | cut -f1; }
-echo "| input | points | input bytes | v2 store | v3 store | v2/v3 | COPC | v3/COPC | Potree export | PotreeConverter | v3/PotreeConverter |"
+B=${B:-v2}; A=${A:-v3}
+echo "| input | points | input bytes | $B store | $A store | $B/$A | COPC | $A/COPC | Potree export | PotreeConverter | $A/PotreeConverter |"
 echo "|---|---|---|---|---|---|---|---|---|---|---|"
 for f in "${inputs[@]}"; do
   rm -rf s2 s3 pc px c.copc.laz
@@ -43,7 +45,7 @@ for f in "${inputs[@]}"; do
   "$after/mortar" export s3 -o px --format potree -q >/dev/null
   pcb=-
   if "$potree" "$f" -o pc -m random >/dev/null 2>&1; then pcb=$(bytes pc); fi
-  b2=$(bytes s2/nodes.bin); b3=$(bytes s3/nodes.bin); bc=$(bytes c.copc.laz)
+  b2=$(cat s2/nodes*.bin | wc -c); b3=$(cat s3/nodes*.bin | wc -c); bc=$(bytes c.copc.laz)
   python3 -c "
 import sys
 f,n,bi,b2,b3,bc,bp,pc=sys.argv[1:]
@@ -79,15 +81,16 @@ for r in $(seq 1 "$reps"); do
   done
 done
 rm -rf store pc
-python3 - "$results" "$bw" <<'PY'
+python3 - "$results" "$bw" "$B" "$A" <<'PY'
 import sys, statistics as st
+B, A = sys.argv[3], sys.argv[4]
 rows = {}
 for line in open(sys.argv[1]):
     ext, which, s, b, _ = line.split()
     rows.setdefault((ext, which), []).append((float(s), int(b)))
 bw = float(sys.argv[2])
 print(f"\nfdatasync bandwidth (dd, 512 MiB): {bw / 1e6:.0f} MB/s\n")
-print("| input | v2 s | v3 s | v2/v3 | PotreeConverter random s | poisson s | random/v3 | poisson/v3 | decode s | v3 bytes | floor s (decode + bytes/bw) | v3/floor |")
+print(f"| input | {B} s | {A} s | {B}/{A} | PotreeConverter random s | poisson s | random/{A} | poisson/{A} | decode s | {A} bytes | floor s (decode + bytes/bw) | {A}/floor |")
 print("|---|---|---|---|---|---|---|---|---|---|---|---|")
 for ext in ("las", "laz"):
     m = lambda w: st.median(x[0] for x in rows[(ext, w)])
