@@ -31,9 +31,12 @@ use std::time::Instant;
 /// per-bucket sorting work (8).
 const PER_POINT: u64 = 16;
 
-/// Bits of the Morton code by which records are scattered into buckets: buckets of about 10 k
-/// points at 20 M points, sorted in cache.
-pub(super) const BUCKET_BITS: u32 = 11;
+/// Bits of the Morton code by which records are scattered into buckets, sorted one at a time in
+/// cache. 8192 buckets: airborne clouds fill few of the cells in height, so 2048 (11 bits) left
+/// about 300 k points in a bucket at 100 M points (10 MB of records, gathered out of cache); 13
+/// bits cut the per-bucket sorts by a fifth on 2 cores at 20 M points (BENCHMARKS.md, "Store v3
+/// on 16 cores"). Each piece keeps a count and a cursor per bucket (12 bytes each: 96 KiB a piece).
+pub(super) const BUCKET_BITS: u32 = 13;
 
 /// Memory the sorted engine needs for `ds` under the budget `memory`, as the OS counts it
 /// (resident pages): the records as read (decoded LAZ, converted records, or the pages of a
