@@ -85,15 +85,89 @@ fn rgb_of(attrs: &[u8], off: usize, sixteen: bool) -> u32 {
     c(0) | (c(1) << 8) | (c(2) << 16) | (255 << 24)
 }
 
-/// How the colours of `n` points are kept (the `_pad[2]` word).
-fn color_mode(colors: &[u8], attrs: &[u8], n: usize, al: usize) -> u32 {
+/// The points a payload is coded from: a version 2 payload's columns ([`Columns`]) or an
+/// engine's records ([`Records`]), so that one coder serves both (and the engines code without
+/// making the version 2 payload first).
+trait Points<'a> {
+    fn len(&self) -> usize;
+    /// The exact position of point `i`.
+    fn pos(&self, i: usize) -> [i32; 3];
+    /// Its RGBA8 colour word.
+    fn color(&self, i: usize) -> u32;
+    /// Its attribute bytes (the record after X, Y, Z).
+    fn attrs(&self, i: usize) -> &'a [u8];
+}
+
+/// The columns of a version 2 payload; positions are decoded from the words where they are
+/// needed (no copy: a payload of CODE_LIMIT bytes is coded under tight budgets, two at a time).
+struct Columns<'a> {
+    grid: BatchGrid,
+    w: [&'a [u8]; 3],
+    colors: &'a [u8],
+    attrs: &'a [u8],
+    n: usize,
+    al: usize,
+}
+
+impl Columns<'_> {
+    fn words(&self, i: usize) -> [u32; 3] {
+        [u32_at(self.w[0], i), u32_at(self.w[1], i), u32_at(self.w[2], i)]
+    }
+}
+
+impl<'a> Points<'a> for Columns<'a> {
+    fn len(&self) -> usize {
+        self.n
+    }
+    fn pos(&self, i: usize) -> [i32; 3] {
+        self.grid.decode_exact(self.words(i))
+    }
+    fn color(&self, i: usize) -> u32 {
+        u32_at(self.colors, i)
+    }
+    fn attrs(&self, i: usize) -> &'a [u8] {
+        &self.attrs[i * self.al..(i + 1) * self.al]
+    }
+}
+
+/// An engine's points, as `encode_payload` takes them.
+struct Records<P, C, A> {
+    n: usize,
+    pos: P,
+    color: C,
+    attrs: A,
+}
+
+impl<'r, P, C, A> Points<'r> for Records<P, C, A>
+where
+    P: Fn(usize) -> [i32; 3],
+    C: Fn(usize) -> u32,
+    A: Fn(usize) -> &'r [u8],
+{
+    fn len(&self) -> usize {
+        self.n
+    }
+    fn pos(&self, i: usize) -> [i32; 3] {
+        (self.pos)(i)
+    }
+    fn color(&self, i: usize) -> u32 {
+        (self.color)(i)
+    }
+    fn attrs(&self, i: usize) -> &'r [u8] {
+        (self.attrs)(i)
+    }
+}
+
+/// How the colours of the points are kept (the `_pad[2]` word).
+fn color_mode<'a>(src: &impl Points<'a>, al: usize) -> u32 {
+    let n = src.len();
     for off in RGB_OFFSETS.into_iter().filter(|&o| o + 6 <= al) {
         // 8-bit values must fit a byte for the colour to be the value itself.
         for (mode, sixteen) in [(COLOR_RGB8, false), (COLOR_RGB16, true)] {
             let fits = (0..n).all(|i| {
-                let a = &attrs[i * al..(i + 1) * al];
+                let a = src.attrs(i);
                 (sixteen || (0..3).all(|k| a[off + 2 * k + 1] == 0))
-                    && rgb_of(a, off, sixteen) == u32_at(colors, i)
+                    && rgb_of(a, off, sixteen) == src.color(i)
             });
             if fits {
                 return mode | (off as u32) << 8;
@@ -101,7 +175,7 @@ fn color_mode(colors: &[u8], attrs: &[u8], n: usize, al: usize) -> u32 {
         }
     }
     let grey = (0..n).all(|i| {
-        let c = u32_at(colors, i);
+        let c = src.color(i);
         let r = c & 0xff;
         c == r | r << 8 | r << 16 | 255 << 24
     });
@@ -132,28 +206,64 @@ fn zstd_compress(body: &[u8]) -> Option<Vec<u8>> {
 /// and where its records keep GPS time) the points are coded in GPS time order where the
 /// node's own order can be recomputed from them ([`ZSTD_GPS_ORDER`]), else in their order.
 pub(crate) fn encode(raw: Vec<u8>, order: Option<Order>) -> Vec<u8> {
-    if raw.len() as u64 > CODE_LIMIT {
+    if raw.len() as u64 > CODE_LIMIT || raw.len() < 64 {
         return raw;
     }
-    let order = order.filter(|_| !morton_only());
-    let Some((codec, h, body)) = body_of(&raw, order) else { return raw };
-    let Some(z) = zstd_compress(&body) else { return raw };
-    let total = (64 + z.len()).next_multiple_of(8);
-    if total >= raw.len() || z.len() > u32::MAX as usize {
+    let h: NodeHeader = bytemuck::pod_read_unaligned(&raw[..64]);
+    let (n, al) = (h.count as usize, h.attr_len as usize);
+    if h.magic != NODE_MAGIC
+        || n == 0
+        || h._pad != [0; 3]
+        || (raw.len() as u64) < payload_len(n as u64, al as u64)
+        || h.bits[..3].iter().any(|&b| b > 30)
+    {
         return raw;
+    }
+    let col = |k: usize| &raw[64 + 4 * n * k..64 + 4 * n * (k + 1)];
+    let src = Columns {
+        grid: BatchGrid { min: h.min, bits: [h.bits[0], h.bits[1], h.bits[2]] },
+        w: [col(0), col(1), col(2)],
+        colors: col(3),
+        attrs: &raw[64 + 16 * n..64 + 16 * n + n * al],
+        n,
+        al,
+    };
+    // The words must be those of the exact positions, as every payload mortar writes has them.
+    if (0..n).any(|i| src.grid.encode(src.pos(i)) != src.words(i)) {
+        return raw;
+    }
+    coded(h, &src, order, raw.len()).unwrap_or(raw)
+}
+
+/// The coded payload of the points `src` under header `h`, or `None` where it would not be
+/// smaller than the version 2 payload's `raw_len` bytes.
+fn coded<'a>(
+    h: NodeHeader,
+    src: &impl Points<'a>,
+    order: Option<Order>,
+    raw_len: usize,
+) -> Option<Vec<u8>> {
+    let order = order.filter(|_| !morton_only());
+    let (codec, mode, body) = body_of(src, h.min, h.attr_len as usize, order)?;
+    let z = zstd_compress(&body)?;
+    let total = (64 + z.len()).next_multiple_of(8);
+    if total >= raw_len || z.len() > u32::MAX as usize {
+        return None;
     }
     let mut out = Vec::with_capacity(total);
-    let h = NodeHeader { _pad: [codec, z.len() as u32, h._pad[2]], ..h };
+    let h = NodeHeader { _pad: [codec, z.len() as u32, mode], ..h };
     out.extend_from_slice(bytemuck::bytes_of(&h));
     out.extend_from_slice(&z);
     out.resize(total, 0);
-    out
+    Some(out)
 }
 
 /// Encodes one node's payload (entry offset left 0) from its `count` points: `pos(i)`,
 /// `color(i)` and `attrs(i)` (the record's bytes after X, Y, Z: `attr_len` of them). One pass
-/// for the bounds, one that writes every column in place, then the version 3 coding
-/// ([`encode`]); [`encode_raw_payload`](super::format::encode_raw_payload) stops before it.
+/// for the bounds, then the version 3 coding straight from the points (the bytes [`encode`]
+/// gives for the version 2 payload
+/// [`encode_raw_payload`](super::format::encode_raw_payload) makes, which is made only where the
+/// payload stays raw).
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn encode_payload<'r>(
     key: NodeKey,
@@ -165,50 +275,53 @@ pub(crate) fn encode_payload<'r>(
     attrs: impl Fn(usize) -> &'r [u8],
     order: Option<Order>,
 ) -> std::result::Result<(NodeEntry, Vec<u8>), PayloadError> {
+    let raw_len = payload_len(count as u64, attr_len as u64);
+    if count > 0 && raw_len <= CODE_LIMIT {
+        let grid = super::format::payload_grid(key, count, &pos)?;
+        let h = super::format::node_header(key, kind, count, &grid, attr_len);
+        let src = Records { n: count, pos: &pos, color: &color, attrs: &attrs };
+        if let Some(c) = coded(h, &src, order, raw_len as usize) {
+            let entry = NodeEntry {
+                level: key.level as u32,
+                kind,
+                index: key.index,
+                segment: 0,
+                count: count as u64,
+                offset: 0,
+                length: c.len() as u64,
+            };
+            return Ok((entry, c));
+        }
+    }
     let (entry, raw) =
         super::format::encode_raw_payload(key, kind, count, attr_len, pos, color, attrs)?;
-    let coded = encode(raw, order);
-    Ok((NodeEntry { length: coded.len() as u64, ..entry }, coded))
+    Ok((entry, raw))
 }
 
-/// The codec, the header (colour mode set) and the uncompressed body of `raw`, or `None` where
-/// it stays raw: [`ZSTD_GPS_ORDER`] where `order` applies and the node's order can be recomputed
-/// from the coded sequence, else [`ZSTD_COLUMNS`].
-fn body_of(raw: &[u8], order: Option<Order>) -> Option<(u32, NodeHeader, Vec<u8>)> {
-    if raw.len() < 64 {
-        return None;
-    }
-    let h: NodeHeader = bytemuck::pod_read_unaligned(&raw[..64]);
-    let (n, al) = (h.count as usize, h.attr_len as usize);
-    if h.magic != NODE_MAGIC
-        || n == 0
-        || h._pad != [0; 3]
-        || (raw.len() as u64) < payload_len(n as u64, al as u64)
-        || h.bits[..3].iter().any(|&b| b > 30)
-    {
-        return None;
-    }
-    let grid = BatchGrid { min: h.min, bits: [h.bits[0], h.bits[1], h.bits[2]] };
-    let col = |k: usize| &raw[64 + 4 * n * k..64 + 4 * n * (k + 1)];
-    let (w, colors) = ([col(0), col(1), col(2)], col(3));
-    let attrs = &raw[64 + 16 * n..64 + 16 * n + n * al];
-    // Positions are decoded from the words where they are needed (no copy: a payload of
-    // CODE_LIMIT bytes is coded under tight budgets, two at a time).
-    let pos = |i: usize| grid.decode_exact([u32_at(w[0], i), u32_at(w[1], i), u32_at(w[2], i)]);
-    if (0..n).any(|i| grid.encode(pos(i)) != [u32_at(w[0], i), u32_at(w[1], i), u32_at(w[2], i)]) {
+/// The codec, the colour mode and the uncompressed body of the points `src` (records of `al`
+/// attribute bytes; positions coded from the grid's minimum `min`), or `None` where none applies: [`ZSTD_GPS_ORDER`] where `order` applies and
+/// the node's order can be recomputed from the coded sequence, else [`ZSTD_COLUMNS`].
+fn body_of<'a>(
+    src: &impl Points<'a>,
+    min: [i32; 3],
+    al: usize,
+    order: Option<Order>,
+) -> Option<(u32, u32, Vec<u8>)> {
+    let n = src.len();
+    if n == 0 {
         return None;
     }
     let ordered = order.filter(|o| o.gps + 8 <= al && n >= 2).and_then(|o| {
-        let gk: Vec<u64> = (0..n).map(|i| gps_key(&attrs[i * al + o.gps..])).collect();
+        let gk: Vec<u64> = (0..n).map(|i| gps_key(&src.attrs(i)[o.gps..])).collect();
         let seq = time_order(&gk);
         let mut rank = vec![0u32; n];
         for (t, &i) in seq.iter().enumerate() {
             rank[i as usize] = t as u32;
         }
         // The node's order must be the stable sort of the coded sequence by the Morton key.
-        let mut last = (morton96(offset_in(pos(0), o.cube_min)?), rank[0]);
+        let mut last = (morton96(offset_in(src.pos(0), o.cube_min)?), rank[0]);
         for (i, &r) in rank.iter().enumerate().skip(1) {
-            let k = (morton96(offset_in(pos(i), o.cube_min)?), r);
+            let k = (morton96(offset_in(src.pos(i), o.cube_min)?), r);
             if k <= last {
                 return None;
             }
@@ -220,7 +333,7 @@ fn body_of(raw: &[u8], order: Option<Order>) -> Option<(u32, NodeHeader, Vec<u8>
         Some((o, seq, gk)) => (ZSTD_GPS_ORDER, seq, Some((o, gk))),
         None => (ZSTD_COLUMNS, (0..n as u32).collect(), None),
     };
-    let mode = color_mode(colors, attrs, n, al);
+    let mode = color_mode(src, al);
     let color_bytes = match mode & 0xff {
         COLOR_PLANES => 4 * n,
         COLOR_GREY => n,
@@ -248,12 +361,13 @@ fn body_of(raw: &[u8], order: Option<Order>) -> Option<(u32, NodeHeader, Vec<u8>
             }
         }
     }
+    let kept: Vec<usize> = kept_bytes(al, g).collect();
     let mut prev = [0u32; 3];
     for (t, &i) in seq.iter().enumerate() {
         let i = i as usize;
-        let p = pos(i);
+        let p = src.pos(i);
         for a in 0..3 {
-            let u = (p[a] as i64 - grid.min[a] as i64) as u32;
+            let u = (p[a] as i64 - min[a] as i64) as u32;
             let d = u.wrapping_sub(prev[a]) as i32;
             let z = ((d << 1) ^ (d >> 31)) as u32;
             prev[a] = u;
@@ -263,21 +377,20 @@ fn body_of(raw: &[u8], order: Option<Order>) -> Option<(u32, NodeHeader, Vec<u8>
         }
         match mode & 0xff {
             COLOR_PLANES => {
+                let c = src.color(i).to_le_bytes();
                 for b in 0..4 {
-                    cb[b * n + t] = colors[4 * i + b];
+                    cb[b * n + t] = c[b];
                 }
             }
-            COLOR_GREY => cb[t] = colors[4 * i],
+            COLOR_GREY => cb[t] = src.color(i) as u8,
             _ => {}
         }
-    }
-    for (j, k) in kept_bytes(al, g).enumerate() {
-        let plane = &mut ab[j * n..(j + 1) * n];
-        for (t, &i) in seq.iter().enumerate() {
-            plane[t] = attrs[i as usize * al + k];
+        let at = src.attrs(i);
+        for (j, &k) in kept.iter().enumerate() {
+            ab[j * n + t] = at[k];
         }
     }
-    Some((codec, NodeHeader { _pad: [0, 0, mode], ..h }, body))
+    Some((codec, mode, body))
 }
 
 /// The attribute bytes coded as planes of their own: all `al`, less GPS time's 8 at `g`.
@@ -538,7 +651,8 @@ fn gps_of_key(k: u64) -> u64 {
 fn offset_in(p: [i32; 3], cube_min: [i64; 3]) -> Option<[u32; 3]> {
     let mut u = [0u32; 3];
     for a in 0..3 {
-        u[a] = u32::try_from(p[a] as i64 - cube_min[a]).ok()?;
+        // A damaged payload's corner can be any i64: the difference may not exist.
+        u[a] = u32::try_from((p[a] as i64).checked_sub(cube_min[a])?).ok()?;
     }
     Some(u)
 }

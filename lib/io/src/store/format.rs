@@ -243,22 +243,7 @@ pub(crate) fn encode_raw_payload<'r>(
     color: impl Fn(usize) -> u32,
     attrs: impl Fn(usize) -> &'r [u8],
 ) -> std::result::Result<(NodeEntry, Vec<u8>), PayloadError> {
-    if count > u32::MAX as usize {
-        return Err(PayloadError::TooManyPoints { node: key.name(), count });
-    }
-    let (mut lo, mut hi) = ([i32::MAX; 3], [i32::MIN; 3]);
-    for i in 0..count {
-        let p = pos(i);
-        for a in 0..3 {
-            lo[a] = lo[a].min(p[a]);
-            hi[a] = hi[a].max(p[a]);
-        }
-    }
-    if count == 0 {
-        (lo, hi) = ([0; 3], [0; 3]);
-    }
-    let grid =
-        BatchGrid::for_bounds(lo, hi).ok_or_else(|| PayloadError::TooWide { node: key.name() })?;
+    let grid = payload_grid(key, count, &pos)?;
     let len = payload_len(count as u64, attr_len as u64) as usize;
     let mut out = vec![0u8; len];
     let header = node_header(key, kind, count, &grid, attr_len);
@@ -289,8 +274,33 @@ pub(crate) fn encode_raw_payload<'r>(
     Ok((entry, out))
 }
 
+/// The grid of a payload of `count` points `pos(i)`: the smallest that holds their bounds (one
+/// pass over them). Errors where the node holds more points than a payload counts or its points
+/// span more than 30 bits.
+pub(crate) fn payload_grid(
+    key: NodeKey,
+    count: usize,
+    pos: impl Fn(usize) -> [i32; 3],
+) -> std::result::Result<BatchGrid, PayloadError> {
+    if count > u32::MAX as usize {
+        return Err(PayloadError::TooManyPoints { node: key.name(), count });
+    }
+    let (mut lo, mut hi) = ([i32::MAX; 3], [i32::MIN; 3]);
+    for i in 0..count {
+        let p = pos(i);
+        for a in 0..3 {
+            lo[a] = lo[a].min(p[a]);
+            hi[a] = hi[a].max(p[a]);
+        }
+    }
+    if count == 0 {
+        (lo, hi) = ([0; 3], [0; 3]);
+    }
+    BatchGrid::for_bounds(lo, hi).ok_or_else(|| PayloadError::TooWide { node: key.name() })
+}
+
 /// The 64-byte header of a payload.
-fn node_header(
+pub(crate) fn node_header(
     key: NodeKey,
     kind: u32,
     count: usize,
