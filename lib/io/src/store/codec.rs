@@ -281,16 +281,7 @@ pub(crate) fn encode_payload<'r>(
         let h = super::format::node_header(key, kind, count, &grid, attr_len);
         let src = Records { n: count, pos: &pos, color: &color, attrs: &attrs };
         if let Some(c) = coded(h, &src, order, raw_len as usize) {
-            let entry = NodeEntry {
-                level: key.level as u32,
-                kind,
-                index: key.index,
-                segment: 0,
-                count: count as u64,
-                offset: 0,
-                length: c.len() as u64,
-            };
-            return Ok((entry, c));
+            return Ok((super::format::node_entry(key, kind, count, c.len()), c));
         }
     }
     let (entry, raw) =

@@ -262,16 +262,21 @@ pub(crate) fn encode_raw_payload<'r>(
         debug_assert_eq!(a.len(), attr_len);
         rest[i * attr_len..(i + 1) * attr_len].copy_from_slice(a);
     }
-    let entry = NodeEntry {
+    Ok((node_entry(key, kind, count, len), out))
+}
+
+/// The entry of a payload of `length` bytes for node `key` (segment and offset left 0: the
+/// writer places it).
+pub(crate) fn node_entry(key: NodeKey, kind: u32, count: usize, length: usize) -> NodeEntry {
+    NodeEntry {
         level: key.level as u32,
         kind,
         index: key.index,
         segment: 0,
         count: count as u64,
         offset: 0,
-        length: len as u64,
-    };
-    Ok((entry, out))
+        length: length as u64,
+    }
 }
 
 /// The grid of a payload of `count` points `pos(i)`: the smallest that holds their bounds (one
