@@ -651,6 +651,19 @@ fn offset_in(p: [i32; 3], cube_min: [i64; 3]) -> Option<[u32; 3]> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Cut copies of `coded` are refused; copies with a byte flipped every `step` bytes decode
+    /// or are refused, without a panic.
+    pub(super) fn damaged_copies_refused(coded: &[u8], step: usize) {
+        for cut in [63, 64, 70, coded.len() - 9] {
+            assert!(decode(&coded[..cut]).is_err(), "cut at {cut}");
+        }
+        for at in (64..coded.len()).step_by(step) {
+            let mut bad = coded.to_vec();
+            bad[at] ^= 0x5a;
+            let _ = decode(&bad);
+        }
+    }
     use crate::store::format::{encode_raw_payload, INNER, LEAF};
     use mortar_core::octree::NodeKey;
 
@@ -734,14 +747,7 @@ mod tests {
         let raw = payload(0, 7, |_, _| 0);
         assert!(encode(raw.clone(), None) == raw);
         let coded = encode(payload(500, 7, |i, _| i as u32), None);
-        for cut in [63, 64, 70, coded.len() - 9] {
-            assert!(decode(&coded[..cut]).is_err(), "cut at {cut}");
-        }
-        for at in (64..coded.len()).step_by(7) {
-            let mut bad = coded.clone();
-            bad[at] ^= 0x5a;
-            let _ = decode(&bad);
-        }
+        damaged_copies_refused(&coded, 7);
         let mut big = coded.clone();
         big[28..32].copy_from_slice(&u32::MAX.to_le_bytes());
         assert!(decode(&big).is_err());
@@ -814,14 +820,6 @@ mod order_tests {
         let _ = encode(raw.clone(), far);
         // Damage is an error, never a panic.
         let raw = leaf(1000, cube, shuffled, false);
-        let coded = encode(raw, order);
-        for cut in [63, 64, 70, coded.len() - 9] {
-            assert!(decode(&coded[..cut]).is_err(), "cut at {cut}");
-        }
-        for at in (64..coded.len()).step_by(5) {
-            let mut bad = coded.clone();
-            bad[at] ^= 0x5a;
-            let _ = decode(&bad);
-        }
+        super::tests::damaged_copies_refused(&encode(raw, order), 5);
     }
 }
