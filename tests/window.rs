@@ -45,7 +45,18 @@ impl Xvfb {
             return Err("no Xvfb in PATH (install the Debian package xvfb)".into());
         };
         let mut child = Command::new(bin)
-            .args(["-displayfd", "1", "-screen", "0", "1024x768x24", "-nolisten", "tcp"])
+            // `-noreset`: without it the server resets whenever its last client leaves, and a viewer
+            // started during that reset is refused ("Failed to open connection to X server").
+            .args([
+                "-displayfd",
+                "1",
+                "-screen",
+                "0",
+                "1024x768x24",
+                "-nolisten",
+                "tcp",
+                "-noreset",
+            ])
             .stdin(Stdio::null())
             .stdout(Stdio::piped())
             .stderr(Stdio::null())
@@ -55,9 +66,13 @@ impl Xvfb {
         let stdout = child.stdout.take().expect("piped");
         let (tx, rx) = std::sync::mpsc::channel();
         std::thread::spawn(move || {
+            let mut r = BufReader::new(stdout);
             let mut line = String::new();
-            let _ = BufReader::new(stdout).read_line(&mut line);
+            let _ = r.read_line(&mut line);
             let _ = tx.send(line);
+            // Keep the pipe open (drained) while the server runs: a write to a closed pipe would
+            // kill it with SIGPIPE in the middle of a test.
+            let _ = std::io::copy(&mut r, &mut std::io::sink());
         });
         match rx.recv_timeout(Duration::from_secs(30)) {
             Ok(line) if line.trim().parse::<u32>().is_ok() => {

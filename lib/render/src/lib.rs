@@ -27,6 +27,7 @@
 
 mod buffers;
 pub mod context;
+pub mod octree;
 mod pipeline;
 pub mod present;
 pub mod progressive;

@@ -16,6 +16,8 @@ const DECODE: &str = include_str!("../../../shaders/common/decode.wgsl");
 const BATCHES: &str = include_str!("../../../shaders/common/batches.wgsl");
 /// The drawn-point counter (draw passes that count).
 const COUNTERS: &str = include_str!("../../../shaders/common/counters.wgsl");
+/// The GPU octree builder's structs, bindings and tree walk (its passes, after `TYPES`).
+const OCTREE: &str = include_str!("../../../shaders/octree_common.wgsl");
 /// The progressive renderer's constants and uniform structs (its passes, after `TYPES`).
 const PROGRESSIVE: &str = include_str!("../../../shaders/progressive_types.wgsl");
 
@@ -163,6 +165,26 @@ pub mod binding {
     pub const PREPARE_LISTS: Binding = bind(0, 3, StorageReadWrite, "lists");
 
     /// `present.wgsl`: the pass's constants (`PresentUniforms`).
+    pub const OCTREE_PARAMS: Binding = bind(0, 0, Uniform, "params");
+    pub const OCTREE_NODES: Binding = bind(0, 1, StorageReadWrite, "nodes");
+    pub const OCTREE_STATE: Binding = bind(0, 2, StorageReadWrite, "state");
+    pub const OCTREE_POS: Binding = bind(0, 3, StorageRead, "pos");
+    pub const OCTREE_LEAF: Binding = bind(0, 4, StorageReadWrite, "leaf");
+    pub const OCTREE_GRIDS: Binding = bind(0, 5, StorageReadWrite, "grids");
+    pub const OCTREE_BLOCKS: Binding = bind(0, 6, StorageReadWrite, "blocks");
+    pub const OCTREE_OUT: Binding = bind(0, 7, StorageReadWrite, "cells_out");
+    /// Every octree pass binds the same group (`shaders/octree_common.wgsl`).
+    pub const OCTREE: [Binding; 8] = [
+        OCTREE_PARAMS,
+        OCTREE_NODES,
+        OCTREE_STATE,
+        OCTREE_POS,
+        OCTREE_LEAF,
+        OCTREE_GRIDS,
+        OCTREE_BLOCKS,
+        OCTREE_OUT,
+    ];
+
     pub const PRESENT_PARAMS: Binding = bind(0, 0, Uniform, "params");
     /// `present.wgsl`: the resolved image.
     pub const PRESENT_IMAGE: Binding = bind(0, 1, StorageRead, "image");
@@ -214,11 +236,17 @@ pub enum Pass {
     /// Progressive renderer: marks the pixels whose winner ties in depth with another point
     /// (`shaders/progressive_ties.wgsl`).
     ProgressiveTies,
+    OctreeInsert,
+    OctreeSplit,
+    OctreeVoxels,
+    OctreeCountCells,
+    OctreeWriteCells,
+    OctreeSlots,
 }
 
 impl Pass {
     /// Every pass.
-    pub const ALL: [Pass; 15] = [
+    pub const ALL: [Pass; 21] = [
         Pass::Clear,
         Pass::Plan,
         Pass::Draw64,
@@ -234,6 +262,12 @@ impl Pass {
         Pass::ProgressivePrepare,
         Pass::ProgressiveReframe,
         Pass::ProgressiveTies,
+        Pass::OctreeInsert,
+        Pass::OctreeSplit,
+        Pass::OctreeVoxels,
+        Pass::OctreeCountCells,
+        Pass::OctreeWriteCells,
+        Pass::OctreeSlots,
     ];
 
     /// The pass's file under `shaders/`.
@@ -254,6 +288,12 @@ impl Pass {
             Pass::ProgressivePrepare => "progressive_prepare.wgsl",
             Pass::ProgressiveReframe => "progressive_reframe.wgsl",
             Pass::ProgressiveTies => "progressive_ties.wgsl",
+            Pass::OctreeInsert => "octree_insert.wgsl",
+            Pass::OctreeSplit => "octree_split.wgsl",
+            Pass::OctreeVoxels => "octree_voxels.wgsl",
+            Pass::OctreeCountCells => "octree_count_cells.wgsl",
+            Pass::OctreeWriteCells => "octree_write_cells.wgsl",
+            Pass::OctreeSlots => "octree_slots.wgsl",
         }
     }
 
@@ -276,6 +316,12 @@ impl Pass {
             Pass::ProgressivePrepare => include_str!("../../../shaders/progressive_prepare.wgsl"),
             Pass::ProgressiveReframe => include_str!("../../../shaders/progressive_reframe.wgsl"),
             Pass::ProgressiveTies => include_str!("../../../shaders/progressive_ties.wgsl"),
+            Pass::OctreeInsert => include_str!("../../../shaders/octree_insert.wgsl"),
+            Pass::OctreeSplit => include_str!("../../../shaders/octree_split.wgsl"),
+            Pass::OctreeVoxels => include_str!("../../../shaders/octree_voxels.wgsl"),
+            Pass::OctreeCountCells => include_str!("../../../shaders/octree_count_cells.wgsl"),
+            Pass::OctreeWriteCells => include_str!("../../../shaders/octree_write_cells.wgsl"),
+            Pass::OctreeSlots => include_str!("../../../shaders/octree_slots.wgsl"),
         }
     }
 
@@ -319,6 +365,12 @@ impl Pass {
             Pass::ProgressiveTies => {
                 &[FRAME, TIES_KEY_WORDS, TIES_FLAGS, RECORDS, COARSE, MEDIUM, FINE]
             }
+            Pass::OctreeInsert
+            | Pass::OctreeSplit
+            | Pass::OctreeVoxels
+            | Pass::OctreeCountCells
+            | Pass::OctreeWriteCells
+            | Pass::OctreeSlots => &OCTREE,
         }
     }
 
@@ -364,6 +416,12 @@ impl Pass {
                 parts.extend([PROGRESSIVE, DECODE, BATCHES, COUNTERS])
             }
             Pass::ProgressiveTies => parts.extend([PROGRESSIVE, DECODE, BATCHES]),
+            Pass::OctreeInsert
+            | Pass::OctreeSplit
+            | Pass::OctreeVoxels
+            | Pass::OctreeCountCells
+            | Pass::OctreeWriteCells
+            | Pass::OctreeSlots => parts.push(OCTREE),
         }
         parts.push(self.own_source());
         parts.join("\n")

@@ -5,8 +5,9 @@
 //! `#[repr(C)]` Rust twin.
 
 use mortar_core::render::gpu::{
-    BatchProjection, DrawRecord, EyeDomeUniforms, FrameUniforms, HoleFillUniforms, PlanBatch,
-    PlanUniforms, PrepareUniforms, ReframeUniforms, ResolveUniforms, ScatterUniforms,
+    BatchProjection, DrawRecord, EyeDomeUniforms, FrameUniforms, HoleFillUniforms, OctreeNode,
+    OctreeUniforms, PlanBatch, PlanUniforms, PrepareUniforms, ReframeUniforms, ResolveUniforms,
+    ScatterUniforms,
 };
 use mortar_core::render::progressive::UNLOADED;
 use mortar_core::render::resolve::{EDL_EXP2_COEFFS, EDL_LOG2_COEFFS};
@@ -249,6 +250,7 @@ fn shared_structs_have_the_rust_layout() {
     let prepare = parse(Pass::ProgressivePrepare);
     let reframe = parse(Pass::ProgressiveReframe);
     let plan = parse(Pass::Plan);
+    let octree = parse(Pass::OctreeVoxels);
     // (struct, module holding it, Rust size, Rust members with their offsets)
     type Case<'a> = (&'a str, &'a naga::Module, usize, Vec<(&'a str, usize)>);
     let cases: Vec<Case<'_>> = vec![
@@ -426,6 +428,37 @@ fn shared_structs_have_the_rust_layout() {
                 ("_pad1", offset_of!(ReframeUniforms, _pad1)),
                 ("to_shift", offset_of!(ReframeUniforms, to_shift)),
                 ("_pad2", offset_of!(ReframeUniforms, _pad2)),
+            ],
+        ),
+        (
+            "OctreeUniforms",
+            &octree,
+            size_of::<OctreeUniforms>(),
+            vec![
+                ("first", offset_of!(OctreeUniforms, first)),
+                ("count", offset_of!(OctreeUniforms, count)),
+                ("capacity", offset_of!(OctreeUniforms, capacity)),
+                ("max_level", offset_of!(OctreeUniforms, max_level)),
+                ("node_capacity", offset_of!(OctreeUniforms, node_capacity)),
+                ("grid_first", offset_of!(OctreeUniforms, grid_first)),
+                ("grid_count", offset_of!(OctreeUniforms, grid_count)),
+                ("groups_x", offset_of!(OctreeUniforms, groups_x)),
+                ("mode", offset_of!(OctreeUniforms, mode)),
+                ("base", offset_of!(OctreeUniforms, base)),
+                ("_pad", offset_of!(OctreeUniforms, _pad)),
+            ],
+        ),
+        (
+            "Node",
+            &octree,
+            size_of::<OctreeNode>(),
+            vec![
+                ("count", offset_of!(OctreeNode, count)),
+                ("child", offset_of!(OctreeNode, child)),
+                ("min", offset_of!(OctreeNode, min)),
+                ("size_level", offset_of!(OctreeNode, size_level)),
+                ("grid", offset_of!(OctreeNode, grid)),
+                ("cursor", offset_of!(OctreeNode, cursor)),
             ],
         ),
     ];

@@ -139,6 +139,7 @@
 //! - Ids inside one update are `u32`: a batch plus the points it spills must stay below 2^32
 //!   ([`OctreeError::BatchTooLarge`]).
 
+pub mod arrival;
 mod builder;
 mod chunks;
 mod cube;

@@ -458,3 +458,50 @@ pub struct PresentUniforms {
 }
 
 const _: () = assert!(std::mem::size_of::<PresentUniforms>() == 32);
+
+/// Uniforms of the GPU octree builder's passes (`shaders/octree_common.wgsl`,
+/// `mortar_render::octree`; the CPU twin is [`crate::octree::arrival`]).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct OctreeUniforms {
+    /// The first item (point of the bound segment, node, or block of cells) of the dispatch.
+    pub first: u32,
+    /// Items of the dispatch.
+    pub count: u32,
+    /// The leaf capacity.
+    pub capacity: u32,
+    /// Nodes at this level never split.
+    pub max_level: u32,
+    /// Nodes the node buffer holds.
+    pub node_capacity: u32,
+    /// The first grid of the bound group of voxel grids.
+    pub grid_first: u32,
+    /// Grids in the bound group.
+    pub grid_count: u32,
+    /// Workgroups in x of a dispatch split over x and y.
+    pub groups_x: u32,
+    /// The insert pass: 0 descends from the root (a new batch), 1 again from a leaf that split.
+    pub mode: u32,
+    /// The arrival number of the bound segment's first point.
+    pub base: u32,
+    /// Unused (16-byte size).
+    pub _pad: [u32; 2],
+}
+
+/// One node of the GPU octree builder's node buffer (`Node` in `shaders/octree_common.wgsl`).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct OctreeNode {
+    /// Points in its cube.
+    pub count: u32,
+    /// Its first child (8 consecutive), or 0 for a leaf.
+    pub child: u32,
+    /// Its corner relative to the root's.
+    pub min: [u32; 3],
+    /// `size_log2 | level << 8`.
+    pub size_level: u32,
+    /// An inner node's voxel grid (the voxel pass).
+    pub grid: u32,
+    /// A leaf's next slot (the slot pass).
+    pub cursor: u32,
+}

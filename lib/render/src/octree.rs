@@ -1,0 +1,459 @@
+//! The GPU octree builder of paper 004 (SimLOD) for `mortar build --engine gpu` (issue 29): the
+//! passes of `shaders/octree_*.wgsl` over points in arrival order, giving the
+//! [`ArrivalTree`] that the CPU twin [`mortar_core::octree::arrival::build_arrival`] gives (same
+//! nodes, same voxels; slots differ only in their order inside a leaf, which the store engine
+//! sorts away). The store engine (`mortar_io::store`) holds it as a [`TreeBackend`].
+//!
+//! Steps (module docs of `arrival` for the why):
+//!
+//! 1. the points are uploaded in segments (one storage binding each); each segment is a batch:
+//!    `octree_insert` (mode 0) descends its points and counts them, then `octree_split` and
+//!    `octree_insert` (mode 1, every point inserted so far whose leaf split) alternate until no
+//!    leaf splits; the host reads 12 bytes of state per round. A node buffer that fills up is
+//!    grown (copied) and the split pass run again;
+//! 2. the host reads the nodes back, numbers the inner nodes' grids and the leaves' ranges
+//!    (depth first) and writes them back;
+//! 3. voxels, a group of grids at a time (as many 8 MiB grids as one binding holds):
+//!    `octree_voxels` (every point, atomicMax of its NOT-ed arrival per cell), `octree_count_cells`
+//!    (occupied cells per block of 256), a prefix sum on the host, `octree_write_cells`
+//!    (arrivals in Morton order of the cells), read back;
+//! 4. `octree_slots` gives every point its slot; the slots are read back.
+//!
+//! What is not done yet (issue 29): the points stay on the GPU for the whole build (no paging,
+//! no `--gpu-memory`); the preview does not draw from these buffers; the grids are dense (8 MiB
+//! per inner node, a group at a time); the host still sorts each leaf's points.
+
+use crate::buffers::{map_read, readback};
+use crate::context::{GpuContext, GpuError};
+use crate::shaders::{binding, Pass};
+use mortar_core::octree::arrival::{
+    check, check_nodes, leaf_bases, ArrivalNode, ArrivalTree, TreeBackend, NO_CHILD,
+};
+use mortar_core::octree::BuilderConfig;
+use mortar_core::render::gpu::{OctreeNode, OctreeUniforms};
+use std::time::Instant;
+use wgpu::util::DeviceExt;
+
+/// Cells of one voxel grid (128³).
+const GRID_CELLS: u64 = 1 << 21;
+/// Cells per compaction block (`BLOCK` in the WGSL).
+const BLOCK: u64 = 256;
+/// Threads per workgroup of every octree pass.
+const WORKGROUP: u32 = 256;
+
+/// The passes, compiled once.
+pub struct GpuTreeBuilder {
+    ctx: GpuContext,
+    layout: wgpu::BindGroupLayout,
+    pipelines: Vec<(Pass, wgpu::ComputePipeline)>,
+    /// Points per segment (one binding and one batch); `None`: as many as a binding holds.
+    segment_points: Option<usize>,
+    /// The node buffer's first capacity; `None`: from the points and the leaf capacity.
+    first_nodes: Option<u32>,
+}
+
+impl std::fmt::Debug for GpuTreeBuilder {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("GpuTreeBuilder").field("adapter", self.ctx.adapter()).finish()
+    }
+}
+
+/// The buffers of one build.
+struct Run<'a> {
+    b: &'a GpuTreeBuilder,
+    nodes: wgpu::Buffer,
+    node_capacity: u32,
+    state: wgpu::Buffer,
+    segments: Vec<(u32, u32, wgpu::Buffer, wgpu::Buffer)>,
+    grids: wgpu::Buffer,
+    blocks: wgpu::Buffer,
+    out: wgpu::Buffer,
+    config: BuilderConfig,
+}
+
+fn storage(ctx: &GpuContext, label: &str, size: u64) -> wgpu::Buffer {
+    ctx.device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some(label),
+        size: size.max(16).div_ceil(16) * 16,
+        usage: wgpu::BufferUsages::STORAGE
+            | wgpu::BufferUsages::COPY_SRC
+            | wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    })
+}
+
+impl GpuTreeBuilder {
+    /// Compiles the passes on `ctx`.
+    pub fn new(ctx: GpuContext) -> GpuTreeBuilder {
+        let layout = crate::pipeline::bind_group_layout(
+            &ctx,
+            "octree",
+            &binding::OCTREE,
+            0,
+            wgpu::ShaderStages::COMPUTE,
+        );
+        let pl = ctx.device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some("octree"),
+            bind_group_layouts: &[Some(&layout)],
+            immediate_size: 0,
+        });
+        let pipelines = [
+            Pass::OctreeInsert,
+            Pass::OctreeSplit,
+            Pass::OctreeVoxels,
+            Pass::OctreeCountCells,
+            Pass::OctreeWriteCells,
+            Pass::OctreeSlots,
+        ]
+        .into_iter()
+        .map(|pass| {
+            let module = ctx.device.create_shader_module(wgpu::ShaderModuleDescriptor {
+                label: Some(pass.file()),
+                source: wgpu::ShaderSource::Wgsl(pass.source().into()),
+            });
+            let p = ctx.device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some(pass.file()),
+                layout: Some(&pl),
+                module: &module,
+                entry_point: Some("main"),
+                compilation_options: Default::default(),
+                cache: None,
+            });
+            (pass, p)
+        })
+        .collect();
+        GpuTreeBuilder { ctx, layout, pipelines, segment_points: None, first_nodes: None }
+    }
+
+    /// Segments (and batches) of at most `points` points: small values exercise the batch and
+    /// segment paths in tests.
+    pub fn with_segment_points(mut self, points: usize) -> GpuTreeBuilder {
+        self.segment_points = Some(points.max(1));
+        self
+    }
+
+    /// A node buffer of `nodes` nodes at first (grown as it fills): small values exercise the
+    /// growth in tests.
+    pub fn with_first_nodes(mut self, nodes: u32) -> GpuTreeBuilder {
+        self.first_nodes = Some(nodes.max(1));
+        self
+    }
+
+    /// The device.
+    pub fn context(&self) -> &GpuContext {
+        &self.ctx
+    }
+
+    fn pipeline(&self, pass: Pass) -> &wgpu::ComputePipeline {
+        &self.pipelines.iter().find(|(p, _)| *p == pass).expect("compiled").1
+    }
+
+    /// Builds the tree (see [`TreeBackend::build`]), with the seconds of each step.
+    pub fn build_tree(
+        &self,
+        size_log2: u8,
+        pos: &[[u32; 3]],
+        config: &BuilderConfig,
+    ) -> Result<ArrivalTree, GpuError> {
+        check(size_log2, pos.len(), config).map_err(|e| GpuError::Device(e.to_string()))?;
+        if let Some(i) = pos.iter().position(|p| p.iter().any(|&v| (v as u64) >> size_log2 != 0)) {
+            return Err(GpuError::Device(format!(
+                "point {i} at {:?} lies outside the root cube of 2^{size_log2} units",
+                pos[i]
+            )));
+        }
+        if pos.is_empty() {
+            return Ok(ArrivalTree {
+                nodes: vec![ArrivalNode::default()],
+                slot: Vec::new(),
+                voxels: vec![Vec::new()],
+                phases: Vec::new(),
+            });
+        }
+        let ctx = &self.ctx;
+        let max_binding = ctx.max_binding();
+        let seg = self.segment_points.unwrap_or(usize::MAX).min((max_binding / 12) as usize).max(1);
+        let mut phases = Vec::new();
+        let t = Instant::now();
+        let segments: Vec<(u32, u32, wgpu::Buffer, wgpu::Buffer)> = pos
+            .chunks(seg)
+            .enumerate()
+            .map(|(k, c)| {
+                let p = ctx.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                    label: Some("octree points"),
+                    contents: bytemuck::cast_slice(c),
+                    usage: wgpu::BufferUsages::STORAGE,
+                });
+                let l = storage(ctx, "octree leaves", 4 * c.len() as u64);
+                ((k * seg) as u32, c.len() as u32, p, l)
+            })
+            .collect();
+        // Room for the nodes of a tree with leaves about half full, grown when it fills.
+        let node_capacity = (1 + 8 * (2 * pos.len() / config.leaf_capacity as usize + 64))
+            .min((max_binding / 32) as usize) as u32;
+        let node_capacity = self.first_nodes.unwrap_or(node_capacity);
+        let mut run = Run {
+            b: self,
+            nodes: storage(ctx, "octree nodes", 32 * node_capacity as u64),
+            node_capacity,
+            state: storage(ctx, "octree state", 16),
+            segments,
+            grids: storage(ctx, "octree grids", 16),
+            blocks: storage(ctx, "octree blocks", 16),
+            out: storage(ctx, "octree cells", 16),
+            config: *config,
+        };
+        let root = OctreeNode { size_level: size_log2 as u32, ..OctreeNode::default() };
+        ctx.queue.write_buffer(&run.nodes, 0, bytemuck::bytes_of(&root));
+        ctx.queue.write_buffer(&run.state, 0, bytemuck::cast_slice(&[1u32, 0, 0, 0]));
+        ctx.wait()?;
+        phases.push(("upload".to_string(), t.elapsed().as_secs_f64()));
+        // 1. expand, a segment (batch) at a time.
+        let t = Instant::now();
+        let mut rounds = 0u32;
+        for s in 0..run.segments.len() {
+            run.dispatch(Pass::OctreeInsert, Some(s), 0, run.segments[s].1, 0)?;
+            loop {
+                rounds += 1;
+                let before = run.read_state()?[0];
+                run.dispatch(Pass::OctreeSplit, None, 0, before, 0)?;
+                let st = run.read_state()?;
+                if st[2] != 0 {
+                    run.grow_nodes(before, st[1])?;
+                    continue;
+                }
+                if st[1] == 0 {
+                    break;
+                }
+                ctx.queue.write_buffer(&run.state, 4, bytemuck::cast_slice(&[0u32]));
+                for r in 0..=s {
+                    run.dispatch(Pass::OctreeInsert, Some(r), 0, run.segments[r].1, 1)?;
+                }
+            }
+        }
+        let count = run.read_state()?[0] as usize;
+        phases.push(("expand".to_string(), t.elapsed().as_secs_f64()));
+        // 2. the nodes back; grids of inner nodes and ranges of leaves.
+        let t = Instant::now();
+        let mut raw: Vec<OctreeNode> = run.read(&run.nodes, 32 * count as u64)?;
+        let nodes: Vec<ArrivalNode> =
+            raw.iter().map(|n| ArrivalNode { count: n.count, first_child: n.child }).collect();
+        check_nodes(&nodes).map_err(|e| GpuError::Device(e.to_string()))?;
+        let bases = leaf_bases(&nodes);
+        let mut inner = Vec::new();
+        for (i, n) in raw.iter_mut().enumerate() {
+            if n.child != NO_CHILD {
+                n.grid = inner.len() as u32;
+                inner.push(i);
+            } else {
+                n.cursor = bases[i];
+            }
+        }
+        ctx.queue.write_buffer(&run.nodes, 0, bytemuck::cast_slice(&raw));
+        phases.push(("number".to_string(), t.elapsed().as_secs_f64()));
+        // 3. voxels, a group of grids at a time.
+        let t = Instant::now();
+        let mut voxels = vec![Vec::new(); nodes.len()];
+        let per_group = ((max_binding / (4 * GRID_CELLS)) as usize).clamp(1, 1024);
+        for (gi, group) in inner.chunks(per_group).enumerate() {
+            let first = (gi * per_group) as u32;
+            let g = group.len() as u64;
+            if run.grids.size() < 4 * GRID_CELLS * g {
+                run.grids = storage(ctx, "octree grids", 4 * GRID_CELLS * g);
+                run.blocks = storage(ctx, "octree blocks", 4 * GRID_CELLS / BLOCK * g);
+            }
+            let mut enc = ctx.device.create_command_encoder(&Default::default());
+            enc.clear_buffer(&run.grids, 0, Some(4 * GRID_CELLS * g));
+            ctx.queue.submit([enc.finish()]);
+            for s in 0..run.segments.len() {
+                run.dispatch_grids(Pass::OctreeVoxels, Some(s), run.segments[s].1, first, g)?;
+            }
+            let nb = (GRID_CELLS / BLOCK * g) as u32;
+            run.dispatch_grids(Pass::OctreeCountCells, None, nb, first, g)?;
+            let counts: Vec<u32> = run.read(&run.blocks, 4 * nb as u64)?;
+            let mut offsets = Vec::with_capacity(counts.len());
+            let mut total = 0u64;
+            for c in &counts {
+                offsets.push(total as u32);
+                total += *c as u64;
+            }
+            if total == 0 {
+                continue;
+            }
+            if run.out.size() < 4 * total {
+                run.out = storage(ctx, "octree cells", 4 * total);
+            }
+            ctx.queue.write_buffer(&run.blocks, 0, bytemuck::cast_slice(&offsets));
+            run.dispatch_grids(Pass::OctreeWriteCells, None, nb, first, g)?;
+            let cells: Vec<u32> = run.read(&run.out, 4 * total)?;
+            let per_grid = (GRID_CELLS / BLOCK) as usize;
+            for (k, &n) in group.iter().enumerate() {
+                let a = offsets[k * per_grid] as usize;
+                let b = offsets.get((k + 1) * per_grid).map_or(total as usize, |&o| o as usize);
+                voxels[n] = cells[a..b].to_vec();
+            }
+        }
+        phases.push(("voxels".to_string(), t.elapsed().as_secs_f64()));
+        // 4. slots.
+        let t = Instant::now();
+        let mut slot = Vec::with_capacity(pos.len());
+        for s in 0..run.segments.len() {
+            run.dispatch(Pass::OctreeSlots, Some(s), 0, run.segments[s].1, 0)?;
+        }
+        for s in 0..run.segments.len() {
+            let v: Vec<u32> = run.read(&run.segments[s].3, 4 * run.segments[s].1 as u64)?;
+            slot.extend(v);
+        }
+        phases.push(("slots".to_string(), t.elapsed().as_secs_f64()));
+        phases.push(("rounds".to_string(), rounds as f64));
+        Ok(ArrivalTree { nodes, slot, voxels, phases })
+    }
+}
+
+impl Run<'_> {
+    fn uniforms(&self, first: u32, count: u32, mode: u32, base: u32) -> OctreeUniforms {
+        OctreeUniforms {
+            first,
+            count,
+            capacity: self.config.leaf_capacity,
+            max_level: self.config.max_level as u32,
+            node_capacity: self.node_capacity,
+            mode,
+            base,
+            ..OctreeUniforms::default()
+        }
+    }
+
+    /// Runs `pass` over `count` items of segment `seg` (or none: the first segment is bound).
+    fn dispatch(
+        &self,
+        pass: Pass,
+        seg: Option<usize>,
+        first: u32,
+        count: u32,
+        mode: u32,
+    ) -> Result<(), GpuError> {
+        let base = seg.map_or(0, |s| self.segments[s].0);
+        let u = self.uniforms(first, count, mode, base);
+        self.submit(pass, seg, u)
+    }
+
+    /// Runs a voxel pass with the grids `first..first + count` bound.
+    fn dispatch_grids(
+        &self,
+        pass: Pass,
+        seg: Option<usize>,
+        items: u32,
+        first: u32,
+        count: u64,
+    ) -> Result<(), GpuError> {
+        let base = seg.map_or(0, |s| self.segments[s].0);
+        let mut u = self.uniforms(0, items, 0, base);
+        u.grid_first = first;
+        u.grid_count = count as u32;
+        self.submit(pass, seg, u)
+    }
+
+    fn submit(
+        &self,
+        pass: Pass,
+        seg: Option<usize>,
+        mut u: OctreeUniforms,
+    ) -> Result<(), GpuError> {
+        if u.count == 0 {
+            return Ok(());
+        }
+        let ctx = &self.b.ctx;
+        let (gx, gy) = ctx.split_dispatch(u.count.div_ceil(WORKGROUP));
+        u.groups_x = gx;
+        let ub = ctx.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some("octree uniforms"),
+            contents: bytemuck::bytes_of(&u),
+            usage: wgpu::BufferUsages::UNIFORM,
+        });
+        let (_, _, p, l) = &self.segments[seg.unwrap_or(0).min(self.segments.len() - 1)];
+        use crate::pipeline::entry;
+        let bg = ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some(pass.file()),
+            layout: &self.b.layout,
+            entries: &[
+                entry(binding::OCTREE_PARAMS, ub.as_entire_binding()),
+                entry(binding::OCTREE_NODES, self.nodes.as_entire_binding()),
+                entry(binding::OCTREE_STATE, self.state.as_entire_binding()),
+                entry(binding::OCTREE_POS, p.as_entire_binding()),
+                entry(binding::OCTREE_LEAF, l.as_entire_binding()),
+                entry(binding::OCTREE_GRIDS, self.grids.as_entire_binding()),
+                entry(binding::OCTREE_BLOCKS, self.blocks.as_entire_binding()),
+                entry(binding::OCTREE_OUT, self.out.as_entire_binding()),
+            ],
+        });
+        let mut enc = ctx.device.create_command_encoder(&Default::default());
+        {
+            let mut cp = enc.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some(pass.file()),
+                timestamp_writes: None,
+            });
+            cp.set_pipeline(self.b.pipeline(pass));
+            cp.set_bind_group(0, &bg, &[]);
+            cp.dispatch_workgroups(gx, gy, 1);
+        }
+        ctx.queue.submit([enc.finish()]);
+        Ok(())
+    }
+
+    fn read<T: bytemuck::Pod>(&self, buf: &wgpu::Buffer, size: u64) -> Result<Vec<T>, GpuError> {
+        if size == 0 {
+            return Ok(Vec::new());
+        }
+        let ctx = &self.b.ctx;
+        let mut enc = ctx.device.create_command_encoder(&Default::default());
+        let rb = readback(ctx, &mut enc, buf, size);
+        ctx.queue.submit([enc.finish()]);
+        Ok(bytemuck::pod_collect_to_vec(&map_read(ctx, &rb)?))
+    }
+
+    fn read_state(&self) -> Result<[u32; 4], GpuError> {
+        let v: Vec<u32> = self.read(&self.state, 16)?;
+        Ok([v[0], v[1], v[2], v[3]])
+    }
+
+    /// The node buffer filled up during a split pass that began with `before` nodes: keeps the
+    /// children given out in full, doubles the buffer and clears the overflow.
+    fn grow_nodes(&mut self, before: u32, split: u32) -> Result<(), GpuError> {
+        let ctx = &self.b.ctx;
+        let valid = before + (self.node_capacity.saturating_sub(before)) / 8 * 8;
+        let limit = (ctx.max_binding() / 32) as u32;
+        if self.node_capacity >= limit {
+            return Err(GpuError::TooLarge {
+                what: "the octree's nodes",
+                needed: 32 * (self.node_capacity as u64 + 8),
+                limit: ctx.max_binding(),
+            });
+        }
+        let cap = self.node_capacity.saturating_mul(2).min(limit);
+        let bigger = storage(ctx, "octree nodes", 32 * cap as u64);
+        let mut enc = ctx.device.create_command_encoder(&Default::default());
+        enc.copy_buffer_to_buffer(&self.nodes, 0, &bigger, 0, 32 * valid as u64);
+        ctx.queue.submit([enc.finish()]);
+        ctx.queue.write_buffer(&self.state, 0, bytemuck::cast_slice(&[valid, split, 0, 0]));
+        self.nodes = bigger;
+        self.node_capacity = cap;
+        ctx.wait()
+    }
+}
+
+impl TreeBackend for GpuTreeBuilder {
+    fn name(&self) -> String {
+        let a = self.ctx.adapter();
+        format!("{} ({}, {})", a.name, a.backend, a.device_type)
+    }
+
+    fn build(
+        &self,
+        size_log2: u8,
+        pos: &[[u32; 3]],
+        config: &BuilderConfig,
+    ) -> Result<ArrivalTree, String> {
+        self.build_tree(size_log2, pos, config).map_err(|e| e.to_string())
+    }
+}

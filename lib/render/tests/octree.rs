@@ -1,0 +1,97 @@
+//! The GPU octree builder (issue 29) against its CPU twin, `mortar_core::octree::arrival`: the
+//! same nodes, the same voxels, and every point in a slot of its leaf's range (the order inside
+//! a leaf is left to the atomics). Runs on any adapter, lavapipe in CI.
+
+use mortar_core::octree::arrival::{build_arrival, leaf_bases, ArrivalTree, NO_CHILD};
+use mortar_core::octree::{BuilderConfig, Cube};
+use mortar_render::context::AtomicPath;
+use mortar_render::octree::GpuTreeBuilder;
+use mortar_render::testing::context_or_skip;
+
+fn rng(seed: &mut u64) -> u32 {
+    *seed ^= *seed << 13;
+    *seed ^= *seed >> 7;
+    *seed ^= *seed << 17;
+    (*seed >> 16) as u32
+}
+
+/// Per point, the depth-first number of its leaf (from the range its slot is in).
+fn leaves_of(t: &ArrivalTree) -> Vec<u32> {
+    let bases = leaf_bases(&t.nodes);
+    let mut starts: Vec<u32> = t
+        .nodes
+        .iter()
+        .enumerate()
+        .filter(|(_, n)| n.first_child == NO_CHILD && n.count > 0)
+        .map(|(i, _)| bases[i])
+        .collect();
+    starts.sort_unstable();
+    let mut seen = vec![false; t.slot.len()];
+    t.slot
+        .iter()
+        .map(|&s| {
+            assert!(!seen[s as usize], "slot {s} given twice");
+            seen[s as usize] = true;
+            (starts.partition_point(|&b| b <= s) - 1) as u32
+        })
+        .collect()
+}
+
+/// The same tree: the same nodes by key, leaves with the same counts, the same voxels, every
+/// point in the same leaf. (Node ids follow the order of the GPU's atomics.)
+fn same(gpu: &ArrivalTree, cpu: &ArrivalTree, what: &str) {
+    assert_eq!(leaves_of(gpu), leaves_of(cpu), "{what}: leaves of the points");
+    let root = Cube::new([0; 3], 32);
+    let (g, c) = (gpu.clone().into_sorted(root, |a| a), cpu.clone().into_sorted(root, |a| a));
+    assert_eq!(g.unwrap().nodes, c.unwrap().nodes, "{what}: nodes");
+}
+
+#[test]
+fn the_gpu_builds_the_cpu_twins_tree() {
+    let Some(ctx) = context_or_skip(AtomicPath::TwoPass32, Some(7)) else { return };
+    // Small segments: several batches, reassignments across segments, split dispatches.
+    let gpu = GpuTreeBuilder::new(ctx).with_segment_points(2_000);
+    let mut seed = 0x2545f4914f6cdd1du64;
+    let cases: [(usize, u8, u32, u32); 6] = [
+        (0, 10, 5, 10),
+        (1, 10, 5, 10),
+        (9_000, 18, 50, 18),
+        (20_000, 12, 30, 5),
+        (6_000, 24, 100, 24),
+        (5_000, 32, 64, 32),
+    ];
+    for (n, size_log2, cap, spread) in cases {
+        let pos: Vec<[u32; 3]> = (0..n)
+            .map(|_| {
+                [0; 3].map(|_| {
+                    let v = rng(&mut seed) as u64 % (1u64 << spread);
+                    (v << (size_log2 as u32 - spread)) as u32
+                })
+            })
+            .collect();
+        let config = BuilderConfig { leaf_capacity: cap, ..BuilderConfig::default() };
+        let cpu = build_arrival(size_log2, &pos, &config).unwrap();
+        let g = gpu.build_tree(size_log2, &pos, &config).unwrap();
+        same(&g, &cpu, &format!("{n} points in 2^{size_log2}, capacity {cap}"));
+    }
+}
+
+#[test]
+fn coincident_points_depth_limits_and_a_growing_node_buffer() {
+    let Some(ctx) = context_or_skip(AtomicPath::TwoPass32, None) else { return };
+    // A node buffer of 20 nodes at first: grown many times, in the middle of split passes.
+    let gpu = GpuTreeBuilder::new(ctx).with_segment_points(3_000).with_first_nodes(20);
+    // All at one position, plus a spread: leaves beyond the depth limit keep their points.
+    let mut pos = vec![[1000u32, 77, 5]; 7_000];
+    pos.extend((0..5_000u32).map(|i| [i * 7919 % 65536, i * 104_729 % 65536, i * 13 % 65536]));
+    for config in [
+        BuilderConfig { leaf_capacity: 20, ..BuilderConfig::default() },
+        BuilderConfig { leaf_capacity: 3, max_level: 3, ..BuilderConfig::default() },
+        BuilderConfig { leaf_capacity: 1, ..BuilderConfig::default() },
+    ] {
+        let cpu = build_arrival(16, &pos, &config).unwrap();
+        let g = gpu.build_tree(16, &pos, &config).unwrap();
+        same(&g, &cpu, &format!("{config:?}"));
+    }
+    assert!(gpu.build_tree(4, &[[16, 0, 0]], &BuilderConfig::default()).is_err());
+}

@@ -1,0 +1,27 @@
+// sample voxels (paper 004 §5.2): each point offers itself to its cell in every inner node on
+// its path whose grid is bound; the earliest arrival wins (atomicMax of its bitwise NOT), the
+// point the CPU engines pick, whatever the order the threads run in.
+
+@compute @workgroup_size(256)
+fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>) {
+    let t = item(wg, lid);
+    if t >= params.count {
+        return;
+    }
+    let i = params.first + t;
+    let p = point_of(i);
+    let mark = ~(params.base + i);
+    var n = 0u;
+    loop {
+        let c = nodes[n].child;
+        if c == 0u {
+            break;
+        }
+        let g = nodes[n].grid;
+        if g >= params.grid_first && g - params.grid_first < params.grid_count {
+            let at = ((g - params.grid_first) << GRID_CELLS_LOG2) | cell_of(n, p);
+            atomicMax(&grids[at], mark);
+        }
+        n = c + octant(n, p);
+    }
+}
