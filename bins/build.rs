@@ -13,6 +13,7 @@ pub enum EngineArg {
     Sorted,
     Partitioned,
     Incremental,
+    Gpu,
 }
 
 impl From<EngineArg> for Engine {
@@ -22,6 +23,7 @@ impl From<EngineArg> for Engine {
             EngineArg::Sorted => Engine::Sorted,
             EngineArg::Partitioned => Engine::Partitioned,
             EngineArg::Incremental => Engine::Incremental,
+            EngineArg::Gpu => Engine::Gpu,
         }
     }
 }
@@ -67,7 +69,10 @@ pub struct Args {
     #[arg(long, value_parser = common::parse_size)]
     pub memory: Option<u64>,
     /// The build engine: auto (sorted when the input fits --memory, else partitioned; incremental
-    /// for --averaged-colors), sorted, partitioned or incremental. All build the same tree.
+    /// for --averaged-colors), sorted, partitioned, incremental, or gpu (SimLOD's passes on the
+    /// GPU, a software Vulkan such as lavapipe where there is no GPU; the same store as sorted;
+    /// the input must fit the GPU's memory and --memory). All build the same tree; auto never
+    /// picks gpu.
     #[arg(long, value_enum, default_value_t = EngineArg::Auto)]
     pub engine: EngineArg,
     /// Continue the store at --output from its last commit, if a build of the same inputs and
@@ -149,9 +154,13 @@ pub fn run(a: Args) -> Result<()> {
         memory,
         engine: a.engine.into(),
         resume: a.resume,
+        tree: None,
     };
     let mut recorder = mortar_app::frames::FrameRecorder::new(&a.frames, &ds, &output)?;
     let mut opts = opts;
+    if opts.engine == Engine::Gpu {
+        opts.tree = Some(mortar_app::gpu_build::tree_backend()?);
+    }
     if let Some(r) = &recorder {
         opts.commit_every = opts.commit_every.min(r.every());
     }

@@ -184,6 +184,7 @@ fn a_sorted_build_is_readable_at_every_commit_coarse_first() {
         memory: 1 << 30,
         engine: Engine::Sorted,
         resume: false,
+        tree: None,
     };
     let mut seen: Vec<(u64, u64, usize, u8)> = Vec::new();
     let mut check = |p: &mortar_io::store::BuildProgress| {

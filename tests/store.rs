@@ -110,6 +110,7 @@ fn store_is_readable_at_every_commit_while_it_grows() {
         memory: 1 << 30,
         engine: mortar_io::store::Engine::Incremental,
         resume: false,
+        tree: None,
     };
     let mut seen = Vec::new();
     let mut check = |p: &mortar_io::store::BuildProgress| {

@@ -8,6 +8,7 @@
 //! - [`render`]: one view to PNG (`mortar render`) of a batch file, a store (LOD) or raw LAS/LAZ
 //!   (progressive), on the CPU or GPU rasterizer.
 //! - [`frames`]: PNG frames of a growing store (`mortar build --frames`).
+//! - [`gpu_build`]: the GPU octree builder for `mortar build --engine gpu`.
 //! - [`bench`]: the render benchmarks' procedures (`mortar-bench-*`).
 //! - [`cli`]: what every command shares: warnings, progress bars, sizes, the sort and CRS option
 //!   sets.
@@ -22,5 +23,6 @@ pub mod bench;
 pub mod cli;
 pub mod draw;
 pub mod frames;
+pub mod gpu_build;
 pub mod render;
 pub mod viewer;

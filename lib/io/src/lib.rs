@@ -33,7 +33,7 @@
 //! let file = BatchFile::open(&out.join("sample.mbat"))?;
 //! assert_eq!(file.header.point_count, 110_000);
 //!
-//! let store = BuildOptions { config: Default::default(), batch_points: 100_000, commit_every: 0.0, first_commit_after: None, memory: 1 << 30, engine: Engine::Auto, resume: false };
+//! let store = BuildOptions { config: Default::default(), batch_points: 100_000, commit_every: 0.0, first_commit_after: None, memory: 1 << 30, engine: Engine::Auto, resume: false, tree: None };
 //! let report = build(&ds, &out.join("store"), &store, &mut |_| {})?;
 //! assert_eq!(report.points, 110_000);
 //! assert_eq!(Store::open(&out.join("store"))?.header.points, 110_000);

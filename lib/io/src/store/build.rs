@@ -40,8 +40,12 @@ pub fn build(
         }
         e => e,
     };
+    if engine == Engine::Gpu && !first_come {
+        return Err(Error::AveragedColours);
+    }
     let built_by = match engine {
         Engine::Sorted => BuiltBy::Sorted,
+        Engine::Gpu => BuiltBy::Gpu,
         Engine::Partitioned => BuiltBy::Partitioned,
         _ => BuiltBy::Incremental,
     };
@@ -72,6 +76,7 @@ pub fn build(
      -> Result<BuildReport> {
         match engine {
             Engine::Sorted => super::engine::build_into(ds, writer, opts, progress, bounds, t0),
+            Engine::Gpu => super::gpu::build_into(ds, writer, opts, progress, bounds, t0),
             Engine::Partitioned => {
                 super::partitioned::build_into(ds, writer, opts, progress, bounds, t0)
             }
@@ -170,7 +175,10 @@ fn continue_store(
             _ => start_over("nothing of its partition was kept".into(), warnings),
         };
     }
-    if old.engine != BuiltBy::Sorted.name() || record.engine != BuiltBy::Sorted.name() {
+    // The sorted and the GPU engines write the same nodes level by level: either continues
+    // the other's commits.
+    let levelled = |e: &str| e == BuiltBy::Sorted.name() || e == BuiltBy::Gpu.name();
+    if !levelled(&old.engine) || !levelled(&record.engine) {
         return start_over(
             "the incremental engine keeps its tree in memory and cannot continue a build".into(),
             warnings,

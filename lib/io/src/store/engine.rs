@@ -123,7 +123,7 @@ pub(crate) fn bucket_shift(root: Cube) -> u32 {
 }
 
 #[inline]
-fn code_of(r: &[u8], g: &MortonGrid) -> u64 {
+pub(crate) fn code_of(r: &[u8], g: &MortonGrid) -> u64 {
     let q = read_xyz(r);
     g.code([q[0] as i64, q[1] as i64, q[2] as i64])
 }
@@ -282,37 +282,9 @@ pub(crate) fn build_into(
     let rl = ds.layout.record_len;
     let total = ds.declared_points();
     let mut report = BuildReport { engine: BuiltBy::Sorted, ..BuildReport::default() };
-    // The root the headers promise; checked against the points once they are read.
-    let promised =
-        header.map(|(l, h)| Cube::covering(l, h)).unwrap_or(Cube { min: [0; 3], size_log2: 32 });
-    let tr = Instant::now();
-    ds.progress.stage("reading", total, "points");
-    let (slabs, mut hist) = read_pieces(ds, promised)?;
-    let pieces = ds.pieces();
-    let mut all = PieceStats::default();
-    let mut real = vec![PieceStats::default(); ds.inputs.len()];
-    for (p, (_, st)) in pieces.iter().zip(&slabs) {
-        all.merge(st);
-        real[p.input].merge(st);
-    }
-    // Headers that lie: the points' real range, per file.
-    for (src, st) in ds.inputs.iter().zip(&real) {
-        if let Some(w) = super::bounds::bounds_warning(ds, src.as_ref(), st) {
-            report.warnings.push(w);
-        }
-    }
-    report.read_seconds = tr.elapsed().as_secs_f64();
-    crate::cleanup::trace("read", t0);
+    let Input { slabs, mut hist, all, root, promised, bounds: (lo, hi) } =
+        read_input(ds, header, &mut report, t0)?;
     let records: Vec<&[u8]> = slabs.iter().map(|(r, _)| &**r).collect();
-    // The headers' box when it holds every point; otherwise the headers lie, and the root is the
-    // points' own box (the incremental engine grows its root instead).
-    let (lo, hi) = if all.count == 0 { ([0; 3], [0; 3]) } else { (all.min, all.max) };
-    let root = match header {
-        Some((l, h)) if all.count > 0 && (0..3).all(|a| l[a] <= lo[a] && hi[a] <= h[a]) => {
-            Cube::covering(l, h)
-        }
-        _ => Cube::covering(lo, hi),
-    };
     let g = grid_of(root);
     let shift = bucket_shift(root);
     if root != promised {
@@ -330,13 +302,7 @@ pub(crate) fn build_into(
     report.sort_seconds = ts.elapsed().as_secs_f64();
     crate::cleanup::trace("sort", t0);
     crate::cleanup::check_interrupted()?;
-    // The colour source from the whole input, as batch files choose it.
-    let color = match ds.layout.attribute("rgb") {
-        Some(a) if all.max_rgb > 0 => {
-            ColorSource::Rgb { offset: a.offset, depth: RgbDepth::detect(all.max_rgb) }
-        }
-        _ => ColorSource::Intensity { max_intensity: all.max_intensity },
-    };
+    let color = color_of(ds, &all);
     let tt = Instant::now();
     ds.progress.stage("indexing", 0, "");
     let n = sorted.arrival.len();
@@ -365,6 +331,74 @@ pub(crate) fn build_into(
     crate::cleanup::trace("written", t0);
     report.seconds = t0.elapsed().as_secs_f64();
     Ok(report)
+}
+
+/// The input as the sorted engines begin: every piece read, the points' statistics, and the
+/// root cube.
+pub(crate) struct Input<'a> {
+    /// The pieces' records (in input order) and statistics.
+    pub(crate) slabs: Vec<(std::borrow::Cow<'a, [u8]>, PieceStats)>,
+    /// Per piece, its count per sort bucket on the grid of `promised`.
+    pub(crate) hist: Vec<Vec<u32>>,
+    /// All the points' statistics.
+    pub(crate) all: PieceStats,
+    /// The root cube.
+    pub(crate) root: Cube,
+    /// The root the headers promised (`hist` is on its grid).
+    pub(crate) promised: Cube,
+    /// The points' box.
+    pub(crate) bounds: ([i32; 3], [i32; 3]),
+}
+
+/// Reads every piece ([`read_pieces`]), warns about headers that lie, and chooses the root:
+/// the headers' box when it holds every point, otherwise the points' own box (the incremental
+/// engine grows its root instead). `header` is the headers' box (see [`super::build`]).
+pub(crate) fn read_input<'a>(
+    ds: &'a Dataset,
+    header: Option<([i32; 3], [i32; 3])>,
+    report: &mut BuildReport,
+    t0: Instant,
+) -> Result<Input<'a>> {
+    let total = ds.declared_points();
+    // The root the headers promise; checked against the points once they are read.
+    let promised =
+        header.map(|(l, h)| Cube::covering(l, h)).unwrap_or(Cube { min: [0; 3], size_log2: 32 });
+    let tr = Instant::now();
+    ds.progress.stage("reading", total, "points");
+    let (slabs, hist) = read_pieces(ds, promised)?;
+    let pieces = ds.pieces();
+    let mut all = PieceStats::default();
+    let mut real = vec![PieceStats::default(); ds.inputs.len()];
+    for (p, (_, st)) in pieces.iter().zip(&slabs) {
+        all.merge(st);
+        real[p.input].merge(st);
+    }
+    // Headers that lie: the points' real range, per file.
+    for (src, st) in ds.inputs.iter().zip(&real) {
+        if let Some(w) = super::bounds::bounds_warning(ds, src.as_ref(), st) {
+            report.warnings.push(w);
+        }
+    }
+    report.read_seconds = tr.elapsed().as_secs_f64();
+    crate::cleanup::trace("read", t0);
+    let (lo, hi) = if all.count == 0 { ([0; 3], [0; 3]) } else { (all.min, all.max) };
+    let root = match header {
+        Some((l, h)) if all.count > 0 && (0..3).all(|a| l[a] <= lo[a] && hi[a] <= h[a]) => {
+            Cube::covering(l, h)
+        }
+        _ => Cube::covering(lo, hi),
+    };
+    Ok(Input { slabs, hist, all, root, promised, bounds: (lo, hi) })
+}
+
+/// The colour source from the whole input, as batch files choose it.
+pub(crate) fn color_of(ds: &Dataset, all: &PieceStats) -> ColorSource {
+    match ds.layout.attribute("rgb") {
+        Some(a) if all.max_rgb > 0 => {
+            ColorSource::Rgb { offset: a.offset, depth: RgbDepth::detect(all.max_rgb) }
+        }
+        _ => ColorSource::Intensity { max_intensity: all.max_intensity },
+    }
 }
 
 /// Counts per bucket of the records of one piece.
@@ -417,7 +451,7 @@ pub(crate) fn read_pieces(
 
 /// Encodes and appends the nodes of `tree` level by level, committing after each level.
 #[allow(clippy::too_many_arguments)]
-fn write_tree(
+pub(crate) fn write_tree(
     writer: &mut StoreWriter,
     tree: &mortar_core::octree::SortedTree,
     root: Cube,

@@ -35,6 +35,7 @@ pub(crate) mod dense;
 pub mod distributed;
 pub(crate) mod engine;
 mod format;
+mod gpu;
 mod incremental;
 pub mod lod;
 mod options;

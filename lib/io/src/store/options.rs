@@ -20,6 +20,9 @@ pub enum Engine {
     Partitioned,
     /// Paper 004's batch updates with paged leaves (bounded memory for any input).
     Incremental,
+    /// SimLOD's passes on the GPU ([`BuildOptions::tree`]), then the sorted engine's writing:
+    /// the same store as [`Engine::Sorted`].
+    Gpu,
 }
 
 /// Choices of `mortar build`.
@@ -42,6 +45,9 @@ pub struct BuildOptions {
     /// Continue the store the output names, if a build of the same inputs and settings began
     /// it and did not finish (killed, power loss, disk full): from its last commit.
     pub resume: bool,
+    /// What builds the tree for [`Engine::Gpu`] (`mortar_render::octree::GpuTreeBuilder` from
+    /// the command line; this crate knows no GPU).
+    pub tree: Option<std::sync::Arc<dyn mortar_core::octree::arrival::TreeBackend>>,
 }
 
 /// Progress of a build, reported after every batch.
@@ -92,8 +98,16 @@ pub struct BuildReport {
     pub warnings: Vec<String>,
     /// The engine that built the store.
     pub engine: BuiltBy,
-    /// Seconds sorting the keys (sorted engine).
+    /// Seconds sorting the keys (sorted engine; the GPU engine: placing the records and sorting
+    /// each leaf).
     pub sort_seconds: f64,
+    /// The GPU engine's adapter.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub gpu: Option<String>,
+    /// The GPU engine's steps and their seconds (upload, expand, number, voxels, slots; and the
+    /// rounds of expand).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub gpu_steps: Vec<(String, f64)>,
     /// Seconds gathering positions and colours and making the tree (sorted engine).
     pub tree_seconds: f64,
     /// Seconds encoding and appending payloads (sorted engine).
@@ -124,6 +138,8 @@ pub enum BuiltBy {
     Partitioned,
     /// The incremental engine (averaged colours, or `--engine incremental`).
     Incremental,
+    /// The GPU engine (`--engine gpu`).
+    Gpu,
 }
 
 impl BuiltBy {
@@ -134,6 +150,7 @@ impl BuiltBy {
             BuiltBy::Sorted => "sorted",
             BuiltBy::Partitioned => "partitioned",
             BuiltBy::Incremental => "incremental",
+            BuiltBy::Gpu => "gpu",
         }
     }
 }
@@ -144,7 +161,13 @@ mod tests {
 
     #[test]
     fn the_report_names_its_engine_as_build_json_does() {
-        for b in [BuiltBy::None, BuiltBy::Sorted, BuiltBy::Partitioned, BuiltBy::Incremental] {
+        for b in [
+            BuiltBy::None,
+            BuiltBy::Sorted,
+            BuiltBy::Partitioned,
+            BuiltBy::Incremental,
+            BuiltBy::Gpu,
+        ] {
             assert_eq!(serde_json::to_value(b).unwrap(), serde_json::json!(b.name()));
         }
         let r = BuildReport { batch_seconds: vec![1.0], ..BuildReport::default() };

@@ -411,6 +411,7 @@ pub(crate) fn build_units(
         memory,
         engine: crate::store::options::Engine::Partitioned,
         resume: false,
+        tree: None,
     };
     let unit_points =
         ((memory / 2) / unit_bytes_per_point(rl as u64)).max(config.leaf_capacity as u64 + 1);

@@ -1,0 +1,161 @@
+//! Issue 29: `mortar build --engine gpu` (SimLOD's passes on the GPU, `mortar_render::octree`)
+//! writes the store `--engine sorted` writes, byte for byte: the same hierarchy, the same
+//! payloads, the same source header. On every real file, on merged tiles and on hostile density
+//! (points at one position, duplicates, cells denser than the grid). Runs on lavapipe in CI
+//! (`MORTAR_REQUIRE_GPU`); skips with a printed reason where no adapter exists at all.
+
+mod common;
+
+use common::*;
+use std::path::{Path, PathBuf};
+
+/// Whether a GPU engine build failed only because there is no adapter (a skip outside CI).
+fn no_adapter(stderr: &str) -> bool {
+    stderr.contains("no GPU adapter") && std::env::var_os("MORTAR_REQUIRE_GPU").is_none()
+}
+
+/// Builds `inputs` into `out` with `engine`: the JSON report, or the error output.
+fn build(
+    inputs: &[PathBuf],
+    out: &Path,
+    engine: &str,
+    extra: &[&str],
+) -> Result<serde_json::Value, String> {
+    let o = mortar()
+        .arg("build")
+        .args(inputs)
+        .arg("-o")
+        .arg(out)
+        .args(["--engine", engine, "--json", "--quiet"])
+        .args(extra)
+        .output()
+        .unwrap();
+    if o.status.success() {
+        Ok(serde_json::from_slice(&o.stdout).unwrap())
+    } else {
+        assert_eq!(o.status.code(), Some(1), "{}", String::from_utf8_lossy(&o.stderr));
+        assert!(!out.exists(), "a failed build left {}", out.display());
+        Err(String::from_utf8_lossy(&o.stderr).to_string())
+    }
+}
+
+/// The store's files but build.json (which names the engine).
+fn store_files(dir: &Path) -> Vec<(String, Vec<u8>)> {
+    let mut v: Vec<(String, Vec<u8>)> = std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.file_name().unwrap() != "build.json")
+        .map(|p| (p.file_name().unwrap().to_string_lossy().to_string(), std::fs::read(&p).unwrap()))
+        .collect();
+    v.sort();
+    v
+}
+
+/// Builds `inputs` with both engines; `Some(true)` when both built the same store, `Some(false)`
+/// when both refused the input, `None` when there is no GPU adapter (skip).
+fn same_store(inputs: &[PathBuf], extra: &[&str], tag: &str) -> Option<bool> {
+    let dir = tempdir(tag);
+    let (a, b) = (dir.join("sorted"), dir.join("gpu"));
+    let name = inputs
+        .iter()
+        .map(|p| p.file_name().unwrap().to_string_lossy().to_string())
+        .collect::<Vec<_>>()
+        .join(" + ");
+    let ra = build(inputs, &a, "sorted", extra);
+    let rb = build(inputs, &b, "gpu", extra);
+    let out = match (&ra, &rb) {
+        (_, Err(e)) if no_adapter(e) => {
+            eprintln!("SKIPPED: {e}");
+            None
+        }
+        (Err(_), Err(_)) => Some(false),
+        (Ok(ja), Ok(jb)) => {
+            assert_eq!(jb["engine"], "gpu", "{jb}");
+            assert_eq!(ja["points"], jb["points"], "{name}");
+            let (fa, fb) = (store_files(&a), store_files(&b));
+            assert_eq!(
+                fa.iter().map(|f| &f.0).collect::<Vec<_>>(),
+                fb.iter().map(|f| &f.0).collect::<Vec<_>>(),
+                "{name}: files"
+            );
+            for (x, y) in fa.iter().zip(&fb) {
+                assert!(
+                    x.1 == y.1,
+                    "{name}: {} differs between the sorted and the GPU engine",
+                    x.0
+                );
+            }
+            Some(true)
+        }
+        _ => panic!("{name}: one engine failed: sorted {ra:?}, gpu {rb:?}"),
+    };
+    let _ = std::fs::remove_dir_all(&dir);
+    out
+}
+
+#[test]
+fn the_gpu_engine_writes_the_sorted_engines_store_on_the_sample_and_every_real_file() {
+    let sample = root().join("data-samples/autzen_trim.laz");
+    for cap in ["50000", "500"] {
+        let Some(same) =
+            same_store(std::slice::from_ref(&sample), &["--leaf-capacity", cap], "gpu-sample")
+        else {
+            return;
+        };
+        assert!(same);
+    }
+    let Some(data) = shared_data() else { return };
+    let files = readable_fixtures(&data);
+    assert!(files.len() > 40, "{} fixtures", files.len());
+    let mut built = 0;
+    for (i, f) in files.iter().enumerate() {
+        // Small leaves: deep trees with many inner nodes even on small files.
+        let cap = if i % 2 == 0 { "3000" } else { "200" };
+        if same_store(std::slice::from_ref(f), &["--leaf-capacity", cap], &format!("gpu-{i}"))
+            == Some(true)
+        {
+            built += 1;
+        }
+    }
+    assert!(built * 10 >= files.len() * 8, "{built} of {} built by both", files.len());
+}
+
+#[test]
+fn the_gpu_engine_writes_the_sorted_engines_store_on_merged_tiles() {
+    let Some(data) = shared_data() else { return };
+    let bcts: Vec<PathBuf> = (1..=4)
+        .map(|i| data.join(format!("lasR/inst/extdata/bcts/bcts_{i}.laz")))
+        .filter(|p| p.exists())
+        .collect();
+    assert!(bcts.len() >= 2);
+    if same_store(&bcts, &["--leaf-capacity", "2000"], "gpu-bcts").is_none() {
+        return;
+    }
+    let ept_dir = data.join("PyForestScan/example_data/ept/ept-data");
+    let mut ept: Vec<PathBuf> =
+        std::fs::read_dir(&ept_dir).unwrap().map(|e| e.unwrap().path()).collect();
+    ept.sort();
+    ept.truncate(60);
+    assert_eq!(same_store(&ept, &[], "gpu-ept"), Some(true));
+}
+
+#[test]
+fn the_gpu_engine_writes_the_sorted_engines_store_on_hostile_density() {
+    let dir = tempdir("gpu-dense");
+    for (k, set) in dense_sets(&dir).iter().enumerate() {
+        match same_store(set, &["--leaf-capacity", "3000"], &format!("gpu-dense-{k}")) {
+            None => return,
+            Some(same) => assert!(same, "{set:?}"),
+        }
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn the_gpu_engine_refuses_averaged_colours_clearly() {
+    let dir = tempdir("gpu-averaged");
+    let sample = root().join("data-samples/autzen_trim.laz");
+    let e = build(&[sample], &dir.join("s"), "gpu", &["--averaged-colors"]).unwrap_err();
+    assert!(e.contains("first-come") && !e.contains("panicked"), "{e}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
