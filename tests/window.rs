@@ -655,3 +655,68 @@ fn progressive_and_no_progressive_windows_show_the_same_picture() {
         assert_eq!(differ(&gpu_batched, &batched), 0, "GPU and CPU batch windows");
     }
 }
+
+#[test]
+fn build_preview_runs_the_gpu_engine() {
+    // Issue 29: the GPU engine under the preview: it commits level by level as the sorted engine
+    // does, the window shows the growing store, and the store is the sorted engine's.
+    let Some(x) = xvfb_or_skip() else { return };
+    if mortar_render::testing::context_or_skip(mortar_render::AtomicPath::TwoPass32, None).is_none()
+    {
+        return;
+    }
+    let dir = tempdir("window-preview-gpu");
+    let reference = dir.join("reference");
+    run_ok(mortar().arg("build").arg(sample()).arg("-o").arg(&reference).args([
+        "--engine",
+        "sorted",
+        "--leaf-capacity",
+        "500",
+    ]));
+    let view_png = dir.join("view.png");
+    let o = view(
+        &x.display,
+        &[
+            reference.to_str().unwrap(),
+            "--width",
+            "320",
+            "--height",
+            "240",
+            "--backend",
+            "gpu",
+            "--no-status",
+            "--screenshot",
+            view_png.to_str().unwrap(),
+        ],
+    );
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let (_, _, expected) = read_png(&view_png);
+    let store = dir.join("store");
+    let png = dir.join("preview.png");
+    let mut c = mortar();
+    c.arg("build").arg(sample()).arg("-o").arg(&store);
+    c.args(["--preview", "--preview-backend", "gpu", "--preview-size", "320x240"]);
+    c.arg("--preview-screenshot").arg(&png);
+    c.args(["--engine", "gpu", "--leaf-capacity", "500", "--json"]);
+    c.env("DISPLAY", &x.display).env_remove("WAYLAND_DISPLAY");
+    let o = run_limited(c, Duration::from_secs(300));
+    assert!(
+        o.status.success(),
+        "build --preview --engine gpu: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!((j["engine"].as_str(), j["points"].as_u64()), (Some("gpu"), Some(110_000)), "{j}");
+    // One commit per level.
+    assert!(j["commits"].as_u64().unwrap() >= 3, "{}", j["commits"]);
+    assert_eq!(j["preview"]["renderer"]["backend"], "gpu");
+    assert!(!j["preview"]["frames"].as_array().unwrap().is_empty());
+    let (w, _, shown) = read_png(&png);
+    assert_eq!(differ_below_status(w, &shown, &expected), 0, "the last frame is not the store");
+    for f in ["nodes.bin", "hierarchy.bin", "source.las"] {
+        assert!(
+            std::fs::read(store.join(f)).unwrap() == std::fs::read(reference.join(f)).unwrap(),
+            "{f} differs from the sorted engine's"
+        );
+    }
+}

@@ -12,5 +12,6 @@ use std::sync::Arc;
 pub fn tree_backend() -> anyhow::Result<Arc<dyn TreeBackend>> {
     let ctx = GpuContext::new(&GpuOptions { allow_software: true, ..Default::default() })
         .map_err(|e| anyhow!("--engine gpu: {e}"))?;
-    Ok(Arc::new(GpuTreeBuilder::new(ctx)))
+    let b = GpuTreeBuilder::new(ctx).map_err(|e| anyhow!("--engine gpu: {e}"))?;
+    Ok(Arc::new(b))
 }

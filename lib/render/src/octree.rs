@@ -83,8 +83,26 @@ fn storage(ctx: &GpuContext, label: &str, size: u64) -> wgpu::Buffer {
 }
 
 impl GpuTreeBuilder {
-    /// Compiles the passes on `ctx`.
-    pub fn new(ctx: GpuContext) -> GpuTreeBuilder {
+    /// Compiles the passes on `ctx`; refuses an adapter whose limits the passes exceed, naming
+    /// them.
+    pub fn new(ctx: GpuContext) -> Result<GpuTreeBuilder, GpuError> {
+        let l = ctx.limits();
+        let storage = binding::OCTREE.len() as u32 - 1;
+        if l.max_storage_buffers_per_shader_stage < storage
+            || l.max_bindings_per_bind_group < binding::OCTREE.len() as u32
+            || l.max_compute_invocations_per_workgroup < WORKGROUP
+            || l.max_compute_workgroup_size_x < WORKGROUP
+        {
+            return Err(GpuError::Device(format!(
+                "{}: the octree passes need {storage} storage buffers per stage (it has {}), {} \
+                 bindings per group (it has {}) and workgroups of {WORKGROUP} threads (it has {})",
+                ctx.adapter().name,
+                l.max_storage_buffers_per_shader_stage,
+                binding::OCTREE.len(),
+                l.max_bindings_per_bind_group,
+                l.max_compute_invocations_per_workgroup.min(l.max_compute_workgroup_size_x),
+            )));
+        }
         let layout = crate::pipeline::bind_group_layout(
             &ctx,
             "octree",
@@ -122,7 +140,7 @@ impl GpuTreeBuilder {
             (pass, p)
         })
         .collect();
-        GpuTreeBuilder { ctx, layout, pipelines, segment_points: None, first_nodes: None }
+        Ok(GpuTreeBuilder { ctx, layout, pipelines, segment_points: None, first_nodes: None })
     }
 
     /// Segments (and batches) of at most `points` points: small values exercise the batch and

@@ -50,7 +50,7 @@ fn same(gpu: &ArrivalTree, cpu: &ArrivalTree, what: &str) {
 fn the_gpu_builds_the_cpu_twins_tree() {
     let Some(ctx) = context_or_skip(AtomicPath::TwoPass32, Some(7)) else { return };
     // Small segments: several batches, reassignments across segments, split dispatches.
-    let gpu = GpuTreeBuilder::new(ctx).with_segment_points(2_000);
+    let gpu = GpuTreeBuilder::new(ctx).unwrap().with_segment_points(2_000);
     let mut seed = 0x2545f4914f6cdd1du64;
     let cases: [(usize, u8, u32, u32); 6] = [
         (0, 10, 5, 10),
@@ -80,7 +80,7 @@ fn the_gpu_builds_the_cpu_twins_tree() {
 fn coincident_points_depth_limits_and_a_growing_node_buffer() {
     let Some(ctx) = context_or_skip(AtomicPath::TwoPass32, None) else { return };
     // A node buffer of 20 nodes at first: grown many times, in the middle of split passes.
-    let gpu = GpuTreeBuilder::new(ctx).with_segment_points(3_000).with_first_nodes(20);
+    let gpu = GpuTreeBuilder::new(ctx).unwrap().with_segment_points(3_000).with_first_nodes(20);
     // All at one position, plus a spread: leaves beyond the depth limit keep their points.
     let mut pos = vec![[1000u32, 77, 5]; 7_000];
     pos.extend((0..5_000u32).map(|i| [i * 7919 % 65536, i * 104_729 % 65536, i * 13 % 65536]));
