@@ -75,6 +75,11 @@ pub struct Args {
     /// picks gpu.
     #[arg(long, value_enum, default_value_t = EngineArg::Auto)]
     pub engine: EngineArg,
+    /// GPU memory --engine gpu may use, e.g. 8G (at least 32M; default: what the points, the
+    /// nodes and the voxel grids need, within the device's buffer limits). Segments of points
+    /// beyond half of it are paged out to host memory and back.
+    #[arg(long, value_parser = common::parse_size)]
+    pub gpu_memory: Option<u64>,
     /// Continue the store at --output from its last commit, if a build of the same inputs and
     /// settings began it and was stopped (kill -9, power loss, full disk); a complete store is
     /// left as it is.
@@ -159,7 +164,7 @@ pub fn run(a: Args) -> Result<()> {
     let mut recorder = mortar_app::frames::FrameRecorder::new(&a.frames, &ds, &output)?;
     let mut opts = opts;
     if opts.engine == Engine::Gpu {
-        opts.tree = Some(mortar_app::gpu_build::tree_backend()?);
+        opts.tree = Some(mortar_app::gpu_build::tree_backend(a.gpu_memory)?);
     }
     if let Some(r) = &recorder {
         opts.commit_every = opts.commit_every.min(r.every());

@@ -131,6 +131,16 @@ fn the_gpu_engine_writes_the_sorted_engines_store_on_merged_tiles() {
     if same_store(&bcts, &["--leaf-capacity", "2000"], "gpu-bcts").is_none() {
         return;
     }
+    // Within 32 MiB of GPU memory: segments of 524,288 points, two on the GPU at a time, the
+    // others paged out and back; one voxel grid at a time.
+    assert_eq!(
+        same_store(&bcts, &["--leaf-capacity", "20000", "--gpu-memory", "32M"], "gpu-bcts-paged"),
+        Some(true)
+    );
+    let dir = tempdir("gpu-small-budget");
+    let e = build(&bcts, &dir.join("s"), "gpu", &["--gpu-memory", "1M"]).unwrap_err();
+    assert!(e.contains("--gpu-memory") && !e.contains("panicked"), "{e}");
+    let _ = std::fs::remove_dir_all(&dir);
     let ept_dir = data.join("PyForestScan/example_data/ept/ept-data");
     let mut ept: Vec<PathBuf> =
         std::fs::read_dir(&ept_dir).unwrap().map(|e| e.unwrap().path()).collect();

@@ -7,11 +7,16 @@ use mortar_render::octree::GpuTreeBuilder;
 use mortar_render::{GpuContext, GpuOptions};
 use std::sync::Arc;
 
-/// The best adapter's octree builder. Asked for by name (`--engine gpu`), so a software adapter
-/// (lavapipe) is accepted where no GPU exists; no adapter at all is an error naming the reason.
-pub fn tree_backend() -> anyhow::Result<Arc<dyn TreeBackend>> {
+/// The best adapter's octree builder, within `gpu_memory` bytes of GPU memory when given
+/// (`--gpu-memory`; segments of points beyond it are paged). Asked for by name (`--engine gpu`),
+/// so a software adapter (lavapipe) is accepted where no GPU exists; no adapter at all is an
+/// error naming the reason.
+pub fn tree_backend(gpu_memory: Option<u64>) -> anyhow::Result<Arc<dyn TreeBackend>> {
     let ctx = GpuContext::new(&GpuOptions { allow_software: true, ..Default::default() })
         .map_err(|e| anyhow!("--engine gpu: {e}"))?;
-    let b = GpuTreeBuilder::new(ctx).map_err(|e| anyhow!("--engine gpu: {e}"))?;
+    let mut b = GpuTreeBuilder::new(ctx).map_err(|e| anyhow!("--engine gpu: {e}"))?;
+    if let Some(bytes) = gpu_memory {
+        b = b.with_memory_budget(bytes).map_err(|e| anyhow!("--gpu-memory: {e}"))?;
+    }
     Ok(Arc::new(b))
 }

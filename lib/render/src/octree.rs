@@ -50,6 +50,23 @@ pub struct GpuTreeBuilder {
     segment_points: Option<usize>,
     /// The node buffer's first capacity; `None`: from the points and the leaf capacity.
     first_nodes: Option<u32>,
+    /// GPU memory the build may use (`--gpu-memory`); `None`: as much as it needs.
+    budget: Option<u64>,
+    /// Segments on the GPU at once; `None`: from the budget.
+    resident: Option<usize>,
+}
+
+/// The smallest `--gpu-memory`: four 8 MiB voxel grids' worth.
+pub const MIN_GPU_MEMORY: u64 = 32 << 20;
+
+/// One segment of the points: its arrivals, and its buffers while it is on the GPU (the points,
+/// and each point's leaf or slot), or its leaves on the host while it is paged out.
+struct Segment<'p> {
+    base: u32,
+    pos: &'p [[u32; 3]],
+    gpu: Option<(wgpu::Buffer, wgpu::Buffer)>,
+    leaves: Option<Vec<u32>>,
+    used: u64,
 }
 
 impl std::fmt::Debug for GpuTreeBuilder {
@@ -59,12 +76,18 @@ impl std::fmt::Debug for GpuTreeBuilder {
 }
 
 /// The buffers of one build.
-struct Run<'a> {
+struct Run<'a, 'p> {
     b: &'a GpuTreeBuilder,
     nodes: wgpu::Buffer,
     node_capacity: u32,
+    node_limit: u32,
     state: wgpu::Buffer,
-    segments: Vec<(u32, u32, wgpu::Buffer, wgpu::Buffer)>,
+    segments: Vec<Segment<'p>>,
+    /// Segments on the GPU at most, and a clock for the least recently used.
+    resident: usize,
+    clock: u64,
+    /// Bound where a pass needs no segment.
+    dummy: (wgpu::Buffer, wgpu::Buffer),
     grids: wgpu::Buffer,
     blocks: wgpu::Buffer,
     out: wgpu::Buffer,
@@ -140,7 +163,15 @@ impl GpuTreeBuilder {
             (pass, p)
         })
         .collect();
-        Ok(GpuTreeBuilder { ctx, layout, pipelines, segment_points: None, first_nodes: None })
+        Ok(GpuTreeBuilder {
+            ctx,
+            layout,
+            pipelines,
+            segment_points: None,
+            first_nodes: None,
+            budget: None,
+            resident: None,
+        })
     }
 
     /// Segments (and batches) of at most `points` points: small values exercise the batch and
@@ -154,6 +185,28 @@ impl GpuTreeBuilder {
     /// growth in tests.
     pub fn with_first_nodes(mut self, nodes: u32) -> GpuTreeBuilder {
         self.first_nodes = Some(nodes.max(1));
+        self
+    }
+
+    /// Keeps the build within `bytes` of GPU memory (at least [`MIN_GPU_MEMORY`]): a quarter
+    /// for the node buffer, a quarter for a group of voxel grids, half for segments of points;
+    /// segments that do not fit are paged out (their leaves read back) and in again as passes
+    /// need them.
+    pub fn with_memory_budget(mut self, bytes: u64) -> Result<GpuTreeBuilder, GpuError> {
+        if bytes < MIN_GPU_MEMORY {
+            return Err(GpuError::Device(format!(
+                "{bytes} bytes of GPU memory are below the {MIN_GPU_MEMORY} the octree passes \
+                 need (a node buffer and four 8 MiB voxel grids)"
+            )));
+        }
+        self.budget = Some(bytes);
+        Ok(self)
+    }
+
+    /// At most `segments` segments on the GPU at once (at least 1): small values exercise the
+    /// paging in tests.
+    pub fn with_resident_segments(mut self, segments: usize) -> GpuTreeBuilder {
+        self.resident = Some(segments.max(1));
         self
     }
 
@@ -190,32 +243,47 @@ impl GpuTreeBuilder {
         }
         let ctx = &self.ctx;
         let max_binding = ctx.max_binding();
-        let seg = self.segment_points.unwrap_or(usize::MAX).min((max_binding / 12) as usize).max(1);
+        let budget = self.budget.unwrap_or(u64::MAX);
+        // Half the budget for segments, at least two of them on the GPU.
+        let seg = self
+            .segment_points
+            .unwrap_or(usize::MAX)
+            .min((max_binding / 12) as usize)
+            .min((budget / 2 / 2 / 16).min(usize::MAX as u64) as usize)
+            .max(1);
+        let resident = self
+            .resident
+            .unwrap_or_else(|| (budget / 2 / (16 * seg as u64)).min(usize::MAX as u64) as usize)
+            .max(1);
         let mut phases = Vec::new();
         let t = Instant::now();
-        let segments: Vec<(u32, u32, wgpu::Buffer, wgpu::Buffer)> = pos
+        let segments: Vec<Segment<'_>> = pos
             .chunks(seg)
             .enumerate()
-            .map(|(k, c)| {
-                let p = ctx.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                    label: Some("octree points"),
-                    contents: bytemuck::cast_slice(c),
-                    usage: wgpu::BufferUsages::STORAGE,
-                });
-                let l = storage(ctx, "octree leaves", 4 * c.len() as u64);
-                ((k * seg) as u32, c.len() as u32, p, l)
+            .map(|(k, c)| Segment {
+                base: (k * seg) as u32,
+                pos: c,
+                gpu: None,
+                leaves: None,
+                used: 0,
             })
             .collect();
-        // Room for the nodes of a tree with leaves about half full, grown when it fills.
+        // Room for the nodes of a tree with leaves about half full, grown when it fills, within
+        // a binding and a quarter of the budget.
+        let node_limit = (max_binding / 32).min(budget / 4 / 32).min(u32::MAX as u64) as u32;
         let node_capacity = (1 + 8 * (2 * pos.len() / config.leaf_capacity as usize + 64))
-            .min((max_binding / 32) as usize) as u32;
-        let node_capacity = self.first_nodes.unwrap_or(node_capacity);
+            .min(node_limit as usize) as u32;
+        let node_capacity = self.first_nodes.unwrap_or(node_capacity).min(node_limit);
         let mut run = Run {
             b: self,
             nodes: storage(ctx, "octree nodes", 32 * node_capacity as u64),
             node_capacity,
+            node_limit,
             state: storage(ctx, "octree state", 16),
             segments,
+            resident,
+            clock: 0,
+            dummy: (storage(ctx, "octree no points", 16), storage(ctx, "octree no leaves", 16)),
             grids: storage(ctx, "octree grids", 16),
             blocks: storage(ctx, "octree blocks", 16),
             out: storage(ctx, "octree cells", 16),
@@ -225,16 +293,16 @@ impl GpuTreeBuilder {
         ctx.queue.write_buffer(&run.nodes, 0, bytemuck::bytes_of(&root));
         ctx.queue.write_buffer(&run.state, 0, bytemuck::cast_slice(&[1u32, 0, 0, 0]));
         ctx.wait()?;
-        phases.push(("upload".to_string(), t.elapsed().as_secs_f64()));
+        phases.push(("setup".to_string(), t.elapsed().as_secs_f64()));
         // 1. expand, a segment (batch) at a time.
         let t = Instant::now();
         let mut rounds = 0u32;
         for s in 0..run.segments.len() {
-            run.dispatch(Pass::OctreeInsert, Some(s), 0, run.segments[s].1, 0)?;
+            run.dispatch(Pass::OctreeInsert, Some(s), 0)?;
             loop {
                 rounds += 1;
                 let before = run.read_state()?[0];
-                run.dispatch(Pass::OctreeSplit, None, 0, before, 0)?;
+                run.dispatch_nodes(before)?;
                 let st = run.read_state()?;
                 if st[2] != 0 {
                     run.grow_nodes(before, st[1])?;
@@ -245,7 +313,7 @@ impl GpuTreeBuilder {
                 }
                 ctx.queue.write_buffer(&run.state, 4, bytemuck::cast_slice(&[0u32]));
                 for r in 0..=s {
-                    run.dispatch(Pass::OctreeInsert, Some(r), 0, run.segments[r].1, 1)?;
+                    run.dispatch(Pass::OctreeInsert, Some(r), 1)?;
                 }
             }
         }
@@ -272,7 +340,7 @@ impl GpuTreeBuilder {
         // 3. voxels, a group of grids at a time.
         let t = Instant::now();
         let mut voxels = vec![Vec::new(); nodes.len()];
-        let per_group = ((max_binding / (4 * GRID_CELLS)) as usize).clamp(1, 1024);
+        let per_group = ((max_binding.min(budget / 4) / (4 * GRID_CELLS)) as usize).clamp(1, 1024);
         for (gi, group) in inner.chunks(per_group).enumerate() {
             let first = (gi * per_group) as u32;
             let g = group.len() as u64;
@@ -284,7 +352,8 @@ impl GpuTreeBuilder {
             enc.clear_buffer(&run.grids, 0, Some(4 * GRID_CELLS * g));
             ctx.queue.submit([enc.finish()]);
             for s in 0..run.segments.len() {
-                run.dispatch_grids(Pass::OctreeVoxels, Some(s), run.segments[s].1, first, g)?;
+                let n = run.segments[s].pos.len() as u32;
+                run.dispatch_grids(Pass::OctreeVoxels, Some(s), n, first, g)?;
             }
             let nb = (GRID_CELLS / BLOCK * g) as u32;
             run.dispatch_grids(Pass::OctreeCountCells, None, nb, first, g)?;
@@ -316,11 +385,8 @@ impl GpuTreeBuilder {
         let t = Instant::now();
         let mut slot = Vec::with_capacity(pos.len());
         for s in 0..run.segments.len() {
-            run.dispatch(Pass::OctreeSlots, Some(s), 0, run.segments[s].1, 0)?;
-        }
-        for s in 0..run.segments.len() {
-            let v: Vec<u32> = run.read(&run.segments[s].3, 4 * run.segments[s].1 as u64)?;
-            slot.extend(v);
+            run.dispatch(Pass::OctreeSlots, Some(s), 0)?;
+            slot.extend(run.take_leaves(s)?);
         }
         phases.push(("slots".to_string(), t.elapsed().as_secs_f64()));
         phases.push(("rounds".to_string(), rounds as f64));
@@ -328,7 +394,7 @@ impl GpuTreeBuilder {
     }
 }
 
-impl Run<'_> {
+impl Run<'_, '_> {
     fn uniforms(&self, first: u32, count: u32, mode: u32, base: u32) -> OctreeUniforms {
         OctreeUniforms {
             first,
@@ -342,34 +408,95 @@ impl Run<'_> {
         }
     }
 
-    /// Runs `pass` over `count` items of segment `seg` (or none: the first segment is bound).
-    fn dispatch(
-        &self,
-        pass: Pass,
-        seg: Option<usize>,
-        first: u32,
-        count: u32,
-        mode: u32,
-    ) -> Result<(), GpuError> {
-        let base = seg.map_or(0, |s| self.segments[s].0);
-        let u = self.uniforms(first, count, mode, base);
+    /// Runs `pass` over the points of segment `seg` (paged in first).
+    fn dispatch(&mut self, pass: Pass, seg: Option<usize>, mode: u32) -> Result<(), GpuError> {
+        let s = seg.expect("a segment");
+        self.page_in(s)?;
+        let sg = &self.segments[s];
+        let u = self.uniforms(0, sg.pos.len() as u32, mode, sg.base);
         self.submit(pass, seg, u)
     }
 
-    /// Runs a voxel pass with the grids `first..first + count` bound.
+    /// The split pass over the first `count` nodes.
+    fn dispatch_nodes(&mut self, count: u32) -> Result<(), GpuError> {
+        let u = self.uniforms(0, count, 0, 0);
+        self.submit(Pass::OctreeSplit, None, u)
+    }
+
+    /// Runs a voxel pass over `items` (the points of segment `seg`, paged in first, or blocks of
+    /// cells) with the grids `first..first + count` bound.
     fn dispatch_grids(
-        &self,
+        &mut self,
         pass: Pass,
         seg: Option<usize>,
         items: u32,
         first: u32,
         count: u64,
     ) -> Result<(), GpuError> {
-        let base = seg.map_or(0, |s| self.segments[s].0);
+        if let Some(s) = seg {
+            self.page_in(s)?;
+        }
+        let base = seg.map_or(0, |s| self.segments[s].base);
         let mut u = self.uniforms(0, items, 0, base);
         u.grid_first = first;
         u.grid_count = count as u32;
         self.submit(pass, seg, u)
+    }
+
+    /// Puts segment `s` on the GPU, paging out the least recently used ones beyond the limit.
+    fn page_in(&mut self, s: usize) -> Result<(), GpuError> {
+        self.clock += 1;
+        self.segments[s].used = self.clock;
+        if self.segments[s].gpu.is_some() {
+            return Ok(());
+        }
+        while self.segments.iter().filter(|x| x.gpu.is_some()).count() >= self.resident {
+            let lru = (0..self.segments.len())
+                .filter(|&k| self.segments[k].gpu.is_some())
+                .min_by_key(|&k| self.segments[k].used)
+                .expect("a resident segment");
+            let leaves = self.read_leaves(lru)?;
+            let sg = &mut self.segments[lru];
+            sg.leaves = Some(leaves);
+            sg.gpu = None;
+        }
+        let ctx = &self.b.ctx;
+        let sg = &mut self.segments[s];
+        let p = ctx.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some("octree points"),
+            contents: bytemuck::cast_slice(sg.pos),
+            usage: wgpu::BufferUsages::STORAGE,
+        });
+        let l = match sg.leaves.take() {
+            Some(v) => ctx.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some("octree leaves"),
+                contents: bytemuck::cast_slice(&v),
+                usage: wgpu::BufferUsages::STORAGE
+                    | wgpu::BufferUsages::COPY_SRC
+                    | wgpu::BufferUsages::COPY_DST,
+            }),
+            None => storage(ctx, "octree leaves", 4 * sg.pos.len() as u64),
+        };
+        sg.gpu = Some((p, l));
+        Ok(())
+    }
+
+    /// The leaves (or slots) of segment `s`, read from the GPU where it is there.
+    fn read_leaves(&self, s: usize) -> Result<Vec<u32>, GpuError> {
+        let sg = &self.segments[s];
+        match (&sg.gpu, &sg.leaves) {
+            (Some((_, l)), _) => self.read(l, 4 * sg.pos.len() as u64),
+            (None, Some(v)) => Ok(v.clone()),
+            (None, None) => Ok(vec![0; sg.pos.len()]),
+        }
+    }
+
+    /// The slots of segment `s` (after the slot pass), its buffers freed.
+    fn take_leaves(&mut self, s: usize) -> Result<Vec<u32>, GpuError> {
+        let v = self.read_leaves(s)?;
+        self.segments[s].gpu = None;
+        self.segments[s].leaves = None;
+        Ok(v)
     }
 
     fn submit(
@@ -389,7 +516,10 @@ impl Run<'_> {
             contents: bytemuck::bytes_of(&u),
             usage: wgpu::BufferUsages::UNIFORM,
         });
-        let (_, _, p, l) = &self.segments[seg.unwrap_or(0).min(self.segments.len() - 1)];
+        let (p, l) = match seg.and_then(|s| self.segments[s].gpu.as_ref()) {
+            Some((p, l)) => (p, l),
+            None => (&self.dummy.0, &self.dummy.1),
+        };
         use crate::pipeline::entry;
         let bg = ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some(pass.file()),
@@ -440,12 +570,12 @@ impl Run<'_> {
     fn grow_nodes(&mut self, before: u32, split: u32) -> Result<(), GpuError> {
         let ctx = &self.b.ctx;
         let valid = before + (self.node_capacity.saturating_sub(before)) / 8 * 8;
-        let limit = (ctx.max_binding() / 32) as u32;
+        let limit = self.node_limit;
         if self.node_capacity >= limit {
             return Err(GpuError::TooLarge {
-                what: "the octree's nodes",
+                what: "the octree's nodes (a binding, or a quarter of --gpu-memory)",
                 needed: 32 * (self.node_capacity as u64 + 8),
-                limit: ctx.max_binding(),
+                limit: 32 * limit as u64,
             });
         }
         let cap = self.node_capacity.saturating_mul(2).min(limit);

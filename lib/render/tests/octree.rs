@@ -95,3 +95,28 @@ fn coincident_points_depth_limits_and_a_growing_node_buffer() {
     }
     assert!(gpu.build_tree(4, &[[16, 0, 0]], &BuilderConfig::default()).is_err());
 }
+
+#[test]
+fn paged_segments_give_the_same_tree() {
+    // Issue 29 item 2: segments paged out (their leaves read back) and in again as the passes
+    // need them, with one or two segments on the GPU at a time.
+    let Some(ctx) = context_or_skip(AtomicPath::TwoPass32, None) else { return };
+    let mut seed = 0x853c49e6748fea9bu64;
+    let pos: Vec<[u32; 3]> =
+        (0..15_000).map(|_| [0; 3].map(|_| rng(&mut seed) % (1 << 20))).collect();
+    let config = BuilderConfig { leaf_capacity: 40, ..BuilderConfig::default() };
+    let cpu = build_arrival(20, &pos, &config).unwrap();
+    let gpu = GpuTreeBuilder::new(ctx).unwrap().with_segment_points(1_000);
+    assert!(gpu.with_memory_budget(1 << 20).is_err(), "a budget below the minimum is refused");
+    let ctx = context_or_skip(AtomicPath::TwoPass32, None).unwrap();
+    let mut gpu = GpuTreeBuilder::new(ctx)
+        .unwrap()
+        .with_segment_points(1_000)
+        .with_memory_budget(mortar_render::octree::MIN_GPU_MEMORY)
+        .unwrap();
+    for resident in [1, 2] {
+        gpu = gpu.with_resident_segments(resident);
+        let g = gpu.build_tree(20, &pos, &config).unwrap();
+        same(&g, &cpu, &format!("{resident} segments on the GPU"));
+    }
+}
