@@ -47,6 +47,16 @@ pub(crate) fn readback(
 
 /// Maps a readback buffer (after its copy was submitted) and returns its bytes.
 pub(crate) fn map_read(ctx: &GpuContext, buf: &wgpu::Buffer) -> Result<Vec<u8>, GpuError> {
+    map_read_with(ctx, buf, |b| b.to_vec())
+}
+
+/// Maps a readback buffer (after its copy was submitted) and hands its bytes to `f` in place
+/// (no copy of the whole buffer first).
+pub(crate) fn map_read_with<R>(
+    ctx: &GpuContext,
+    buf: &wgpu::Buffer,
+    f: impl FnOnce(&[u8]) -> R,
+) -> Result<R, GpuError> {
     let (tx, rx) = mpsc::channel();
     buf.map_async(wgpu::MapMode::Read, .., move |r| {
         let _ = tx.send(r);
@@ -57,10 +67,12 @@ pub(crate) fn map_read(ctx: &GpuContext, buf: &wgpu::Buffer) -> Result<Vec<u8>, 
         Ok(Err(e)) => return Err(GpuError::Device(format!("cannot read back: {e}"))),
         Err(_) => return Err(GpuError::Device("read back never completed".into())),
     }
-    let bytes = buf
-        .get_mapped_range(..)
-        .map_err(|e| GpuError::Device(format!("cannot read back: {e}")))?
-        .to_vec();
+    let out = {
+        let view = buf
+            .get_mapped_range(..)
+            .map_err(|e| GpuError::Device(format!("cannot read back: {e}")))?;
+        f(&view)
+    };
     buf.unmap();
-    Ok(bytes)
+    Ok(out)
 }

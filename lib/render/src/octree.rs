@@ -23,7 +23,7 @@
 //! no `--gpu-memory`); the preview does not draw from these buffers; the grids are dense (8 MiB
 //! per inner node, a group at a time); the host still sorts each leaf's points.
 
-use crate::buffers::{map_read, readback};
+use crate::buffers::{map_read_with, readback};
 use crate::context::{GpuContext, GpuError};
 use crate::shaders::{binding, Pass};
 use mortar_core::octree::arrival::{
@@ -31,6 +31,7 @@ use mortar_core::octree::arrival::{
 };
 use mortar_core::octree::BuilderConfig;
 use mortar_core::render::gpu::{OctreeNode, OctreeUniforms};
+use rayon::prelude::*;
 use std::time::Instant;
 use wgpu::util::DeviceExt;
 
@@ -227,7 +228,8 @@ impl GpuTreeBuilder {
         config: &BuilderConfig,
     ) -> Result<ArrivalTree, GpuError> {
         check(size_log2, pos.len(), config).map_err(|e| GpuError::Device(e.to_string()))?;
-        if let Some(i) = pos.iter().position(|p| p.iter().any(|&v| (v as u64) >> size_log2 != 0)) {
+        let outside = |p: &[u32; 3]| p.iter().any(|&v| (v as u64) >> size_log2 != 0);
+        if let Some(i) = pos.par_iter().position_any(outside) {
             return Err(GpuError::Device(format!(
                 "point {i} at {:?} lies outside the root cube of 2^{size_log2} units",
                 pos[i]
@@ -383,10 +385,15 @@ impl GpuTreeBuilder {
         phases.push(("voxels".to_string(), t.elapsed().as_secs_f64()));
         // 4. slots.
         let t = Instant::now();
-        let mut slot = Vec::with_capacity(pos.len());
+        let mut slot = Vec::new();
         for s in 0..run.segments.len() {
             run.dispatch(Pass::OctreeSlots, Some(s), 0)?;
-            slot.extend(run.take_leaves(s)?);
+            let v = run.take_leaves(s)?;
+            if slot.is_empty() {
+                slot = v;
+            } else {
+                slot.extend_from_slice(&v);
+            }
         }
         phases.push(("slots".to_string(), t.elapsed().as_secs_f64()));
         phases.push(("rounds".to_string(), rounds as f64));
@@ -557,7 +564,10 @@ impl Run<'_, '_> {
         let mut enc = ctx.device.create_command_encoder(&Default::default());
         let rb = readback(ctx, &mut enc, buf, size);
         ctx.queue.submit([enc.finish()]);
-        Ok(bytemuck::pod_collect_to_vec(&map_read(ctx, &rb)?))
+        map_read_with(ctx, &rb, |b| match bytemuck::try_cast_slice::<u8, T>(b) {
+            Ok(v) => v.to_vec(),
+            Err(_) => bytemuck::pod_collect_to_vec(b),
+        })
     }
 
     fn read_state(&self) -> Result<[u32; 4], GpuError> {
