@@ -38,16 +38,20 @@ struct Node {
 @group(0) @binding(3) var<storage, read> pos: array<u32>;
 // Per point of the segment: its leaf; after the slot pass, its slot.
 @group(0) @binding(4) var<storage, read_write> leaf: array<u32>;
-// The bound group of voxel grids: 2^21 cells each, in Morton order; a cell holds the bitwise
+// The voxel grids are sparse: a grid of 128^3 cells is 16^3 bricks of 8^3 cells, each brick
+// allocated on first touch from this pool (512 cells, in Morton order); a cell holds the bitwise
 // NOT of the earliest arrival (0: empty), so that atomicMax keeps the earliest.
 @group(0) @binding(5) var<storage, read_write> grids: array<atomic<u32>>;
-// Per block of 256 cells: occupied cells, then (from the host) where its voxels go.
-@group(0) @binding(6) var<storage, read_write> blocks: array<u32>;
+// Two halves of `params.count` words (the bound group's grids times 4096 bricks, in Morton order
+// of the bricks): the brick table (0: none, 1: touched, b + 2: pool brick b), then per brick its
+// occupied cells and, from the host, where its voxels go.
+@group(0) @binding(6) var<storage, read_write> blocks: array<atomic<u32>>;
 // The voxels of the bound grids, grid by grid, cells in Morton order.
 @group(0) @binding(7) var<storage, read_write> cells_out: array<u32>;
 
-const GRID_CELLS_LOG2: u32 = 21u;
-const BLOCK: u32 = 256u;
+const BRICKS_LOG2: u32 = 12u;
+const BRICK_CELLS_LOG2: u32 = 9u;
+const BRICK_CELLS: u32 = 512u;
 
 // The dispatch's item of this thread (workgroups of 256, split over x and y).
 fn item(wg: vec3<u32>, lid: vec3<u32>) -> u32 {
@@ -97,4 +101,14 @@ fn spread7(v: u32) -> u32 {
 fn cell_of(n: u32, p: vec3<u32>) -> u32 {
     let c = (p - corner(n)) >> vec3<u32>(size_log2_of(n) - 7u);
     return spread7(c.x) | (spread7(c.y) << 1u) | (spread7(c.z) << 2u);
+}
+
+// The brick-table entry of p's cell in inner node n, if n's grid is in the bound group.
+fn brick_entry(n: u32, m: u32) -> u32 {
+    return ((nodes[n].grid - params.grid_first) << BRICKS_LOG2) | (m >> BRICK_CELLS_LOG2);
+}
+
+fn in_group(n: u32) -> bool {
+    let g = nodes[n].grid;
+    return g >= params.grid_first && g - params.grid_first < params.grid_count;
 }

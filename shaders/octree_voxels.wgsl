@@ -17,10 +17,10 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_id) lid:
         if c == 0u {
             break;
         }
-        let g = nodes[n].grid;
-        if g >= params.grid_first && g - params.grid_first < params.grid_count {
-            let at = ((g - params.grid_first) << GRID_CELLS_LOG2) | cell_of(n, p);
-            atomicMax(&grids[at], mark);
+        if in_group(n) {
+            let m = cell_of(n, p);
+            let b = atomicLoad(&blocks[brick_entry(n, m)]) - 2u;
+            atomicMax(&grids[(b << BRICK_CELLS_LOG2) | (m & (BRICK_CELLS - 1u))], mark);
         }
         n = c + octant(n, p);
     }

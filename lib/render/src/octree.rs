@@ -13,15 +13,20 @@
 //!    grown (copied) and the split pass run again;
 //! 2. the host reads the nodes back, numbers the inner nodes' grids and the leaves' ranges
 //!    (depth first) and writes them back;
-//! 3. voxels, a group of grids at a time (as many 8 MiB grids as one binding holds):
-//!    `octree_voxels` (every point, atomicMax of its NOT-ed arrival per cell), `octree_count_cells`
-//!    (occupied cells per block of 256), a prefix sum on the host, `octree_write_cells`
-//!    (arrivals in Morton order of the cells), read back;
+//! 3. voxels, a group of grids at a time, on sparse grids (16³ bricks of 8³ cells, a brick
+//!    allocated only where a point falls): `octree_mark_bricks` (every point marks its bricks),
+//!    `octree_alloc_bricks` (each marked brick takes one from a counter; the host sizes the pool,
+//!    and halves a group whose bricks exceed it), `octree_voxels` (every point, atomicMax of its
+//!    NOT-ed arrival per cell), `octree_count_cells` (occupied cells per brick), a prefix sum on
+//!    the host, `octree_write_cells` (arrivals in Morton order of the cells: bricks in Morton
+//!    order, cells in Morton order within each), read back;
 //! 4. `octree_slots` gives every point its slot; the slots are read back.
 //!
-//! What is not done yet (issue 29): the points stay on the GPU for the whole build (no paging,
-//! no `--gpu-memory`); the preview does not draw from these buffers; the grids are dense (8 MiB
-//! per inner node, a group at a time); the host still sorts each leaf's points.
+//! With a budget (`--gpu-memory`) segments of points beyond half of it are paged out (their
+//! leaves read back) and in again as the passes need them.
+//!
+//! What is not done yet (issue 29): the preview does not draw from these buffers; the host still
+//! sorts each leaf's points; every voxel group walks every point again.
 
 use crate::buffers::{map_read_with, readback};
 use crate::context::{GpuContext, GpuError};
@@ -35,10 +40,10 @@ use rayon::prelude::*;
 use std::time::Instant;
 use wgpu::util::DeviceExt;
 
-/// Cells of one voxel grid (128³).
-const GRID_CELLS: u64 = 1 << 21;
-/// Cells per compaction block (`BLOCK` in the WGSL).
-const BLOCK: u64 = 256;
+/// Bricks of one voxel grid (16³ bricks of 8³ cells: 128³ cells).
+const BRICKS: u64 = 1 << 12;
+/// Cells of one brick (`BRICK_CELLS` in the WGSL).
+const BRICK_CELLS: u64 = 512;
 /// Threads per workgroup of every octree pass.
 const WORKGROUP: u32 = 256;
 
@@ -57,7 +62,7 @@ pub struct GpuTreeBuilder {
     resident: Option<usize>,
 }
 
-/// The smallest `--gpu-memory`: four 8 MiB voxel grids' worth.
+/// The smallest `--gpu-memory`: a quarter of it holds one full voxel grid (8 MiB of bricks).
 pub const MIN_GPU_MEMORY: u64 = 32 << 20;
 
 /// One segment of the points: its arrivals, and its buffers while it is on the GPU (the points,
@@ -142,6 +147,8 @@ impl GpuTreeBuilder {
         let pipelines = [
             Pass::OctreeInsert,
             Pass::OctreeSplit,
+            Pass::OctreeMarkBricks,
+            Pass::OctreeAllocBricks,
             Pass::OctreeVoxels,
             Pass::OctreeCountCells,
             Pass::OctreeWriteCells,
@@ -189,15 +196,16 @@ impl GpuTreeBuilder {
         self
     }
 
-    /// Keeps the build within `bytes` of GPU memory (at least [`MIN_GPU_MEMORY`]): a quarter
-    /// for the node buffer, a quarter for a group of voxel grids, half for segments of points;
+    /// Keeps the build within `bytes` of GPU memory (at least [`MIN_GPU_MEMORY`]): an eighth
+    /// for the node buffer, a sixteenth for a group's brick tables, a quarter for its bricks,
+    /// half for segments of points;
     /// segments that do not fit are paged out (their leaves read back) and in again as passes
     /// need them.
     pub fn with_memory_budget(mut self, bytes: u64) -> Result<GpuTreeBuilder, GpuError> {
         if bytes < MIN_GPU_MEMORY {
             return Err(GpuError::Device(format!(
                 "{bytes} bytes of GPU memory are below the {MIN_GPU_MEMORY} the octree passes \
-                 need (a node buffer and four 8 MiB voxel grids)"
+                 need (a quarter of it for a full voxel grid of 8 MiB)"
             )));
         }
         self.budget = Some(bytes);
@@ -271,8 +279,8 @@ impl GpuTreeBuilder {
             })
             .collect();
         // Room for the nodes of a tree with leaves about half full, grown when it fills, within
-        // a binding and a quarter of the budget.
-        let node_limit = (max_binding / 32).min(budget / 4 / 32).min(u32::MAX as u64) as u32;
+        // a binding and an eighth of the budget.
+        let node_limit = (max_binding / 32).min(budget / 8 / 32).min(u32::MAX as u64) as u32;
         let node_capacity = (1 + 8 * (2 * pos.len() / config.leaf_capacity as usize + 64))
             .min(node_limit as usize) as u32;
         let node_capacity = self.first_nodes.unwrap_or(node_capacity).min(node_limit);
@@ -339,27 +347,60 @@ impl GpuTreeBuilder {
         }
         ctx.queue.write_buffer(&run.nodes, 0, bytemuck::cast_slice(&raw));
         phases.push(("number".to_string(), t.elapsed().as_secs_f64()));
-        // 3. voxels, a group of grids at a time.
+        // 3. voxels, a group of grids at a time: their brick tables within a sixteenth of the
+        // budget (and a binding), their bricks within a quarter (a group whose bricks do not
+        // fit is halved and done again).
         let t = Instant::now();
         let mut voxels = vec![Vec::new(); nodes.len()];
-        let per_group = ((max_binding.min(budget / 4) / (4 * GRID_CELLS)) as usize).clamp(1, 1024);
-        for (gi, group) in inner.chunks(per_group).enumerate() {
-            let first = (gi * per_group) as u32;
-            let g = group.len() as u64;
-            if run.grids.size() < 4 * GRID_CELLS * g {
-                run.grids = storage(ctx, "octree grids", 4 * GRID_CELLS * g);
-                run.blocks = storage(ctx, "octree blocks", 4 * GRID_CELLS / BLOCK * g);
+        let table_limit = max_binding.min(budget / 16);
+        let pool_limit = max_binding.min(budget / 4);
+        let per_group = ((table_limit / (8 * BRICKS)) as usize).clamp(1, 1 << 19);
+        let mut todo: Vec<(usize, usize)> = (0..inner.len())
+            .step_by(per_group)
+            .map(|a| (a, per_group.min(inner.len() - a)))
+            .rev()
+            .collect();
+        while let Some((first, g)) = todo.pop() {
+            let group = &inner[first..first + g];
+            let e = BRICKS * g as u64;
+            if run.blocks.size() < 8 * e {
+                run.blocks = storage(ctx, "octree bricks", 8 * e);
             }
             let mut enc = ctx.device.create_command_encoder(&Default::default());
-            enc.clear_buffer(&run.grids, 0, Some(4 * GRID_CELLS * g));
+            enc.clear_buffer(&run.blocks, 0, Some(8 * e));
+            ctx.queue.submit([enc.finish()]);
+            ctx.queue.write_buffer(&run.state, 12, bytemuck::cast_slice(&[0u32]));
+            let (first32, g64) = (first as u32, g as u64);
+            for s in 0..run.segments.len() {
+                let n = run.segments[s].pos.len() as u32;
+                run.dispatch_grids(Pass::OctreeMarkBricks, Some(s), n, first32, g64)?;
+            }
+            run.dispatch_grids(Pass::OctreeAllocBricks, None, e as u32, first32, g64)?;
+            let bricks = run.read_state()?[3] as u64;
+            if bricks * 4 * BRICK_CELLS > pool_limit {
+                if g == 1 {
+                    return Err(GpuError::TooLarge {
+                        what: "the voxel bricks of one node (a quarter of --gpu-memory)",
+                        needed: bricks * 4 * BRICK_CELLS,
+                        limit: pool_limit,
+                    });
+                }
+                todo.push((first + g / 2, g - g / 2));
+                todo.push((first, g / 2));
+                continue;
+            }
+            if run.grids.size() < 4 * BRICK_CELLS * bricks {
+                run.grids = storage(ctx, "octree bricks", 4 * BRICK_CELLS * bricks);
+            }
+            let mut enc = ctx.device.create_command_encoder(&Default::default());
+            enc.clear_buffer(&run.grids, 0, Some(4 * BRICK_CELLS * bricks));
             ctx.queue.submit([enc.finish()]);
             for s in 0..run.segments.len() {
                 let n = run.segments[s].pos.len() as u32;
-                run.dispatch_grids(Pass::OctreeVoxels, Some(s), n, first, g)?;
+                run.dispatch_grids(Pass::OctreeVoxels, Some(s), n, first32, g64)?;
             }
-            let nb = (GRID_CELLS / BLOCK * g) as u32;
-            run.dispatch_grids(Pass::OctreeCountCells, None, nb, first, g)?;
-            let counts: Vec<u32> = run.read(&run.blocks, 4 * nb as u64)?;
+            run.dispatch_grids(Pass::OctreeCountCells, None, e as u32, first32, g64)?;
+            let counts: Vec<u32> = run.read_at(&run.blocks, 4 * e, 4 * e)?;
             let mut offsets = Vec::with_capacity(counts.len());
             let mut total = 0u64;
             for c in &counts {
@@ -372,10 +413,10 @@ impl GpuTreeBuilder {
             if run.out.size() < 4 * total {
                 run.out = storage(ctx, "octree cells", 4 * total);
             }
-            ctx.queue.write_buffer(&run.blocks, 0, bytemuck::cast_slice(&offsets));
-            run.dispatch_grids(Pass::OctreeWriteCells, None, nb, first, g)?;
+            ctx.queue.write_buffer(&run.blocks, 4 * e, bytemuck::cast_slice(&offsets));
+            run.dispatch_grids(Pass::OctreeWriteCells, None, e as u32, first32, g64)?;
             let cells: Vec<u32> = run.read(&run.out, 4 * total)?;
-            let per_grid = (GRID_CELLS / BLOCK) as usize;
+            let per_grid = BRICKS as usize;
             for (k, &n) in group.iter().enumerate() {
                 let a = offsets[k * per_grid] as usize;
                 let b = offsets.get((k + 1) * per_grid).map_or(total as usize, |&o| o as usize);
@@ -570,6 +611,21 @@ impl Run<'_, '_> {
         })
     }
 
+    /// `size` bytes of `buf` from `offset`.
+    fn read_at<T: bytemuck::Pod>(
+        &self,
+        buf: &wgpu::Buffer,
+        offset: u64,
+        size: u64,
+    ) -> Result<Vec<T>, GpuError> {
+        let ctx = &self.b.ctx;
+        let tmp = storage(ctx, "octree read", size);
+        let mut enc = ctx.device.create_command_encoder(&Default::default());
+        enc.copy_buffer_to_buffer(buf, offset, &tmp, 0, size);
+        ctx.queue.submit([enc.finish()]);
+        self.read(&tmp, size)
+    }
+
     fn read_state(&self) -> Result<[u32; 4], GpuError> {
         let v: Vec<u32> = self.read(&self.state, 16)?;
         Ok([v[0], v[1], v[2], v[3]])
@@ -583,7 +639,7 @@ impl Run<'_, '_> {
         let limit = self.node_limit;
         if self.node_capacity >= limit {
             return Err(GpuError::TooLarge {
-                what: "the octree's nodes (a binding, or a quarter of --gpu-memory)",
+                what: "the octree's nodes (a binding, or an eighth of --gpu-memory)",
                 needed: 32 * (self.node_capacity as u64 + 8),
                 limit: 32 * limit as u64,
             });

@@ -238,6 +238,8 @@ pub enum Pass {
     ProgressiveTies,
     OctreeInsert,
     OctreeSplit,
+    OctreeMarkBricks,
+    OctreeAllocBricks,
     OctreeVoxels,
     OctreeCountCells,
     OctreeWriteCells,
@@ -246,7 +248,7 @@ pub enum Pass {
 
 impl Pass {
     /// Every pass.
-    pub const ALL: [Pass; 21] = [
+    pub const ALL: [Pass; 23] = [
         Pass::Clear,
         Pass::Plan,
         Pass::Draw64,
@@ -264,6 +266,8 @@ impl Pass {
         Pass::ProgressiveTies,
         Pass::OctreeInsert,
         Pass::OctreeSplit,
+        Pass::OctreeMarkBricks,
+        Pass::OctreeAllocBricks,
         Pass::OctreeVoxels,
         Pass::OctreeCountCells,
         Pass::OctreeWriteCells,
@@ -290,6 +294,8 @@ impl Pass {
             Pass::ProgressiveTies => "progressive_ties.wgsl",
             Pass::OctreeInsert => "octree_insert.wgsl",
             Pass::OctreeSplit => "octree_split.wgsl",
+            Pass::OctreeMarkBricks => "octree_mark_bricks.wgsl",
+            Pass::OctreeAllocBricks => "octree_alloc_bricks.wgsl",
             Pass::OctreeVoxels => "octree_voxels.wgsl",
             Pass::OctreeCountCells => "octree_count_cells.wgsl",
             Pass::OctreeWriteCells => "octree_write_cells.wgsl",
@@ -318,6 +324,8 @@ impl Pass {
             Pass::ProgressiveTies => include_str!("../../../shaders/progressive_ties.wgsl"),
             Pass::OctreeInsert => include_str!("../../../shaders/octree_insert.wgsl"),
             Pass::OctreeSplit => include_str!("../../../shaders/octree_split.wgsl"),
+            Pass::OctreeMarkBricks => include_str!("../../../shaders/octree_mark_bricks.wgsl"),
+            Pass::OctreeAllocBricks => include_str!("../../../shaders/octree_alloc_bricks.wgsl"),
             Pass::OctreeVoxels => include_str!("../../../shaders/octree_voxels.wgsl"),
             Pass::OctreeCountCells => include_str!("../../../shaders/octree_count_cells.wgsl"),
             Pass::OctreeWriteCells => include_str!("../../../shaders/octree_write_cells.wgsl"),
@@ -367,6 +375,8 @@ impl Pass {
             }
             Pass::OctreeInsert
             | Pass::OctreeSplit
+            | Pass::OctreeMarkBricks
+            | Pass::OctreeAllocBricks
             | Pass::OctreeVoxels
             | Pass::OctreeCountCells
             | Pass::OctreeWriteCells
@@ -418,6 +428,8 @@ impl Pass {
             Pass::ProgressiveTies => parts.extend([PROGRESSIVE, DECODE, BATCHES]),
             Pass::OctreeInsert
             | Pass::OctreeSplit
+            | Pass::OctreeMarkBricks
+            | Pass::OctreeAllocBricks
             | Pass::OctreeVoxels
             | Pass::OctreeCountCells
             | Pass::OctreeWriteCells
