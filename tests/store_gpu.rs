@@ -169,3 +169,17 @@ fn the_gpu_engine_refuses_averaged_colours_clearly() {
     assert!(e.contains("first-come") && !e.contains("panicked"), "{e}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn the_gpu_engine_keeps_the_memory_promise() {
+    // `--memory` is a promise: an input whose records do not fit it is refused before anything
+    // is read or written, with the need named (the GPU engine holds the input as the sorted
+    // engine does).
+    let dir = tempdir("gpu-memory-promise");
+    let las = dir.join("g4.las");
+    run_ok(gen().args(["--points", "4000000", "--seed", "5"]).arg("-o").arg(&las));
+    let e = build(std::slice::from_ref(&las), &dir.join("s"), "gpu", &["--memory", "256M"])
+        .unwrap_err();
+    assert!(e.contains("--memory") && e.contains("GPU engine") && !e.contains("panicked"), "{e}");
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -136,6 +136,10 @@ pub enum Error {
     /// A piece of an input is too large to hold in memory.
     #[error("a piece of {points} points does not fit in memory")]
     PieceTooLarge { points: u64 },
+    /// An engine that holds the whole input in memory was asked for an input larger than
+    /// `--memory`.
+    #[error("{what} needs about {needed} bytes of memory for this input, above --memory ({budget} bytes); raise --memory, or leave --engine to auto (the partitioned engine builds the same store within the budget)")]
+    OverBudget { what: &'static str, needed: u64, budget: u64 },
     /// An input's axes have different scales and its extent on the finest does not fit the
     /// octree's grid.
     #[error("{path}: its axes' scales {scale:?} differ, and its extent on axis {axis} on the finest of them does not fit the octree's grid (2^31 units); re-scale it to one scale on all axes (e.g. `las2las -rescale`)")]
@@ -606,6 +610,7 @@ macro_rules! leading_path {
             | Error::Grid { .. }
             | Error::AssignCrsCode { .. }
             | Error::TooManyPoints { .. }
+            | Error::OverBudget { .. }
             | Error::PieceTooLarge { .. }
             | Error::Octree { .. }
             | Error::ThreadPanicked { .. }

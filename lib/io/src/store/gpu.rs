@@ -14,9 +14,11 @@
 //!    ([`ArrivalTree::into_sorted`]);
 //! 4. the nodes are encoded and committed level by level ([`super::engine::write_tree`]).
 //!
-//! Not done yet (issue 29): the points must fit the GPU (no paging, no `--gpu-memory`), the
-//! records must fit host memory as for the sorted engine, the preview draws the store's commits
-//! rather than the GPU's buffers, and the host still sorts within leaves.
+//! The input must fit `--memory` as for the sorted engine (refused otherwise, naming the need);
+//! on the GPU, `--gpu-memory` bounds what the builder holds (`mortar_render::octree`).
+//!
+//! Not done yet (issue 29): the preview draws the store's commits rather than the GPU's buffers,
+//! and the host still places the records and sorts within leaves.
 
 use super::engine::{code_of, color_of, grid_of, read_input, write_tree, Input, Sorted};
 use super::options::{BuildOptions, BuildProgress, BuildReport, BuiltBy};
@@ -29,6 +31,9 @@ use mortar_core::octree::OctreeError;
 use mortar_core::par::SendPtr;
 use rayon::prelude::*;
 use std::time::Instant;
+
+/// Bytes per point the GPU engine holds besides the records (see [`build_into`]).
+const PER_POINT: u64 = 16;
 
 /// Builds the store in `writer` from `ds` with the GPU engine; `header` is the headers' box
 /// (see [`super::build`]).
@@ -45,6 +50,13 @@ pub(crate) fn build_into(
             error: OctreeError::Unsupported("the GPU engine was given no GPU".into()),
         });
     };
+    // The records as read and as placed, and per point: the positions handed to the GPU (12
+    // bytes, freed before the records are placed), then arrival (8), slot (4) and its inverse (4).
+    let needed =
+        super::engine::held_in_memory(ds, PER_POINT).saturating_add(2 * group_bytes(opts.memory));
+    if needed > opts.memory {
+        return Err(Error::OverBudget { what: "the GPU engine", needed, budget: opts.memory });
+    }
     let rl = ds.layout.record_len;
     let total = ds.declared_points();
     let mut report = BuildReport { engine: BuiltBy::Gpu, ..BuildReport::default() };
