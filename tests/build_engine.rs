@@ -151,17 +151,10 @@ fn both_engines_build_the_same_tree_on_every_real_file() {
 #[test]
 fn both_engines_build_the_same_tree_on_merged_tiles() {
     let Some(data) = shared_data() else { return };
-    let bcts: Vec<PathBuf> = (1..=4)
-        .map(|i| data.join(format!("lasR/inst/extdata/bcts/bcts_{i}.laz")))
-        .filter(|p| p.exists())
-        .collect();
+    let bcts = bcts_tiles(&data);
     assert!(bcts.len() >= 2);
     assert!(same_tree(&bcts, "engines-bcts"));
-    let ept_dir = data.join("PyForestScan/example_data/ept/ept-data");
-    let mut ept: Vec<PathBuf> =
-        std::fs::read_dir(&ept_dir).unwrap().map(|e| e.unwrap().path()).collect();
-    ept.sort();
-    ept.truncate(60);
+    let ept = ept_tiles(&data, 60);
     assert!(same_tree(&ept, "engines-ept"));
 }
 
@@ -285,19 +278,12 @@ fn the_partitioned_engine_writes_the_sorted_engines_store_on_every_real_file() {
 #[test]
 fn the_partitioned_engine_writes_the_sorted_engines_store_on_merged_tiles() {
     let Some(data) = shared_data() else { return };
-    let bcts: Vec<PathBuf> = (1..=4)
-        .map(|i| data.join(format!("lasR/inst/extdata/bcts/bcts_{i}.laz")))
-        .filter(|p| p.exists())
-        .collect();
+    let bcts = bcts_tiles(&data);
     for memory in ["16M", "64M"] {
         let j = partitioned_equals_sorted(&bcts, memory, &format!("part-bcts-{memory}"));
         assert_eq!(j["engine"], "partitioned", "{j}");
     }
-    let ept_dir = data.join("PyForestScan/example_data/ept/ept-data");
-    let mut ept: Vec<PathBuf> =
-        std::fs::read_dir(&ept_dir).unwrap().map(|e| e.unwrap().path()).collect();
-    ept.sort();
-    ept.truncate(60);
+    let ept = ept_tiles(&data, 60);
     let j = partitioned_equals_sorted(&ept, "16M", "part-ept");
     assert_eq!(j["engine"], "partitioned", "{j}");
 }

@@ -123,10 +123,7 @@ fn the_gpu_engine_writes_the_sorted_engines_store_on_the_sample_and_every_real_f
 #[test]
 fn the_gpu_engine_writes_the_sorted_engines_store_on_merged_tiles() {
     let Some(data) = shared_data() else { return };
-    let bcts: Vec<PathBuf> = (1..=4)
-        .map(|i| data.join(format!("lasR/inst/extdata/bcts/bcts_{i}.laz")))
-        .filter(|p| p.exists())
-        .collect();
+    let bcts = bcts_tiles(&data);
     assert!(bcts.len() >= 2);
     if same_store(&bcts, &["--leaf-capacity", "2000"], "gpu-bcts").is_none() {
         return;
@@ -141,11 +138,7 @@ fn the_gpu_engine_writes_the_sorted_engines_store_on_merged_tiles() {
     let e = build(&bcts, &dir.join("s"), "gpu", &["--gpu-memory", "1M"]).unwrap_err();
     assert!(e.contains("--gpu-memory") && !e.contains("panicked"), "{e}");
     let _ = std::fs::remove_dir_all(&dir);
-    let ept_dir = data.join("PyForestScan/example_data/ept/ept-data");
-    let mut ept: Vec<PathBuf> =
-        std::fs::read_dir(&ept_dir).unwrap().map(|e| e.unwrap().path()).collect();
-    ept.sort();
-    ept.truncate(60);
+    let ept = ept_tiles(&data, 60);
     assert_eq!(same_store(&ept, &[], "gpu-ept"), Some(true));
 }
 

@@ -237,3 +237,21 @@ pub fn dense_sets(dir: &Path) -> Vec<Vec<PathBuf>> {
         vec![dups],
     ]
 }
+
+/// The four bcts tiles of lasR (real airborne LAZ, 2.83 M points together) that exist.
+pub fn bcts_tiles(data: &Path) -> Vec<PathBuf> {
+    (1..=4)
+        .map(|i| data.join(format!("lasR/inst/extdata/bcts/bcts_{i}.laz")))
+        .filter(|p| p.exists())
+        .collect()
+}
+
+/// The first `n` files (by name) of PyForestScan's EPT tile (290 small real LAZ files).
+pub fn ept_tiles(data: &Path, n: usize) -> Vec<PathBuf> {
+    let dir = data.join("PyForestScan/example_data/ept/ept-data");
+    let mut ept: Vec<PathBuf> =
+        std::fs::read_dir(&dir).unwrap().map(|e| e.unwrap().path()).collect();
+    ept.sort();
+    ept.truncate(n);
+    ept
+}

@@ -144,33 +144,25 @@ impl GpuTreeBuilder {
             bind_group_layouts: &[Some(&layout)],
             immediate_size: 0,
         });
-        let pipelines = [
-            Pass::OctreeInsert,
-            Pass::OctreeSplit,
-            Pass::OctreeMarkBricks,
-            Pass::OctreeAllocBricks,
-            Pass::OctreeVoxels,
-            Pass::OctreeCountCells,
-            Pass::OctreeWriteCells,
-            Pass::OctreeSlots,
-        ]
-        .into_iter()
-        .map(|pass| {
-            let module = ctx.device.create_shader_module(wgpu::ShaderModuleDescriptor {
-                label: Some(pass.file()),
-                source: wgpu::ShaderSource::Wgsl(pass.source().into()),
-            });
-            let p = ctx.device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                label: Some(pass.file()),
-                layout: Some(&pl),
-                module: &module,
-                entry_point: Some("main"),
-                compilation_options: Default::default(),
-                cache: None,
-            });
-            (pass, p)
-        })
-        .collect();
+        let pipelines = Pass::ALL
+            .into_iter()
+            .filter(|p| p.builds_octree())
+            .map(|pass| {
+                let module = ctx.device.create_shader_module(wgpu::ShaderModuleDescriptor {
+                    label: Some(pass.file()),
+                    source: wgpu::ShaderSource::Wgsl(pass.source().into()),
+                });
+                let p = ctx.device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                    label: Some(pass.file()),
+                    layout: Some(&pl),
+                    module: &module,
+                    entry_point: Some("main"),
+                    compilation_options: Default::default(),
+                    cache: None,
+                });
+                (pass, p)
+            })
+            .collect();
         Ok(GpuTreeBuilder {
             ctx,
             layout,

@@ -373,15 +373,25 @@ impl Pass {
             Pass::ProgressiveTies => {
                 &[FRAME, TIES_KEY_WORDS, TIES_FLAGS, RECORDS, COARSE, MEDIUM, FINE]
             }
-            Pass::OctreeInsert
-            | Pass::OctreeSplit
-            | Pass::OctreeMarkBricks
-            | Pass::OctreeAllocBricks
-            | Pass::OctreeVoxels
-            | Pass::OctreeCountCells
-            | Pass::OctreeWriteCells
-            | Pass::OctreeSlots => &OCTREE,
+            p if p.builds_octree() => &OCTREE,
+            _ => unreachable!("every octree pass builds the octree"),
         }
+    }
+
+    /// Whether the pass is one of the GPU octree builder's (`shaders/octree_*.wgsl`; they share
+    /// [`binding::OCTREE`] and `octree_common.wgsl`).
+    pub fn builds_octree(self) -> bool {
+        matches!(
+            self,
+            Pass::OctreeInsert
+                | Pass::OctreeSplit
+                | Pass::OctreeMarkBricks
+                | Pass::OctreeAllocBricks
+                | Pass::OctreeVoxels
+                | Pass::OctreeCountCells
+                | Pass::OctreeWriteCells
+                | Pass::OctreeSlots
+        )
     }
 
     /// Whether the pass draws batches: its group 1 is [`binding::BATCHES`] (`common/batches.wgsl`).
@@ -426,14 +436,8 @@ impl Pass {
                 parts.extend([PROGRESSIVE, DECODE, BATCHES, COUNTERS])
             }
             Pass::ProgressiveTies => parts.extend([PROGRESSIVE, DECODE, BATCHES]),
-            Pass::OctreeInsert
-            | Pass::OctreeSplit
-            | Pass::OctreeMarkBricks
-            | Pass::OctreeAllocBricks
-            | Pass::OctreeVoxels
-            | Pass::OctreeCountCells
-            | Pass::OctreeWriteCells
-            | Pass::OctreeSlots => parts.push(OCTREE),
+            p if p.builds_octree() => parts.push(OCTREE),
+            _ => unreachable!("every octree pass builds the octree"),
         }
         parts.push(self.own_source());
         parts.join("\n")
