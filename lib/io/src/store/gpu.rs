@@ -32,8 +32,18 @@ use mortar_core::par::SendPtr;
 use rayon::prelude::*;
 use std::time::Instant;
 
-/// Bytes per point the GPU engine holds besides the records (see [`build_into`]).
-const PER_POINT: u64 = 16;
+/// Bytes per point the GPU engine holds besides the records, as the OS counts it: the positions
+/// handed to the GPU (12), wgpu's staging copy of them and, on a software adapter (lavapipe),
+/// the GPU's own buffers in host memory (12 + 16), the slots read back (4 + 4 while copied), then
+/// arrival (8), slot (4) and its inverse (4), with room to spare. Measured under lavapipe
+/// (BENCHMARKS.md, "memory"): points at one position peaked at 175 MB (0.5 M), 734 MB (4 M)
+/// and 1,289 MB (8 M points of 34 bytes): 139 bytes a point besides [`FIXED`].
+const PER_POINT: u64 = 72;
+
+/// Bytes the GPU engine holds whatever the input: the process, the GPU driver and its shader
+/// compiler (a software adapter compiles with LLVM in the process): 175 MB measured at 0.5 M
+/// points.
+const FIXED: u64 = 192 << 20;
 
 /// Builds the store in `writer` from `ds` with the GPU engine; `header` is the headers' box
 /// (see [`super::build`]).
@@ -50,10 +60,11 @@ pub(crate) fn build_into(
             error: OctreeError::Unsupported("the GPU engine was given no GPU".into()),
         });
     };
-    // The records as read and as placed, and per point: the positions handed to the GPU (12
-    // bytes, freed before the records are placed), then arrival (8), slot (4) and its inverse (4).
-    let needed =
-        super::engine::held_in_memory(ds, PER_POINT).saturating_add(2 * group_bytes(opts.memory));
+    // The records as read and as placed, and per point what the build holds at its peak (see
+    // PER_POINT).
+    let needed = super::engine::held_in_memory(ds, PER_POINT)
+        .saturating_add(2 * group_bytes(opts.memory))
+        .saturating_add(FIXED);
     if needed > opts.memory {
         return Err(Error::OverBudget { what: "the GPU engine", needed, budget: opts.memory });
     }
