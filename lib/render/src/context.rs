@@ -382,6 +382,31 @@ impl GpuContext {
         }
     }
 
+    /// The device memory the adapter's driver reports, in bytes: on Vulkan the largest heap
+    /// flagged device-local (a discrete GPU's memory; a software or integrated adapter's is host
+    /// memory). `None` where the backend does not say (wgpu has no portable query; other
+    /// backends than Vulkan are not asked).
+    pub fn device_memory(&self) -> Option<u64> {
+        #[cfg(any(target_os = "linux", target_os = "windows", target_os = "android"))]
+        {
+            // SAFETY: the hal adapter is only read (its instance and physical device handles,
+            // for one query of memory properties), never destroyed or used for GPU work.
+            let hal = unsafe { self.adapter.as_hal::<wgpu::hal::api::Vulkan>() }?;
+            let instance = hal.shared_instance().raw_instance();
+            // SAFETY: the physical device belongs to this instance, which outlives the call.
+            let props = unsafe {
+                instance.get_physical_device_memory_properties(hal.raw_physical_device())
+            };
+            let heaps = &props.memory_heaps[..(props.memory_heap_count as usize).min(16)];
+            // VK_MEMORY_HEAP_DEVICE_LOCAL_BIT is bit 0.
+            heaps.iter().filter(|h| h.flags.as_raw() & 1 != 0).map(|h| h.size).max()
+        }
+        #[cfg(not(any(target_os = "linux", target_os = "windows", target_os = "android")))]
+        {
+            None
+        }
+    }
+
     /// The largest storage binding: what one chunk of points or one framebuffer may occupy.
     pub fn max_binding(&self) -> u64 {
         self.limits.max_storage_buffer_binding_size.min(self.limits.max_buffer_size)

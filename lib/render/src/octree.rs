@@ -56,7 +56,8 @@ pub struct GpuTreeBuilder {
     segment_points: Option<usize>,
     /// The node buffer's first capacity; `None`: from the points and the leaf capacity.
     first_nodes: Option<u32>,
-    /// GPU memory the build may use (`--gpu-memory`); `None`: as much as it needs.
+    /// GPU memory the build may use (`--gpu-memory`; by default [`default_gpu_memory`] of what
+    /// the adapter reports); `None` (an adapter that reports none): as much as it needs.
     budget: Option<u64>,
     /// Segments on the GPU at once; `None`: from the budget.
     resident: Option<usize>,
@@ -64,6 +65,13 @@ pub struct GpuTreeBuilder {
 
 /// The smallest `--gpu-memory`: a quarter of it holds one full voxel grid (8 MiB of bricks).
 pub const MIN_GPU_MEMORY: u64 = 32 << 20;
+
+/// The GPU memory a build uses by default out of the `reported` device memory
+/// ([`GpuContext::device_memory`]): three quarters, the rest left to the driver, a display and
+/// other programs; at least [`MIN_GPU_MEMORY`].
+pub fn default_gpu_memory(reported: u64) -> u64 {
+    (reported / 4 * 3).max(MIN_GPU_MEMORY)
+}
 
 /// One segment of the points: its arrivals, and its buffers while it is on the GPU (the points,
 /// and each point's leaf or slot), or its leaves on the host while it is paged out.
@@ -163,13 +171,14 @@ impl GpuTreeBuilder {
                 (pass, p)
             })
             .collect();
+        let budget = ctx.device_memory().map(default_gpu_memory);
         Ok(GpuTreeBuilder {
             ctx,
             layout,
             pipelines,
             segment_points: None,
             first_nodes: None,
-            budget: None,
+            budget,
             resident: None,
         })
     }
@@ -209,6 +218,12 @@ impl GpuTreeBuilder {
     pub fn with_resident_segments(mut self, segments: usize) -> GpuTreeBuilder {
         self.resident = Some(segments.max(1));
         self
+    }
+
+    /// The GPU memory the build keeps within: `--gpu-memory`, else [`default_gpu_memory`] of
+    /// the adapter's; `None` where the adapter reports no memory size (then unbounded).
+    pub fn memory_budget(&self) -> Option<u64> {
+        self.budget
     }
 
     /// The device.
@@ -651,7 +666,17 @@ impl Run<'_, '_> {
 impl TreeBackend for GpuTreeBuilder {
     fn name(&self) -> String {
         let a = self.ctx.adapter();
-        format!("{} ({}, {})", a.name, a.backend, a.device_type)
+        let within = match self.budget {
+            Some(b) => format!(", within {:.1} GiB", b as f64 / (1u64 << 30) as f64),
+            None => String::new(),
+        };
+        format!("{} ({}, {}{within})", a.name, a.backend, a.device_type)
+    }
+
+    fn holds_buffers_in_host_memory(&self) -> bool {
+        // A software adapter's buffers are host memory of this process; an integrated GPU's
+        // are host memory too, counted here to be safe.
+        self.ctx.is_software() || self.ctx.adapter().device_type.contains("ntegrated")
     }
 
     fn build(

@@ -120,3 +120,24 @@ fn paged_segments_give_the_same_tree() {
         same(&g, &cpu, &format!("{resident} segments on the GPU"));
     }
 }
+
+/// Without `--gpu-memory` the builder keeps within three quarters of the memory the adapter
+/// reports (lavapipe reports a device-local heap of host memory; a GPU its own memory).
+#[test]
+fn the_default_budget_is_the_adapters_memory() {
+    let Some(ctx) = context_or_skip(AtomicPath::TwoPass32, Some(7)) else { return };
+    let reported = ctx.device_memory();
+    let backend = ctx.adapter().backend.clone();
+    let gpu = GpuTreeBuilder::new(ctx).unwrap();
+    if backend.to_lowercase().contains("vulkan") {
+        let m = reported.expect("a Vulkan adapter reports its heaps");
+        assert!(m >= 64 << 20, "{m} bytes of device memory");
+        assert_eq!(gpu.memory_budget(), Some(mortar_render::octree::default_gpu_memory(m)));
+        assert!(mortar_core::octree::arrival::TreeBackend::name(&gpu).contains("within"));
+    } else {
+        assert_eq!(gpu.memory_budget(), reported.map(mortar_render::octree::default_gpu_memory));
+    }
+    // An explicit budget wins.
+    let gpu = gpu.with_memory_budget(64 << 20).unwrap();
+    assert_eq!(gpu.memory_budget(), Some(64 << 20));
+}

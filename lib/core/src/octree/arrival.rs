@@ -61,6 +61,13 @@ pub trait TreeBackend: Send + Sync + std::fmt::Debug {
     /// A short description for reports (the adapter's name).
     fn name(&self) -> String;
 
+    /// Whether the backend's buffers live in the process's own memory (a software adapter such
+    /// as lavapipe, or this CPU twin), so that a memory budget must count them; a discrete GPU's
+    /// do not. The default says yes (the safe answer).
+    fn holds_buffers_in_host_memory(&self) -> bool {
+        true
+    }
+
     /// Builds the tree over a root cube `2^size_log2` units wide of the points `pos` (arrival
     /// order; coordinates relative to the root's corner, each below `2^size_log2`).
     fn build(

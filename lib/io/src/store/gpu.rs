@@ -32,13 +32,18 @@ use mortar_core::par::SendPtr;
 use rayon::prelude::*;
 use std::time::Instant;
 
-/// Bytes per point the GPU engine holds besides the records, as the OS counts it: the positions
-/// handed to the GPU (12), wgpu's staging copy of them and, on a software adapter (lavapipe),
-/// the GPU's own buffers in host memory (12 + 16), the slots read back (4 + 4 while copied), then
+/// Bytes per point the GPU engine holds besides the records, as the OS counts it, on a software
+/// adapter (lavapipe): the positions handed to the GPU (12), wgpu's staging copy of them, the
+/// GPU's own buffers in host memory (12 + 16), the slots read back (4 + 4 while copied), then
 /// arrival (8), slot (4) and its inverse (4), with room to spare. Measured under lavapipe
 /// (BENCHMARKS.md, "memory"): points at one position peaked at 175 MB (0.5 M), 734 MB (4 M)
 /// and 1,289 MB (8 M points of 34 bytes): 139 bytes a point besides [`FIXED`].
-const PER_POINT: u64 = 72;
+const PER_POINT_SHARED: u64 = 72;
+
+/// The same on a discrete GPU, whose buffers are not the process's memory: measured on the H100
+/// (BENCHMARKS.md, "1 B points"), 100 M points of 34 bytes from a mapped LAS file peaked at
+/// 8.75 GB, 19.5 bytes a point besides the mapped input and the sorted records; 32 leaves room.
+const PER_POINT_DISCRETE: u64 = 32;
 
 /// Bytes the GPU engine holds whatever the input: the process, the GPU driver and its shader
 /// compiler (a software adapter compiles with LLVM in the process): 175 MB measured at 0.5 M
@@ -61,8 +66,10 @@ pub(crate) fn build_into(
         });
     };
     // The records as read and as placed, and per point what the build holds at its peak (see
-    // PER_POINT).
-    let needed = super::engine::held_in_memory(ds, PER_POINT)
+    // PER_POINT_SHARED).
+    let per_point =
+        if backend.holds_buffers_in_host_memory() { PER_POINT_SHARED } else { PER_POINT_DISCRETE };
+    let needed = super::engine::held_in_memory(ds, per_point)
         .saturating_add(2 * group_bytes(opts.memory))
         .saturating_add(FIXED);
     if needed > opts.memory {
