@@ -34,8 +34,15 @@ pub struct Args {
     #[arg(required_unless_present_any = ["compact", "plan"])]
     pub inputs: Vec<String>,
     /// The store directory to create (must not exist, or be empty).
-    #[arg(short, long, required_unless_present = "compact")]
+    #[arg(short, long, required_unless_present_any = ["compact", "append"])]
     pub output: Option<PathBuf>,
+    /// Add the inputs to this existing store: its points come first, the new ones after, and the
+    /// result is the store a build of all of them in that order gives (with the store's leaf
+    /// capacity and colours), swapped in atomically at the end. The store's recorded inputs must
+    /// still be there, unchanged: this first form builds again from them (into STORE.append;
+    /// --resume continues a stopped append). Give the --crs options the store was built with.
+    #[arg(long, value_name = "STORE", conflicts_with_all = ["output", "compact", "plan"])]
+    pub append: Option<PathBuf>,
     /// Compact an existing store instead of building one: rewrite it so that `nodes.bin` holds
     /// only the payloads of its last commit (stores of the incremental engine keep superseded
     /// node versions). Run it when no build writes the store.
@@ -75,9 +82,10 @@ pub struct Args {
     /// picks gpu.
     #[arg(long, value_enum, default_value_t = EngineArg::Auto)]
     pub engine: EngineArg,
-    /// GPU memory --engine gpu may use, e.g. 8G (at least 32M; default: what the points, the
-    /// nodes and the voxel grids need, within the device's buffer limits). Segments of points
-    /// beyond half of it are paged out to host memory and back.
+    /// GPU memory --engine gpu may use, e.g. 8G (at least 32M; default: three quarters of the
+    /// device memory the adapter reports, or without a report what the points, the nodes and
+    /// the voxel grids need). Segments of points beyond half of it are paged out to host
+    /// memory and back.
     #[arg(long, value_parser = common::parse_size)]
     pub gpu_memory: Option<u64>,
     /// Continue the store at --output from its last commit, if a build of the same inputs and
@@ -125,7 +133,30 @@ pub fn run(a: Args) -> Result<()> {
         }
         return Ok(());
     }
-    let Some(output) = a.output.clone() else { anyhow::bail!("give the store directory with -o") };
+    // --append: the store's inputs, then the new ones, built beside it and swapped in at the end.
+    let append = match &a.append {
+        Some(store) => {
+            let plan = mortar_io::store::append::plan_append(store, &a.inputs)?;
+            let c = plan.config;
+            if (a.leaf_capacity != DEFAULT_LEAF_CAPACITY && a.leaf_capacity != c.leaf_capacity)
+                || (a.averaged_colors && c.color_mode != ColorMode::Averaged)
+            {
+                anyhow::bail!(
+                    "{}: --append keeps the store's settings (leaf capacity {}, {} colours); \
+                     give no other --leaf-capacity or --averaged-colors",
+                    store.display(),
+                    c.leaf_capacity,
+                    if c.color_mode == ColorMode::Averaged { "averaged" } else { "first-come" }
+                );
+            }
+            mortar_io::store::append::check_work(&plan, a.resume)?;
+            Some(plan)
+        }
+        None => None,
+    };
+    let Some(output) = append.as_ref().map(|p| p.work.clone()).or_else(|| a.output.clone()) else {
+        anyhow::bail!("give the store directory with -o")
+    };
     if let (Some(plan), Some(job)) = (&a.plan, a.job) {
         let plan = mortar_io::store::distributed::Plan::read(plan)?;
         let paths: Vec<String> = plan.inputs.iter().map(|i| i.path.clone()).collect();
@@ -145,14 +176,22 @@ pub fn run(a: Args) -> Result<()> {
     if a.leaf_capacity == 0 {
         anyhow::bail!("--leaf-capacity must be at least 1");
     }
-    let ds = common::open_dataset(&a.inputs, &a.crs)?;
+    let inputs = append.as_ref().map_or(&a.inputs, |p| &p.inputs);
+    let ds = common::open_dataset(inputs, &a.crs)?;
     common::print_warnings(&ds.warnings);
     let opts = BuildOptions {
-        config: BuilderConfig {
-            leaf_capacity: a.leaf_capacity,
-            color_mode: if a.averaged_colors { ColorMode::Averaged } else { ColorMode::FirstCome },
-            ..BuilderConfig::default()
-        },
+        config: append.as_ref().map_or(
+            BuilderConfig {
+                leaf_capacity: a.leaf_capacity,
+                color_mode: if a.averaged_colors {
+                    ColorMode::Averaged
+                } else {
+                    ColorMode::FirstCome
+                },
+                ..BuilderConfig::default()
+            },
+            |p| p.config,
+        ),
         batch_points: a.batch_points.max(1),
         first_commit_after: None,
         commit_every: a.commit_every.max(0.0),
@@ -202,6 +241,13 @@ pub fn run(a: Args) -> Result<()> {
         (build(&ds, &output, &opts, &mut progress)?, serde_json::Value::Null)
     };
     drop(bar);
+    let output = match &append {
+        Some(plan) => {
+            mortar_io::store::append::replace_store(plan)?;
+            plan.store.clone()
+        }
+        None => output,
+    };
     common::print_warnings(&r.warnings);
     if let Some(e) = frame_error {
         return Err(e.context("drawing a frame of the growing store (the store itself was built)"));

@@ -396,6 +396,9 @@ pub enum StoreError {
     /// The store was built with other settings than the build that would continue it.
     #[error("{mismatch}; give a new directory, or remove it to start over")]
     Settings { mismatch: String },
+    /// The store cannot be extended by `mortar build --append` (why, in words).
+    #[error("{why}")]
+    Append { why: String },
     /// The committed nodes are not those the inputs give.
     #[error("its committed nodes are not those the inputs give (the store was changed, or built by another mortar); give a new directory")]
     CommittedNodes,

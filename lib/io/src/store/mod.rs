@@ -27,6 +27,7 @@
 //! --compact` ([`compact`]) rewrites it with only the live payloads. The sorted and partitioned
 //! engines write each node once.
 
+pub mod append;
 mod bounds;
 mod build;
 pub(crate) mod codec;

@@ -1,0 +1,226 @@
+//! Issue 29 item 4: `mortar build --append STORE MORE...` gives the store a build of the
+//! store's inputs followed by MORE gives, byte for byte (hierarchy, payloads, source header,
+//! build record), with every engine, across a grown root and chained appends; it is atomic (the
+//! old store stays whole until the swap, nothing is left beside it) and a stopped append resumes.
+//! Refusals name the store and the reason, exit 1 and leave the store as it was.
+
+mod common;
+
+use common::*;
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::Duration;
+
+const FILES: [&str; 4] = ["nodes.bin", "hierarchy.bin", "source.las", "build.json"];
+
+fn build(inputs: &[PathBuf], out: &Path, extra: &[&str]) {
+    run_ok(mortar().arg("build").args(inputs).arg("-o").arg(out).arg("-q").args(extra));
+}
+
+fn append(store: &Path, more: &[PathBuf], extra: &[&str]) -> Command {
+    let mut c = mortar();
+    c.arg("build").arg("--append").arg(store).args(more).arg("-q").args(extra);
+    c
+}
+
+/// Every file of the two stores is the same, byte for byte.
+fn same_store(a: &Path, b: &Path, what: &str) {
+    for f in FILES {
+        let (x, y) = (std::fs::read(a.join(f)).unwrap(), std::fs::read(b.join(f)).unwrap());
+        assert!(x == y, "{what}: {f} differs ({} and {} bytes)", x.len(), y.len());
+    }
+}
+
+/// Nothing is left beside the store.
+fn nothing_beside(store: &Path) {
+    for suffix in [".append", ".append-old"] {
+        let mut p = store.as_os_str().to_owned();
+        p.push(suffix);
+        assert!(!PathBuf::from(p).exists(), "{} left {suffix}", store.display());
+    }
+}
+
+fn root_size(store: &Path) -> u8 {
+    mortar_io::store::Store::open(store).unwrap().root_cube().size_log2
+}
+
+/// Two generated scans, the second beside the first (so that the root grows).
+fn scans(dir: &Path, points: u64) -> (PathBuf, PathBuf) {
+    let a = dir.join("a.las");
+    run_ok(gen().args(["--points", &points.to_string(), "--seed", "3", "-o"]).arg(&a));
+    (a, scan_at(dir, "b.laz", points / 2, 4, "501000,5000500,0"))
+}
+
+fn scan_at(dir: &Path, name: &str, points: u64, seed: u64, origin: &str) -> PathBuf {
+    let p = dir.join(name);
+    run_ok(
+        gen()
+            .args(["--points", &points.to_string(), "--seed", &seed.to_string()])
+            .args(["--origin", origin, "--extent", "300", "-o"])
+            .arg(&p),
+    );
+    p
+}
+
+#[test]
+fn an_append_is_the_build_of_all_inputs_for_every_engine() {
+    let dir = tempdir("append-engines");
+    let (a, b) = scans(&dir, 300_000);
+    // A third scan, below the first two (the root grows downwards too).
+    let sample = scan_at(&dir, "c.las", 100_000, 5, "499700,4999800,-50");
+    for (engine, extra) in [
+        ("auto", vec![]),
+        ("sorted", vec!["--leaf-capacity", "3000"]),
+        ("partitioned", vec!["--memory", "256M"]),
+        ("incremental", vec!["--averaged-colors", "--leaf-capacity", "5000"]),
+        ("gpu", vec![]),
+    ] {
+        let e = ["--engine", engine];
+        let whole = dir.join(format!("whole-{engine}"));
+        let o = mortar()
+            .arg("build")
+            .args([&a, &b])
+            .arg("-o")
+            .arg(&whole)
+            .arg("-q")
+            .args(e)
+            .args(&extra)
+            .output()
+            .unwrap();
+        if !o.status.success() && String::from_utf8_lossy(&o.stderr).contains("no GPU adapter") {
+            assert!(std::env::var_os("MORTAR_REQUIRE_GPU").is_none(), "no adapter");
+            eprintln!("SKIP gpu: no adapter");
+            continue;
+        }
+        assert!(o.status.success(), "{engine}: {}", String::from_utf8_lossy(&o.stderr));
+        let store = dir.join(format!("store-{engine}"));
+        build(std::slice::from_ref(&a), &store, &[e.as_slice(), &extra].concat());
+        let before = root_size(&store);
+        // The store's settings are kept: no flag but the engine is given again.
+        run_ok(&mut append(&store, std::slice::from_ref(&b), &e));
+        same_store(&store, &whole, engine);
+        assert!(root_size(&store) > before, "{engine}: the root grew for the second scan");
+        nothing_beside(&store);
+        // A third input, appended to the appended store.
+        let third = dir.join(format!("third-{engine}"));
+        build(&[a.clone(), b.clone(), sample.clone()], &third, &[e.as_slice(), &extra].concat());
+        run_ok(&mut append(&store, std::slice::from_ref(&sample), &e));
+        same_store(&store, &third, &format!("{engine}, chained"));
+        nothing_beside(&store);
+    }
+}
+
+#[test]
+fn appended_real_tiles_equal_the_merged_build() {
+    let Some(data) = shared_data() else { return };
+    let tiles = bcts_tiles(&data);
+    assert_eq!(tiles.len(), 4);
+    let dir = tempdir("append-bcts");
+    let whole = dir.join("whole");
+    build(&tiles, &whole, &["--leaf-capacity", "2000"]);
+    let store = dir.join("s");
+    build(&tiles[..1], &store, &["--leaf-capacity", "2000"]);
+    run_ok(&mut append(&store, &tiles[1..2], &[]));
+    run_ok(&mut append(&store, &tiles[2..], &["--engine", "sorted"]));
+    same_store(&store, &whole, "bcts 1, then 2, then 3 and 4");
+    // And the store reads back as the merged tiles: every record once.
+    let o = run_ok(mortar().arg("info").arg(&store).arg("--json"));
+    let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let declared: u64 = tiles.iter().map(|t| las_records(t).unwrap().2.number_of_points()).sum();
+    assert_eq!(j[0]["point_count"].as_u64(), Some(declared));
+}
+
+#[test]
+fn refused_appends_leave_the_store_as_it_was() {
+    let dir = tempdir("append-refused");
+    let (a, b) = scans(&dir, 50_000);
+    let store = dir.join("s");
+    build(std::slice::from_ref(&a), &store, &[]);
+    let snapshot: Vec<Vec<u8>> =
+        FILES.iter().map(|f| std::fs::read(store.join(f)).unwrap()).collect();
+    let unchanged = |what: &str| {
+        for (f, want) in FILES.iter().zip(&snapshot) {
+            assert!(&std::fs::read(store.join(f)).unwrap() == want, "{what}: {f} changed");
+        }
+        nothing_beside(&store);
+    };
+    let refused = |c: &mut Command, says: &str| {
+        let o = c.output().unwrap();
+        let err = String::from_utf8_lossy(&o.stderr).to_string();
+        assert_eq!(o.status.code(), Some(1), "{err}");
+        assert!(err.contains(says), "{err} should say {says}");
+        err
+    };
+    // Other settings than the store's.
+    refused(
+        &mut append(&store, std::slice::from_ref(&b), &["--leaf-capacity", "77"]),
+        "leaf capacity",
+    );
+    unchanged("other leaf capacity");
+    // Not a store.
+    refused(&mut append(&dir.join("nothing"), std::slice::from_ref(&b), &[]), "not a mortar store");
+    // A bad new input: named, and the store stays.
+    let bad = dir.join("bad.las");
+    std::fs::write(&bad, b"LASF but not really").unwrap();
+    refused(&mut append(&store, &[bad], &[]), "bad.las");
+    unchanged("bad input");
+    // The store's input changed since the build.
+    let f = std::fs::OpenOptions::new().append(true).open(&a).unwrap();
+    f.set_modified(std::time::SystemTime::now() + Duration::from_secs(5)).unwrap();
+    drop(f);
+    let err = refused(&mut append(&store, std::slice::from_ref(&b), &[]), "changed since");
+    assert!(err.contains("a.las"), "{err}");
+    unchanged("changed input");
+    // Gone.
+    std::fs::rename(&a, dir.join("moved.las")).unwrap();
+    refused(&mut append(&store, std::slice::from_ref(&b), &[]), "cannot be read");
+    unchanged("missing input");
+}
+
+#[test]
+fn a_stopped_append_resumes_into_the_same_store() {
+    let dir = tempdir("append-resume");
+    let (a, b) = scans(&dir, 2_000_000);
+    let whole = dir.join("whole");
+    build(&[a.clone(), b.clone()], &whole, &[]);
+    let store = dir.join("s");
+    build(std::slice::from_ref(&a), &store, &[]);
+    let work = dir.join("s.append");
+    let inputs = |s: &Path| -> usize {
+        mortar_io::store::BuildRecord::read(s).unwrap().unwrap().inputs.len()
+    };
+    // Stop appends at growing moments until one is stopped after it began its store.
+    let mut stopped = false;
+    for ms in [200u64, 400, 700, 1000, 1500, 2500] {
+        let mut c = append(&store, std::slice::from_ref(&b), &["--commit-every", "0.05"]);
+        let mut child = c.spawn().unwrap();
+        std::thread::sleep(Duration::from_millis(ms));
+        let _ = child.kill();
+        if child.wait().unwrap().success() || inputs(&store) == 2 {
+            // Finished, or stopped between the swap and the removal of the old store.
+            let _ = std::fs::remove_dir_all(&work);
+            break;
+        }
+        // The store itself is untouched while the append is stopped.
+        assert_eq!(mortar_io::store::Store::open(&store).unwrap().header.points, 2_000_000);
+        if work.join("hierarchy.bin").exists() {
+            stopped = true;
+            // Without --resume the stopped append is named, not overwritten.
+            let o = append(&store, std::slice::from_ref(&b), &[]).output().unwrap();
+            let err = String::from_utf8_lossy(&o.stderr);
+            assert_eq!(o.status.code(), Some(1), "{err}");
+            assert!(err.contains("--resume") && err.contains("s.append"), "{err}");
+            run_ok(&mut append(&store, std::slice::from_ref(&b), &["--resume"]));
+            break;
+        }
+        let _ = std::fs::remove_dir_all(&work);
+    }
+    if !stopped {
+        eprintln!("no kill landed while the append was writing (the machine was fast)");
+    }
+    if inputs(&store) == 1 {
+        run_ok(&mut append(&store, std::slice::from_ref(&b), &[]));
+    }
+    same_store(&store, &whole, "resumed append");
+    nothing_beside(&store);
+}
