@@ -16,14 +16,16 @@
 //! 3. voxels, a group of grids at a time, on sparse grids (16³ bricks of 8³ cells, a brick
 //!    allocated only where a point falls): `octree_mark_bricks` (every point marks its bricks),
 //!    `octree_alloc_bricks` (each marked brick takes one from a counter; the host sizes the pool,
-//!    and halves a group whose bricks exceed it), `octree_voxels` (every point, atomicMax of its
-//!    NOT-ed arrival per cell), `octree_count_cells` (occupied cells per brick), a prefix sum on
+//!    and cuts a group whose bricks exceed it to what fits), `octree_voxels` (every point,
+//!    atomicMax of its NOT-ed arrival per cell), `octree_count_cells` (occupied cells per brick), a prefix sum on
 //!    the host, `octree_write_cells` (arrivals in Morton order of the cells: bricks in Morton
 //!    order, cells in Morton order within each), read back;
 //! 4. `octree_slots` gives every point its slot; the slots are read back.
 //!
 //! With a budget (`--gpu-memory`) segments of points beyond half of it are paged out (their
-//! leaves read back) and in again as the passes need them.
+//! leaves read back) and in again as the passes need them; a paged-out segment is skipped by a
+//! split round when none of its points' leaves split, and by a voxel group none of whose grids
+//! its points' leaves lie under (grids are numbered depth first, so a group is a few subtrees).
 //!
 //! What is not done yet (issue 29): the preview does not draw from these buffers; the host still
 //! sorts each leaf's points; every voxel group walks every point again.
@@ -329,7 +331,21 @@ impl GpuTreeBuilder {
                     break;
                 }
                 ctx.queue.write_buffer(&run.state, 4, bytemuck::cast_slice(&[0u32]));
+                // Segments paged out whose points lie in no leaf that split stay out: their
+                // leaves on the host say so (the children made this round are ids `before..`).
+                let split = if (0..=s).any(|r| run.segments[r].gpu.is_none()) {
+                    let raw: Vec<OctreeNode> = run.read(&run.nodes, 32 * before as u64)?;
+                    Some(raw.iter().map(|n| n.child >= before).collect::<Vec<bool>>())
+                } else {
+                    None
+                };
                 for r in 0..=s {
+                    if let (Some(split), Some(leaves)) = (&split, &run.segments[r].leaves) {
+                        let hit = |&l: &u32| split.get(l as usize).copied().unwrap_or(true);
+                        if !leaves.par_iter().any(hit) {
+                            continue;
+                        }
+                    }
                     run.dispatch(Pass::OctreeInsert, Some(r), 1)?;
                 }
             }
@@ -343,31 +359,69 @@ impl GpuTreeBuilder {
             raw.iter().map(|n| ArrivalNode { count: n.count, first_child: n.child }).collect();
         check_nodes(&nodes).map_err(|e| GpuError::Device(e.to_string()))?;
         let bases = leaf_bases(&nodes);
+        // Grids numbered depth first, so that a group of consecutive grids is a few subtrees
+        // (what a segment of nearby points touches, see below).
         let mut inner = Vec::new();
-        for (i, n) in raw.iter_mut().enumerate() {
+        let mut parent = vec![u32::MAX; nodes.len()];
+        let mut stack = vec![0usize];
+        while let Some(i) = stack.pop() {
+            let n = &mut raw[i];
             if n.child != NO_CHILD {
                 n.grid = inner.len() as u32;
                 inner.push(i);
+                for o in (0..8).rev() {
+                    parent[(n.child + o) as usize] = i as u32;
+                    stack.push((n.child + o) as usize);
+                }
             } else {
                 n.cursor = bases[i];
             }
         }
         ctx.queue.write_buffer(&run.nodes, 0, bytemuck::cast_slice(&raw));
+        // With segments paged, each segment's grids (those of its points' leaves' ancestors,
+        // sorted): a voxel group walks only the segments that touch it.
+        let seg_grids: Option<Vec<Vec<u32>>> = if run.segments.len() > run.resident {
+            let mut all = Vec::with_capacity(run.segments.len());
+            for k in 0..run.segments.len() {
+                let leaves = run.read_leaves(k)?;
+                let mut seen = vec![false; nodes.len()];
+                for &l in &leaves {
+                    let mut a = parent.get(l as usize).copied().unwrap_or(u32::MAX);
+                    while a != u32::MAX && !seen[a as usize] {
+                        seen[a as usize] = true;
+                        a = parent[a as usize];
+                    }
+                }
+                let mut g: Vec<u32> =
+                    (0..nodes.len()).filter(|&i| seen[i]).map(|i| raw[i].grid).collect();
+                g.sort_unstable();
+                all.push(g);
+            }
+            Some(all)
+        } else {
+            None
+        };
+        let touches = |k: usize, first: u32, g: u32| {
+            seg_grids.as_ref().is_none_or(|v| {
+                let i = v[k].partition_point(|&x| x < first);
+                i < v[k].len() && v[k][i] < first + g
+            })
+        };
         phases.push(("number".to_string(), t.elapsed().as_secs_f64()));
         // 3. voxels, a group of grids at a time: their brick tables within a sixteenth of the
-        // budget (and a binding), their bricks within a quarter (a group whose bricks do not
-        // fit is halved and done again).
+        // budget (and a binding), their bricks within a quarter.
         let t = Instant::now();
         let mut voxels = vec![Vec::new(); nodes.len()];
         let table_limit = max_binding.min(budget / 16);
         let pool_limit = max_binding.min(budget / 4);
         let per_group = ((table_limit / (8 * BRICKS)) as usize).clamp(1, 1 << 19);
-        let mut todo: Vec<(usize, usize)> = (0..inner.len())
-            .step_by(per_group)
-            .map(|a| (a, per_group.min(inner.len() - a)))
-            .rev()
-            .collect();
-        while let Some((first, g)) = todo.pop() {
+        // Groups in order; a group whose bricks overflow the pool is cut to the share that its
+        // count says fits, and the next group sized from the last one's bricks per grid (each
+        // try walks the group's segments once).
+        let mut first = 0usize;
+        let mut size = per_group;
+        while first < inner.len() {
+            let g = size.min(inner.len() - first).max(1);
             let group = &inner[first..first + g];
             let e = BRICKS * g as u64;
             if run.blocks.size() < 8 * e {
@@ -379,23 +433,30 @@ impl GpuTreeBuilder {
             ctx.queue.write_buffer(&run.state, 12, bytemuck::cast_slice(&[0u32]));
             let (first32, g64) = (first as u32, g as u64);
             for s in 0..run.segments.len() {
+                if !touches(s, first32, g as u32) {
+                    continue;
+                }
                 let n = run.segments[s].pos.len() as u32;
                 run.dispatch_grids(Pass::OctreeMarkBricks, Some(s), n, first32, g64)?;
             }
             run.dispatch_grids(Pass::OctreeAllocBricks, None, e as u32, first32, g64)?;
             let bricks = run.read_state()?[3] as u64;
-            if bricks * 4 * BRICK_CELLS > pool_limit {
+            let used = bricks * 4 * BRICK_CELLS;
+            // The grids this pool holds at the bricks per grid just counted, with a tenth spare.
+            let fitting = |g: usize| ((g as u64 * pool_limit / used.max(1)) * 9 / 10) as usize;
+            if used > pool_limit {
                 if g == 1 {
                     return Err(GpuError::TooLarge {
                         what: "the voxel bricks of one node (a quarter of --gpu-memory)",
-                        needed: bricks * 4 * BRICK_CELLS,
+                        needed: used,
                         limit: pool_limit,
                     });
                 }
-                todo.push((first + g / 2, g - g / 2));
-                todo.push((first, g / 2));
+                size = fitting(g).clamp(1, g - 1);
                 continue;
             }
+            size = fitting(g).clamp(1, per_group);
+            first += g;
             if run.grids.size() < 4 * BRICK_CELLS * bricks {
                 run.grids = storage(ctx, "octree bricks", 4 * BRICK_CELLS * bricks);
             }
@@ -403,6 +464,9 @@ impl GpuTreeBuilder {
             enc.clear_buffer(&run.grids, 0, Some(4 * BRICK_CELLS * bricks));
             ctx.queue.submit([enc.finish()]);
             for s in 0..run.segments.len() {
+                if !touches(s, first32, g as u32) {
+                    continue;
+                }
                 let n = run.segments[s].pos.len() as u32;
                 run.dispatch_grids(Pass::OctreeVoxels, Some(s), n, first32, g64)?;
             }
