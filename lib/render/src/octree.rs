@@ -360,7 +360,8 @@ impl GpuTreeBuilder {
         check_nodes(&nodes).map_err(|e| GpuError::Device(e.to_string()))?;
         let bases = leaf_bases(&nodes);
         // Grids numbered depth first, so that a group of consecutive grids is a few subtrees
-        // (what a segment of nearby points touches, see below).
+        // (what a segment of nearby points touches, see below; numbering the top levels first
+        // made more walks: 45 against 35 for 5 M points within 64 MiB).
         let mut inner = Vec::new();
         let mut parent = vec![u32::MAX; nodes.len()];
         let mut stack = vec![0usize];
@@ -420,6 +421,8 @@ impl GpuTreeBuilder {
         // try walks the group's segments once).
         let mut first = 0usize;
         let mut size = per_group;
+        // Segment walks of the voxel passes (a paged-out segment is paged in for each).
+        let mut walks = 0u32;
         while first < inner.len() {
             let g = size.min(inner.len() - first).max(1);
             let group = &inner[first..first + g];
@@ -437,6 +440,7 @@ impl GpuTreeBuilder {
                     continue;
                 }
                 let n = run.segments[s].pos.len() as u32;
+                walks += 1;
                 run.dispatch_grids(Pass::OctreeMarkBricks, Some(s), n, first32, g64)?;
             }
             run.dispatch_grids(Pass::OctreeAllocBricks, None, e as u32, first32, g64)?;
@@ -468,6 +472,7 @@ impl GpuTreeBuilder {
                     continue;
                 }
                 let n = run.segments[s].pos.len() as u32;
+                walks += 1;
                 run.dispatch_grids(Pass::OctreeVoxels, Some(s), n, first32, g64)?;
             }
             run.dispatch_grids(Pass::OctreeCountCells, None, e as u32, first32, g64)?;
@@ -509,6 +514,7 @@ impl GpuTreeBuilder {
         }
         phases.push(("slots".to_string(), t.elapsed().as_secs_f64()));
         phases.push(("rounds".to_string(), rounds as f64));
+        phases.push(("voxel walks".to_string(), walks as f64));
         Ok(ArrivalTree { nodes, slot, voxels, phases })
     }
 }
