@@ -97,7 +97,9 @@ fn an_append_is_the_build_of_all_inputs_for_every_engine() {
         build(std::slice::from_ref(&a), &store, &[e.as_slice(), &extra].concat());
         let before = root_size(&store);
         // The store's settings are kept: no flag but the engine is given again.
-        run_ok(&mut append(&store, std::slice::from_ref(&b), &e));
+        // Named with a trailing slash, as users type directories.
+        let slash = PathBuf::from(format!("{}/", store.display()));
+        run_ok(&mut append(&slash, std::slice::from_ref(&b), &e));
         same_store(&store, &whole, engine);
         assert!(root_size(&store) > before, "{engine}: the root grew for the second scan");
         nothing_beside(&store);
@@ -120,7 +122,10 @@ fn appended_real_tiles_equal_the_merged_build() {
     build(&tiles, &whole, &["--leaf-capacity", "2000"]);
     let store = dir.join("s");
     build(&tiles[..1], &store, &["--leaf-capacity", "2000"]);
-    run_ok(&mut append(&store, &tiles[1..2], &[]));
+    // From inside the store's directory, as `.`.
+    let mut c = mortar();
+    c.current_dir(&store).args(["build", "--append", ".", "-q"]).arg(&tiles[1]);
+    run_ok(&mut c);
     run_ok(&mut append(&store, &tiles[2..], &["--engine", "sorted"]));
     same_store(&store, &whole, "bcts 1, then 2, then 3 and 4");
     // And the store reads back as the merged tiles: every record once.

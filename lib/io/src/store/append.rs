@@ -85,9 +85,12 @@ pub fn plan_append(store: &Path, more: &[String]) -> Result<AppendPlan> {
             ColorMode::FirstCome
         },
     };
+    // `store/`, `.` or a link: the directory itself, so that the working directory is its
+    // sibling, not its child.
+    let store = std::fs::canonicalize(store).map_err(|e| Error::io(store, e))?;
     let mut work = store.as_os_str().to_owned();
     work.push(".append");
-    Ok(AppendPlan { store: store.to_path_buf(), inputs, config, work: PathBuf::from(work) })
+    Ok(AppendPlan { store, inputs, config, work: PathBuf::from(work) })
 }
 
 /// Checks, before an append builds into `plan.work`, that no stopped append is left there
