@@ -221,7 +221,7 @@ pub fn run(a: Args) -> Result<()> {
             }
         }
     };
-    let (r, preview_json) = if a.preview.preview {
+    let built = if a.preview.preview {
         let view = a.preview.view_args(&output, &a.frames.camera);
         let bounds = mortar_app::frames::header_bounds(&ds);
         let (ds, output, opts) = (&ds, &output, &opts);
@@ -233,13 +233,34 @@ pub fn run(a: Args) -> Result<()> {
             .map_err(anyhow::Error::from)
         };
         if a.preview.preview_offscreen {
-            mortar_app::viewer::run_preview_offscreen(&view, output, bounds, &ds.layout, job)?
+            mortar_app::viewer::run_preview_offscreen(&view, output, bounds, &ds.layout, job)
         } else {
-            mortar_app::viewer::run_preview(&view, output, bounds, &ds.layout, job)?
+            mortar_app::viewer::run_preview(&view, output, bounds, &ds.layout, job)
         }
     } else {
-        (build(&ds, &output, &opts, &mut progress)?, serde_json::Value::Null)
+        build(&ds, &output, &opts, &mut progress)
+            .map(|r| (r, serde_json::Value::Null))
+            .map_err(anyhow::Error::from)
     };
+    // A stopped append is continued by --append, not by a build of the working directory.
+    let (r, preview_json) = built.map_err(|e| match &append {
+        Some(plan) => {
+            let kept = matches!(
+                e.downcast_ref::<mortar_io::error::Error>(),
+                Some(mortar_io::error::Error::KeptCommit { .. })
+            );
+            let store = plan.store.display();
+            e.context(if kept {
+                format!(
+                    "the append to {store} stopped, the store unchanged (`mortar build --append \
+                     {store} <the same new inputs> --resume` continues it)"
+                )
+            } else {
+                format!("the append to {store} failed, the store unchanged")
+            })
+        }
+        None => e,
+    })?;
     drop(bar);
     let output = match &append {
         Some(plan) => {
