@@ -423,6 +423,18 @@ impl GpuTreeBuilder {
         let mut size = per_group;
         // Segment walks of the voxel passes (a paged-out segment is paged in for each).
         let mut walks = 0u32;
+        // A voxel pass over the segments that touch the grids `first..first + g`.
+        let walk = |run: &mut Run, pass: Pass, first: u32, g: u64| -> Result<u32, GpuError> {
+            let mut walked = 0;
+            for s in 0..run.segments.len() {
+                if touches(s, first, g as u32) {
+                    walked += 1;
+                    let n = run.segments[s].pos.len() as u32;
+                    run.dispatch_grids(pass, Some(s), n, first, g)?;
+                }
+            }
+            Ok(walked)
+        };
         while first < inner.len() {
             let g = size.min(inner.len() - first).max(1);
             let group = &inner[first..first + g];
@@ -435,14 +447,7 @@ impl GpuTreeBuilder {
             ctx.queue.submit([enc.finish()]);
             ctx.queue.write_buffer(&run.state, 12, bytemuck::cast_slice(&[0u32]));
             let (first32, g64) = (first as u32, g as u64);
-            for s in 0..run.segments.len() {
-                if !touches(s, first32, g as u32) {
-                    continue;
-                }
-                let n = run.segments[s].pos.len() as u32;
-                walks += 1;
-                run.dispatch_grids(Pass::OctreeMarkBricks, Some(s), n, first32, g64)?;
-            }
+            walks += walk(&mut run, Pass::OctreeMarkBricks, first32, g64)?;
             run.dispatch_grids(Pass::OctreeAllocBricks, None, e as u32, first32, g64)?;
             let bricks = run.read_state()?[3] as u64;
             let used = bricks * 4 * BRICK_CELLS;
@@ -467,14 +472,7 @@ impl GpuTreeBuilder {
             let mut enc = ctx.device.create_command_encoder(&Default::default());
             enc.clear_buffer(&run.grids, 0, Some(4 * BRICK_CELLS * bricks));
             ctx.queue.submit([enc.finish()]);
-            for s in 0..run.segments.len() {
-                if !touches(s, first32, g as u32) {
-                    continue;
-                }
-                let n = run.segments[s].pos.len() as u32;
-                walks += 1;
-                run.dispatch_grids(Pass::OctreeVoxels, Some(s), n, first32, g64)?;
-            }
+            walks += walk(&mut run, Pass::OctreeVoxels, first32, g64)?;
             run.dispatch_grids(Pass::OctreeCountCells, None, e as u32, first32, g64)?;
             let counts: Vec<u32> = run.read_at(&run.blocks, 4 * e, 4 * e)?;
             let mut offsets = Vec::with_capacity(counts.len());
