@@ -4,15 +4,19 @@
 # and prints the median build times, their ratio and the preview's frames per second.
 # The preview is drawn off screen (--preview-offscreen: same store view and rasterizer as the
 # window, paced to 60 frames per second), so that it runs on GPU machines without a display.
-# Usage: bench/preview.sh BIN_DIR POINTS REPS BACKEND(gpu|cpu) [las|laz]
+# Usage: [ENGINE=gpu] [SIZE=1920x1080] bench/preview.sh BIN_DIR POINTS REPS BACKEND(gpu|cpu) [las|laz]
+# ENGINE (default: the default engine) is passed as --engine to both builds, SIZE as
+# --preview-size.
 set -euo pipefail
 B=${1:-target/release}; N=${2:-20000000}; REPS=${3:-3}; BACKEND=${4:-gpu}; EXT=${5:-las}
+EXTRA=(); [ -n "${ENGINE:-}" ] && EXTRA+=(--engine "$ENGINE")
+SIZE_ARGS=(); [ -n "${SIZE:-}" ] && SIZE_ARGS+=(--preview-size "$SIZE")
 D=${TMPDIR:-/tmp}/mortar-preview-bench; mkdir -p "$D"
 IN=$D/s$N.$EXT
 [ -f "$IN" ] || "$B/mortar-gen" --points "$N" --seed 1 -o "$IN" 2>/dev/null
 for r in $(seq "$REPS"); do
-  rm -rf "$D/st"; "$B/mortar" build "$IN" -o "$D/st" --json > "$D/plain-$r.json"
-  rm -rf "$D/st"; "$B/mortar" build "$IN" -o "$D/st" --json --preview --preview-offscreen --preview-backend "$BACKEND" > "$D/preview-$r.json"
+  rm -rf "$D/st"; "$B/mortar" build "$IN" -o "$D/st" "${EXTRA[@]}" --json > "$D/plain-$r.json"
+  rm -rf "$D/st"; "$B/mortar" build "$IN" -o "$D/st" "${EXTRA[@]}" --json --preview --preview-offscreen --preview-backend "$BACKEND" "${SIZE_ARGS[@]}" > "$D/preview-$r.json"
 done
 python3 - "$D" "$REPS" <<'PY'
 import json, statistics, sys

@@ -8,6 +8,8 @@
 //! - [`render`]: one view to PNG (`mortar render`) of a batch file, a store (LOD) or raw LAS/LAZ
 //!   (progressive), on the CPU or GPU rasterizer.
 //! - [`frames`]: PNG frames of a growing store (`mortar build --frames`).
+//! - [`build`]: `mortar build` (options and the whole command: builds, `--append`, `--compact`,
+//!   plan jobs, with `--preview` and `--frames`).
 //! - [`gpu_build`]: the GPU octree builder for `mortar build --engine gpu`.
 //! - [`bench`]: the render benchmarks' procedures (`mortar-bench-*`).
 //! - [`cli`]: what every command shares: warnings, progress bars, sizes, the sort and CRS option
@@ -20,6 +22,7 @@
 #![forbid(unsafe_code)]
 
 pub mod bench;
+pub mod build;
 pub mod cli;
 pub mod draw;
 pub mod frames;

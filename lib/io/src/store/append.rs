@@ -34,9 +34,61 @@ pub struct AppendPlan {
     pub work: PathBuf,
 }
 
-/// Checks that `store` can be extended by `more` (a complete store with a build record whose
-/// inputs are all present and unchanged) and says what to build. `more` must not be empty.
-pub fn plan_append(store: &Path, more: &[String]) -> Result<AppendPlan> {
+/// What the command line asked of an append besides the inputs: a leaf capacity and colour rule
+/// other than the defaults must be the store's own; `resume` continues a stopped append.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct AppendAsk {
+    /// `--leaf-capacity` when given.
+    pub leaf_capacity: Option<u32>,
+    /// `--averaged-colors`.
+    pub averaged_colors: bool,
+    /// `--resume`.
+    pub resume: bool,
+}
+
+/// Checks that `store` can be extended by `more` as `ask` says (a complete store with a build
+/// record whose inputs are all present and unchanged, the same settings, no stopped append left
+/// unless resumed) and says what to build. `more` must not be empty.
+pub fn plan_append(store: &Path, more: &[String], ask: AppendAsk) -> Result<AppendPlan> {
+    let plan = plan_inputs(store, more)?;
+    let c = plan.config;
+    let averaged = c.color_mode == ColorMode::Averaged;
+    if ask.leaf_capacity.is_some_and(|l| l != c.leaf_capacity) || (ask.averaged_colors && !averaged)
+    {
+        return Err(Error::Store {
+            path: store.to_path_buf(),
+            error: StoreError::Append {
+                why: format!(
+                    "--append keeps the store's settings (leaf capacity {}, {} colours); give no \
+                     other --leaf-capacity or --averaged-colors",
+                    c.leaf_capacity,
+                    if averaged { "averaged" } else { "first-come" }
+                ),
+            },
+        });
+    }
+    check_work(&plan, ask.resume)?;
+    Ok(plan)
+}
+
+impl AppendPlan {
+    /// What to say of an append whose build failed: the store is unchanged, and one that
+    /// `stopped` (its last commit kept) continues with `--append --resume`.
+    pub fn failure(&self, stopped: bool) -> String {
+        let store = self.store.display();
+        if stopped {
+            format!(
+                "the append to {store} stopped, the store unchanged (`mortar build --append \
+                 {store} <the same new inputs> --resume` continues it)"
+            )
+        } else {
+            format!("the append to {store} failed, the store unchanged")
+        }
+    }
+}
+
+/// The plan's inputs and settings from the store's build record (see [`plan_append`]).
+fn plan_inputs(store: &Path, more: &[String]) -> Result<AppendPlan> {
     let bad =
         |why: String| Error::Store { path: store.to_path_buf(), error: StoreError::Append { why } };
     if more.is_empty() {
@@ -95,7 +147,7 @@ pub fn plan_append(store: &Path, more: &[String]) -> Result<AppendPlan> {
 
 /// Checks, before an append builds into `plan.work`, that no stopped append is left there
 /// unless `resume` continues it.
-pub fn check_work(plan: &AppendPlan, resume: bool) -> Result<()> {
+fn check_work(plan: &AppendPlan, resume: bool) -> Result<()> {
     let begun = std::fs::read_dir(&plan.work).map(|mut d| d.next().is_some()).unwrap_or(false);
     if begun && !resume {
         return Err(Error::Store {
