@@ -38,6 +38,7 @@ fn info_of(p: &Path, stats: bool) -> Result<FileInfo> {
     }
     let i = LasInput::open(p)?;
     let mut info = describe(&i, if i.is_laz() { "laz" } else { "las" }, stats, None)?;
+    info.copc = mortar_io::info::copc_summary(&i);
     let mut w = i.meta.warnings.clone();
     w.append(&mut info.warnings);
     info.warnings = w;
@@ -125,6 +126,29 @@ fn print_text(o: &mut impl Write, i: &FileInfo) -> std::io::Result<()> {
             "  store           commit {}, {} bytes of node payloads",
             s.commit, s.nodes_bytes
         )?;
+    }
+    if let Some(c) = &i.copc {
+        match &c.error {
+            Some(e) => writeln!(o, "  copc            hierarchy not usable: {e}")?,
+            None => {
+                writeln!(
+                    o,
+                    "  copc            {} nodes, {} points in {} levels ({} hierarchy pages), spacing {}",
+                    c.nodes,
+                    c.points,
+                    c.levels.len(),
+                    c.hierarchy_pages,
+                    c.spacing
+                )?;
+                for l in &c.levels {
+                    writeln!(
+                        o,
+                        "    level {:<3}     {} nodes, {} points",
+                        l.level, l.nodes, l.points
+                    )?;
+                }
+            }
+        }
     }
     if let Some(s) = &i.stats {
         writeln!(o, "  real bounds     {}", bounds_text(&s.bounds, i.scale))?;

@@ -51,6 +51,9 @@ pub enum Error {
     /// truncated header, offsets that lie), or a header cannot be written for these points.
     #[error("{path}: {error}")]
     Las { path: PathBuf, error: LasError },
+    /// A COPC file's hierarchy cannot be used (read as a LOD source).
+    #[error("{path}: COPC: {error}")]
+    Copc { path: PathBuf, error: CopcError },
     /// The point format and record length of a file cannot be laid out.
     #[error("{path}: {error}")]
     Layout { path: PathBuf, error: LayoutError },
@@ -200,6 +203,38 @@ pub enum Error {
     /// The work stopped because of Ctrl-C.
     #[error("interrupted")]
     Interrupted,
+}
+
+/// Why a COPC hierarchy is not used (`mortar_io::copc`; the file is then read flat).
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum CopcError {
+    /// The info VLR is not 160 bytes or holds a non-finite or non-positive cube.
+    #[error("the COPC info VLR is damaged ({0})")]
+    Info(String),
+    /// A hierarchy page outside the file or not a whole number of entries.
+    #[error("hierarchy page at byte {offset} ({size} bytes) {why}")]
+    Page {
+        /// Offset of the page.
+        offset: u64,
+        /// Its size.
+        size: u64,
+        /// What is wrong.
+        why: &'static str,
+    },
+    /// An entry that cannot be a node of the cube.
+    #[error("hierarchy entry {key:?} {why}")]
+    Entry {
+        /// Level, x, y, z as recorded.
+        key: [i32; 4],
+        /// What is wrong.
+        why: String,
+    },
+    /// No root node.
+    #[error("the hierarchy has no root node (0-0-0-0)")]
+    NoRoot,
+    /// A node that no walk from the root reaches.
+    #[error("node {0} has no parent in the hierarchy")]
+    Orphan(String),
 }
 
 /// Why LAZ data cannot be read (the LASzip VLR, the chunk table, a chunk).
@@ -573,6 +608,7 @@ macro_rules! leading_path {
             | Error::NoLasInDirectory { path }
             | Error::Io { path, .. }
             | Error::Las { path, .. }
+            | Error::Copc { path, .. }
             | Error::Layout { path, .. }
             | Error::Laz { path, .. }
             | Error::Truncated { path, .. }

@@ -40,6 +40,89 @@ pub struct AttributeInfo {
     pub width: usize,
 }
 
+/// One level of a COPC hierarchy.
+#[derive(Clone, Debug, Serialize)]
+pub struct CopcLevel {
+    pub level: u32,
+    /// Nodes with points.
+    pub nodes: u64,
+    pub points: u64,
+}
+
+/// What a COPC file's hierarchy holds, or why it cannot be used.
+#[derive(Clone, Debug, Serialize)]
+pub struct CopcSummary {
+    pub center: [f64; 3],
+    pub halfsize: f64,
+    pub spacing: f64,
+    pub hierarchy_pages: u64,
+    pub hierarchy_bytes: u64,
+    /// Nodes with points.
+    pub nodes: u64,
+    /// Points in the nodes (the header's point count for a sound file).
+    pub points: u64,
+    pub levels: Vec<CopcLevel>,
+    /// Why the hierarchy cannot be used (mortar then reads the file flat); the other fields
+    /// are then zero, or the info VLR's where it parsed.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub error: Option<String>,
+}
+
+/// The COPC hierarchy of `input`, or `None` when it is not a COPC file.
+pub fn copc_summary(input: &crate::source::LasInput) -> Option<CopcSummary> {
+    use crate::copc::{info_of, CopcHierarchy};
+    let empty = |error: String| CopcSummary {
+        center: [0.0; 3],
+        halfsize: 0.0,
+        spacing: 0.0,
+        hierarchy_pages: 0,
+        hierarchy_bytes: 0,
+        nodes: 0,
+        points: 0,
+        levels: Vec::new(),
+        error: Some(error),
+    };
+    let info = match info_of(&input.meta.vlrs)? {
+        Ok(i) => i,
+        Err(e) => return Some(empty(e.to_string())),
+    };
+    let h = match CopcHierarchy::read(input.file_bytes(), info) {
+        Ok(h) => h,
+        Err(e) => {
+            let mut s = empty(e.to_string());
+            (s.center, s.halfsize, s.spacing) = (info.center, info.halfsize, info.spacing);
+            return Some(s);
+        }
+    };
+    let levels = h
+        .levels()
+        .into_iter()
+        .enumerate()
+        .map(|(l, (nodes, points))| CopcLevel { level: l as u32, nodes, points })
+        .collect();
+    let mut s = CopcSummary {
+        center: info.center,
+        halfsize: info.halfsize,
+        spacing: info.spacing,
+        hierarchy_pages: h.pages,
+        hierarchy_bytes: h.page_bytes,
+        nodes: h.nodes.len() as u64,
+        points: h.points(),
+        levels,
+        error: None,
+    };
+    let usable = crate::copc::CopcLod::new(h).and_then(|l| l.check_chunks(input));
+    if let Err(e) = usable {
+        s.error = Some(e.to_string());
+    } else if s.points != input.meta.header.point_count {
+        s.error = Some(format!(
+            "the hierarchy's nodes hold {} points, the header says {}",
+            s.points, input.meta.header.point_count
+        ));
+    }
+    Some(s)
+}
+
 /// What an octree store holds (its last commit).
 #[derive(Clone, Debug, Serialize)]
 pub struct StoreInfo {
@@ -135,6 +218,9 @@ pub struct FileInfo {
     pub batch: Option<BatchInfo>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub store: Option<StoreInfo>,
+    /// A COPC file's hierarchy (absent for other files).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub copc: Option<CopcSummary>,
     pub stats: Option<Stats>,
     /// Disagreements found (header against points, broken records).
     pub warnings: Vec<String>,
@@ -242,6 +328,7 @@ pub fn describe(
         evlrs: src.evlrs().iter().map(vlr_info).collect(),
         batch: batch.map(batch_info),
         store: None,
+        copc: None,
         stats: None,
         warnings,
     };

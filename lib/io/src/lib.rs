@@ -55,6 +55,7 @@ pub mod source;
 pub use error::{Error, Result};
 pub mod batch_input;
 pub mod batchfile;
+pub mod copc;
 pub mod crs;
 pub mod dataset;
 pub mod export;

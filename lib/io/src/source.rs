@@ -23,6 +23,7 @@ use crate::las::{self, LasMeta};
 use memmap2::Mmap;
 use mortar_core::layout::RecordLayout;
 use std::borrow::Cow;
+use std::collections::HashMap;
 use std::io::{Read, Seek, SeekFrom};
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
@@ -479,6 +480,65 @@ impl LasInput {
         };
         // kept decoders decode the old selection
         self.streams.clear();
+    }
+
+    /// The whole file's bytes (the COPC hierarchy is read from them).
+    pub fn file_bytes(&self) -> &[u8] {
+        &self.bytes
+    }
+
+    /// Which of the chunk table's chunks are those at the file offsets of `chunks` (offset,
+    /// point count); the offset and the reason where one is not in the table or holds another
+    /// number of points.
+    pub fn find_chunks(
+        &self,
+        chunks: &[(u64, u64)],
+    ) -> std::result::Result<Vec<bool>, (u64, String)> {
+        let Kind::Laz { chunks: table, .. } = &self.kind else {
+            return Err((0, "the file has no chunk table".into()));
+        };
+        let at: HashMap<u64, usize> =
+            table.iter().enumerate().map(|(i, c)| (c.offset as u64, i)).collect();
+        let mut keep = vec![false; table.len()];
+        for &(offset, points) in chunks {
+            let Some(&i) = at.get(&offset) else {
+                return Err((
+                    offset,
+                    format!("names a chunk at byte {offset} that the chunk table does not list"),
+                ));
+            };
+            if table[i].points != points {
+                return Err((
+                    offset,
+                    format!("says {points} points but the chunk table says {}", table[i].points),
+                ));
+            }
+            keep[i] = true;
+        }
+        Ok(keep)
+    }
+
+    /// Keeps only the chunks at the file offsets of `chunks` (see [`find_chunks`]), in their
+    /// file order: reading the input then decodes those alone (a COPC file's selected nodes).
+    /// On an error the input is unchanged.
+    ///
+    /// [`find_chunks`]: Self::find_chunks
+    pub fn keep_chunks(&mut self, chunks: &[(u64, u64)]) -> std::result::Result<(), (u64, String)> {
+        let keep = self.find_chunks(chunks)?;
+        let (mut pieces, mut places) = (Vec::new(), Vec::new());
+        let mut first = 0;
+        for (p, a) in self.pieces.iter().zip(&self.at) {
+            if keep[a.chunk] {
+                pieces.push(Piece { index: pieces.len(), first_point: first, points: p.points });
+                places.push(*a);
+                first += p.points;
+            }
+        }
+        self.pieces = pieces;
+        self.at = places;
+        self.point_count = first;
+        self.streams.clear();
+        Ok(())
     }
 
     pub fn is_laz(&self) -> bool {

@@ -5,6 +5,7 @@
 //! hole filling, colours and eye-dome lighting run on the GPU (the same image, byte for byte).
 
 mod args;
+pub mod copc;
 pub mod lod;
 mod output;
 pub mod progressive_render;
@@ -37,7 +38,13 @@ pub fn run(a: Args) -> Result<()> {
         return crate::render::lod::run(&a, &store);
     }
     let start = Instant::now();
-    let (source, bounds) = open_source(&a.inputs, &a.sort, Some(a.view.color))?;
+    let (source, bounds, copc_json) = match copc::open(&a)? {
+        Some(c) => (c.source, c.bounds, c.json),
+        None => {
+            let (s, b) = open_source(&a.inputs, &a.sort, Some(a.view.color))?;
+            (s, b, serde_json::Value::Null)
+        }
+    };
     let batch_seconds = start.elapsed().as_secs_f64();
     let file = &source.file;
     let own = |e| source.own_error(e);
@@ -97,6 +104,7 @@ pub fn run(a: Args) -> Result<()> {
         });
         j["batch_seconds"] =
             serde_json::json!(if source.is_temporary() { Some(batch_seconds) } else { None });
+        j["copc"] = copc_json;
         j["gpu_points_per_second"] = serde_json::json!(gpu_json
             .get("draw_ms")
             .and_then(|v| v.as_f64())
