@@ -28,6 +28,14 @@ fn copc_files(data: &Path) -> Vec<PathBuf> {
     .collect()
 }
 
+fn read_png(p: &Path) -> Vec<[u8; 4]> {
+    let dec = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(p).unwrap()));
+    let mut r = dec.read_info().unwrap();
+    let mut buf = vec![0; r.output_buffer_size()];
+    let info = r.next_frame(&mut buf).unwrap();
+    buf[..info.buffer_size()].chunks_exact(4).map(|c| [c[0], c[1], c[2], c[3]]).collect()
+}
+
 fn render_json(args: &[&str]) -> serde_json::Value {
     let o = run_ok(mortar().arg("render").args(args).arg("--json"));
     serde_json::from_slice(&o.stdout).unwrap()
@@ -213,5 +221,85 @@ fn info_shows_the_copc_levels_and_a_damaged_hierarchy_is_read_flat() {
         let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
         assert!(j[0]["copc"]["error"].as_str().unwrap().contains(why), "{name}: {j}");
     }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn an_ept_directory_is_a_lod_source_whose_closeups_read_a_small_share() {
+    let Some(data) = shared_data() else { return };
+    let ept = data.join("PyForestScan/example_data/ept");
+    let dir = tempdir("ept-lod");
+    let es = ept.to_str().unwrap();
+    let png = |n: &str| dir.join(n).to_str().unwrap().to_string();
+    // A closeup from above the data: the default threshold reads a small share; threshold 0
+    // (culled) draws what threshold 0 without culling (every node read, the same camera) draws:
+    // the same points, and the same picture but where points tie in depth (the subset's points
+    // are numbered otherwise than the whole's, and ties go to the lower number).
+    let view = [
+        "--target",
+        "202150,2184150,1300",
+        "--eye",
+        "202150,2183950,1700",
+        "--fov",
+        "15",
+        "--width",
+        "320",
+        "--height",
+        "240",
+        "--backend",
+        "cpu",
+        "--color",
+        "intensity",
+        "--range",
+        "2687,11305",
+        "--precision",
+        "30",
+    ];
+    let j = render_json(&[&[es, "-o", &png("a.png")][..], &view[..]].concat());
+    let c = &j["copc"];
+    assert_eq!(c["format"], "ept", "{j}");
+    let share = c["bytes_read"].as_f64().unwrap() / c["bytes"].as_f64().unwrap();
+    assert!(share < 0.1, "the closeup read {:.1} % of the bytes: {c}", share * 100.0);
+    let j0 =
+        render_json(&[&[es, "-o", &png("b.png"), "--lod-threshold", "0"][..], &view[..]].concat());
+    let all = render_json(
+        &[&[es, "-o", &png("c.png"), "--lod-threshold", "0", "--no-cull"][..], &view[..]].concat(),
+    );
+    assert_eq!(all["copc"]["nodes_read"], all["copc"]["nodes"], "{all}");
+    assert_eq!(all["copc"]["points_read"].as_u64(), Some(14_142_410));
+    assert!(
+        j0["copc"]["nodes_read"].as_u64().unwrap() * 5
+            < all["copc"]["nodes_read"].as_u64().unwrap()
+    );
+    assert_eq!(j0["points_drawn"], all["points_drawn"], "culling dropped points in view");
+    let (a, b) = (read_png(&dir.join("b.png")), read_png(&dir.join("c.png")));
+    let differ = a.iter().zip(&b).filter(|(x, y)| x != y).count() as u64;
+    let ties = all["depth_ties"].as_u64().unwrap();
+    eprintln!("{differ} pixels differ, {ties} depth ties");
+    assert!(differ <= ties, "{differ} pixels differ, more than the {ties} depth ties");
+    // ept.json named directly is the same source; --no-lod reads every LAZ file flat.
+    let j = render_json(&[
+        ept.join("ept.json").to_str().unwrap(),
+        "-o",
+        &png("e.png"),
+        "--width",
+        "64",
+        "--height",
+        "48",
+        "--point-budget",
+        "50000",
+    ]);
+    assert_eq!(j["copc"]["nodes_read"], 1, "the root alone within 50,000 points: {j}");
+    // A damaged ept.json is said, and the directory read flat.
+    let bad = dir.join("bad-ept");
+    std::fs::create_dir_all(&bad).unwrap();
+    let raw = std::fs::read_to_string(ept.join("ept.json")).unwrap();
+    std::fs::write(bad.join("ept.json"), raw.replace("\"laszip\"", "\"zstandard\"")).unwrap();
+    std::fs::copy(ept.join("ept-data/0-0-0-0.laz"), bad.join("0-0-0-0.laz")).unwrap();
+    let o = run_ok(mortar().arg("render").arg(&bad).args(["-o", &png("f.png"), "--json"]));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("zstandard") && err.contains("flat"), "{err}");
+    let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert!(j["copc"].is_null());
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -6,40 +6,22 @@
 //! COPC (copc.io, 1.0) is a LAZ 1.4 file whose variable-size chunks are the nodes of an octree: a
 //! node `(d, x, y, z)` of the cube of half-size `halfsize` around `center` holds its points in one
 //! chunk (offset, byte size, point count in the hierarchy), and every point is in exactly one
-//! node, so a coarse view draws the nodes near the root and a finer one adds deeper nodes (3D
-//! Tiles' `refine: ADD`). The store's nodes instead replace their parent (voxels stand for the
-//! points below). Both are selected by one rule ([`select_nodes`]): the selection's nodes are
-//! those a store would draw; a COPC view draws them *and their ancestors*, whose points are not
-//! in the children.
-//!
-//! The COPC cube is not a power of two in the file's integer grid, so the selection walks it in
-//! a grid of its own ([`CopcLod::grid`]): the root is the integer cube `[0, 2^ROOT_LOG2)` whose
-//! world box is exactly the COPC cube, and node `(d, x, y, z)` is the integer cube at `(x, y, z)
-//! << (ROOT_LOG2 - d)` (exact: culling and projected sizes are those of the COPC node's box).
-//! Missing octants of a node that has children are empty leaves of the index.
+//! node: an additive tree ([`crate::additive`]), selected by the store's rule.
 //!
 //! Everything read from the file is checked before it is trusted: pages and chunks inside the
 //! file, page sizes in whole entries, each page read once (no loop), levels below
-//! [`MAX_LEVEL`], keys inside their level, at most one entry per key. A hierarchy that fails is
+//! [`MAX_LEVEL`](crate::additive::MAX_LEVEL), keys inside their level, at most one entry per key. A hierarchy that fails is
 //! reported ([`CopcError`]) and the caller reads the file flat.
 
+use crate::additive::{node_key, AdditiveTree};
 use crate::dataset::{Dataset, OpenOptions, RecordSource};
 pub use crate::error::CopcError;
 use crate::error::{Error, Result};
 use crate::source::LasInput;
-use mortar_core::grid::Grid;
-use mortar_core::octree::{
-    select_nodes, Cube, IndexEntry, LodIndex, LodOptions, LodSelection, NodeId, NodeKey,
-};
+use mortar_core::octree::{LodOptions, LodSelection, NodeKey};
 use mortar_core::render::{Aabb, Camera, CameraError};
-use std::collections::{HashMap, HashSet};
+use std::collections::HashSet;
 use std::path::{Path, PathBuf};
-
-/// `log2` of the root cube's edge in the selection's grid (see the module docs).
-pub const ROOT_LOG2: u8 = 32;
-
-/// Deepest level accepted (a COPC tree of 2^32 points per axis would need 32).
-pub const MAX_LEVEL: u8 = 32;
 
 /// Bytes of one hierarchy entry: key (4 x i32), offset (u64), byte size (i32), point count
 /// (i32).
@@ -208,83 +190,25 @@ impl CopcHierarchy {
     }
 }
 
-/// A recorded key as a [`NodeKey`], checked (level `0..=MAX_LEVEL`, cells inside the level).
-fn node_key(raw: [i32; 4]) -> std::result::Result<NodeKey, String> {
-    let [d, x, y, z] = raw;
-    if !(0..=MAX_LEVEL as i32).contains(&d) {
-        return Err(format!("has level {d} (0 to {MAX_LEVEL} accepted)"));
-    }
-    let cells = 1i64 << d;
-    if [x, y, z].iter().any(|&v| v < 0 || v as i64 >= cells) {
-        return Err(format!("lies outside the {cells} cells of its level"));
-    }
-    Ok(NodeKey { level: d as u8, index: [x as u32, y as u32, z as u32] })
-}
-
-/// A COPC file's tree ready for node selection: its hierarchy, the [`LodIndex`] of its nodes
-/// (with empty leaves for missing octants), and which COPC node each index node is.
+/// A COPC file's tree ready for node selection: its hierarchy and the [`AdditiveTree`] of its
+/// nodes (positions in `hierarchy.nodes`).
 #[derive(Clone, Debug)]
 pub struct CopcLod {
     /// The hierarchy.
     pub hierarchy: CopcHierarchy,
-    index: LodIndex,
-    /// Per index node, the COPC node (position in `hierarchy.nodes`), `None` for the root when
-    /// it has no points and for the empty octants.
-    node_of: Vec<Option<usize>>,
-    /// Per index node, its parent.
-    parent: Vec<Option<NodeId>>,
-    grid: Grid,
+    /// The tree the selection walks.
+    pub tree: AdditiveTree,
 }
 
 impl CopcLod {
     /// The tree of `hierarchy` (see the module docs).
     pub fn new(hierarchy: CopcHierarchy) -> std::result::Result<CopcLod, CopcError> {
-        if hierarchy.nodes.iter().map(|n| n.key.level).max().unwrap_or(0) > MAX_LEVEL {
-            return Err(CopcError::Info("too deep".into()));
-        }
-        let by_key: HashMap<NodeKey, usize> =
-            hierarchy.nodes.iter().enumerate().map(|(i, n)| (n.key, i)).collect();
-        // Every node with points, its ancestors (a page may list a node with no points, which
-        // is skipped above, between a node and its children) and the octants beside them.
-        let mut keys: HashSet<NodeKey> = HashSet::new();
-        keys.insert(NodeKey::ROOT);
-        for n in &hierarchy.nodes {
-            let mut k = n.key;
-            while k.level > 0 && keys.insert(k) {
-                k = parent_key(k);
-            }
-        }
-        let inner: HashSet<NodeKey> =
-            keys.iter().filter(|k| k.level > 0).map(|&k| parent_key(k)).collect();
-        for p in &inner {
-            for o in 0..8 {
-                keys.insert(p.child(o));
-            }
-        }
-        // The root first, then by level and cell (deterministic ids).
-        let mut order: Vec<NodeKey> = keys.into_iter().collect();
-        order.sort_unstable_by_key(|k| (k.level, k.index[2], k.index[1], k.index[0]));
-        let entries: Vec<IndexEntry> = order
-            .iter()
-            .map(|k| IndexEntry {
-                key: *k,
-                leaf: !inner.contains(k),
-                samples: by_key.get(k).map_or(0, |&i| hierarchy.nodes[i].points),
-            })
-            .collect();
-        let root = Cube::new([0; 3], ROOT_LOG2);
-        let index = LodIndex::new(root, &entries).map_err(|e| CopcError::Orphan(e.to_string()))?;
-        let id_of: HashMap<NodeKey, u32> =
-            order.iter().enumerate().map(|(i, k)| (*k, i as u32)).collect();
-        let node_of = order.iter().map(|k| by_key.get(k).copied()).collect();
-        let parent =
-            order.iter().map(|k| (k.level > 0).then(|| NodeId(id_of[&parent_key(*k)]))).collect();
+        let nodes: Vec<(NodeKey, u64)> =
+            hierarchy.nodes.iter().map(|n| (n.key, n.points)).collect();
         let info = hierarchy.info;
-        let edge = 2.0 * info.halfsize;
-        let unit = edge / (1u64 << ROOT_LOG2) as f64;
-        let grid =
-            Grid { scale: [unit; 3], offset: [0, 1, 2].map(|a| info.center[a] - info.halfsize) };
-        Ok(CopcLod { hierarchy, index, node_of, parent, grid })
+        let tree =
+            AdditiveTree::new(info.center, info.halfsize, &nodes).map_err(CopcError::Orphan)?;
+        Ok(CopcLod { hierarchy, tree })
     }
 
     /// Reads the hierarchy of an opened COPC input; `None` when it is not COPC.
@@ -297,43 +221,19 @@ impl CopcLod {
         Some(lod.and_then(|l| l.check_chunks(input).map(|_| l)))
     }
 
-    /// The tree's structure (what [`select_nodes`] walks).
-    pub fn index(&self) -> &LodIndex {
-        &self.index
-    }
-
-    /// The selection's grid: the root cube `[0, 2^ROOT_LOG2)` is the COPC cube.
-    pub fn grid(&self) -> Grid {
-        self.grid
-    }
-
     /// The COPC cube's world box.
     pub fn cube_bounds(&self) -> Aabb {
-        let i = &self.hierarchy.info;
-        Aabb { min: i.center.map(|c| c - i.halfsize), max: i.center.map(|c| c + i.halfsize) }
+        self.tree.cube_bounds()
     }
 
-    /// The nodes to read for `camera`: the store's selection ([`select_nodes`]) and every
-    /// ancestor of a selected node (COPC adds points level by level), as positions in
+    /// The nodes to read for `camera` ([`AdditiveTree::select`]) as positions in
     /// `hierarchy.nodes` by ascending file offset; with the selection itself.
     pub fn select(
         &self,
         camera: &Camera,
         options: &LodOptions,
     ) -> std::result::Result<(Vec<usize>, LodSelection), CameraError> {
-        let sel = select_nodes(&self.index, &self.grid, camera, options)?;
-        let mut take = vec![false; self.node_of.len()];
-        for &id in &sel.nodes {
-            let mut at = Some(id);
-            while let Some(n) = at {
-                if std::mem::replace(&mut take[n.index()], true) {
-                    break;
-                }
-                at = self.parent[n.index()];
-            }
-        }
-        let mut nodes: Vec<usize> =
-            take.iter().zip(&self.node_of).filter(|(t, _)| **t).filter_map(|(_, n)| *n).collect();
+        let (mut nodes, sel) = self.tree.select(camera, options)?;
         nodes.sort_unstable_by_key(|&i| self.hierarchy.nodes[i].offset);
         Ok((nodes, sel))
     }
@@ -373,10 +273,6 @@ impl CopcLod {
             why,
         }
     }
-}
-
-fn parent_key(k: NodeKey) -> NodeKey {
-    NodeKey { level: k.level - 1, index: k.index.map(|v| v >> 1) }
 }
 
 /// A COPC file opened as a LOD source: its input (not yet reduced) and its tree.

@@ -237,6 +237,26 @@ pub enum CopcError {
     Orphan(String),
 }
 
+/// Why an EPT directory is not used as a LOD source (`mortar_io::ept`; its LAZ files are then
+/// read flat).
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum EptError {
+    /// A file cannot be read.
+    #[error("{file}: {error}")]
+    Read {
+        /// The file.
+        file: String,
+        /// The system's message.
+        error: String,
+    },
+    /// `ept.json` is not usable.
+    #[error("{0}")]
+    Meta(String),
+    /// The hierarchy is damaged.
+    #[error("{0}")]
+    Hierarchy(String),
+}
+
 /// Why LAZ data cannot be read (the LASzip VLR, the chunk table, a chunk).
 #[derive(Debug, thiserror::Error)]
 pub enum LazError {

@@ -53,11 +53,13 @@ pub mod las;
 pub mod source;
 
 pub use error::{Error, Result};
+pub mod additive;
 pub mod batch_input;
 pub mod batchfile;
 pub mod copc;
 pub mod crs;
 pub mod dataset;
+pub mod ept;
 pub mod export;
 pub mod framing;
 pub mod info;

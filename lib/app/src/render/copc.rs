@@ -1,9 +1,15 @@
-//! `mortar render file.copc.laz`: a COPC file drawn as a LOD source (issue 30 §1). The hierarchy
-//! is read, the nodes for the view are chosen by the store's rule (`--lod-threshold`,
-//! `--point-budget`; see `mortar_io::copc`), and only their LAZ chunks are decoded (only the
-//! layers the colour mode needs), then drawn as any LAS/LAZ input is (a temporary batch file),
-//! so every colour mode and both rasterizers work. `--no-lod` reads the file flat (every chunk).
-//! A hierarchy that cannot be used is said in a warning and the file is read flat.
+//! `mortar render file.copc.laz` and `mortar render ept-dir/`: a COPC file or an EPT directory
+//! drawn as a LOD source (issue 30 §1). The hierarchy is read, the nodes for the view are chosen
+//! by the store's rule (`--lod-threshold`, `--point-budget`; see `mortar_io::additive`), and only
+//! their LAZ chunks (COPC) or files (EPT) are decoded (only the layers the colour mode needs),
+//! then drawn as any LAS/LAZ input is (a temporary batch file), so every colour mode and both
+//! rasterizers work. `--no-lod` reads the input flat (every chunk, every file). A hierarchy that
+//! cannot be used is said in a warning and the input is read flat.
+//!
+//! Framing: a COPC view frames what a flat read frames (the header's box, checked against the
+//! root chunk); an EPT view frames `boundsConforming` of `ept.json` (the points' box; the flat
+//! read frames the union of the node files' headers, which may differ by rounding), else its
+//! cube.
 
 use super::args::Args;
 use super::output::build_camera;
@@ -14,6 +20,7 @@ use mortar_core::render::Aabb;
 use mortar_io::batch_input::RenderSource;
 use mortar_io::batchfile::AttributeSelection;
 use mortar_io::copc::CopcFile;
+use mortar_io::ept::{ept_dir, EptSource};
 use std::path::Path;
 use std::time::Instant;
 
@@ -27,17 +34,21 @@ pub struct CopcSource {
     pub json: serde_json::Value,
 }
 
-/// Whether `inputs` is one COPC file drawn with LOD (a cheap look at its VLRs).
-pub fn is_copc_input(a: &Args) -> bool {
-    matches!(&a.inputs[..], [one] if mortar_io::copc::is_copc_path(Path::new(one)))
+/// Whether `inputs` is one COPC file (a cheap look at its VLRs) or one EPT directory.
+pub fn is_lod_source_input(a: &Args) -> bool {
+    matches!(&a.inputs[..], [one] if mortar_io::copc::is_copc_path(Path::new(one))
+        || ept_dir(Path::new(one)).is_some())
 }
 
 /// The COPC input of `a` with the nodes its view needs, or `None` when the input is not a single
 /// COPC file, `--no-lod` asks for the flat read, or the hierarchy cannot be used (warned).
 pub fn open(a: &Args) -> Result<Option<CopcSource>> {
     let [one] = &a.inputs[..] else { return Ok(None) };
-    if a.lod.no_lod || !is_copc_input(a) {
+    if a.lod.no_lod || !is_lod_source_input(a) {
         return Ok(None);
+    }
+    if let Some(dir) = ept_dir(Path::new(one)) {
+        return open_ept(a, &dir);
     }
     let t = Instant::now();
     let (file, warning) = CopcFile::open(Path::new(one))?;
@@ -68,6 +79,7 @@ pub fn open(a: &Args) -> Result<Option<CopcSource>> {
     let points_read: u64 = read.iter().map(|n| n.points).sum();
     let chunk_bytes: u64 = read.iter().map(|n| n.bytes).sum();
     let json = serde_json::json!({
+        "format": "copc",
         "nodes": h.nodes.len(),
         "nodes_read": nodes.len(),
         "points": h.points(),
@@ -87,5 +99,52 @@ pub fn open(a: &Args) -> Result<Option<CopcSource>> {
     let source = RenderSource::batch_dataset(&ds, &a.sort.options(), &attributes)?;
     let mut json = json;
     json["seconds"] = serde_json::json!(t.elapsed().as_secs_f64());
+    Ok(Some(CopcSource { source, bounds, json }))
+}
+
+/// [`open`] for an EPT directory.
+fn open_ept(a: &Args, dir: &Path) -> Result<Option<CopcSource>> {
+    let t = Instant::now();
+    let label = dir.display().to_string();
+    let ept = match EptSource::open(dir) {
+        Ok(e) => e,
+        Err(e) => {
+            common::warn(&format!("{label}: EPT: {e}; reading its LAZ files flat"));
+            return Ok(None);
+        }
+    };
+    let bounds = ept.conforming.unwrap_or_else(|| ept.tree.cube_bounds());
+    let camera = build_camera(&a.view.camera, &bounds, a.view.width, a.view.height)
+        .map_err(|e| anyhow!("{label}: {e:#}"))?;
+    let options = a.lod.options(!a.no_cull)?;
+    let (nodes, selection) = ept.select(&camera, &options).map_err(|e| anyhow!("{label}: {e}"))?;
+    if nodes.is_empty() {
+        bail!("{label}: no node of the EPT hierarchy is in view");
+    }
+    let points_read: u64 = nodes.iter().map(|&i| ept.nodes[i].points).sum();
+    // The first node's layout names the attributes the colour mode needs.
+    let first = mortar_io::source::LasInput::open(&ept.node_path(nodes[0]))?;
+    let keep = a.view.color.attributes(&first.layout);
+    drop(first);
+    let crs = a.sort.crs.options();
+    let ds = ept.dataset(&nodes, &crs, &keep)?;
+    common::print_warnings(&ds.warnings);
+    let attributes = AttributeSelection::Only(keep.iter().map(|n| n.to_string()).collect());
+    let source = RenderSource::batch_dataset(&ds, &a.sort.options(), &attributes)?;
+    let json = serde_json::json!({
+        "format": "ept",
+        "nodes": ept.nodes.len(),
+        "nodes_read": nodes.len(),
+        "points": ept.points,
+        "points_read": points_read,
+        "hierarchy_pages": ept.hierarchy_files,
+        "bytes": ept.total_bytes(),
+        "bytes_read": ept.meta_bytes + ept.hierarchy_bytes + ept.node_bytes(&nodes),
+        "selected": selection.stats.selected,
+        "culled": selection.stats.culled,
+        "refined": selection.stats.refined,
+        "budget_reached": selection.stats.budget_reached,
+        "seconds": t.elapsed().as_secs_f64(),
+    });
     Ok(Some(CopcSource { source, bounds, json }))
 }

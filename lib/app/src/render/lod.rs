@@ -27,10 +27,10 @@ pub fn store_input(a: &Args) -> Result<Option<PathBuf>> {
         _ => None,
     };
     if store.is_none()
-        && !super::copc::is_copc_input(a)
+        && !super::copc::is_lod_source_input(a)
         && (a.lod.lod_threshold.is_some() || a.lod.point_budget.is_some() || a.lod.no_lod)
     {
-        bail!("--lod-threshold, --point-budget and --no-lod apply to a single octree store (made by mortar build) or COPC file, not to {}", a.inputs.join(" "));
+        bail!("--lod-threshold, --point-budget and --no-lod apply to a single octree store (made by mortar build), COPC file or EPT directory, not to {}", a.inputs.join(" "));
     }
     Ok(if a.lod.no_lod { None } else { store })
 }
