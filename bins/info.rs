@@ -38,7 +38,7 @@ fn info_of(p: &Path, stats: bool) -> Result<FileInfo> {
     }
     let i = LasInput::open(p)?;
     let mut info = describe(&i, if i.is_laz() { "laz" } else { "las" }, stats, None)?;
-    info.copc = mortar_io::info::copc_summary(&i);
+    info.hierarchy = mortar_io::info::copc_summary(&i);
     let mut w = i.meta.warnings.clone();
     w.append(&mut info.warnings);
     info.warnings = w;
@@ -46,8 +46,23 @@ fn info_of(p: &Path, stats: bool) -> Result<FileInfo> {
 }
 
 pub fn run(a: Args) -> Result<()> {
-    let paths = inputs::expand(&a.inputs)?;
-    let infos = paths.iter().map(|p| info_of(p, a.stats)).collect::<Result<Vec<_>>>()?;
+    // An EPT directory is described as one input (its hierarchy); anything else file by file.
+    let mut infos = Vec::new();
+    for input in &a.inputs {
+        if let Some(dir) = mortar_io::ept::ept_dir(Path::new(input)) {
+            let (info, warning) = mortar_io::info::ept_info(&dir)?;
+            if let Some(w) = warning {
+                common::warn(&w);
+            }
+            if let Some(info) = info {
+                infos.push(info);
+                continue;
+            }
+        }
+        for p in inputs::expand(std::slice::from_ref(input))? {
+            infos.push(info_of(&p, a.stats)?);
+        }
+    }
     let mut out = std::io::stdout().lock();
     if a.json {
         serde_json::to_writer_pretty(&mut out, &infos)?;
@@ -127,13 +142,14 @@ fn print_text(o: &mut impl Write, i: &FileInfo) -> std::io::Result<()> {
             s.commit, s.nodes_bytes
         )?;
     }
-    if let Some(c) = &i.copc {
+    if let Some(c) = &i.hierarchy {
         match &c.error {
-            Some(e) => writeln!(o, "  copc            hierarchy not usable: {e}")?,
+            Some(e) => writeln!(o, "  {:<15} hierarchy not usable: {e}", c.format)?,
             None => {
                 writeln!(
                     o,
-                    "  copc            {} nodes, {} points in {} levels ({} hierarchy pages), spacing {}",
+                    "  {:<15} {} nodes, {} points in {} levels ({} hierarchy pages), spacing {}",
+                    c.format,
                     c.nodes,
                     c.points,
                     c.levels.len(),

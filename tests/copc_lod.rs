@@ -74,7 +74,7 @@ fn copc_lod_at_threshold_zero_draws_what_the_flat_read_draws() {
                 &[&[fs, "-o", lod.to_str().unwrap(), "--lod-threshold", "0"][..], &base[..]]
                     .concat(),
             );
-            let c = &j["copc"];
+            let c = &j["lod_source"];
             assert!(c.is_object(), "{name}: not read as COPC: {j}");
             // Framed on the whole file, every node is in view: all are read.
             assert_eq!(c["nodes_read"], c["nodes"], "{name}: {c}");
@@ -82,7 +82,7 @@ fn copc_lod_at_threshold_zero_draws_what_the_flat_read_draws() {
             let jf = render_json(
                 &[&[fs, "-o", flat.to_str().unwrap(), "--no-lod"][..], &base[..]].concat(),
             );
-            assert!(jf["copc"].is_null(), "{name}: --no-lod reads flat");
+            assert!(jf["lod_source"].is_null(), "{name}: --no-lod reads flat");
             assert_eq!(
                 std::fs::read(&lod).unwrap(),
                 std::fs::read(&flat).unwrap(),
@@ -99,7 +99,7 @@ fn copc_lod_at_threshold_zero_draws_what_the_flat_read_draws() {
             "--height",
             "240",
         ]);
-        assert!(j["copc"]["nodes_read"].as_u64() <= j["copc"]["nodes"].as_u64());
+        assert!(j["lod_source"]["nodes_read"].as_u64() <= j["lod_source"]["nodes"].as_u64());
     }
     let _ = std::fs::remove_dir_all(&dir);
 }
@@ -122,7 +122,7 @@ fn a_closeup_of_a_copc_file_decodes_a_small_share_and_draws_what_the_flat_read_d
     let cs = copc.to_str().unwrap();
     let (a, b, c) = (dir.join("a.png"), dir.join("b.png"), dir.join("c.png"));
     let j = render_json(&[&[cs, "-o", a.to_str().unwrap()][..], &view[..], &size[..]].concat());
-    let k = &j["copc"];
+    let k = &j["lod_source"];
     let share = k["bytes_read"].as_f64().unwrap() / k["bytes"].as_f64().unwrap();
     assert!(share < 0.2, "a closeup read {:.1} % of the file: {k}", share * 100.0);
     assert!(k["nodes_read"].as_u64().unwrap() * 4 < k["nodes"].as_u64().unwrap(), "{k}");
@@ -132,7 +132,7 @@ fn a_closeup_of_a_copc_file_decodes_a_small_share_and_draws_what_the_flat_read_d
         &[&[cs, "-o", b.to_str().unwrap(), "--lod-threshold", "0"][..], &view[..], &size[..]]
             .concat(),
     );
-    assert!(j["copc"]["nodes_read"].as_u64() < j["copc"]["nodes"].as_u64(), "{j}");
+    assert!(j["lod_source"]["nodes_read"].as_u64() < j["lod_source"]["nodes"].as_u64(), "{j}");
     render_json(&[&[cs, "-o", c.to_str().unwrap(), "--no-lod"][..], &view[..], &size[..]].concat());
     assert_eq!(
         std::fs::read(&b).unwrap(),
@@ -143,7 +143,7 @@ fn a_closeup_of_a_copc_file_decodes_a_small_share_and_draws_what_the_flat_read_d
     let j = render_json(
         &[&[cs, "-o", b.to_str().unwrap(), "--point-budget", "1000"][..], &size[..]].concat(),
     );
-    assert_eq!(j["copc"]["nodes_read"], 1, "the root alone: {j}");
+    assert_eq!(j["lod_source"]["nodes_read"], 1, "the root alone: {j}");
     let _ = std::fs::remove_dir_all(&dir);
 }
 
@@ -153,7 +153,7 @@ fn info_shows_the_copc_levels_and_a_damaged_hierarchy_is_read_flat() {
     for f in copc_files(&data) {
         let o = run_ok(mortar().arg("info").arg(&f).arg("--json"));
         let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
-        let c = &j[0]["copc"];
+        let c = &j[0]["hierarchy"];
         assert!(c["error"].is_null(), "{}: {c}", f.display());
         let levels = c["levels"].as_array().unwrap();
         let sum: u64 = levels.iter().map(|l| l["points"].as_u64().unwrap()).sum();
@@ -166,7 +166,7 @@ fn info_shows_the_copc_levels_and_a_damaged_hierarchy_is_read_flat() {
     let o =
         run_ok(mortar().arg("info").arg(root().join("data-samples/autzen_trim.laz")).arg("--json"));
     let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
-    assert!(j[0].get("copc").is_none());
+    assert!(j[0].get("hierarchy").is_none());
 
     // Damage: a node's chunk where the chunk table has none; the root page's offset past the end; a page size not in whole entries; a loop
     // (the root page listing itself as a child page). Each is said, and the file drawn flat.
@@ -215,11 +215,11 @@ fn info_shows_the_copc_levels_and_a_damaged_hierarchy_is_read_flat() {
             "{name}: {err}"
         );
         let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
-        assert!(j["copc"].is_null(), "{name}");
+        assert!(j["lod_source"].is_null(), "{name}");
         assert_eq!(j["points"].as_u64(), Some(1065), "{name}: every point drawn flat: {j}");
         let o = run_ok(mortar().arg("info").arg(&f).arg("--json"));
         let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
-        assert!(j[0]["copc"]["error"].as_str().unwrap().contains(why), "{name}: {j}");
+        assert!(j[0]["hierarchy"]["error"].as_str().unwrap().contains(why), "{name}: {j}");
     }
     let _ = std::fs::remove_dir_all(&dir);
 }
@@ -256,7 +256,7 @@ fn an_ept_directory_is_a_lod_source_whose_closeups_read_a_small_share() {
         "30",
     ];
     let j = render_json(&[&[es, "-o", &png("a.png")][..], &view[..]].concat());
-    let c = &j["copc"];
+    let c = &j["lod_source"];
     assert_eq!(c["format"], "ept", "{j}");
     let share = c["bytes_read"].as_f64().unwrap() / c["bytes"].as_f64().unwrap();
     assert!(share < 0.1, "the closeup read {:.1} % of the bytes: {c}", share * 100.0);
@@ -265,11 +265,11 @@ fn an_ept_directory_is_a_lod_source_whose_closeups_read_a_small_share() {
     let all = render_json(
         &[&[es, "-o", &png("c.png"), "--lod-threshold", "0", "--no-cull"][..], &view[..]].concat(),
     );
-    assert_eq!(all["copc"]["nodes_read"], all["copc"]["nodes"], "{all}");
-    assert_eq!(all["copc"]["points_read"].as_u64(), Some(14_142_410));
+    assert_eq!(all["lod_source"]["nodes_read"], all["lod_source"]["nodes"], "{all}");
+    assert_eq!(all["lod_source"]["points_read"].as_u64(), Some(14_142_410));
     assert!(
-        j0["copc"]["nodes_read"].as_u64().unwrap() * 5
-            < all["copc"]["nodes_read"].as_u64().unwrap()
+        j0["lod_source"]["nodes_read"].as_u64().unwrap() * 5
+            < all["lod_source"]["nodes_read"].as_u64().unwrap()
     );
     assert_eq!(j0["points_drawn"], all["points_drawn"], "culling dropped points in view");
     let (a, b) = (read_png(&dir.join("b.png")), read_png(&dir.join("c.png")));
@@ -289,7 +289,20 @@ fn an_ept_directory_is_a_lod_source_whose_closeups_read_a_small_share() {
         "--point-budget",
         "50000",
     ]);
-    assert_eq!(j["copc"]["nodes_read"], 1, "the root alone within 50,000 points: {j}");
+    assert_eq!(j["lod_source"]["nodes_read"], 1, "the root alone within 50,000 points: {j}");
+    // info: one input, the hierarchy's levels summing to ept.json's points.
+    let o = run_ok(mortar().arg("info").arg(&ept).arg("--json"));
+    let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(j.as_array().unwrap().len(), 1);
+    assert_eq!(
+        (j[0]["kind"].as_str(), j[0]["point_count"].as_u64()),
+        (Some("ept"), Some(14_142_410))
+    );
+    let h = &j[0]["hierarchy"];
+    assert_eq!((h["format"].as_str(), h["nodes"].as_u64()), (Some("ept"), Some(290)), "{h}");
+    let sum: u64 =
+        h["levels"].as_array().unwrap().iter().map(|l| l["points"].as_u64().unwrap()).sum();
+    assert_eq!(sum, 14_142_410);
     // A damaged ept.json is said, and the directory read flat.
     let bad = dir.join("bad-ept");
     std::fs::create_dir_all(&bad).unwrap();
@@ -300,6 +313,9 @@ fn an_ept_directory_is_a_lod_source_whose_closeups_read_a_small_share() {
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("zstandard") && err.contains("flat"), "{err}");
     let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
-    assert!(j["copc"].is_null());
+    assert!(j["lod_source"].is_null());
+    let o = run_ok(mortar().arg("info").arg(&bad).arg("--json"));
+    let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(j[0]["kind"], "laz", "the damaged directory's files described one by one");
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -48,6 +48,8 @@ pub struct EptSource {
     pub hierarchy_bytes: u64,
     /// Bytes of `ept.json`.
     pub meta_bytes: u64,
+    /// `span` of `ept.json` (cells per node edge), where given.
+    pub span: Option<u64>,
 }
 
 /// The directory of an EPT input: `path` itself when it holds `ept.json`, or the directory of
@@ -158,6 +160,7 @@ impl EptSource {
             hierarchy_files: files,
             hierarchy_bytes: bytes,
             meta_bytes: meta_raw.len() as u64,
+            span: meta["span"].as_u64(),
         })
     }
 

@@ -40,18 +40,20 @@ pub struct AttributeInfo {
     pub width: usize,
 }
 
-/// One level of a COPC hierarchy.
+/// One level of a COPC or EPT hierarchy.
 #[derive(Clone, Debug, Serialize)]
-pub struct CopcLevel {
+pub struct HierarchyLevel {
     pub level: u32,
     /// Nodes with points.
     pub nodes: u64,
     pub points: u64,
 }
 
-/// What a COPC file's hierarchy holds, or why it cannot be used.
+/// What a COPC file's or an EPT directory's hierarchy holds, or why it cannot be used.
 #[derive(Clone, Debug, Serialize)]
-pub struct CopcSummary {
+pub struct HierarchySummary {
+    /// `copc` or `ept`.
+    pub format: &'static str,
     pub center: [f64; 3],
     pub halfsize: f64,
     pub spacing: f64,
@@ -61,7 +63,7 @@ pub struct CopcSummary {
     pub nodes: u64,
     /// Points in the nodes (the header's point count for a sound file).
     pub points: u64,
-    pub levels: Vec<CopcLevel>,
+    pub levels: Vec<HierarchyLevel>,
     /// Why the hierarchy cannot be used (mortar then reads the file flat); the other fields
     /// are then zero, or the info VLR's where it parsed.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -69,9 +71,10 @@ pub struct CopcSummary {
 }
 
 /// The COPC hierarchy of `input`, or `None` when it is not a COPC file.
-pub fn copc_summary(input: &crate::source::LasInput) -> Option<CopcSummary> {
+pub fn copc_summary(input: &crate::source::LasInput) -> Option<HierarchySummary> {
     use crate::copc::{info_of, CopcHierarchy};
-    let empty = |error: String| CopcSummary {
+    let empty = |error: String| HierarchySummary {
+        format: "copc",
         center: [0.0; 3],
         halfsize: 0.0,
         spacing: 0.0,
@@ -94,13 +97,9 @@ pub fn copc_summary(input: &crate::source::LasInput) -> Option<CopcSummary> {
             return Some(s);
         }
     };
-    let levels = h
-        .levels()
-        .into_iter()
-        .enumerate()
-        .map(|(l, (nodes, points))| CopcLevel { level: l as u32, nodes, points })
-        .collect();
-    let mut s = CopcSummary {
+    let levels = levels_of(h.nodes.iter().map(|n| (n.key.level, n.points)));
+    let mut s = HierarchySummary {
+        format: "copc",
         center: info.center,
         halfsize: info.halfsize,
         spacing: info.spacing,
@@ -121,6 +120,66 @@ pub fn copc_summary(input: &crate::source::LasInput) -> Option<CopcSummary> {
         ));
     }
     Some(s)
+}
+
+/// Levels of `nodes` (key, points): per level, nodes and points.
+fn levels_of(nodes: impl Iterator<Item = (u8, u64)>) -> Vec<HierarchyLevel> {
+    let mut v: Vec<HierarchyLevel> = Vec::new();
+    for (l, p) in nodes {
+        while v.len() <= l as usize {
+            v.push(HierarchyLevel { level: v.len() as u32, nodes: 0, points: 0 });
+        }
+        v[l as usize].nodes += 1;
+        v[l as usize].points += p;
+    }
+    v
+}
+
+/// `mortar info` of an EPT directory: its root node's file described (format, attributes,
+/// CRS), with the points and bounds of `ept.json` and the hierarchy; `Ok(None)` with a warning
+/// where the directory is not a usable EPT source (its files are then described one by one).
+pub fn ept_info(dir: &std::path::Path) -> Result<(Option<FileInfo>, Option<String>)> {
+    let e = match crate::ept::EptSource::open(dir) {
+        Ok(e) => e,
+        Err(err) => {
+            return Ok((
+                None,
+                Some(format!("{}: EPT: {err}; describing its LAZ files", dir.display())),
+            ))
+        }
+    };
+    let Some(root) = (0..e.nodes.len()).find(|&i| e.nodes[i].key.level == 0) else {
+        return Ok((
+            None,
+            Some(format!("{}: EPT: no root node; describing its LAZ files", dir.display())),
+        ));
+    };
+    let input = crate::source::LasInput::open(&e.node_path(root))?;
+    let mut info = describe(&input, "ept", false, None)?;
+    info.path = dir.display().to_string();
+    info.point_count = e.points;
+    info.points_by_return = vec![0; info.points_by_return.len()];
+    if let Some(c) = e.conforming {
+        info.header_bounds = on_grid(c.min, c.max, info.scale);
+    }
+    let cube = e.tree.cube_bounds();
+    let halfsize = (cube.max[0] - cube.min[0]) / 2.0;
+    let points = e.node_points();
+    info.hierarchy = Some(HierarchySummary {
+        format: "ept",
+        center: [0, 1, 2].map(|a| (cube.min[a] + cube.max[a]) / 2.0),
+        halfsize,
+        spacing: e.span.map_or(0.0, |s| 2.0 * halfsize / s as f64),
+        hierarchy_pages: e.hierarchy_files,
+        hierarchy_bytes: e.hierarchy_bytes,
+        nodes: e.nodes.len() as u64,
+        points,
+        levels: levels_of(e.nodes.iter().map(|n| (n.key.level, n.points))),
+        error: (points != e.points).then(|| {
+            format!("the hierarchy's nodes hold {points} points, ept.json says {}", e.points)
+        }),
+    });
+    Ok((Some(info), None))
 }
 
 /// What an octree store holds (its last commit).
@@ -218,9 +277,9 @@ pub struct FileInfo {
     pub batch: Option<BatchInfo>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub store: Option<StoreInfo>,
-    /// A COPC file's hierarchy (absent for other files).
+    /// A COPC file's or an EPT directory's hierarchy (absent for other inputs).
     #[serde(skip_serializing_if = "Option::is_none")]
-    pub copc: Option<CopcSummary>,
+    pub hierarchy: Option<HierarchySummary>,
     pub stats: Option<Stats>,
     /// Disagreements found (header against points, broken records).
     pub warnings: Vec<String>,
@@ -328,7 +387,7 @@ pub fn describe(
         evlrs: src.evlrs().iter().map(vlr_info).collect(),
         batch: batch.map(batch_info),
         store: None,
-        copc: None,
+        hierarchy: None,
         stats: None,
         warnings,
     };

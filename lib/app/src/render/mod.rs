@@ -104,7 +104,7 @@ pub fn run(a: Args) -> Result<()> {
         });
         j["batch_seconds"] =
             serde_json::json!(if source.is_temporary() { Some(batch_seconds) } else { None });
-        j["copc"] = copc_json;
+        j["lod_source"] = copc_json;
         j["gpu_points_per_second"] = serde_json::json!(gpu_json
             .get("draw_ms")
             .and_then(|v| v.as_f64())
