@@ -319,3 +319,48 @@ fn an_ept_directory_is_a_lod_source_whose_closeups_read_a_small_share() {
     assert_eq!(j[0]["kind"], "laz", "the damaged directory's files described one by one");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn laspy_counts_the_same_points_per_copc_level_as_info() {
+    // An independent reader of the hierarchy: laspy's CopcReader queries each level.
+    let Some(data) = shared_data() else { return };
+    let Some(py) = laspy_python() else { return };
+    let files = copc_files(&data);
+    let script = r#"
+import json, sys, laspy
+out = {}
+for p in sys.argv[1:]:
+    with laspy.CopcReader.open(p) as r:
+        counts, lvl = [], 0
+        while True:
+            n = len(r.query(level=lvl))
+            if n == 0 and lvl > 0 and sum(counts) >= r.header.point_count:
+                break
+            counts.append(n)
+            lvl += 1
+            if lvl > 32:
+                break
+        out[p] = counts
+print(json.dumps(out))
+"#;
+    let o = std::process::Command::new(py).arg("-c").arg(script).args(&files).output().unwrap();
+    assert!(o.status.success(), "laspy: {}", String::from_utf8_lossy(&o.stderr));
+    let theirs: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    for f in &files {
+        let o = run_ok(mortar().arg("info").arg(f).arg("--json"));
+        let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+        let ours: Vec<u64> = j[0]["hierarchy"]["levels"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|l| l["points"].as_u64().unwrap())
+            .collect();
+        let t: Vec<u64> = theirs[f.to_str().unwrap()]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v.as_u64().unwrap())
+            .collect();
+        assert_eq!(ours, t, "{}: points per level, mortar against laspy", f.display());
+    }
+}
