@@ -303,6 +303,28 @@ fn an_ept_directory_is_a_lod_source_whose_closeups_read_a_small_share() {
     let sum: u64 =
         h["levels"].as_array().unwrap().iter().map(|l| l["points"].as_u64().unwrap()).sum();
     assert_eq!(sum, 14_142_410);
+    // A node whose file is missing: exit 1 naming the node, no picture.
+    let holed = dir.join("holed-ept");
+    for sub in ["ept-hierarchy", "ept-data"] {
+        std::fs::create_dir_all(holed.join(sub)).unwrap();
+        for e in std::fs::read_dir(ept.join(sub)).unwrap() {
+            let e = e.unwrap();
+            if e.file_name() != "1-0-0-1.laz" {
+                std::fs::copy(e.path(), holed.join(sub).join(e.file_name())).unwrap();
+            }
+        }
+    }
+    std::fs::copy(ept.join("ept.json"), holed.join("ept.json")).unwrap();
+    let o = mortar()
+        .arg("render")
+        .arg(&holed)
+        .args(["-o", &png("g.png"), "--width", "200", "--height", "100", "--lod-threshold", "0"])
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("node 1-0-0-1") && err.contains("no file"), "{err}");
+    assert!(!dir.join("g.png").exists());
     // A damaged ept.json is said, and the directory read flat.
     let bad = dir.join("bad-ept");
     std::fs::create_dir_all(&bad).unwrap();

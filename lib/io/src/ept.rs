@@ -14,7 +14,7 @@
 use crate::additive::{node_key, AdditiveTree};
 use crate::dataset::{Dataset, OpenOptions, RecordSource};
 pub use crate::error::EptError;
-use crate::error::Result;
+use crate::error::{Error, Result};
 use crate::source::LasInput;
 use mortar_core::octree::{LodOptions, LodSelection, NodeKey};
 use mortar_core::render::{Aabb, Camera, CameraError};
@@ -198,7 +198,19 @@ impl EptSource {
     ) -> Result<Dataset> {
         let mut inputs: Vec<Box<dyn RecordSource>> = Vec::with_capacity(nodes.len());
         for &i in nodes {
-            let mut input = LasInput::open(&self.node_path(i))?;
+            let path = self.node_path(i);
+            if !path.is_file() {
+                let k = self.nodes[i].key;
+                let [x, y, z] = k.index;
+                return Err(Error::Ept {
+                    path: self.dir.clone(),
+                    error: EptError::Hierarchy(format!(
+                        "node {}-{x}-{y}-{z} is in the hierarchy but ept-data has no file for it",
+                        k.level
+                    )),
+                });
+            }
+            let mut input = LasInput::open(&path)?;
             input.decode_only(attributes);
             inputs.push(Box::new(input));
         }

@@ -54,6 +54,9 @@ pub enum Error {
     /// A COPC file's hierarchy cannot be used (read as a LOD source).
     #[error("{path}: COPC: {error}")]
     Copc { path: PathBuf, error: CopcError },
+    /// An EPT directory's node cannot be read.
+    #[error("{path}: EPT: {error}")]
+    Ept { path: PathBuf, error: EptError },
     /// The point format and record length of a file cannot be laid out.
     #[error("{path}: {error}")]
     Layout { path: PathBuf, error: LayoutError },
@@ -629,6 +632,7 @@ macro_rules! leading_path {
             | Error::Io { path, .. }
             | Error::Las { path, .. }
             | Error::Copc { path, .. }
+            | Error::Ept { path, .. }
             | Error::Layout { path, .. }
             | Error::Laz { path, .. }
             | Error::Truncated { path, .. }

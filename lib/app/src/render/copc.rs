@@ -24,14 +24,43 @@ use mortar_io::ept::{ept_dir, EptSource};
 use std::path::Path;
 use std::time::Instant;
 
-/// A COPC file's selected nodes, batched for drawing.
-pub struct CopcSource {
+/// A COPC file's or an EPT directory's selected nodes, batched for drawing.
+pub struct LodSourceInput {
     /// The nodes' points as a temporary batch file.
     pub source: RenderSource,
     /// The box the view frames (the whole file's, by the framing rule of every renderer).
     pub bounds: Aabb,
     /// What was read (`copc` in `--json`).
     pub json: serde_json::Value,
+}
+
+/// What a LOD source's view read against the whole: (read, total) of nodes, points and bytes.
+struct Read {
+    format: &'static str,
+    nodes: (usize, usize),
+    points: (u64, u64),
+    bytes: (u64, u64),
+    pages: u64,
+}
+
+impl Read {
+    /// `lod_source` of `render --json`.
+    fn json(&self, selection: &mortar_core::octree::LodSelection) -> serde_json::Value {
+        serde_json::json!({
+            "format": self.format,
+            "nodes_read": self.nodes.0,
+            "nodes": self.nodes.1,
+            "points_read": self.points.0,
+            "points": self.points.1,
+            "bytes_read": self.bytes.0,
+            "bytes": self.bytes.1,
+            "hierarchy_pages": self.pages,
+            "selected": selection.stats.selected,
+            "culled": selection.stats.culled,
+            "refined": selection.stats.refined,
+            "budget_reached": selection.stats.budget_reached,
+        })
+    }
 }
 
 /// Whether `inputs` is one COPC file (a cheap look at its VLRs) or one EPT directory.
@@ -42,7 +71,7 @@ pub fn is_lod_source_input(a: &Args) -> bool {
 
 /// The COPC input of `a` with the nodes its view needs, or `None` when the input is not a single
 /// COPC file, `--no-lod` asks for the flat read, or the hierarchy cannot be used (warned).
-pub fn open(a: &Args) -> Result<Option<CopcSource>> {
+pub fn open(a: &Args) -> Result<Option<LodSourceInput>> {
     let [one] = &a.inputs[..] else { return Ok(None) };
     if a.lod.no_lod || !is_lod_source_input(a) {
         return Ok(None);
@@ -78,20 +107,14 @@ pub fn open(a: &Args) -> Result<Option<CopcSource>> {
     let read: Vec<_> = nodes.iter().map(|&i| h.nodes[i]).collect();
     let points_read: u64 = read.iter().map(|n| n.points).sum();
     let chunk_bytes: u64 = read.iter().map(|n| n.bytes).sum();
-    let json = serde_json::json!({
-        "format": "copc",
-        "nodes": h.nodes.len(),
-        "nodes_read": nodes.len(),
-        "points": h.points(),
-        "points_read": points_read,
-        "hierarchy_pages": h.pages,
-        "bytes": file.file_len(),
-        "bytes_read": file.index_bytes() + chunk_bytes,
-        "selected": selection.stats.selected,
-        "culled": selection.stats.culled,
-        "refined": selection.stats.refined,
-        "budget_reached": selection.stats.budget_reached,
-    });
+    let json = Read {
+        format: "copc",
+        nodes: (nodes.len(), h.nodes.len()),
+        points: (points_read, h.points()),
+        bytes: (file.index_bytes() + chunk_bytes, file.file_len()),
+        pages: h.pages,
+    }
+    .json(&selection);
     let keep = a.view.color.attributes(file.layout());
     let ds = file.nodes(&nodes, &crs, &keep)?;
     common::print_warnings(&ds.warnings);
@@ -99,11 +122,11 @@ pub fn open(a: &Args) -> Result<Option<CopcSource>> {
     let source = RenderSource::batch_dataset(&ds, &a.sort.options(), &attributes)?;
     let mut json = json;
     json["seconds"] = serde_json::json!(t.elapsed().as_secs_f64());
-    Ok(Some(CopcSource { source, bounds, json }))
+    Ok(Some(LodSourceInput { source, bounds, json }))
 }
 
 /// [`open`] for an EPT directory.
-fn open_ept(a: &Args, dir: &Path) -> Result<Option<CopcSource>> {
+fn open_ept(a: &Args, dir: &Path) -> Result<Option<LodSourceInput>> {
     let t = Instant::now();
     let label = dir.display().to_string();
     let ept = match EptSource::open(dir) {
@@ -131,20 +154,14 @@ fn open_ept(a: &Args, dir: &Path) -> Result<Option<CopcSource>> {
     common::print_warnings(&ds.warnings);
     let attributes = AttributeSelection::Only(keep.iter().map(|n| n.to_string()).collect());
     let source = RenderSource::batch_dataset(&ds, &a.sort.options(), &attributes)?;
-    let json = serde_json::json!({
-        "format": "ept",
-        "nodes": ept.nodes.len(),
-        "nodes_read": nodes.len(),
-        "points": ept.points,
-        "points_read": points_read,
-        "hierarchy_pages": ept.hierarchy_files,
-        "bytes": ept.total_bytes(),
-        "bytes_read": ept.meta_bytes + ept.hierarchy_bytes + ept.node_bytes(&nodes),
-        "selected": selection.stats.selected,
-        "culled": selection.stats.culled,
-        "refined": selection.stats.refined,
-        "budget_reached": selection.stats.budget_reached,
-        "seconds": t.elapsed().as_secs_f64(),
-    });
-    Ok(Some(CopcSource { source, bounds, json }))
+    let mut json = Read {
+        format: "ept",
+        nodes: (nodes.len(), ept.nodes.len()),
+        points: (points_read, ept.points),
+        bytes: (ept.meta_bytes + ept.hierarchy_bytes + ept.node_bytes(&nodes), ept.total_bytes()),
+        pages: ept.hierarchy_files,
+    }
+    .json(&selection);
+    json["seconds"] = serde_json::json!(t.elapsed().as_secs_f64());
+    Ok(Some(LodSourceInput { source, bounds, json }))
 }
