@@ -29,9 +29,12 @@ fps = statistics.median(j["preview"]["frames_per_second_during_build"] for j in 
 med = statistics.median(j["preview"]["frame_ms_median"] for j in prev)
 p95 = statistics.median(j["preview"]["frame_ms_p95"] for j in prev)
 first = statistics.median(j["preview"]["frames"][0]["at_seconds"] for j in prev)
+late = [j["preview"].get("frames_over_period") for j in prev]
+up = statistics.median(max(f["nodes_uploaded"] for f in j["preview"]["frames"]) for j in prev)
 print(f"points {plain[0]['points']}, renderer {prev[0]['preview']['renderer']}")
 print(f"build without preview: median {ps:.2f} s {[round(j['seconds'], 2) for j in plain]} commits {plain[0]['commits']}")
 print(f"build with preview:    median {vs:.2f} s {[round(j['seconds'], 2) for j in prev]} commits {prev[0]['commits']}")
 print(f"throughput kept: {ps / vs * 100:.1f} %")
 print(f"preview: {fps:.1f} frames/s during the build, frame {med:.2f} ms median, {p95:.2f} ms p95, first frame at {first * 1e3:.0f} ms")
+print(f"frames over 16.7 ms: {late}; most nodes uploaded in one frame: {up}")
 PY

@@ -187,4 +187,30 @@ fn frames_on_the_gpu_equal_the_cpu_frames_and_the_offscreen_preview_reports_its_
     assert_eq!(last["commit"], j["commits"], "the last preview frame shows the last commit");
     let uploaded: u64 = frames.iter().map(|f| f["nodes_uploaded"].as_u64().unwrap()).sum();
     assert!(uploaded > 0);
+
+    // Paced uploads (one node a frame): a new commit stays behind the one shown until all its
+    // selected nodes are on the GPU, then shows whole; the last frame is the whole last commit,
+    // as drawn when every node is uploaded in one frame.
+    let paced = dir.join("s-paced");
+    let o = run_ok(
+        mortar()
+            .arg("build")
+            .arg(&input)
+            .arg("-o")
+            .arg(&paced)
+            .args(["--batch-points", "5000", "--commit-every", "0", "--preview"])
+            .args(["--preview-offscreen", "--preview-backend", "gpu", "--preview-size"])
+            .args(["320x240", "--json"])
+            .env("MORTAR_UPLOAD_BUDGET_MS", "0"),
+    );
+    let q: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let qf = q["preview"]["frames"].as_array().unwrap();
+    assert!(qf.iter().all(|f| f["nodes_uploaded"].as_u64().unwrap() <= 1), "one node a frame");
+    let ql = qf.last().unwrap();
+    assert_eq!(ql["commit"], q["commits"], "the last paced frame shows the last commit");
+    assert!(ql["nodes_drawn"].as_u64().unwrap() > 1, "{ql}");
+    assert_eq!(ql["nodes_drawn"], last["nodes_drawn"], "the last paced frame is whole");
+    assert_eq!(ql["points_drawn"], last["points_drawn"], "the last paced frame is whole");
+    // Frames went on while the nodes arrived one by one.
+    assert!(qf.len() as u64 >= ql["nodes_drawn"].as_u64().unwrap(), "{} frames", qf.len());
 }

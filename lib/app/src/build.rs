@@ -222,6 +222,10 @@ pub fn run(a: &Args) -> Result<Outcome> {
         let bounds = crate::frames::header_bounds(&ds);
         let (ds, output, opts) = (&ds, &output, &opts);
         let job = move |report: &mut dyn FnMut(&BuildProgress)| {
+            // The build's threads (this one and rayon's, for the rest of the command) give way
+            // to the preview's frame thread (mortar_io::threads).
+            mortar_io::threads::lower_priority();
+            rayon::broadcast(|_| mortar_io::threads::lower_priority());
             build(ds, output, opts, &mut |p| {
                 progress(p);
                 report(p);

@@ -69,3 +69,4 @@ pub mod sink_las;
 pub mod sort;
 pub mod store;
 pub mod synth;
+pub mod threads;

@@ -89,7 +89,9 @@ pub struct GpuScene {
 
 impl GpuScene {
     /// An empty scene of points on the world grid `grid`. `expected_points` sizes the chunks
-    /// (the last one is no larger than needed); more points may still come.
+    /// (the last one is no larger than needed); more points may still come: chunks beyond the
+    /// expected points hold half the points so far (at least 1 Mi, at most a chunk), so that a
+    /// scene filled node by node (a store view) keeps few chunks.
     pub fn new(
         ctx: &GpuContext,
         grid: Grid,
@@ -256,7 +258,9 @@ impl GpuScene {
     /// Makes a chunk for at least `at_least` more points and returns its position.
     fn new_chunk(&mut self, ctx: &GpuContext, at_least: u32) -> Result<usize, GpuError> {
         let remaining = self.expected_points.saturating_sub(self.points);
-        let capacity = (remaining.min(self.chunk_points as u64) as u32).max(at_least).max(1);
+        let wanted =
+            if remaining >= at_least as u64 { remaining } else { (self.points / 2).max(1 << 20) };
+        let capacity = (wanted.min(self.chunk_points as u64) as u32).max(at_least).max(1);
         let first_index = self.points as u32;
         let make = |label: &str| {
             ctx.device.create_buffer(&wgpu::BufferDescriptor {

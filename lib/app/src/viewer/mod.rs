@@ -17,6 +17,7 @@
 pub mod args;
 mod build_state;
 pub mod content;
+mod node_loader;
 mod overlay;
 mod preview;
 pub mod progressive_view;

@@ -9,6 +9,15 @@
 //!   is never rewritten, so when a growing store commits again (the preview), only the nodes
 //!   whose payload is new are uploaded; the replaced ones become garbage on the GPU, and the
 //!   scene is rebuilt from what is selected when the garbage outweighs the live samples.
+//! - Uploads are paced: a frame decodes and uploads nodes for at most [`UPLOAD_BUDGET_MS`] (and
+//!   at least one node), so that a frame never waits for a whole selection (a new commit of a
+//!   100 M-point build brings millions of new samples). A new commit is uploaded behind the one
+//!   shown, which stays on screen until every node the new commit's selection needs is on the
+//!   GPU; then the view switches to it in one frame (no holes), and opens the newest commit if
+//!   more came meanwhile (a build that commits faster than its nodes upload still shows each
+//!   step it can, rather than chasing its newest commit). Nodes a moved camera newly needs
+//!   arrive over the next frames; meanwhile [`busy`](Content::busy) is true, so the window keeps
+//!   drawing and a screenshot waits for the complete picture.
 //! - Colours: every sample is a real source point with its record, so a store view has every
 //!   colour mode its point format has (C cycles them): `auto` (RGB where the source has it, else
 //!   intensity), elevation, intensity, classification, return number, GPS time. Scalar modes map
@@ -19,6 +28,7 @@
 //!   alike and a growing store's colours do not shift from frame to frame.
 
 use super::content::{Content, GpuDrawn};
+use super::node_loader::NodeLoader;
 use crate::draw;
 use crate::draw::lod::LodColor;
 use crate::draw::{ColorChoice, RenderSettings};
@@ -32,9 +42,27 @@ use mortar_io::store::{PayloadPlace, StoreLod};
 use mortar_render::{GpuContext, GpuError, GpuFrame, GpuRasterizer, GpuScene, SceneOptions};
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 /// Most samples per GPU batch (a node is uploaded in slices of this size).
 const SLICE: usize = 1 << 14;
+
+/// Time a frame may spend decoding and uploading nodes (beyond its first node): half of a
+/// 60 Hz frame, leaving the rest to the draw. The environment variable
+/// `MORTAR_UPLOAD_BUDGET_MS` replaces it (tests set 0: one node a frame).
+pub const UPLOAD_BUDGET_MS: f64 = 8.0;
+
+/// The upload budget in force (see [`UPLOAD_BUDGET_MS`]).
+fn upload_budget_ms() -> f64 {
+    static BUDGET: std::sync::OnceLock<f64> = std::sync::OnceLock::new();
+    *BUDGET.get_or_init(|| {
+        std::env::var("MORTAR_UPLOAD_BUDGET_MS")
+            .ok()
+            .and_then(|v| v.parse::<f64>().ok())
+            .filter(|v| v.is_finite() && *v >= 0.0)
+            .unwrap_or(UPLOAD_BUDGET_MS)
+    })
+}
 
 /// The colour modes of a store view of points in `layout`: `auto`, elevation, then the
 /// attribute modes the format has.
@@ -72,13 +100,15 @@ struct StoreGpu {
     mode: usize,
     /// Samples in the scene that no node of the current commit uses.
     garbage: u64,
+    /// Colours the nodes in `mode` off the frame thread (made at the first frame with a commit).
+    loader: Option<NodeLoader>,
 }
 
 /// An octree store shown in a window.
 pub struct StoreView {
     path: PathBuf,
     /// The last commit, or `None` while a build has not committed yet.
-    lod: Option<StoreLod>,
+    lod: Option<Arc<StoreLod>>,
     commit: u64,
     options: LodOptions,
     /// The colour modes (see [`modes_of`]).
@@ -93,6 +123,13 @@ pub struct StoreView {
     /// The colour mode shown (a position in `modes`).
     mode: usize,
     gpu: Option<StoreGpu>,
+    /// A newer commit being uploaded behind the one shown (GPU only; see the module docs).
+    pending: Option<Arc<StoreLod>>,
+    /// Whether a commit came while one was pending (it is opened when the pending one is shown).
+    stale: bool,
+    /// Whether the commit shown was not drawn whole yet (the last GPU frame left selected nodes
+    /// out, or no frame drew it).
+    incomplete: bool,
     pub selected: Selected,
 }
 
@@ -108,7 +145,8 @@ impl StoreView {
         let mut v = StoreView::waiting(dir, bounds, &layout, options, range);
         v.commit = lod.store().header.commit;
         v.set_ranges(&lod);
-        v.lod = Some(lod);
+        v.lod = Some(Arc::new(lod));
+        v.incomplete = true;
         Ok(v)
     }
 
@@ -137,6 +175,9 @@ impl StoreView {
             bounds,
             mode: 0,
             gpu: None,
+            pending: None,
+            stale: false,
+            incomplete: false,
             selected: Selected::default(),
         }
     }
@@ -189,8 +230,17 @@ impl StoreView {
         self.commit
     }
 
-    /// Opens the store's last commit if it is newer than the one shown; whether it was.
+    /// Opens the store's last commit if it is newer than the one shown; whether it was. Without
+    /// the GPU the view switches to it at once; with the GPU it becomes the pending commit (see
+    /// the module docs), and while one is pending a newer commit waits for it to be shown.
     fn reload_commit(&mut self) -> Result<bool> {
+        if self.pending.is_some() {
+            // The pending commit is shown first (so that a build committing faster than its
+            // nodes upload still shows progress); a newer one is opened once it is.
+            self.stale = true;
+            return Ok(false);
+        }
+        self.stale = false;
         let lod = match StoreLod::open(&self.path) {
             Ok(l) => l,
             // No commit yet.
@@ -200,15 +250,26 @@ impl StoreView {
         if lod.store().header.commit == self.commit {
             return Ok(false);
         }
-        self.commit = lod.store().header.commit;
         if self.lod.is_none() {
             self.set_ranges(&lod);
         }
+        let lod = Arc::new(lod);
+        if self.gpu.is_some() && self.lod.is_some() {
+            self.pending = Some(lod);
+        } else {
+            self.show(lod);
+        }
+        Ok(true)
+    }
+
+    /// Shows commit `lod` from now on: the GPU batches of payloads it no longer has become
+    /// garbage.
+    fn show(&mut self, lod: Arc<StoreLod>) {
+        self.commit = lod.store().header.commit;
         if let Some(g) = &mut self.gpu {
             let live: std::collections::HashSet<PayloadPlace> = (0..lod.node_count())
                 .map(|i| lod.payload_place(mortar_core::octree::NodeId(i as u32)))
                 .collect();
-            let before = g.batches.len();
             let mut dropped = 0;
             g.batches.retain(|off, (_, _, n)| {
                 let keep = live.contains(off);
@@ -218,10 +279,13 @@ impl StoreView {
                 keep
             });
             g.garbage += dropped;
-            debug_assert!(g.batches.len() <= before);
+            if let Some(l) = &mut g.loader {
+                l.retain(|p| live.contains(p));
+            }
         }
         self.lod = Some(lod);
-        Ok(true)
+        // Not drawn whole yet.
+        self.incomplete = true;
     }
 
     fn settings(
@@ -246,7 +310,7 @@ impl Content for StoreView {
 
     /// Points in the last commit.
     fn points(&self) -> u64 {
-        self.lod.as_ref().map_or(0, StoreLod::point_count)
+        self.lod.as_ref().map_or(0, |l| l.point_count())
     }
 
     fn modes(&self) -> &[ColorChoice] {
@@ -279,8 +343,9 @@ impl Content for StoreView {
         ]
     }
 
+    /// A commit waits to be shown, or the last frame left nodes out.
     fn busy(&self) -> bool {
-        false
+        self.pending.is_some() || self.stale || self.incomplete
     }
 
     fn reload(&mut self) -> Result<bool> {
@@ -289,7 +354,7 @@ impl Content for StoreView {
 
     fn use_gpu(&mut self, ctx: &GpuContext) -> Result<(), GpuError> {
         let grid =
-            self.lod.as_ref().map_or(Grid { scale: [1.0; 3], offset: [0.0; 3] }, StoreLod::grid);
+            self.lod.as_ref().map_or(Grid { scale: [1.0; 3], offset: [0.0; 3] }, |l| l.grid());
         self.gpu = Some(StoreGpu {
             scene: GpuScene::new(
                 ctx,
@@ -300,6 +365,7 @@ impl Content for StoreView {
             batches: HashMap::new(),
             mode: self.mode,
             garbage: 0,
+            loader: None,
         });
         Ok(())
     }
@@ -323,11 +389,14 @@ impl Content for StoreView {
             draw::lod::render(lod, &batches, camera, &self.settings(self.mode, options, resolve))?;
         self.selected =
             Selected { nodes: sel.nodes.len() as u64, samples: batches.samples, uploaded_nodes: 0 };
+        self.incomplete = false;
         Ok((img.rgba, batches.samples))
     }
 
     /// The LOD selection of `camera`, drawn by the GPU rasterizer into `raster` (resolved, ready
-    /// to present), uploading the selected nodes the GPU does not hold yet.
+    /// to present). Uploads the selected nodes the GPU does not hold yet, within the frame's
+    /// upload budget: first those of a pending commit (shown once all are on the GPU), then those
+    /// of the commit shown (missing ones are left out of this frame).
     fn draw_gpu(
         &mut self,
         ctx: &GpuContext,
@@ -336,12 +405,22 @@ impl Content for StoreView {
         options: &RasterOptions,
         resolve: &ResolveOptions,
     ) -> Result<GpuDrawn> {
+        let start = std::time::Instant::now();
         let mode = self.mode;
         let path = self.path.display().to_string();
         let gpu = |e: GpuError| anyhow!("{path}: GPU: {e}");
         let drawn = |f: GpuFrame| GpuDrawn::of(&f);
-        let g = self.gpu.as_mut().ok_or_else(|| anyhow!("{path}: GPU: not set up"))?;
+        if self.gpu.is_none() {
+            return Err(anyhow!("{path}: GPU: not set up"));
+        }
+        if self.lod.is_none() {
+            if let Some(p) = self.pending.take() {
+                self.show(p);
+            }
+        }
         let Some(lod) = &self.lod else {
+            let g = self.gpu.as_mut().expect("checked above");
+            self.incomplete = false;
             return raster
                 .draw_selected(ctx, &mut g.scene, Some(&[]), camera, options, Some(resolve))
                 .map(drawn)
@@ -349,6 +428,8 @@ impl Content for StoreView {
         };
         let sel = lod.select(camera, &self.options)?;
         let samples: u64 = sel.nodes.iter().map(|&id| lod.index().samples(id)).sum();
+        let upload = Upload { ctx, mode, color: self.modes[mode], range: self.ranges[mode], start };
+        let g = self.gpu.as_mut().expect("checked above");
         // A new colour mode, a new grid (the first commit) or more garbage than live samples:
         // start a new scene with what this frame needs.
         let live = g.scene.points() - g.garbage;
@@ -356,6 +437,7 @@ impl Content for StoreView {
             || *g.scene.grid() != lod.grid()
             || (g.garbage > live && g.garbage > 1 << 20)
             || g.scene.points() + samples >= 1 << 32
+            || self.pending.as_ref().is_some_and(|p| p.grid() != *g.scene.grid())
         {
             *g = StoreGpu {
                 scene: GpuScene::new(
@@ -368,21 +450,113 @@ impl Content for StoreView {
                 batches: HashMap::new(),
                 mode,
                 garbage: 0,
+                loader: None,
             };
+            // The pending commit's uploads went with the old scene: show it now, progressively.
+            if let Some(p) = self.pending.take() {
+                self.show(p);
+                if self.stale {
+                    self.reload_commit()?;
+                }
+                return self.draw_gpu(ctx, raster, camera, options, resolve);
+            }
         }
-        let color = LodColor::of(lod.store(), self.modes[mode])?;
-        let range = self.ranges[mode];
-        let mut ids = Vec::with_capacity(sel.nodes.len());
         let mut uploaded = 0;
-        for &id in &sel.nodes {
+        let mut ids = Vec::with_capacity(sel.nodes.len());
+        // The shown commit's missing nodes first (a moved camera), then the pending commit's.
+        let shown = upload
+            .nodes(g, lod, &sel.nodes, &mut ids, &mut uploaded)
+            .map_err(|e| anyhow!("{path}: {e:#}"))?;
+        let mut switch = false;
+        if let Some(p) = &self.pending {
+            let psel = p.select(camera, &self.options)?;
+            let psamples: u64 = psel.nodes.iter().map(|&id| p.index().samples(id)).sum();
+            if g.scene.points() + psamples >= 1 << 32 {
+                // No room for both commits: the next frame starts a new scene (above).
+                switch = true;
+            } else {
+                let mut pids = Vec::with_capacity(psel.nodes.len());
+                switch = upload
+                    .nodes(g, p, &psel.nodes, &mut pids, &mut uploaded)
+                    .map_err(|e| anyhow!("{path}: {e:#}"))?;
+                if switch {
+                    ids = pids;
+                    self.selected = Selected {
+                        nodes: psel.nodes.len() as u64,
+                        samples: psamples,
+                        uploaded_nodes: uploaded,
+                    };
+                }
+            }
+        }
+        if switch {
+            let p = self.pending.take().expect("a pending commit");
+            self.show(p);
+            self.incomplete = false;
+            if self.stale {
+                self.reload_commit()?;
+            }
+        } else {
+            self.incomplete = !shown;
+            self.selected =
+                Selected { nodes: sel.nodes.len() as u64, samples, uploaded_nodes: uploaded };
+        }
+        let g = self.gpu.as_mut().expect("checked above");
+        raster
+            .draw_selected(ctx, &mut g.scene, Some(&ids), camera, options, Some(resolve))
+            .map(drawn)
+            .map_err(gpu)
+    }
+}
+
+/// One frame's uploads (see the module docs).
+struct Upload<'a> {
+    ctx: &'a GpuContext,
+    mode: usize,
+    color: ColorChoice,
+    range: Option<[f64; 2]>,
+    /// When the frame began (the budget counts from it).
+    start: std::time::Instant,
+}
+
+impl Upload<'_> {
+    /// Puts the scene batches of `nodes` of `lod` into `ids`, uploading those the scene lacks
+    /// whose colours the loader has ready, while the frame's budget lasts (always one per frame),
+    /// and asking the loader for the others; whether every node is in `ids`.
+    fn nodes(
+        &self,
+        g: &mut StoreGpu,
+        lod: &Arc<StoreLod>,
+        nodes: &[mortar_core::octree::NodeId],
+        ids: &mut Vec<u32>,
+        uploaded: &mut u64,
+    ) -> Result<bool> {
+        debug_assert_eq!(g.mode, self.mode);
+        let color = LodColor::of(lod.store(), self.color)?;
+        let range = self.range;
+        let loader = g
+            .loader
+            .get_or_insert_with(|| NodeLoader::new(color, range, NodeLoader::default_threads()));
+        loader.collect()?;
+        let mut complete = true;
+        for &id in nodes {
             let off = lod.payload_place(id);
             if let Some(&(b, k, _)) = g.batches.get(&off) {
                 ids.extend(b..b + k);
                 continue;
             }
+            if *uploaded > 0 && self.start.elapsed().as_secs_f64() * 1e3 >= upload_budget_ms() {
+                // Over budget: the colours are still asked for, to be ready for a later frame.
+                loader.ask(lod, id, off);
+                complete = false;
+                continue;
+            }
+            let Some(c) = loader.take(lod, id, off) else {
+                complete = false;
+                continue;
+            };
             let first = g.scene.points();
             let batch = lod.node_batch(id, first as u32);
-            let c = draw::lod::node_colors(lod, id, color, range)?;
             // A node can hold millions of samples, and the rasterizer gives one workgroup to a
             // batch: nodes go to the GPU in slices of at most SLICE samples (same frame and
             // bounds, consecutive indices), so that a large node keeps the whole GPU busy.
@@ -396,18 +570,13 @@ impl Content for StoreView {
                     first_index: batch.first_index + s as u32,
                     ..batch
                 };
-                g.scene.push(ctx, &part, Some(&c[s..e])).map_err(gpu)?;
+                g.scene.push(self.ctx, &part, Some(&c[s..e])).map_err(|e| anyhow!("GPU: {e}"))?;
                 k += 1;
             }
             g.batches.insert(off, (b, k, n as u64));
             ids.extend(b..b + k);
-            uploaded += 1;
+            *uploaded += 1;
         }
-        self.selected =
-            Selected { nodes: sel.nodes.len() as u64, samples, uploaded_nodes: uploaded };
-        raster
-            .draw_selected(ctx, &mut g.scene, Some(&ids), camera, options, Some(resolve))
-            .map(drawn)
-            .map_err(gpu)
+        Ok(complete)
     }
 }

@@ -542,8 +542,8 @@ impl ApplicationHandler<Wake> for App<'_> {
                 let shooting = self.args.screenshot.is_some();
                 let last = shooting
                     && match &self.build {
-                        // A preview's screenshot shows the finished store.
-                        Some(b) => b.final_loaded,
+                        // A preview's screenshot shows the finished store, whole.
+                        Some(b) => b.final_loaded && !self.busy(),
                         // A progressive view's screenshot shows its final image.
                         None => self.frames.len() + 1 >= self.args.frames as usize && !self.busy(),
                     };
@@ -560,7 +560,9 @@ impl ApplicationHandler<Wake> for App<'_> {
                             Err(e) => self.fail(event_loop, e),
                         }
                     }
-                    Ok(_) if shooting && self.build.is_none() => self.redraw(),
+                    Ok(_) if shooting && self.build.as_ref().is_none_or(|b| b.final_loaded) => {
+                        self.redraw()
+                    }
                     // Progressive frames go on until the image is final.
                     Ok(_) if self.busy() => self.redraw(),
                     Ok(_) => {}
