@@ -5,7 +5,9 @@
 //! while a build keeps every core busy, the part that made frames late when the frame thread did
 //! it. A [`NodeLoader`] runs a few threads that take nodes in the order asked and hand back their
 //! colours; the frame thread uploads whatever is ready and never waits. Dropping the loader
-//! cancels the jobs not started.
+//! cancels the jobs not started. Colours of nodes asked for and then no longer selected (the
+//! camera moved on) stay ready until a new commit is shown (a growing store) or the loader is
+//! dropped (a new colour mode): at most 4 bytes a sample of the nodes the views selected.
 
 use crate::draw;
 use crate::draw::lod::LodColor;
