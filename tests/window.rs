@@ -720,3 +720,149 @@ fn build_preview_runs_the_gpu_engine() {
         );
     }
 }
+
+/// Issue 30 §1: `mortar view` of a COPC file or an EPT directory selects nodes by the store's
+/// rule and decodes only those: every node framed at threshold 0 (the picture `mortar render`
+/// draws, but where points tie in depth), a small share for a closeup; the GPU draws what the
+/// CPU draws.
+#[test]
+fn view_streams_copc_and_ept_nodes() {
+    let Some(x) = xvfb_or_skip() else { return };
+    let dir = tempdir("window-copc");
+    let copc = dir.join("sample.copc.laz");
+    run_ok(
+        mortar()
+            .arg("export")
+            .arg(sample())
+            .args(["--format", "copc", "--leaf-capacity", "5000", "-q", "-o"])
+            .arg(&copc),
+    );
+    let gpu = mortar_render::testing::context_or_skip(mortar_render::AtomicPath::TwoPass32, None)
+        .is_some();
+    let mut inputs = vec![(copc.clone(), 110_000u64)];
+    if let Some(data) = shared_data() {
+        inputs.push((data.join("potree/pointclouds/lion_takanawa.copc.laz"), 341_989));
+        inputs.push((data.join("PyForestScan/example_data/ept"), 14_142_410));
+    }
+    let differ = |a: &[[u8; 4]], b: &[[u8; 4]]| a.iter().zip(b).filter(|(p, q)| p != q).count();
+    for (input, points) in &inputs {
+        let name = input.file_name().unwrap().to_string_lossy().to_string();
+        let s = input.to_str().unwrap();
+        for color in ["classification", "auto"] {
+            let common = [
+                "--width",
+                "320",
+                "--height",
+                "240",
+                "--precision",
+                "30",
+                "--color",
+                color,
+                "--range",
+                "0,255",
+                "--lod-threshold",
+                "0",
+            ];
+            let shot = |backend: &str| {
+                let png = dir.join(format!("{name}-{color}-{backend}.png"));
+                let mut args = vec![s, "--no-status", "--screenshot", png.to_str().unwrap()];
+                args.extend_from_slice(&["--json", "--backend", backend]);
+                args.extend_from_slice(&common);
+                let o = view(&x.display, &args);
+                assert!(
+                    o.status.success(),
+                    "view {args:?}: {}",
+                    String::from_utf8_lossy(&o.stderr)
+                );
+                let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+                (j, read_png(&png).2)
+            };
+            let (j, cpu) = shot("cpu");
+            let c = &j["lod_source"];
+            assert_eq!(j["points"].as_u64(), Some(*points), "{name}: {j}");
+            assert_eq!(c["nodes_read"], c["nodes"], "{name}: framed at threshold 0: {c}");
+            assert_eq!(c["points_read"].as_u64(), Some(*points), "{name}: {c}");
+            let png = dir.join(format!("{name}-{color}-render.png"));
+            let o = run_ok(
+                mortar()
+                    .arg("render")
+                    .arg(input)
+                    .args(["--backend", "cpu", "--json", "-o"])
+                    .arg(&png)
+                    .args(common),
+            );
+            let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+            let ties = r["depth_ties"].as_u64().unwrap() as usize;
+            let rendered = read_png(&png).2;
+            let drawn = rendered.iter().filter(|p| p[..3] != [0, 0, 0]).count();
+            let d = differ(&cpu, &rendered);
+            eprintln!("{name} {color}: {d} of {drawn} pixels differ, {ties} depth ties");
+            assert!(drawn > 2_000, "{name}: {drawn} pixels drawn");
+            assert!(d <= ties, "{name} {color}: {d} pixels differ from render, {ties} ties");
+            if gpu {
+                let (gj, g) = shot("gpu");
+                assert_eq!(gj["renderer"]["backend"], "gpu", "{gj}");
+                // The GPU numbers points in upload order (coarse nodes first), the CPU in read
+                // order: they differ at most where points tie in depth.
+                let d = differ(&g, &cpu);
+                assert!(d <= ties, "{name} {color}: the GPU and CPU views differ in {d} pixels");
+            }
+        }
+    }
+    // Closeups read a small share of the bytes, and draw what `mortar render` draws of the
+    // same view (the same selection) but where points tie in depth.
+    let mut closeups =
+        vec![(copc.clone(), ["636300,849100,430", "636300,849000,500", "10"], 0.5, 100)];
+    if let Some(data) = shared_data() {
+        let ept = data.join("PyForestScan/example_data/ept");
+        closeups.push((ept, ["202150,2184150,1300", "202150,2183950,1700", "15"], 0.1, 1_000));
+    }
+    // (input, camera, most bytes read, fewest pixels drawn: the sample is sparse)
+    for (input, [target, eye, fov], most, fewest) in &closeups {
+        let common = [
+            "--width",
+            "320",
+            "--height",
+            "240",
+            "--target",
+            target,
+            "--eye",
+            eye,
+            "--fov",
+            fov,
+            "--precision",
+            "30",
+            "--color",
+            "classification",
+            "--backend",
+            "cpu",
+            "--json",
+        ];
+        let png = dir.join("closeup.png");
+        let mut args = vec![input.to_str().unwrap(), "--no-status", "--screenshot"];
+        args.push(png.to_str().unwrap());
+        args.extend_from_slice(&common);
+        let o = view(&x.display, &args);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+        let c = &j["lod_source"];
+        let share = c["bytes_read"].as_f64().unwrap() / c["bytes"].as_f64().unwrap();
+        assert!(
+            share < *most,
+            "{input:?}: the closeup read {:.1} % of the bytes: {c}",
+            share * 100.0
+        );
+        assert!(c["nodes_read"].as_u64().unwrap() * 4 < c["nodes"].as_u64().unwrap(), "{c}");
+        let shown = read_png(&png).2;
+        let rpng = dir.join("closeup-render.png");
+        let o = run_ok(mortar().arg("render").arg(input).arg("-o").arg(&rpng).args(common));
+        let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+        assert_eq!(r["lod_source"]["nodes_read"], c["nodes_read"], "{r}");
+        let rendered = read_png(&rpng).2;
+        let d = differ(&shown, &rendered);
+        let ties = r["depth_ties"].as_u64().unwrap() as usize;
+        let drawn = drawn_below_status(320, &rendered);
+        assert!(drawn > *fewest, "{input:?}: the closeup drew {drawn} pixels");
+        assert!(d <= ties, "{input:?}: the closeup differs from render in {d} pixels, {ties} ties");
+    }
+}

@@ -89,14 +89,28 @@ fn walk(d: &Path, out: &mut Vec<PathBuf>) {
     }
 }
 
-/// Runs a command with a time limit; kills it and panics when it runs over.
+/// Runs a command with a time limit; kills it and panics when it runs over. Its output is read
+/// while it runs (a child writing more than a pipe holds would otherwise wait forever).
 pub fn run_limited(mut c: Command, limit: Duration) -> Output {
+    use std::io::Read;
     c.stdout(Stdio::piped()).stderr(Stdio::piped());
     let mut child = c.spawn().expect("spawn");
+    let drain = |r: Option<Box<dyn Read + Send>>| {
+        std::thread::spawn(move || {
+            let mut v = Vec::new();
+            if let Some(mut r) = r {
+                let _ = r.read_to_end(&mut v);
+            }
+            v
+        })
+    };
+    let out = drain(child.stdout.take().map(|r| Box::new(r) as Box<dyn Read + Send>));
+    let err = drain(child.stderr.take().map(|r| Box::new(r) as Box<dyn Read + Send>));
     let start = Instant::now();
     loop {
-        if let Some(_status) = child.try_wait().unwrap() {
-            return child.wait_with_output().unwrap();
+        if let Some(status) = child.try_wait().unwrap() {
+            let (stdout, stderr) = (out.join().unwrap(), err.join().unwrap());
+            return Output { status, stdout, stderr };
         }
         if start.elapsed() > limit {
             let _ = child.kill();

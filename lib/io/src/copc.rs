@@ -324,16 +324,19 @@ impl CopcFile {
 
     /// The points of `nodes` (positions in the hierarchy's nodes) as a dataset that decodes
     /// only their chunks, and of those only the `attributes` named (positions always; see
-    /// [`LasInput::decode_only`]).
+    /// [`LasInput::decode_only`]). The file is opened again (a map, the chunk table): a viewer
+    /// asks for nodes one by one.
     pub fn nodes(
-        self,
+        &self,
         nodes: &[usize],
         opts: &OpenOptions,
         attributes: &[&str],
     ) -> Result<Dataset> {
-        let CopcFile { path, lod, mut input } = self;
+        let mut input = LasInput::open(&self.path)?;
         input.decode_only(attributes);
-        lod.open_nodes(&mut input, nodes).map_err(|error| Error::Copc { path, error })?;
+        self.lod
+            .open_nodes(&mut input, nodes)
+            .map_err(|error| Error::Copc { path: self.path.clone(), error })?;
         let sources: Vec<Box<dyn RecordSource>> = vec![Box::new(input)];
         Dataset::with_options(sources, opts)
     }

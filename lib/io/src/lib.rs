@@ -64,6 +64,7 @@ pub mod export;
 pub mod framing;
 pub mod info;
 pub mod inputs;
+pub mod lod_source;
 pub mod progress;
 pub mod sink_las;
 pub mod sort;

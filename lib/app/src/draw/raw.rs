@@ -148,6 +148,19 @@ fn split(records: &[u8], layout: &RecordLayout, payload: Payload, out: &mut Load
     }
 }
 
+/// Decodes every piece of `ds` on the calling thread, in order, into one [`LoadedPiece`] whose
+/// first point is `first` (a viewer's node: one COPC chunk or EPT file).
+pub fn load_all(ds: &Dataset, payload: Payload, first: u64) -> Result<LoadedPiece> {
+    let t = Instant::now();
+    let mut out = LoadedPiece { first, ..LoadedPiece::default() };
+    for p in ds.pieces() {
+        let records = ds.read_piece(&p)?;
+        split(&records, &ds.layout, payload, &mut out);
+    }
+    out.seconds = t.elapsed().as_secs_f64();
+    Ok(out)
+}
+
 /// Decodes every piece of `ds` on a pool of `threads` threads of its own (so that decoding does
 /// not queue behind the renderer's work on the global pool, nor the renderer behind it) and hands
 /// each to `deliver` as soon as it is ready, in no particular order. Stops early when `cancel` is

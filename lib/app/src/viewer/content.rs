@@ -93,6 +93,10 @@ pub trait Content {
         options: &RasterOptions,
         resolve: &ResolveOptions,
     ) -> Result<GpuDrawn>;
+    /// What the content read, for `--json` (`lod_source` of a COPC or EPT view).
+    fn report(&self) -> Option<serde_json::Value> {
+        None
+    }
     /// The content's own resolved image on the GPU, after [`draw_gpu`](Self::draw_gpu).
     fn image(&self) -> Option<&wgpu::Buffer> {
         None

@@ -17,6 +17,7 @@
 pub mod args;
 mod build_state;
 pub mod content;
+mod lod_source_view;
 mod node_loader;
 mod overlay;
 mod preview;
@@ -30,12 +31,14 @@ pub use preview::{run_preview, run_preview_offscreen};
 pub use window::Wake;
 
 use crate::draw;
+use crate::viewer::lod_source_view::LodSourceView;
 use crate::viewer::progressive_view::ProgressiveView;
 use crate::viewer::store::StoreView;
 use anyhow::{bail, Result};
 use args::check_window;
 use mortar_io::batch_input;
 use mortar_io::inputs::InputKind;
+use mortar_io::lod_source::{is_lod_source_path, LodSource};
 use std::path::PathBuf;
 use window::{event_loop, show};
 
@@ -51,8 +54,35 @@ pub fn run(a: Args) -> Result<()> {
         }
         _ => None,
     };
-    if store.is_none() && (a.lod.lod_threshold.is_some() || a.lod.point_budget.is_some()) {
-        bail!("--lod-threshold and --point-budget apply to a single octree store (made by mortar build), not to {}", a.inputs.join(" "));
+    let lod_source = match &a.inputs[..] {
+        [one] if !a.lod.no_lod && is_lod_source_path(std::path::Path::new(one)) => {
+            let (src, warning) = LodSource::open(std::path::Path::new(one))?;
+            if let Some(w) = warning {
+                crate::cli::warn(&w);
+            }
+            src
+        }
+        _ => None,
+    };
+    if store.is_none()
+        && lod_source.is_none()
+        && (a.lod.lod_threshold.is_some() || a.lod.point_budget.is_some())
+    {
+        bail!("--lod-threshold and --point-budget apply to a single octree store (made by mortar build), COPC file or EPT directory, not to {}", a.inputs.join(" "));
+    }
+    if let Some(src) = lod_source {
+        let open = a.sort.crs.options();
+        let bounds = src.bounds(&open)?;
+        let label = src.path().display().to_string();
+        let view = LodSourceView::new(
+            src,
+            open,
+            bounds,
+            a.lod.options(true)?,
+            a.view.color,
+            a.view.range,
+        )?;
+        return show(&a, event_loop, Box::new(view), label, None).map(drop);
     }
     if let Some(dir) = store {
         let mut view = StoreView::open(&dir, a.lod.options(true)?, a.view.range)?;

@@ -1,44 +1,55 @@
-//! The colours of a store view's nodes, computed off the frame thread.
+//! The per-node work of a view, done off the frame thread: a store view's node colours, a COPC
+//! or EPT view's decoded nodes.
 //!
-//! A node's coordinate words are borrowed from the store's map (no work), but its colours are
-//! decoded from its records ([`draw::lod::node_colors`]): the part of an upload that costs, and,
-//! while a build keeps every core busy, the part that made frames late when the frame thread did
-//! it. A [`NodeLoader`] runs a few threads that take nodes in the order asked and hand back their
-//! colours; the frame thread uploads whatever is ready and never waits. Dropping the loader
-//! cancels the jobs not started. Colours of nodes asked for and then no longer selected (the
-//! camera moved on) stay ready until a new commit is shown (a growing store) or the loader is
-//! dropped (a new colour mode): at most 4 bytes a sample of the nodes the views selected.
+//! A store node's coordinate words are borrowed from the store's map (no work), but its colours
+//! are decoded from its records ([`draw::lod::node_colors`](crate::draw::lod::node_colors)): the
+//! part of an upload that costs, and, while a build keeps every core busy, the part that made
+//! frames late when the frame thread did it. A COPC or EPT node must be decoded whole (a LAZ
+//! chunk or file). A [`NodeLoader`] runs a few threads that take jobs in the order asked and
+//! hand back their results; the frame thread uploads whatever is ready and never waits.
+//! Dropping the loader cancels the jobs not started. Results of nodes asked for and then no
+//! longer selected (the camera moved on) stay ready until the owner lets them go
+//! ([`retain`](NodeLoader::retain)) or drops the loader (a new colour mode).
 
-use crate::draw;
-use crate::draw::lod::LodColor;
-use mortar_core::octree::NodeId;
-use mortar_io::store::{PayloadPlace, StoreLod};
 use std::collections::{HashMap, HashSet};
+use std::hash::Hash;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::mpsc::{channel, Receiver, Sender};
 use std::sync::{Arc, Mutex};
 
-/// One node to colour.
-struct Job {
-    lod: Arc<StoreLod>,
-    id: NodeId,
-    place: PayloadPlace,
+/// The threads a loader beside a build takes on this machine: an eighth of the cores, 1 to
+/// 2 (more take from the build's throughput).
+pub fn threads_beside_a_build() -> usize {
+    std::thread::available_parallelism().map_or(1, |n| (n.get() / 8).clamp(1, 2))
 }
 
-/// Colours of the nodes of one colour mode, computed by background threads.
-pub struct NodeLoader {
-    jobs: Option<Sender<Job>>,
-    done: Receiver<(PayloadPlace, anyhow::Result<Vec<u32>>)>,
+/// The threads a loader of a view with nothing beside it takes: all cores but the frame
+/// thread's, 1 to 8.
+pub fn threads_alone() -> usize {
+    std::thread::available_parallelism().map_or(1, |n| n.get().saturating_sub(1).clamp(1, 8))
+}
+
+/// One job: what to compute for a key.
+type Job<K, V> = (K, Box<dyn FnOnce() -> anyhow::Result<V> + Send>);
+
+/// Results per key `K` (a payload's place, a node), computed by background threads.
+pub struct NodeLoader<K, V> {
+    jobs: Option<Sender<Job<K, V>>>,
+    done: Receiver<(K, anyhow::Result<V>)>,
     /// Asked and not yet taken.
-    asked: HashSet<PayloadPlace>,
-    ready: HashMap<PayloadPlace, Vec<u32>>,
+    asked: HashSet<K>,
+    ready: HashMap<K, V>,
     cancel: Arc<AtomicBool>,
 }
 
-impl NodeLoader {
-    /// A loader colouring by `color` over `range` on `threads` threads (at least one).
-    pub fn new(color: LodColor, range: Option<[f64; 2]>, threads: usize) -> NodeLoader {
-        let (jobs, rx) = channel::<Job>();
+impl<K, V> NodeLoader<K, V>
+where
+    K: Copy + Eq + Hash + Send + 'static,
+    V: Send + 'static,
+{
+    /// A loader on `threads` threads (at least one), each below the frame thread's priority.
+    pub fn new(threads: usize) -> NodeLoader<K, V> {
+        let (jobs, rx) = channel::<Job<K, V>>();
         let (tx, done) = channel();
         let rx = Arc::new(Mutex::new(rx));
         let cancel = Arc::new(AtomicBool::new(false));
@@ -52,13 +63,11 @@ impl NodeLoader {
                         Ok(r) => r.recv(),
                         Err(_) => return,
                     };
-                    let Ok(job) = job else { return };
+                    let Ok((key, work)) = job else { return };
                     if cancel.load(Ordering::Relaxed) {
                         return;
                     }
-                    let c = draw::lod::node_colors(&job.lod, job.id, color, range)
-                        .map_err(anyhow::Error::from);
-                    if tx.send((job.place, c)).is_err() {
+                    if tx.send((key, work())).is_err() {
                         return;
                     }
                 }
@@ -67,55 +76,50 @@ impl NodeLoader {
         NodeLoader { jobs: Some(jobs), done, asked: HashSet::new(), ready: HashMap::new(), cancel }
     }
 
-    /// The threads a loader takes on this machine: an eighth of the cores, 1 to 2 (beside a
-    /// build, more take from its throughput).
-    pub fn default_threads() -> usize {
-        std::thread::available_parallelism().map_or(1, |n| (n.get() / 8).clamp(1, 2))
-    }
-
-    /// Takes the colours computed so far; the first error a thread met.
+    /// Takes the results computed so far; the first error a job met.
     pub fn collect(&mut self) -> anyhow::Result<()> {
-        while let Ok((place, c)) = self.done.try_recv() {
-            if self.asked.remove(&place) {
-                self.ready.insert(place, c?);
+        while let Ok((key, v)) = self.done.try_recv() {
+            if self.asked.remove(&key) {
+                self.ready.insert(key, v?);
             }
         }
         Ok(())
     }
 
-    /// The colours of node `id` of `lod` (payload `place`) if they are ready (taken out of the
-    /// loader); else asks for them once and returns `None`.
-    pub fn take(
-        &mut self,
-        lod: &Arc<StoreLod>,
-        id: NodeId,
-        place: PayloadPlace,
-    ) -> Option<Vec<u32>> {
-        if let Some(c) = self.ready.remove(&place) {
-            return Some(c);
+    /// The result for `key` if it is ready (taken out of the loader); else asks for it once
+    /// (`work` makes the job) and returns `None`.
+    pub fn take<W>(&mut self, key: K, work: impl FnOnce() -> W) -> Option<V>
+    where
+        W: FnOnce() -> anyhow::Result<V> + Send + 'static,
+    {
+        if let Some(v) = self.ready.remove(&key) {
+            return Some(v);
         }
-        self.ask(lod, id, place);
+        self.ask(key, work);
         None
     }
 
-    /// Asks for the colours of node `id` of `lod` (payload `place`) unless they are ready or
-    /// asked for already.
-    pub fn ask(&mut self, lod: &Arc<StoreLod>, id: NodeId, place: PayloadPlace) {
-        if !self.ready.contains_key(&place) && self.asked.insert(place) {
+    /// Asks for the result for `key` (`work` makes the job) unless it is ready or asked for
+    /// already.
+    pub fn ask<W>(&mut self, key: K, work: impl FnOnce() -> W)
+    where
+        W: FnOnce() -> anyhow::Result<V> + Send + 'static,
+    {
+        if !self.ready.contains_key(&key) && self.asked.insert(key) {
             if let Some(jobs) = &self.jobs {
                 // The threads only end when this loader is dropped.
-                let _ = jobs.send(Job { lod: lod.clone(), id, place });
+                let _ = jobs.send((key, Box::new(work())));
             }
         }
     }
 
-    /// Forgets ready colours of payloads `keep` rejects (nodes of commits no longer shown).
-    pub fn retain(&mut self, keep: impl Fn(&PayloadPlace) -> bool) {
-        self.ready.retain(|p, _| keep(p));
+    /// Forgets ready results of keys `keep` rejects.
+    pub fn retain(&mut self, keep: impl Fn(&K) -> bool) {
+        self.ready.retain(|k, _| keep(k));
     }
 }
 
-impl Drop for NodeLoader {
+impl<K, V> Drop for NodeLoader<K, V> {
     fn drop(&mut self) {
         self.cancel.store(true, Ordering::Relaxed);
         self.jobs = None;

@@ -28,7 +28,7 @@
 //!   alike and a growing store's colours do not shift from frame to frame.
 
 use super::content::{Content, GpuDrawn};
-use super::node_loader::NodeLoader;
+use super::node_loader::{threads_beside_a_build, NodeLoader};
 use crate::draw;
 use crate::draw::lod::LodColor;
 use crate::draw::{ColorChoice, RenderSettings};
@@ -45,7 +45,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 /// Most samples per GPU batch (a node is uploaded in slices of this size).
-const SLICE: usize = 1 << 14;
+pub(super) const SLICE: usize = 1 << 14;
 
 /// Time a frame may spend decoding and uploading nodes (beyond its first node): half of a
 /// 60 Hz frame, leaving the rest to the draw. The environment variable
@@ -53,7 +53,7 @@ const SLICE: usize = 1 << 14;
 pub const UPLOAD_BUDGET_MS: f64 = 8.0;
 
 /// The upload budget in force (see [`UPLOAD_BUDGET_MS`]).
-fn upload_budget_ms() -> f64 {
+pub(super) fn upload_budget_ms() -> f64 {
     static BUDGET: std::sync::OnceLock<f64> = std::sync::OnceLock::new();
     *BUDGET.get_or_init(|| {
         std::env::var("MORTAR_UPLOAD_BUDGET_MS")
@@ -101,7 +101,7 @@ struct StoreGpu {
     /// Samples in the scene that no node of the current commit uses.
     garbage: u64,
     /// Colours the nodes in `mode` off the frame thread (made at the first frame with a commit).
-    loader: Option<NodeLoader>,
+    loader: Option<NodeLoader<PayloadPlace, Vec<u32>>>,
 }
 
 /// An octree store shown in a window.
@@ -534,10 +534,13 @@ impl Upload<'_> {
         debug_assert_eq!(g.mode, self.mode);
         let color = LodColor::of(lod.store(), self.color)?;
         let range = self.range;
-        let loader = g
-            .loader
-            .get_or_insert_with(|| NodeLoader::new(color, range, NodeLoader::default_threads()));
+        let loader = g.loader.get_or_insert_with(|| NodeLoader::new(threads_beside_a_build()));
         loader.collect()?;
+        // The job that colours node `id`.
+        let job = |id| {
+            let lod = lod.clone();
+            move || move || Ok(draw::lod::node_colors(&lod, id, color, range)?)
+        };
         let mut complete = true;
         for &id in nodes {
             let off = lod.payload_place(id);
@@ -547,11 +550,11 @@ impl Upload<'_> {
             }
             if *uploaded > 0 && self.start.elapsed().as_secs_f64() * 1e3 >= upload_budget_ms() {
                 // Over budget: the colours are still asked for, to be ready for a later frame.
-                loader.ask(lod, id, off);
+                loader.ask(off, job(id));
                 complete = false;
                 continue;
             }
-            let Some(c) = loader.take(lod, id, off) else {
+            let Some(c) = loader.take(off, job(id)) else {
                 complete = false;
                 continue;
             };

@@ -89,6 +89,7 @@ pub(super) fn show<'a>(
         "height": app.frames.last().map(|f| f.height),
         "renderer": backend,
         "frames": app.frames.iter().map(FrameStats::json).collect::<Vec<_>>(),
+        "lod_source": app.content.report(),
     });
     if a.json {
         println!("{}", serde_json::to_string_pretty(&j)?);
