@@ -89,6 +89,8 @@ fn main() {
         Cmd::Merge(a) => merge::run(a),
         Cmd::View(a) => view::run(a),
     };
+    // Local copies of HTTP inputs.
+    mortar_io::remote::remove_copies();
     if let Err(e) = r {
         mortar_io::cleanup::remove_all();
         if mortar_io::cleanup::INTERRUPTED.load(std::sync::atomic::Ordering::Relaxed) {
@@ -98,7 +100,7 @@ fn main() {
         if common::is_broken_pipe(&e) {
             std::process::exit(0);
         }
-        eprintln!("mortar: error: {e:#}");
+        eprintln!("mortar: error: {}", mortar_io::remote::with_urls(&format!("{e:#}")));
         std::process::exit(1);
     }
 }

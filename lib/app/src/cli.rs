@@ -10,7 +10,7 @@ pub fn set_quiet(q: bool) {
 
 pub fn warn(msg: &str) {
     if !QUIET.load(Ordering::Relaxed) {
-        eprintln!("mortar: warning: {msg}");
+        eprintln!("mortar: warning: {}", mortar_io::remote::with_urls(msg));
     }
 }
 

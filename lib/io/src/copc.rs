@@ -278,8 +278,11 @@ impl CopcLod {
 /// A COPC file opened as a LOD source: its input (not yet reduced) and its tree.
 #[derive(Debug)]
 pub struct CopcFile {
-    /// The file.
+    /// The file (or the URL it came from, which names it in messages).
     pub path: PathBuf,
+    /// Where its bytes are read when not at `path`: the local copy of a URL
+    /// ([`crate::remote`]).
+    pub local: Option<PathBuf>,
     /// Its tree.
     pub lod: CopcLod,
     input: LasInput,
@@ -297,8 +300,15 @@ impl CopcFile {
                 None,
                 Some(format!("{}: COPC: {e}; reading it as a flat LAZ file", path.display())),
             )),
-            Some(Ok(lod)) => Ok((Some(CopcFile { path: path.to_path_buf(), lod, input }), None)),
+            Some(Ok(lod)) => {
+                Ok((Some(CopcFile { path: path.to_path_buf(), local: None, lod, input }), None))
+            }
         }
+    }
+
+    /// Where the file's bytes are read.
+    fn bytes_path(&self) -> &Path {
+        self.local.as_deref().unwrap_or(&self.path)
     }
 
     /// The file's record layout.
@@ -319,7 +329,7 @@ impl CopcFile {
 
     /// The whole file as a dataset (every chunk), e.g. for the framing of a view.
     pub fn whole(&self, opts: &OpenOptions) -> Result<Dataset> {
-        Dataset::with_options(vec![Box::new(LasInput::open(&self.path)?)], opts)
+        Dataset::with_options(vec![Box::new(LasInput::open(self.bytes_path())?)], opts)
     }
 
     /// The points of `nodes` (positions in the hierarchy's nodes) as a dataset that decodes
@@ -332,7 +342,7 @@ impl CopcFile {
         opts: &OpenOptions,
         attributes: &[&str],
     ) -> Result<Dataset> {
-        let mut input = LasInput::open(&self.path)?;
+        let mut input = LasInput::open(self.bytes_path())?;
         input.decode_only(attributes);
         self.lod
             .open_nodes(&mut input, nodes)

@@ -47,6 +47,10 @@ pub enum Error {
     /// pipe, ...).
     #[error("{path}: {source}")]
     Io { path: PathBuf, source: std::io::Error },
+    /// An HTTP input failed (`path` is its URL): a status, a short body, a changed file
+    /// (`crate::remote`).
+    #[error("{path}: {why}")]
+    Http { path: PathBuf, why: String },
     /// A LAS/LAZ header, its VLRs or EVLRs are malformed (bad signature, unsupported version,
     /// truncated header, offsets that lie), or a header cannot be written for these points.
     #[error("{path}: {error}")]
@@ -630,6 +634,7 @@ macro_rules! leading_path {
             Error::NotFound { path }
             | Error::NoLasInDirectory { path }
             | Error::Io { path, .. }
+            | Error::Http { path, .. }
             | Error::Las { path, .. }
             | Error::Copc { path, .. }
             | Error::Ept { path, .. }

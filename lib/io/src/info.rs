@@ -362,7 +362,7 @@ pub fn describe(
     warnings.extend(crs.problems.iter().cloned());
     let layout = src.layout();
     let mut info = FileInfo {
-        path: src.path().display().to_string(),
+        path: crate::remote::with_urls(&src.path().display().to_string()),
         kind: kind.into(),
         version: format!("{}.{}", h.version.0, h.version.1),
         point_format: layout.format,

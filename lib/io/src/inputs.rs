@@ -46,12 +46,19 @@ impl InputKind {
 }
 
 /// Expands command-line inputs: files as given, stores as given, directories to their
-/// `.las`/`.laz` files (sorted, recursive), glob patterns to their matches (sorted), `-` to stdin.
+/// `.las`/`.laz` files (sorted, recursive), glob patterns to their matches (sorted), `-` to stdin,
+/// `http://` and `https://` URLs to a local copy of the whole file ([`crate::remote`]).
 pub fn expand(args: &[String]) -> Result<Vec<PathBuf>> {
     let mut out = Vec::new();
     for a in args {
         if a == "-" {
             out.push(PathBuf::from("-"));
+            continue;
+        }
+        if crate::remote::is_url(a) {
+            let r = crate::remote::Remote::open(a)?;
+            r.fetch_all()?;
+            out.push(r.path().to_path_buf());
             continue;
         }
         let p = Path::new(a);

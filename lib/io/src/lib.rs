@@ -66,6 +66,7 @@ pub mod info;
 pub mod inputs;
 pub mod lod_source;
 pub mod progress;
+pub mod remote;
 pub mod sink_las;
 pub mod sort;
 pub mod store;

@@ -12,25 +12,28 @@ use crate::copc::{is_copc_path, CopcFile};
 use crate::dataset::{Dataset, OpenOptions};
 use crate::ept::{ept_dir, EptSource};
 use crate::error::Result;
+use crate::remote::{is_url, Remote};
 use crate::source::LasInput;
 use mortar_core::layout::RecordLayout;
 use mortar_core::octree::{LodOptions, LodSelection, NodeKey};
 use mortar_core::render::framing::ViewBox;
 use mortar_core::render::{Aabb, Camera, CameraError};
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 /// A COPC file or an EPT directory with a usable hierarchy.
 #[derive(Debug)]
 pub enum LodSource {
-    /// A COPC file.
-    Copc(Box<CopcFile>),
+    /// A COPC file (over HTTP: its local sparse copy, and the remote file that fills it).
+    Copc(Box<CopcFile>, Option<Arc<Remote>>),
     /// An EPT directory.
     Ept(Box<EptSource>),
 }
 
-/// Whether `path` names a COPC file (a cheap look at its VLRs) or an EPT directory.
+/// Whether `path` names a COPC file (a cheap look at its VLRs) or an EPT directory; a URL is
+/// asked for whether it is COPC by [`LodSource::open_url`].
 pub fn is_lod_source_path(path: &Path) -> bool {
-    is_copc_path(path) || ept_dir(path).is_some()
+    path.to_str().is_some_and(is_url) || is_copc_path(path) || ept_dir(path).is_some()
 }
 
 impl LodSource {
@@ -38,6 +41,9 @@ impl LodSource {
     /// EPT directory, `Ok((None, Some(warning)))` when its hierarchy cannot be used (the caller
     /// reads it flat and says the warning); an error only where the file cannot be opened.
     pub fn open(path: &Path) -> Result<(Option<LodSource>, Option<String>)> {
+        if let Some(url) = path.to_str().filter(|s| is_url(s)) {
+            return Self::open_url(url);
+        }
         if let Some(dir) = ept_dir(path) {
             return Ok(match EptSource::open(&dir) {
                 Ok(e) => (Some(LodSource::Ept(Box::new(e))), None),
@@ -47,13 +53,43 @@ impl LodSource {
             });
         }
         let (file, warning) = CopcFile::open(path)?;
-        Ok((file.map(|f| LodSource::Copc(Box::new(f))), warning))
+        Ok((file.map(|f| LodSource::Copc(Box::new(f), None)), warning))
+    }
+
+    /// [`open`](Self::open) for a URL: a COPC file read with range requests (its header, VLRs,
+    /// chunk table and EVLRs now, its nodes' chunks as they are asked for); `Ok((None, None))`
+    /// for anything else (read whole as a LAS/LAZ input).
+    pub fn open_url(url: &str) -> Result<(Option<LodSource>, Option<String>)> {
+        let remote = Remote::open(url)?;
+        remote.fetch_las_index()?;
+        if !is_copc_path(remote.path()) {
+            return Ok((None, None));
+        }
+        let (file, warning) = CopcFile::open(remote.path())?;
+        let warning = warning.map(|w| w.replace(&remote.path().display().to_string(), url));
+        let Some(mut file) = file else { return Ok((None, warning)) };
+        file.path = PathBuf::from(url);
+        file.local = Some(remote.path().to_path_buf());
+        // The first chunk: what the framing rule checks the header's box against.
+        let first = file.lod.hierarchy.nodes.iter().min_by_key(|n| n.offset).copied();
+        if let Some(n) = first {
+            remote.fetch(n.offset, n.bytes)?;
+        }
+        Ok((Some(LodSource::Copc(Box::new(file), Some(remote))), warning))
+    }
+
+    /// Bytes fetched over HTTP so far (0 for a local source).
+    pub fn bytes_fetched(&self) -> u64 {
+        match self {
+            LodSource::Copc(_, Some(r)) => r.bytes_fetched(),
+            _ => 0,
+        }
     }
 
     /// `copc` or `ept`.
     pub fn format(&self) -> &'static str {
         match self {
-            LodSource::Copc(_) => "copc",
+            LodSource::Copc(..) => "copc",
             LodSource::Ept(_) => "ept",
         }
     }
@@ -61,7 +97,7 @@ impl LodSource {
     /// The file or directory.
     pub fn path(&self) -> &Path {
         match self {
-            LodSource::Copc(f) => &f.path,
+            LodSource::Copc(f, _) => &f.path,
             LodSource::Ept(e) => &e.dir,
         }
     }
@@ -69,7 +105,7 @@ impl LodSource {
     /// The tree the selection walks.
     pub fn tree(&self) -> &AdditiveTree {
         match self {
-            LodSource::Copc(f) => &f.lod.tree,
+            LodSource::Copc(f, _) => &f.lod.tree,
             LodSource::Ept(e) => &e.tree,
         }
     }
@@ -77,7 +113,7 @@ impl LodSource {
     /// Nodes with points.
     pub fn node_count(&self) -> usize {
         match self {
-            LodSource::Copc(f) => f.lod.hierarchy.nodes.len(),
+            LodSource::Copc(f, _) => f.lod.hierarchy.nodes.len(),
             LodSource::Ept(e) => e.nodes.len(),
         }
     }
@@ -85,7 +121,7 @@ impl LodSource {
     /// Node `i`'s key.
     pub fn node_key(&self, i: usize) -> NodeKey {
         match self {
-            LodSource::Copc(f) => f.lod.hierarchy.nodes[i].key,
+            LodSource::Copc(f, _) => f.lod.hierarchy.nodes[i].key,
             LodSource::Ept(e) => e.nodes[i].key,
         }
     }
@@ -93,7 +129,7 @@ impl LodSource {
     /// Points the hierarchy gives node `i`.
     pub fn node_points(&self, i: usize) -> u64 {
         match self {
-            LodSource::Copc(f) => f.lod.hierarchy.nodes[i].points,
+            LodSource::Copc(f, _) => f.lod.hierarchy.nodes[i].points,
             LodSource::Ept(e) => e.nodes[i].points,
         }
     }
@@ -101,7 +137,7 @@ impl LodSource {
     /// Bytes read to decode nodes `nodes`: their chunks, or their files.
     pub fn node_bytes(&self, nodes: &[usize]) -> u64 {
         match self {
-            LodSource::Copc(f) => nodes.iter().map(|&i| f.lod.hierarchy.nodes[i].bytes).sum(),
+            LodSource::Copc(f, _) => nodes.iter().map(|&i| f.lod.hierarchy.nodes[i].bytes).sum(),
             LodSource::Ept(e) => e.node_bytes(nodes),
         }
     }
@@ -109,7 +145,7 @@ impl LodSource {
     /// Points in all nodes.
     pub fn points(&self) -> u64 {
         match self {
-            LodSource::Copc(f) => f.lod.hierarchy.points(),
+            LodSource::Copc(f, _) => f.lod.hierarchy.points(),
             LodSource::Ept(e) => e.points,
         }
     }
@@ -118,7 +154,7 @@ impl LodSource {
     /// and hierarchy files.
     pub fn index_bytes(&self) -> u64 {
         match self {
-            LodSource::Copc(f) => f.index_bytes(),
+            LodSource::Copc(f, _) => f.index_bytes(),
             LodSource::Ept(e) => e.meta_bytes + e.hierarchy_bytes,
         }
     }
@@ -126,7 +162,7 @@ impl LodSource {
     /// Bytes of the whole source.
     pub fn total_bytes(&self) -> u64 {
         match self {
-            LodSource::Copc(f) => f.file_len(),
+            LodSource::Copc(f, _) => f.file_len(),
             LodSource::Ept(e) => e.total_bytes(),
         }
     }
@@ -134,7 +170,7 @@ impl LodSource {
     /// Hierarchy pages (COPC) or files (EPT) read.
     pub fn pages(&self) -> u64 {
         match self {
-            LodSource::Copc(f) => f.lod.hierarchy.pages,
+            LodSource::Copc(f, _) => f.lod.hierarchy.pages,
             LodSource::Ept(e) => e.hierarchy_files,
         }
     }
@@ -147,7 +183,7 @@ impl LodSource {
         options: &LodOptions,
     ) -> std::result::Result<(Vec<usize>, LodSelection), CameraError> {
         match self {
-            LodSource::Copc(f) => f.lod.select(camera, options),
+            LodSource::Copc(f, _) => f.lod.select(camera, options),
             LodSource::Ept(e) => e.select(camera, options),
         }
     }
@@ -156,7 +192,7 @@ impl LodSource {
     pub fn read_order(&self) -> Vec<usize> {
         let mut all: Vec<usize> = (0..self.node_count()).collect();
         match self {
-            LodSource::Copc(f) => all.sort_unstable_by_key(|&i| f.lod.hierarchy.nodes[i].offset),
+            LodSource::Copc(f, _) => all.sort_unstable_by_key(|&i| f.lod.hierarchy.nodes[i].offset),
             LodSource::Ept(e) => all.sort_by_cached_key(|&i| e.node_path(i)),
         }
         all
@@ -171,7 +207,15 @@ impl LodSource {
         attributes: &[&str],
     ) -> Result<Dataset> {
         match self {
-            LodSource::Copc(f) => f.nodes(nodes, opts, attributes),
+            LodSource::Copc(f, remote) => {
+                if let Some(r) = remote {
+                    for &i in nodes {
+                        let n = f.lod.hierarchy.nodes[i];
+                        r.fetch(n.offset, n.bytes)?;
+                    }
+                }
+                f.nodes(nodes, opts, attributes)
+            }
             LodSource::Ept(e) => e.dataset(nodes, opts, attributes),
         }
     }
@@ -180,7 +224,7 @@ impl LodSource {
     /// order).
     pub fn layout(&self) -> Result<RecordLayout> {
         match self {
-            LodSource::Copc(f) => Ok(f.layout().clone()),
+            LodSource::Copc(f, _) => Ok(f.layout().clone()),
             LodSource::Ept(e) => {
                 let first = self.read_order().first().copied().unwrap_or(0);
                 let path: PathBuf = e.node_path(first);
@@ -194,7 +238,7 @@ impl LodSource {
     /// (the points' box), else the tree's cube.
     pub fn bounds(&self, opts: &OpenOptions) -> Result<Aabb> {
         Ok(match self {
-            LodSource::Copc(f) => {
+            LodSource::Copc(f, _) => {
                 let whole = f.whole(opts)?;
                 match crate::framing::view_box(&whole)? {
                     ViewBox::Header(h) => h.world(&whole.grid),

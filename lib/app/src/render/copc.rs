@@ -106,5 +106,6 @@ pub fn open(a: &Args) -> Result<Option<LodSourceInput>> {
     let attributes = AttributeSelection::Only(keep.iter().map(|n| n.to_string()).collect());
     let source = RenderSource::batch_dataset(&ds, &a.sort.options(), &attributes)?;
     json["seconds"] = serde_json::json!(t.elapsed().as_secs_f64());
+    json["bytes_fetched"] = serde_json::json!(src.bytes_fetched());
     Ok(Some(LodSourceInput { source, bounds, json }))
 }

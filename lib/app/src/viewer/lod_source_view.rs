@@ -242,6 +242,7 @@ impl LodSourceView {
             "bytes_read": self.src.index_bytes() + self.src.node_bytes(&read),
             "bytes": self.src.total_bytes(),
             "hierarchy_pages": self.src.pages(),
+            "bytes_fetched": self.src.bytes_fetched(),
         })
     }
 }
