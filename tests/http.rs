@@ -215,3 +215,51 @@ fn is_running(p: &Path) -> bool {
     let pid = name.trim_start_matches("mortar-http-");
     Path::new("/proc").join(pid).exists()
 }
+
+#[test]
+fn ept_over_http_fetches_only_the_selected_node_files() {
+    let Some(data) = shared_data() else { return };
+    let parent = data.join("PyForestScan/example_data");
+    let Some(server) = http_server(&parent) else { return };
+    let dir = tempdir("http-ept");
+    let local = parent.join("ept");
+    let view = [
+        "--target",
+        "202150,2184150,1300",
+        "--eye",
+        "202150,2183950,1700",
+        "--fov",
+        "15",
+        "--color",
+        "classification",
+    ];
+    let l = render_json(local.to_str().unwrap(), &dir.join("local.png"), &view);
+    for url in [format!("{}/ept/", server.base), format!("{}/ept/ept.json", server.base)] {
+        let r = render_json(&url, &dir.join("remote.png"), &view);
+        assert_eq!(
+            std::fs::read(dir.join("remote.png")).unwrap(),
+            std::fs::read(dir.join("local.png")).unwrap(),
+            "{url}"
+        );
+        let (rs, ls) = (&r["lod_source"], &l["lod_source"]);
+        assert_eq!((rs["format"].as_str(), &rs["nodes_read"]), (Some("ept"), &ls["nodes_read"]));
+        // What was fetched is ept.json, the hierarchy and the selected nodes' files: what the
+        // local read reads, a small share of the directory.
+        assert_eq!(rs["bytes_fetched"], ls["bytes_read"], "{rs} {ls}");
+        assert!(rs["bytes"].is_null(), "{rs}");
+        let share = ls["bytes_read"].as_f64().unwrap() / ls["bytes"].as_f64().unwrap();
+        assert!(share < 0.1, "{ls}");
+    }
+    // A directory without ept.json: one line naming it, exit 1.
+    let o = mortar()
+        .arg("render")
+        .arg(format!("{}/nope/", server.base))
+        .arg("-o")
+        .arg(dir.join("x.png"))
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(err.contains("nope/ept.json") && err.contains("404"), "{err}");
+    assert!(!dir.join("x.png").exists());
+}

@@ -15,6 +15,7 @@ use crate::additive::{node_key, AdditiveTree};
 use crate::dataset::{Dataset, OpenOptions, RecordSource};
 pub use crate::error::EptError;
 use crate::error::{Error, Result};
+use crate::remote::Remote;
 use crate::source::LasInput;
 use mortar_core::octree::{LodOptions, LodSelection, NodeKey};
 use mortar_core::render::{Aabb, Camera, CameraError};
@@ -50,6 +51,9 @@ pub struct EptSource {
     pub meta_bytes: u64,
     /// `span` of `ept.json` (cells per node edge), where given.
     pub span: Option<u64>,
+    /// The base URL (ending in `/`) of an EPT directory read over HTTP ([`crate::remote`]);
+    /// `dir` is then that URL too.
+    pub remote: Option<String>,
 }
 
 /// The directory of an EPT input: `path` itself when it holds `ept.json`, or the directory of
@@ -70,10 +74,30 @@ fn numbers(v: &serde_json::Value, n: usize) -> Option<Vec<f64>> {
 impl EptSource {
     /// Reads `dir/ept.json` and the hierarchy (see the module docs).
     pub fn open(dir: &Path) -> std::result::Result<EptSource, EptError> {
-        let read = |p: &Path| {
+        Self::open_with(dir, None, |p: &Path| {
             std::fs::read(p)
                 .map_err(|e| EptError::Read { file: p.display().to_string(), error: e.to_string() })
-        };
+        })
+    }
+
+    /// [`open`](Self::open) for the EPT directory at URL `base` (ending in `/`): `ept.json` and
+    /// the hierarchy files are fetched whole; node files when a dataset asks for them.
+    pub fn open_url(base: &str) -> std::result::Result<EptSource, EptError> {
+        Self::open_with(Path::new(base), Some(base.to_string()), |p: &Path| {
+            let url = p.to_string_lossy().to_string();
+            let err = |e: Error| EptError::Read { file: url.clone(), error: e.problem() };
+            let r = Remote::open(&url).map_err(err)?;
+            r.fetch_all().map_err(err)?;
+            std::fs::read(r.path())
+                .map_err(|e| EptError::Read { file: url.clone(), error: e.to_string() })
+        })
+    }
+
+    fn open_with(
+        dir: &Path,
+        remote: Option<String>,
+        read: impl Fn(&Path) -> std::result::Result<Vec<u8>, EptError>,
+    ) -> std::result::Result<EptSource, EptError> {
         let meta_path = dir.join("ept.json");
         let meta_raw = read(&meta_path)?;
         let meta: serde_json::Value = serde_json::from_slice(&meta_raw)
@@ -161,6 +185,7 @@ impl EptSource {
             hierarchy_bytes: bytes,
             meta_bytes: meta_raw.len() as u64,
             span: meta["span"].as_u64(),
+            remote,
         })
     }
 
@@ -169,6 +194,29 @@ impl EptSource {
         let k = self.nodes[i].key;
         let [x, y, z] = k.index;
         self.dir.join("ept-data").join(format!("{}-{x}-{y}-{z}.laz", k.level))
+    }
+
+    /// Where node `i`'s LAZ file is read: its path, or over HTTP its local copy (fetched whole
+    /// now). An error names a node the hierarchy lists without a file.
+    pub fn node_file(&self, i: usize) -> Result<PathBuf> {
+        let path = self.node_path(i);
+        if self.remote.is_some() {
+            let r = Remote::open(&path.to_string_lossy())?;
+            r.fetch_all()?;
+            return Ok(r.path().to_path_buf());
+        }
+        if !path.is_file() {
+            let k = self.nodes[i].key;
+            let [x, y, z] = k.index;
+            return Err(Error::Ept {
+                path: self.dir.clone(),
+                error: EptError::Hierarchy(format!(
+                    "node {}-{x}-{y}-{z} is in the hierarchy but ept-data has no file for it",
+                    k.level
+                )),
+            });
+        }
+        Ok(path)
     }
 
     /// Points in the hierarchy's nodes.
@@ -198,18 +246,7 @@ impl EptSource {
     ) -> Result<Dataset> {
         let mut inputs: Vec<Box<dyn RecordSource>> = Vec::with_capacity(nodes.len());
         for &i in nodes {
-            let path = self.node_path(i);
-            if !path.is_file() {
-                let k = self.nodes[i].key;
-                let [x, y, z] = k.index;
-                return Err(Error::Ept {
-                    path: self.dir.clone(),
-                    error: EptError::Hierarchy(format!(
-                        "node {}-{x}-{y}-{z} is in the hierarchy but ept-data has no file for it",
-                        k.level
-                    )),
-                });
-            }
+            let path = self.node_file(i)?;
             let mut input = LasInput::open(&path)?;
             input.decode_only(attributes);
             inputs.push(Box::new(input));
@@ -217,8 +254,15 @@ impl EptSource {
         Dataset::with_options(inputs, opts)
     }
 
-    /// Bytes of the files of `nodes`.
+    /// Bytes of the files of `nodes` (over HTTP: of those fetched).
     pub fn node_bytes(&self, nodes: &[usize]) -> u64 {
+        if self.remote.is_some() {
+            return nodes
+                .iter()
+                .filter_map(|&i| Remote::opened(&self.node_path(i).to_string_lossy()))
+                .map(|r| r.len())
+                .sum();
+        }
         nodes
             .iter()
             .filter_map(|&i| std::fs::metadata(self.node_path(i)).ok())
@@ -226,10 +270,15 @@ impl EptSource {
             .sum()
     }
 
-    /// Bytes of every node file.
-    pub fn total_bytes(&self) -> u64 {
+    /// Bytes of every node file (over HTTP: not known without a request per file).
+    pub fn total_bytes(&self) -> Option<u64> {
+        if self.remote.is_some() {
+            return None;
+        }
+        Some(self.whole_bytes())
+    }
+
+    fn whole_bytes(&self) -> u64 {
         self.node_bytes(&(0..self.nodes.len()).collect::<Vec<_>>())
-            + self.meta_bytes
-            + self.hierarchy_bytes
     }
 }

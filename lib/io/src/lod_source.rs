@@ -11,7 +11,7 @@ use crate::additive::AdditiveTree;
 use crate::copc::{is_copc_path, CopcFile};
 use crate::dataset::{Dataset, OpenOptions};
 use crate::ept::{ept_dir, EptSource};
-use crate::error::Result;
+use crate::error::{Error, Result};
 use crate::remote::{is_url, Remote};
 use crate::source::LasInput;
 use mortar_core::layout::RecordLayout;
@@ -60,6 +60,13 @@ impl LodSource {
     /// chunk table and EVLRs now, its nodes' chunks as they are asked for); `Ok((None, None))`
     /// for anything else (read whole as a LAS/LAZ input).
     pub fn open_url(url: &str) -> Result<(Option<LodSource>, Option<String>)> {
+        if url.ends_with('/') || url.ends_with("/ept.json") {
+            let base = url.strip_suffix("ept.json").unwrap_or(url);
+            return Ok(match EptSource::open_url(base) {
+                Ok(e) => (Some(LodSource::Ept(Box::new(e))), None),
+                Err(e) => return Err(Error::Ept { path: PathBuf::from(base), error: e }),
+            });
+        }
         let remote = Remote::open(url)?;
         remote.fetch_las_index()?;
         if !is_copc_path(remote.path()) {
@@ -82,6 +89,7 @@ impl LodSource {
     pub fn bytes_fetched(&self) -> u64 {
         match self {
             LodSource::Copc(_, Some(r)) => r.bytes_fetched(),
+            LodSource::Ept(e) if e.remote.is_some() => crate::remote::fetched_under(&e.dir),
             _ => 0,
         }
     }
@@ -159,11 +167,12 @@ impl LodSource {
         }
     }
 
-    /// Bytes of the whole source.
-    pub fn total_bytes(&self) -> u64 {
+    /// Bytes of the whole source (`None` for an EPT directory over HTTP: not known without a
+    /// request per file).
+    pub fn total_bytes(&self) -> Option<u64> {
         match self {
-            LodSource::Copc(f, _) => f.file_len(),
-            LodSource::Ept(e) => e.total_bytes(),
+            LodSource::Copc(f, _) => Some(f.file_len()),
+            LodSource::Ept(e) => e.total_bytes().map(|b| b + e.meta_bytes + e.hierarchy_bytes),
         }
     }
 
@@ -227,8 +236,7 @@ impl LodSource {
             LodSource::Copc(f, _) => Ok(f.layout().clone()),
             LodSource::Ept(e) => {
                 let first = self.read_order().first().copied().unwrap_or(0);
-                let path: PathBuf = e.node_path(first);
-                Ok(LasInput::open(&path)?.layout)
+                Ok(LasInput::open(&e.node_file(first)?)?.layout)
             }
         }
     }

@@ -19,7 +19,10 @@
 //! - The copies live in a temporary directory removed when the process ends normally or on
 //!   Ctrl-C ([`crate::cleanup`]). `bytes_fetched` counts what came over the network.
 //!
-//! Not done yet: EPT directories over HTTP (their files are separate URLs), a cache bounded below
+//! An EPT directory over HTTP (`…/ept.json` or `…/`) is read file by file: `ept.json` and the
+//! hierarchy files whole when it is opened, each node's LAZ file whole when a view selects it.
+//!
+//! Not done yet: a cache bounded below
 //! the file's size (the copy holds what was fetched; its pages are the OS's page cache), and
 //! plain LAS/LAZ decoded while they download (they are fetched whole first).
 
@@ -78,6 +81,13 @@ fn copies_dir() -> Result<PathBuf> {
 /// An error about `url`.
 fn http_error(url: &str, why: impl std::fmt::Display) -> Error {
     Error::Http { path: PathBuf::from(url), why: why.to_string() }
+}
+
+/// Bytes fetched from the URLs under `base` (an EPT directory's files).
+pub fn fetched_under(base: &Path) -> u64 {
+    let base = base.to_string_lossy();
+    let opened = opened().lock().unwrap_or_else(|e| e.into_inner());
+    opened.iter().filter(|(u, _)| u.starts_with(&*base)).map(|(_, r)| r.bytes_fetched()).sum()
 }
 
 /// `text` with the paths of this process's local copies replaced by their URLs (for messages).
@@ -172,6 +182,11 @@ impl Remote {
         let r = Arc::new(remote);
         opened().lock().unwrap_or_else(|e| e.into_inner()).insert(url.to_string(), r.clone());
         Ok(r)
+    }
+
+    /// The remote of `url` if this process opened it.
+    pub fn opened(url: &str) -> Option<Arc<Remote>> {
+        opened().lock().unwrap_or_else(|e| e.into_inner()).get(url).cloned()
     }
 
     /// The URL.

@@ -37,7 +37,8 @@ struct Read {
     format: &'static str,
     nodes: (usize, usize),
     points: (u64, u64),
-    bytes: (u64, u64),
+    /// Read, and the whole (unknown for an EPT directory over HTTP).
+    bytes: (u64, Option<u64>),
     pages: u64,
 }
 
@@ -90,6 +91,13 @@ pub fn open(a: &Args) -> Result<Option<LodSourceInput>> {
     if nodes.is_empty() {
         bail!("{label}: no node of the {} hierarchy is in view", src.format().to_uppercase());
     }
+    // The layout names the attributes the colour mode needs.
+    let keep = a.view.color.attributes(&src.layout()?);
+    let ds = src.dataset(&nodes, &crs, &keep)?;
+    common::print_warnings(&ds.warnings);
+    let attributes = AttributeSelection::Only(keep.iter().map(|n| n.to_string()).collect());
+    let source = RenderSource::batch_dataset(&ds, &a.sort.options(), &attributes)?;
+    // What was read (after the dataset: over HTTP, node sizes are known once fetched).
     let points_read: u64 = nodes.iter().map(|&i| src.node_points(i)).sum();
     let mut json = Read {
         format: src.format(),
@@ -99,12 +107,6 @@ pub fn open(a: &Args) -> Result<Option<LodSourceInput>> {
         pages: src.pages(),
     }
     .json(&selection);
-    // The layout names the attributes the colour mode needs.
-    let keep = a.view.color.attributes(&src.layout()?);
-    let ds = src.dataset(&nodes, &crs, &keep)?;
-    common::print_warnings(&ds.warnings);
-    let attributes = AttributeSelection::Only(keep.iter().map(|n| n.to_string()).collect());
-    let source = RenderSource::batch_dataset(&ds, &a.sort.options(), &attributes)?;
     json["seconds"] = serde_json::json!(t.elapsed().as_secs_f64());
     json["bytes_fetched"] = serde_json::json!(src.bytes_fetched());
     Ok(Some(LodSourceInput { source, bounds, json }))

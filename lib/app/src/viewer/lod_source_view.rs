@@ -113,6 +113,8 @@ pub struct LodSourceView {
     fb: Option<Framebuffer>,
     /// Nodes decoded so far (what `bytes_read` counts).
     read: HashSet<usize>,
+    /// Bytes of the whole source (once: an EPT directory's are a file system call per node).
+    total_bytes: Option<u64>,
     incomplete: bool,
     /// Nodes and points the last frame drew.
     drawn: (u64, u64),
@@ -157,6 +159,7 @@ impl LodSourceView {
         let mode = modes.iter().position(|&m| m == want).ok_or_else(|| {
             anyhow!("{label}: --color {}: the point format has no such attribute", color.name())
         })?;
+        let total_bytes = src.total_bytes();
         let src = Arc::new(src);
         let (coloring, grid) = coloring_of(&src, &open, root, modes[mode], range, &layout)?;
         Ok(LodSourceView {
@@ -178,6 +181,7 @@ impl LodSourceView {
             gpu: None,
             fb: None,
             read: HashSet::new(),
+            total_bytes,
             incomplete: true,
             drawn: (0, 0),
         })
@@ -240,7 +244,7 @@ impl LodSourceView {
             "points_read": points,
             "points": self.src.points(),
             "bytes_read": self.src.index_bytes() + self.src.node_bytes(&read),
-            "bytes": self.src.total_bytes(),
+            "bytes": self.total_bytes,
             "hierarchy_pages": self.src.pages(),
             "bytes_fetched": self.src.bytes_fetched(),
         })
