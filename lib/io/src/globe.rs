@@ -1,0 +1,281 @@
+//! Placing points on the Earth: the CRS of a dataset (its WKT or GeoTIFF keys) to WGS 84 Earth-
+//! centred, Earth-fixed coordinates (ECEF, EPSG:4978), and a local east-north-up frame at the
+//! data's centre, for the 3D Tiles export.
+//!
+//! The projection library is `proj4rs`, a pure-Rust port of PROJ.4 (projections, ellipsoids,
+//! `+towgs84` datum shifts), with the EPSG definitions of `crs-definitions`: no C library to
+//! build or ship, the same code on every platform and in CI. What it does not do, and PROJ
+//! would: grid-based datum shifts (NADCON, NTv2, geoid models) and time-dependent frames. Datums
+//! that PROJ without grids treats as WGS 84 (NAD83, ETRS89, GDA) are taken as WGS 84 here too,
+//! which is within about a metre; heights are taken as ellipsoidal (an orthometric height
+//! lands off the ellipsoid by the geoid undulation, as in PROJ without a geoid grid).
+//!
+//! Heights: the z unit is the vertical CRS's unit where the CRS names one (a `VERT_CS` of a
+//! compound WKT, a vertical EPSG code, the GeoTIFF vertical units key), else the horizontal
+//! unit (the LAS convention: a file in feet has its heights in feet). Heights pass a datum shift
+//! unchanged and only latitude and longitude move, as in PROJ for CRSs without a vertical part.
+
+use crate::crs::{CrsInfo, CrsRecords};
+use crate::wkt;
+use proj4rs::proj::Proj;
+
+/// WGS 84's semi-major axis and first eccentricity squared.
+const WGS84_A: f64 = 6_378_137.0;
+const WGS84_F: f64 = 1.0 / 298.257_223_563;
+const WGS84_E2: f64 = WGS84_F * (2.0 - WGS84_F);
+
+/// A dataset's CRS, ready to transform its world coordinates to ECEF.
+pub struct Globe {
+    src: Proj,
+    dst: Proj,
+    geographic: bool,
+    xy_to_radians: f64,
+    z_to_meter: f64,
+    /// The CRS's name, for messages and reports.
+    pub name: String,
+    /// The PROJ.4 definition used.
+    pub proj4: String,
+}
+
+/// Metres per unit of a GeoTIFF linear unit code.
+fn geotiff_unit(code: u32) -> Option<f64> {
+    Some(match code {
+        9001 => 1.0,
+        9002 => 0.3048,
+        9003 => 1200.0 / 3937.0,
+        _ => return None,
+    })
+}
+
+/// Metres per unit of the UNIT of an EPSG code's WKT.
+fn epsg_unit(code: u32) -> Option<f64> {
+    let def = crs_definitions::from_code(u16::try_from(code).ok()?)?;
+    let node = wkt::parse(def.wkt).ok()?;
+    node.child("UNIT").and_then(|u| u.nums().first().copied()).filter(|f| *f > 0.0)
+}
+
+fn epsg_proj4(code: u32) -> Option<String> {
+    u16::try_from(code).ok().and_then(crs_definitions::from_code).map(|d| d.proj4.to_string())
+}
+
+impl Globe {
+    /// The globe of the CRS records `crs`: `Ok(None)` when there are none, an error naming
+    /// the CRS when it cannot be transformed.
+    pub fn of_records(crs: &CrsRecords) -> Result<Option<Globe>, String> {
+        if crs.is_empty() {
+            return Ok(None);
+        }
+        let info = crs.describe();
+        Globe::of_info(&info).map(Some)
+    }
+
+    fn of_info(info: &CrsInfo) -> Result<Globe, String> {
+        let name = info.name.clone().unwrap_or_else(|| info.summary());
+        let def = if let Some(w) = &info.wkt {
+            let node = wkt::parse(w).map_err(|e| {
+                wkt::unsupported(&name, format_args!("its WKT does not parse ({e})"))
+            })?;
+            wkt::to_proj4(&node, &epsg_proj4)?
+        } else if let Some(code) = info.epsg {
+            let proj4 = epsg_proj4(code).ok_or_else(|| {
+                wkt::unsupported(
+                    &name,
+                    format_args!("EPSG:{code} is not in the EPSG definitions mortar carries"),
+                )
+            })?;
+            let h_unit = epsg_unit(code).unwrap_or(1.0);
+            let geographic = proj4.contains("+proj=longlat") || proj4.contains("+proj=latlong");
+            let h_unit = if geographic { 1.0 } else { h_unit };
+            let key = |id: u16| {
+                info.geokeys.iter().find(|k| k.id == id).and_then(|k| k.value.parse::<u32>().ok())
+            };
+            let z = info
+                .vertical_epsg
+                .and_then(epsg_unit)
+                .or_else(|| key(4099).and_then(geotiff_unit))
+                .unwrap_or(h_unit);
+            wkt::Proj4Crs { proj4, z_to_meter: z, geographic, name: name.clone() }
+        } else {
+            return Err(wkt::unsupported(
+                &name,
+                "it has no WKT and no EPSG code (give it one with --assign-crs EPSG:code)",
+            ));
+        };
+        Globe::from_proj4(def)
+    }
+
+    /// The globe of a PROJ.4 definition.
+    pub fn from_proj4(def: wkt::Proj4Crs) -> Result<Globe, String> {
+        let src = Proj::from_proj_string(&def.proj4).map_err(|e| {
+            wkt::unsupported(&def.name, format_args!("{e} (PROJ.4: {})", def.proj4))
+        })?;
+        let dst = Proj::from_proj_string("+proj=longlat +datum=WGS84 +no_defs").expect("WGS 84");
+        if src.is_geocent() {
+            return Err(wkt::unsupported(
+                &def.name,
+                "it is geocentric; give its points as ECEF are not supported",
+            ));
+        }
+        Ok(Globe {
+            src,
+            dst,
+            geographic: def.geographic,
+            xy_to_radians: if def.geographic { std::f64::consts::PI / 180.0 } else { 1.0 },
+            z_to_meter: def.z_to_meter,
+            name: def.name,
+            proj4: def.proj4,
+        })
+    }
+
+    /// Longitude and latitude (radians, WGS 84) and ellipsoidal height (metres) of `p`.
+    pub fn geodetic(&self, p: [f64; 3]) -> Result<[f64; 3], String> {
+        let mut t = (p[0] * self.xy_to_radians, p[1] * self.xy_to_radians, p[2] * self.z_to_meter);
+        proj4rs::transform::transform(&self.src, &self.dst, &mut t).map_err(|e| {
+            format!("({}, {}, {}) cannot be transformed from {}: {e}", p[0], p[1], p[2], self.name)
+        })?;
+        // The height passes the datum shift unchanged, as in PROJ for CRSs without a vertical
+        // part (its pipelines `push v_3` around the Helmert): only latitude and longitude move.
+        t.2 = p[2] * self.z_to_meter;
+        if !(t.0.is_finite() && t.1.is_finite() && t.2.is_finite()) {
+            return Err(format!(
+                "({}, {}, {}) has no place on the globe in {}",
+                p[0], p[1], p[2], self.name
+            ));
+        }
+        Ok([t.0, t.1, t.2])
+    }
+
+    /// ECEF (EPSG:4978, metres) of world coordinates `p` in the dataset's CRS.
+    pub fn ecef(&self, p: [f64; 3]) -> Result<[f64; 3], String> {
+        Ok(ecef_of_geodetic(self.geodetic(p)?))
+    }
+
+    /// Whether x and y are degrees.
+    pub fn is_geographic(&self) -> bool {
+        self.geographic
+    }
+}
+
+/// ECEF of WGS 84 longitude, latitude (radians) and ellipsoidal height (metres).
+pub fn ecef_of_geodetic(g: [f64; 3]) -> [f64; 3] {
+    let (lon, lat, h) = (g[0], g[1], g[2]);
+    let (sl, cl) = lat.sin_cos();
+    let n = WGS84_A / (1.0 - WGS84_E2 * sl * sl).sqrt();
+    [(n + h) * cl * lon.cos(), (n + h) * cl * lon.sin(), (n * (1.0 - WGS84_E2) + h) * sl]
+}
+
+/// A local east-north-up frame: its origin in ECEF and its axes.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Enu {
+    pub origin: [f64; 3],
+    /// East, north and up as unit vectors in ECEF.
+    pub axes: [[f64; 3]; 3],
+}
+
+impl Enu {
+    /// The frame at geodetic position `g` (longitude, latitude in radians, height in metres).
+    pub fn at(g: [f64; 3]) -> Enu {
+        let (so, co) = g[0].sin_cos();
+        let (sa, ca) = g[1].sin_cos();
+        Enu {
+            origin: ecef_of_geodetic(g),
+            axes: [[-so, co, 0.0], [-sa * co, -sa * so, ca], [ca * co, ca * so, sa]],
+        }
+    }
+    /// Local coordinates of an ECEF position.
+    #[inline]
+    pub fn local(&self, e: [f64; 3]) -> [f64; 3] {
+        let d = [e[0] - self.origin[0], e[1] - self.origin[1], e[2] - self.origin[2]];
+        self.axes.map(|a| a[0] * d[0] + a[1] * d[1] + a[2] * d[2])
+    }
+    /// The 4x4 matrix from the local frame to ECEF, column-major (3D Tiles' `transform`).
+    pub fn to_ecef_matrix(&self) -> [f64; 16] {
+        let [e, n, u] = self.axes;
+        let o = self.origin;
+        [e[0], e[1], e[2], 0.0, n[0], n[1], n[2], 0.0, u[0], u[1], u[2], 0.0, o[0], o[1], o[2], 1.0]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn globe(proj4: &str, z: f64, geographic: bool) -> Globe {
+        Globe::from_proj4(wkt::Proj4Crs {
+            proj4: proj4.into(),
+            z_to_meter: z,
+            geographic,
+            name: "t".into(),
+        })
+        .unwrap()
+    }
+
+    #[test]
+    fn utm_and_geographic_agree_with_proj() {
+        let g = globe("+proj=utm +zone=10 +datum=WGS84 +units=m +no_defs", 1.0, false);
+        let e = g.ecef([500000.0, 4000000.0, 100.0]).unwrap();
+        // lon -123, lat from the inverse: the point lies on the central meridian.
+        let geo = g.geodetic([500000.0, 4000000.0, 100.0]).unwrap();
+        assert!((geo[0].to_degrees() + 123.0).abs() < 1e-9);
+        assert!((geo[2] - 100.0).abs() < 1e-6);
+        let r = (e[0] * e[0] + e[1] * e[1] + e[2] * e[2]).sqrt();
+        assert!((6_360_000.0..6_380_000.0).contains(&r), "{r}");
+        // Degrees in, the same place.
+        let d = globe("+proj=longlat +datum=WGS84 +no_defs", 1.0, true);
+        let e2 = d.ecef([geo[0].to_degrees(), geo[1].to_degrees(), 100.0]).unwrap();
+        for a in 0..3 {
+            assert!((e[a] - e2[a]).abs() < 1e-6, "{e:?} {e2:?}");
+        }
+    }
+
+    fn near(a: [f64; 3], b: [f64; 3], tol: f64) {
+        let d = ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt();
+        assert!(d <= tol, "{a:?} vs {b:?}: {d} m");
+    }
+
+    /// Against pyproj 3.8 (PROJ 9.x, no grids), `Transformer.from_crs(crs, 4978, always_xy=True)`.
+    #[test]
+    fn real_crss_agree_with_pyproj() {
+        let w = r#"PROJCS["NAD_1983_HARN_Lambert_Conformal_Conic",GEOGCS["GCS_North_American_1983_HARN",DATUM["NAD83_High_Accuracy_Regional_Network",SPHEROID["GRS_1980",6378137,298.257222101,AUTHORITY["EPSG","7019"]],AUTHORITY["EPSG","6152"]],PRIMEM["Greenwich",0],UNIT["degree",0.0174532925199433]],PROJECTION["Lambert_Conformal_Conic_2SP"],PARAMETER["standard_parallel_1",43],PARAMETER["standard_parallel_2",45.5],PARAMETER["latitude_of_origin",41.75],PARAMETER["central_meridian",-120.5],PARAMETER["false_easting",1312335.958005249],PARAMETER["false_northing",0],UNIT["foot",0.3048,AUTHORITY["EPSG","9002"]]]"#;
+        let info =
+            CrsInfo { wkt: Some(w.into()), name: Some("autzen".into()), ..CrsInfo::default() };
+        let g = Globe::of_info(&info).unwrap();
+        // z is in feet here (the horizontal unit), pyproj was given 400 ft as metres. PROJ's
+        // default is "NAD83(HARN) to WGS 84 (3)" (a Helmert, 1 m accuracy); mortar takes the
+        // null transformation "NAD83(HARN) to WGS 84 (1)" (2 m accuracy), equal to the mm.
+        let p = g.ecef([637000.0, 849000.0, 400.0]).unwrap();
+        near(p, [-2505489.341525898, -3847875.101867256, 4412184.205149691], 0.001);
+        near(p, [-2505490.067513772, -3847874.1320473496, 4412184.635772115], 2.0);
+        let utm = CrsInfo { epsg: Some(32605), ..CrsInfo::default() };
+        near(
+            Globe::of_info(&utm).unwrap().ecef([200000.0, 2200000.0, 10.0]).unwrap(),
+            [-5476072.307521426, -2453613.9952781145, 2154503.5796139333],
+            0.001,
+        );
+        // Amersfoort / RD New: PROJ picks another Helmert ("Amersfoort to WGS 84 (9)") than the
+        // +towgs84 of the EPSG PROJ.4 string; they differ by decimetres.
+        let rd = CrsInfo { epsg: Some(28992), ..CrsInfo::default() };
+        near(
+            Globe::of_info(&rd).unwrap().ecef([85000.0, 446000.0, 10.0]).unwrap(),
+            [3923716.0429577995, 299701.4688492099, 5002671.620536937],
+            1.0,
+        );
+        let none = CrsInfo { kind: "geotiff".into(), ..CrsInfo::default() };
+        assert!(Globe::of_info(&none).err().unwrap().contains("--assign-crs"));
+    }
+
+    #[test]
+    fn enu_is_orthonormal_and_inverts() {
+        let f = Enu::at([(-123.0f64).to_radians(), 44.0f64.to_radians(), 120.0]);
+        for i in 0..3 {
+            for j in 0..3 {
+                let d: f64 = (0..3).map(|k| f.axes[i][k] * f.axes[j][k]).sum();
+                assert!((d - if i == j { 1.0 } else { 0.0 }).abs() < 1e-12);
+            }
+        }
+        assert_eq!(f.local(f.origin), [0.0, 0.0, 0.0]);
+        let up = ecef_of_geodetic([(-123.0f64).to_radians(), 44.0f64.to_radians(), 220.0]);
+        let l = f.local(up);
+        assert!(l[0].abs() < 1e-6 && l[1].abs() < 1e-6 && (l[2] - 100.0).abs() < 1e-6, "{l:?}");
+    }
+}
