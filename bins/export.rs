@@ -1,4 +1,5 @@
-//! `mortar export`: the octree as COPC 1.0 or Potree 2.0 for other tools (`lib/io/src/export`).
+//! `mortar export`: the octree as COPC 1.0, Potree 2.0 or 3D Tiles 1.1 for other tools
+//! (`lib/io/src/export`).
 
 use anyhow::Result;
 use mortar_app::cli as common;
@@ -11,11 +12,11 @@ pub struct Args {
     /// LAS/LAZ files, batch files, stores, directories, glob patterns, or - for stdin.
     #[arg(required = true)]
     pub inputs: Vec<String>,
-    /// The output: a COPC file (`.copc.laz`) or a Potree 2.0 directory (must not exist, or be
-    /// empty).
+    /// The output: a COPC file (`.copc.laz`), or a Potree 2.0 or 3D Tiles directory (must not
+    /// exist, or be empty).
     #[arg(short, long)]
     pub output: PathBuf,
-    /// copc, potree, or auto: copc for an output ending in .laz, else potree.
+    /// copc, potree, 3dtiles, or auto: copc for an output ending in .laz, else potree.
     #[arg(long, default_value = "auto")]
     pub format: String,
     /// Memory budget, e.g. 8G (default: half the machine's memory, at most 16G, at least 256M,
@@ -24,8 +25,8 @@ pub struct Args {
     #[arg(long, value_parser = common::parse_size)]
     pub memory: Option<u64>,
     /// Most points per leaf (default: 200,000 for COPC, where larger LAZ chunks compress
-    /// better, 20 % smaller than at 50,000 (BENCHMARKS.md); 50,000 for Potree, whose viewers
-    /// load nodes one request each).
+    /// better, 20 % smaller than at 50,000 (BENCHMARKS.md); 50,000 for Potree and 3D Tiles,
+    /// whose viewers load nodes one request each).
     #[arg(long)]
     pub leaf_capacity: Option<u32>,
     /// Order of the points inside a node: gps-time (the default; Morton order where the records
@@ -47,11 +48,12 @@ fn format_of(a: &Args) -> Result<ExportFormat> {
     Ok(match a.format.as_str() {
         "copc" => ExportFormat::Copc,
         "potree" => ExportFormat::Potree,
+        "3dtiles" | "3d-tiles" => ExportFormat::Tiles3d,
         "auto" if a.output.to_string_lossy().to_ascii_lowercase().ends_with(".laz") => {
             ExportFormat::Copc
         }
         "auto" => ExportFormat::Potree,
-        f => anyhow::bail!("--format {f}: give copc, potree or auto"),
+        f => anyhow::bail!("--format {f}: give copc, potree, 3dtiles or auto"),
     })
 }
 
@@ -65,10 +67,12 @@ fn check_output(out: &Path, format: ExportFormat) -> Result<()> {
         ExportFormat::Copc if out.is_dir() => {
             anyhow::bail!("{}: is a directory; a COPC output is a file", out.display())
         }
-        ExportFormat::Potree if out.exists() && !out.is_dir() => {
+        ExportFormat::Potree | ExportFormat::Tiles3d if out.exists() && !out.is_dir() => {
             anyhow::bail!("{}: exists and is not a directory", out.display())
         }
-        ExportFormat::Potree if out.is_dir() && std::fs::read_dir(out)?.next().is_some() => {
+        ExportFormat::Potree | ExportFormat::Tiles3d
+            if out.is_dir() && std::fs::read_dir(out)?.next().is_some() =>
+        {
             anyhow::bail!("{}: the directory is not empty; give a new or empty one", out.display())
         }
         _ => Ok(()),
@@ -79,7 +83,7 @@ pub fn run(a: Args) -> Result<()> {
     let format = format_of(&a)?;
     let leaf_capacity = a.leaf_capacity.unwrap_or(match format {
         ExportFormat::Copc => COPC_LEAF_CAPACITY,
-        ExportFormat::Potree => DEFAULT_LEAF_CAPACITY,
+        ExportFormat::Potree | ExportFormat::Tiles3d => DEFAULT_LEAF_CAPACITY,
     });
     if leaf_capacity == 0 {
         anyhow::bail!("--leaf-capacity must be at least 1");

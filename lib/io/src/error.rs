@@ -490,6 +490,9 @@ pub enum ExportError {
     /// The scales are not whole multiples of one another.
     #[error("the scales {scale:?} are not whole multiples of one another, so no octree cube has whole cells on every axis (re-scale the input, e.g. with `las2las -rescale`)")]
     ScalesNotMultiples { scale: [f64; 3] },
+    /// The points cannot be placed on the globe (3D Tiles).
+    #[error("{why}")]
+    Globe { why: String },
 }
 
 /// Why a plan cannot be read, or does not fit the inputs it is run on.

@@ -71,35 +71,48 @@ impl Globe {
 
     fn of_info(info: &CrsInfo) -> Result<Globe, String> {
         let name = info.name.clone().unwrap_or_else(|| info.summary());
-        let def = if let Some(w) = &info.wkt {
-            let node = wkt::parse(w).map_err(|e| {
-                wkt::unsupported(&name, format_args!("its WKT does not parse ({e})"))
-            })?;
-            wkt::to_proj4(&node, &epsg_proj4)?
-        } else if let Some(code) = info.epsg {
-            let proj4 = epsg_proj4(code).ok_or_else(|| {
-                wkt::unsupported(
+        let node = info.wkt.as_deref().map(wkt::parse);
+        // The WKT's parameters first (its EPSG code where it names one); else the EPSG code of
+        // the records (GeoTIFF keys, or a WKT 2 that names its code).
+        let from_wkt = match &node {
+            Some(Ok(n)) => Some(wkt::to_proj4(n, &epsg_proj4)),
+            Some(Err(e)) => {
+                Some(Err(wkt::unsupported(&name, format_args!("its WKT does not parse ({e})"))))
+            }
+            None => None,
+        };
+        let def = match (from_wkt, info.epsg) {
+            (Some(Ok(def)), _) => def,
+            (from_wkt, Some(code)) if epsg_proj4(code).is_some() => {
+                let proj4 = epsg_proj4(code).unwrap_or_default();
+                let geographic = proj4.contains("+proj=longlat") || proj4.contains("+proj=latlong");
+                let h_unit = if geographic { 1.0 } else { epsg_unit(code).unwrap_or(1.0) };
+                let key = |id: u16| {
+                    info.geokeys.iter().find(|k| k.id == id).and_then(|k| k.value.parse::<u32>().ok())
+                };
+                let wkt_vertical = match (&node, from_wkt) {
+                    (Some(Ok(n)), _) => wkt::vertical_unit(n),
+                    _ => None,
+                };
+                let z = wkt_vertical
+                    .or_else(|| info.vertical_epsg.and_then(epsg_unit))
+                    .or_else(|| key(4099).and_then(geotiff_unit))
+                    .unwrap_or(h_unit);
+                wkt::Proj4Crs { proj4, z_to_meter: z, geographic, name: name.clone() }
+            }
+            (Some(Err(e)), _) => return Err(e),
+            (None, Some(code)) => {
+                return Err(wkt::unsupported(
                     &name,
-                    format_args!("EPSG:{code} is not in the EPSG definitions mortar carries"),
-                )
-            })?;
-            let h_unit = epsg_unit(code).unwrap_or(1.0);
-            let geographic = proj4.contains("+proj=longlat") || proj4.contains("+proj=latlong");
-            let h_unit = if geographic { 1.0 } else { h_unit };
-            let key = |id: u16| {
-                info.geokeys.iter().find(|k| k.id == id).and_then(|k| k.value.parse::<u32>().ok())
-            };
-            let z = info
-                .vertical_epsg
-                .and_then(epsg_unit)
-                .or_else(|| key(4099).and_then(geotiff_unit))
-                .unwrap_or(h_unit);
-            wkt::Proj4Crs { proj4, z_to_meter: z, geographic, name: name.clone() }
-        } else {
-            return Err(wkt::unsupported(
-                &name,
-                "it has no WKT and no EPSG code (give it one with --assign-crs EPSG:code)",
-            ));
+                    format_args!("EPSG:{code} is not in the EPSG definitions mortar carries (give another with --assign-crs EPSG:code)"),
+                ))
+            }
+            (None, None) => {
+                return Err(wkt::unsupported(
+                    &name,
+                    "it has no WKT and no EPSG code (give it one with --assign-crs EPSG:code)",
+                ))
+            }
         };
         Globe::from_proj4(def)
     }
@@ -129,6 +142,12 @@ impl Globe {
 
     /// Longitude and latitude (radians, WGS 84) and ellipsoidal height (metres) of `p`.
     pub fn geodetic(&self, p: [f64; 3]) -> Result<[f64; 3], String> {
+        if self.geographic && !(p[1].abs() <= 90.0 && p[0].abs() <= 540.0) {
+            return Err(format!(
+                "({}, {}) is not a longitude and latitude in degrees, which the CRS {} says the points are (is the CRS wrong? give the right one with --assign-crs EPSG:code)",
+                p[0], p[1], self.name
+            ));
+        }
         let mut t = (p[0] * self.xy_to_radians, p[1] * self.xy_to_radians, p[2] * self.z_to_meter);
         proj4rs::transform::transform(&self.src, &self.dst, &mut t).map_err(|e| {
             format!("({}, {}, {}) cannot be transformed from {}: {e}", p[0], p[1], p[2], self.name)

@@ -302,6 +302,16 @@ fn datum(gcs: &Node) -> Result<String, String> {
     Ok(s)
 }
 
+/// Metres per unit of the vertical part of a compound CRS (WKT 1 `VERT_CS`, WKT 2 `VERTCRS`).
+pub fn vertical_unit(root: &Node) -> Option<f64> {
+    let v = root.child("VERT_CS").or_else(|| root.child("VERTCRS"))?;
+    let unit = v
+        .child("UNIT")
+        .or_else(|| v.child("LENGTHUNIT"))
+        .or_else(|| v.children("AXIS").find_map(|a| a.child("LENGTHUNIT")))?;
+    unit.nums().first().copied().filter(|f| *f > 0.0)
+}
+
 /// `+proj=... ` and its parameters (angles in degrees) for a WKT `PROJECTION`.
 fn projection(p: &Node, name: &str) -> Result<String, String> {
     let key: String =

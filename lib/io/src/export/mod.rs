@@ -1,5 +1,5 @@
-//! `mortar export`: the octree handed to other tools, as COPC 1.0 ([`copc`]) or Potree 2.0
-//! ([`potree`]). ARCHITECTURE.md, "Exports".
+//! `mortar export`: the octree handed to other tools, as COPC 1.0 ([`copc`]), Potree 2.0
+//! ([`potree`]) or 3D Tiles 1.1 ([`tiles3d`]). ARCHITECTURE.md, "Exports".
 //!
 //! Both formats want what a store does not hold: every point exactly once, the inner nodes
 //! holding real points. So the export makes its own assignment from the tree of paper 004:
@@ -37,10 +37,12 @@
 //! hierarchy is written at the end from the tree's shape.
 
 pub mod copc;
+mod glb;
 mod nodes;
 mod options;
 pub mod potree;
 mod stream;
+pub mod tiles3d;
 mod writer;
 
 pub use options::{ExportFormat, ExportOptions, ExportReport, PointOrder};
@@ -59,6 +61,7 @@ pub fn export(ds: &Dataset, out: &Path, opts: &ExportOptions) -> Result<ExportRe
     report.format = match opts.format {
         ExportFormat::Copc => "copc",
         ExportFormat::Potree => "potree",
+        ExportFormat::Tiles3d => "3dtiles",
     };
     let tree = if in_memory_need(ds, opts.memory) <= opts.memory
         && ds.declared_points() < u32::MAX as u64
@@ -85,7 +88,7 @@ fn in_memory(
 ) -> Result<Vec<OutNode>> {
     let prep = prepare(ds, opts, report)?;
     let tw = Instant::now();
-    let mut w = open_writer(ds, prep.frame.clone(), out, opts.format, report)?;
+    let mut w = open_writer(ds, prep.frame.clone(), out, opts.format, &prep.stats, report)?;
     let points: u64 = prep.nodes.iter().map(|n| n.points.len() as u64).sum();
     ds.progress.stage("writing", points, "points");
     write_grouped(

@@ -11,6 +11,8 @@ pub enum ExportFormat {
     Copc,
     /// A Potree 2.0 directory (`metadata.json`, `hierarchy.bin`, `octree.bin`).
     Potree,
+    /// A 3D Tiles 1.1 directory (`tileset.json`, `tiles/*.glb`).
+    Tiles3d,
 }
 
 /// The order of the points inside a node.
@@ -61,4 +63,15 @@ pub struct ExportReport {
     pub dense_cells: u64,
     /// Leaves larger than a unit, ordered on disk and written in slices.
     pub large_leaves: u64,
+    /// 3D Tiles: the CRS the points were placed on the globe from (name and PROJ.4), `None`
+    /// for a local frame.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub tiles_crs: Option<String>,
+    /// 3D Tiles: the centre of the root tile's bounding box in ECEF (EPSG:4978) metres.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub ecef_center: Option<[f64; 3]>,
+    /// 3D Tiles: the largest distance between a point and its position in a tile (metres on
+    /// the globe), from the 16-bit or 32-bit float storage.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub position_error_bound: Option<f64>,
 }

@@ -66,7 +66,7 @@ pub(crate) fn export(
     let frame = Frame::of(ds, layout, &stretch, part.root);
     report.point_format = frame.out.format;
     let out_rl = frame.out.record_len;
-    let mut writer = open_writer(ds, frame, out, opts.format, report)?;
+    let mut writer = open_writer(ds, frame, out, opts.format, &part.all, report)?;
     ds.progress.stage("building and writing", part.all.count, "points");
     let gps = match opts.order {
         PointOrder::GpsTime => ds.layout.attribute("gps_time").map(|a| a.offset),

@@ -3,9 +3,10 @@
 
 use super::nodes::{Frame, NodeWriter};
 use super::options::{ExportFormat, ExportReport};
-use super::{copc, potree};
+use super::{copc, potree, tiles3d};
 use crate::dataset::Dataset;
 use crate::error::Result;
+use crate::sort::PieceStats;
 use std::path::Path;
 
 /// Opens the writer of `format` at `out` for the nodes of `frame`.
@@ -14,6 +15,7 @@ pub(crate) fn open_writer<'a>(
     frame: Frame,
     out: &Path,
     format: ExportFormat,
+    stats: &PieceStats,
     report: &mut ExportReport,
 ) -> Result<Box<dyn NodeWriter + 'a>> {
     Ok(match format {
@@ -21,5 +23,8 @@ pub(crate) fn open_writer<'a>(
             Box::new(copc::CopcWriter::create(ds, frame, out, &mut report.warnings)?)
         }
         ExportFormat::Potree => Box::new(potree::PotreeWriter::create(ds, frame, out)?),
+        ExportFormat::Tiles3d => {
+            Box::new(tiles3d::Tiles3dWriter::create(ds, frame, out, stats, &mut report.warnings)?)
+        }
     })
 }
