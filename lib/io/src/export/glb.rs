@@ -286,7 +286,7 @@ pub(crate) fn head(n: usize, b: &Bounds, attrs: Attrs, pos: &Positions) -> (Vec<
         doc["extensions"] = serde_json::Value::Object(top_ext);
     }
     let mut text = serde_json::to_vec(&doc).expect("JSON of a tile");
-    while text.len() % 4 != 0 {
+    while !text.len().is_multiple_of(4) {
         text.push(b' ');
     }
     let total = 12 + 8 + text.len() + 8 + bin_len + bin_pad;

@@ -42,7 +42,7 @@ pub const SPLIT: u8 = 4;
 
 /// Where the points go: the globe, or a local frame.
 enum Place {
-    Globe { globe: Globe, enu: Enu },
+    Globe { globe: Box<Globe>, enu: Enu },
     Local { origin: [f64; 3] },
 }
 
@@ -136,7 +136,7 @@ impl<'a> Tiles3dWriter<'a> {
                     _ => smin,
                 };
                 let name = format!("{} ({})", globe.name, globe.proj4);
-                (Place::Globe { enu: Enu::at(geo), globe }, res, Some(name))
+                (Place::Globe { enu: Enu::at(geo), globe: Box::new(globe) }, res, Some(name))
             }
             None => {
                 warnings.push(format!(
@@ -292,7 +292,7 @@ impl NodeWriter for Tiles3dWriter<'_> {
         let at: HashMap<NodeKey, &OutNode> = tree.iter().map(|n| (n.key, n)).collect();
         // Boxes bottom-up: a tile's points and every tile below.
         let mut order: Vec<NodeKey> = tree.iter().map(|n| n.key).collect();
-        order.sort_by(|a, b| b.level.cmp(&a.level));
+        order.sort_by_key(|k| std::cmp::Reverse(k.level));
         let mut boxes: HashMap<NodeKey, Bounds> = HashMap::new();
         for k in &order {
             let mut b = w.placed.get(k).map(|p| p.bounds).unwrap_or(Bounds::EMPTY);
@@ -329,41 +329,11 @@ impl NodeWriter for Tiles3dWriter<'_> {
             json!({"box": [c[0], c[1], c[2], h[0], 0.0, 0.0, 0.0, h[1], 0.0, 0.0, 0.0, h[2]]})
         };
         let mut externals: Vec<NodeKey> = Vec::new();
-        // A tile and its children, down to the next split; `prefix` is the path from the
-        // tileset file to `tiles/`.
-        fn tile(
-            k: NodeKey,
-            top: bool,
-            prefix: &str,
-            at: &HashMap<NodeKey, &OutNode>,
-            placed: &HashMap<NodeKey, Placed>,
-            volume: &dyn Fn(&NodeKey) -> serde_json::Value,
-            error_of: &dyn Fn(&NodeKey) -> f64,
-            externals: &mut Vec<NodeKey>,
-        ) -> serde_json::Value {
-            let n = at[&k];
-            let mut t = json!({"boundingVolume": volume(&k), "geometricError": error_of(&k), "refine": "ADD"});
-            if !top && k.level % SPLIT == 0 && n.children != 0 {
-                externals.push(k);
-                t["content"] = json!({"uri": format!("{prefix}{}.json", tile_name(&k))});
-                return t;
-            }
-            if placed.contains_key(&k) {
-                t["content"] = json!({"uri": format!("{prefix}{}.glb", tile_name(&k))});
-            }
-            let kids: Vec<serde_json::Value> = (0..8)
-                .filter(|o| n.children >> o & 1 == 1)
-                .map(|o| tile(k.child(o), false, prefix, at, placed, volume, error_of, externals))
-                .collect();
-            if !kids.is_empty() {
-                t["children"] = json!(kids);
-            }
-            t
-        }
         let asset =
             json!({"version": "1.1", "generator": concat!("mortar ", env!("CARGO_PKG_VERSION"))});
-        let mut root =
-            tile(NodeKey::ROOT, true, "tiles/", &at, &w.placed, &volume, &error_of, &mut externals);
+        let tree_json =
+            TreeJson { at: &at, placed: &w.placed, volume: &volume, error_of: &error_of };
+        let mut root = tree_json.tile(NodeKey::ROOT, true, "tiles/", &mut externals);
         root["transform"] = json!(w.place.transform().to_vec());
         let main = json!({"asset": asset, "geometricError": 2.0 * error_of(&NodeKey::ROOT).max(spacing), "root": root});
         let write_json = |p: &Path, v: &serde_json::Value| -> Result<u64> {
@@ -374,7 +344,7 @@ impl NodeWriter for Tiles3dWriter<'_> {
         };
         let mut bytes = write_json(&dir.join("tileset.json"), &main)?;
         while let Some(k) = externals.pop() {
-            let r = tile(k, true, "", &at, &w.placed, &volume, &error_of, &mut externals);
+            let r = tree_json.tile(k, true, "", &mut externals);
             let doc = json!({"asset": asset, "geometricError": error_of(&k), "root": r});
             bytes += write_json(&w.tiles.join(format!("{}.json", tile_name(&k))), &doc)?;
         }
@@ -394,5 +364,45 @@ impl NodeWriter for Tiles3dWriter<'_> {
         }
         w.tmp.persist(&w.out).map_err(|e| Error::io(&w.out, e))?;
         Ok(())
+    }
+}
+
+/// What the tileset files are made from.
+struct TreeJson<'t> {
+    at: &'t HashMap<NodeKey, &'t OutNode>,
+    placed: &'t HashMap<NodeKey, Placed>,
+    volume: &'t dyn Fn(&NodeKey) -> serde_json::Value,
+    error_of: &'t dyn Fn(&NodeKey) -> f64,
+}
+
+impl TreeJson<'_> {
+    /// A tile and its children down to the next split (`top`: the root of a tileset file);
+    /// `prefix` is the path from the tileset file to `tiles/`. Nodes below a split go to
+    /// `externals`.
+    fn tile(
+        &self,
+        k: NodeKey,
+        top: bool,
+        prefix: &str,
+        externals: &mut Vec<NodeKey>,
+    ) -> serde_json::Value {
+        let n = self.at[&k];
+        let mut t = json!({"boundingVolume": (self.volume)(&k), "geometricError": (self.error_of)(&k), "refine": "ADD"});
+        if !top && k.level.is_multiple_of(SPLIT) && n.children != 0 {
+            externals.push(k);
+            t["content"] = json!({"uri": format!("{prefix}{}.json", tile_name(&k))});
+            return t;
+        }
+        if self.placed.contains_key(&k) {
+            t["content"] = json!({"uri": format!("{prefix}{}.glb", tile_name(&k))});
+        }
+        let kids: Vec<serde_json::Value> = (0..8)
+            .filter(|o| n.children >> o & 1 == 1)
+            .map(|o| self.tile(k.child(o), false, prefix, externals))
+            .collect();
+        if !kids.is_empty() {
+            t["children"] = json!(kids);
+        }
+        t
     }
 }
