@@ -157,6 +157,81 @@ fn real_files_are_placed_on_the_globe_and_read_by_others() {
     std::fs::remove_dir_all(&d).ok();
 }
 
+/// Whether the CesiumJS check can run (chromium, npm cesium); required with
+/// `MORTAR_REQUIRE_WEB=1`.
+fn cesium() -> bool {
+    let chromium = std::path::Path::new("/usr/lib/chromium/chromium").exists()
+        || Command::new("sh")
+            .args(["-c", "command -v chromium"])
+            .output()
+            .is_ok_and(|o| o.status.success());
+    let ok = node()
+        && chromium
+        && root().join("tests/web/node_modules/cesium/Build/Cesium/Cesium.js").is_file();
+    if !ok {
+        assert!(
+            std::env::var("MORTAR_REQUIRE_WEB").as_deref() != Ok("1"),
+            "MORTAR_REQUIRE_WEB=1 but chromium or npm cesium is missing"
+        );
+        eprintln!("SKIP: no chromium or npm cesium");
+    }
+    ok
+}
+
+/// CesiumJS 1.145 in headless Chromium loads the tileset, draws a non-empty picture, and puts
+/// its bounding sphere's centre within 1 m of the centre of the input's points placed by PROJ.
+#[test]
+fn cesium_draws_the_tileset_at_the_right_place() {
+    if !cesium() {
+        return;
+    }
+    let py = python();
+    let d = tempdir("tiles3d-cesium");
+    let mut files = vec![root().join("data-samples/autzen_trim.laz")];
+    if let Some(data) = shared_data() {
+        files.push(data.join("lasR/inst/extdata/bcts/bcts_1.laz"));
+    }
+    for (i, f) in files.iter().enumerate() {
+        let out = d.join(format!("t{i}"));
+        let r = export(f, &out, &[]);
+        assert!(r.ok, "{f:?}: {}", r.stderr);
+        let mut c = Command::new("node");
+        c.arg("--no-deprecation").arg(root().join("tests/web/cesium_check.mjs")).arg(&out);
+        let o = run_limited(c, std::time::Duration::from_secs(240));
+        let v: Value = serde_json::from_slice(&o.stdout).unwrap_or_else(|_| {
+            panic!("cesium_check.mjs {f:?}: {}", String::from_utf8_lossy(&o.stderr))
+        });
+        assert!(o.status.success() && v["loaded"] == true, "{f:?}: {v}");
+        let covered = v["covered_pixels"].as_u64().unwrap();
+        assert!(covered > 800 * 600 / 100, "{f:?}: {covered} pixels drawn");
+        let loaded = v["points_loaded"].as_u64().unwrap();
+        assert!(loaded > 0 && loaded <= r.json["points"].as_u64().unwrap(), "{f:?}: {v}");
+        let centre: Vec<f64> = v["bounding_sphere_center"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|x| x.as_f64().unwrap())
+            .collect();
+        let want: Vec<f64> = match &py {
+            Some(py) => py_check(py, &out, f)["ref_centre_ecef"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|x| x.as_f64().unwrap())
+                .collect(),
+            None => r.json["ecef_center"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|x| x.as_f64().unwrap())
+                .collect(),
+        };
+        let dist = (0..3).map(|a| (centre[a] - want[a]).powi(2)).sum::<f64>().sqrt();
+        assert!(dist < 1.0, "{f:?}: CesiumJS's centre {centre:?} is {dist} m from {want:?}");
+    }
+    std::fs::remove_dir_all(&d).ok();
+}
+
 #[test]
 fn deep_trees_are_split_into_external_tilesets_and_streamed_exports_agree() {
     let d = tempdir("tiles3d-deep");

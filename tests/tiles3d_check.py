@@ -13,7 +13,9 @@ read by laspy and transformed by pyproj (PROJ) to EPSG:4978:
 - placement: the centroid, the per-axis extremes and the covariance of the points in ECEF agree
   (order-free statistics: a point misplaced by more than the tolerance moves the extremes or
   the spread); reported as the largest difference in metres;
-- the root bounding box's centre against the input box's centre transformed by PROJ.
+- the root bounding box's centre against the centre of the same box (east-north-up, at the
+  root's frame) of the input's points transformed by PROJ (`ref_centre_ecef`, which the
+  CesiumJS check compares with the bounding sphere CesiumJS computes).
 
 PROJ may pick another datum transformation than mortar (mortar uses the null or +towgs84
 ones of the EPSG PROJ.4 definitions; PROJ picks the most accurate of its database, e.g.
@@ -166,6 +168,7 @@ def main():
         "covariance_m2": cov,
         "centroid_vs_proj_default_m": float(np.linalg.norm(xyz.mean(0) - e_def.mean(0))),
         "root_centre_m": float(np.linalg.norm(c_ecef - ref_centre)),
+        "ref_centre_ecef": [float(v) for v in ref_centre],
         "root_centre_vs_input_box_centre_m": float(np.linalg.norm(c_ecef - mid_ecef)),
         "tiles": len(out),
     }))
