@@ -119,6 +119,12 @@ pub fn vlr_records(data: &[u8]) {
     }
     let refs: Vec<&Vlr> = vlrs.iter().collect();
     let _ = crs::describe(&refs);
+    // The 3D Tiles export's placement: the WKT parsed and turned into PROJ.4, the projection
+    // set up and one point transformed (`globe.rs`, `wkt.rs`).
+    let records = crs::CrsRecords { vlrs: vlrs[1..].to_vec(), evlrs: Vec::new() };
+    if let Ok(Some(g)) = mortar_io::globe::Globe::of_records(&records) {
+        let _ = g.ecef([1000.0, 2000.0, 30.0]);
+    }
 }
 
 /// Target `las_input`: a whole LAS/LAZ file as `mortar` opens it (`LasInput::from_bytes`: header,

@@ -244,6 +244,9 @@ impl EptSource {
         opts: &OpenOptions,
         attributes: &[&str],
     ) -> Result<Dataset> {
+        if self.remote.is_some() {
+            crate::remote::in_parallel(nodes, |&i| self.node_file(i).map(|_| ()))?;
+        }
         let mut inputs: Vec<Box<dyn RecordSource>> = Vec::with_capacity(nodes.len());
         for &i in nodes {
             let path = self.node_file(i)?;

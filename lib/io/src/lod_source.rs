@@ -218,10 +218,10 @@ impl LodSource {
         match self {
             LodSource::Copc(f, remote) => {
                 if let Some(r) = remote {
-                    for &i in nodes {
+                    crate::remote::in_parallel(nodes, |&i| {
                         let n = f.lod.hierarchy.nodes[i];
-                        r.fetch(n.offset, n.bytes)?;
-                    }
+                        r.fetch(n.offset, n.bytes)
+                    })?;
                 }
                 f.nodes(nodes, opts, attributes)
             }

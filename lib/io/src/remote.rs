@@ -5,7 +5,8 @@
 //! - A COPC file is read with range requests ([`Remote::fetch`]): the header and VLRs, the LAZ
 //!   chunk table and the EVLRs (where COPC keeps its hierarchy) when it is opened
 //!   ([`Remote::fetch_las_index`]), then only the chunks of the nodes a view selects
-//!   ([`crate::lod_source::LodSource::dataset`]); a view's loader threads fetch in parallel.
+//!   ([`crate::lod_source::LodSource::dataset`], [`FETCHERS`] requests in flight, [`in_parallel`]);
+//!   a view's loader threads fetch in parallel.
 //! - Any other input (LAS, LAZ, a COPC file read flat) is fetched whole, in ranges of
 //!   [`PIECE`] bytes streamed to the copy (not held in memory), before it is read.
 //! - Every response is checked: the status (404, 403 and the others are one-line errors naming
@@ -20,7 +21,8 @@
 //!   Ctrl-C ([`crate::cleanup`]). `bytes_fetched` counts what came over the network.
 //!
 //! An EPT directory over HTTP (`…/ept.json` or `…/`) is read file by file: `ept.json` and the
-//! hierarchy files whole when it is opened, each node's LAZ file whole when a view selects it.
+//! hierarchy files whole when it is opened, each node's LAZ file whole when a view selects it
+//! ([`FETCHERS`] at a time).
 //!
 //! Not done yet: a cache bounded below
 //! the file's size (the copy holds what was fetched; its pages are the OS's page cache), and
@@ -97,6 +99,36 @@ pub fn with_urls(text: &str) -> String {
         t = t.replace(&r.path.display().to_string(), url);
     }
     t
+}
+
+/// Requests in flight at once when many ranges or files are fetched together.
+pub const FETCHERS: usize = 8;
+
+/// Runs `f` on every item, [`FETCHERS`] at a time on their own threads (HTTP requests wait on
+/// the network, not on a core); the first error is returned.
+pub fn in_parallel<T: Sync>(items: &[T], f: impl Fn(&T) -> Result<()> + Sync) -> Result<()> {
+    if items.len() <= 1 {
+        return items.iter().try_for_each(&f);
+    }
+    let next = std::sync::atomic::AtomicUsize::new(0);
+    let failed: Mutex<Option<Error>> = Mutex::new(None);
+    std::thread::scope(|s| {
+        for _ in 0..FETCHERS.min(items.len()) {
+            s.spawn(|| loop {
+                let i = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                if i >= items.len() || failed.lock().unwrap_or_else(|e| e.into_inner()).is_some() {
+                    return;
+                }
+                if let Err(e) = f(&items[i]) {
+                    failed.lock().unwrap_or_else(|e| e.into_inner()).get_or_insert(e);
+                }
+            });
+        }
+    });
+    match failed.into_inner().unwrap_or_else(|e| e.into_inner()) {
+        Some(e) => Err(e),
+        None => Ok(()),
+    }
 }
 
 /// Removes this process's copies (at the end of a command).
