@@ -70,12 +70,18 @@ struct Output3 {
 }
 
 fn py_check(py: &Path, dir: &Path, input: &Path) -> Value {
-    let o = Command::new(py)
-        .arg(root().join("tests/tiles3d_check.py"))
-        .arg(dir)
-        .arg(input)
-        .output()
-        .unwrap();
+    py_check_as(py, dir, input, None)
+}
+
+/// [`py_check`] with the EPSG code pyproj is to take the input in (where laspy reads no CRS
+/// from its records: user-defined GeoTIFF keys, a broken WKT).
+fn py_check_as(py: &Path, dir: &Path, input: &Path, epsg: Option<u32>) -> Value {
+    let mut c = Command::new(py);
+    c.arg(root().join("tests/tiles3d_check.py")).arg(dir).arg(input);
+    if let Some(e) = epsg {
+        c.arg(e.to_string());
+    }
+    let o = c.output().unwrap();
     assert!(
         o.status.success(),
         "tiles3d_check.py {input:?}: {}",
@@ -103,18 +109,26 @@ fn node_check(dir: &Path) -> Value {
 /// Real files in several CRSs: WKT Lambert in feet, geographic degrees, Albers with a vertical
 /// code, WKT 2 Lambert-93, UTM, a State Plane in feet; the shipped sample alone without
 /// `../shared/data`.
-fn placed_files() -> Vec<PathBuf> {
-    let mut v = vec![root().join("data-samples/autzen_trim.laz")];
+///
+/// With the EPSG code of the same CRS for pyproj where laspy reads none: user-defined GeoTIFF
+/// keys (Autzen's Lambert with its false easting in metres, a user-defined UTM 22N) and a WKT
+/// whose compound node closes early.
+fn placed_files() -> Vec<(PathBuf, Option<u32>)> {
+    let mut v = vec![(root().join("data-samples/autzen_trim.laz"), None)];
     if let Some(d) = shared_data() {
-        for f in [
-            "PDAL/test/data/autzen/autzen-dd.las",
-            "lasR/inst/extdata/bcts/bcts_1.laz",
-            "laspy/tests/data/file_with_both_wkt_and_geotiff_vlrs.las",
-            "PDAL/test/data/laz/las_with_several_extra_byte_bloc.laz",
-            "PyForestScan/example_data/ept/ept-data/0-0-0-0.laz",
-            "PDAL/test/data/las/bad-geotiff-keys.las",
+        for (f, epsg) in [
+            ("PDAL/test/data/autzen/autzen-dd.las", None),
+            ("lasR/inst/extdata/bcts/bcts_1.laz", None),
+            ("laspy/tests/data/file_with_both_wkt_and_geotiff_vlrs.las", None),
+            ("PDAL/test/data/laz/las_with_several_extra_byte_bloc.laz", None),
+            ("PyForestScan/example_data/ept/ept-data/0-0-0-0.laz", None),
+            ("PDAL/test/data/las/bad-geotiff-keys.las", None),
+            ("PDAL/test/data/autzen/thin-1.las", Some(2994)),
+            ("PDAL/test/data/las/interesting.las", Some(2994)),
+            ("lasR/inst/extdata/extra_byte.las", Some(32622)),
+            ("lasR/inst/extdata/las14_pdrf6.laz", Some(32610)),
         ] {
-            v.push(d.join(f));
+            v.push((d.join(f), epsg));
         }
     }
     v
@@ -136,7 +150,7 @@ fn assert_placed(j: &Value, report: &Value, input: &Path) {
 fn real_files_are_placed_on_the_globe_and_read_by_others() {
     let (py, node) = (python(), node());
     let d = tempdir("tiles3d-real");
-    for (i, f) in placed_files().iter().enumerate() {
+    for (i, (f, epsg)) in placed_files().iter().enumerate() {
         let out = d.join(format!("t{i}"));
         let r = export(f, &out, &[]);
         assert!(r.ok, "{f:?}: {}", r.stderr);
@@ -145,7 +159,7 @@ fn real_files_are_placed_on_the_globe_and_read_by_others() {
         let radius = e.iter().map(|v| v.as_f64().unwrap().powi(2)).sum::<f64>().sqrt();
         assert!((6.3e6..6.4e6).contains(&radius), "{f:?}: ECEF centre {e:?}");
         if let Some(py) = &py {
-            assert_placed(&py_check(py, &out, f), &r.json, f);
+            assert_placed(&py_check_as(py, &out, f, *epsg), &r.json, f);
         }
         if node {
             let n = node_check(&out);

@@ -102,9 +102,7 @@ def main():
     xyz = np.vstack(xyz)
     attrs = np.vstack(attrs)
     las = laspy.read(inp)
-    crs = las.header.parse_crs()
-    if len(sys.argv) > 3:
-        crs = CRS.from_epsg(int(sys.argv[3]))
+    crs = CRS.from_epsg(int(sys.argv[3])) if len(sys.argv) > 3 else las.header.parse_crs()
     if crs is None:
         # No CRS: the tileset is in the input's own coordinates (a translation).
         ref = np.column_stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)])
@@ -116,7 +114,7 @@ def main():
             "attributes_equal": bool(sa.shape == sb.shape and np.array_equal(sa, sb)),
             "centroid_m": float(np.linalg.norm(xyz.mean(0) - ref.mean(0))),
             "extremes_m": float(max(np.abs(xyz.min(0) - ref.min(0)).max(), np.abs(xyz.max(0) - ref.max(0)).max())),
-            "covariance_m2": float(np.abs(np.cov(xyz.T) - np.cov(ref.T)).max()),
+            "covariance_m2": float(np.abs(np.cov(xyz.T) - np.cov(ref.T)).max()) if len(xyz) > 1 else 0.0,
             "root_centre_m": 0.0, "tiles": len(out),
         }))
         return
@@ -140,7 +138,7 @@ def main():
     dist, name, ref = best
     e_def = np.column_stack(default.transform(x, y, z))
     ext = float(max(np.abs(xyz.min(0) - ref.min(0)).max(), np.abs(xyz.max(0) - ref.max(0)).max()))
-    cov = float(np.abs(np.cov(xyz.T) - np.cov(ref.T)).max())
+    cov = float(np.abs(np.cov(xyz.T) - np.cov(ref.T)).max()) if len(xyz) > 1 else 0.0
     ia = np.column_stack([np.asarray(las.intensity), np.asarray(las.classification)] + ([np.asarray(las.red), np.asarray(las.green), np.asarray(las.blue)] if "red" in las.point_format.dimension_names else []))
     # colours: 8-bit tiles hold the 8-bit values as they are (all <= 255 in such inputs)
     sa = attrs[np.lexsort(attrs.T[::-1])]

@@ -58,6 +58,121 @@ fn epsg_proj4(code: u32) -> Option<String> {
     u16::try_from(code).ok().and_then(crs_definitions::from_code).map(|d| d.proj4.to_string())
 }
 
+/// The PROJ.4 definition of user-defined GeoTIFF keys (`ProjectedCSTypeGeoKey` 32767 with the
+/// projection's parameters, or a `ProjectionGeoKey` of UTM), `None` where the keys describe no
+/// projection this reads.
+fn geotiff_projection(info: &CrsInfo) -> Option<Result<wkt::Proj4Crs, String>> {
+    let num = |id: u16| {
+        info.geokeys.iter().find(|k| k.id == id).and_then(|k| k.value.parse::<f64>().ok())
+    };
+    let code = |id: u16| num(id).map(|v| v as u32).filter(|&c| c != 32767 && c != 0);
+    let name = info.name.clone().unwrap_or_else(|| "GeoTIFF keys".into());
+    let model = code(1024).unwrap_or(1);
+    // The ellipsoid and datum shift: the geographic CRS's EPSG definition, else the datum's,
+    // else the ellipsoid's code or its axes.
+    let datum_of_geog = code(2048).and_then(epsg_proj4).map(|p| {
+        p.split_whitespace()
+            .filter(|t| {
+                ["+ellps=", "+a=", "+b=", "+rf=", "+towgs84=", "+datum="]
+                    .iter()
+                    .any(|k| t.starts_with(k))
+            })
+            .collect::<Vec<_>>()
+            .join(" ")
+    });
+    let datum = datum_of_geog.or_else(|| {
+        Some(match code(2050)? {
+            6326 => "+datum=WGS84".into(),
+            6269 | 6152 | 6759 | 1116 | 6140 => "+ellps=GRS80 +towgs84=0,0,0".into(),
+            6258 | 6283 | 6167 | 6171 => "+ellps=GRS80 +towgs84=0,0,0".into(),
+            6267 => "+ellps=clrk66".into(),
+            _ => return None,
+        })
+    });
+    let datum = datum.or_else(|| {
+        Some(match code(2056) {
+            Some(7030) => "+ellps=WGS84 +towgs84=0,0,0".into(),
+            Some(7019) => "+ellps=GRS80 +towgs84=0,0,0".into(),
+            Some(7008) => "+ellps=clrk66".into(),
+            Some(7004) => "+ellps=bessel".into(),
+            Some(7022) => "+ellps=intl".into(),
+            Some(_) => return None,
+            None => {
+                let a = num(2057)?;
+                match (num(2059), num(2058)) {
+                    (Some(rf), _) if rf > 0.0 => format!("+a={a} +rf={rf}"),
+                    (_, Some(b)) => format!("+a={a} +b={b}"),
+                    _ => format!("+a={a} +b={a}"),
+                }
+            }
+        })
+    })?;
+    let to_m = code(3076).and_then(geotiff_unit).or_else(|| num(3077)).unwrap_or(1.0);
+    let z = code(4099).and_then(geotiff_unit).unwrap_or(if model == 2 { 1.0 } else { to_m });
+    if model == 2 {
+        return Some(Ok(wkt::Proj4Crs {
+            proj4: format!("+proj=longlat {datum} +no_defs"),
+            z_to_meter: z,
+            geographic: true,
+            name,
+        }));
+    }
+    if model != 1 {
+        return None;
+    }
+    let proj = match code(3074) {
+        Some(c @ 16001..=16060) => format!("+proj=utm +zone={}", c - 16000),
+        Some(c @ 16101..=16160) => format!("+proj=utm +zone={} +south", c - 16100),
+        Some(_) => return None,
+        None => {
+            let p = |id: u16| num(id).unwrap_or(0.0);
+            let (fe, fn_) =
+                (num(3082).or(num(3086)).unwrap_or(0.0), num(3083).or(num(3087)).unwrap_or(0.0));
+            // False easting and northing are in the linear unit (GeoTIFF 1.1). Some writers
+            // (older libgeotiff, PDAL 1.x: the Autzen files) put metres there whatever the unit,
+            // as GDAL's GTIFF_LINEAR_UNITS=BROKEN reads them: a value that is a whole number of
+            // kilometres (to a micrometre) but no whole number of the unit is taken as metres.
+            let whole = |v: f64| (v - v.round()).abs() < 1e-6;
+            let in_metres = |v: f64| {
+                v != 0.0 && whole(v / 1000.0 * 1000.0) && whole(v / 1000.0) && !whole(v / to_m)
+            };
+            let metres = to_m != 1.0 && (in_metres(fe) || in_metres(fn_));
+            let (fe, fn_) = if metres { (fe, fn_) } else { (fe * to_m, fn_ * to_m) };
+            let lon0 = num(3080).or(num(3084)).or(num(3088)).unwrap_or(0.0);
+            let lat0 = num(3081).or(num(3085)).or(num(3089)).unwrap_or(0.0);
+            let k = num(3092).or(num(3093)).unwrap_or(1.0);
+            let body = match code(3075)? {
+                1 => format!("+proj=tmerc +lat_0={lat0} +lon_0={lon0} +k={k}"),
+                8 => format!(
+                    "+proj=lcc +lat_1={} +lat_2={} +lat_0={lat0} +lon_0={lon0}",
+                    p(3078),
+                    num(3079).unwrap_or(p(3078))
+                ),
+                9 => format!("+proj=lcc +lat_1={lat0} +lat_0={lat0} +lon_0={lon0} +k={k}"),
+                7 => match num(3078) {
+                    Some(ts) => format!("+proj=merc +lat_ts={ts} +lon_0={lon0}"),
+                    None => format!("+proj=merc +lon_0={lon0} +k={k}"),
+                },
+                11 => format!(
+                    "+proj=aea +lat_1={} +lat_2={} +lat_0={lat0} +lon_0={lon0}",
+                    p(3078),
+                    num(3079).unwrap_or(p(3078))
+                ),
+                16 => format!("+proj=sterea +lat_0={lat0} +lon_0={lon0} +k={k}"),
+                10 => format!("+proj=laea +lat_0={lat0} +lon_0={lon0}"),
+                _ => return None,
+            };
+            format!("{body} +x_0={fe} +y_0={fn_}")
+        }
+    };
+    Some(Ok(wkt::Proj4Crs {
+        proj4: format!("{proj} +to_meter={to_m} {datum} +no_defs"),
+        z_to_meter: z,
+        geographic: false,
+        name,
+    }))
+}
+
 impl Globe {
     /// The globe of the CRS records `crs`: `Ok(None)` when there are none, an error naming
     /// the CRS when it cannot be transformed.
@@ -66,6 +181,14 @@ impl Globe {
             return Ok(None);
         }
         let info = crs.describe();
+        // Records that name no CRS (no key directory entries, or only units: PDAL's
+        // 1.2-empty-geotiff-vlrs.las): no CRS.
+        let names_one = info.geokeys.iter().any(|k| {
+            matches!(k.id, 1024 | 2048 | 2050 | 2056 | 2057 | 3072 | 3074 | 3075) && k.value != "0"
+        });
+        if info.wkt.is_none() && info.epsg.is_none() && !names_one {
+            return Ok(None);
+        }
         Globe::of_info(&info).map(Some)
     }
 
@@ -100,19 +223,22 @@ impl Globe {
                     .unwrap_or(h_unit);
                 wkt::Proj4Crs { proj4, z_to_meter: z, geographic, name: name.clone() }
             }
-            (Some(Err(e)), _) => return Err(e),
-            (None, Some(code)) => {
-                return Err(wkt::unsupported(
-                    &name,
-                    format_args!("EPSG:{code} is not in the EPSG definitions mortar carries (give another with --assign-crs EPSG:code)"),
-                ))
-            }
-            (None, None) => {
-                return Err(wkt::unsupported(
-                    &name,
-                    "it has no WKT and no EPSG code (give it one with --assign-crs EPSG:code)",
-                ))
-            }
+            (from_wkt, epsg) => match (geotiff_projection(info), from_wkt, epsg) {
+                (Some(g), _, _) => g?,
+                (None, Some(Err(e)), _) => return Err(e),
+                (None, _, Some(code)) => {
+                    return Err(wkt::unsupported(
+                        &name,
+                        format_args!("EPSG:{code} is not in the EPSG definitions mortar carries (give another with --assign-crs EPSG:code)"),
+                    ))
+                }
+                (None, _, None) => {
+                    return Err(wkt::unsupported(
+                        &name,
+                        "its GeoTIFF keys give no EPSG code and no projection mortar reads (give it one with --assign-crs EPSG:code)",
+                    ))
+                }
+            },
         };
         Globe::from_proj4(def)
     }

@@ -29,15 +29,15 @@ pub struct Node {
 const MAX_DEPTH: usize = 32;
 
 /// Parses one WKT node.
+///
+/// The text ends at its first NUL (a C string, as LAS writers store it). Text after the first
+/// complete node is ignored, as GDAL does: some writers close the outer node early (a
+/// `COMPD_CS` whose `VERT_CS` follows its closing bracket, lasR's example data).
 pub fn parse(s: &str) -> Result<Node, String> {
-    let b = s.trim().trim_end_matches('\0').as_bytes();
+    let s = s.split('\0').next().unwrap_or("");
+    let b = s.trim().as_bytes();
     let mut i = 0;
-    let n = node(b, &mut i, 0)?;
-    skip_ws(b, &mut i);
-    if i != b.len() {
-        return Err(format!("text after the WKT's end at byte {i}"));
-    }
-    Ok(n)
+    node(b, &mut i, 0)
 }
 
 fn skip_ws(b: &[u8], i: &mut usize) {
@@ -334,17 +334,17 @@ fn projection(p: &Node, name: &str) -> Result<String, String> {
         "lambertconformalconic2sp" | "lambertconformalconic" | "lambertconformalconic2spbelgium" => {
             let lat1 = sp1.ok_or("Lambert conformal conic without standard_parallel_1")?;
             let lat2 = sp2.unwrap_or(lat1);
-            format!("+proj=lcc +lat_1={lat1} +lat_2={lat2} +lat_0={lat0} +lon_0={lon0} +k_0={k0}")
+            format!("+proj=lcc +lat_1={lat1} +lat_2={lat2} +lat_0={lat0} +lon_0={lon0} +k={k0}")
         }
         "lambertconformalconic1sp" => {
-            format!("+proj=lcc +lat_1={lat0} +lat_0={lat0} +lon_0={lon0} +k_0={k0}")
+            format!("+proj=lcc +lat_1={lat0} +lat_0={lat0} +lon_0={lon0} +k={k0}")
         }
         "transversemercator" | "gausskruger" => {
-            format!("+proj=tmerc +lat_0={lat0} +lon_0={lon0} +k_0={k0}")
+            format!("+proj=tmerc +lat_0={lat0} +lon_0={lon0} +k={k0}")
         }
         "mercator1sp" | "mercator" => match sp1 {
             Some(ts) => format!("+proj=merc +lat_ts={ts} +lon_0={lon0}"),
-            None => format!("+proj=merc +lon_0={lon0} +k_0={k0}"),
+            None => format!("+proj=merc +lon_0={lon0} +k={k0}"),
         },
         "mercator2sp" => format!("+proj=merc +lat_ts={} +lon_0={lon0}", sp1.unwrap_or(0.0)),
         "albersconicequalarea" | "albers" => {
@@ -352,12 +352,12 @@ fn projection(p: &Node, name: &str) -> Result<String, String> {
             format!("+proj=aea +lat_1={lat1} +lat_2={} +lat_0={lat0} +lon_0={lon0}", sp2.unwrap_or(lat1))
         }
         "obliquestereographic" | "doublestereographic" => {
-            format!("+proj=sterea +lat_0={lat0} +lon_0={lon0} +k_0={k0}")
+            format!("+proj=sterea +lat_0={lat0} +lon_0={lon0} +k={k0}")
         }
         "polarstereographic" | "stereographicnorthpole" | "stereographicsouthpole" => {
             let ts = sp1.unwrap_or(lat0);
             let pole = if ts < 0.0 || lat0 < 0.0 || key.contains("south") { -90 } else { 90 };
-            format!("+proj=stere +lat_0={pole} +lat_ts={ts} +lon_0={lon0} +k_0={k0}")
+            format!("+proj=stere +lat_0={pole} +lat_ts={ts} +lon_0={lon0} +k={k0}")
         }
         "lambertazimuthalequalarea" => format!("+proj=laea +lat_0={lat0} +lon_0={lon0}"),
         "equirectangular" | "equidistantcylindrical" | "platecarree" => {
@@ -408,9 +408,13 @@ mod tests {
         let w = r#"PROJCS["odd",GEOGCS["g",DATUM["d",SPHEROID["s",6378137,298.257223563]]],PROJECTION["Bonne"],UNIT["metre",1]]"#;
         let e = to_proj4(&parse(w).unwrap(), &|_| None).unwrap_err();
         assert!(e.contains("\"odd\"") && e.contains("Bonne"), "{e}");
-        for bad in ["", "PROJCS[", "PROJCS[\"a\",", "[1]", "PROJCS[\"a\"]]", &"A[".repeat(100)] {
+        for bad in ["", "PROJCS[", "PROJCS[\"a\",", "[1]", &"A[".repeat(100)] {
             assert!(parse(bad).is_err(), "{bad}");
         }
+        // text after the first whole node is ignored (lasR's las14_pdrf6.laz closes its
+        // COMPD_CS before the VERT_CS), a NUL ends the text
+        assert_eq!(parse("PROJCS[\"a\"]], VERT_CS[\"b\"]]").unwrap().title(), Some("a"));
+        assert_eq!(parse("PROJCS[\"a\"]\0garbage[").unwrap().title(), Some("a"));
         let e = to_proj4(&parse("LOCAL_CS[\"site\"]").unwrap(), &|_| None).unwrap_err();
         assert!(e.contains("site"), "{e}");
     }
