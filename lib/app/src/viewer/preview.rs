@@ -45,11 +45,12 @@ where
     std::thread::scope(|scope| {
         let wake = proxy.clone();
         scope.spawn(move || {
-            let mut report = move |p: &BuildProgress| {
+            let mut report = |p: &BuildProgress| {
                 let _ = ptx.send(*p);
                 let _ = wake.send_event(Wake::Progress);
             };
-            let r = in_build_pool(move || build(&mut report));
+            let r = build(&mut report);
+            drop(ptx);
             let ok = r.is_ok();
             let _ = rtx.send(r);
             let _ = proxy.send_event(Wake::Done(ok));
@@ -71,28 +72,6 @@ where
             rrx.recv().map_err(|_| anyhow!("the build's thread ended without a result"))?;
         result.map(|r| (r, frames))
     })
-}
-
-/// Runs `op` (the build) in a rayon pool of its own, as many threads as the global one, so that
-/// the frame thread's parallel steps (the rasterizer plans the selected batches with a parallel
-/// iterator) run on the global pool, idle during the build. Sharing one pool, they queued behind
-/// the build's jobs: on the 16-core device, frames that drew nothing new took 20-99 ms while the
-/// GPU spent under 2 ms on them. The progress sender goes with `op`, so the preview sees the
-/// channel close when the build ends. Without a pool (thread creation refused), `op` runs here;
-/// `MORTAR_PREVIEW_ONE_POOL=1` runs it here too (the earlier behaviour, for `bench/preview.sh`'s
-/// same-run comparison).
-fn in_build_pool<R: Send>(op: impl FnOnce() -> R + Send) -> R {
-    if std::env::var_os("MORTAR_PREVIEW_ONE_POOL").is_some_and(|v| v == "1") {
-        return op();
-    }
-    match rayon::ThreadPoolBuilder::new()
-        .num_threads(rayon::current_num_threads())
-        .thread_name(|i| format!("mortar-build-{i}"))
-        .build()
-    {
-        Ok(pool) => pool.install(op),
-        Err(_) => op(),
-    }
 }
 
 /// The frame period of the off-screen preview (60 frames per second).
@@ -144,11 +123,10 @@ where
     let start = Instant::now();
     let (frames, result) = std::thread::scope(|scope| -> Result<_> {
         scope.spawn(move || {
-            let r = in_build_pool(move || {
-                build(&mut |p: &BuildProgress| {
-                    let _ = ptx.send(*p);
-                })
+            let r = build(&mut |p: &BuildProgress| {
+                let _ = ptx.send(*p);
             });
+            drop(ptx);
             let _ = rtx.send(r);
         });
         let mut state = BuildState::new(prx);
@@ -229,43 +207,4 @@ where
         "frames": frames,
     });
     Ok((report, j))
-}
-
-#[cfg(test)]
-mod tests {
-    use rayon::prelude::*;
-    use std::sync::{Arc, Barrier};
-    use std::time::Duration;
-
-    /// While the build holds every thread of its pool, the frame thread's parallel iterators
-    /// still run (on the global pool) instead of waiting for the build's jobs.
-    #[test]
-    fn the_frame_threads_parallel_work_does_not_wait_for_the_build() {
-        let n = rayon::current_num_threads();
-        let started = Arc::new(Barrier::new(n + 1));
-        let release = Arc::new(Barrier::new(n + 1));
-        let (done_tx, done_rx) = std::sync::mpsc::channel();
-        std::thread::scope(|s| {
-            let (b, r) = (started.clone(), release.clone());
-            let build = s.spawn(move || {
-                super::in_build_pool(move || {
-                    assert_eq!(rayon::current_num_threads(), n);
-                    // Every thread of the build's pool busy until the frame's work is done.
-                    rayon::broadcast(|_| {
-                        b.wait();
-                        r.wait();
-                    });
-                })
-            });
-            started.wait();
-            s.spawn(move || {
-                let sum: u64 = (0..100_000u64).into_par_iter().sum();
-                let _ = done_tx.send(sum);
-            });
-            let got = done_rx.recv_timeout(Duration::from_secs(30));
-            release.wait();
-            build.join().unwrap();
-            assert_eq!(got, Ok(4_999_950_000), "the frame's parallel work waited for the build");
-        });
-    }
 }
