@@ -417,3 +417,41 @@ fn a_scene_drawn_while_it_grows_matches_cpu_after_every_batch() {
     }
     assert!(gs.chunk_count() > 4);
 }
+
+#[test]
+fn a_host_planned_frame_does_not_wait_for_a_busy_rayon_pool() {
+    // `mortar build --preview`: the build keeps every thread of rayon's pool busy; a frame of a
+    // few hundred batches planned on the host must not queue behind the build's jobs (frames of
+    // 20-100 ms on the 16-core device when it did).
+    let scene = utm_terrain(100_000);
+    let Some(ctx) = context(AtomicPath::U64, None) else { return };
+    let mut first = upload(&ctx, &scene, None);
+    let cam = Camera::frame_perspective(&scene.bounds, ViewPreset::Iso, 0.8, 160, 100).unwrap();
+    let mut gr = GpuRasterizer::new(&ctx, cam.width, cam.height).unwrap();
+    gr.set_tuning(&ctx, DrawTuning { plan_on_gpu: false, ..Default::default() }).unwrap();
+    let want = gr.draw(&ctx, &mut first, &cam, &RasterOptions::default(), None).unwrap().stats;
+    let mut gs = upload(&ctx, &scene, None);
+    let n = rayon::current_num_threads();
+    let started = std::sync::Arc::new(std::sync::Barrier::new(n + 1));
+    let release = std::sync::Arc::new(std::sync::Barrier::new(n + 1));
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::scope(|s| {
+        let (b, r) = (started.clone(), release.clone());
+        s.spawn(move || {
+            rayon::broadcast(|_| {
+                b.wait();
+                r.wait();
+            })
+        });
+        started.wait();
+        let (ctx, gs, gr, cam) = (&ctx, &mut gs, &mut gr, &cam);
+        s.spawn(move || {
+            let _ =
+                tx.send(gr.draw(ctx, gs, cam, &RasterOptions::default(), None).map(|f| f.stats));
+        });
+        let got = rx.recv_timeout(std::time::Duration::from_secs(60));
+        release.wait();
+        let got = got.expect("the frame waited for rayon's busy threads");
+        assert_eq!(got.unwrap(), want);
+    });
+}

@@ -17,6 +17,9 @@ use rayon::prelude::*;
 use std::num::NonZeroU64;
 use std::time::Instant;
 
+/// Batches from which the host plans them in parallel.
+const PARALLEL_PLAN_MIN: usize = 4096;
+
 impl GpuRasterizer {
     /// Draws the scene for `camera` into a cleared framebuffer; with `resolve` also resolves the
     /// image from the scene's colours as [`mortar_core::render::resolve::resolve`] does (hole
@@ -259,13 +262,18 @@ impl GpuRasterizer {
                 v
             }
         };
-        let plans: Vec<BatchPlan> = order
-            .par_iter()
-            .map(|&i| {
-                let b = &scene.batches[i as usize];
-                planner.plan(&b.grid, &b.bounds, b.count as usize)
-            })
-            .collect();
+        let plan = |&i: &u32| {
+            let b = &scene.batches[i as usize];
+            planner.plan(&b.grid, &b.bounds, b.count as usize)
+        };
+        // A batch's plan is a few dozen arithmetic operations: below a few thousand batches it
+        // costs less than waking rayon's threads, which a build beside the view (`build
+        // --preview`) keeps busy (frames then waited for the build's jobs: issue 29).
+        let plans: Vec<BatchPlan> = if order.len() < PARALLEL_PLAN_MIN {
+            order.iter().map(plan).collect()
+        } else {
+            order.par_iter().map(plan).collect()
+        };
         stats.batches = plans.len() as u64;
         let align = ctx.limits().min_storage_buffer_offset_alignment.max(1) as usize;
         let mut records: Vec<DrawRecord> = Vec::new();
