@@ -6,7 +6,8 @@
 //!
 //! Steps (module docs of `arrival` for the why):
 //!
-//! 1. the points are uploaded in segments (one storage binding each); each segment is a batch:
+//! 1. the points are uploaded in segments (one storage binding each; every upload and read-back
+//!    in parts of at most [`TRANSFER_BYTES`], a submission each); each segment is a batch:
 //!    `octree_insert` (mode 0) descends its points and counts them, then `octree_split` and
 //!    `octree_insert` (mode 1, every point inserted so far whose leaf split) alternate until no
 //!    leaf splits; the host reads 12 bytes of state per round. A node buffer that fills up is
@@ -30,7 +31,7 @@
 //! What is not done yet (issue 29): the preview does not draw from these buffers; the host still
 //! sorts each leaf's points; every voxel group walks every point again.
 
-use crate::buffers::{map_read_with, readback};
+use crate::buffers::map_read_with;
 use crate::context::{GpuContext, GpuError};
 use crate::shaders::{binding, Pass};
 use mortar_core::octree::arrival::{
@@ -48,6 +49,11 @@ const BRICKS: u64 = 1 << 12;
 const BRICK_CELLS: u64 = 512;
 /// Threads per workgroup of every octree pass.
 const WORKGROUP: u32 = 256;
+/// Most bytes one submission moves between host and GPU: a segment of a hundred million points
+/// is 1.2 GB, whose upload in one copy held the GPU's transfers for 60-70 ms, and a window drawing
+/// on the same GPU (`build --preview --engine gpu`, another device) waited for it to read its
+/// frame back.
+const TRANSFER_BYTES: u64 = 64 << 20;
 
 /// The passes, compiled once.
 pub struct GpuTreeBuilder {
@@ -56,6 +62,8 @@ pub struct GpuTreeBuilder {
     pipelines: Vec<(Pass, wgpu::ComputePipeline)>,
     /// Points per segment (one binding and one batch); `None`: as many as a binding holds.
     segment_points: Option<usize>,
+    /// Most bytes one submission uploads or reads back ([`TRANSFER_BYTES`]).
+    transfer_bytes: u64,
     /// The node buffer's first capacity; `None`: from the points and the leaf capacity.
     first_nodes: Option<u32>,
     /// GPU memory the build may use (`--gpu-memory`; by default [`default_gpu_memory`] of what
@@ -179,6 +187,7 @@ impl GpuTreeBuilder {
             layout,
             pipelines,
             segment_points: None,
+            transfer_bytes: TRANSFER_BYTES,
             first_nodes: None,
             budget,
             resident: None,
@@ -189,6 +198,13 @@ impl GpuTreeBuilder {
     /// segment paths in tests.
     pub fn with_segment_points(mut self, points: usize) -> GpuTreeBuilder {
         self.segment_points = Some(points.max(1));
+        self
+    }
+
+    /// Uploads and read-backs in submissions of at most `bytes` bytes (a multiple of 4, at
+    /// least 4; default [`TRANSFER_BYTES`]): small values exercise the cut in tests.
+    pub fn with_transfer_bytes(mut self, bytes: u64) -> GpuTreeBuilder {
+        self.transfer_bytes = (bytes / 4 * 4).max(4);
         self
     }
 
@@ -220,6 +236,25 @@ impl GpuTreeBuilder {
     pub fn with_resident_segments(mut self, segments: usize) -> GpuTreeBuilder {
         self.resident = Some(segments.max(1));
         self
+    }
+
+    /// A storage buffer (also copied from and to) holding `bytes` (a multiple of 4), uploaded in
+    /// submissions of at most `transfer_bytes` each.
+    fn upload(&self, label: &str, bytes: &[u8]) -> wgpu::Buffer {
+        let ctx = &self.ctx;
+        let buf = ctx.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some(label),
+            size: (bytes.len() as u64).max(4),
+            usage: wgpu::BufferUsages::STORAGE
+                | wgpu::BufferUsages::COPY_SRC
+                | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        for (k, part) in bytes.chunks(self.transfer_bytes as usize).enumerate() {
+            ctx.queue.write_buffer(&buf, k as u64 * self.transfer_bytes, part);
+            ctx.queue.submit([]);
+        }
+        buf
     }
 
     /// The GPU memory the build keeps within: `--gpu-memory`, else [`default_gpu_memory`] of
@@ -585,19 +620,9 @@ impl Run<'_, '_> {
         }
         let ctx = &self.b.ctx;
         let sg = &mut self.segments[s];
-        let p = ctx.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some("octree points"),
-            contents: bytemuck::cast_slice(sg.pos),
-            usage: wgpu::BufferUsages::STORAGE,
-        });
+        let p = self.b.upload("octree points", bytemuck::cast_slice(sg.pos));
         let l = match sg.leaves.take() {
-            Some(v) => ctx.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some("octree leaves"),
-                contents: bytemuck::cast_slice(&v),
-                usage: wgpu::BufferUsages::STORAGE
-                    | wgpu::BufferUsages::COPY_SRC
-                    | wgpu::BufferUsages::COPY_DST,
-            }),
+            Some(v) => self.b.upload("octree leaves", bytemuck::cast_slice(&v)),
             None => storage(ctx, "octree leaves", 4 * sg.pos.len() as u64),
         };
         sg.gpu = Some((p, l));
@@ -673,32 +698,40 @@ impl Run<'_, '_> {
     }
 
     fn read<T: bytemuck::Pod>(&self, buf: &wgpu::Buffer, size: u64) -> Result<Vec<T>, GpuError> {
-        if size == 0 {
-            return Ok(Vec::new());
-        }
-        let ctx = &self.b.ctx;
-        let mut enc = ctx.device.create_command_encoder(&Default::default());
-        let rb = readback(ctx, &mut enc, buf, size);
-        ctx.queue.submit([enc.finish()]);
-        map_read_with(ctx, &rb, |b| match bytemuck::try_cast_slice::<u8, T>(b) {
-            Ok(v) => v.to_vec(),
-            Err(_) => bytemuck::pod_collect_to_vec(b),
-        })
+        self.read_at(buf, 0, size)
     }
 
-    /// `size` bytes of `buf` from `offset`.
+    /// `size` bytes of `buf` from `offset` (a multiple of `T`'s size), through one mapped
+    /// buffer of at most `transfer_bytes`, a part per submission: neither a copy that holds the
+    /// GPU's transfers long nor a mapped buffer of the whole size (see [`TRANSFER_BYTES`]).
     fn read_at<T: bytemuck::Pod>(
         &self,
         buf: &wgpu::Buffer,
         offset: u64,
         size: u64,
     ) -> Result<Vec<T>, GpuError> {
+        let t = std::mem::size_of::<T>() as u64;
+        let mut out: Vec<T> = vec![bytemuck::Zeroable::zeroed(); (size / t) as usize];
+        if out.is_empty() {
+            return Ok(out);
+        }
         let ctx = &self.b.ctx;
-        let tmp = storage(ctx, "octree read", size);
-        let mut enc = ctx.device.create_command_encoder(&Default::default());
-        enc.copy_buffer_to_buffer(buf, offset, &tmp, 0, size);
-        ctx.queue.submit([enc.finish()]);
-        self.read(&tmp, size)
+        let part = size.min(self.b.transfer_bytes);
+        let rb = ctx.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("octree read"),
+            size: part,
+            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let bytes: &mut [u8] = bytemuck::cast_slice_mut(&mut out);
+        for (k, dst) in bytes.chunks_mut(part as usize).enumerate() {
+            let mut enc = ctx.device.create_command_encoder(&Default::default());
+            let n = dst.len();
+            enc.copy_buffer_to_buffer(buf, offset + k as u64 * part, &rb, 0, n as u64);
+            ctx.queue.submit([enc.finish()]);
+            map_read_with(ctx, &rb, |b| dst.copy_from_slice(&b[..n]))?;
+        }
+        Ok(out)
     }
 
     fn read_state(&self) -> Result<[u32; 4], GpuError> {

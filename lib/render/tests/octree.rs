@@ -77,6 +77,24 @@ fn the_gpu_builds_the_cpu_twins_tree() {
 }
 
 #[test]
+fn uploads_and_read_backs_cut_into_small_parts_give_the_same_tree() {
+    let Some(ctx) = context_or_skip(AtomicPath::TwoPass32, None) else { return };
+    // Transfers of 4,092 bytes (341 points, the last part short), two segments paged out and in
+    // again (their leaves uploaded and read back in parts too), against the twin.
+    let gpu = GpuTreeBuilder::new(ctx)
+        .unwrap()
+        .with_transfer_bytes(4_094)
+        .with_segment_points(7_000)
+        .with_resident_segments(1);
+    let mut seed = 0x9e3779b97f4a7c15u64;
+    let pos: Vec<[u32; 3]> =
+        (0..20_000).map(|_| [0; 3].map(|_| rng(&mut seed) % (1 << 20))).collect();
+    let config = BuilderConfig { leaf_capacity: 40, ..BuilderConfig::default() };
+    let cpu = build_arrival(20, &pos, &config).unwrap();
+    same(&gpu.build_tree(20, &pos, &config).unwrap(), &cpu, "transfers in parts");
+}
+
+#[test]
 fn coincident_points_depth_limits_and_a_growing_node_buffer() {
     let Some(ctx) = context_or_skip(AtomicPath::TwoPass32, None) else { return };
     // A node buffer of 20 nodes at first: grown many times, in the middle of split passes.
