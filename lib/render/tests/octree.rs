@@ -91,7 +91,14 @@ fn uploads_and_read_backs_cut_into_small_parts_give_the_same_tree() {
         (0..20_000).map(|_| [0; 3].map(|_| rng(&mut seed) % (1 << 20))).collect();
     let config = BuilderConfig { leaf_capacity: 40, ..BuilderConfig::default() };
     let cpu = build_arrival(20, &pos, &config).unwrap();
-    same(&gpu.build_tree(20, &pos, &config).unwrap(), &cpu, "transfers in parts");
+    let g = gpu.build_tree(20, &pos, &config).unwrap();
+    same(&g, &cpu, "transfers in parts");
+    // The transfers are counted: every point's position at least once, and the leaves of the
+    // segments paged back in.
+    let step = |name: &str| g.phases.iter().find(|(n, _)| n == name).map(|p| p.1);
+    let up = step("upload bytes").expect("upload bytes reported");
+    assert!(up >= 12.0 * 20_000.0 + 4.0 * 7_000.0, "{up} bytes uploaded");
+    assert!(step("upload seconds").is_some_and(|s| s > 0.0));
 }
 
 #[test]
