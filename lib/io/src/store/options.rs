@@ -104,8 +104,10 @@ pub struct BuildReport {
     /// The GPU engine's adapter.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub gpu: Option<String>,
-    /// The GPU engine's steps and their seconds (upload, expand, number, voxels, slots; and the
-    /// rounds of expand).
+    /// The GPU engine's steps and their seconds (setup, expand, number, voxels, slots), the
+    /// rounds of expand and the voxel walks, and the transfers inside those steps: bytes and
+    /// seconds uploaded and read back (`upload bytes`, `upload seconds`, `read-back bytes`,
+    /// `read-back seconds`).
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub gpu_steps: Vec<(String, f64)>,
     /// Seconds gathering positions and colours and making the tree (sorted engine).
