@@ -2,6 +2,7 @@
 //! the host and reading it (the rasterizer, the scene, the progressive renderer, the window).
 
 use crate::context::{GpuContext, GpuError};
+use rayon::prelude::*;
 use std::sync::mpsc;
 
 /// The size of a buffer grown from `old` bytes to hold at least `needed`: half as large again,
@@ -75,4 +76,86 @@ pub(crate) fn map_read_with<R>(
     };
     buf.unmap();
     Ok(out)
+}
+
+/// Bytes each thread copies at a time between host memory and a mapped buffer (a multiple of
+/// wgpu's map alignment, 8).
+const PAR_COPY: usize = 1 << 20;
+
+/// A buffer of `usage` (plus `COPY_DST`) holding `bytes` (a multiple of 4), uploaded in parts of
+/// at most `part` bytes (a multiple of 4), a submission each: a mapped staging buffer per part,
+/// filled by all threads. One large copy held the GPU's transfers long enough to delay another
+/// device's frames, and one thread's copy was the upload's pace (issue 29, BENCHMARKS.md).
+pub(crate) fn upload_in_parts(
+    ctx: &GpuContext,
+    label: &str,
+    usage: wgpu::BufferUsages,
+    bytes: &[u8],
+    part: u64,
+) -> Result<wgpu::Buffer, GpuError> {
+    let buf = ctx.device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some(label),
+        size: (bytes.len() as u64).max(4),
+        usage: usage | wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    });
+    for (k, src) in bytes.chunks(part as usize).enumerate() {
+        let staging = ctx.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("upload"),
+            size: src.len() as u64,
+            usage: wgpu::BufferUsages::MAP_WRITE | wgpu::BufferUsages::COPY_SRC,
+            mapped_at_creation: true,
+        });
+        let piece = PAR_COPY.min(src.len());
+        let mut views: Vec<(wgpu::BufferViewMut, &[u8])> = src
+            .chunks(piece)
+            .enumerate()
+            .map(|(i, s)| {
+                let at = (i * piece) as u64;
+                staging.get_mapped_range_mut(at..at + s.len() as u64).map(|v| (v, s))
+            })
+            .collect::<Result<_, _>>()
+            .map_err(|e| GpuError::Device(format!("cannot upload: {e}")))?;
+        views.par_iter_mut().for_each(|(v, s)| v.copy_from_slice(s));
+        drop(views);
+        staging.unmap();
+        let mut enc = ctx.device.create_command_encoder(&Default::default());
+        enc.copy_buffer_to_buffer(&staging, 0, &buf, k as u64 * part, src.len() as u64);
+        ctx.queue.submit([enc.finish()]);
+    }
+    Ok(buf)
+}
+
+/// Reads `dst.len()` bytes (a multiple of 4) of `src` from `offset` into `dst`, through one mapped
+/// buffer of at most `part` bytes, a part per submission, each copied out by all threads (see
+/// [`upload_in_parts`]).
+pub(crate) fn read_in_parts(
+    ctx: &GpuContext,
+    src: &wgpu::Buffer,
+    offset: u64,
+    dst: &mut [u8],
+    part: u64,
+) -> Result<(), GpuError> {
+    if dst.is_empty() {
+        return Ok(());
+    }
+    let part = (dst.len() as u64).min(part);
+    let rb = ctx.device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some("read in parts"),
+        size: part,
+        usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+        mapped_at_creation: false,
+    });
+    for (k, d) in dst.chunks_mut(part as usize).enumerate() {
+        let n = d.len();
+        let mut enc = ctx.device.create_command_encoder(&Default::default());
+        enc.copy_buffer_to_buffer(src, offset + k as u64 * part, &rb, 0, n as u64);
+        ctx.queue.submit([enc.finish()]);
+        map_read_with(ctx, &rb, |b| {
+            d.par_chunks_mut(PAR_COPY)
+                .zip(b[..n].par_chunks(PAR_COPY))
+                .for_each(|(d, s)| d.copy_from_slice(s))
+        })?;
+    }
+    Ok(())
 }

@@ -31,7 +31,7 @@
 //! What is not done yet (issue 29): the preview does not draw from these buffers; the host still
 //! sorts each leaf's points; every voxel group walks every point again.
 
-use crate::buffers::map_read_with;
+use crate::buffers::{read_in_parts, upload_in_parts};
 use crate::context::{GpuContext, GpuError};
 use crate::shaders::{binding, Pass};
 use mortar_core::octree::arrival::{
@@ -54,17 +54,6 @@ const WORKGROUP: u32 = 256;
 /// on the same GPU (`build --preview --engine gpu`, another device) waited for it to read its
 /// frame back.
 const TRANSFER_BYTES: u64 = 64 << 20;
-
-/// Bytes each thread copies at a time between host memory and a mapped buffer (a multiple of
-/// wgpu's map alignment, 8).
-const PAR_COPY: usize = 1 << 20;
-
-/// `dst.copy_from_slice(src)` by all threads, [`PAR_COPY`] bytes each at a time.
-fn par_copy(dst: &mut [u8], src: &[u8]) {
-    dst.par_chunks_mut(PAR_COPY)
-        .zip(src.par_chunks(PAR_COPY))
-        .for_each(|(d, s)| d.copy_from_slice(s));
-}
 
 /// The passes, compiled once.
 pub struct GpuTreeBuilder {
@@ -252,47 +241,13 @@ impl GpuTreeBuilder {
         self
     }
 
-    /// A storage buffer (also copied from and to) holding `bytes` (a multiple of 4), uploaded in
-    /// submissions of at most `transfer_bytes` each.
+    /// A storage buffer (also copied from and to) holding `bytes`, uploaded in parts of at
+    /// most `transfer_bytes`.
     fn upload(&self, label: &str, bytes: &[u8]) -> Result<wgpu::Buffer, GpuError> {
-        let ctx = &self.ctx;
-        let buf = ctx.device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some(label),
-            size: (bytes.len() as u64).max(4),
-            usage: wgpu::BufferUsages::STORAGE
-                | wgpu::BufferUsages::COPY_SRC
-                | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        });
-        for (k, part) in bytes.chunks(self.transfer_bytes as usize).enumerate() {
-            // A staging buffer of the part, filled by all threads (one thread's copy was the
-            // upload's pace: 7.3 GB/s through `queue.write_buffer`).
-            let staging = ctx.device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some("octree upload"),
-                size: part.len() as u64,
-                usage: wgpu::BufferUsages::MAP_WRITE | wgpu::BufferUsages::COPY_SRC,
-                mapped_at_creation: true,
-            });
-            let piece = PAR_COPY.min(part.len());
-            let mut views: Vec<(wgpu::BufferViewMut, &[u8])> = part
-                .chunks(piece)
-                .enumerate()
-                .map(|(i, src)| {
-                    let at = (i * piece) as u64;
-                    let v = staging.get_mapped_range_mut(at..at + src.len() as u64);
-                    v.map(|v| (v, src))
-                })
-                .collect::<Result<_, _>>()
-                .map_err(|e| GpuError::Device(format!("cannot upload: {e}")))?;
-            views.par_iter_mut().for_each(|(v, src)| v.copy_from_slice(src));
-            drop(views);
-            staging.unmap();
-            let mut enc = ctx.device.create_command_encoder(&Default::default());
-            let at = k as u64 * self.transfer_bytes;
-            enc.copy_buffer_to_buffer(&staging, 0, &buf, at, part.len() as u64);
-            ctx.queue.submit([enc.finish()]);
-        }
-        Ok(buf)
+        let usage = wgpu::BufferUsages::STORAGE
+            | wgpu::BufferUsages::COPY_SRC
+            | wgpu::BufferUsages::COPY_DST;
+        upload_in_parts(&self.ctx, label, usage, bytes, self.transfer_bytes)
     }
 
     /// The GPU memory the build keeps within: `--gpu-memory`, else [`default_gpu_memory`] of
@@ -773,13 +728,6 @@ impl Run<'_, '_> {
             return Ok(out);
         }
         let ctx = &self.b.ctx;
-        let part = size.min(self.b.transfer_bytes);
-        let rb = ctx.device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("octree read"),
-            size: part,
-            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        });
         // Reads of a few bytes (the state, every round) are waits for a pass, not transfers;
         // larger ones are timed alone, from an idle queue (the copy waits for the passes anyway).
         let timed = size >= 1 << 20;
@@ -787,14 +735,7 @@ impl Run<'_, '_> {
             ctx.wait()?;
         }
         let t = Instant::now();
-        let bytes: &mut [u8] = bytemuck::cast_slice_mut(&mut out);
-        for (k, dst) in bytes.chunks_mut(part as usize).enumerate() {
-            let mut enc = ctx.device.create_command_encoder(&Default::default());
-            let n = dst.len();
-            enc.copy_buffer_to_buffer(buf, offset + k as u64 * part, &rb, 0, n as u64);
-            ctx.queue.submit([enc.finish()]);
-            map_read_with(ctx, &rb, |b| par_copy(dst, &b[..n]))?;
-        }
+        read_in_parts(ctx, buf, offset, bytemuck::cast_slice_mut(&mut out), self.b.transfer_bytes)?;
         if timed {
             let (b, secs) = self.down.get();
             self.down.set((b + size, secs + t.elapsed().as_secs_f64()));
