@@ -176,3 +176,94 @@ fn the_gpu_engine_keeps_the_memory_promise() {
     assert!(e.contains("--memory") && e.contains("GPU engine") && !e.contains("panicked"), "{e}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// A tree backend that builds with the CPU twin of the GPU passes, then spoils the tree as a
+/// faulty GPU might; as a discrete GPU (the engine then sorts on the host while it builds) where
+/// the flag says so, else as one whose buffers are host memory (one after the other).
+#[derive(Debug)]
+struct Faulty(&'static str, bool);
+
+impl mortar_core::octree::arrival::TreeBackend for Faulty {
+    fn name(&self) -> String {
+        format!("cpu twin, {}", self.0)
+    }
+
+    fn holds_buffers_in_host_memory(&self) -> bool {
+        !self.1
+    }
+
+    fn build(
+        &self,
+        size_log2: u8,
+        pos: &[[u32; 3]],
+        config: &mortar_core::octree::BuilderConfig,
+    ) -> Result<mortar_core::octree::arrival::ArrivalTree, String> {
+        use mortar_core::octree::arrival::{CpuArrival, NO_CHILD};
+        let mut t = CpuArrival.build(size_log2, pos, config)?;
+        // The leaves depth first.
+        let mut leaves = Vec::new();
+        let mut stack = vec![0usize];
+        while let Some(i) = stack.pop() {
+            match t.nodes[i].first_child {
+                NO_CHILD => leaves.push(i),
+                c => stack.extend((0..8).rev().map(|o| c as usize + o)),
+            }
+        }
+        match self.0 {
+            "none" => {}
+            // A point counted in the next leaf: the counts add up, the ranges are wrong.
+            "moved" => {
+                let k = (0..leaves.len() - 1).find(|&k| t.nodes[leaves[k]].count > 0).unwrap();
+                t.nodes[leaves[k]].count -= 1;
+                t.nodes[leaves[k + 1]].count += 1;
+            }
+            "extra" => t.nodes[leaves[0]].count += 1,
+            "voxel" => t.voxels[0][0] = pos.len() as u32,
+            // A leaf made the parent of the root's children.
+            "shared" => t.nodes[leaves[0]].first_child = t.nodes[0].first_child,
+            _ => unreachable!(),
+        }
+        Ok(t)
+    }
+}
+
+#[test]
+fn the_gpu_engine_writes_the_sorted_store_from_a_correct_tree_and_refuses_a_spoilt_one() {
+    use mortar_core::octree::{BuilderConfig, ColorMode};
+    use mortar_io::store::{build, BuildOptions, Engine};
+    // Needs no GPU: the engine's host side around a backend, the CPU twin of the passes.
+    let dir = tempdir("gpu-faulty");
+    let ds = mortar_io::inputs::open(&[root().join("data-samples/autzen_trim.laz")]).unwrap();
+    let opts = |engine, tree: Option<Faulty>| BuildOptions {
+        config: BuilderConfig {
+            leaf_capacity: 2000,
+            color_mode: ColorMode::FirstCome,
+            ..BuilderConfig::default()
+        },
+        batch_points: 10_000,
+        first_commit_after: None,
+        commit_every: 0.0,
+        memory: 1 << 30,
+        engine,
+        resume: false,
+        tree: tree.map(|t| std::sync::Arc::new(t) as _),
+    };
+    let sorted = dir.join("sorted");
+    build(&ds, &sorted, &opts(Engine::Sorted, None), &mut |_| {}).unwrap();
+    for discrete in [false, true] {
+        let good = dir.join(format!("good-{discrete}"));
+        let r = build(&ds, &good, &opts(Engine::Gpu, Some(Faulty("none", discrete))), &mut |_| {})
+            .unwrap();
+        assert_eq!(r.engine, mortar_io::store::BuiltBy::Gpu);
+        assert_eq!(store_files(&sorted), store_files(&good), "discrete: {discrete}");
+    }
+    for (k, fault) in ["moved", "extra", "voxel", "shared"].into_iter().enumerate() {
+        let out = dir.join(fault);
+        let e = build(&ds, &out, &opts(Engine::Gpu, Some(Faulty(fault, k % 2 == 0))), &mut |_| {})
+            .expect_err(fault)
+            .to_string();
+        assert!(e.contains("GPU") && e.contains("broken"), "{fault}: {e}");
+        assert!(!out.exists(), "{fault}: a refused build left {}", out.display());
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -21,15 +21,17 @@
 //!    atomicMax of its NOT-ed arrival per cell), `octree_count_cells` (occupied cells per brick), a prefix sum on
 //!    the host, `octree_write_cells` (arrivals in Morton order of the cells: bricks in Morton
 //!    order, cells in Morton order within each), read back;
-//! 4. `octree_slots` gives every point its slot; the slots are read back.
+//! 4. `octree_slots` gives every point its slot; the slots are read back. The store's engine
+//!    skips this step ([`GpuTreeBuilder::build_tree_with`]): it sorts the records on the host
+//!    while the GPU builds, and needs only the nodes and voxels.
 //!
 //! With a budget (`--gpu-memory`) segments of points beyond half of it are paged out (their
 //! leaves read back) and in again as the passes need them; a paged-out segment is skipped by a
 //! split round when none of its points' leaves split, and by a voxel group none of whose grids
 //! its points' leaves lie under (grids are numbered depth first, so a group is a few subtrees).
 //!
-//! What is not done yet (issue 29): the preview does not draw from these buffers; the host still
-//! sorts each leaf's points; every voxel group walks every point again.
+//! What is not done yet (issue 29): the preview does not draw from these buffers; the host sorts
+//! the points (at the same time, on its cores); every voxel group walks every point again.
 
 use crate::buffers::{read_in_parts, upload_in_parts};
 use crate::context::{GpuContext, GpuError};
@@ -271,6 +273,18 @@ impl GpuTreeBuilder {
         size_log2: u8,
         pos: &[[u32; 3]],
         config: &BuilderConfig,
+    ) -> Result<ArrivalTree, GpuError> {
+        self.build_tree_with(size_log2, pos, config, true)
+    }
+
+    /// [`build_tree`](Self::build_tree); without the slot pass and its read-back where `slots`
+    /// is false (`slot` then empty).
+    pub fn build_tree_with(
+        &self,
+        size_log2: u8,
+        pos: &[[u32; 3]],
+        config: &BuilderConfig,
+        slots: bool,
     ) -> Result<ArrivalTree, GpuError> {
         check(size_log2, pos.len(), config).map_err(|e| GpuError::Device(e.to_string()))?;
         let outside = |p: &[u32; 3]| p.iter().any(|&v| (v as u64) >> size_log2 != 0);
@@ -528,10 +542,10 @@ impl GpuTreeBuilder {
             }
         }
         phases.push(("voxels".to_string(), t.elapsed().as_secs_f64()));
-        // 4. slots.
+        // 4. slots (where asked for).
         let t = Instant::now();
         let mut slot = Vec::new();
-        for s in 0..run.segments.len() {
+        for s in (0..run.segments.len()).filter(|_| slots) {
             run.dispatch(Pass::OctreeSlots, Some(s), 0)?;
             let v = run.take_leaves(s)?;
             if slot.is_empty() {
@@ -796,5 +810,14 @@ impl TreeBackend for GpuTreeBuilder {
         config: &BuilderConfig,
     ) -> Result<ArrivalTree, String> {
         self.build_tree(size_log2, pos, config).map_err(|e| e.to_string())
+    }
+
+    fn build_without_slots(
+        &self,
+        size_log2: u8,
+        pos: &[[u32; 3]],
+        config: &BuilderConfig,
+    ) -> Result<ArrivalTree, String> {
+        self.build_tree_with(size_log2, pos, config, false).map_err(|e| e.to_string())
     }
 }

@@ -76,6 +76,21 @@ pub trait TreeBackend: Send + Sync + std::fmt::Debug {
         pos: &[[u32; 3]],
         config: &BuilderConfig,
     ) -> Result<ArrivalTree, String>;
+
+    /// [`build`](Self::build) without the slots (`slot` left empty), for a caller that puts
+    /// the points in order itself (the store's GPU engine sorts them on the host while the
+    /// tree is built); a backend may then skip the slot pass. The default builds them and
+    /// drops them.
+    fn build_without_slots(
+        &self,
+        size_log2: u8,
+        pos: &[[u32; 3]],
+        config: &BuilderConfig,
+    ) -> Result<ArrivalTree, String> {
+        let mut tree = self.build(size_log2, pos, config)?;
+        tree.slot = Vec::new();
+        Ok(tree)
+    }
 }
 
 /// The CPU twin of the GPU passes ([`build_arrival`]) as a [`TreeBackend`] (tests, and the

@@ -6,28 +6,38 @@
 //! 1. every piece is read as the sorted engine reads it ([`super::engine::read_input`]), the same
 //!    root chosen;
 //! 2. the positions relative to the root's corner, in arrival order (12 bytes a point), go to the
-//!    backend, which gives the nodes, each inner node's voxels (the earliest point of each cell)
-//!    and each point's slot in its leaf's range (leaves depth first);
-//! 3. the records are scattered to their slots and each leaf's range sorted in Morton order
-//!    (ties as the sorted engine breaks them: the bits a shifted code drops, then arrival): the
-//!    records are then in the sorted engine's order, and the tree is its tree
-//!    ([`ArrivalTree::into_sorted`]);
+//!    backend, which gives the nodes and each inner node's voxels (the earliest point of each
+//!    cell) without the per-point slots ([`mortar_core::octree::arrival::TreeBackend::build_without_slots`]);
+//! 3. at the same time on a discrete GPU (after it where the adapter runs on the host's cores,
+//!    lavapipe), the host sorts the records with the sorted engine's sort
+//!    ([`super::engine::sort_records`]): Morton order, ties by the bits a shifted code drops,
+//!    then arrival. Leaves depth first are in that order, so the records are then the leaves'
+//!    ranges one after the other; the tree becomes the sorted engine's tree
+//!    ([`ArrivalTree::into_sorted`]) once its leaves are checked against the order (counts
+//!    adding up, every point in its leaf's cube: a GPU that got the tree wrong is refused);
 //! 4. the nodes are encoded and committed level by level ([`super::engine::write_tree`]).
 //!
 //! The input must fit `--memory` as for the sorted engine (refused otherwise, naming the need);
 //! on the GPU, `--gpu-memory` bounds what the builder holds (`mortar_render::octree`).
 //!
+//! Why the host sorts rather than the GPU giving each point its slot and the host sorting within
+//! leaves (this engine until 2026-12-06): placing the records by slot and sorting each leaf cost
+//! as much as the whole sort (0.68 s against 0.61-0.87 s at 100 M points on 16 cores), and ran
+//! after the GPU; the sort runs while the GPU works (ARCHITECTURE.md, "The GPU engine").
+//!
 //! Not done yet (issue 29): the preview draws the store's commits rather than the GPU's buffers,
-//! and the host still places the records and sorts within leaves.
+//! and the sort is the host's.
 
-use super::engine::{code_of, color_of, grid_of, read_input, write_tree, Input, Sorted};
+use super::engine::{
+    bucket_shift, color_of, grid_of, histogram, read_input, sort_records, write_tree, Input, Sorted,
+};
 use super::options::{BuildOptions, BuildProgress, BuildReport, BuiltBy};
 use super::writer::*;
 use crate::dataset::Dataset;
 use crate::error::{Error, Result};
 use mortar_core::layout::read_xyz;
-use mortar_core::octree::arrival::{leaf_bases, ArrivalTree, NO_CHILD};
-use mortar_core::octree::OctreeError;
+use mortar_core::octree::arrival::{check_nodes, ArrivalTree, NO_CHILD};
+use mortar_core::octree::{Cube, OctreeError, SortedContent, SortedTree};
 use mortar_core::par::SendPtr;
 use rayon::prelude::*;
 use std::time::Instant;
@@ -78,7 +88,8 @@ pub(crate) fn build_into(
     let rl = ds.layout.record_len;
     let total = ds.declared_points();
     let mut report = BuildReport { engine: BuiltBy::Gpu, ..BuildReport::default() };
-    let Input { slabs, all, root, bounds, .. } = read_input(ds, header, &mut report, t0)?;
+    let Input { slabs, mut hist, all, root, promised, bounds } =
+        read_input(ds, header, &mut report, t0)?;
     let records: Vec<&[u8]> = slabs.iter().map(|(r, _)| &**r).collect();
     let mut starts = vec![0usize; records.len() + 1];
     for (k, r) in records.iter().enumerate() {
@@ -88,9 +99,12 @@ pub(crate) fn build_into(
     if n >= u32::MAX as usize {
         return Err(Error::TooManyPoints { what: "build --engine gpu" });
     }
-    // 2. the tree on the GPU.
-    let tt = Instant::now();
-    ds.progress.stage("indexing on the GPU", 0, "");
+    let g = grid_of(root);
+    let shift = bucket_shift(root);
+    if root != promised {
+        hist = records.par_iter().map(|s| histogram(s, rl, &g, shift)).collect();
+    }
+    // 2. the positions for the GPU, in arrival order.
     let mut pos = crate::sort::zeroed_huge::<[u32; 3]>(n);
     {
         let pp = SendPtr(pos.as_mut_ptr());
@@ -104,43 +118,76 @@ pub(crate) fn build_into(
             }
         });
     }
-    let tree = backend
-        .build(root.size_log2, &pos, &opts.config)
-        .map_err(|m| Error::Octree { error: OctreeError::Unsupported(format!("GPU: {m}")) })?;
-    drop(pos);
-    report.gpu = Some(backend.name());
-    report.gpu_steps = tree.phases.clone();
-    report.tree_seconds = tt.elapsed().as_secs_f64();
-    crate::cleanup::trace("tree on the GPU", t0);
-    crate::cleanup::check_interrupted()?;
-    // 3. the records in the sorted engine's order.
-    let ts = Instant::now();
-    ds.progress.stage("sorting", all.count, "points");
-    let sorted = order_records(&records, &starts, rl, &tree, root)?;
+    // 3. the tree on the GPU and the records sorted by the sorted engine's sort: at the same
+    // time on a discrete GPU (the host's cores are free while it builds), one after the other
+    // where the GPU's work runs on the same cores and its buffers are this process's memory.
+    let tree_on_gpu = |pos: &[[u32; 3]]| {
+        let tt = Instant::now();
+        let tree = backend.build_without_slots(root.size_log2, pos, &opts.config);
+        (tree, tt.elapsed().as_secs_f64())
+    };
+    let sort = || {
+        let ts = Instant::now();
+        let sorted = sort_records(&records, &hist, rl, &g, shift, &ds.progress, |p, i| {
+            (p as u64) << 32 | i as u64
+        });
+        (sorted, ts.elapsed().as_secs_f64())
+    };
+    let ((tree, tree_seconds), (sorted, sort_seconds)) = if backend.holds_buffers_in_host_memory() {
+        ds.progress.stage("indexing on the GPU", 0, "");
+        let t = tree_on_gpu(&pos);
+        drop(pos);
+        crate::cleanup::check_interrupted()?;
+        ds.progress.stage("sorting", 2 * all.count, "points");
+        (t, sort())
+    } else {
+        ds.progress.stage("sorting, indexing on the GPU", 2 * all.count, "points");
+        // The GPU's side on a thread of its own, its parallel copies in a pool of their own
+        // (in the global pool they would queue behind the sort's tasks).
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(rayon::current_num_threads())
+            .thread_name(|i| format!("mortar-gpu-{i}"))
+            .build()
+            .ok();
+        let pos = &pos;
+        let (t, s) = std::thread::scope(|scope| {
+            let gpu = scope.spawn(|| match &pool {
+                Some(p) => p.install(|| tree_on_gpu(pos)),
+                None => tree_on_gpu(pos),
+            });
+            let s = sort();
+            (gpu.join(), s)
+        });
+        (t.unwrap_or_else(|e| std::panic::resume_unwind(e)), s)
+    };
+    let tree =
+        tree.map_err(|m| Error::Octree { error: OctreeError::Unsupported(format!("GPU: {m}")) })?;
     drop(records);
     drop(slabs);
+    report.gpu = Some(backend.name());
+    report.gpu_steps = tree.phases.clone();
+    report.tree_seconds = tree_seconds;
+    report.sort_seconds = sort_seconds;
+    crate::cleanup::trace("tree on the GPU and records sorted", t0);
+    crate::cleanup::check_interrupted()?;
+    // 4. the GPU's tree over the sorted records: its voxels' arrival numbers to sorted indices,
+    // its leaves checked against the order.
+    let ts = Instant::now();
     let mut inv = crate::sort::zeroed_huge::<u32>(n);
     {
         let ip = SendPtr(inv.as_mut_ptr());
         sorted.arrival.par_iter().enumerate().for_each(|(i, &a)| {
             let ip = &ip;
-            // SAFETY: arrivals are a permutation of 0..n (the slots were checked).
-            unsafe { ip.write(a as usize, i as u32) };
+            // The sort's arrival numbers (piece << 32 | index) are a permutation of the
+            // pieces' records; the GPU numbers them 0..n in the same order.
+            let at = starts[(a >> 32) as usize] + (a & 0xffff_ffff) as usize;
+            // SAFETY: each `at` is below n and written once.
+            unsafe { ip.write(at, i as u32) };
         });
     }
-    let stree = tree
-        .into_sorted(root, |a| inv.get(a as usize).copied().unwrap_or(u32::MAX))
-        .map_err(|error| Error::Octree { error })?;
+    let stree = leaves_checked(tree, root, &sorted, &inv)?;
     drop(inv);
-    if stree.nodes.iter().any(|nd| match &nd.content {
-        mortar_core::octree::SortedContent::Inner(v) => v.iter().any(|&i| i as usize >= n),
-        mortar_core::octree::SortedContent::Leaf(r) => r.end > n,
-    }) {
-        return Err(Error::Octree {
-            error: OctreeError::Unsupported("GPU: a voxel or leaf out of range".into()),
-        });
-    }
-    report.sort_seconds = ts.elapsed().as_secs_f64();
+    report.sort_seconds += ts.elapsed().as_secs_f64();
     report.batch_seconds.push(report.tree_seconds);
     crate::cleanup::trace("records ordered", t0);
     let color = color_of(ds, &all);
@@ -163,115 +210,58 @@ pub(crate) fn build_into(
     Ok(report)
 }
 
-/// The records of `slabs` (piece `k` holds arrivals `starts[k]..`) put in their slots, then each
-/// leaf's range sorted as the sorted engine orders points: Morton code on the root's grid, then
-/// the bits a shifted code drops, then arrival. Fails on slots that are not a permutation.
-fn order_records(
-    slabs: &[&[u8]],
-    starts: &[usize],
-    rl: usize,
-    tree: &ArrivalTree,
-    root: mortar_core::octree::Cube,
-) -> Result<Sorted> {
-    let n = starts[slabs.len()];
-    let broken = |what: &str| Error::Octree {
-        error: OctreeError::Unsupported(format!("GPU: the slots are not a permutation ({what})")),
+/// The GPU's tree over the records of `sorted` (the sorted engine's order): its voxels' arrival
+/// numbers (`0..n` in the pieces' order) made sorted indices by `inv`, and its leaves checked to
+/// be runs of that order: their counts add up to the points, and the first and last point of a
+/// leaf's range lie in the leaf's cube (leaves depth first are in Morton order, as the records
+/// are), every voxel in its node's. Fails on a tree the GPU got wrong rather than writing it.
+fn leaves_checked(
+    tree: ArrivalTree,
+    root: Cube,
+    sorted: &Sorted,
+    inv: &[u32],
+) -> Result<SortedTree> {
+    let n = inv.len();
+    let broken = |what: String| Error::Octree {
+        error: OctreeError::Unsupported(format!("GPU: the tree is broken: {what}")),
     };
-    if tree.slot.len() != n {
-        return Err(broken("a slot per point"));
+    if tree.nodes.is_empty() || tree.voxels.len() != tree.nodes.len() {
+        return Err(broken("no root, or voxels for other nodes".into()));
     }
-    // A permutation of 0..n: all below n, and their sum and the sum of their squares those of
-    // 0..n (a cheap check of what came back from the device; the scatter below writes in
-    // bounds whatever they are).
-    let (sum, sq) = tree
-        .slot
-        .par_iter()
-        .map(|&s| (s as u128, (s as u128) * (s as u128)))
-        .reduce(|| (0, 0), |a, b| (a.0 + b.0, a.1 + b.1));
-    let m = n as u128;
-    let want_sq = if n == 0 { 0 } else { (m - 1) * m * (2 * m - 1) / 6 };
-    if tree.slot.par_iter().any(|&s| s as usize >= n)
-        || sum != m * m.saturating_sub(1) / 2
-        || sq != want_sq
-    {
-        return Err(broken("out of range or repeated"));
-    }
-    let mut records = crate::sort::zeroed_huge::<u8>(n * rl);
-    let mut arrival = crate::sort::zeroed_huge::<u64>(n);
-    {
-        let rp = SendPtr(records.as_mut_ptr());
-        let ap = SendPtr(arrival.as_mut_ptr());
-        slabs.par_iter().enumerate().for_each(|(k, slab)| {
-            let (rp, ap) = (&rp, &ap);
-            for (i, r) in slab.chunks_exact(rl).enumerate() {
-                let a = starts[k] + i;
-                let s = tree.slot[a] as usize;
-                // SAFETY: the slots are a permutation of 0..n (checked above).
-                unsafe {
-                    std::ptr::copy_nonoverlapping(r.as_ptr(), rp.0.add(s * rl), rl);
-                    ap.write(s, a as u64);
-                }
-            }
-        });
-    }
-    // Each leaf's range, sorted.
-    let bases = leaf_bases(&tree.nodes);
-    let mut ranges: Vec<(usize, usize)> = tree
-        .nodes
-        .iter()
-        .enumerate()
-        .filter(|(_, nd)| nd.first_child == NO_CHILD && nd.count > 1)
-        .map(|(i, nd)| (bases[i] as usize, nd.count as usize))
-        .collect();
-    ranges.sort_unstable();
-    let g = grid_of(root);
-    let mask = (1i64 << g.shift) - 1;
-    let mut parts: Vec<(&mut [u8], &mut [u64])> = Vec::with_capacity(ranges.len());
-    {
-        let (mut rr, mut ar): (&mut [u8], &mut [u64]) = (&mut records, &mut arrival);
-        let mut at = 0usize;
-        for &(s, c) in &ranges {
-            if s < at || s + c > n {
-                return Err(broken("leaf ranges overlap"));
-            }
-            let (_, r1) = std::mem::take(&mut rr).split_at_mut((s - at) * rl);
-            let (x, r2) = r1.split_at_mut(c * rl);
-            let (_, a1) = std::mem::take(&mut ar).split_at_mut(s - at);
-            let (y, a2) = a1.split_at_mut(c);
-            parts.push((x, y));
-            rr = r2;
-            ar = a2;
-            at = s + c;
+    check_nodes(&tree.nodes).map_err(|error| Error::Octree { error })?;
+    let mut held = 0u64;
+    let mut stack = vec![0usize];
+    while let Some(i) = stack.pop() {
+        let nd = tree.nodes[i];
+        if nd.first_child == NO_CHILD {
+            held += nd.count as u64;
+        } else {
+            stack.extend(nd.first_child as usize..nd.first_child as usize + 8);
         }
     }
-    parts.into_par_iter().for_each_init(
-        || (Vec::<(u64, u64, u64, u32)>::new(), Vec::<u8>::new(), Vec::<u64>::new()),
-        |(keys, tmp, tarr), (recs, arr)| {
-            keys.clear();
-            keys.extend(recs.chunks_exact(rl).zip(arr.iter()).enumerate().map(|(i, (r, &a))| {
-                let residual = if g.shift > 0 {
-                    let q = read_xyz(r);
-                    let low = |x: usize| ((q[x] as i64 - g.origin[x]) & mask) as u32;
-                    mortar_core::morton::encode(low(0), low(1), low(2))
-                } else {
-                    0
-                };
-                (code_of(r, &g), residual, a, i as u32)
-            }));
-            if keys.windows(2).all(|w| w[0] < w[1]) {
-                return;
-            }
-            keys.sort_unstable();
-            tmp.clear();
-            tmp.extend_from_slice(recs);
-            tarr.clear();
-            tarr.extend_from_slice(arr);
-            for (d, k) in keys.iter().enumerate() {
-                let j = k.3 as usize;
-                recs[d * rl..(d + 1) * rl].copy_from_slice(&tmp[j * rl..(j + 1) * rl]);
-                arr[d] = tarr[j];
-            }
-        },
-    );
-    Ok(Sorted { records, arrival, rl })
+    if held != n as u64 {
+        return Err(broken(format!("its leaves hold {held} points, the input {n}")));
+    }
+    if tree.voxels.par_iter().any(|v| v.iter().any(|&a| a as usize >= n)) {
+        return Err(broken("a voxel names no point".into()));
+    }
+    let stree =
+        tree.into_sorted(root, |a| inv[a as usize]).map_err(|error| Error::Octree { error })?;
+    let outside = stree.nodes.par_iter().find_any(|nd| match &nd.content {
+        // A cube is an interval of the Morton order the records are sorted in: its first and
+        // last point inside means every point between is.
+        SortedContent::Leaf(r) => {
+            !r.is_empty()
+                && [r.start, r.end - 1]
+                    .iter()
+                    .any(|&i| !nd.cube.contains(read_xyz(sorted.record(i))))
+        }
+        SortedContent::Inner(v) => {
+            v.iter().any(|&i| !nd.cube.contains(read_xyz(sorted.record(i as usize))))
+        }
+    });
+    if let Some(nd) = outside {
+        return Err(broken(format!("node {:?} holds points outside its cube", nd.key)));
+    }
+    Ok(stree)
 }
