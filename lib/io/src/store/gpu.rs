@@ -20,10 +20,14 @@
 //! The input must fit `--memory` as for the sorted engine (refused otherwise, naming the need);
 //! on the GPU, `--gpu-memory` bounds what the builder holds (`mortar_render::octree`).
 //!
-//! Why the host sorts rather than the GPU giving each point its slot and the host sorting within
-//! leaves (this engine until 2026-12-06): placing the records by slot and sorting each leaf cost
-//! as much as the whole sort (0.68 s against 0.61-0.87 s at 100 M points on 16 cores), and ran
-//! after the GPU; the sort runs while the GPU works (ARCHITECTURE.md, "The GPU engine").
+//! Why the host sorts the whole input rather than the GPU giving each point its slot and the
+//! host placing the records and sorting within each leaf (this engine until 2026-12-06): the
+//! sort needs nothing from the GPU, so it runs while the GPU builds, and the GPU skips its slot
+//! pass. Measured on the H100 in one call (BENCHMARKS.md, "The GPU engine sorts while the GPU
+//! builds"), medians of 4: 20 M points 0.589 s against 0.647 s; 100 M 2.59 s against 2.60 s and
+//! 1 B 28.5 s against 28.7 s (one run): a draw at scale, where the sort, slowed by the GPU's
+//! transfers beside it (0.95-1.05 s against 0.74-0.80 s alone), is longer than the GPU's
+//! work; the price is the positions held during the sort (peak RSS +15 % at 100 M points).
 //!
 //! Not done yet (issue 29): the preview draws the store's commits rather than the GPU's buffers,
 //! and the sort is the host's.
@@ -43,17 +47,21 @@ use rayon::prelude::*;
 use std::time::Instant;
 
 /// Bytes per point the GPU engine holds besides the records, as the OS counts it, on a software
-/// adapter (lavapipe): the positions handed to the GPU (12), wgpu's staging copy of them, the
-/// GPU's own buffers in host memory (12 + 16), the slots read back (4 + 4 while copied), then
-/// arrival (8), slot (4) and its inverse (4), with room to spare. Measured under lavapipe
-/// (BENCHMARKS.md, "memory"): points at one position peaked at 175 MB (0.5 M), 734 MB (4 M)
-/// and 1,289 MB (8 M points of 34 bytes): 139 bytes a point besides [`FIXED`].
+/// adapter (lavapipe), where the tree is built first and the records sorted after it: the
+/// positions handed to the GPU (12), wgpu's staging copy of them, the GPU's own buffers in host
+/// memory (12 + 16), then the sort's arrival numbers (8) and per-bucket work, and the inverse (4),
+/// with room to spare. Measured under lavapipe (BENCHMARKS.md, "memory"): points at one position
+/// peaked at 175 MB (0.5 M), 734 MB (4 M) and 1,289 MB (8 M points of 34 bytes) when the GPU
+/// also gave slots: 139 bytes a point besides [`FIXED`]; 559 MB at 4 M since it does not.
 const PER_POINT_SHARED: u64 = 72;
 
-/// The same on a discrete GPU, whose buffers are not the process's memory: measured on the H100
-/// (BENCHMARKS.md, "1 B points"), 100 M points of 34 bytes from a mapped LAS file peaked at
-/// 8.75 GB, 19.5 bytes a point besides the mapped input and the sorted records; 32 leaves room.
-const PER_POINT_DISCRETE: u64 = 32;
+/// The same on a discrete GPU, whose buffers are not the process's memory, and where the sort
+/// runs while the GPU builds, so the positions (12) are held with the sort's arrival numbers (8),
+/// its per-bucket work and the inverse (4): measured on the H100 (BENCHMARKS.md, "The GPU engine
+/// sorts while the GPU builds"), 100 M points of 34 bytes from a mapped LAS file peaked at
+/// 10.05 GB, 32.5 bytes a point besides the mapped input and the sorted records (26 at 1 B
+/// points); 40 leaves room.
+const PER_POINT_DISCRETE: u64 = 40;
 
 /// Bytes the GPU engine holds whatever the input: the process, the GPU driver and its shader
 /// compiler (a software adapter compiles with LLVM in the process): 175 MB measured at 0.5 M
@@ -142,10 +150,11 @@ pub(crate) fn build_into(
         (t, sort())
     } else {
         ds.progress.stage("sorting, indexing on the GPU", 2 * all.count, "points");
-        // The GPU's side on a thread of its own, its parallel copies in a pool of their own
-        // (in the global pool they would queue behind the sort's tasks).
+        // The GPU's side on a thread of its own, its parallel copies in a small pool of their
+        // own (in the global pool they would queue behind the sort's tasks; with as many
+        // threads as the sort's, both slowed down, the sort being the longer).
         let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(rayon::current_num_threads())
+            .num_threads((rayon::current_num_threads() / 4).max(1))
             .thread_name(|i| format!("mortar-gpu-{i}"))
             .build()
             .ok();
