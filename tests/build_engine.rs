@@ -160,25 +160,11 @@ fn both_engines_build_the_same_tree_on_merged_tiles() {
 
 #[test]
 fn a_sorted_build_is_readable_at_every_commit_coarse_first() {
-    use mortar_core::octree::{BuilderConfig, ColorMode};
-    use mortar_io::store::{build, BuildOptions, Engine};
+    use mortar_io::store::{build, Engine};
     let dir = tempdir("sorted-commits");
     let store = dir.join("s");
     let ds = mortar_io::inputs::open(&[root().join("data-samples/autzen_trim.laz")]).unwrap();
-    let opts = BuildOptions {
-        config: BuilderConfig {
-            leaf_capacity: 2000,
-            color_mode: ColorMode::FirstCome,
-            ..BuilderConfig::default()
-        },
-        batch_points: 10_000,
-        first_commit_after: None,
-        commit_every: 0.0,
-        memory: 1 << 30,
-        engine: Engine::Sorted,
-        resume: false,
-        tree: None,
-    };
+    let opts = small_build_options(Engine::Sorted);
     let mut seen: Vec<(u64, u64, usize, u8)> = Vec::new();
     let mut check = |p: &mortar_io::store::BuildProgress| {
         let s = Store::open(&store).expect("a committed store opens");

@@ -5,8 +5,7 @@
 mod common;
 
 use common::*;
-use mortar_core::octree::{BuilderConfig, ColorMode};
-use mortar_io::store::{build, BuildOptions, Store};
+use mortar_io::store::{build, Store};
 use std::path::{Path, PathBuf};
 
 fn sample() -> PathBuf {
@@ -98,20 +97,7 @@ fn store_is_readable_at_every_commit_while_it_grows() {
     let dir = tempdir("store-grow");
     let store = dir.join("s");
     let ds = mortar_io::inputs::open(&[sample()]).unwrap();
-    let opts = BuildOptions {
-        config: BuilderConfig {
-            leaf_capacity: 2000,
-            color_mode: ColorMode::FirstCome,
-            ..BuilderConfig::default()
-        },
-        batch_points: 10_000,
-        first_commit_after: None,
-        commit_every: 0.0,
-        memory: 1 << 30,
-        engine: mortar_io::store::Engine::Incremental,
-        resume: false,
-        tree: None,
-    };
+    let opts = small_build_options(mortar_io::store::Engine::Incremental);
     let mut seen = Vec::new();
     let mut check = |p: &mortar_io::store::BuildProgress| {
         if p.commits == 0 {

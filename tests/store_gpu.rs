@@ -229,24 +229,13 @@ impl mortar_core::octree::arrival::TreeBackend for Faulty {
 
 #[test]
 fn the_gpu_engine_writes_the_sorted_store_from_a_correct_tree_and_refuses_a_spoilt_one() {
-    use mortar_core::octree::{BuilderConfig, ColorMode};
     use mortar_io::store::{build, BuildOptions, Engine};
     // Needs no GPU: the engine's host side around a backend, the CPU twin of the passes.
     let dir = tempdir("gpu-faulty");
     let ds = mortar_io::inputs::open(&[root().join("data-samples/autzen_trim.laz")]).unwrap();
     let opts = |engine, tree: Option<Faulty>| BuildOptions {
-        config: BuilderConfig {
-            leaf_capacity: 2000,
-            color_mode: ColorMode::FirstCome,
-            ..BuilderConfig::default()
-        },
-        batch_points: 10_000,
-        first_commit_after: None,
-        commit_every: 0.0,
-        memory: 1 << 30,
-        engine,
-        resume: false,
         tree: tree.map(|t| std::sync::Arc::new(t) as _),
+        ..small_build_options(engine)
     };
     let sorted = dir.join("sorted");
     build(&ds, &sorted, &opts(Engine::Sorted, None), &mut |_| {}).unwrap();

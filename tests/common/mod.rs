@@ -269,3 +269,24 @@ pub fn ept_tiles(data: &Path, n: usize) -> Vec<PathBuf> {
     ept.truncate(n);
     ept
 }
+
+/// The options the library-level store tests build the sample with: leaves of 2,000 points,
+/// first-come voxels, batches of 10,000 points, a commit after every batch or level, 1 GiB of
+/// memory, with `engine`.
+pub fn small_build_options(engine: mortar_io::store::Engine) -> mortar_io::store::BuildOptions {
+    use mortar_core::octree::{BuilderConfig, ColorMode};
+    mortar_io::store::BuildOptions {
+        config: BuilderConfig {
+            leaf_capacity: 2000,
+            color_mode: ColorMode::FirstCome,
+            ..BuilderConfig::default()
+        },
+        batch_points: 10_000,
+        first_commit_after: None,
+        commit_every: 0.0,
+        memory: 1 << 30,
+        engine,
+        resume: false,
+        tree: None,
+    }
+}
