@@ -86,8 +86,8 @@ fn rgb_of(attrs: &[u8], off: usize, sixteen: bool) -> u32 {
 }
 
 /// The points a payload is coded from: a version 2 payload's columns ([`Columns`]) or an
-/// engine's records gathered into columns ([`Gathered`]), so that one coder serves both (and the engines code without
-/// making the version 2 payload first).
+/// engine's records gathered into columns ([`Gathered`]), so that one coder serves both (and
+/// the engines code without making the version 2 payload first).
 trait Points<'a> {
     fn len(&self) -> usize;
     /// The exact position of point `i`.
@@ -440,11 +440,12 @@ fn kept_bytes(al: usize, g: Option<usize>) -> impl Iterator<Item = usize> {
 
 /// The points' order by GPS time key `gk`, ties in their order.
 ///
-/// A least-significant-digit radix sort of the keys less their minimum, one pass per byte
-/// of the keys' range (a leaf's times span seconds to hours: 3-5 passes; 11-bit digits measured
-/// no faster), which is stable, so ties
-/// keep their order; it replaced a comparison sort that was 15 % of a build's time (2-core VM,
-/// `perf`, 10 M points). Few points take the comparison sort.
+/// A least-significant-digit radix sort of the keys less their minimum, one pass per byte of
+/// the keys' range (a leaf's times span seconds to hours: 3-5 passes; 11-bit digits measured no
+/// faster), which is stable, so ties keep their order; it replaced a comparison sort that was
+/// 15 % of a build's time (2-core VM, `perf`, 10 M points). Where the range and the places fit
+/// one 64-bit word together (the leaves of real scans, whose times lie within one binade), the
+/// words are sorted: half the bytes moved. Few points take the comparison sort.
 fn time_order(gk: &[u64]) -> Vec<u32> {
     let n = gk.len();
     if n < 256 {
@@ -455,78 +456,55 @@ fn time_order(gk: &[u64]) -> Vec<u32> {
     }
     let lo = gk.iter().copied().min().unwrap_or(0);
     let hi = gk.iter().copied().max().unwrap_or(0);
-    // Where the keys' range and the places fit one word together, sort those words: half the
-    // bytes moved, and the places need no pass (the sort is stable and they start in order).
-    let place_bits = 32 - (n as u32 - 1).leading_zeros();
     let range_bits = 64 - (hi - lo).leading_zeros();
+    let digits = range_bits.div_ceil(8) as usize;
+    let place_bits = 32 - (n as u32 - 1).leading_zeros();
     if range_bits + place_bits <= 64 {
-        let mut w: Vec<u64> =
-            gk.iter().enumerate().map(|(i, &k)| (k - lo) << place_bits | i as u64).collect();
-        let mut w2 = vec![0u64; n];
-        let digits = range_bits.div_ceil(8) as usize;
-        let mut counts = vec![[0u32; 256]; digits];
-        for &x in &w {
-            for (d, c) in counts.iter_mut().enumerate() {
-                c[((x >> (place_bits as usize + 8 * d)) & 0xff) as usize] += 1;
-            }
-        }
-        for (d, c) in counts.iter().enumerate() {
-            if c.iter().any(|&x| x as usize == n) {
-                continue;
-            }
-            let mut at = [0usize; 256];
-            let mut sum = 0usize;
-            for (a, &x) in at.iter_mut().zip(c.iter()) {
-                *a = sum;
-                sum += x as usize;
-            }
-            let shift = place_bits as usize + 8 * d;
-            for &x in &w {
-                let b = ((x >> shift) & 0xff) as usize;
-                w2[at[b]] = x;
-                at[b] += 1;
-            }
-            std::mem::swap(&mut w, &mut w2);
-        }
+        // The places start in order and need no pass.
+        let w = gk.iter().enumerate().map(|(i, &k)| (k - lo) << place_bits | i as u64).collect();
+        let shift = place_bits as usize;
         let mask = (1u64 << place_bits) - 1;
+        let w = radix_sort(w, digits, |&x, d| ((x >> (shift + 8 * d)) & 0xff) as usize);
         return w.iter().map(|&x| (x & mask) as u32).collect();
     }
-    let bits: u32 = 8;
-    let radix = 1usize << bits;
-    let mask = radix as u64 - 1;
-    let digits = (64 - (hi - lo).leading_zeros()).div_ceil(bits) as usize;
-    let mut counts = vec![0u32; digits * radix];
-    for &k in gk {
-        let r = k - lo;
-        for d in 0..digits {
-            counts[d * radix + ((r >> (bits as usize * d)) & mask) as usize] += 1;
+    let pairs = gk.iter().enumerate().map(|(i, &k)| (k - lo, i as u32)).collect();
+    let pairs = radix_sort(pairs, digits, |&(k, _), d| ((k >> (8 * d)) & 0xff) as usize);
+    pairs.iter().map(|&(_, i)| i).collect()
+}
+
+/// Stable least-significant-digit radix sort of `items` on `digits` byte digits,
+/// `digit(item, d)` being digit `d` (0 the lowest); a digit that all items share costs no pass.
+fn radix_sort<T: Copy + Default>(
+    mut items: Vec<T>,
+    digits: usize,
+    digit: impl Fn(&T, usize) -> usize,
+) -> Vec<T> {
+    let n = items.len();
+    let mut counts = vec![[0u32; 256]; digits];
+    for x in &items {
+        for (d, c) in counts.iter_mut().enumerate() {
+            c[digit(x, d)] += 1;
         }
     }
-    let mut keys: Vec<u64> = gk.iter().map(|&k| k - lo).collect();
-    let mut seq: Vec<u32> = (0..n as u32).collect();
-    let (mut keys2, mut seq2) = (vec![0u64; n], vec![0u32; n]);
-    let mut at = vec![0usize; radix];
-    for d in 0..digits {
-        let c = &counts[d * radix..(d + 1) * radix];
-        if c.iter().any(|&x| x as usize == n) {
-            continue; // one value of this digit: the pass would not move a point
+    let mut other = vec![T::default(); n];
+    for (d, c) in counts.iter().enumerate() {
+        if c.iter().any(|&k| k as usize == n) {
+            continue;
         }
+        let mut at = [0usize; 256];
         let mut sum = 0usize;
-        for (a, &x) in at.iter_mut().zip(c) {
+        for (a, &k) in at.iter_mut().zip(c.iter()) {
             *a = sum;
-            sum += x as usize;
+            sum += k as usize;
         }
-        let shift = bits as usize * d;
-        for (&k, &i) in keys.iter().zip(&seq) {
-            let b = ((k >> shift) & mask) as usize;
-            keys2[at[b]] = k;
-            seq2[at[b]] = i;
+        for x in &items {
+            let b = digit(x, d);
+            other[at[b]] = *x;
             at[b] += 1;
         }
-        std::mem::swap(&mut keys, &mut keys2);
-        std::mem::swap(&mut seq, &mut seq2);
+        std::mem::swap(&mut items, &mut other);
     }
-    seq
+    items
 }
 
 /// The codec of a stored payload's header.
