@@ -21,7 +21,20 @@ fn build(
     engine: &str,
     extra: &[&str],
 ) -> Result<serde_json::Value, String> {
+    build_sorting(inputs, out, engine, extra, false)
+}
+
+/// [`build`], with the GPU's radix sort on any adapter where `gpu_sort` (lavapipe keeps the
+/// host's sort by default: it is faster there).
+fn build_sorting(
+    inputs: &[PathBuf],
+    out: &Path,
+    engine: &str,
+    extra: &[&str],
+    gpu_sort: bool,
+) -> Result<serde_json::Value, String> {
     let o = mortar()
+        .env("MORTAR_GPU_SORT", if gpu_sort { "1" } else { "" })
         .arg("build")
         .args(inputs)
         .arg("-o")
@@ -54,6 +67,16 @@ fn store_files(dir: &Path) -> Vec<(String, Vec<u8>)> {
 /// Builds `inputs` with both engines; `Some(true)` when both built the same store, `Some(false)`
 /// when both refused the input, `None` when there is no GPU adapter (skip).
 fn same_store(inputs: &[PathBuf], extra: &[&str], tag: &str) -> Option<bool> {
+    same_store_sorting(inputs, extra, tag, false)
+}
+
+/// [`same_store`], the GPU engine sorting on the GPU (any adapter) where `gpu_sort`.
+fn same_store_sorting(
+    inputs: &[PathBuf],
+    extra: &[&str],
+    tag: &str,
+    gpu_sort: bool,
+) -> Option<bool> {
     let dir = tempdir(tag);
     let (a, b) = (dir.join("sorted"), dir.join("gpu"));
     let name = inputs
@@ -62,7 +85,7 @@ fn same_store(inputs: &[PathBuf], extra: &[&str], tag: &str) -> Option<bool> {
         .collect::<Vec<_>>()
         .join(" + ");
     let ra = build(inputs, &a, "sorted", extra);
-    let rb = build(inputs, &b, "gpu", extra);
+    let rb = build_sorting(inputs, &b, "gpu", extra, gpu_sort);
     let out = match (&ra, &rb) {
         (_, Err(e)) if no_adapter(e) => {
             eprintln!("SKIPPED: {e}");
@@ -96,9 +119,9 @@ fn same_store(inputs: &[PathBuf], extra: &[&str], tag: &str) -> Option<bool> {
 #[test]
 fn the_gpu_engine_writes_the_sorted_engines_store_on_the_sample_and_every_real_file() {
     let sample = root().join("data-samples/autzen_trim.laz");
-    for cap in ["50000", "500"] {
-        let Some(same) =
-            same_store(std::slice::from_ref(&sample), &["--leaf-capacity", cap], "gpu-sample")
+    for (cap, gpu_sort) in [("50000", false), ("500", false), ("500", true)] {
+        let one = std::slice::from_ref(&sample);
+        let Some(same) = same_store_sorting(one, &["--leaf-capacity", cap], "gpu-sample", gpu_sort)
         else {
             return;
         };
@@ -109,11 +132,11 @@ fn the_gpu_engine_writes_the_sorted_engines_store_on_the_sample_and_every_real_f
     assert!(files.len() > 40, "{} fixtures", files.len());
     let mut built = 0;
     for (i, f) in files.iter().enumerate() {
-        // Small leaves: deep trees with many inner nodes even on small files.
+        // Small leaves: deep trees with many inner nodes even on small files; every third file
+        // sorted by the GPU's radix sort.
         let cap = if i % 2 == 0 { "3000" } else { "200" };
-        if same_store(std::slice::from_ref(f), &["--leaf-capacity", cap], &format!("gpu-{i}"))
-            == Some(true)
-        {
+        let (one, tag) = (std::slice::from_ref(f), format!("gpu-{i}"));
+        if same_store_sorting(one, &["--leaf-capacity", cap], &tag, i % 3 == 0) == Some(true) {
             built += 1;
         }
     }
@@ -128,6 +151,10 @@ fn the_gpu_engine_writes_the_sorted_engines_store_on_merged_tiles() {
     if same_store(&bcts, &["--leaf-capacity", "2000"], "gpu-bcts").is_none() {
         return;
     }
+    assert_eq!(
+        same_store_sorting(&bcts, &["--leaf-capacity", "2000"], "gpu-bcts-s", true),
+        Some(true)
+    );
     // Within 32 MiB of GPU memory: segments of 524,288 points, two on the GPU at a time, the
     // others paged out and back; one voxel grid at a time.
     assert_eq!(
@@ -146,7 +173,8 @@ fn the_gpu_engine_writes_the_sorted_engines_store_on_merged_tiles() {
 fn the_gpu_engine_writes_the_sorted_engines_store_on_hostile_density() {
     let dir = tempdir("gpu-dense");
     for (k, set) in dense_sets(&dir).iter().enumerate() {
-        match same_store(set, &["--leaf-capacity", "3000"], &format!("gpu-dense-{k}")) {
+        let tag = format!("gpu-dense-{k}");
+        match same_store_sorting(set, &["--leaf-capacity", "3000"], &tag, k % 2 == 0) {
             None => return,
             Some(same) => assert!(same, "{set:?}"),
         }
@@ -179,9 +207,11 @@ fn the_gpu_engine_keeps_the_memory_promise() {
 
 /// A tree backend that builds with the CPU twin of the GPU passes, then spoils the tree as a
 /// faulty GPU might; as a discrete GPU (the engine then sorts on the host while it builds) where
-/// the flag says so, else as one whose buffers are host memory (one after the other).
+/// the flag says so, else as one whose buffers are host memory (one after the other); where the
+/// third says so it sorts the points itself (the CPU twin of the GPU's sort), an order that the
+/// "order-" faults spoil.
 #[derive(Debug)]
-struct Faulty(&'static str, bool);
+struct Faulty(&'static str, bool, bool);
 
 impl mortar_core::octree::arrival::TreeBackend for Faulty {
     fn name(&self) -> String {
@@ -190,6 +220,30 @@ impl mortar_core::octree::arrival::TreeBackend for Faulty {
 
     fn holds_buffers_in_host_memory(&self) -> bool {
         !self.1
+    }
+
+    fn sorts(&self, _n: usize) -> bool {
+        self.2
+    }
+
+    fn build_ordered(
+        &self,
+        size_log2: u8,
+        pos: &[[u32; 3]],
+        config: &mortar_core::octree::BuilderConfig,
+        order: &dyn Fn(Vec<u32>),
+    ) -> Result<mortar_core::octree::arrival::ArrivalTree, String> {
+        let mut o = mortar_core::octree::arrival::morton_order(pos);
+        match self.0 {
+            "order-swapped" => o.swap(100, 101),
+            "order-short" => {
+                o.pop();
+            }
+            "order-repeated" => o[7] = o[8],
+            _ => {}
+        }
+        order(o);
+        self.build_without_slots(size_log2, pos, config)
     }
 
     fn build(
@@ -210,7 +264,7 @@ impl mortar_core::octree::arrival::TreeBackend for Faulty {
             }
         }
         match self.0 {
-            "none" => {}
+            "none" | "order-swapped" | "order-short" | "order-repeated" => {}
             // A point counted in the next leaf: the counts add up, the ranges are wrong.
             "moved" => {
                 let k = (0..leaves.len() - 1).find(|&k| t.nodes[leaves[k]].count > 0).unwrap();
@@ -239,16 +293,22 @@ fn the_gpu_engine_writes_the_sorted_store_from_a_correct_tree_and_refuses_a_spoi
     };
     let sorted = dir.join("sorted");
     build(&ds, &sorted, &opts(Engine::Sorted, None), &mut |_| {}).unwrap();
-    for discrete in [false, true] {
-        let good = dir.join(format!("good-{discrete}"));
-        let r = build(&ds, &good, &opts(Engine::Gpu, Some(Faulty("none", discrete))), &mut |_| {})
-            .unwrap();
+    // (A backend's own sort is used on a discrete GPU: lavapipe's is slower than the host's.)
+    for (discrete, sorts) in [(false, false), (true, false), (true, true)] {
+        let good = dir.join(format!("good-{discrete}-{sorts}"));
+        let backend = Faulty("none", discrete, sorts);
+        let r = build(&ds, &good, &opts(Engine::Gpu, Some(backend)), &mut |_| {}).unwrap();
         assert_eq!(r.engine, mortar_io::store::BuiltBy::Gpu);
-        assert_eq!(store_files(&sorted), store_files(&good), "discrete: {discrete}");
+        assert_eq!(store_files(&sorted), store_files(&good), "discrete {discrete}, sorts {sorts}");
     }
-    for (k, fault) in ["moved", "extra", "voxel", "shared"].into_iter().enumerate() {
+    let faults =
+        ["moved", "extra", "voxel", "shared", "order-swapped", "order-short", "order-repeated"];
+    for (k, fault) in faults.into_iter().enumerate() {
         let out = dir.join(fault);
-        let e = build(&ds, &out, &opts(Engine::Gpu, Some(Faulty(fault, k % 2 == 0))), &mut |_| {})
+        // The tree's faults with either sort, the order's with the backend's.
+        let order = fault.starts_with("order");
+        let backend = Faulty(fault, order || k % 2 == 0, order || k % 3 == 0);
+        let e = build(&ds, &out, &opts(Engine::Gpu, Some(backend)), &mut |_| {})
             .expect_err(fault)
             .to_string();
         assert!(e.contains("GPU") && e.contains("broken"), "{fault}: {e}");

@@ -42,6 +42,16 @@ pub fn encode(x: u32, y: u32, z: u32) -> u64 {
     spread3(x as u64) | (spread3(y as u64) << 1) | (spread3(z as u64) << 2)
 }
 
+/// The full-resolution Morton code of three 32-bit coordinates (96 bits: x on bit 0, y on bit 1,
+/// z on bit 2 of each triple): the order the store's engines give points (an offset from a
+/// cube's corner), whose low 63 bits are [`encode`] of the coordinates' low 21 bits.
+#[inline]
+pub fn encode96(u: [u32; 3]) -> u128 {
+    let hi = encode(u[0] >> 21, u[1] >> 21, u[2] >> 21) as u128;
+    let lo = encode(u[0] & 0x1f_ffff, u[1] & 0x1f_ffff, u[2] & 0x1f_ffff);
+    hi << 63 | lo as u128
+}
+
 /// Splits a code back into its three cell coordinates.
 #[inline]
 pub fn decode(code: u64) -> [u32; 3] {

@@ -31,6 +31,7 @@ pub mod octree;
 mod pipeline;
 pub mod present;
 pub mod progressive;
+pub mod radix;
 pub mod raster;
 pub mod scene;
 pub mod shaders;

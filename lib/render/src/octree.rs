@@ -35,6 +35,7 @@
 
 use crate::buffers::{read_in_parts, upload_in_parts};
 use crate::context::{GpuContext, GpuError};
+use crate::radix::{self, GpuRadixSort};
 use crate::shaders::{binding, Pass};
 use mortar_core::octree::arrival::{
     check, check_nodes, leaf_bases, ArrivalNode, ArrivalTree, TreeBackend, NO_CHILD,
@@ -73,6 +74,8 @@ pub struct GpuTreeBuilder {
     budget: Option<u64>,
     /// Segments on the GPU at once; `None`: from the budget.
     resident: Option<usize>,
+    /// The radix sort (`None` where the adapter's limits refuse it).
+    sort: Option<GpuRadixSort>,
 }
 
 /// The smallest `--gpu-memory`: a quarter of it holds one full voxel grid (8 MiB of bricks).
@@ -187,6 +190,7 @@ impl GpuTreeBuilder {
             })
             .collect();
         let budget = ctx.device_memory().map(default_gpu_memory);
+        let sort = GpuRadixSort::new(&ctx).ok();
         Ok(GpuTreeBuilder {
             ctx,
             layout,
@@ -196,6 +200,7 @@ impl GpuTreeBuilder {
             first_nodes: None,
             budget,
             resident: None,
+            sort,
         })
     }
 
@@ -263,6 +268,40 @@ impl GpuTreeBuilder {
         &self.ctx
     }
 
+    /// Points per segment and segments on the GPU at once: half the budget for
+    /// segments (16 bytes a point: the point and its leaf), at least two of them resident.
+    fn plan(&self) -> (usize, usize) {
+        let budget = self.budget.unwrap_or(u64::MAX);
+        let seg = self
+            .segment_points
+            .unwrap_or(usize::MAX)
+            .min((self.ctx.max_binding() / 12) as usize)
+            .min((budget / 2 / 2 / 16).min(usize::MAX as u64) as usize)
+            .max(1);
+        let resident = self
+            .resident
+            .unwrap_or_else(|| (budget / 2 / (16 * seg as u64)).min(usize::MAX as u64) as usize)
+            .max(1);
+        (seg, resident)
+    }
+
+    /// Whether the build of `n` points can sort them on the GPU
+    /// ([`TreeBackend::build_ordered`]): every segment resident at once, and the sort's buffers
+    /// ([`radix::BYTES_PER_POINT`] a point, one binding of elements) within the half of the
+    /// budget the segments leave, less the node buffer's eighth.
+    pub fn sorts_points(&self, n: usize) -> bool {
+        let (seg, resident) = self.plan();
+        let budget = self.budget.unwrap_or(u64::MAX);
+        self.sort.is_some()
+            && n > 0
+            && n.div_ceil(seg) <= resident
+            && (n as u64) <= radix::max_points(&self.ctx)
+            && (n as u64)
+                .saturating_mul(radix::BYTES_PER_POINT)
+                .saturating_add(radix::fixed_bytes(n as u64))
+                <= budget / 8 * 3
+    }
+
     fn pipeline(&self, pass: Pass) -> &wgpu::ComputePipeline {
         &self.pipelines.iter().find(|(p, _)| *p == pass).expect("compiled").1
     }
@@ -286,6 +325,21 @@ impl GpuTreeBuilder {
         config: &BuilderConfig,
         slots: bool,
     ) -> Result<ArrivalTree, GpuError> {
+        self.build_tree_ordered(size_log2, pos, config, slots, None)
+    }
+
+    /// [`build_tree_with`](Self::build_tree_with); where `order` is given, the points are first
+    /// sorted on the GPU (the segments once uploaded stay for the tree's passes) and their order
+    /// handed to it before the tree is built (fails where [`sorts_points`](Self::sorts_points)
+    /// says no).
+    pub fn build_tree_ordered(
+        &self,
+        size_log2: u8,
+        pos: &[[u32; 3]],
+        config: &BuilderConfig,
+        slots: bool,
+        order: Option<&dyn Fn(Vec<u32>)>,
+    ) -> Result<ArrivalTree, GpuError> {
         check(size_log2, pos.len(), config).map_err(|e| GpuError::Device(e.to_string()))?;
         let outside = |p: &[u32; 3]| p.iter().any(|&v| (v as u64) >> size_log2 != 0);
         if let Some(i) = pos.par_iter().position_any(outside) {
@@ -295,6 +349,9 @@ impl GpuTreeBuilder {
             )));
         }
         if pos.is_empty() {
+            if let Some(give) = order {
+                give(Vec::new());
+            }
             return Ok(ArrivalTree {
                 nodes: vec![ArrivalNode::default()],
                 slot: Vec::new(),
@@ -305,17 +362,13 @@ impl GpuTreeBuilder {
         let ctx = &self.ctx;
         let max_binding = ctx.max_binding();
         let budget = self.budget.unwrap_or(u64::MAX);
-        // Half the budget for segments, at least two of them on the GPU.
-        let seg = self
-            .segment_points
-            .unwrap_or(usize::MAX)
-            .min((max_binding / 12) as usize)
-            .min((budget / 2 / 2 / 16).min(usize::MAX as u64) as usize)
-            .max(1);
-        let resident = self
-            .resident
-            .unwrap_or_else(|| (budget / 2 / (16 * seg as u64)).min(usize::MAX as u64) as usize)
-            .max(1);
+        if order.is_some() && !self.sorts_points(pos.len()) {
+            return Err(GpuError::Device(format!(
+                "{} points do not fit the GPU's sort within its budget",
+                pos.len()
+            )));
+        }
+        let (seg, resident) = self.plan();
         let mut phases = Vec::new();
         let t = Instant::now();
         let segments: Vec<Segment<'_>> = pos
@@ -357,6 +410,30 @@ impl GpuTreeBuilder {
         ctx.queue.write_buffer(&run.state, 0, bytemuck::cast_slice(&[1u32, 0, 0, 0]));
         ctx.wait()?;
         phases.push(("setup".to_string(), t.elapsed().as_secs_f64()));
+        // 0. the order, where asked for: every segment uploaded (they stay for the passes
+        // below), sorted, the order read back and handed over.
+        if let (Some(give), Some(sorter)) = (order, &self.sort) {
+            let t = Instant::now();
+            for s in 0..run.segments.len() {
+                run.page_in(s)?;
+            }
+            let tu = Instant::now();
+            let refs: Vec<radix::SegmentRef<'_>> = run
+                .segments
+                .iter()
+                .map(|sg| radix::SegmentRef {
+                    pos: &sg.gpu.as_ref().expect("resident").0,
+                    base: sg.base,
+                    count: sg.pos.len() as u32,
+                })
+                .collect();
+            let v = sorter.sort_segments(ctx, &refs, size_log2, self.transfer_bytes)?;
+            let (b, secs) = run.down.get();
+            run.down.set((b + 4 * v.len() as u64, secs));
+            phases.push(("sort".to_string(), tu.elapsed().as_secs_f64()));
+            give(v);
+            phases.push(("upload and sort".to_string(), t.elapsed().as_secs_f64()));
+        }
         // 1. expand, a segment (batch) at a time.
         let t = Instant::now();
         let mut rounds = 0u32;
@@ -819,5 +896,24 @@ impl TreeBackend for GpuTreeBuilder {
         config: &BuilderConfig,
     ) -> Result<ArrivalTree, String> {
         self.build_tree_with(size_log2, pos, config, false).map_err(|e| e.to_string())
+    }
+
+    fn sorts(&self, n: usize) -> bool {
+        self.sorts_points(n)
+    }
+
+    fn build_ordered(
+        &self,
+        size_log2: u8,
+        pos: &[[u32; 3]],
+        config: &BuilderConfig,
+        order: &dyn Fn(Vec<u32>),
+    ) -> Result<ArrivalTree, String> {
+        if !self.sorts_points(pos.len()) {
+            order(mortar_core::octree::arrival::morton_order(pos));
+            return self.build_without_slots(size_log2, pos, config);
+        }
+        self.build_tree_ordered(size_log2, pos, config, false, Some(order))
+            .map_err(|e| e.to_string())
     }
 }

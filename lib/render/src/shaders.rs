@@ -18,6 +18,8 @@ const BATCHES: &str = include_str!("../../../shaders/common/batches.wgsl");
 const COUNTERS: &str = include_str!("../../../shaders/common/counters.wgsl");
 /// The GPU octree builder's structs, bindings and tree walk (its passes, after `TYPES`).
 const OCTREE: &str = include_str!("../../../shaders/octree_common.wgsl");
+/// The GPU radix sort's uniforms, bindings and digit (its passes, after `TYPES`).
+const SORT: &str = include_str!("../../../shaders/sort_common.wgsl");
 /// The progressive renderer's constants and uniform structs (its passes, after `TYPES`).
 const PROGRESSIVE: &str = include_str!("../../../shaders/progressive_types.wgsl");
 
@@ -185,6 +187,18 @@ pub mod binding {
         OCTREE_OUT,
     ];
 
+    /// `sort_common.wgsl`: the pass's constants (`SortUniforms`).
+    pub const SORT_PARAMS: Binding = bind(0, 0, Uniform, "params");
+    pub const SORT_SRC: Binding = bind(0, 1, StorageRead, "src");
+    pub const SORT_DST: Binding = bind(0, 2, StorageReadWrite, "dst");
+    pub const SORT_HIST: Binding = bind(0, 3, StorageReadWrite, "hist");
+    pub const SORT_SUMS: Binding = bind(0, 4, StorageReadWrite, "sums");
+    pub const SORT_POS: Binding = bind(0, 5, StorageRead, "pos");
+    pub const SORT_ORDER: Binding = bind(0, 6, StorageReadWrite, "order");
+    /// Every radix sort pass binds the same group (`shaders/sort_common.wgsl`).
+    pub const SORT: [Binding; 7] =
+        [SORT_PARAMS, SORT_SRC, SORT_DST, SORT_HIST, SORT_SUMS, SORT_POS, SORT_ORDER];
+
     pub const PRESENT_PARAMS: Binding = bind(0, 0, Uniform, "params");
     /// `present.wgsl`: the resolved image.
     pub const PRESENT_IMAGE: Binding = bind(0, 1, StorageRead, "image");
@@ -244,11 +258,25 @@ pub enum Pass {
     OctreeCountCells,
     OctreeWriteCells,
     OctreeSlots,
+    /// GPU radix sort: a segment's points into elements (`shaders/sort_init.wgsl`).
+    SortInit,
+    /// GPU radix sort: a digit histogram per tile (`shaders/sort_count.wgsl`).
+    SortCount,
+    /// GPU radix sort: sums of blocks of the histogram (`shaders/sort_reduce.wgsl`).
+    SortReduce,
+    /// GPU radix sort: the blocks' sums scanned (`shaders/sort_scan_sums.wgsl`).
+    SortScanSums,
+    /// GPU radix sort: the histogram scanned (`shaders/sort_scan.wgsl`).
+    SortScan,
+    /// GPU radix sort: elements to their places (`shaders/sort_scatter.wgsl`).
+    SortScatter,
+    /// GPU radix sort: the arrival numbers in order (`shaders/sort_extract.wgsl`).
+    SortExtract,
 }
 
 impl Pass {
     /// Every pass.
-    pub const ALL: [Pass; 23] = [
+    pub const ALL: [Pass; 30] = [
         Pass::Clear,
         Pass::Plan,
         Pass::Draw64,
@@ -272,6 +300,13 @@ impl Pass {
         Pass::OctreeCountCells,
         Pass::OctreeWriteCells,
         Pass::OctreeSlots,
+        Pass::SortInit,
+        Pass::SortCount,
+        Pass::SortReduce,
+        Pass::SortScanSums,
+        Pass::SortScan,
+        Pass::SortScatter,
+        Pass::SortExtract,
     ];
 
     /// The pass's file under `shaders/`.
@@ -300,6 +335,13 @@ impl Pass {
             Pass::OctreeCountCells => "octree_count_cells.wgsl",
             Pass::OctreeWriteCells => "octree_write_cells.wgsl",
             Pass::OctreeSlots => "octree_slots.wgsl",
+            Pass::SortInit => "sort_init.wgsl",
+            Pass::SortCount => "sort_count.wgsl",
+            Pass::SortReduce => "sort_reduce.wgsl",
+            Pass::SortScanSums => "sort_scan_sums.wgsl",
+            Pass::SortScan => "sort_scan.wgsl",
+            Pass::SortScatter => "sort_scatter.wgsl",
+            Pass::SortExtract => "sort_extract.wgsl",
         }
     }
 
@@ -330,6 +372,13 @@ impl Pass {
             Pass::OctreeCountCells => include_str!("../../../shaders/octree_count_cells.wgsl"),
             Pass::OctreeWriteCells => include_str!("../../../shaders/octree_write_cells.wgsl"),
             Pass::OctreeSlots => include_str!("../../../shaders/octree_slots.wgsl"),
+            Pass::SortInit => include_str!("../../../shaders/sort_init.wgsl"),
+            Pass::SortCount => include_str!("../../../shaders/sort_count.wgsl"),
+            Pass::SortReduce => include_str!("../../../shaders/sort_reduce.wgsl"),
+            Pass::SortScanSums => include_str!("../../../shaders/sort_scan_sums.wgsl"),
+            Pass::SortScan => include_str!("../../../shaders/sort_scan.wgsl"),
+            Pass::SortScatter => include_str!("../../../shaders/sort_scatter.wgsl"),
+            Pass::SortExtract => include_str!("../../../shaders/sort_extract.wgsl"),
         }
     }
 
@@ -374,8 +423,24 @@ impl Pass {
                 &[FRAME, TIES_KEY_WORDS, TIES_FLAGS, RECORDS, COARSE, MEDIUM, FINE]
             }
             p if p.builds_octree() => &OCTREE,
-            _ => unreachable!("every octree pass builds the octree"),
+            p if p.sorts() => &SORT,
+            _ => unreachable!("every other pass builds the octree or sorts"),
         }
+    }
+
+    /// Whether the pass is one of the GPU radix sort's (`shaders/sort_*.wgsl`; they share
+    /// [`binding::SORT`] and `sort_common.wgsl`).
+    pub fn sorts(self) -> bool {
+        matches!(
+            self,
+            Pass::SortInit
+                | Pass::SortCount
+                | Pass::SortReduce
+                | Pass::SortScanSums
+                | Pass::SortScan
+                | Pass::SortScatter
+                | Pass::SortExtract
+        )
     }
 
     /// Whether the pass is one of the GPU octree builder's (`shaders/octree_*.wgsl`; they share
@@ -437,7 +502,8 @@ impl Pass {
             }
             Pass::ProgressiveTies => parts.extend([PROGRESSIVE, DECODE, BATCHES]),
             p if p.builds_octree() => parts.push(OCTREE),
-            _ => unreachable!("every octree pass builds the octree"),
+            p if p.sorts() => parts.push(SORT),
+            _ => unreachable!("every other pass builds the octree or sorts"),
         }
         parts.push(self.own_source());
         parts.join("\n")

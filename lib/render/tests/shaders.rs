@@ -7,7 +7,7 @@
 use mortar_core::render::gpu::{
     BatchProjection, DrawRecord, EyeDomeUniforms, FrameUniforms, HoleFillUniforms, OctreeNode,
     OctreeUniforms, PlanBatch, PlanUniforms, PrepareUniforms, ReframeUniforms, ResolveUniforms,
-    ScatterUniforms,
+    ScatterUniforms, SortUniforms,
 };
 use mortar_core::render::progressive::UNLOADED;
 use mortar_core::render::resolve::{EDL_EXP2_COEFFS, EDL_LOG2_COEFFS};
@@ -251,6 +251,7 @@ fn shared_structs_have_the_rust_layout() {
     let reframe = parse(Pass::ProgressiveReframe);
     let plan = parse(Pass::Plan);
     let octree = parse(Pass::OctreeVoxels);
+    let sort = parse(Pass::SortScatter);
     // (struct, module holding it, Rust size, Rust members with their offsets)
     type Case<'a> = (&'a str, &'a naga::Module, usize, Vec<(&'a str, usize)>);
     let cases: Vec<Case<'_>> = vec![
@@ -446,6 +447,21 @@ fn shared_structs_have_the_rust_layout() {
                 ("mode", offset_of!(OctreeUniforms, mode)),
                 ("base", offset_of!(OctreeUniforms, base)),
                 ("_pad", offset_of!(OctreeUniforms, _pad)),
+            ],
+        ),
+        (
+            "SortUniforms",
+            &sort,
+            size_of::<SortUniforms>(),
+            vec![
+                ("count", offset_of!(SortUniforms, count)),
+                ("bit", offset_of!(SortUniforms, bit)),
+                ("tiles", offset_of!(SortUniforms, tiles)),
+                ("groups_x", offset_of!(SortUniforms, groups_x)),
+                ("base", offset_of!(SortUniforms, base)),
+                ("blocks", offset_of!(SortUniforms, blocks)),
+                ("entries", offset_of!(SortUniforms, entries)),
+                ("_pad", offset_of!(SortUniforms, _pad)),
             ],
         ),
         (

@@ -91,6 +91,57 @@ pub trait TreeBackend: Send + Sync + std::fmt::Debug {
         tree.slot = Vec::new();
         Ok(tree)
     }
+
+    /// Whether [`build_ordered`](Self::build_ordered) puts `n` points in order on the backend
+    /// itself (a GPU that holds them and the sort's buffers at once); the default says no.
+    fn sorts(&self, _n: usize) -> bool {
+        false
+    }
+
+    /// [`build_without_slots`](Self::build_without_slots), handing `order` the points' order
+    /// ([`morton_order`]'s) as soon as it is known, before the tree is done: the caller
+    /// gathers its records while the backend goes on. The default sorts on the CPU first.
+    fn build_ordered(
+        &self,
+        size_log2: u8,
+        pos: &[[u32; 3]],
+        config: &BuilderConfig,
+        order: &dyn Fn(Vec<u32>),
+    ) -> Result<ArrivalTree, String> {
+        order(morton_order(pos));
+        self.build_without_slots(size_log2, pos, config)
+    }
+}
+
+/// The points `pos` (arrival order) in the order of their full-resolution Morton code
+/// ([`crate::morton::encode96`]), ties by arrival: `order[i]` is the arrival number of the
+/// `i`-th. The order of the sorted engine's sort, and the CPU twin of the GPU's radix sort
+/// (`mortar_render::radix`).
+pub fn morton_order(pos: &[[u32; 3]]) -> Vec<u32> {
+    use rayon::prelude::*;
+    let mut keys: Vec<(u128, u32)> =
+        pos.par_iter().enumerate().map(|(i, &p)| (crate::morton::encode96(p), i as u32)).collect();
+    keys.par_sort_unstable();
+    keys.into_iter().map(|(_, i)| i).collect()
+}
+
+/// Checks that `order` is [`morton_order`] of `pos`: as many entries as points, each a point,
+/// and each (Morton code, arrival) above the one before, which also makes the entries
+/// distinct (a point's code is its own): what a backend's order must be before it is used.
+pub fn check_order(pos: &[[u32; 3]], order: &[u32]) -> Result<(), String> {
+    use rayon::prelude::*;
+    let n = pos.len();
+    if order.len() != n {
+        return Err(format!("{} entries for {n} points", order.len()));
+    }
+    if let Some(&a) = order.par_iter().find_any(|&&a| a as usize >= n) {
+        return Err(format!("entry {a} names no point of {n}"));
+    }
+    let key = |a: u32| (crate::morton::encode96(pos[a as usize]), a);
+    match order.par_windows(2).position_any(|w| key(w[0]) >= key(w[1])) {
+        Some(i) => Err(format!("entries {i} and {} are out of order", i + 1)),
+        None => Ok(()),
+    }
 }
 
 /// The CPU twin of the GPU passes ([`build_arrival`]) as a [`TreeBackend`] (tests, and the

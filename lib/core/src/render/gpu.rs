@@ -488,6 +488,28 @@ pub struct OctreeUniforms {
     pub _pad: [u32; 2],
 }
 
+/// The constants of a GPU radix sort pass (`SortUniforms` in `shaders/sort_common.wgsl`).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct SortUniforms {
+    /// Elements of the dispatch: all of them, or the bound segment's points (`sort_init`).
+    pub count: u32,
+    /// The first Morton bit of the pass's 4-bit digit.
+    pub bit: u32,
+    /// Tiles of 2048 elements.
+    pub tiles: u32,
+    /// Workgroups in x of a dispatch split over x and y.
+    pub groups_x: u32,
+    /// `sort_init`: the arrival number of the segment's first point.
+    pub base: u32,
+    /// Blocks of 2048 histogram entries.
+    pub blocks: u32,
+    /// Histogram entries (16 a tile).
+    pub entries: u32,
+    /// Unused (16-byte size).
+    pub _pad: u32,
+}
+
 /// One node of the GPU octree builder's node buffer (`Node` in `shaders/octree_common.wgsl`).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, bytemuck::Pod, bytemuck::Zeroable)]

@@ -722,13 +722,9 @@ fn morton_only() -> bool {
 /// Bytes of the ordered body's prefix: the cube's corner and the GPS offset.
 const ORDER_PREFIX: usize = 28;
 
-/// The full-resolution Morton key of offset `u` from a cube's corner: the order the engines give
-/// a node's points (ties, points at one position, by arrival).
-fn morton96(u: [u32; 3]) -> u128 {
-    let hi = mortar_core::morton::encode(u[0] >> 21, u[1] >> 21, u[2] >> 21) as u128;
-    let lo = mortar_core::morton::encode(u[0] & 0x1f_ffff, u[1] & 0x1f_ffff, u[2] & 0x1f_ffff);
-    hi << 63 | lo as u128
-}
+// The full-resolution Morton key of an offset from a cube's corner: the order the engines give
+// a node's points (ties, points at one position, by arrival).
+use mortar_core::morton::encode96 as morton96;
 
 /// GPS time's f64 bits as a key that orders as the times do.
 fn gps_key(b: &[u8]) -> u64 {

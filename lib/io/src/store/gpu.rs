@@ -7,30 +7,37 @@
 //!    root chosen;
 //! 2. the positions relative to the root's corner, in arrival order (12 bytes a point), go to the
 //!    backend, which gives the nodes and each inner node's voxels (the earliest point of each
-//!    cell) without the per-point slots ([`mortar_core::octree::arrival::TreeBackend::build_without_slots`]);
-//! 3. at the same time on a discrete GPU (after it where the adapter runs on the host's cores,
-//!    lavapipe), the host sorts the records with the sorted engine's sort
-//!    ([`super::engine::sort_records`]): Morton order, ties by the bits a shifted code drops,
-//!    then arrival. Leaves depth first are in that order, so the records are then the leaves'
-//!    ranges one after the other; the tree becomes the sorted engine's tree
-//!    ([`ArrivalTree::into_sorted`]) once its leaves are checked against the order (counts
-//!    adding up, every point in its leaf's cube: a GPU that got the tree wrong is refused);
+//!    cell) without the per-point slots;
+//! 3. the records are put in the sorted engine's order (Morton order, ties by the bits a shifted
+//!    code drops, then arrival; leaves depth first are in that order, so the records are then
+//!    the leaves' ranges one after the other):
+//!    - where the backend holds the points and its sort's buffers at once
+//!      ([`TreeBackend::sorts`]), the GPU sorts them first (`mortar_render::radix`) and hands
+//!      the order over ([`TreeBackend::build_ordered`]); the host checks it
+//!      ([`mortar_core::octree::arrival::check_order`]) and gathers the records by it while the
+//!      GPU builds the tree;
+//!    - else the host sorts them with the sorted engine's sort ([`super::engine::sort_records`]),
+//!      at the same time as the GPU builds on a discrete GPU, after it where the adapter runs on
+//!      the host's cores (lavapipe);
+//!
+//!    the tree becomes the sorted engine's tree ([`ArrivalTree::into_sorted`]) once its leaves
+//!    are checked against the order (counts adding up, every point in its leaf's cube: a GPU
+//!    that got the tree wrong is refused);
 //! 4. the nodes are encoded and committed level by level ([`super::engine::write_tree`]).
 //!
 //! The input must fit `--memory` as for the sorted engine (refused otherwise, naming the need);
 //! on the GPU, `--gpu-memory` bounds what the builder holds (`mortar_render::octree`).
+//! `MORTAR_GPU_SORT=0` keeps the host's sort, `=1` sorts on the GPU even on a software adapter
+//! (benchmarks compare the two in one binary; tests run the GPU's sort on lavapipe).
 //!
-//! Why the host sorts the whole input rather than the GPU giving each point its slot and the
-//! host placing the records and sorting within each leaf (this engine until 2026-12-06): the
-//! sort needs nothing from the GPU, so it runs while the GPU builds, and the GPU skips its slot
-//! pass. Measured on the H100 in one call (BENCHMARKS.md, "The GPU engine sorts while the GPU
-//! builds"), medians of 4: 20 M points 0.589 s against 0.647 s; 100 M 2.59 s against 2.60 s and
-//! 1 B 28.5 s against 28.7 s (one run): a draw at scale, where the sort, slowed by the GPU's
-//! transfers beside it (0.95-1.05 s against 0.74-0.80 s alone), is longer than the GPU's
-//! work; the price is the positions held during the sort (peak RSS +15 % at 100 M points).
+//! History: until 2026-12-06 the GPU gave each point its slot and the host placed the records
+//! and sorted within each leaf, after the GPU; then the host sorted the whole input with the
+//! sorted engine's sort while the GPU built (BENCHMARKS.md, "The GPU engine sorts while the GPU
+//! builds": 1.10x at 20 M points, a draw at 100 M and 1 B, the sort slowed by the transfers
+//! beside it being the longer); then the GPU's radix sort (BENCHMARKS.md, "The GPU sorts").
 //!
-//! Not done yet (issue 29): the preview draws the store's commits rather than the GPU's buffers,
-//! and the sort is the host's.
+//! Not done yet (issue 29): the preview draws the store's commits rather than the GPU's buffers;
+//! the payloads are coded on the CPU.
 
 use super::engine::{
     bucket_shift, color_of, grid_of, histogram, read_input, sort_records, write_tree, Input, Sorted,
@@ -94,9 +101,8 @@ pub(crate) fn build_into(
         return Err(Error::OverBudget { what: "the GPU engine", needed, budget: opts.memory });
     }
     let rl = ds.layout.record_len;
-    let total = ds.declared_points();
     let mut report = BuildReport { engine: BuiltBy::Gpu, ..BuildReport::default() };
-    let Input { slabs, mut hist, all, root, promised, bounds } =
+    let Input { slabs, hist, all, root, promised, bounds } =
         read_input(ds, header, &mut report, t0)?;
     let records: Vec<&[u8]> = slabs.iter().map(|(r, _)| &**r).collect();
     let mut starts = vec![0usize; records.len() + 1];
@@ -109,9 +115,6 @@ pub(crate) fn build_into(
     }
     let g = grid_of(root);
     let shift = bucket_shift(root);
-    if root != promised {
-        hist = records.par_iter().map(|s| histogram(s, rl, &g, shift)).collect();
-    }
     // 2. the positions for the GPU, in arrival order.
     let mut pos = crate::sort::zeroed_huge::<[u32; 3]>(n);
     {
@@ -136,11 +139,79 @@ pub(crate) fn build_into(
     };
     let sort = || {
         let ts = Instant::now();
-        let sorted = sort_records(&records, &hist, rl, &g, shift, &ds.progress, |p, i| {
+        // The headers' box was not the points': the counts again, on the root's grid.
+        let fresh: Vec<Vec<u32>>;
+        let hist = if root != promised {
+            fresh = records.par_iter().map(|s| histogram(s, rl, &g, shift)).collect();
+            &fresh
+        } else {
+            &hist
+        };
+        let sorted = sort_records(&records, hist, rl, &g, shift, &ds.progress, |p, i| {
             (p as u64) << 32 | i as u64
         });
         (sorted, ts.elapsed().as_secs_f64())
     };
+    let gpu_sorts = match gpu_sort_choice() {
+        Some(allowed) => allowed && backend.sorts(n),
+        None => !backend.holds_buffers_in_host_memory() && backend.sorts(n),
+    };
+    if gpu_sorts {
+        // 3'. the order from the GPU's sort, the records gathered by it while the GPU builds
+        // the tree.
+        ds.progress.stage("sorting and indexing on the GPU", all.count, "points");
+        let pool = small_pool();
+        let pos = &pos;
+        let (t, gathered) = std::thread::scope(|scope| {
+            let (tx, rx) = std::sync::mpsc::channel::<Vec<u32>>();
+            let gpu = scope.spawn(move || {
+                let give = |v: Vec<u32>| {
+                    let _ = tx.send(v);
+                };
+                let go = || {
+                    let tt = Instant::now();
+                    let tree = backend.build_ordered(root.size_log2, pos, &opts.config, &give);
+                    (tree, tt.elapsed().as_secs_f64())
+                };
+                match &pool {
+                    Some(p) => p.install(go),
+                    None => go(),
+                }
+            });
+            let gathered = rx.recv().ok().map(|order| {
+                let ts = Instant::now();
+                let g = gather(&records, &starts, rl, root, order, &ds.progress);
+                (g, ts.elapsed().as_secs_f64())
+            });
+            (gpu.join(), gathered)
+        });
+        let (tree, tree_seconds) = t.unwrap_or_else(|e| std::panic::resume_unwind(e));
+        let tree = tree
+            .map_err(|m| Error::Octree { error: OctreeError::Unsupported(format!("GPU: {m}")) })?;
+        let Some((gathered, sort_seconds)) = gathered else {
+            return Err(Error::Octree {
+                error: OctreeError::Unsupported("GPU: the backend gave no order".into()),
+            });
+        };
+        let (sorted, inv) = gathered?;
+        drop(records);
+        drop(slabs);
+        report.gpu = Some(backend.name());
+        report.gpu_steps = tree.phases.clone();
+        report.tree_seconds = tree_seconds;
+        report.sort_seconds = sort_seconds;
+        crate::cleanup::trace("order from the GPU, records gathered, tree on the GPU", t0);
+        crate::cleanup::check_interrupted()?;
+        let ts = Instant::now();
+        let stree = leaves_checked(tree, root, &sorted, &inv)?;
+        drop(inv);
+        report.sort_seconds += ts.elapsed().as_secs_f64();
+        report.batch_seconds.push(report.tree_seconds);
+        return write_all(
+            ds, writer, opts, progress, &stree, &sorted, &all, root, bounds, report, t0,
+        );
+    }
+    // 3. the host's sort (the GPU cannot hold the points and the sort's buffers at once).
     let ((tree, tree_seconds), (sorted, sort_seconds)) = if backend.holds_buffers_in_host_memory() {
         ds.progress.stage("indexing on the GPU", 0, "");
         let t = tree_on_gpu(&pos);
@@ -153,11 +224,7 @@ pub(crate) fn build_into(
         // The GPU's side on a thread of its own, its parallel copies in a small pool of their
         // own (in the global pool they would queue behind the sort's tasks; with as many
         // threads as the sort's, both slowed down, the sort being the longer).
-        let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads((rayon::current_num_threads() / 4).max(1))
-            .thread_name(|i| format!("mortar-gpu-{i}"))
-            .build()
-            .ok();
+        let pool = small_pool();
         let pos = &pos;
         let (t, s) = std::thread::scope(|scope| {
             let gpu = scope.spawn(|| match &pool {
@@ -199,20 +266,136 @@ pub(crate) fn build_into(
     report.sort_seconds += ts.elapsed().as_secs_f64();
     report.batch_seconds.push(report.tree_seconds);
     crate::cleanup::trace("records ordered", t0);
-    let color = color_of(ds, &all);
+    write_all(ds, writer, opts, progress, &stree, &sorted, &all, root, bounds, report, t0)
+}
+
+/// Who sorts the points: by default the GPU where it can hold them and its sort's buffers and
+/// is not a software adapter (lavapipe sorted 4 M points in 4.5 s, the host in 0.19 s, on the
+/// 2-core VM); `MORTAR_GPU_SORT=0` keeps the host's sort and `=1` sorts on any adapter that
+/// can (the benchmarks' way to compare the two in one binary, the tests' to run the GPU's sort
+/// on lavapipe).
+fn gpu_sort_choice() -> Option<bool> {
+    static CHOICE: std::sync::OnceLock<Option<bool>> = std::sync::OnceLock::new();
+    *CHOICE.get_or_init(|| match std::env::var("MORTAR_GPU_SORT").as_deref() {
+        Ok("0") => Some(false),
+        Ok("1") => Some(true),
+        _ => None,
+    })
+}
+
+/// A small pool for the GPU's side (its parallel copies): in the global pool they would queue
+/// behind the host's tasks; with as many threads as the host's, both slowed down.
+fn small_pool() -> Option<rayon::ThreadPool> {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads((rayon::current_num_threads() / 4).max(1))
+        .thread_name(|i| format!("mortar-gpu-{i}"))
+        .build()
+        .ok()
+}
+
+/// The records of the pieces `slabs` (piece `k`'s first point is number `starts[k]`) in the
+/// backend's `order` (arrival numbers in Morton order), with the arrival numbers the sorted
+/// engine gives (`piece << 32 | index`) and the inverse (per arrival number, its place). The
+/// order is checked first to name points, then, on the gathered records (in sequence, where
+/// the positions are in cache), to be the sorted engine's: each (Morton code of the position
+/// relative to `root`'s corner, arrival) above the one before, which also makes the entries
+/// distinct, so a permutation. A backend that got it wrong is refused.
+fn gather(
+    slabs: &[&[u8]],
+    starts: &[usize],
+    rl: usize,
+    root: Cube,
+    order: Vec<u32>,
+    prog: &crate::progress::Progress,
+) -> Result<(Sorted, Vec<u32>)> {
+    let n = *starts.last().unwrap_or(&0);
+    let broken = |m: String| Error::Octree {
+        error: OctreeError::Unsupported(format!("GPU: the order is broken: {m}")),
+    };
+    if order.len() != n {
+        return Err(broken(format!("{} entries for {n} points", order.len())));
+    }
+    if let Some(&a) = order.par_iter().find_any(|&&a| a as usize >= n) {
+        return Err(broken(format!("entry {a} names no point of {n}")));
+    }
+    let mut records = crate::sort::zeroed_huge::<u8>(n * rl);
+    let mut arrival = crate::sort::zeroed_huge::<u64>(n);
+    const CHUNK: usize = 1 << 14;
+    records
+        .par_chunks_mut(CHUNK * rl)
+        .zip(arrival.par_chunks_mut(CHUNK))
+        .zip(order.par_chunks(CHUNK))
+        .for_each(|((recs, arr), ord)| {
+            for (k, &a) in ord.iter().enumerate() {
+                let a = a as usize;
+                let piece = starts.partition_point(|&s| s <= a) - 1;
+                let idx = a - starts[piece];
+                recs[k * rl..(k + 1) * rl].copy_from_slice(&slabs[piece][idx * rl..(idx + 1) * rl]);
+                arr[k] = (piece as u64) << 32 | idx as u64;
+            }
+            prog.add(ord.len() as u64);
+        });
+    let key = |i: usize| {
+        let q = read_xyz(&records[i * rl..]);
+        let rel = [0, 1, 2].map(|a| (q[a] as i64 - root.min[a]) as u32);
+        (mortar_core::morton::encode96(rel), arrival[i])
+    };
+    let bad = (0..n.div_ceil(CHUNK)).into_par_iter().find_map_any(|c| {
+        let (a, b) = (c * CHUNK, ((c + 1) * CHUNK).min(n));
+        let mut last = if a > 0 { Some(key(a - 1)) } else { None };
+        for i in a..b {
+            let k = key(i);
+            if last.is_some_and(|l| l >= k) {
+                return Some(i);
+            }
+            last = Some(k);
+        }
+        None
+    });
+    if let Some(i) = bad {
+        return Err(broken(format!("entries {} and {i} are out of order", i - 1)));
+    }
+    let mut inv = crate::sort::zeroed_huge::<u32>(n);
+    let ip = SendPtr(inv.as_mut_ptr());
+    order.par_chunks(CHUNK).enumerate().for_each(|(c, ord)| {
+        let ip = &ip;
+        for (k, &a) in ord.iter().enumerate() {
+            // SAFETY: the order is a permutation of 0..n (checked above): each `a` once.
+            unsafe { ip.write(a as usize, (c * CHUNK + k) as u32) };
+        }
+    });
+    Ok((Sorted { records, arrival, rl }, inv))
+}
+
+/// The store written from the checked tree `stree` over `sorted` (the sorted engine's writer).
+#[allow(clippy::too_many_arguments)]
+fn write_all(
+    ds: &Dataset,
+    writer: &mut StoreWriter,
+    opts: &BuildOptions,
+    progress: &mut dyn FnMut(&BuildProgress),
+    stree: &SortedTree,
+    sorted: &Sorted,
+    all: &crate::sort::PieceStats,
+    root: Cube,
+    bounds: ([i32; 3], [i32; 3]),
+    mut report: BuildReport,
+    t0: Instant,
+) -> Result<BuildReport> {
+    let color = color_of(ds, all);
     ds.progress.stage("writing", stree.nodes.len() as u64, "nodes");
     write_tree(
         writer,
-        &stree,
+        stree,
         root,
         opts,
-        &sorted,
+        sorted,
         &color,
         bounds,
         &mut report,
         progress,
         &ds.progress,
-        total,
+        ds.declared_points(),
         t0,
     )?;
     report.seconds = t0.elapsed().as_secs_f64();
