@@ -22,16 +22,24 @@
 //!    the host, `octree_write_cells` (arrivals in Morton order of the cells: bricks in Morton
 //!    order, cells in Morton order within each), read back;
 //! 4. `octree_slots` gives every point its slot; the slots are read back. The store's engine
-//!    skips this step ([`GpuTreeBuilder::build_tree_with`]): it sorts the records on the host
-//!    while the GPU builds, and needs only the nodes and voxels.
+//!    skips this step ([`GpuTreeBuilder::build_tree_with`]): it puts the records in order
+//!    itself and needs only the nodes and voxels.
+//!
+//! Before step 1, where the store's engine asks for the points' order
+//! ([`GpuTreeBuilder::build_tree_ordered`], [`TreeBackend::build_ordered`]) and every segment
+//! and the sort's buffers fit at once ([`GpuTreeBuilder::sorts_points`]), the segments are
+//! uploaded, sorted by [`crate::radix`] and the order read back and handed over; the segments
+//! stay for the passes, so the points cross to the GPU once.
 //!
 //! With a budget (`--gpu-memory`) segments of points beyond half of it are paged out (their
 //! leaves read back) and in again as the passes need them; a paged-out segment is skipped by a
 //! split round when none of its points' leaves split, and by a voxel group none of whose grids
 //! its points' leaves lie under (grids are numbered depth first, so a group is a few subtrees).
 //!
-//! What is not done yet (issue 29): the preview does not draw from these buffers; the host sorts
-//! the points (at the same time, on its cores); every voxel group walks every point again.
+//! What is not done yet (issue 29): the preview does not draw from these buffers; the points are
+//! sorted on the GPU only where they all fit it at once with the sort (else the host sorts them,
+//! at the same time, on its cores); under a small budget every voxel group walks every point
+//! again.
 
 use crate::buffers::{read_in_parts, upload_in_parts};
 use crate::context::{GpuContext, GpuError};
