@@ -17,6 +17,14 @@ row() { # row <file> <tag> <env> <engine>
   j=$(env $3 "$bin/mortar" build $1 -o s -q --json --engine $4 | tr -d '\n ')
   echo "R $1 $2 $(python3 -c "import json,sys; j=json.loads(sys.argv[1]); st=dict(j.get('gpu_steps') or []); print(j['seconds'], j['read_seconds'], j['sort_seconds'], j['tree_seconds'], j['write_seconds'], j['peak_rss_bytes'], st.get('sort',0), st.get('upload and sort',0))" "$j")"
 }
+# equality of the stores
+for f in g20.las g100.las; do
+  rm -rf a b c; "$bin/mortar" build $f -o a -q --engine sorted
+  "$bin/mortar" build $f -o b -q --engine gpu
+  MORTAR_GPU_SORT=0 "$bin/mortar" build $f -o c -q --engine gpu
+  for x in b c; do d=0; for y in nodes.bin hierarchy.bin source.las; do cmp -s a/$y $x/$y || d=1; done; echo "EQ $f $x $([ $d = 0 ] && echo SAME || echo DIFFERENT)"; done
+done 2>&1 | tee $out/gsort_eq.txt
+rm -rf a b c s
 for round in $(seq 1 "${ROUNDS:-4}"); do
   for f in g20.las g100.las; do
     row $f sorted MORTAR_GPU_SORT=1 sorted
@@ -35,13 +43,5 @@ for k in sorted(rows):
     v=rows[k]; m=[st.median(c) for c in zip(*v)]
     print(k, 'n=%d'%len(v), 'total %.3f read %.3f sort %.3f tree %.3f write %.3f rssGB %.2f gpu-sort %.3f upload+sort %.3f'%tuple(m), 'all', [round(x[0],3) for x in v])
 PY
-# equality of the stores
-for f in g20.las g100.las; do
-  rm -rf a b c; "$bin/mortar" build $f -o a -q --engine sorted
-  "$bin/mortar" build $f -o b -q --engine gpu
-  MORTAR_GPU_SORT=0 "$bin/mortar" build $f -o c -q --engine gpu
-  for x in b c; do d=0; for y in nodes.bin hierarchy.bin source.las; do cmp -s a/$y $x/$y || d=1; done; echo "EQ $f $x $([ $d = 0 ] && echo SAME || echo DIFFERENT)"; done
-done
-rm -rf a b c s
 cd "$R"
 [ "${EQ:-1}" = 1 ] && BIN=$bin REAL=1 GPU_MEMORY=4G FILES="g20.las" WORK=$w OUT=$out bash bench/gpu_engine_device.sh 0 | grep "^S "
