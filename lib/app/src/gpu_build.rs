@@ -7,6 +7,14 @@ use mortar_render::octree::GpuTreeBuilder;
 use mortar_render::{GpuContext, GpuOptions};
 use std::sync::Arc;
 
+/// Whether the GPU sorts the points (`MORTAR_GPU_SORT=1`; ARCHITECTURE.md, "Who orders the
+/// records"): off by default until its speed is measured on a discrete GPU (it is slower than
+/// the host's sort on lavapipe); the tests turn it on to run it on lavapipe, the benchmarks to
+/// compare the two in one binary.
+fn gpu_sort() -> bool {
+    std::env::var("MORTAR_GPU_SORT").is_ok_and(|v| v == "1")
+}
+
 /// The best adapter's octree builder, within `gpu_memory` bytes of GPU memory when given
 /// (`--gpu-memory`; segments of points beyond it are paged). Asked for by name (`--engine gpu`),
 /// so a software adapter (lavapipe) is accepted where no GPU exists; no adapter at all is an
@@ -14,7 +22,8 @@ use std::sync::Arc;
 pub fn tree_backend(gpu_memory: Option<u64>) -> anyhow::Result<Arc<dyn TreeBackend>> {
     let ctx = GpuContext::new(&GpuOptions { allow_software: true, ..Default::default() })
         .map_err(|e| anyhow!("--engine gpu: {e}"))?;
-    let mut b = GpuTreeBuilder::new(ctx).map_err(|e| anyhow!("--engine gpu: {e}"))?;
+    let mut b =
+        GpuTreeBuilder::new(ctx).map_err(|e| anyhow!("--engine gpu: {e}"))?.with_sort(gpu_sort());
     if let Some(bytes) = gpu_memory {
         b = b.with_memory_budget(bytes).map_err(|e| anyhow!("--gpu-memory: {e}"))?;
     }

@@ -82,7 +82,8 @@ pub struct GpuTreeBuilder {
     budget: Option<u64>,
     /// Segments on the GPU at once; `None`: from the budget.
     resident: Option<usize>,
-    /// The radix sort (`None` where the adapter's limits refuse it).
+    /// The radix sort (`None` where the adapter's limits refuse it, or where turned off by
+    /// [`with_sort`](GpuTreeBuilder::with_sort)).
     sort: Option<GpuRadixSort>,
 }
 
@@ -247,6 +248,15 @@ impl GpuTreeBuilder {
         }
         self.budget = Some(bytes);
         Ok(self)
+    }
+
+    /// Without the GPU's radix sort where `on` is false ([`sorts_points`](Self::sorts_points)
+    /// then says no, and the store's engine sorts on the host).
+    pub fn with_sort(mut self, on: bool) -> GpuTreeBuilder {
+        if !on {
+            self.sort = None;
+        }
+        self
     }
 
     /// At most `segments` segments on the GPU at once (at least 1): small values exercise the

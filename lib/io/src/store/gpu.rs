@@ -27,8 +27,9 @@
 //!
 //! The input must fit `--memory` as for the sorted engine (refused otherwise, naming the need);
 //! on the GPU, `--gpu-memory` bounds what the builder holds (`mortar_render::octree`).
-//! `MORTAR_GPU_SORT=0` keeps the host's sort, `=1` sorts on the GPU even on a software adapter
-//! (benchmarks compare the two in one binary; tests run the GPU's sort on lavapipe).
+//! Whether the backend sorts is its own choice: the command line's GPU builder sorts only where
+//! `MORTAR_GPU_SORT=1` (`mortar_app::gpu_build`; off by default until measured on a discrete
+//! GPU; the tests turn it on to run it on lavapipe, the benchmarks to compare).
 //!
 //! History: until 2026-12-06 the GPU gave each point its slot and the host placed the records
 //! and sorted within each leaf, after the GPU; then the host sorted the whole input with the
@@ -152,11 +153,7 @@ pub(crate) fn build_into(
         });
         (sorted, ts.elapsed().as_secs_f64())
     };
-    let gpu_sorts = match gpu_sort_choice() {
-        Some(allowed) => allowed && backend.sorts(n),
-        None => !backend.holds_buffers_in_host_memory() && backend.sorts(n),
-    };
-    if gpu_sorts {
+    if backend.sorts(n) {
         // 3'. the order from the GPU's sort, the records gathered by it while the GPU builds
         // the tree.
         ds.progress.stage("sorting and indexing on the GPU", all.count, "points");
@@ -267,20 +264,6 @@ pub(crate) fn build_into(
     report.batch_seconds.push(report.tree_seconds);
     crate::cleanup::trace("records ordered", t0);
     write_all(ds, writer, opts, progress, &stree, &sorted, &all, root, bounds, report, t0)
-}
-
-/// Who sorts the points: by default the GPU where it can hold them and its sort's buffers and
-/// is not a software adapter (lavapipe sorted 4 M points in 4.5 s, the host in 0.19 s, on the
-/// 2-core VM); `MORTAR_GPU_SORT=0` keeps the host's sort and `=1` sorts on any adapter that
-/// can (the benchmarks' way to compare the two in one binary, the tests' to run the GPU's sort
-/// on lavapipe).
-fn gpu_sort_choice() -> Option<bool> {
-    static CHOICE: std::sync::OnceLock<Option<bool>> = std::sync::OnceLock::new();
-    *CHOICE.get_or_init(|| match std::env::var("MORTAR_GPU_SORT").as_deref() {
-        Ok("0") => Some(false),
-        Ok("1") => Some(true),
-        _ => None,
-    })
 }
 
 /// A small pool for the GPU's side (its parallel copies): in the global pool they would queue
