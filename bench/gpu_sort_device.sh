@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The GPU radix sort of the GPU engine on the device (BENCHMARKS.md, "The GPU sorts"): one binary
-# (BIN holds mortar and mortar-gen), the GPU engine with its sort (default) against the same
+# (BIN holds mortar and mortar-gen), the GPU engine with its sort (MORTAR_GPU_SORT=1) against the same
 # binary with the host's sort beside the GPU (MORTAR_GPU_SORT=0) and the sorted engine, and
 # PotreeConverter 2.1.2 -m random, on 20 M and 100 M points of mortar-gen, interleaved rounds;
 # then the stores of both GPU paths compared byte for byte with the sorted engine's (and the real
@@ -20,7 +20,7 @@ row() { # row <file> <tag> <env> <engine>
 # equality of the stores
 for f in g20.las g100.las; do
   rm -rf a b c; "$bin/mortar" build $f -o a -q --engine sorted
-  "$bin/mortar" build $f -o b -q --engine gpu
+  MORTAR_GPU_SORT=1 "$bin/mortar" build $f -o b -q --engine gpu
   MORTAR_GPU_SORT=0 "$bin/mortar" build $f -o c -q --engine gpu
   for x in b c; do d=0; for y in nodes.bin hierarchy.bin source.las; do cmp -s a/$y $x/$y || d=1; done; echo "EQ $f $x $([ $d = 0 ] && echo SAME || echo DIFFERENT)"; done
 done 2>&1 | tee $out/gsort_eq.txt
@@ -44,4 +44,4 @@ for k in sorted(rows):
     print(k, 'n=%d'%len(v), 'total %.3f read %.3f sort %.3f tree %.3f write %.3f rssGB %.2f gpu-sort %.3f upload+sort %.3f'%tuple(m), 'all', [round(x[0],3) for x in v])
 PY
 cd "$R"
-[ "${EQ:-1}" = 1 ] && BIN=$bin REAL=1 GPU_MEMORY=4G FILES="g20.las" WORK=$w OUT=$out bash bench/gpu_engine_device.sh 0 | grep "^S "
+[ "${EQ:-1}" = 1 ] && MORTAR_GPU_SORT=1 BIN=$bin REAL=1 GPU_MEMORY=4G FILES="g20.las" WORK=$w OUT=$out bash bench/gpu_engine_device.sh 0 | grep "^S "
