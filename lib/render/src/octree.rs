@@ -167,37 +167,12 @@ impl GpuTreeBuilder {
                 l.max_compute_invocations_per_workgroup.min(l.max_compute_workgroup_size_x),
             )));
         }
-        let layout = crate::pipeline::bind_group_layout(
+        let (layout, pipelines) = crate::pipeline::one_group_pipelines(
             &ctx,
             "octree",
             &binding::OCTREE,
-            0,
-            wgpu::ShaderStages::COMPUTE,
+            Pass::ALL.into_iter().filter(|p| p.builds_octree()),
         );
-        let pl = ctx.device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
-            label: Some("octree"),
-            bind_group_layouts: &[Some(&layout)],
-            immediate_size: 0,
-        });
-        let pipelines = Pass::ALL
-            .into_iter()
-            .filter(|p| p.builds_octree())
-            .map(|pass| {
-                let module = ctx.device.create_shader_module(wgpu::ShaderModuleDescriptor {
-                    label: Some(pass.file()),
-                    source: wgpu::ShaderSource::Wgsl(pass.source().into()),
-                });
-                let p = ctx.device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                    label: Some(pass.file()),
-                    layout: Some(&pl),
-                    module: &module,
-                    entry_point: Some("main"),
-                    compilation_options: Default::default(),
-                    cache: None,
-                });
-                (pass, p)
-            })
-            .collect();
         let budget = ctx.device_memory().map(default_gpu_memory);
         let sort = GpuRadixSort::new(&ctx).ok();
         Ok(GpuTreeBuilder {

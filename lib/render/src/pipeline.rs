@@ -43,6 +43,41 @@ pub(crate) fn bind_group_layout(
     })
 }
 
+/// The compute passes `passes` over one bind group (group 0, from `bindings`), sharing its
+/// layout: the GPU octree builder's passes and the radix sort's, which bind one set of buffers to
+/// every pass they run. Returns the layout and each pass's pipeline.
+pub(crate) fn one_group_pipelines(
+    ctx: &GpuContext,
+    label: &str,
+    bindings: &[Binding],
+    passes: impl Iterator<Item = Pass>,
+) -> (wgpu::BindGroupLayout, Vec<(Pass, wgpu::ComputePipeline)>) {
+    let layout = bind_group_layout(ctx, label, bindings, 0, wgpu::ShaderStages::COMPUTE);
+    let pl = ctx.device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+        label: Some(label),
+        bind_group_layouts: &[Some(&layout)],
+        immediate_size: 0,
+    });
+    let pipelines = passes
+        .map(|pass| {
+            let module = ctx.device.create_shader_module(wgpu::ShaderModuleDescriptor {
+                label: Some(pass.file()),
+                source: wgpu::ShaderSource::Wgsl(pass.source().into()),
+            });
+            let p = ctx.device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some(pass.file()),
+                layout: Some(&pl),
+                module: &module,
+                entry_point: Some("main"),
+                compilation_options: Default::default(),
+                cache: None,
+            });
+            (pass, p)
+        })
+        .collect();
+    (layout, pipelines)
+}
+
 /// Bind-group layouts several pipelines share, so that one bind group serves all of them.
 pub(crate) struct SharedLayouts {
     /// Group 1 of every draw pass ([`binding::BATCHES`]: one chunk's records and words).

@@ -85,37 +85,12 @@ impl GpuRadixSort {
                 l.max_compute_workgroup_storage_size,
             )));
         }
-        let layout = crate::pipeline::bind_group_layout(
+        let (layout, pipelines) = crate::pipeline::one_group_pipelines(
             ctx,
             "radix sort",
             &binding::SORT,
-            0,
-            wgpu::ShaderStages::COMPUTE,
+            Pass::ALL.into_iter().filter(|p| p.sorts()),
         );
-        let pl = ctx.device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
-            label: Some("radix sort"),
-            bind_group_layouts: &[Some(&layout)],
-            immediate_size: 0,
-        });
-        let pipelines = Pass::ALL
-            .into_iter()
-            .filter(|p| p.sorts())
-            .map(|pass| {
-                let module = ctx.device.create_shader_module(wgpu::ShaderModuleDescriptor {
-                    label: Some(pass.file()),
-                    source: wgpu::ShaderSource::Wgsl(pass.source().into()),
-                });
-                let p = ctx.device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                    label: Some(pass.file()),
-                    layout: Some(&pl),
-                    module: &module,
-                    entry_point: Some("main"),
-                    compilation_options: Default::default(),
-                    cache: None,
-                });
-                (pass, p)
-            })
-            .collect();
         Ok(GpuRadixSort { layout, pipelines })
     }
 

@@ -157,32 +157,27 @@ pub(crate) fn build_into(
         // 3'. the order from the GPU's sort, the records gathered by it while the GPU builds
         // the tree.
         ds.progress.stage("sorting and indexing on the GPU", all.count, "points");
-        let pool = small_pool();
-        let pos = &pos;
-        let (t, gathered) = std::thread::scope(|scope| {
-            let (tx, rx) = std::sync::mpsc::channel::<Vec<u32>>();
-            let gpu = scope.spawn(move || {
+        let (tx, rx) = std::sync::mpsc::channel::<Vec<u32>>();
+        let held = &pos;
+        let ((tree, tree_seconds), gathered) = beside_gpu(
+            move || {
                 let give = |v: Vec<u32>| {
                     let _ = tx.send(v);
                 };
-                let go = || {
-                    let tt = Instant::now();
-                    let tree = backend.build_ordered(root.size_log2, pos, &opts.config, &give);
-                    (tree, tt.elapsed().as_secs_f64())
-                };
-                match &pool {
-                    Some(p) => p.install(go),
-                    None => go(),
-                }
-            });
-            let gathered = rx.recv().ok().map(|order| {
-                let ts = Instant::now();
-                let g = gather(&records, &starts, rl, root, order, &ds.progress);
-                (g, ts.elapsed().as_secs_f64())
-            });
-            (gpu.join(), gathered)
-        });
-        let (tree, tree_seconds) = t.unwrap_or_else(|e| std::panic::resume_unwind(e));
+                let tt = Instant::now();
+                let tree = backend.build_ordered(root.size_log2, held, &opts.config, &give);
+                (tree, tt.elapsed().as_secs_f64())
+            },
+            // The order comes before the GPU builds the tree; none if it failed first.
+            || {
+                rx.recv().ok().map(|order| {
+                    let ts = Instant::now();
+                    let g = gather(&records, &starts, rl, root, order, &ds.progress);
+                    (g, ts.elapsed().as_secs_f64())
+                })
+            },
+        );
+        drop(pos);
         let tree = tree
             .map_err(|m| Error::Octree { error: OctreeError::Unsupported(format!("GPU: {m}")) })?;
         let Some((gathered, sort_seconds)) = gathered else {
@@ -218,20 +213,9 @@ pub(crate) fn build_into(
         (t, sort())
     } else {
         ds.progress.stage("sorting, indexing on the GPU", 2 * all.count, "points");
-        // The GPU's side on a thread of its own, its parallel copies in a small pool of their
-        // own (in the global pool they would queue behind the sort's tasks; with as many
-        // threads as the sort's, both slowed down, the sort being the longer).
-        let pool = small_pool();
-        let pos = &pos;
-        let (t, s) = std::thread::scope(|scope| {
-            let gpu = scope.spawn(|| match &pool {
-                Some(p) => p.install(|| tree_on_gpu(pos)),
-                None => tree_on_gpu(pos),
-            });
-            let s = sort();
-            (gpu.join(), s)
-        });
-        (t.unwrap_or_else(|e| std::panic::resume_unwind(e)), s)
+        let t = beside_gpu(|| tree_on_gpu(&pos), sort);
+        drop(pos);
+        t
     };
     let tree =
         tree.map_err(|m| Error::Octree { error: OctreeError::Unsupported(format!("GPU: {m}")) })?;
@@ -266,14 +250,24 @@ pub(crate) fn build_into(
     write_all(ds, writer, opts, progress, &stree, &sorted, &all, root, bounds, report, t0)
 }
 
-/// A small pool for the GPU's side (its parallel copies): in the global pool they would queue
-/// behind the host's tasks; with as many threads as the host's, both slowed down.
-fn small_pool() -> Option<rayon::ThreadPool> {
-    rayon::ThreadPoolBuilder::new()
+/// `gpu` and `host` at the same time: `gpu` (the GPU's side) on a thread of its own, its parallel
+/// copies in a small pool of their own (in the global pool they would queue behind the host's
+/// tasks; with as many threads as the host's, both slowed down, the host's work being the
+/// longer), `host` on this thread. A panic on the GPU's side is resumed here.
+fn beside_gpu<A: Send, B>(gpu: impl FnOnce() -> A + Send, host: impl FnOnce() -> B) -> (A, B) {
+    let pool = rayon::ThreadPoolBuilder::new()
         .num_threads((rayon::current_num_threads() / 4).max(1))
         .thread_name(|i| format!("mortar-gpu-{i}"))
         .build()
-        .ok()
+        .ok();
+    std::thread::scope(|scope| {
+        let side = scope.spawn(move || match &pool {
+            Some(p) => p.install(gpu),
+            None => gpu(),
+        });
+        let b = host();
+        (side.join().unwrap_or_else(|e| std::panic::resume_unwind(e)), b)
+    })
 }
 
 /// The records of the pieces `slabs` (piece `k`'s first point is number `starts[k]`) in the
