@@ -28,8 +28,8 @@
 //! The input must fit `--memory` as for the sorted engine (refused otherwise, naming the need);
 //! on the GPU, `--gpu-memory` bounds what the builder holds (`mortar_render::octree`).
 //! Whether the backend sorts is its own choice: the command line's GPU builder sorts only where
-//! `MORTAR_GPU_SORT=1` (`mortar_app::gpu_build`; off by default until measured on a discrete
-//! GPU; the tests turn it on to run it on lavapipe, the benchmarks to compare).
+//! `MORTAR_GPU_SORT=1` (`mortar_app::gpu_build`; off by default: a draw on the H100, slower on
+//! lavapipe; the tests turn it on to run it on lavapipe, the benchmarks to compare).
 //!
 //! History: until 2026-12-06 the GPU gave each point its slot and the host placed the records
 //! and sorted within each leaf, after the GPU; then the host sorted the whole input with the
