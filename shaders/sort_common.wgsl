@@ -66,3 +66,23 @@ fn digit(e: vec4<u32>) -> u32 {
     }
     return d;
 }
+
+// The inclusive prefix sum of `v` over the 256 threads of the workgroup (Hillis-Steele, in
+// `scan_part`; its last entry is then the workgroup's total). Every thread calls it: it has
+// barriers.
+var<workgroup> scan_part: array<u32, 256>;
+
+fn workgroup_scan(lane: u32, v: u32) -> u32 {
+    scan_part[lane] = v;
+    workgroupBarrier();
+    for (var off = 1u; off < 256u; off <<= 1u) {
+        var t = 0u;
+        if lane >= off {
+            t = scan_part[lane - off];
+        }
+        workgroupBarrier();
+        scan_part[lane] += t;
+        workgroupBarrier();
+    }
+    return scan_part[lane];
+}

@@ -1,8 +1,6 @@
 // Each block of BLOCK histogram entries made the exclusive prefix sum of all entries: where the
 // elements of a digit of a tile go. Each thread scans ITEMS consecutive entries.
 
-var<workgroup> part: array<u32, 256>;
-
 @compute @workgroup_size(256)
 fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>) {
     let b = group_index(wg);
@@ -17,19 +15,9 @@ fn main(@builtin(workgroup_id) wg: vec3<u32>, @builtin(local_invocation_id) lid:
             s += hist[i];
         }
     }
-    part[lid.x] = s;
-    workgroupBarrier();
-    for (var off = 1u; off < 256u; off <<= 1u) {
-        var t = 0u;
-        if lid.x >= off {
-            t = part[lid.x - off];
-        }
-        workgroupBarrier();
-        part[lid.x] += t;
-        workgroupBarrier();
-    }
+    let upto = workgroup_scan(lid.x, s);
     if live {
-        let base = sums[b] + part[lid.x] - s;
+        let base = sums[b] + upto - s;
         for (var k = 0u; k < ITEMS; k++) {
             let i = start + k;
             if i < params.entries {

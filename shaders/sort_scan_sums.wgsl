@@ -1,8 +1,6 @@
 // One workgroup: the blocks' sums made the sum of the blocks before each (exclusive scan), 256 at
 // a time.
 
-var<workgroup> part: array<u32, 256>;
-
 @compute @workgroup_size(256)
 fn main(@builtin(local_invocation_id) lid: vec3<u32>) {
     var carry = 0u;
@@ -13,21 +11,11 @@ fn main(@builtin(local_invocation_id) lid: vec3<u32>) {
         if i < params.blocks {
             v = sums[i];
         }
-        part[lid.x] = v;
-        workgroupBarrier();
-        for (var off = 1u; off < 256u; off <<= 1u) {
-            var t = 0u;
-            if lid.x >= off {
-                t = part[lid.x - off];
-            }
-            workgroupBarrier();
-            part[lid.x] += t;
-            workgroupBarrier();
-        }
+        let upto = workgroup_scan(lid.x, v);
         if i < params.blocks {
-            sums[i] = carry + part[lid.x] - v;
+            sums[i] = carry + upto - v;
         }
-        carry += part[255];
+        carry += scan_part[255];
         workgroupBarrier();
     }
 }

@@ -153,7 +153,10 @@ pub(crate) fn build_into(
         });
         (sorted, ts.elapsed().as_secs_f64())
     };
-    if backend.sorts(n) {
+    let gpu_failed =
+        |m: String| Error::Octree { error: OctreeError::Unsupported(format!("GPU: {m}")) };
+    // The tree, the sorted records and, where the GPU sorted, the inverse of its order.
+    let (tree, tree_seconds, sorted, sort_seconds, inv) = if backend.sorts(n) {
         // 3'. the order from the GPU's sort, the records gathered by it while the GPU builds
         // the tree.
         ds.progress.stage("sorting and indexing on the GPU", all.count, "points");
@@ -178,60 +181,43 @@ pub(crate) fn build_into(
             },
         );
         drop(pos);
-        let tree = tree
-            .map_err(|m| Error::Octree { error: OctreeError::Unsupported(format!("GPU: {m}")) })?;
+        let tree = tree.map_err(gpu_failed)?;
         let Some((gathered, sort_seconds)) = gathered else {
-            return Err(Error::Octree {
-                error: OctreeError::Unsupported("GPU: the backend gave no order".into()),
-            });
+            return Err(gpu_failed("the backend gave no order".into()));
         };
         let (sorted, inv) = gathered?;
-        drop(records);
-        drop(slabs);
-        report.gpu = Some(backend.name());
-        report.gpu_steps = tree.phases.clone();
-        report.tree_seconds = tree_seconds;
-        report.sort_seconds = sort_seconds;
-        crate::cleanup::trace("order from the GPU, records gathered, tree on the GPU", t0);
-        crate::cleanup::check_interrupted()?;
-        let ts = Instant::now();
-        let stree = leaves_checked(tree, root, &sorted, &inv)?;
-        drop(inv);
-        report.sort_seconds += ts.elapsed().as_secs_f64();
-        report.batch_seconds.push(report.tree_seconds);
-        return write_all(
-            ds, writer, opts, progress, &stree, &sorted, &all, root, bounds, report, t0,
-        );
-    }
-    // 3. the host's sort (the GPU cannot hold the points and the sort's buffers at once).
-    let ((tree, tree_seconds), (sorted, sort_seconds)) = if backend.holds_buffers_in_host_memory() {
-        ds.progress.stage("indexing on the GPU", 0, "");
-        let t = tree_on_gpu(&pos);
-        drop(pos);
-        crate::cleanup::check_interrupted()?;
-        ds.progress.stage("sorting", 2 * all.count, "points");
-        (t, sort())
+        (tree, tree_seconds, sorted, sort_seconds, Some(inv))
     } else {
-        ds.progress.stage("sorting, indexing on the GPU", 2 * all.count, "points");
-        let t = beside_gpu(|| tree_on_gpu(&pos), sort);
-        drop(pos);
-        t
+        // 3. the host's sort (the GPU cannot hold the points and the sort's buffers at once).
+        let ((tree, tree_seconds), (sorted, sort_seconds)) =
+            if backend.holds_buffers_in_host_memory() {
+                ds.progress.stage("indexing on the GPU", 0, "");
+                let t = tree_on_gpu(&pos);
+                drop(pos);
+                crate::cleanup::check_interrupted()?;
+                ds.progress.stage("sorting", 2 * all.count, "points");
+                (t, sort())
+            } else {
+                ds.progress.stage("sorting, indexing on the GPU", 2 * all.count, "points");
+                let t = beside_gpu(|| tree_on_gpu(&pos), sort);
+                drop(pos);
+                t
+            };
+        (tree.map_err(gpu_failed)?, tree_seconds, sorted, sort_seconds, None)
     };
-    let tree =
-        tree.map_err(|m| Error::Octree { error: OctreeError::Unsupported(format!("GPU: {m}")) })?;
     drop(records);
     drop(slabs);
     report.gpu = Some(backend.name());
     report.gpu_steps = tree.phases.clone();
     report.tree_seconds = tree_seconds;
     report.sort_seconds = sort_seconds;
-    crate::cleanup::trace("tree on the GPU and records sorted", t0);
+    crate::cleanup::trace("tree on the GPU and records ordered", t0);
     crate::cleanup::check_interrupted()?;
     // 4. the GPU's tree over the sorted records: its voxels' arrival numbers to sorted indices,
     // its leaves checked against the order.
     let ts = Instant::now();
-    let mut inv = crate::sort::zeroed_huge::<u32>(n);
-    {
+    let inv = inv.unwrap_or_else(|| {
+        let mut inv = crate::sort::zeroed_huge::<u32>(n);
         let ip = SendPtr(inv.as_mut_ptr());
         sorted.arrival.par_iter().enumerate().for_each(|(i, &a)| {
             let ip = &ip;
@@ -241,13 +227,31 @@ pub(crate) fn build_into(
             // SAFETY: each `at` is below n and written once.
             unsafe { ip.write(at, i as u32) };
         });
-    }
+        inv
+    });
     let stree = leaves_checked(tree, root, &sorted, &inv)?;
     drop(inv);
     report.sort_seconds += ts.elapsed().as_secs_f64();
     report.batch_seconds.push(report.tree_seconds);
-    crate::cleanup::trace("records ordered", t0);
-    write_all(ds, writer, opts, progress, &stree, &sorted, &all, root, bounds, report, t0)
+    crate::cleanup::trace("leaves checked", t0);
+    let color = color_of(ds, &all);
+    ds.progress.stage("writing", stree.nodes.len() as u64, "nodes");
+    write_tree(
+        writer,
+        &stree,
+        root,
+        opts,
+        &sorted,
+        &color,
+        bounds,
+        &mut report,
+        progress,
+        &ds.progress,
+        ds.declared_points(),
+        t0,
+    )?;
+    report.seconds = t0.elapsed().as_secs_f64();
+    Ok(report)
 }
 
 /// `gpu` and `host` at the same time: `gpu` (the GPU's side) on a thread of its own, its parallel
@@ -342,41 +346,6 @@ fn gather(
         }
     });
     Ok((Sorted { records, arrival, rl }, inv))
-}
-
-/// The store written from the checked tree `stree` over `sorted` (the sorted engine's writer).
-#[allow(clippy::too_many_arguments)]
-fn write_all(
-    ds: &Dataset,
-    writer: &mut StoreWriter,
-    opts: &BuildOptions,
-    progress: &mut dyn FnMut(&BuildProgress),
-    stree: &SortedTree,
-    sorted: &Sorted,
-    all: &crate::sort::PieceStats,
-    root: Cube,
-    bounds: ([i32; 3], [i32; 3]),
-    mut report: BuildReport,
-    t0: Instant,
-) -> Result<BuildReport> {
-    let color = color_of(ds, all);
-    ds.progress.stage("writing", stree.nodes.len() as u64, "nodes");
-    write_tree(
-        writer,
-        stree,
-        root,
-        opts,
-        sorted,
-        &color,
-        bounds,
-        &mut report,
-        progress,
-        &ds.progress,
-        ds.declared_points(),
-        t0,
-    )?;
-    report.seconds = t0.elapsed().as_secs_f64();
-    Ok(report)
 }
 
 /// The GPU's tree over the records of `sorted` (the sorted engine's order): its voxels' arrival
