@@ -328,21 +328,24 @@ fn body_of<'a>(
     }
     let ordered = order.filter(|o| o.gps + 8 <= al && n >= 2).and_then(|o| {
         let gk: Vec<u64> = (0..n).map(|i| gps_key(&src.attrs(i)[o.gps..])).collect();
-        let seq = time_order(&gk);
-        let mut rank = vec![0u32; n];
-        for (t, &i) in seq.iter().enumerate() {
-            rank[i as usize] = t as u32;
-        }
-        // The node's order must be the stable sort of the coded sequence by the Morton key.
-        let mut last = (morton96(offset_in(src.pos(0), o.cube_min)?), rank[0]);
-        for (i, &r) in rank.iter().enumerate().skip(1) {
-            let k = (morton96(offset_in(src.pos(i), o.cube_min)?), r);
-            if k <= last {
+        // The node's order must be the stable sort of the coded sequence by the Morton key:
+        // each point after its predecessor in Morton order, or at the same position and after
+        // it in the time order (a stable sort by time keeps `i - 1` before `i` where its time
+        // is not later). Checked before the sort, which a node that fails it does not need.
+        let mut last = offset_in(src.pos(0), o.cube_min)?;
+        for i in 1..n {
+            let u = offset_in(src.pos(i), o.cube_min)?;
+            let after = match morton_cmp(last, u) {
+                std::cmp::Ordering::Less => true,
+                std::cmp::Ordering::Equal => gk[i - 1] <= gk[i],
+                std::cmp::Ordering::Greater => false,
+            };
+            if !after {
                 return None;
             }
-            last = k;
+            last = u;
         }
-        Some((o, seq, gk))
+        Some((o, time_order(&gk), gk))
     });
     let (codec, seq, gps) = match ordered {
         Some((o, seq, gk)) => (ZSTD_GPS_ORDER, seq, Some((o, gk))),
@@ -380,7 +383,14 @@ fn body_of<'a>(
     // that every write is a run of contiguous bytes rather than one byte in each of 30-odd
     // planes per point.
     const BLOCK: usize = 64;
-    let kept: Vec<usize> = kept_bytes(al, g).collect();
+    // The kept bytes as runs of consecutive ones: (first plane, first byte, length).
+    let mut runs: Vec<(usize, usize, usize)> = Vec::new();
+    for (j, k) in kept_bytes(al, g).enumerate() {
+        match runs.last_mut() {
+            Some((_, k0, len)) if *k0 + *len == k => *len += 1,
+            _ => runs.push((j, k, 1)),
+        }
+    }
     let mut prev = [0u32; 3];
     let mut z = [[0u32; BLOCK]; 3];
     let mut col = [0u32; BLOCK];
@@ -423,14 +433,60 @@ fn body_of<'a>(
             }
             _ => {}
         }
-        for (j, &k) in kept.iter().enumerate() {
-            let dst = &mut ab[j * n + t0..][..m];
-            for (o, d) in dst.iter_mut().enumerate() {
-                *d = rec[o * al + k];
-            }
+        for &(j, k, len) in &runs {
+            planes_of(&rec[..m * al], al, k, len, &mut ab[j * n..], n, t0);
         }
     }
     Some((codec, mode, body))
+}
+
+/// Bytes `k..k + len` of the `m` records of `al` bytes in `rec` written as planes: byte `k + c`
+/// of record `o` to `dst[c * n + t0 + o]`. Eight records by eight bytes at a time, transposed
+/// in registers (three rounds of block swaps on eight 64-bit rows), so that a block costs 16
+/// loads and stores rather than 128; the rest byte by byte.
+fn planes_of(rec: &[u8], al: usize, k: usize, len: usize, dst: &mut [u8], n: usize, t0: usize) {
+    let m = rec.len() / al;
+    let (m8, len8) = (m / 8 * 8, len / 8 * 8);
+    for c0 in (0..len8).step_by(8) {
+        for o in (0..m8).step_by(8) {
+            let mut x = [0u64; 8];
+            for (r, x) in x.iter_mut().enumerate() {
+                let at = (o + r) * al + k + c0;
+                *x = u64::from_le_bytes(rec[at..at + 8].try_into().expect("8 bytes"));
+            }
+            transpose8(&mut x);
+            for (c, x) in x.iter().enumerate() {
+                let at = (c0 + c) * n + t0 + o;
+                dst[at..at + 8].copy_from_slice(&x.to_le_bytes());
+            }
+        }
+        for c in c0..c0 + 8 {
+            for o in m8..m {
+                dst[c * n + t0 + o] = rec[o * al + k + c];
+            }
+        }
+    }
+    for c in len8..len {
+        let d = &mut dst[c * n + t0..][..m];
+        for (o, d) in d.iter_mut().enumerate() {
+            *d = rec[o * al + k + c];
+        }
+    }
+}
+
+/// Transposes the 8x8 byte matrix whose row `r` is `x[r]` (byte `c` of a row: column `c`).
+#[inline]
+fn transpose8(x: &mut [u64; 8]) {
+    for (half, mask) in
+        [(4, 0x0000_0000_ffff_ffffu64), (2, 0x0000_ffff_0000_ffff), (1, 0x00ff_00ff_00ff_00ff)]
+    {
+        let shift = 8 * half as u32;
+        for r in (0..8).filter(|r| r & half == 0) {
+            let t = ((x[r] >> shift) ^ x[r + half]) & mask;
+            x[r] ^= t << shift;
+            x[r + half] ^= t;
+        }
+    }
 }
 
 /// The attribute bytes coded as planes of their own: all `al`, less GPS time's 8 at `g`.
@@ -744,6 +800,24 @@ fn gps_of_key(k: u64) -> u64 {
     }
 }
 
+/// How `a` and `b` compare in the full-resolution Morton order ([`morton96`]: x on bit 0, y on
+/// bit 1, z on bit 2 of each triple), without making the keys: the axis whose coordinates differ
+/// in the highest bit decides, z before y before x where that bit is the same.
+#[inline]
+fn morton_cmp(a: [u32; 3], b: [u32; 3]) -> std::cmp::Ordering {
+    let mut axis = 0;
+    let mut top = a[0] ^ b[0];
+    for k in 1..3 {
+        let d = a[k] ^ b[k];
+        // `d`'s highest bit is at least `top`'s: the later axis is the more significant.
+        if d.leading_zeros() <= top.leading_zeros() && d != 0 {
+            axis = k;
+            top = d;
+        }
+    }
+    a[axis].cmp(&b[axis])
+}
+
 /// The offset of `p` from `cube_min`, where it lies in a cube of mortar's (at most 2^32 wide).
 fn offset_in(p: [i32; 3], cube_min: [i64; 3]) -> Option<[u32; 3]> {
     let mut u = [0u32; 3];
@@ -876,6 +950,55 @@ mod tests {
         assert!(*decode(&coded).unwrap() == *raw);
     }
 
+    /// The Morton comparison without keys is the keys' comparison, on coordinates that share
+    /// high bits and on equal ones.
+    #[test]
+    fn morton_cmp_is_the_keys_order() {
+        let mut x = 0x2545_f491_4f6c_dd1du64;
+        let mut next = || {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            x
+        };
+        for t in 0..200_000 {
+            let a = [next() as u32, next() as u32, next() as u32];
+            // Mostly near `a`: a few low bits changed on some axes, or none.
+            let mut b = a;
+            for c in b.iter_mut() {
+                match next() % 4 {
+                    0 => *c ^= (next() as u32) >> (next() % 32),
+                    1 => *c = next() as u32,
+                    _ => {}
+                }
+            }
+            if t % 7 == 0 {
+                b = a;
+            }
+            assert_eq!(morton_cmp(a, b), morton96(a).cmp(&morton96(b)), "{a:?} {b:?}");
+        }
+    }
+
+    /// The planes written eight by eight are the byte-by-byte planes, for every block size,
+    /// run start and length.
+    #[test]
+    fn planes_are_the_transposed_bytes() {
+        let al = 29;
+        let rec: Vec<u8> = (0..64 * al).map(|b| (b * 131 % 253) as u8).collect();
+        for m in [1, 7, 8, 9, 63, 64] {
+            for (k, len) in [(0, 29), (3, 8), (5, 17), (20, 9), (0, 7)] {
+                let (n, t0) = (200, 70);
+                let mut dst = vec![0u8; len * n];
+                planes_of(&rec[..m * al], al, k, len, &mut dst, n, t0);
+                for c in 0..len {
+                    for o in 0..m {
+                        assert_eq!(dst[c * n + t0 + o], rec[o * al + k + c], "{m} {k} {len}");
+                    }
+                }
+            }
+        }
+    }
+
     /// Empty nodes stay raw; damaged coded payloads are errors, never panics.
     #[test]
     fn empty_stays_raw_and_damage_is_an_error() {
@@ -956,5 +1079,81 @@ mod order_tests {
         // Damage is an error, never a panic.
         let raw = leaf(1000, cube, shuffled, false);
         super::tests::damaged_copies_refused(&encode(raw, order), 5);
+    }
+}
+
+/// The coder's speed and exactness on a real store: `MORTAR_CODEC_BENCH=STORE cargo test
+/// --release -p mortar-io codec_bench -- --ignored --nocapture` decodes every payload of STORE
+/// to its points, codes them again as the engines do ([`encode_payload`], one thread, 3 rounds)
+/// and checks that every coded payload is the stored one byte for byte (the store written by
+/// another build of mortar: a change of the coder that changes a byte fails here). It prints
+/// the coder's points a second (BENCHMARKS.md "Store v3").
+#[cfg(test)]
+mod bench {
+    use super::*;
+
+    #[test]
+    #[ignore = "needs a store named by MORTAR_CODEC_BENCH"]
+    fn codec_bench() {
+        let Ok(dir) = std::env::var("MORTAR_CODEC_BENCH") else { return };
+        let store = crate::store::reader::Store::open(std::path::Path::new(&dir)).unwrap();
+        struct Node {
+            key: NodeKey,
+            kind: u32,
+            pos: Vec<[i32; 3]>,
+            color: Vec<u32>,
+            attrs: Vec<u8>,
+            al: usize,
+            stored: Vec<u8>,
+        }
+        let mut nodes = Vec::new();
+        for (i, e) in store.entries.iter().enumerate() {
+            let raw = store.raw_node(i).unwrap();
+            let h: NodeHeader = bytemuck::pod_read_unaligned(&raw[..64]);
+            let (n, al) = (h.count as usize, h.attr_len as usize);
+            if n == 0 || raw.len() as u64 > CODE_LIMIT {
+                continue;
+            }
+            let col = |k: usize| &raw[64 + 4 * n * k..64 + 4 * n * (k + 1)];
+            let grid = BatchGrid { min: h.min, bits: [h.bits[0], h.bits[1], h.bits[2]] };
+            let w = [col(0), col(1), col(2)];
+            nodes.push(Node {
+                key: NodeKey { level: e.level as u8, index: e.index },
+                kind: e.kind,
+                pos: (0..n)
+                    .map(|i| grid.decode_exact([u32_at(w[0], i), u32_at(w[1], i), u32_at(w[2], i)]))
+                    .collect(),
+                color: (0..n).map(|i| u32_at(col(3), i)).collect(),
+                attrs: raw[64 + 16 * n..64 + 16 * n + n * al].to_vec(),
+                al,
+                stored: store.node_bytes(i).to_vec(),
+            });
+        }
+        let points: usize = nodes.iter().map(|n| n.pos.len()).sum();
+        let mut best = f64::MAX;
+        for _ in 0..3 {
+            let t = std::time::Instant::now();
+            for nd in &nodes {
+                let order = Order::of(store.root_cube(), nd.key, &store.layout);
+                let (_, c) = encode_payload(
+                    nd.key,
+                    nd.kind,
+                    nd.pos.len(),
+                    nd.al,
+                    |i| nd.pos[i],
+                    |i| nd.color[i],
+                    |i| &nd.attrs[i * nd.al..(i + 1) * nd.al],
+                    order,
+                )
+                .unwrap();
+                assert!(c == nd.stored, "node {:?}: the coded bytes differ", nd.key);
+            }
+            best = best.min(t.elapsed().as_secs_f64());
+        }
+        println!(
+            "codec_bench: {} nodes, {points} points, best of 3 {best:.3} s, {:.2} M points/s",
+            nodes.len(),
+            points as f64 / best / 1e6
+        );
     }
 }
