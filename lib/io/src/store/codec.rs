@@ -496,12 +496,15 @@ fn kept_bytes(al: usize, g: Option<usize>) -> impl Iterator<Item = usize> {
 
 /// The points' order by GPS time key `gk`, ties in their order.
 ///
-/// A least-significant-digit radix sort of the keys less their minimum, one pass per byte of
-/// the keys' range (a leaf's times span seconds to hours: 3-5 passes; 11-bit digits measured no
-/// faster), which is stable, so ties keep their order; it replaced a comparison sort that was
-/// 15 % of a build's time (2-core VM, `perf`, 10 M points). Where the range and the places fit
-/// one 64-bit word together (the leaves of real scans, whose times lie within one binade), the
-/// words are sorted: half the bytes moved. Few points take the comparison sort.
+/// A least-significant-digit radix sort (stable, so ties keep their order; it replaced a
+/// comparison sort that was 15 % of a build's time, 2-core VM, `perf`, 10 M points) of one
+/// 64-bit word per point: the key less the keys' minimum above the point's place. Where the
+/// key's range and the places do not fit one word together (real scans' leaves span 40-56 bits
+/// of the time's bits), the range's lowest bits are dropped from the word, and the runs of
+/// points whose kept bits tie (times within a few microseconds: returns of one pulse, whose
+/// times are equal) are then put in the order of their whole keys. One pass per byte of the
+/// kept bits that is not the same in every word (11-bit digits measured no faster). Few points
+/// take the comparison sort.
 fn time_order(gk: &[u64]) -> Vec<u32> {
     let n = gk.len();
     if n < 256 {
@@ -512,20 +515,33 @@ fn time_order(gk: &[u64]) -> Vec<u32> {
     }
     let lo = gk.iter().copied().min().unwrap_or(0);
     let hi = gk.iter().copied().max().unwrap_or(0);
-    let range_bits = 64 - (hi - lo).leading_zeros();
-    let digits = range_bits.div_ceil(8) as usize;
     let place_bits = 32 - (n as u32 - 1).leading_zeros();
-    if range_bits + place_bits <= 64 {
-        // The places start in order and need no pass.
-        let w = gk.iter().enumerate().map(|(i, &k)| (k - lo) << place_bits | i as u64).collect();
-        let shift = place_bits as usize;
-        let mask = (1u64 << place_bits) - 1;
-        let w = radix_sort(w, digits, |&x, d| ((x >> (shift + 8 * d)) & 0xff) as usize);
-        return w.iter().map(|&x| (x & mask) as u32).collect();
+    let range_bits = 64 - (hi - lo).leading_zeros();
+    let drop = (range_bits + place_bits).saturating_sub(64);
+    let digits = (range_bits - drop).div_ceil(8) as usize;
+    let w =
+        gk.iter().enumerate().map(|(i, &k)| ((k - lo) >> drop) << place_bits | i as u64).collect();
+    let shift = place_bits as usize;
+    let mask = (1u64 << place_bits) - 1;
+    let mut w = radix_sort(w, digits, |&x, d| ((x >> (shift + 8 * d)) & 0xff) as usize);
+    if drop > 0 {
+        // Runs of equal kept bits: by whole key, then place (unique pairs: an unstable sort
+        // gives the stable order; runs are short, and a long one, as a hostile file's times
+        // can make, costs n log n).
+        let mut s = 0;
+        while s < n {
+            let top = w[s] >> place_bits;
+            let mut e = s + 1;
+            while e < n && w[e] >> place_bits == top {
+                e += 1;
+            }
+            if e - s > 1 {
+                w[s..e].sort_unstable_by_key(|&x| (gk[(x & mask) as usize], x & mask));
+            }
+            s = e;
+        }
     }
-    let pairs = gk.iter().enumerate().map(|(i, &k)| (k - lo, i as u32)).collect();
-    let pairs = radix_sort(pairs, digits, |&(k, _), d| ((k >> (8 * d)) & 0xff) as usize);
-    pairs.iter().map(|&(_, i)| i).collect()
+    w.iter().map(|&x| (x & mask) as u32).collect()
 }
 
 /// Stable least-significant-digit radix sort of `items` on `digits` byte digits,
@@ -888,6 +904,21 @@ mod tests {
             let mut want: Vec<u32> = (0..n as u32).collect();
             want.sort_by_key(|&i| gk[i as usize]);
             assert_eq!(time_order(&gk), want, "case {case}");
+        }
+        // Keys over 63 bits in clusters that differ in their low 12 bits only (below the bits
+        // a word keeps beside 13 place bits), repeated keys among them, one cluster holding
+        // most points: the runs of equal kept bits are ordered by the whole keys.
+        for n in [300, 5000] {
+            let gk: Vec<u64> = (0..n)
+                .map(|i| {
+                    let cluster = if i % 3 == 0 { next() % 256 } else { 17 };
+                    let low = if i % 5 == 0 { 7 } else { next() & 0xfff };
+                    cluster << 55 | low
+                })
+                .collect();
+            let mut want: Vec<u32> = (0..n as u32).collect();
+            want.sort_by_key(|&i| gk[i as usize]);
+            assert_eq!(time_order(&gk), want, "clusters of {n}");
         }
     }
 
