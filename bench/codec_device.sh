@@ -23,7 +23,7 @@ for f in $(for n in ${SIZES:-20 100}; do echo g$n.las; done); do
   done
 done
 rm -rf a b; "$base/mortar" build g${SIZES%% *}.las -o cs -q --engine sorted
-for r in 1 2 3; do for b in base new; do
+for r in $(seq "${CODER_ROUNDS:-3}"); do for b in base new; do
   bin=$base; [ $b = new ] && bin=$new
   echo "CODER $b $(MORTAR_CODEC_BENCH=$w/cs "$bin/codec_bench" codec_bench --ignored --nocapture 2>&1 | grep -E 'codec_bench:|panicked')"
 done; done

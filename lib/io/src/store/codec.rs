@@ -499,12 +499,12 @@ fn kept_bytes(al: usize, g: Option<usize>) -> impl Iterator<Item = usize> {
 /// A least-significant-digit radix sort (stable, so ties keep their order; it replaced a
 /// comparison sort that was 15 % of a build's time, 2-core VM, `perf`, 10 M points) of one
 /// 64-bit word per point: the key less the keys' minimum above the point's place. Where the
-/// key's range and the places do not fit one word together (real scans' leaves span 40-56 bits
-/// of the time's bits), the range's lowest bits are dropped from the word, and the runs of
-/// points whose kept bits tie (times within a few microseconds: returns of one pulse, whose
-/// times are equal) are then put in the order of their whole keys. One pass per byte of the
-/// kept bits that is not the same in every word (11-bit digits measured no faster). Few points
-/// take the comparison sort.
+/// key's range and the places do not fit one word together (leaves span 41-48 bits of the key
+/// in the bcts tiles, 49-56 in mortar-gen's scans), the range's lowest bits are dropped from
+/// the word, and the runs of points whose kept bits tie (times within a few microseconds:
+/// returns of one pulse, whose times are equal) are then put in the order of their whole keys.
+/// One pass per byte of the kept bits that is not the same in every word (11-bit digits
+/// measured no faster). Few points take the comparison sort.
 fn time_order(gk: &[u64]) -> Vec<u32> {
     let n = gk.len();
     if n < 256 {
