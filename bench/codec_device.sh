@@ -9,6 +9,7 @@
 #     PotreeConverter 2.1.2 -m random at 100 M, medians.
 #   BASE=/tmp/cw/base NEW=/tmp/cw/new OUT=/tmp ROUNDS=3 bash bench/codec_device.sh
 set -u
+SIZES=${SIZES:-20 100}
 potree=$(realpath "${POTREE:-.carry/potree/run}")
 base=$(cd "$BASE" && pwd); new=$(cd "$NEW" && pwd)
 out=${OUT:-/tmp}; w=${WORK:-/tmp/codec}; mkdir -p "$w"

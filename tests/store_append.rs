@@ -2,7 +2,9 @@
 //! store's inputs followed by MORE gives, byte for byte (hierarchy, payloads, source header,
 //! build record), with every engine, across a grown root and chained appends; it is atomic (the
 //! old store stays whole until the swap, nothing is left beside it) and a stopped append resumes.
-//! Refusals name the store and the reason, exit 1 and leave the store as it was.
+//! Refusals name the store and the reason, exit 1 and leave the store as it was. A store that
+//! keeps its points' arrival ranks (`arrival.bin`: the sorted and GPU engines) is extended from
+//! its own points, without its original inputs, to the same bytes, on real files of every kind.
 
 mod common;
 
@@ -23,10 +25,22 @@ fn append(store: &Path, more: &[PathBuf], extra: &[&str]) -> Command {
     c
 }
 
-/// Every file of the two stores is the same, byte for byte.
+/// Every file of the two stores is the same, byte for byte (the arrival ranks too, where
+/// either has them).
 fn same_store(a: &Path, b: &Path, what: &str) {
-    for f in FILES {
-        let (x, y) = (std::fs::read(a.join(f)).unwrap(), std::fs::read(b.join(f)).unwrap());
+    same_files(a, b, &FILES, what);
+    let arrival = [ARRIVAL];
+    if a.join(ARRIVAL).exists() || b.join(ARRIVAL).exists() {
+        same_files(a, b, &arrival, what);
+    }
+}
+
+const ARRIVAL: &str = "arrival.bin";
+
+fn same_files(a: &Path, b: &Path, files: &[&str], what: &str) {
+    for f in files {
+        let (x, y) = (std::fs::read(a.join(f)), std::fs::read(b.join(f)));
+        let (x, y) = (x.unwrap_or_default(), y.unwrap_or_default());
         assert!(x == y, "{what}: {f} differs ({} and {} bytes)", x.len(), y.len());
     }
 }
@@ -169,6 +183,9 @@ fn refused_appends_leave_the_store_as_it_was() {
     std::fs::write(&bad, b"LASF but not really").unwrap();
     refused(&mut append(&store, &[bad], &[]), "bad.las");
     unchanged("bad input");
+    // A store without arrival ranks (an older mortar's, or another engine's) is built again
+    // from its inputs, which must be there, unchanged.
+    std::fs::remove_file(store.join(ARRIVAL)).unwrap();
     // The store's input changed since the build.
     let f = std::fs::OpenOptions::new().append(true).open(&a).unwrap();
     f.set_modified(std::time::SystemTime::now() + Duration::from_secs(5)).unwrap();
@@ -228,4 +245,107 @@ fn a_stopped_append_resumes_into_the_same_store() {
     }
     same_store(&store, &whole, "resumed append");
     nothing_beside(&store);
+}
+
+/// Appends from the store's own points: the originals removed, the same bytes as the build of
+/// all inputs (generated scans with a grown root, chained; real files of every kind, paired);
+/// a damaged arrival file or too little memory refused, the store unchanged.
+#[test]
+fn a_store_with_arrival_ranks_needs_no_original_inputs() {
+    let dir = tempdir("append-own-points");
+    let (a, b) = scans(&dir, 200_000);
+    let c = scan_at(&dir, "c.las", 50_000, 5, "499700,4999800,-50");
+    let whole = dir.join("whole");
+    build(&[a.clone(), b.clone(), c.clone()], &whole, &[]);
+    let whole_ab = dir.join("whole-ab");
+    build(&[a.clone(), b.clone()], &whole_ab, &[]);
+    let store = dir.join("s");
+    build(std::slice::from_ref(&a), &store, &[]);
+    assert!(store.join(ARRIVAL).exists(), "the sorted engine keeps arrival ranks");
+    let kept = dir.join("a.kept");
+    std::fs::rename(&a, &kept).unwrap();
+    run_ok(&mut append(&store, std::slice::from_ref(&b), &[]));
+    same_store(&store, &whole_ab, "a (gone), then b");
+    nothing_beside(&store);
+    // Damaged ranks: refused, named, the store unchanged.
+    let ranks = std::fs::read(store.join(ARRIVAL)).unwrap();
+    std::fs::write(store.join(ARRIVAL), &ranks[..ranks.len() / 2]).unwrap();
+    let o = append(&store, std::slice::from_ref(&c), &[]).output().unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(err.contains(ARRIVAL) && err.contains("truncated"), "{err}");
+    nothing_beside(&store);
+    std::fs::write(store.join(ARRIVAL), &ranks).unwrap();
+    same_store(&store, &whole_ab, "after a refused append");
+    // Too little memory to hold the store's points, and the originals gone: refused.
+    let o = append(&store, std::slice::from_ref(&c), &["--memory", "4M"]).output().unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(err.contains("--memory") && err.contains("a.las"), "{err}");
+    same_store(&store, &whole_ab, "after a refusal for memory");
+    // Chained.
+    run_ok(&mut append(&store, std::slice::from_ref(&c), &[]));
+    same_store(&store, &whole, "a (gone), then b, then c");
+    std::fs::rename(&kept, &a).unwrap();
+
+    // Real files, each with the next one of the fixtures (those a build can merge).
+    let Some(data) = shared_data() else { return };
+    let files: Vec<PathBuf> = readable_fixtures(&data)
+        .into_iter()
+        .filter(|p| std::fs::metadata(p).map(|m| m.len() < 3 << 20).unwrap_or(false))
+        .collect();
+    let (mut pairs, mut merged, mut regridded) = (0, 0, 0);
+    for w in files.windows(2) {
+        let (f, g) = (&w[0], &w[1]);
+        let d = dir.join(format!("real-{pairs}"));
+        pairs += 1;
+        std::fs::create_dir_all(&d).unwrap();
+        let ext = f.extension().unwrap().to_string_lossy().to_string();
+        let x = d.join(format!("x.{ext}"));
+        std::fs::copy(f, &x).unwrap();
+        let s = d.join("s");
+        if !mortar()
+            .arg("build")
+            .arg(&x)
+            .arg("-o")
+            .arg(&s)
+            .arg("-q")
+            .output()
+            .unwrap()
+            .status
+            .success()
+        {
+            std::fs::remove_dir_all(&d).unwrap();
+            continue;
+        }
+        let all = d.join("all");
+        let o =
+            mortar().arg("build").arg(&x).arg(g).arg("-o").arg(&all).arg("-q").output().unwrap();
+        std::fs::remove_file(&x).unwrap();
+        let app = append(&s, std::slice::from_ref(g), &[]).output().unwrap();
+        let what = format!("{} then {}", f.display(), g.display());
+        if !o.status.success() {
+            // Inputs that cannot be merged (CRSs that disagree, say) cannot be appended either.
+            assert_eq!(app.status.code(), Some(1), "{what}: appended, but not built together");
+            std::fs::remove_dir_all(&d).unwrap();
+            continue;
+        }
+        let err = String::from_utf8_lossy(&app.stderr);
+        if err.contains("change the store's scale or offset") {
+            // Refused, as documented: the originals are gone and the grid moved.
+            assert_eq!(app.status.code(), Some(1), "{what}: {err}");
+            regridded += 1;
+            std::fs::remove_dir_all(&d).unwrap();
+            continue;
+        }
+        assert!(app.status.success(), "{what}: {err}");
+        same_store(&s, &all, &what);
+        merged += 1;
+        std::fs::remove_dir_all(&d).unwrap();
+    }
+    eprintln!(
+        "{merged} of {pairs} pairs of real files appended from the store's own points, \
+         {regridded} refused (the new file moves the grid)"
+    );
+    assert!(merged > 50, "only {merged} of {pairs} pairs merged");
 }

@@ -41,9 +41,11 @@ pub struct Args {
     pub output: Option<PathBuf>,
     /// Add the inputs to this existing store: its points come first, the new ones after, and the
     /// result is the store a build of all of them in that order gives (with the store's leaf
-    /// capacity and colours), swapped in atomically at the end. The store's recorded inputs must
-    /// still be there, unchanged: this first form builds again from them (into STORE.append;
-    /// --resume continues a stopped append). Give the --crs options the store was built with.
+    /// capacity and colours), built into STORE.append and swapped in atomically at the end
+    /// (--resume continues a stopped append). A store of the sorted or GPU engine keeps its
+    /// points' arrival order (arrival.bin) and needs no original input; others are built again
+    /// from their recorded inputs, which must still be there, unchanged. Give the --crs options
+    /// the store was built with.
     #[arg(long, value_name = "STORE", conflicts_with_all = ["output", "compact", "plan"])]
     pub append: Option<PathBuf>,
     /// Compact an existing store instead of building one: rewrite it so that `nodes.bin` holds
@@ -172,8 +174,10 @@ pub fn run(a: &Args) -> Result<Outcome> {
     if a.leaf_capacity == 0 {
         anyhow::bail!("--leaf-capacity must be at least 1");
     }
-    let inputs = append.as_ref().map_or(&a.inputs, |p| &p.inputs);
-    let ds = common::open_dataset(inputs, &a.crs)?;
+    let ds = match &append {
+        Some(plan) => plan.open_inputs(&a.crs.options(), memory)?,
+        None => common::open_dataset(&a.inputs, &a.crs)?,
+    };
     common::print_warnings(&ds.warnings);
     let opts = BuildOptions {
         config: append.as_ref().map_or(

@@ -22,6 +22,18 @@ pub trait RecordSource: Send + Sync {
     fn read_piece(&self, piece: &Piece) -> Result<Cow<'_, [u8]>>;
     /// Whether decoding a piece costs real work (LAZ, compressed batches), for progress and planning.
     fn is_compressed(&self) -> bool;
+    /// The inputs this source stands for in a store's build record, where it is not a file of
+    /// its own: a store read in arrival order for `--append` stands for the inputs it was built
+    /// from ([`crate::store::append`]).
+    fn stands_for(&self) -> Option<&[crate::store::InputPrint]> {
+        None
+    }
+    /// The box the headers of the inputs this source stands for declared, on its own grid
+    /// (`Some(None)`: none was usable), where it knows it better than its header: a store read
+    /// for `--append` ([`crate::store::append`]).
+    fn declared_box(&self) -> Option<Option<([i32; 3], [i32; 3])>> {
+        None
+    }
     /// Lets go of a piece's memory once it was processed (external sort).
     fn release_piece(&self, _piece: &Piece) {}
     /// Whether [`read_piece`](Self::read_piece) borrows without work (LAS in a memory map).

@@ -461,6 +461,9 @@ pub enum StoreError {
     /// The store cannot be extended by `mortar build --append` (why, in words).
     #[error("{why}")]
     Append { why: String },
+    /// `arrival.bin` is damaged or does not belong to the store (why, in words).
+    #[error("{why}")]
+    Arrival { why: String },
     /// The committed nodes are not those the inputs give.
     #[error("its committed nodes are not those the inputs give (the store was changed, or built by another mortar); give a new directory")]
     CommittedNodes,

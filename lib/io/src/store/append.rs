@@ -2,22 +2,34 @@
 //! inputs followed by `MORE`, byte for byte the store a build of all of them in that order gives
 //! (with the store's settings; any engine), and it changes atomically.
 //!
-//! How, in this first form: the store's build record (`build.json`) names its inputs with their
-//! size and modification time; they must still be there, unchanged. The new store is built from
-//! them and the new inputs into a working directory beside the store (`STORE.append`), by the
-//! engine the options pick, committing as any build does, so that a stopped append continues with
-//! `--append --resume`; then the two directories are exchanged in one step (`renameat2` with
-//! `RENAME_EXCHANGE`; readers that hold the old files open keep reading them) and the old one is
-//! removed. Until the exchange the store is the old one, whole; after it, the new one, whole.
+//! How: the new store is built from the store's inputs and the new ones into a working directory
+//! beside the store (`STORE.append`), by the engine the options pick, committing as any build
+//! does, so that a stopped append continues with `--append --resume`; then the two directories
+//! are exchanged in one step (`renameat2` with `RENAME_EXCHANGE`; readers that hold the old files
+//! open keep reading them) and the old one is removed. Until the exchange the store is the old
+//! one, whole; after it, the new one, whole.
+//!
+//! The store's inputs are its own points where it keeps their arrival ranks (`arrival.bin`,
+//! written by the sorted and GPU engines: [`super::arrival`]): its leaves' records are put back
+//! in the order they arrived ([`Store::records_in_arrival_order`], all of them in memory) and
+//! stand first in the new build, so the original files are not needed. A store without the file
+//! (built by the incremental or partitioned engine, or by an older mortar) is built again from
+//! its recorded inputs, which must still be there, unchanged (`build.json` names them with their
+//! size and modification time).
 //!
 //! What it does not do yet: it costs a whole build (the store's nodes that no new point touches
-//! are built again rather than reused), and it needs the original inputs. Both need the store to
-//! keep each point's arrival rank (the earliest old point of a cell of a node that splits or of
-//! a grown root is not known from Morton-ordered leaves), a store format change not made yet.
+//! are built again rather than reused), and the store's points in arrival order must fit in
+//! memory beside the build (the partitioned engine does not read them piece by piece).
 
 use super::record::{BuildRecord, InputPrint};
+use super::Store;
+use crate::dataset::{Dataset, OpenOptions, RecordSource};
 use crate::error::{Error, Result, StoreError};
+use crate::las::{Header, LasMeta, Vlr};
+use crate::source::Piece;
+use mortar_core::layout::RecordLayout;
 use mortar_core::octree::{BuilderConfig, ColorMode};
+use std::borrow::Cow;
 use std::path::{Path, PathBuf};
 
 /// What `--append` builds: the inputs (the store's, then the new ones), the settings the store
@@ -32,6 +44,13 @@ pub struct AppendPlan {
     pub config: BuilderConfig,
     /// The working directory the new store is built in (`STORE.append`).
     pub work: PathBuf,
+    /// Whether the store's own points stand for its inputs (it has `arrival.bin`); otherwise
+    /// the recorded inputs are read again.
+    pub from_store: bool,
+    /// The new inputs as given.
+    pub more: Vec<String>,
+    /// The store's recorded inputs.
+    pub recorded: Vec<InputPrint>,
 }
 
 /// What the command line asked of an append besides the inputs: a leaf capacity and colour rule
@@ -87,6 +106,202 @@ impl AppendPlan {
     }
 }
 
+impl AppendPlan {
+    /// The inputs of the new store, merged: the store's points in arrival order (where
+    /// `from_store`) or its recorded inputs, then the new ones.
+    /// The store's points are held in memory in arrival order beside the build: where they and
+    /// their sorted copy do not fit `memory`, the recorded inputs are read instead, and where
+    /// those are gone, the append is refused.
+    pub fn open_inputs(&self, opts: &OpenOptions, memory: u64) -> Result<Dataset> {
+        let recorded = || -> Result<Dataset> {
+            let paths = crate::inputs::expand(&self.inputs)?;
+            crate::inputs::open_with(&paths, opts)
+        };
+        if !self.from_store {
+            return recorded();
+        }
+        let store = Store::open(&self.store)?;
+        let rl = store.layout.record_len as u64;
+        let need = store.header.points.saturating_mul(2 * rl + 24);
+        if need > memory {
+            return match check_recorded(&self.store, &self.recorded) {
+                Ok(()) => recorded(),
+                Err(e) => Err(Error::Store {
+                    path: self.store.clone(),
+                    error: StoreError::Append {
+                        why: format!(
+                            "appending from the store's own {} points needs about {} MiB of \
+                             memory, over --memory ({} MiB), and its original inputs cannot be \
+                             read instead ({e}); give more --memory",
+                            store.header.points,
+                            need >> 20,
+                            memory >> 20
+                        ),
+                    },
+                }),
+            };
+        }
+        let Some((records, declared)) = store.records_in_arrival_order()? else {
+            return Err(Error::Store {
+                path: self.store.clone(),
+                error: StoreError::Append { why: "its arrival.bin went away".into() },
+            });
+        };
+        let first: Box<dyn RecordSource> =
+            Box::new(StoreInArrivalOrder::new(&store, records, declared, self.recorded.clone())?);
+        drop(store);
+        let mut warnings = Vec::new();
+        let mut inputs = vec![first];
+        for p in crate::inputs::expand(&self.more)? {
+            let (src, mut w) = crate::inputs::open_source(&p)?;
+            warnings.append(&mut w);
+            inputs.push(src);
+        }
+        let mut ds = Dataset::with_options(inputs, opts)?;
+        // The store's integers stand for its inputs' on its own grid only: new inputs that
+        // change the merged grid would place them otherwise than the originals would be.
+        // (A store without points places nothing.)
+        let own = &ds.inputs[0].header();
+        let moved =
+            (0..3).any(|a| ds.grid.scale[a] != own.scale[a] || ds.grid.offset[a] != own.offset[a]);
+        if moved && ds.inputs[0].point_count() > 0 {
+            drop(ds);
+            return match check_recorded(&self.store, &self.recorded) {
+                Ok(()) => recorded(),
+                Err(e) => Err(Error::Store {
+                    path: self.store.clone(),
+                    error: StoreError::Append {
+                        why: format!(
+                            "the new inputs change the store's scale or offset, so its own points \
+                             cannot stand for its inputs exactly, and those cannot be read ({e})"
+                        ),
+                    },
+                }),
+            };
+        }
+        warnings.append(&mut ds.warnings);
+        ds.warnings = warnings;
+        Ok(ds)
+    }
+}
+
+/// A store's leaf records in arrival order, standing for the inputs it was built from (their
+/// prints go into the new store's build record).
+struct StoreInArrivalOrder {
+    path: PathBuf,
+    meta: LasMeta,
+    layout: RecordLayout,
+    records: Vec<u8>,
+    pieces: Vec<Piece>,
+    declared: super::arrival::DeclaredBox,
+    inputs: Vec<InputPrint>,
+}
+
+impl StoreInArrivalOrder {
+    /// Its header is the store's (the points' bounds); `declared` is the box the inputs'
+    /// headers declared, which placed the store's root.
+    fn new(
+        store: &Store,
+        records: Vec<u8>,
+        declared: super::arrival::DeclaredBox,
+        inputs: Vec<InputPrint>,
+    ) -> Result<StoreInArrivalOrder> {
+        let rl = store.layout.record_len;
+        let n = (records.len() / rl) as u64;
+        let per = crate::source::piece_points(rl);
+        let pieces = (0..n.div_ceil(per))
+            .map(|i| Piece {
+                index: i as usize,
+                first_point: i * per,
+                points: per.min(n - i * per),
+            })
+            .collect();
+        Ok(StoreInArrivalOrder {
+            path: store.path.clone(),
+            meta: store.meta.clone(),
+            layout: store.layout.clone(),
+            records,
+            pieces,
+            declared,
+            inputs,
+        })
+    }
+}
+
+impl RecordSource for StoreInArrivalOrder {
+    fn path(&self) -> &Path {
+        &self.path
+    }
+    fn header(&self) -> &Header {
+        &self.meta.header
+    }
+    fn vlrs(&self) -> &[Vlr] {
+        &self.meta.vlrs
+    }
+    fn evlrs(&self) -> &[Vlr] {
+        &self.meta.evlrs
+    }
+    fn layout(&self) -> &RecordLayout {
+        &self.layout
+    }
+    fn point_count(&self) -> u64 {
+        (self.records.len() / self.layout.record_len) as u64
+    }
+    fn pieces(&self) -> Vec<Piece> {
+        self.pieces.clone()
+    }
+    fn read_piece(&self, piece: &Piece) -> Result<Cow<'_, [u8]>> {
+        let rl = self.layout.record_len;
+        let s = piece.first_point as usize * rl;
+        let e = s + piece.points as usize * rl;
+        match self.records.get(s..e) {
+            Some(r) => Ok(Cow::Borrowed(r)),
+            None => Err(Error::Store {
+                path: self.path.clone(),
+                error: StoreError::PieceCount { piece: piece.index },
+            }),
+        }
+    }
+    fn is_compressed(&self) -> bool {
+        false
+    }
+    fn borrows_pieces(&self) -> bool {
+        true
+    }
+    fn declared_box(&self) -> Option<super::arrival::DeclaredBox> {
+        Some(self.declared)
+    }
+    fn stands_for(&self) -> Option<&[InputPrint]> {
+        Some(&self.inputs)
+    }
+}
+
+/// Checks that the recorded inputs of `store` are all there, unchanged (size and modification
+/// time), as an append that builds again from them needs.
+fn check_recorded(store: &Path, recorded: &[InputPrint]) -> Result<()> {
+    let bad =
+        |why: String| Error::Store { path: store.to_path_buf(), error: StoreError::Append { why } };
+    for InputPrint { path, bytes, modified_ns } in recorded {
+        let meta = std::fs::metadata(path).map_err(|e| {
+            bad(format!(
+                "--append builds again from the store's inputs, and {path} cannot be read ({e})"
+            ))
+        })?;
+        let ns = meta
+            .modified()
+            .ok()
+            .and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok())
+            .map_or(0, |d| d.as_nanos());
+        if meta.len() != *bytes || ns != *modified_ns {
+            return Err(bad(format!(
+                "--append builds again from the store's inputs, and {path} changed since the \
+                 store was built (size or modification time)"
+            )));
+        }
+    }
+    Ok(())
+}
+
 /// The plan's inputs and settings from the store's build record (see [`plan_append`]).
 fn plan_inputs(store: &Path, more: &[String]) -> Result<AppendPlan> {
     let bad =
@@ -108,23 +323,9 @@ fn plan_inputs(store: &Path, more: &[String]) -> Result<AppendPlan> {
                 .into(),
         ));
     }
-    for InputPrint { path, bytes, modified_ns } in &record.inputs {
-        let meta = std::fs::metadata(path).map_err(|e| {
-            bad(format!(
-                "--append builds again from the store's inputs, and {path} cannot be read ({e})"
-            ))
-        })?;
-        let ns = meta
-            .modified()
-            .ok()
-            .and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok())
-            .map_or(0, |d| d.as_nanos());
-        if meta.len() != *bytes || ns != *modified_ns {
-            return Err(bad(format!(
-                "--append builds again from the store's inputs, and {path} changed since the \
-                 store was built (size or modification time)"
-            )));
-        }
+    let from_store = super::arrival::exists(store);
+    if !from_store {
+        check_recorded(store, &record.inputs)?;
     }
     let mut inputs: Vec<String> = record.inputs.iter().map(|i| i.path.clone()).collect();
     inputs.extend(more.iter().cloned());
@@ -142,7 +343,15 @@ fn plan_inputs(store: &Path, more: &[String]) -> Result<AppendPlan> {
     let store = std::fs::canonicalize(store).map_err(|e| Error::io(store, e))?;
     let mut work = store.as_os_str().to_owned();
     work.push(".append");
-    Ok(AppendPlan { store, inputs, config, work: PathBuf::from(work) })
+    Ok(AppendPlan {
+        store,
+        inputs,
+        config,
+        work: PathBuf::from(work),
+        from_store,
+        more: more.to_vec(),
+        recorded: record.inputs,
+    })
 }
 
 /// Checks, before an append builds into `plan.work`, that no stopped append is left there

@@ -15,6 +15,17 @@ pub(crate) fn header_bounds(
         if src.point_count() == 0 {
             continue;
         }
+        // A store standing for its inputs: their box, as its build placed the root by it (on
+        // the same grid: `--append` refuses another).
+        if let Some(declared) = src.declared_box() {
+            if let Some((l, h)) = declared {
+                for a in 0..3 {
+                    lo[a] = lo[a].min(l[a]);
+                    hi[a] = hi[a].max(h[a]);
+                }
+            }
+            continue;
+        }
         match header_box(ds, src.as_ref()) {
             Ok((l, h)) => {
                 for a in 0..3 {

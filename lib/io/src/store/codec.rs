@@ -820,7 +820,7 @@ fn gps_of_key(k: u64) -> u64 {
 /// bit 1, z on bit 2 of each triple), without making the keys: the axis whose coordinates differ
 /// in the highest bit decides, z before y before x where that bit is the same.
 #[inline]
-fn morton_cmp(a: [u32; 3], b: [u32; 3]) -> std::cmp::Ordering {
+pub(crate) fn morton_cmp(a: [u32; 3], b: [u32; 3]) -> std::cmp::Ordering {
     let mut axis = 0;
     let mut top = a[0] ^ b[0];
     for k in 1..3 {

@@ -269,6 +269,31 @@ pub(crate) fn sort_records(
     Sorted { records, arrival, rl }
 }
 
+/// Where each piece's records begin among all (`starts[p]`; the last entry is the count).
+pub(crate) fn piece_starts(records: &[&[u8]], rl: usize) -> Vec<usize> {
+    let mut starts = vec![0usize; records.len() + 1];
+    for (k, r) in records.iter().enumerate() {
+        starts[k + 1] = starts[k] + r.len() / rl;
+    }
+    starts
+}
+
+/// Writes the store's `arrival.bin` ([`super::arrival`]): the sorted records' arrival numbers
+/// (`piece << 32 | index`) as ranks among all records (`starts` from [`piece_starts`]).
+/// `header` is the box the inputs' headers declared.
+pub(crate) fn write_arrival(
+    writer: &StoreWriter,
+    sorted: &Sorted,
+    starts: &[usize],
+    header: Option<([i32; 3], [i32; 3])>,
+) -> Result<()> {
+    let rank = |i: usize| {
+        let a = sorted.arrival[i];
+        (starts[(a >> 32) as usize] + (a & 0xffff_ffff) as usize) as u64
+    };
+    super::arrival::write(&writer.dir, sorted.arrival.len(), rank, header)
+}
+
 /// Builds the store in `writer` from `ds` with the sorted engine; `header` is the headers' box
 /// (see [`super::build`]).
 pub(crate) fn build_into(
@@ -285,6 +310,7 @@ pub(crate) fn build_into(
     let Input { slabs, mut hist, all, root, promised, bounds: (lo, hi) } =
         read_input(ds, header, &mut report, t0)?;
     let records: Vec<&[u8]> = slabs.iter().map(|(r, _)| &**r).collect();
+    let starts = piece_starts(&records, rl);
     let g = grid_of(root);
     let shift = bucket_shift(root);
     if root != promised {
@@ -328,6 +354,7 @@ pub(crate) fn build_into(
         total,
         t0,
     )?;
+    write_arrival(writer, &sorted, &starts, header)?;
     crate::cleanup::trace("written", t0);
     report.seconds = t0.elapsed().as_secs_f64();
     Ok(report)

@@ -41,7 +41,8 @@
 //! the payloads are coded on the CPU.
 
 use super::engine::{
-    bucket_shift, color_of, grid_of, histogram, read_input, sort_records, write_tree, Input, Sorted,
+    bucket_shift, color_of, grid_of, histogram, piece_starts, read_input, sort_records,
+    write_arrival, write_tree, Input, Sorted,
 };
 use super::options::{BuildOptions, BuildProgress, BuildReport, BuiltBy};
 use super::writer::*;
@@ -106,10 +107,7 @@ pub(crate) fn build_into(
     let Input { slabs, hist, all, root, promised, bounds } =
         read_input(ds, header, &mut report, t0)?;
     let records: Vec<&[u8]> = slabs.iter().map(|(r, _)| &**r).collect();
-    let mut starts = vec![0usize; records.len() + 1];
-    for (k, r) in records.iter().enumerate() {
-        starts[k + 1] = starts[k] + r.len() / rl;
-    }
+    let starts = piece_starts(&records, rl);
     let n = starts[records.len()];
     if n >= u32::MAX as usize {
         return Err(Error::TooManyPoints { what: "build --engine gpu" });
@@ -250,6 +248,7 @@ pub(crate) fn build_into(
         ds.declared_points(),
         t0,
     )?;
+    write_arrival(writer, &sorted, &starts, header)?;
     report.seconds = t0.elapsed().as_secs_f64();
     Ok(report)
 }

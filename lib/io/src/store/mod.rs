@@ -28,6 +28,7 @@
 //! engines write each node once.
 
 pub mod append;
+pub mod arrival;
 mod bounds;
 mod build;
 pub(crate) mod codec;

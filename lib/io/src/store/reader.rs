@@ -220,6 +220,80 @@ impl Store {
         })
     }
 
+    /// Every leaf record in arrival order (the order of the build's inputs), from the store's
+    /// `arrival.bin` ([`super::arrival`]); `None` where it has none. The records are those
+    /// `mortar sort store/` gives (exact positions, every attribute byte), each put at its rank:
+    /// the leaves in Morton order of their cubes, each leaf's points in payload order, are the
+    /// order the file lists ranks in. Holds all records in memory.
+    /// With them, the box the inputs' headers declared.
+    pub fn records_in_arrival_order(
+        &self,
+    ) -> Result<Option<(Vec<u8>, super::arrival::DeclaredBox)>> {
+        let Some(super::arrival::Arrival { ranks, declared }) =
+            super::arrival::read(&self.path, self.header.points)?
+        else {
+            return Ok(None);
+        };
+        let bad = |why: String| Error::Store {
+            path: self.path.join(super::arrival::ARRIVAL_FILE),
+            error: StoreError::Arrival { why },
+        };
+        let log2 = self.header.root_size_log2;
+        if log2 > 32 {
+            return Err(bad(format!("a root cube of 2^{log2} units is not supported")));
+        }
+        // Each leaf's corner, as an offset from the root's (below 2^32 on every axis).
+        let mut leaves: Vec<(usize, [u32; 3])> = Vec::with_capacity(self.leaves.len());
+        for &l in &self.leaves {
+            let e = &self.entries[l];
+            let Some(shift) = log2.checked_sub(e.level) else {
+                return Err(bad(format!(
+                    "leaf {l} lies deeper (level {}) than its root's units",
+                    e.level
+                )));
+            };
+            leaves.push((l, e.index.map(|i| ((i as u64) << shift) as u32)));
+        }
+        leaves.sort_unstable_by(|a, b| codec::morton_cmp(a.1, b.1));
+        let mut starts = Vec::with_capacity(leaves.len());
+        let mut at = 0usize;
+        for &(l, _) in &leaves {
+            starts.push(at);
+            at += self.entries[l].count as usize;
+        }
+        let rl = self.layout.record_len;
+        let mut out = crate::sort::zeroed_huge::<u8>(ranks.len() * rl);
+        let op = mortar_core::par::SendPtr(out.as_mut_ptr());
+        use rayon::prelude::*;
+        leaves.par_iter().zip(starts).try_for_each(|(&(l, _), s)| {
+            let op = &op;
+            let raw = self.raw_node(l)?;
+            let d = node_data(&raw);
+            let g = d.grid();
+            let al = d.header.attr_len as usize;
+            for i in 0..d.header.count as usize {
+                let p = g.decode_exact([d.words[0][i], d.words[1][i], d.words[2][i]]);
+                let mut r = [0u8; 12];
+                for a in 0..3 {
+                    r[4 * a..4 * a + 4].copy_from_slice(&p[a].to_le_bytes());
+                }
+                let to = ranks[s + i] as usize * rl;
+                // SAFETY: the ranks are a permutation of 0..points (checked on reading), so
+                // each record's slot is written once, within `out`.
+                unsafe {
+                    std::ptr::copy_nonoverlapping(r.as_ptr(), op.0.add(to), 12);
+                    std::ptr::copy_nonoverlapping(
+                        d.attributes[i * al..(i + 1) * al].as_ptr(),
+                        op.0.add(to + 12),
+                        al,
+                    );
+                }
+            }
+            Ok::<(), Error>(())
+        })?;
+        Ok(Some((out, declared)))
+    }
+
     /// Indices of the leaf entries.
     pub fn leaves(&self) -> &[usize] {
         &self.leaves

@@ -48,10 +48,13 @@ impl BuildRecord {
         let inputs = ds
             .inputs
             .iter()
-            .map(|i| {
+            .flat_map(|i| -> Vec<InputPrint> {
+                if let Some(s) = i.stands_for() {
+                    return s.to_vec();
+                }
                 let p = i.path();
                 let meta = std::fs::metadata(p).ok();
-                InputPrint {
+                vec![InputPrint {
                     path: std::fs::canonicalize(p)
                         .unwrap_or_else(|_| p.to_path_buf())
                         .display()
@@ -61,7 +64,7 @@ impl BuildRecord {
                         .and_then(|m| m.modified().ok())
                         .and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok())
                         .map_or(0, |d| d.as_nanos()),
-                }
+                }]
             })
             .collect();
         BuildRecord {

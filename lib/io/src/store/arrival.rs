@@ -1,0 +1,250 @@
+//! `arrival.bin`: each leaf point's arrival rank (its place in the build's inputs, 0 for the
+//! first record of the first input), so that the store's own points can stand for its inputs
+//! (issue 29 item 4, `mortar build --append` without the original files; STORE_FORMAT.md,
+//! "`arrival.bin`").
+//!
+//! The ranks are listed in the order of the leaves' points: the leaves in Morton order of their
+//! cubes (depth first, children by octant), each leaf's points in payload order. That is the
+//! sorted engine's order of all records, so the file is its arrival numbers mapped to ranks.
+//! Written once, after the last commit and before the build record says the build finished;
+//! a store without it (the incremental and partitioned engines, or an older mortar) is
+//! extended from its original inputs.
+//!
+//! The file also keeps the box the inputs' headers declared (on the store's grid, with the
+//! build's margin of one unit; [`super::bounds`]), which places the root cube of a build of
+//! them: `source.las` keeps no bounds.
+//!
+//! Layout (little endian): magic `MORTARRV`, `u32` version (1), `u32` flags (bit 0: a declared
+//! box follows), `u64` points, `u64` blocks, the box (`i32` min x, y, z, then max; zero without
+//! one), then each block's stored length (`u64`), then the blocks. A block holds up to
+//! [`BLOCK`] ranks: the zig-zag of the wrapping differences of consecutive ranks (the first from
+//! 0) as eight byte planes, in one zstd frame (level 1).
+
+use crate::error::{Error, Result, StoreError};
+use rayon::prelude::*;
+use std::path::Path;
+
+/// The file's name in a store directory.
+pub const ARRIVAL_FILE: &str = "arrival.bin";
+const MAGIC: [u8; 8] = *b"MORTARRV";
+const VERSION: u32 = 1;
+const HEADER: usize = 56;
+
+/// The box the inputs' headers declared, on the store's grid (see the module docs).
+pub type DeclaredBox = Option<([i32; 3], [i32; 3])>;
+
+/// What `arrival.bin` holds.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Arrival {
+    /// Per leaf point (in the order the module docs give), its arrival rank.
+    pub ranks: Vec<u64>,
+    /// The box the inputs' headers declared.
+    pub declared: DeclaredBox,
+}
+/// Ranks per block.
+pub const BLOCK: usize = 1 << 20;
+
+/// Codes `n` ranks (`rank(i)` for the leaves' point `i`) as one block each [`BLOCK`].
+fn encode_block(ranks: impl Iterator<Item = u64>, len: usize) -> Vec<u8> {
+    let mut planes = vec![0u8; 8 * len];
+    let mut prev = 0u64;
+    for (i, r) in ranks.enumerate() {
+        let d = r.wrapping_sub(prev) as i64;
+        prev = r;
+        let z = ((d << 1) ^ (d >> 63)) as u64;
+        for (b, byte) in z.to_le_bytes().into_iter().enumerate() {
+            planes[b * len + i] = byte;
+        }
+    }
+    zstd::bulk::compress(&planes, 1).expect("zstd compresses into a growing buffer")
+}
+
+/// Writes `arrival.bin` into `dir` (a temporary name, then renamed): `n` ranks, `rank(i)` the
+/// arrival rank of the leaves' point `i` (see the module docs), and the inputs' declared box.
+pub fn write(
+    dir: &Path,
+    n: usize,
+    rank: impl Fn(usize) -> u64 + Sync,
+    declared: DeclaredBox,
+) -> Result<()> {
+    let blocks: Vec<Vec<u8>> = (0..n.div_ceil(BLOCK))
+        .into_par_iter()
+        .map(|b| {
+            let s = b * BLOCK;
+            let e = (s + BLOCK).min(n);
+            encode_block((s..e).map(&rank), e - s)
+        })
+        .collect();
+    let mut out = Vec::with_capacity(
+        HEADER + 8 * blocks.len() + blocks.iter().map(|b| b.len()).sum::<usize>(),
+    );
+    out.extend_from_slice(&MAGIC);
+    out.extend_from_slice(&VERSION.to_le_bytes());
+    out.extend_from_slice(&(declared.is_some() as u32).to_le_bytes());
+    out.extend_from_slice(&(n as u64).to_le_bytes());
+    out.extend_from_slice(&(blocks.len() as u64).to_le_bytes());
+    let (lo, hi) = declared.unwrap_or_default();
+    for v in lo.iter().chain(&hi) {
+        out.extend_from_slice(&v.to_le_bytes());
+    }
+    for b in &blocks {
+        out.extend_from_slice(&(b.len() as u64).to_le_bytes());
+    }
+    for b in &blocks {
+        out.extend_from_slice(b);
+    }
+    let p = dir.join(ARRIVAL_FILE);
+    let tmp = dir.join(format!("{ARRIVAL_FILE}.tmp"));
+    std::fs::write(&tmp, &out).map_err(|e| Error::io(&tmp, e))?;
+    std::fs::rename(&tmp, &p).map_err(|e| Error::io(&p, e))
+}
+
+/// Whether the store `dir` has an arrival file.
+pub fn exists(dir: &Path) -> bool {
+    dir.join(ARRIVAL_FILE).is_file()
+}
+
+/// The ranks of the store `dir`'s `points` leaf points (see the module docs), checked: the
+/// file's count must be `points` and the ranks a permutation of `0..points`. `None` where the
+/// store has no arrival file.
+pub fn read(dir: &Path, points: u64) -> Result<Option<Arrival>> {
+    let p = dir.join(ARRIVAL_FILE);
+    let bytes = match std::fs::read(&p) {
+        Ok(b) => b,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+        Err(e) => return Err(Error::io(&p, e)),
+    };
+    let bad = |why: String| Error::Store { path: p.clone(), error: StoreError::Arrival { why } };
+    let u64_at = |at: usize| -> Option<u64> {
+        bytes.get(at..at + 8).map(|b| u64::from_le_bytes(b.try_into().expect("8 bytes")))
+    };
+    if bytes.len() < HEADER || bytes[..8] != MAGIC {
+        return Err(bad("not an arrival file (no MORTARRV header)".into()));
+    }
+    let version = u32::from_le_bytes(bytes[8..12].try_into().expect("4 bytes"));
+    if version != VERSION {
+        return Err(bad(format!("arrival file version {version} is not supported")));
+    }
+    let flags = u32::from_le_bytes(bytes[12..16].try_into().expect("4 bytes"));
+    let i32_at =
+        |k: usize| i32::from_le_bytes(bytes[32 + 4 * k..36 + 4 * k].try_into().expect("4"));
+    let declared = match flags {
+        0 => None,
+        1 => Some(([0, 1, 2].map(i32_at), [3, 4, 5].map(i32_at))),
+        f => return Err(bad(format!("unknown flags {f:#x}"))),
+    };
+    let n = u64_at(16).expect("header checked");
+    let nblocks = u64_at(24).expect("header checked");
+    if n != points {
+        return Err(bad(format!("holds {n} ranks, the store's leaves hold {points} points")));
+    }
+    // Both checked against the store's points (counted from its leaves), so sizes below are
+    // bounded by what the store holds, not by this file's header.
+    if nblocks != points.div_ceil(BLOCK as u64) {
+        return Err(bad(format!("declares {nblocks} blocks for {points} ranks")));
+    }
+    let nb = nblocks as usize;
+    let table = HEADER + 8 * nb;
+    if bytes.len() < table {
+        return Err(bad("truncated (its block table)".into()));
+    }
+    let mut spans = Vec::with_capacity(nb);
+    let mut at = table;
+    for b in 0..nb {
+        let len = u64_at(HEADER + 8 * b).expect("table checked") as usize;
+        let end = at.checked_add(len).filter(|&e| e <= bytes.len());
+        let Some(end) = end else {
+            return Err(bad(format!("truncated (block {b})")));
+        };
+        spans.push(at..end);
+        at = end;
+    }
+    if at != bytes.len() {
+        return Err(bad(format!("{} bytes after its last block", bytes.len() - at)));
+    }
+    let n = points as usize;
+    let mut ranks = vec![0u64; n];
+    ranks.par_chunks_mut(BLOCK).zip(spans.into_par_iter()).enumerate().try_for_each(
+        |(b, (out, span))| {
+            let len = out.len();
+            let planes = zstd::bulk::decompress(&bytes[span], 8 * len)
+                .map_err(|e| bad(format!("block {b}: {e}")))?;
+            if planes.len() != 8 * len {
+                return Err(bad(format!(
+                    "block {b} holds {} bytes, not {}",
+                    planes.len(),
+                    8 * len
+                )));
+            }
+            let mut prev = 0u64;
+            for (i, r) in out.iter_mut().enumerate() {
+                let mut z = [0u8; 8];
+                for (k, byte) in z.iter_mut().enumerate() {
+                    *byte = planes[k * len + i];
+                }
+                let z = u64::from_le_bytes(z);
+                let d = ((z >> 1) as i64) ^ -((z & 1) as i64);
+                prev = prev.wrapping_add(d as u64);
+                *r = prev;
+            }
+            Ok(())
+        },
+    )?;
+    // A permutation of 0..n: each rank below n, none twice.
+    let mut seen = vec![0u64; n.div_ceil(64)];
+    for &r in &ranks {
+        if r >= points {
+            return Err(bad(format!("rank {r} is not below the store's {points} points")));
+        }
+        let (w, bit) = ((r / 64) as usize, 1u64 << (r % 64));
+        if seen[w] & bit != 0 {
+            return Err(bad(format!("rank {r} is given twice")));
+        }
+        seen[w] |= bit;
+    }
+    Ok(Some(Arrival { ranks, declared }))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn tmpdir(name: &str) -> std::path::PathBuf {
+        let d = std::env::temp_dir().join(format!("mortar-arrival-{name}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&d);
+        std::fs::create_dir_all(&d).unwrap();
+        d
+    }
+
+    #[test]
+    fn round_trip_and_checks() {
+        let d = tmpdir("rt");
+        // A permutation over more than one block: a scanline-like walk reversed in places.
+        let n = BLOCK + 12_345;
+        let perm: Vec<u64> = (0..n as u64)
+            .map(|i| if (i / 1000) % 2 == 0 { i } else { (i / 1000) * 1000 + 999 - i % 1000 })
+            .collect();
+        let declared = Some(([-5, 0, 7], [9, i32::MAX, 8]));
+        write(&d, n, |i| perm[i], declared).unwrap();
+        let got = read(&d, n as u64).unwrap().unwrap();
+        assert_eq!(got, Arrival { ranks: perm, declared });
+        // Another count than the store's, a file cut short, a rank twice, a rank too large.
+        assert!(read(&d, n as u64 - 1).is_err());
+        let p = d.join(ARRIVAL_FILE);
+        let whole = std::fs::read(&p).unwrap();
+        std::fs::write(&p, &whole[..whole.len() - 3]).unwrap();
+        let e = read(&d, n as u64).unwrap_err().to_string();
+        assert!(e.contains("arrival.bin") && e.contains("truncated"), "{e}");
+        write(&d, 3, |i| [0, 2, 0][i], None).unwrap();
+        assert!(read(&d, 3).unwrap_err().to_string().contains("twice"));
+        write(&d, 3, |i| [0, 1, 7][i], None).unwrap();
+        assert!(read(&d, 3).unwrap_err().to_string().contains("not below"));
+        std::fs::write(&p, b"MORTARRV").unwrap();
+        assert!(read(&d, 3).is_err());
+        std::fs::remove_file(&p).unwrap();
+        assert!(read(&d, 3).unwrap().is_none());
+        write(&d, 0, |_| 0, None).unwrap();
+        assert_eq!(read(&d, 0).unwrap().unwrap(), Arrival { ranks: Vec::new(), declared: None });
+        let _ = std::fs::remove_dir_all(&d);
+    }
+}
