@@ -26,15 +26,17 @@ fn resume(input: &Path, out: &Path) -> Command {
     c
 }
 
-/// The hierarchy (header and entries) and the live payloads of a store.
-fn snapshot(dir: &Path) -> (Vec<u8>, Vec<u8>) {
+/// The hierarchy (header and entries), the live payloads and the arrival ranks (where the
+/// engine keeps them) of a store.
+fn snapshot(dir: &Path) -> (Vec<u8>, Vec<u8>, Vec<u8>) {
     let mut h = std::fs::read(dir.join("hierarchy.bin")).unwrap();
     // The commit number counts commits, and a partitioned build's provisional commits come
     // every --commit-every seconds: not part of what the store holds.
     h[16..24].fill(0);
     let s = Store::open(dir).unwrap();
     let nodes = std::fs::read(dir.join("nodes.bin")).unwrap();
-    (h, nodes[..s.header.nodes_len as usize].to_vec())
+    let arrival = std::fs::read(dir.join("arrival.bin")).unwrap_or_default();
+    (h, nodes[..s.header.nodes_len as usize].to_vec(), arrival)
 }
 
 /// A store that was stopped: empty, or it opens at its last commit and draws.

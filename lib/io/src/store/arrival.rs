@@ -3,12 +3,14 @@
 //! (issue 29 item 4, `mortar build --append` without the original files; STORE_FORMAT.md,
 //! "`arrival.bin`").
 //!
-//! The ranks are listed in the order of the leaves' points: the leaves in Morton order of their
-//! cubes (depth first, children by octant), each leaf's points in payload order. That is the
-//! sorted engine's order of all records, so the file is its arrival numbers mapped to ranks.
-//! Written once, after the last commit and before the build record says the build finished;
-//! a store without it (the incremental and partitioned engines, or an older mortar) is
-//! extended from its original inputs.
+//! The ranks are listed leaf by leaf, the leaves in Morton order of their cubes (depth first,
+//! children by octant: the sorted engine's order of all records), each leaf's points in its
+//! coded order: GPS time order where the payload is coded so (codec 2), else payload order. Scans
+//! arrive in time order, so consecutive ranks then differ by little and the file is small (a
+//! leaf's Morton order would interleave its flight lines). Written once, after the last commit
+//! and before the build record says the build finished; a store without it (the incremental and
+//! partitioned engines, or an older mortar) is extended from
+//! its original inputs.
 //!
 //! The file also keeps the box the inputs' headers declared (on the store's grid, with the
 //! build's margin of one unit; [`super::bounds`]), which places the root cube of a build of
@@ -190,18 +192,19 @@ pub fn read(dir: &Path, points: u64) -> Result<Option<Arrival>> {
             Ok(())
         },
     )?;
-    // A permutation of 0..n: each rank below n, none twice.
-    let mut seen = vec![0u64; n.div_ceil(64)];
-    for &r in &ranks {
+    // A permutation of 0..n: each rank below n, none twice (a bit a rank, set in parallel).
+    use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
+    let seen: Vec<AtomicU64> = (0..n.div_ceil(64)).map(|_| AtomicU64::new(0)).collect();
+    ranks.par_iter().try_for_each(|&r| {
         if r >= points {
             return Err(bad(format!("rank {r} is not below the store's {points} points")));
         }
-        let (w, bit) = ((r / 64) as usize, 1u64 << (r % 64));
-        if seen[w] & bit != 0 {
+        let bit = 1u64 << (r % 64);
+        if seen[(r / 64) as usize].fetch_or(bit, Relaxed) & bit != 0 {
             return Err(bad(format!("rank {r} is given twice")));
         }
-        seen[w] |= bit;
-    }
+        Ok(())
+    })?;
     Ok(Some(Arrival { ranks, declared }))
 }
 

@@ -253,7 +253,7 @@ pub(crate) fn encode(raw: Vec<u8>, order: Option<Order>) -> Vec<u8> {
     if (0..n).any(|i| src.grid.encode(src.pos(i)) != src.words(i)) {
         return raw;
     }
-    coded(h, &src, order, raw.len()).unwrap_or(raw)
+    coded(h, &src, order, raw.len()).map_or(raw, |(c, _)| c)
 }
 
 /// The coded payload of the points `src` under header `h`, or `None` where it would not be
@@ -263,9 +263,9 @@ fn coded<'a>(
     src: &impl Points<'a>,
     order: Option<Order>,
     raw_len: usize,
-) -> Option<Vec<u8>> {
+) -> Option<(Vec<u8>, Option<Vec<u32>>)> {
     let order = order.filter(|_| !morton_only());
-    let (codec, mode, body) = body_of(src, h.min, h.attr_len as usize, order)?;
+    let (codec, mode, body, seq) = body_of(src, h.min, h.attr_len as usize, order)?;
     let z = zstd_compress(&body)?;
     let total = (64 + z.len()).next_multiple_of(8);
     if total >= raw_len || z.len() > u32::MAX as usize {
@@ -276,7 +276,7 @@ fn coded<'a>(
     out.extend_from_slice(bytemuck::bytes_of(&h));
     out.extend_from_slice(&z);
     out.resize(total, 0);
-    Some(out)
+    Some((out, seq))
 }
 
 /// Encodes one node's payload (entry offset left 0) from its `count` points: `pos(i)`,
@@ -296,6 +296,26 @@ pub(crate) fn encode_payload<'r>(
     attrs: impl Fn(usize) -> &'r [u8],
     order: Option<Order>,
 ) -> std::result::Result<(NodeEntry, Vec<u8>), PayloadError> {
+    encode_payload_ordered(key, kind, count, attr_len, pos, color, attrs, order)
+        .map(|(e, b, _)| (e, b))
+}
+
+/// The order a payload's points are coded in where it is not the payload's own (codec 2).
+pub(crate) type CodedOrder = Option<Vec<u32>>;
+
+/// [`encode_payload`], and the coded order where it is not the payload's (codec 2): `seq[t]` is
+/// the payload index of coded point `t`.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn encode_payload_ordered<'r>(
+    key: NodeKey,
+    kind: u32,
+    count: usize,
+    attr_len: usize,
+    pos: impl Fn(usize) -> [i32; 3],
+    color: impl Fn(usize) -> u32,
+    attrs: impl Fn(usize) -> &'r [u8],
+    order: Option<Order>,
+) -> std::result::Result<(NodeEntry, Vec<u8>, CodedOrder), PayloadError> {
     let raw_len = payload_len(count as u64, attr_len as u64);
     if count > 0 && raw_len <= CODE_LIMIT {
         // The points gathered once: the coder walks them several times (bounds, colour mode,
@@ -304,13 +324,13 @@ pub(crate) fn encode_payload<'r>(
         let src = Gathered::of(count, attr_len, &pos, &color, &attrs);
         let grid = super::format::payload_grid(key, count, |i| src.pos[i])?;
         let h = super::format::node_header(key, kind, count, &grid, attr_len);
-        if let Some(c) = coded(h, &&src, order, raw_len as usize) {
-            return Ok((super::format::node_entry(key, kind, count, c.len()), c));
+        if let Some((c, seq)) = coded(h, &&src, order, raw_len as usize) {
+            return Ok((super::format::node_entry(key, kind, count, c.len()), c, seq));
         }
     }
     let (entry, raw) =
         super::format::encode_raw_payload(key, kind, count, attr_len, pos, color, attrs)?;
-    Ok((entry, raw))
+    Ok((entry, raw, None))
 }
 
 /// The codec, the colour mode and the uncompressed body of the points `src` (records of `al`
@@ -321,7 +341,7 @@ fn body_of<'a>(
     min: [i32; 3],
     al: usize,
     order: Option<Order>,
-) -> Option<(u32, u32, Vec<u8>)> {
+) -> Option<(u32, u32, Vec<u8>, CodedOrder)> {
     let n = src.len();
     if n == 0 {
         return None;
@@ -437,7 +457,7 @@ fn body_of<'a>(
             planes_of(&rec[..m * al], al, k, len, &mut ab[j * n..], n, t0);
         }
     }
-    Some((codec, mode, body))
+    Some((codec, mode, body, (codec == ZSTD_GPS_ORDER).then_some(seq)))
 }
 
 /// Bytes `k..k + len` of the `m` records of `al` bytes in `rec` written as planes: byte `k + c`
@@ -630,12 +650,18 @@ impl Decoded<'_> {
 
 /// The version 2 payload of the stored payload `b` (borrowed where it is [`RAW`]).
 pub(crate) fn decode(b: &[u8]) -> Result<Decoded<'_>, PayloadError> {
+    decode_ordered(b).map(|(d, _)| d)
+}
+
+/// [`decode`], and the coded order where it is not the payload's (codec 2): `seq[i]` is the
+/// coded place of payload point `i`.
+pub(crate) fn decode_ordered(b: &[u8]) -> Result<(Decoded<'_>, Option<Vec<u32>>), PayloadError> {
     if b.len() < 64 {
         return Err(PayloadError::Short);
     }
     let h: NodeHeader = bytemuck::pod_read_unaligned(&b[..64]);
     let ordered = match codec_of(&h) {
-        RAW => return Ok(Decoded::Borrowed(b)),
+        RAW => return Ok((Decoded::Borrowed(b), None)),
         ZSTD_COLUMNS => false,
         ZSTD_GPS_ORDER => true,
         _ => return Err(PayloadError::Damaged),
@@ -759,7 +785,7 @@ pub(crate) fn decode(b: &[u8]) -> Result<Decoded<'_>, PayloadError> {
         };
         out_colors[4 * i..4 * i + 4].copy_from_slice(&c.to_le_bytes());
     }
-    Ok(Decoded::Owned(store))
+    Ok((Decoded::Owned(store), order.map(|_| seq)))
 }
 
 /// What coding in acquisition order needs to know of a node: its cube's corner (so that its

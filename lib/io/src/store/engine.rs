@@ -278,20 +278,21 @@ pub(crate) fn piece_starts(records: &[&[u8]], rl: usize) -> Vec<usize> {
     starts
 }
 
-/// Writes the store's `arrival.bin` ([`super::arrival`]): the sorted records' arrival numbers
-/// (`piece << 32 | index`) as ranks among all records (`starts` from [`piece_starts`]).
-/// `header` is the box the inputs' headers declared.
+/// Writes the store's `arrival.bin` ([`super::arrival`]): the arrival numbers
+/// (`piece << 32 | index`) of the leaves' points in their coded order ([`write_tree`] puts them
+/// so) as ranks among all records (`starts` from [`piece_starts`]); `header` is the box the
+/// inputs' headers declared.
 pub(crate) fn write_arrival(
     writer: &StoreWriter,
-    sorted: &Sorted,
+    arrival: &[u64],
     starts: &[usize],
     header: Option<([i32; 3], [i32; 3])>,
 ) -> Result<()> {
     let rank = |i: usize| {
-        let a = sorted.arrival[i];
+        let a = arrival[i];
         (starts[(a >> 32) as usize] + (a & 0xffff_ffff) as usize) as u64
     };
-    super::arrival::write(&writer.dir, sorted.arrival.len(), rank, header)
+    super::arrival::write(&writer.dir, arrival.len(), rank, header)
 }
 
 /// Builds the store in `writer` from `ds` with the sorted engine; `header` is the headers' box
@@ -320,7 +321,7 @@ pub(crate) fn build_into(
     let ts = Instant::now();
     // Counted twice: once scattered into buckets, once sorted in its bucket.
     ds.progress.stage("sorting", 2 * all.count, "points");
-    let sorted = sort_records(&records, &hist, rl, &g, shift, &ds.progress, |p, i| {
+    let mut sorted = sort_records(&records, &hist, rl, &g, shift, &ds.progress, |p, i| {
         (p as u64) << 32 | i as u64
     });
     drop(records);
@@ -340,12 +341,14 @@ pub(crate) fn build_into(
     report.batch_seconds.push(report.tree_seconds);
     crate::cleanup::trace("tree", t0);
     ds.progress.stage("writing", tree.nodes.len() as u64, "nodes");
+    let mut arrival = std::mem::take(&mut sorted.arrival);
     write_tree(
         writer,
         &tree,
         root,
         opts,
         &sorted,
+        &mut arrival,
         &color,
         (lo, hi),
         &mut report,
@@ -354,7 +357,8 @@ pub(crate) fn build_into(
         total,
         t0,
     )?;
-    write_arrival(writer, &sorted, &starts, header)?;
+    write_arrival(writer, &arrival, &starts, header)?;
+    crate::cleanup::trace("arrival ranks written", t0);
     crate::cleanup::trace("written", t0);
     report.seconds = t0.elapsed().as_secs_f64();
     Ok(report)
@@ -484,6 +488,7 @@ pub(crate) fn write_tree(
     root: Cube,
     opts: &BuildOptions,
     sorted: &Sorted,
+    arrival: &mut [u64],
     color: &ColorSource,
     bounds: ([i32; 3], [i32; 3]),
     report: &mut BuildReport,
@@ -519,6 +524,29 @@ pub(crate) fn write_tree(
     let dir = writer.dir.clone();
     let layout = writer.layout.clone();
     let order = |key| crate::store::codec::Order::of(root, key, &layout);
+    // Each leaf's arrival numbers put in its coded order as it is encoded (`arrival.bin` lists
+    // them so: [`super::arrival`]); the kept leaves' (a resumed build) from their stored
+    // payloads' order.
+    let ap = SendPtr(arrival.as_mut_ptr());
+    (0..kept.len()).into_par_iter().try_for_each(|id| -> Result<()> {
+        let SortedContent::Leaf(run) = &tree.nodes[id].content else { return Ok(()) };
+        let b = writer.read_payload(id, None)?;
+        let (_, seq) = crate::store::codec::decode_ordered(&b).map_err(|m| Error::Payload {
+            path: writer.dir.join(NODES_FILE),
+            error: m.in_node(id),
+        })?;
+        if let Some(seq) = seq {
+            let ap = &ap;
+            // SAFETY: leaves' runs are disjoint ranges of `arrival` (held mutably here).
+            unsafe {
+                let tmp: Vec<u64> = (0..seq.len()).map(|i| *ap.0.add(run.start + i)).collect();
+                for (i, &t) in seq.iter().enumerate() {
+                    ap.0.add(run.start + t as usize).write(tmp[i]);
+                }
+            }
+        }
+        Ok(())
+    })?;
     let encode = |id: usize, n: &SortedNode| -> Result<(usize, NodeEntry, Vec<u8>)> {
         // The record of the node's point i: a run of the sorted records, or the voxels' picks
         // (a branch the predictor learns per node, and inlined, unlike a boxed closure).
@@ -527,7 +555,7 @@ pub(crate) fn write_tree(
             SortedContent::Inner(v) => (INNER, 0, v),
         };
         let idx = |i: usize| if kind == LEAF { run + i } else { picks[i] as usize };
-        crate::store::codec::encode_payload(
+        let (e, b, seq) = crate::store::codec::encode_payload_ordered(
             n.key,
             kind,
             n.count(),
@@ -537,8 +565,17 @@ pub(crate) fn write_tree(
             |i| &sorted.record(idx(i))[12..],
             order(n.key),
         )
-        .map(|(e, b)| (id, e, b))
-        .map_err(|error| Error::Payload { path: dir.clone(), error })
+        .map_err(|error| Error::Payload { path: dir.clone(), error })?;
+        if let (LEAF, Some(seq)) = (kind, seq) {
+            let ap = &ap;
+            // SAFETY: leaves' runs are disjoint ranges of `arrival` (which this function holds
+            // mutably), each leaf encoded once, by one thread.
+            unsafe {
+                let tmp: Vec<u64> = seq.iter().map(|&i| *ap.0.add(run + i as usize)).collect();
+                std::ptr::copy_nonoverlapping(tmp.as_ptr(), ap.0.add(run), tmp.len());
+            }
+        }
+        Ok((id, e, b))
     };
     for level in &levels {
         if level.end <= kept.len() {

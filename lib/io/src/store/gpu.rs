@@ -234,12 +234,15 @@ pub(crate) fn build_into(
     crate::cleanup::trace("leaves checked", t0);
     let color = color_of(ds, &all);
     ds.progress.stage("writing", stree.nodes.len() as u64, "nodes");
+    let mut sorted = sorted;
+    let mut arrival = std::mem::take(&mut sorted.arrival);
     write_tree(
         writer,
         &stree,
         root,
         opts,
         &sorted,
+        &mut arrival,
         &color,
         bounds,
         &mut report,
@@ -248,7 +251,8 @@ pub(crate) fn build_into(
         ds.declared_points(),
         t0,
     )?;
-    write_arrival(writer, &sorted, &starts, header)?;
+    write_arrival(writer, &arrival, &starts, header)?;
+    crate::cleanup::trace("arrival ranks written", t0);
     report.seconds = t0.elapsed().as_secs_f64();
     Ok(report)
 }

@@ -223,8 +223,8 @@ impl Store {
     /// Every leaf record in arrival order (the order of the build's inputs), from the store's
     /// `arrival.bin` ([`super::arrival`]); `None` where it has none. The records are those
     /// `mortar sort store/` gives (exact positions, every attribute byte), each put at its rank:
-    /// the leaves in Morton order of their cubes, each leaf's points in payload order, are the
-    /// order the file lists ranks in. Holds all records in memory.
+    /// the leaves in Morton order of their cubes, each leaf's points in its coded order, are
+    /// the order the file lists ranks in. Holds all records in memory.
     /// With them, the box the inputs' headers declared.
     pub fn records_in_arrival_order(
         &self,
@@ -267,17 +267,20 @@ impl Store {
         use rayon::prelude::*;
         leaves.par_iter().zip(starts).try_for_each(|(&(l, _), s)| {
             let op = &op;
-            let raw = self.raw_node(l)?;
+            let (raw, seq) =
+                codec::decode_ordered(self.node_bytes(l)).map_err(|e| self.damaged(l, e))?;
             let d = node_data(&raw);
             let g = d.grid();
             let al = d.header.attr_len as usize;
             for i in 0..d.header.count as usize {
+                // The ranks are listed in the leaf's coded order.
+                let c = seq.as_ref().map_or(i, |q| q[i] as usize);
                 let p = g.decode_exact([d.words[0][i], d.words[1][i], d.words[2][i]]);
                 let mut r = [0u8; 12];
                 for a in 0..3 {
                     r[4 * a..4 * a + 4].copy_from_slice(&p[a].to_le_bytes());
                 }
-                let to = ranks[s + i] as usize * rl;
+                let to = ranks[s + c] as usize * rl;
                 // SAFETY: the ranks are a permutation of 0..points (checked on reading), so
                 // each record's slot is written once, within `out`.
                 unsafe {

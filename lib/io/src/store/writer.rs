@@ -375,7 +375,7 @@ impl StoreWriter {
     }
 
     /// The last written payload of node `id`, which must hold `count` points or voxels.
-    fn read_payload(&self, id: usize, count: Option<u64>) -> Result<Vec<u8>> {
+    pub(crate) fn read_payload(&self, id: usize, count: Option<u64>) -> Result<Vec<u8>> {
         use std::os::unix::fs::FileExt;
         let np = self.dir.join(NODES_FILE);
         let e = self.entries.get(id).copied().flatten().ok_or_else(|| Error::Store {
