@@ -3,7 +3,8 @@
 # (BASE without arrival.bin, NEW with it; each a folder with mortar and mortar-gen):
 #  1. interleaved builds of 100 M points of mortar-gen (default settings: the sorted engine),
 #     both binaries, medians: what writing the ranks costs;
-#  2. the sizes of nodes.bin and arrival.bin;
+#  2. the sizes of nodes.bin and arrival.bin, and the GPU engine's store (arrival.bin too)
+#     compared with the sorted engine's;
 #  3. 20 M points more appended to the 100 M store, interleaved: from the store's own points
 #     (arrival.bin; the original LAS moved away, else it is read), from the original inputs (the same store without arrival.bin), and the
 #     build of both inputs from scratch; the appended stores compared with that build.
@@ -17,7 +18,9 @@ echo "machine: $(nproc) cpus, $(lscpu | grep -E '^(Thread|Core)' | tr -s ' ' | t
 t() { local t0=$(date +%s.%N); "$@" > /dev/null 2>&1 || echo "FAILED: $*"; python3 -c "print(round($(date +%s.%N) - $t0, 3))"; }
 rm -rf s; "$new/mortar" build g100.las -o s -q
 echo "SIZE nodes.bin $(stat -c %s s/nodes.bin) arrival.bin $(stat -c %s s/arrival.bin)"
-rm -rf so; cp -r s so; rm so/arrival.bin
+rm -rf sg; "$new/mortar" build g100.las -o sg -q --engine gpu
+for y in nodes.bin hierarchy.bin source.las arrival.bin; do cmp -s s/$y sg/$y && echo "EQ gpu-engine $y SAME" || echo "EQ gpu-engine $y DIFFERENT"; done
+rm -rf sg so; cp -r s so; rm so/arrival.bin
 for r in $(seq "${ROUNDS:-3}"); do
   rm -rf b; echo "R build-base $(t "$base/mortar" build g100.las -o b -q)"
   rm -rf b; echo "R build-new $(t "$new/mortar" build g100.las -o b -q)"
