@@ -110,13 +110,26 @@ impl AppendPlan {
 impl AppendPlan {
     /// The inputs of the new store, merged: the store's points in arrival order (where
     /// `from_store`) or its recorded inputs, then the new ones.
+    ///
     /// The store's points are held in memory in arrival order beside the build: where they and
-    /// their sorted copy do not fit `memory`, the recorded inputs are read instead, and where
-    /// those are gone, the append is refused.
+    /// their sorted copy do not fit `memory`, or where the new inputs move the merged grid, the
+    /// recorded inputs are read instead, and where those are gone, the append is refused.
     pub fn open_inputs(&self, opts: &OpenOptions, memory: u64) -> Result<Dataset> {
         let recorded = || -> Result<Dataset> {
             let paths = crate::inputs::expand(&self.inputs)?;
             crate::inputs::open_with(&paths, opts)
+        };
+        // The recorded inputs where the store's points cannot stand for them (`why`).
+        let instead = |why: String| -> Result<Dataset> {
+            match check_recorded(&self.store, &self.recorded) {
+                Ok(()) => recorded(),
+                Err(e) => Err(Error::Store {
+                    path: self.store.clone(),
+                    error: StoreError::Append {
+                        why: format!("{why}, and its original inputs cannot be read instead ({e})"),
+                    },
+                }),
+            }
         };
         if !self.from_store {
             return recorded();
@@ -125,22 +138,13 @@ impl AppendPlan {
         let rl = store.layout.record_len as u64;
         let need = store.header.points.saturating_mul(2 * rl + 24);
         if need > memory {
-            return match check_recorded(&self.store, &self.recorded) {
-                Ok(()) => recorded(),
-                Err(e) => Err(Error::Store {
-                    path: self.store.clone(),
-                    error: StoreError::Append {
-                        why: format!(
-                            "appending from the store's own {} points needs about {} MiB of \
-                             memory, over --memory ({} MiB), and its original inputs cannot be \
-                             read instead ({e}); give more --memory",
-                            store.header.points,
-                            need >> 20,
-                            memory >> 20
-                        ),
-                    },
-                }),
-            };
+            return instead(format!(
+                "appending from the store's own {} points needs about {} MiB of memory, over \
+                 --memory ({} MiB): give more --memory",
+                store.header.points,
+                need >> 20,
+                memory >> 20
+            ));
         }
         let Some((records, declared)) = store.records_in_arrival_order()? else {
             return Err(Error::Store {
@@ -167,18 +171,11 @@ impl AppendPlan {
             (0..3).any(|a| ds.grid.scale[a] != own.scale[a] || ds.grid.offset[a] != own.offset[a]);
         if moved && ds.inputs[0].point_count() > 0 {
             drop(ds);
-            return match check_recorded(&self.store, &self.recorded) {
-                Ok(()) => recorded(),
-                Err(e) => Err(Error::Store {
-                    path: self.store.clone(),
-                    error: StoreError::Append {
-                        why: format!(
-                            "the new inputs change the store's scale or offset, so its own points \
-                             cannot stand for its inputs exactly, and those cannot be read ({e})"
-                        ),
-                    },
-                }),
-            };
+            return instead(
+                "the new inputs change the store's scale or offset, so its own points cannot \
+                 stand for its inputs exactly"
+                    .into(),
+            );
         }
         warnings.append(&mut ds.warnings);
         ds.warnings = warnings;
