@@ -262,6 +262,10 @@ fn a_store_with_arrival_ranks_needs_no_original_inputs() {
     let store = dir.join("s");
     build(std::slice::from_ref(&a), &store, &[]);
     assert!(store.join(ARRIVAL).exists(), "the sorted engine keeps arrival ranks");
+    let o = run_ok(mortar().arg("info").arg(&store).arg("--json"));
+    let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let said = j[0]["store"]["arrival_bytes"].as_u64();
+    assert_eq!(said, Some(std::fs::metadata(store.join(ARRIVAL)).unwrap().len()), "{j}");
     let kept = dir.join("a.kept");
     std::fs::rename(&a, &kept).unwrap();
     run_ok(&mut append(&store, std::slice::from_ref(&b), &[]));

@@ -25,7 +25,7 @@ pub trait RecordSource: Send + Sync {
     /// The inputs this source stands for in a store's build record, where it is not a file of
     /// its own: a store read in arrival order for `--append` stands for the inputs it was built
     /// from ([`crate::store::append`]).
-    fn stands_for(&self) -> Option<&[crate::store::InputPrint]> {
+    fn stands_for(&self) -> Option<&[InputPrint]> {
         None
     }
     /// The box the headers of the inputs this source stands for declared, on its own grid
@@ -104,6 +104,18 @@ impl RecordSource for LasInput {
     fn decode_only(&mut self, attributes: &[&str]) {
         LasInput::decode_only(self, attributes)
     }
+}
+
+/// One input as a store's build record knows it (`build.json`), and as a source that stands for
+/// other inputs names them ([`RecordSource::stands_for`]).
+#[derive(Clone, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct InputPrint {
+    /// Its path, absolute where it can be made so.
+    pub path: String,
+    /// Its size in bytes.
+    pub bytes: u64,
+    /// Its modification time, nanoseconds since the epoch.
+    pub modified_ns: u128,
 }
 
 /// What a writer needs of a dataset besides its points: the header fields to keep, the (E)VLRs,

@@ -196,6 +196,9 @@ pub struct StoreInfo {
     pub leaf_capacity: u32,
     pub largest_leaf: u64,
     pub nodes_bytes: u64,
+    /// Bytes of `arrival.bin` (0 without one): the store can be appended to without its original
+    /// inputs where it has one.
+    pub arrival_bytes: u64,
     pub root_min: [i64; 3],
     pub root_size_log2: u32,
 }
@@ -215,6 +218,8 @@ pub fn store_info(s: &crate::store::Store) -> StoreInfo {
         leaf_capacity: s.header.leaf_capacity,
         largest_leaf: leaves.iter().map(|e| e.count).max().unwrap_or(0),
         nodes_bytes: s.covered.iter().sum(),
+        arrival_bytes: std::fs::metadata(s.path.join(crate::store::arrival::ARRIVAL_FILE))
+            .map_or(0, |m| m.len()),
         root_min: s.header.root_min,
         root_size_log2: s.header.root_size_log2,
     }

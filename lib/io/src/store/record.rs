@@ -12,16 +12,7 @@ use std::path::Path;
 /// The name of the build record in a store directory.
 pub const RECORD_FILE: &str = "build.json";
 
-/// One input as the record knows it.
-#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
-pub struct InputPrint {
-    /// Its path, absolute where it can be made so.
-    pub path: String,
-    /// Its size in bytes.
-    pub bytes: u64,
-    /// Its modification time, nanoseconds since the epoch.
-    pub modified_ns: u128,
-}
+pub use crate::dataset::InputPrint;
 
 /// The build record.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
