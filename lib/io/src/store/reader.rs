@@ -275,22 +275,11 @@ impl Store {
             for i in 0..d.header.count as usize {
                 // The ranks are listed in the leaf's coded order.
                 let c = seq.as_ref().map_or(i, |q| q[i] as usize);
-                let p = g.decode_exact([d.words[0][i], d.words[1][i], d.words[2][i]]);
-                let mut r = [0u8; 12];
-                for a in 0..3 {
-                    r[4 * a..4 * a + 4].copy_from_slice(&p[a].to_le_bytes());
-                }
                 let to = ranks[s + c] as usize * rl;
                 // SAFETY: the ranks are a permutation of 0..points (checked on reading), so
                 // each record's slot is written once, within `out`.
-                unsafe {
-                    std::ptr::copy_nonoverlapping(r.as_ptr(), op.0.add(to), 12);
-                    std::ptr::copy_nonoverlapping(
-                        d.attributes[i * al..(i + 1) * al].as_ptr(),
-                        op.0.add(to + 12),
-                        al,
-                    );
-                }
+                let slot = unsafe { std::slice::from_raw_parts_mut(op.0.add(to), 12 + al) };
+                d.record_into(&g, i, slot);
             }
             Ok::<(), Error>(())
         })?;
@@ -367,6 +356,19 @@ impl Store {
 }
 
 /// The columns of the version 2 payload `b` (8-aligned: in the map, or decoded into words).
+impl NodeData<'_> {
+    /// The whole record of leaf point `i` (exact position, then every attribute byte) written
+    /// into `out` (`12 + attr_len` bytes); `g` is [`NodeData::grid`].
+    fn record_into(&self, g: &BatchGrid, i: usize, out: &mut [u8]) {
+        let al = self.header.attr_len as usize;
+        let p = g.decode_exact([self.words[0][i], self.words[1][i], self.words[2][i]]);
+        for a in 0..3 {
+            out[4 * a..4 * a + 4].copy_from_slice(&p[a].to_le_bytes());
+        }
+        out[12..12 + al].copy_from_slice(&self.attributes[i * al..(i + 1) * al]);
+    }
+}
+
 fn node_data(b: &[u8]) -> NodeData<'_> {
     let header: NodeHeader = bytemuck::pod_read_unaligned(&b[..64]);
     let n = header.count as usize;
@@ -430,11 +432,9 @@ impl RecordSource for Store {
             let g = d.grid();
             let al = d.header.attr_len as usize;
             for i in 0..d.header.count as usize {
-                let p = g.decode_exact([d.words[0][i], d.words[1][i], d.words[2][i]]);
-                for v in p {
-                    out.extend_from_slice(&v.to_le_bytes());
-                }
-                out.extend_from_slice(&d.attributes[i * al..(i + 1) * al]);
+                let at = out.len();
+                out.resize(at + 12 + al, 0);
+                d.record_into(&g, i, &mut out[at..]);
             }
         }
         if out.len() != piece.points as usize * rl {
