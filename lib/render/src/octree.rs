@@ -33,13 +33,18 @@
 //!
 //! With a budget (`--gpu-memory`) segments of points beyond half of it are paged out (their
 //! leaves read back) and in again as the passes need them; a paged-out segment is skipped by a
-//! split round when none of its points' leaves split, and by a voxel group none of whose grids
-//! its points' leaves lie under (grids are numbered depth first, so a group is a few subtrees).
+//! split round when none of its points' leaves split. For the voxel passes the points are then
+//! put in leaf order (leaves depth first, each in arrival order, a counting sort on the host of
+//! the leaves read back) and cut into new segments, each point's arrival number beside it (the
+//! voxel pass's mode 2): grids are numbered depth first too, so a group of consecutive grids is
+//! a few subtrees, whose points are a few consecutive segments, and a group walks only the
+//! segments that touch it. (Walked in arrival order, a segment of a flight line touched nearly
+//! every group.) With slots (not the store's engine) the segments keep arrival order and a
+//! group skips those none of whose points' leaves lie under its grids.
 //!
 //! What is not done yet (issue 29): the preview does not draw from these buffers; the points are
 //! sorted on the GPU only where they all fit it at once with the sort (else the host sorts them,
-//! at the same time, on its cores); under a small budget every voxel group walks every point
-//! again.
+//! at the same time, on its cores).
 
 use crate::buffers::{read_in_parts, upload_in_parts};
 use crate::context::{GpuContext, GpuError};
@@ -101,10 +106,21 @@ pub fn default_gpu_memory(reported: u64) -> u64 {
 /// and each point's leaf or slot), or its leaves on the host while it is paged out.
 struct Segment<'p> {
     base: u32,
+    /// The points in arrival order: the segment's own, or where `order` is given, all of them.
     pos: &'p [[u32; 3]],
     gpu: Option<(wgpu::Buffer, wgpu::Buffer)>,
     leaves: Option<Vec<u32>>,
     used: u64,
+    /// For the voxel passes of a paged build, the segment's points in leaf order: entries
+    /// `order` of the run's `perm` (arrival numbers, leaves depth first), whose positions are
+    /// gathered from `pos` and whose arrival numbers go into the leaf buffer (mode 2).
+    order: Option<std::ops::Range<usize>>,
+}
+
+impl Segment<'_> {
+    fn len(&self) -> usize {
+        self.order.as_ref().map_or(self.pos.len(), |r| r.len())
+    }
 }
 
 impl std::fmt::Debug for GpuTreeBuilder {
@@ -133,6 +149,9 @@ struct Run<'a, 'p> {
     /// Bytes uploaded and read back, and the seconds each took (transfers timed to their end).
     up: std::cell::Cell<(u64, f64)>,
     down: std::cell::Cell<(u64, f64)>,
+    /// Arrival numbers in leaf order (leaves depth first, each in arrival order), for the
+    /// segments that have an `order` (empty where none has).
+    perm: Vec<u32>,
 }
 
 fn storage(ctx: &GpuContext, label: &str, size: u64) -> wgpu::Buffer {
@@ -373,6 +392,7 @@ impl GpuTreeBuilder {
                 gpu: None,
                 leaves: None,
                 used: 0,
+                order: None,
             })
             .collect();
         // Room for the nodes of a tree with leaves about half full, grown when it fills, within
@@ -397,6 +417,7 @@ impl GpuTreeBuilder {
             config: *config,
             up: Default::default(),
             down: Default::default(),
+            perm: Vec::new(),
         };
         let root = OctreeNode { size_level: size_log2 as u32, ..OctreeNode::default() };
         ctx.queue.write_buffer(&run.nodes, 0, bytemuck::bytes_of(&root));
@@ -417,7 +438,7 @@ impl GpuTreeBuilder {
                 .map(|sg| radix::SegmentRef {
                     pos: &sg.gpu.as_ref().expect("resident").0,
                     base: sg.base,
-                    count: sg.pos.len() as u32,
+                    count: sg.len() as u32,
                 })
                 .collect();
             let v = sorter.sort_segments(ctx, &refs, size_log2, self.transfer_bytes)?;
@@ -493,9 +514,46 @@ impl GpuTreeBuilder {
             }
         }
         ctx.queue.write_buffer(&run.nodes, 0, bytemuck::cast_slice(&raw));
-        // With segments paged, each segment's grids (those of its points' leaves' ancestors,
-        // sorted): a voxel group walks only the segments that touch it.
-        let seg_grids: Option<Vec<Vec<u32>>> = if run.segments.len() > run.resident {
+        // With segments paged, the voxel passes walk the points in leaf order (leaves depth
+        // first, as the grids are numbered): a group of consecutive grids is then touched by a
+        // few consecutive segments, where segments in arrival order (a flight line crosses the
+        // whole scene) each touched nearly every group, so that every group walked every point
+        // again (1 B points within 1.6 GB: 1,007 walks, BENCHMARKS.md). The first-come voxels do
+        // not depend on the order points are walked in (an atomic minimum of their arrival).
+        // The slot pass needs the segments in arrival order: with slots, each segment keeps its
+        // order and walks the groups that its points' leaves lie under.
+        let paged = run.segments.len() > run.resident;
+        let mut grid_span: Vec<(u64, u64)> = Vec::new();
+        let seg_grids: Option<Vec<Vec<u32>>> = if paged && !slots {
+            let leaves: Vec<Vec<u32>> = (0..run.segments.len())
+                .map(|k| match run.segments[k].leaves.take() {
+                    Some(v) if run.segments[k].gpu.is_none() => Ok(v),
+                    _ => run.read_leaves(k),
+                })
+                .collect::<Result<_, GpuError>>()?;
+            let seg_bases: Vec<u32> = run.segments.iter().map(|s| s.base).collect();
+            run.perm = leaf_order(&nodes, &bases, &leaves, &seg_bases)?;
+            drop(leaves);
+            // Each grid's points: a range of the leaf order.
+            grid_span = vec![(0, 0); inner.len()];
+            for (i, s) in subtree_spans(&nodes, &bases).into_iter().enumerate() {
+                if raw[i].child != NO_CHILD {
+                    grid_span[raw[i].grid as usize] = s;
+                }
+            }
+            let n = pos.len();
+            run.segments = (0..n.div_ceil(seg))
+                .map(|k| Segment {
+                    base: 0,
+                    pos,
+                    gpu: None,
+                    leaves: None,
+                    used: 0,
+                    order: Some(k * seg..((k + 1) * seg).min(n)),
+                })
+                .collect();
+            None
+        } else if paged {
             let mut all = Vec::with_capacity(run.segments.len());
             for k in 0..run.segments.len() {
                 let leaves = run.read_leaves(k)?;
@@ -516,11 +574,17 @@ impl GpuTreeBuilder {
         } else {
             None
         };
-        let touches = |k: usize, first: u32, g: u32| {
-            seg_grids.as_ref().is_none_or(|v| {
+        let segments_in_order: Vec<Option<std::ops::Range<usize>>> =
+            run.segments.iter().map(|s| s.order.clone()).collect();
+        let touches = |k: usize, first: u32, g: u32| match &segments_in_order[k] {
+            // In leaf order: a grid's points are a range of it.
+            Some(r) => grid_span[first as usize..(first + g) as usize]
+                .iter()
+                .any(|&(a, b)| a < r.end as u64 && (r.start as u64) < b),
+            None => seg_grids.as_ref().is_none_or(|v| {
                 let i = v[k].partition_point(|&x| x < first);
                 i < v[k].len() && v[k][i] < first + g
-            })
+            }),
         };
         phases.push(("number".to_string(), t.elapsed().as_secs_f64()));
         // 3. voxels, a group of grids at a time: their brick tables within a sixteenth of the
@@ -543,7 +607,7 @@ impl GpuTreeBuilder {
             for s in 0..run.segments.len() {
                 if touches(s, first, g as u32) {
                     walked += 1;
-                    let n = run.segments[s].pos.len() as u32;
+                    let n = run.segments[s].len() as u32;
                     run.dispatch_grids(pass, Some(s), n, first, g)?;
                 }
             }
@@ -638,6 +702,96 @@ impl GpuTreeBuilder {
     }
 }
 
+/// The points' arrival numbers in leaf order: the leaves depth first (`bases`, from
+/// [`leaf_bases`]), each leaf's points in arrival order; `leaves[k]` gives the leaf of each
+/// point of segment `k`, whose first point is number `seg_bases[k]`. A counting sort in a few
+/// parallel parts (consecutive segments each, so that its counters stay one per node and part,
+/// whatever the number of segments). A leaf that is not a leaf of `nodes`, or more points in
+/// one than it counts, is an error of the device.
+fn leaf_order(
+    nodes: &[ArrivalNode],
+    bases: &[u32],
+    leaves: &[Vec<u32>],
+    seg_bases: &[u32],
+) -> Result<Vec<u32>, GpuError> {
+    let n: usize = leaves.iter().map(|l| l.len()).sum();
+    let is_leaf = |l: u32| nodes.get(l as usize).is_some_and(|x| x.first_child == NO_CHILD);
+    if let Some(&l) = leaves.par_iter().flatten().find_any(|&&l| !is_leaf(l)) {
+        return Err(GpuError::Device(format!("a point's leaf {l} is not a leaf of the tree")));
+    }
+    let per = leaves.len().div_ceil(rayon::current_num_threads().max(1)).max(1);
+    let parts: Vec<(&[Vec<u32>], &[u32])> = leaves.chunks(per).zip(seg_bases.chunks(per)).collect();
+    // Per part, its points per node; then, in place, where they begin in the leaf order.
+    let mut at: Vec<Vec<u32>> = parts
+        .par_iter()
+        .map(|(segs, _)| {
+            let mut c = vec![0u32; nodes.len()];
+            for &l in segs.iter().flatten() {
+                c[l as usize] += 1;
+            }
+            c
+        })
+        .collect();
+    let mut next: Vec<u64> = bases.iter().map(|&b| b as u64).collect();
+    for c in at.iter_mut() {
+        for (x, nx) in c.iter_mut().zip(next.iter_mut()) {
+            let k = *x as u64;
+            *x = *nx as u32;
+            *nx += k;
+        }
+    }
+    for (i, nd) in nodes.iter().enumerate() {
+        if nd.first_child == NO_CHILD && next[i] != bases[i] as u64 + nd.count as u64 {
+            return Err(GpuError::Device(format!(
+                "leaf {i} holds {} points where it counts {}",
+                next[i] - bases[i] as u64,
+                nd.count
+            )));
+        }
+    }
+    drop(next);
+    let mut perm = vec![0u32; n];
+    let pp = mortar_core::par::SendPtr(perm.as_mut_ptr());
+    parts.par_iter().zip(at).for_each(|(&(segs, sb), mut at)| {
+        let pp = &pp;
+        for (ls, &base) in segs.iter().zip(sb) {
+            for (i, &l) in ls.iter().enumerate() {
+                let slot = &mut at[l as usize];
+                // SAFETY: the leaves' ranges (`bases`, their counts checked above) are disjoint
+                // and within n, and each part writes its own share of each.
+                unsafe { pp.write(*slot as usize, base + i as u32) };
+                *slot += 1;
+            }
+        }
+    });
+    Ok(perm)
+}
+
+/// Per node, its points as a range of the leaf order ([`leaf_order`]): from the base of its
+/// first leaf depth first to the end of its last.
+fn subtree_spans(nodes: &[ArrivalNode], bases: &[u32]) -> Vec<(u64, u64)> {
+    let mut span = vec![(0u64, 0u64); nodes.len()];
+    // Depth first, then backwards: children before their parents.
+    let mut order = Vec::with_capacity(nodes.len());
+    let mut stack = vec![0usize];
+    while let Some(i) = stack.pop() {
+        order.push(i);
+        let c = nodes[i].first_child;
+        if c != NO_CHILD {
+            stack.extend((0..8).rev().map(|o| (c + o) as usize));
+        }
+    }
+    for &i in order.iter().rev() {
+        let c = nodes[i].first_child;
+        span[i] = if c == NO_CHILD {
+            (bases[i] as u64, bases[i] as u64 + nodes[i].count as u64)
+        } else {
+            (span[c as usize].0, span[c as usize + 7].1)
+        };
+    }
+    span
+}
+
 impl Run<'_, '_> {
     fn uniforms(&self, first: u32, count: u32, mode: u32, base: u32) -> OctreeUniforms {
         OctreeUniforms {
@@ -657,7 +811,7 @@ impl Run<'_, '_> {
         let s = seg.expect("a segment");
         self.page_in(s)?;
         let sg = &self.segments[s];
-        let u = self.uniforms(0, sg.pos.len() as u32, mode, sg.base);
+        let u = self.uniforms(0, sg.len() as u32, mode, sg.base);
         self.submit(pass, seg, u)
     }
 
@@ -681,7 +835,12 @@ impl Run<'_, '_> {
             self.page_in(s)?;
         }
         let base = seg.map_or(0, |s| self.segments[s].base);
-        let mut u = self.uniforms(0, items, 0, base);
+        // Mode 2: the points' arrival numbers are in the leaf buffer (a segment in leaf order).
+        let mode = match seg {
+            Some(s) if self.segments[s].order.is_some() => 2,
+            _ => 0,
+        };
+        let mut u = self.uniforms(0, items, mode, base);
         u.grid_first = first;
         u.grid_count = count as u32;
         self.submit(pass, seg, u)
@@ -699,24 +858,39 @@ impl Run<'_, '_> {
                 .filter(|&k| self.segments[k].gpu.is_some())
                 .min_by_key(|&k| self.segments[k].used)
                 .expect("a resident segment");
-            let leaves = self.read_leaves(lru)?;
-            let sg = &mut self.segments[lru];
-            sg.leaves = Some(leaves);
-            sg.gpu = None;
+            // A segment in leaf order is made again from `perm` when it comes back.
+            if self.segments[lru].order.is_none() {
+                let leaves = self.read_leaves(lru)?;
+                self.segments[lru].leaves = Some(leaves);
+            }
+            self.segments[lru].gpu = None;
         }
         let ctx = &self.b.ctx;
         // Timed alone, from an idle queue to the upload's end (the passes wait for it anyway).
         ctx.wait()?;
         let t = Instant::now();
         let sg = &mut self.segments[s];
-        let mut bytes = 12 * sg.pos.len() as u64;
-        let p = self.b.upload("octree points", bytemuck::cast_slice(sg.pos))?;
-        let l = match sg.leaves.take() {
-            Some(v) => {
-                bytes += 4 * v.len() as u64;
-                self.b.upload("octree leaves", bytemuck::cast_slice(&v))?
-            }
-            None => storage(ctx, "octree leaves", 4 * sg.pos.len() as u64),
+        let mut bytes = 12 * sg.len() as u64;
+        let (p, l) = if let Some(r) = &sg.order {
+            // Gathered in leaf order, with their arrival numbers for the leaf buffer.
+            let arrivals = &self.perm[r.clone()];
+            let all = sg.pos;
+            let gathered: Vec<[u32; 3]> = arrivals.par_iter().map(|&a| all[a as usize]).collect();
+            bytes += 4 * arrivals.len() as u64;
+            (
+                self.b.upload("octree points", bytemuck::cast_slice(&gathered))?,
+                self.b.upload("octree leaves", bytemuck::cast_slice(arrivals))?,
+            )
+        } else {
+            let p = self.b.upload("octree points", bytemuck::cast_slice(sg.pos))?;
+            let l = match sg.leaves.take() {
+                Some(v) => {
+                    bytes += 4 * v.len() as u64;
+                    self.b.upload("octree leaves", bytemuck::cast_slice(&v))?
+                }
+                None => storage(ctx, "octree leaves", 4 * sg.pos.len() as u64),
+            };
+            (p, l)
         };
         sg.gpu = Some((p, l));
         ctx.wait()?;
@@ -729,9 +903,9 @@ impl Run<'_, '_> {
     fn read_leaves(&self, s: usize) -> Result<Vec<u32>, GpuError> {
         let sg = &self.segments[s];
         match (&sg.gpu, &sg.leaves) {
-            (Some((_, l)), _) => self.read(l, 4 * sg.pos.len() as u64),
+            (Some((_, l)), _) => self.read(l, 4 * sg.len() as u64),
             (None, Some(v)) => Ok(v.clone()),
-            (None, None) => Ok(vec![0; sg.pos.len()]),
+            (None, None) => Ok(vec![0; sg.len()]),
         }
     }
 

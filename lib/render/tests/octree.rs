@@ -3,7 +3,7 @@
 //! a leaf is left to the atomics). Runs on any adapter, lavapipe in CI.
 
 use mortar_core::octree::arrival::{build_arrival, leaf_bases, ArrivalTree, NO_CHILD};
-use mortar_core::octree::{BuilderConfig, Cube};
+use mortar_core::octree::{BuilderConfig, Cube, SortedContent, SortedNode};
 use mortar_render::context::AtomicPath;
 use mortar_render::octree::GpuTreeBuilder;
 use mortar_render::testing::context_or_skip;
@@ -44,6 +44,23 @@ fn same(gpu: &ArrivalTree, cpu: &ArrivalTree, what: &str) {
     let root = Cube::new([0; 3], 32);
     let (g, c) = (gpu.clone().into_sorted(root, |a| a), cpu.clone().into_sorted(root, |a| a));
     assert_eq!(g.unwrap().nodes, c.unwrap().nodes, "{what}: nodes");
+}
+
+/// The same nodes (keys, leaf ranges, voxels), the first difference named without printing
+/// the trees.
+fn same_nodes(g: &[SortedNode], c: &[SortedNode], what: &str) {
+    assert_eq!(g.len(), c.len(), "{what}: nodes");
+    if let Some(i) = (0..g.len()).find(|&i| g[i] != c[i]) {
+        let (a, b) = (&g[i], &c[i]);
+        let diff = match (&a.content, &b.content) {
+            (SortedContent::Inner(x), SortedContent::Inner(y)) => {
+                let k = (0..x.len().min(y.len())).find(|&k| x[k] != y[k]);
+                format!("voxels {} / {}, first difference at {k:?}", x.len(), y.len())
+            }
+            _ => "contents differ".to_string(),
+        };
+        panic!("{what}: node {i} ({:?}) differs: {diff}", a.key);
+    }
 }
 
 #[test]
@@ -139,11 +156,66 @@ fn paged_segments_give_the_same_tree() {
         .with_segment_points(1_000)
         .with_memory_budget(mortar_render::octree::MIN_GPU_MEMORY)
         .unwrap();
+    let walks = |t: &ArrivalTree| {
+        t.phases.iter().find(|(k, _)| k == "voxel walks").map(|(_, v)| *v as u32).unwrap()
+    };
+    let root = Cube::new([0; 3], 32);
+    let cpu_nodes = cpu.clone().into_sorted(root, |a| a).unwrap().nodes;
     for resident in [1, 2] {
         gpu = gpu.with_resident_segments(resident);
         let g = gpu.build_tree(20, &pos, &config).unwrap();
         same(&g, &cpu, &format!("{resident} segments on the GPU"));
+        // Without slots (the store's engine) the voxel passes walk the points in leaf order,
+        // their arrival numbers beside them: the same nodes and voxels, in fewer walks.
+        let h = gpu.build_tree_with(20, &pos, &config, false).unwrap();
+        let what = format!("{resident} segments on the GPU, in leaf order");
+        same_nodes(&h.clone().into_sorted(root, |a| a).unwrap().nodes, &cpu_nodes, &what);
+        assert!(walks(&h) < walks(&g), "{what}: {} walks against {}", walks(&h), walks(&g));
     }
+}
+
+#[test]
+fn leaf_order_walks_follow_the_groups() {
+    // Points along "flight lines" (each segment crosses the scene, as an airborne scan's
+    // arrival order does) under the smallest budget: in leaf order the voxel groups walk a few
+    // segments each, and the voxels stay the CPU twin's (first come by arrival, ties between
+    // points at one position and between coincident lines included).
+    let Some(ctx) = context_or_skip(AtomicPath::TwoPass32, None) else { return };
+    let mut seed = 0x2545f4914f6cdd1du64;
+    let mut pos: Vec<[u32; 3]> = Vec::new();
+    for line in 0..40u32 {
+        let y = (line % 20) * (1 << 15) + rng(&mut seed) % 1024;
+        for k in 0..1_000u32 {
+            pos.push([k * 1024 + rng(&mut seed) % 64, y, rng(&mut seed) % 4096]);
+        }
+    }
+    let config = BuilderConfig { leaf_capacity: 60, ..BuilderConfig::default() };
+    let cpu = build_arrival(20, &pos, &config).unwrap();
+    let root = Cube::new([0; 3], 32);
+    let gpu = GpuTreeBuilder::new(ctx)
+        .unwrap()
+        .with_segment_points(2_000)
+        .with_memory_budget(mortar_render::octree::MIN_GPU_MEMORY)
+        .unwrap()
+        .with_resident_segments(2);
+    let g = gpu.build_tree_with(20, &pos, &config, false).unwrap();
+    // With slots the segments keep arrival order: each line crosses most groups.
+    let a = gpu.build_tree(20, &pos, &config).unwrap();
+    let walks = |t: &ArrivalTree| {
+        t.phases.iter().find(|(k, _)| k == "voxel walks").map(|(_, v)| *v as u32).unwrap()
+    };
+    assert!(
+        walks(&g) < walks(&a),
+        "flight lines: {} walks in leaf order against {} in arrival order",
+        walks(&g),
+        walks(&a)
+    );
+    same(&a, &cpu, "flight lines in arrival order");
+    same_nodes(
+        &g.into_sorted(root, |a| a).unwrap().nodes,
+        &cpu.into_sorted(root, |a| a).unwrap().nodes,
+        "flight lines in leaf order",
+    );
 }
 
 /// Without `--gpu-memory` the builder keeps within three quarters of the memory the adapter

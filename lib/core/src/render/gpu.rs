@@ -480,7 +480,9 @@ pub struct OctreeUniforms {
     pub grid_count: u32,
     /// Workgroups in x of a dispatch split over x and y.
     pub groups_x: u32,
-    /// The insert pass: 0 descends from the root (a new batch), 1 again from a leaf that split.
+    /// The insert pass: 0 descends from the root (a new batch), 1 again from a leaf that split;
+    /// the voxel pass: 0 numbers the points from `base`, 2 reads each point's arrival number
+    /// from the leaf buffer (a paged build's points in leaf order).
     pub mode: u32,
     /// The arrival number of the bound segment's first point.
     pub base: u32,
