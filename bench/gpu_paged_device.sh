@@ -15,7 +15,7 @@ row() { # row <bin dir> <name> <input> <args...>: one timed build into s_<name>,
   rm -rf "s_$name"
   local t0 t1 j
   t0=$(date +%s.%N)
-  j=$(/usr/bin/time -f '%M' -o rss.txt "$bin/mortar" build "$f" -o "s_$name" -q --json --engine gpu "$@" 2>err.txt | tr -d '\n ')
+  j=$(/usr/bin/time -f '%M' -o rss.txt "$bin/mortar" build "$f" -o "s_$name" -q --json --engine gpu "$@" 2>err.txt | tr -d '\n')
   t1=$(date +%s.%N)
   if [ -z "$j" ]; then echo "R $f $name FAILED $(head -c 300 err.txt)"; return; fi
   echo "R $f $name $(python3 -c "
