@@ -25,10 +25,13 @@ print(round($t1-$t0,3), j['seconds'], j['tree_seconds'], j['write_seconds'], int
       'voxels', round(s.get('voxels',0),2), 'walks', int(s.get('voxel walks',0)), 'up_GB', round(s.get('upload bytes',0)/1e9,1),
       'expand', round(s.get('expand',0),2), 'number', round(s.get('number',0),2))" "$j")"
 }
-same() { # same <a> <b>: the store files byte for byte
-  local d=SAME
-  for x in nodes.bin hierarchy.bin source.las arrival.bin; do cmp -s "$1/$x" "$2/$x" || d="DIFFERENT($x)"; done
-  echo "S $1 $2 $d"
+same() { # same <a> <b>: each store file byte for byte (a file neither store has is skipped)
+  local line="S $1 $2"
+  for x in nodes.bin hierarchy.bin source.las arrival.bin; do
+    if [ ! -e "$1/$x" ] && [ ! -e "$2/$x" ]; then continue; fi
+    if cmp -s "$1/$x" "$2/$x"; then line="$line $x:same"; else line="$line $x:DIFFERENT"; fi
+  done
+  echo "$line"
 }
 {
 echo "machine: $(nproc) cores, $(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2 | xargs), $(free -g | awk '/Mem:/{print $2}') GiB; $(nvidia-smi -L 2>/dev/null | head -1)"
