@@ -161,6 +161,16 @@ fn the_gpu_engine_writes_the_sorted_engines_store_on_merged_tiles() {
         same_store(&bcts, &["--leaf-capacity", "20000", "--gpu-memory", "32M"], "gpu-bcts-paged"),
         Some(true)
     );
+    // Copies of one real tile, paged: every point has twins in other segments, so the first
+    // come voxels of the leaf-order walk must be decided by arrival number alone.
+    let autzen = data.join("PDAL/test/data/las/autzen_trim.las");
+    if autzen.exists() {
+        let copies = vec![autzen; 12];
+        assert_eq!(
+            same_store(&copies, &["--leaf-capacity", "200", "--gpu-memory", "32M"], "gpu-twins"),
+            Some(true)
+        );
+    }
     let dir = tempdir("gpu-small-budget");
     let e = build(&bcts, &dir.join("s"), "gpu", &["--gpu-memory", "1M"]).unwrap_err();
     assert!(e.contains("--gpu-memory") && !e.contains("panicked"), "{e}");
