@@ -25,13 +25,43 @@ fn append(store: &Path, more: &[PathBuf], extra: &[&str]) -> Command {
     c
 }
 
-/// Every file of the two stores is the same, byte for byte (the arrival ranks too, where
-/// either has them).
+/// The two stores are the same: every file byte for byte (the arrival ranks too, where either
+/// has them), or, where one was extended in place (its old payload files linked in as segments
+/// `nodes-<s>.bin`), the same source header, build record and ranks byte for byte and the same
+/// tree ([`same_tree`]).
 fn same_store(a: &Path, b: &Path, what: &str) {
-    same_files(a, b, &FILES, what);
     let arrival = [ARRIVAL];
     if a.join(ARRIVAL).exists() || b.join(ARRIVAL).exists() {
         same_files(a, b, &arrival, what);
+    }
+    if in_place(a) || in_place(b) {
+        same_files(a, b, &["source.las", "build.json"], what);
+        same_tree(a, b, what);
+    } else {
+        same_files(a, b, &FILES, what);
+    }
+}
+
+/// Whether the store holds a payload segment besides `nodes.bin` (an append kept its nodes).
+fn in_place(store: &Path) -> bool {
+    store.join("nodes-1.bin").exists()
+}
+
+/// The two stores hold the same tree: the hierarchy's header but for its commit count and
+/// payload lengths, and every node's entry in order (but for where its payload lies) and
+/// payload bytes.
+fn same_tree(a: &Path, b: &Path, what: &str) {
+    use mortar_io::store::Store;
+    let (x, y) = (Store::open(a).unwrap(), Store::open(b).unwrap());
+    let head = |s: &Store| {
+        let h = &s.header;
+        (h.points, h.root_min, h.root_size_log2, h.leaf_capacity, h.min, h.max, h.node_count)
+    };
+    assert_eq!(head(&x), head(&y), "{what}: hierarchy headers differ");
+    for (i, (e, f)) in x.entries.iter().zip(&y.entries).enumerate() {
+        let key = |e: &mortar_io::store::NodeEntry| (e.level, e.kind, e.index, e.count, e.length);
+        assert_eq!(key(e), key(f), "{what}: node {i}");
+        assert!(x.node_bytes(i) == y.node_bytes(i), "{what}: node {i}'s payload differs");
     }
 }
 
@@ -352,4 +382,178 @@ fn a_store_with_arrival_ranks_needs_no_original_inputs() {
          {regridded} refused (the new file moves the grid)"
     );
     assert!(merged > 50, "only {merged} of {pairs} pairs merged");
+}
+
+/// `mortar build --append STORE MORE --json`, which must succeed: its report.
+fn append_json(store: &Path, more: &[PathBuf], extra: &[&str]) -> serde_json::Value {
+    let o = run_ok(&mut append(store, more, &[extra, &["--json"]].concat()));
+    serde_json::from_slice(&o.stdout).unwrap()
+}
+
+/// New points inside the root, with the colour scale unchanged: the store's nodes that no new
+/// point reaches are kept (its old payload file linked in, only the reached nodes coded again),
+/// and the store is the build of all inputs, node for node and payload byte for payload byte,
+/// with the same ranks, source header and build record: across leaves that split, points that
+/// coincide with old ones (a scan appended to itself), chained appends, a compaction, the GPU
+/// engine's store, and `MORTAR_APPEND_REBUILD=1`'s whole build. Where the root moves, every
+/// node is built again, and the warning says why.
+#[test]
+fn an_append_inside_the_root_keeps_the_nodes_it_does_not_reach() {
+    let dir = tempdir("append-in-place");
+    let a = dir.join("a.las");
+    run_ok(gen().args(["--points", "300000", "--seed", "3", "-o"]).arg(&a));
+    let b = scan_at(&dir, "b.las", 60_000, 4, "500200,5000200,0");
+    for extra in [vec![], vec!["--leaf-capacity", "3000"]] {
+        let what = format!("{extra:?}");
+        let whole_ab = dir.join("whole-ab");
+        let whole_aba = dir.join("whole-aba");
+        let _ = std::fs::remove_dir_all(&whole_ab);
+        let _ = std::fs::remove_dir_all(&whole_aba);
+        build(&[a.clone(), b.clone()], &whole_ab, &extra);
+        build(&[a.clone(), b.clone(), a.clone()], &whole_aba, &extra);
+        let s = dir.join("s");
+        let _ = std::fs::remove_dir_all(&s);
+        build(std::slice::from_ref(&a), &s, &extra);
+        let nodes = std::fs::read(s.join("nodes.bin")).unwrap();
+        let j = append_json(&s, std::slice::from_ref(&b), &[]);
+        let kept = j["kept_nodes"].as_u64().unwrap();
+        assert!(kept > 0 && in_place(&s), "{what}: nothing kept: {j}");
+        assert!(kept < j["nodes"].as_u64().unwrap(), "{what}: every node kept: {j}");
+        // The old payloads are the first segment, as they were; the new file holds less.
+        assert!(std::fs::read(s.join("nodes-1.bin")).unwrap() == nodes, "{what}");
+        assert!(std::fs::metadata(s.join("nodes.bin")).unwrap().len() < nodes.len() as u64);
+        same_store(&s, &whole_ab, &format!("{what}: a, then b in place"));
+        nothing_beside(&s);
+        // Every point again (each position then holds an old and a new point), chained.
+        let j = append_json(&s, std::slice::from_ref(&a), &[]);
+        assert!(j["kept_nodes"].as_u64().unwrap() > 0, "{what}: {j}");
+        assert!(s.join("nodes-2.bin").exists(), "{what}: the second append links two segments");
+        same_store(&s, &whole_aba, &format!("{what}: a, b, then a in place"));
+        // Compacted: one segment of live payloads, the same tree.
+        run_ok(mortar().arg("build").arg("--compact").arg(&s).arg("-q"));
+        same_tree(&s, &whole_aba, &format!("{what}: compacted"));
+        // The whole build on request: the same bytes as the build of all inputs.
+        let r = dir.join("r");
+        let _ = std::fs::remove_dir_all(&r);
+        build(std::slice::from_ref(&a), &r, &extra);
+        run_ok(append(&r, std::slice::from_ref(&b), &[]).env("MORTAR_APPEND_REBUILD", "1"));
+        assert!(!in_place(&r), "{what}: MORTAR_APPEND_REBUILD=1 builds everything");
+        same_store(&r, &whole_ab, &format!("{what}: a, then b built again"));
+    }
+    // The root moves: everything is built again, and said so.
+    let s = dir.join("s");
+    let far = scan_at(&dir, "far.las", 20_000, 6, "501000,5000500,0");
+    let j = append_json(&s, std::slice::from_ref(&far), &[]);
+    let said = j["warnings"].to_string();
+    assert!(said.contains("every node is built again") && said.contains("root cube"), "{j}");
+    assert!(!in_place(&s), "{j}");
+    // The GPU engine's store is extended in place too, to the GPU engine's build of all inputs.
+    let g = dir.join("g");
+    let o =
+        mortar().arg("build").arg(&a).arg("-o").arg(&g).args(["-q", "--engine", "gpu"]).output();
+    let o = o.unwrap();
+    if !o.status.success() && String::from_utf8_lossy(&o.stderr).contains("no GPU adapter") {
+        assert!(std::env::var_os("MORTAR_REQUIRE_GPU").is_none(), "no adapter");
+        eprintln!("SKIP gpu: no adapter");
+        return;
+    }
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let whole_g = dir.join("whole-g");
+    build(&[a.clone(), b.clone()], &whole_g, &["--engine", "gpu"]);
+    let j = append_json(&g, std::slice::from_ref(&b), &[]);
+    assert!(j["kept_nodes"].as_u64().unwrap() > 0 && j["engine"] == "gpu", "{j}");
+    same_store(&g, &whole_g, "the GPU engine's store, then b in place");
+}
+
+/// Real files of every kind (a fourth of the fixtures, LAS and LAZ, every point format and
+/// version mortar reads): each appended to its own store in place equals the build of the file
+/// twice (every point coincides with an old one), and the two halves of each (written by the
+/// las crate, both declaring the file's box; the second half arriving after the first) appended
+/// in place equal the build of both halves.
+#[test]
+fn real_files_appended_in_place_equal_the_merged_build() {
+    let Some(data) = shared_data() else { return };
+    let dir = tempdir("append-in-place-real");
+    let files: Vec<PathBuf> = readable_fixtures(&data)
+        .into_iter()
+        .filter(|p| std::fs::metadata(p).map(|m| m.len() < 3 << 20).unwrap_or(false))
+        .enumerate()
+        .filter(|(i, _)| i % 4 == 0)
+        .map(|(_, p)| p)
+        .collect();
+    let (mut twice, mut halved, mut tried) = (0, 0, 0);
+    for f in &files {
+        tried += 1;
+        let s = dir.join("s");
+        let w = dir.join("w");
+        for d in [&s, &w] {
+            let _ = std::fs::remove_dir_all(d);
+        }
+        let one = mortar().arg("build").arg(f).arg("-o").arg(&s).arg("-q").output().unwrap();
+        if !one.status.success() {
+            continue;
+        }
+        let points = mortar_io::store::Store::open(&s).unwrap().header.points;
+        build(&[f.clone(), f.clone()], &w, &[]);
+        let j = append_json(&s, std::slice::from_ref(f), &[]);
+        let what = format!("{} twice", f.display());
+        if points > 0 {
+            assert!(in_place(&s) && j["kept_nodes"].as_u64().is_some(), "{what}: {j}");
+            twice += 1;
+        }
+        same_store(&s, &w, &what);
+        let Some((h1, h2)) = halves(f, &dir) else { continue };
+        for d in [&s, &w] {
+            let _ = std::fs::remove_dir_all(d);
+        }
+        build(&[h1.clone(), h2.clone()], &w, &[]);
+        build(std::slice::from_ref(&h1), &s, &[]);
+        let j = append_json(&s, std::slice::from_ref(&h2), &[]);
+        same_store(&s, &w, &format!("{} in halves", f.display()));
+        halved += usize::from(in_place(&s));
+        if !in_place(&s) {
+            eprintln!("{} in halves, built again: {}", f.display(), j["warnings"]);
+        }
+    }
+    eprintln!("{twice} of {tried} real files appended to themselves in place, {halved} in halves");
+    assert!(twice > 45 && halved > 25, "only {twice} and {halved} of {tried}");
+}
+
+/// The first and second halves of `f`'s points, written as LAS by the las crate with `f`'s
+/// header (its bounds too); `None` where the las crate cannot read or write it, or it holds under 2 points.
+fn halves(f: &Path, dir: &Path) -> Option<(PathBuf, PathBuf)> {
+    let mut r = las::Reader::from_path(f).ok()?;
+    let header = r.header().clone();
+    let all = r.read_all().ok()?;
+    let (n, rl) = (all.len(), all.record_len());
+    if n < 2 {
+        return None;
+    }
+    let (first, second) = all.raw_bytes().split_at(n / 2 * rl);
+    let mut out = Vec::new();
+    for (name, part) in [("h1.las", first), ("h2.las", second)] {
+        let p = dir.join(name);
+        let mut b = las::Builder::from(header.clone());
+        b.point_format.is_compressed = false;
+        // Uncompressed: without LASzip's record, which would say the points are compressed.
+        b.vlrs.retain(|v| v.user_id != "laszip encoded");
+        let h = b.into_header().ok()?;
+        let pd =
+            las::PointDataBuilder::new().for_header(&h).build_from_bytes(part.to_vec()).ok()?;
+        let mut w = las::Writer::from_path(&p, h).ok()?;
+        w.write_points(&pd).ok()?;
+        w.close().ok()?;
+        drop(w);
+        // The whole file's bounds in both halves' headers, as tiles of one survey declare the
+        // box they cover (the las crate writes its points' own).
+        let b = header.bounds();
+        let mut bytes = std::fs::read(&p).ok()?;
+        let box_ = [b.max.x, b.min.x, b.max.y, b.min.y, b.max.z, b.min.z];
+        for (k, v) in box_.iter().enumerate() {
+            bytes[179 + 8 * k..187 + 8 * k].copy_from_slice(&v.to_le_bytes());
+        }
+        std::fs::write(&p, bytes).ok()?;
+        out.push(p);
+    }
+    Some((out[0].clone(), out[1].clone()))
 }

@@ -5,7 +5,7 @@
 use crate::cli as common;
 use anyhow::Result;
 use mortar_core::octree::{BuilderConfig, ColorMode, DEFAULT_LEAF_CAPACITY};
-use mortar_io::store::{build, BuildOptions, BuildProgress, Engine};
+use mortar_io::store::{build, BuildOptions, BuildProgress, BuildReport, Engine};
 use std::path::PathBuf;
 
 /// `--engine`, parsed apart from the library's [`Engine`] (which knows no command line).
@@ -174,6 +174,34 @@ pub fn run(a: &Args) -> Result<Outcome> {
     if a.leaf_capacity == 0 {
         anyhow::bail!("--leaf-capacity must be at least 1");
     }
+    // --append keeps the store's nodes that no new point reaches where it can (not while a
+    // preview or frames watch the build's commits; MORTAR_APPEND_REBUILD=1 builds everything,
+    // for comparisons), else builds everything again.
+    let mut rebuild_note = None;
+    if let Some(plan) = &append {
+        let watched = a.preview.preview || a.frames.frames.is_some();
+        if !watched && std::env::var_os("MORTAR_APPEND_REBUILD").is_none() {
+            use mortar_io::store::patch::{append_in_place, InPlace};
+            match append_in_place(plan, &a.crs.options(), memory)
+                .map_err(|e| anyhow::Error::from(e).context(plan.failure(false)))?
+            {
+                InPlace::Done(r) => {
+                    mortar_io::store::append::replace_store(plan)?;
+                    common::print_warnings(&r.warnings);
+                    return report(
+                        &r,
+                        &plan.store,
+                        serde_json::Value::Null,
+                        serde_json::Value::Null,
+                    );
+                }
+                InPlace::Rebuild(why) => {
+                    rebuild_note =
+                        Some(format!("{}: every node is built again ({why})", plan.store.display()))
+                }
+            }
+        }
+    }
     let ds = match &append {
         Some(plan) => plan.open_inputs(&a.crs.options(), memory)?,
         None => common::open_dataset(&a.inputs, &a.crs)?,
@@ -258,6 +286,8 @@ pub fn run(a: &Args) -> Result<Outcome> {
         None => e,
     })?;
     drop(bar);
+    let mut r = r;
+    r.warnings.splice(0..0, rebuild_note);
     let output = match &append {
         Some(plan) => {
             mortar_io::store::append::replace_store(plan)?;
@@ -275,25 +305,32 @@ pub fn run(a: &Args) -> Result<Outcome> {
         let sheet = rec.finish()?;
         frames_json = crate::frames::frames_json(rec, &sheet);
     }
-    // The report as it is, and the figures derived from it (the per-batch times summed up).
-    {
-        let n = r.batch_seconds.len().max(1) as f64;
-        let mut j = serde_json::to_value(&r)?;
-        let derived = serde_json::json!({
-            "output": output,
-            "build_seconds": r.batch_seconds.iter().sum::<f64>(),
-            "points_per_second": r.points as f64 / r.seconds.max(1e-9),
-            "batches": r.batch_seconds.len(),
-            "batch_seconds_mean": r.batch_seconds.iter().sum::<f64>() / n,
-            "batch_seconds_max": r.batch_seconds.iter().cloned().fold(0.0, f64::max),
-            "peak_rss_bytes": common::peak_rss_bytes(),
-            "threads": rayon::current_num_threads(),
-            "frames": frames_json,
-            "preview": preview_json,
-        });
-        if let (Some(j), serde_json::Value::Object(d)) = (j.as_object_mut(), derived) {
-            j.extend(d);
-        }
-        Ok(Outcome { json: j, line: None })
+    report(&r, &output, frames_json, preview_json)
+}
+
+/// The build's report as it is, and the figures derived from it (the per-batch times summed up).
+fn report(
+    r: &BuildReport,
+    output: &std::path::Path,
+    frames_json: serde_json::Value,
+    preview_json: serde_json::Value,
+) -> Result<Outcome> {
+    let n = r.batch_seconds.len().max(1) as f64;
+    let mut j = serde_json::to_value(r)?;
+    let derived = serde_json::json!({
+        "output": output,
+        "build_seconds": r.batch_seconds.iter().sum::<f64>(),
+        "points_per_second": r.points as f64 / r.seconds.max(1e-9),
+        "batches": r.batch_seconds.len(),
+        "batch_seconds_mean": r.batch_seconds.iter().sum::<f64>() / n,
+        "batch_seconds_max": r.batch_seconds.iter().cloned().fold(0.0, f64::max),
+        "peak_rss_bytes": common::peak_rss_bytes(),
+        "threads": rayon::current_num_threads(),
+        "frames": frames_json,
+        "preview": preview_json,
+    });
+    if let (Some(j), serde_json::Value::Object(d)) = (j.as_object_mut(), derived) {
+        j.extend(d);
     }
+    Ok(Outcome { json: j, line: None })
 }

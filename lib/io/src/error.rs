@@ -773,3 +773,9 @@ pub enum PayloadError {
     #[error("node {node}: {error}")]
     InNode { node: String, error: Box<PayloadError> },
 }
+
+impl From<mortar_core::octree::OctreeError> for Error {
+    fn from(error: mortar_core::octree::OctreeError) -> Error {
+        Error::Octree { error }
+    }
+}

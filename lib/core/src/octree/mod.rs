@@ -144,6 +144,7 @@ mod builder;
 mod chunks;
 mod cube;
 pub mod lod;
+pub mod patch;
 mod snapshot;
 mod sorted;
 mod types;

@@ -166,10 +166,7 @@ impl AppendPlan {
         // The store's integers stand for its inputs' on its own grid only: new inputs that
         // change the merged grid would place them otherwise than the originals would be.
         // (A store without points places nothing.)
-        let own = &ds.inputs[0].header();
-        let moved =
-            (0..3).any(|a| ds.grid.scale[a] != own.scale[a] || ds.grid.offset[a] != own.offset[a]);
-        if moved && ds.inputs[0].point_count() > 0 {
+        if grid_moved(&ds) {
             drop(ds);
             return instead(
                 "the new inputs change the store's scale or offset, so its own points cannot \
@@ -183,10 +180,21 @@ impl AppendPlan {
     }
 }
 
+/// Whether the merged grid of `ds` is not its first input's (a store standing for its inputs,
+/// with points): its integers would then stand for other positions than its inputs'.
+pub(super) fn grid_moved(ds: &Dataset) -> bool {
+    let own = &ds.inputs[0].header();
+    let moved =
+        (0..3).any(|a| ds.grid.scale[a] != own.scale[a] || ds.grid.offset[a] != own.offset[a]);
+    moved && ds.inputs[0].point_count() > 0
+}
+
 /// A store's leaf records in arrival order, standing for the inputs it was built from (their
-/// prints go into the new store's build record).
-struct StoreInArrivalOrder {
+/// prints go into the new store's build record). [`stand_in`](Self::stand_in) makes one
+/// without the records, for an append that reads the new inputs alone (`super::patch`).
+pub(super) struct StoreInArrivalOrder {
     path: PathBuf,
+    points: u64,
     meta: LasMeta,
     layout: RecordLayout,
     records: Vec<u8>,
@@ -206,23 +214,42 @@ impl StoreInArrivalOrder {
     ) -> Result<StoreInArrivalOrder> {
         let rl = store.layout.record_len;
         let n = (records.len() / rl) as u64;
+        let mut s = StoreInArrivalOrder::stand_in(store, declared, inputs);
+        s.points = n;
+        s.pieces = Self::pieces_of(n, rl);
+        s.records = records;
+        Ok(s)
+    }
+
+    /// The store standing for its inputs (header, layout, declared box, count, pieces) without
+    /// its records: reading a piece fails.
+    pub(super) fn stand_in(
+        store: &Store,
+        declared: super::arrival::DeclaredBox,
+        inputs: Vec<InputPrint>,
+    ) -> StoreInArrivalOrder {
+        let n = store.header.points;
+        StoreInArrivalOrder {
+            path: store.path.clone(),
+            points: n,
+            meta: store.meta.clone(),
+            layout: store.layout.clone(),
+            records: Vec::new(),
+            pieces: Self::pieces_of(n, store.layout.record_len),
+            declared,
+            inputs,
+        }
+    }
+
+    fn pieces_of(n: u64, rl: usize) -> Vec<Piece> {
         let per = crate::source::piece_points(rl);
-        let pieces = (0..n.div_ceil(per))
+        (0..n.div_ceil(per))
             .map(|i| Piece {
                 index: i as usize,
                 first_point: i * per,
                 points: per.min(n - i * per),
             })
-            .collect();
-        Ok(StoreInArrivalOrder {
-            path: store.path.clone(),
-            meta: store.meta.clone(),
-            layout: store.layout.clone(),
-            records,
-            pieces,
-            declared,
-            inputs,
-        })
+            .collect()
     }
 }
 
@@ -243,7 +270,7 @@ impl RecordSource for StoreInArrivalOrder {
         &self.layout
     }
     fn point_count(&self) -> u64 {
-        (self.records.len() / self.layout.record_len) as u64
+        self.points
     }
     fn pieces(&self) -> Vec<Piece> {
         self.pieces.clone()

@@ -16,9 +16,15 @@
 //! build's margin of one unit; [`super::bounds`]), which places the root cube of a build of
 //! them: `source.las` keeps no bounds.
 //!
-//! Layout (little endian): magic `MORTARRV`, `u32` version (1), `u32` flags (bit 0: a declared
-//! box follows), `u64` points, `u64` blocks, the box (`i32` min x, y, z, then max; zero without
-//! one), then each block's stored length (`u64`), then the blocks. A block holds up to
+//! Since version 2 it also keeps the largest RGB component and intensity of the inputs, which
+//! chose the payloads' colours (`mortar_core::color`): an append that keeps the store's nodes
+//! must know that the new points do not change them.
+//!
+//! Layout (little endian): magic `MORTARRV`, `u32` version (2; 1 is read too), `u32` flags (bit
+//! 0: a declared box follows; bit 1: the colour maxima follow), `u64` points, `u64` blocks, the
+//! box (`i32` min x, y, z, then max; zero without one), in version 2 the largest RGB component
+//! and intensity (`u16` each) and four zero bytes, then each block's stored length (`u64`),
+//! then the blocks. A block holds up to
 //! [`BLOCK`] ranks: the zig-zag of the wrapping differences of consecutive ranks (the first from
 //! 0) as eight byte planes, in one zstd frame (level 1).
 
@@ -29,8 +35,10 @@ use std::path::Path;
 /// The file's name in a store directory.
 pub const ARRIVAL_FILE: &str = "arrival.bin";
 const MAGIC: [u8; 8] = *b"MORTARRV";
-const VERSION: u32 = 1;
-const HEADER: usize = 56;
+const VERSION: u32 = 2;
+/// The header's bytes in version 2 (version 1: 56, without the colour maxima).
+const HEADER: usize = 64;
+const HEADER_V1: usize = 56;
 
 /// The box the inputs' headers declared, on the store's grid (see the module docs).
 pub type DeclaredBox = Option<([i32; 3], [i32; 3])>;
@@ -42,6 +50,18 @@ pub struct Arrival {
     pub ranks: Vec<u64>,
     /// The box the inputs' headers declared.
     pub declared: DeclaredBox,
+    /// The inputs' colour maxima (version 2 files).
+    pub colors: Option<ColorMaxima>,
+}
+
+/// The largest RGB component and intensity of a build's inputs: what chose its colours
+/// (`mortar_core::color`; `engine::color_of`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct ColorMaxima {
+    /// The largest RGB component (0 where the records have none).
+    pub max_rgb: u16,
+    /// The largest intensity.
+    pub max_intensity: u16,
 }
 /// Ranks per block.
 pub const BLOCK: usize = 1 << 20;
@@ -62,12 +82,14 @@ fn encode_block(ranks: impl Iterator<Item = u64>, len: usize) -> Vec<u8> {
 }
 
 /// Writes `arrival.bin` into `dir` (a temporary name, then renamed): `n` ranks, `rank(i)` the
-/// arrival rank of the leaves' point `i` (see the module docs), and the inputs' declared box.
+/// arrival rank of the leaves' point `i` (see the module docs), the inputs' declared box and
+/// their colour maxima.
 pub fn write(
     dir: &Path,
     n: usize,
     rank: impl Fn(usize) -> u64 + Sync,
     declared: DeclaredBox,
+    colors: ColorMaxima,
 ) -> Result<()> {
     let blocks: Vec<Vec<u8>> = (0..n.div_ceil(BLOCK))
         .into_par_iter()
@@ -82,13 +104,16 @@ pub fn write(
     );
     out.extend_from_slice(&MAGIC);
     out.extend_from_slice(&VERSION.to_le_bytes());
-    out.extend_from_slice(&(declared.is_some() as u32).to_le_bytes());
+    out.extend_from_slice(&(declared.is_some() as u32 | 2).to_le_bytes());
     out.extend_from_slice(&(n as u64).to_le_bytes());
     out.extend_from_slice(&(blocks.len() as u64).to_le_bytes());
     let (lo, hi) = declared.unwrap_or_default();
     for v in lo.iter().chain(&hi) {
         out.extend_from_slice(&v.to_le_bytes());
     }
+    out.extend_from_slice(&colors.max_rgb.to_le_bytes());
+    out.extend_from_slice(&colors.max_intensity.to_le_bytes());
+    out.extend_from_slice(&[0; 4]);
     for b in &blocks {
         out.extend_from_slice(&(b.len() as u64).to_le_bytes());
     }
@@ -120,21 +145,27 @@ pub fn read(dir: &Path, points: u64) -> Result<Option<Arrival>> {
     let u64_at = |at: usize| -> Option<u64> {
         bytes.get(at..at + 8).map(|b| u64::from_le_bytes(b.try_into().expect("8 bytes")))
     };
-    if bytes.len() < HEADER || bytes[..8] != MAGIC {
+    if bytes.len() < HEADER_V1 || bytes[..8] != MAGIC {
         return Err(bad("not an arrival file (no MORTARRV header)".into()));
     }
     let version = u32::from_le_bytes(bytes[8..12].try_into().expect("4 bytes"));
-    if version != VERSION {
-        return Err(bad(format!("arrival file version {version} is not supported")));
-    }
+    let header = match version {
+        1 => HEADER_V1,
+        VERSION if bytes.len() >= HEADER => HEADER,
+        VERSION => return Err(bad("truncated (its header)".into())),
+        _ => return Err(bad(format!("arrival file version {version} is not supported"))),
+    };
     let flags = u32::from_le_bytes(bytes[12..16].try_into().expect("4 bytes"));
     let i32_at =
         |k: usize| i32::from_le_bytes(bytes[32 + 4 * k..36 + 4 * k].try_into().expect("4"));
-    let declared = match flags {
-        0 => None,
-        1 => Some(([0, 1, 2].map(i32_at), [3, 4, 5].map(i32_at))),
-        f => return Err(bad(format!("unknown flags {f:#x}"))),
-    };
+    let known = if version == 1 { 1 } else { 3 };
+    if flags & !known != 0 {
+        return Err(bad(format!("unknown flags {flags:#x}")));
+    }
+    let declared = (flags & 1 != 0).then(|| ([0, 1, 2].map(i32_at), [3, 4, 5].map(i32_at)));
+    let u16_at = |at: usize| u16::from_le_bytes([bytes[at], bytes[at + 1]]);
+    let colors =
+        (flags & 2 != 0).then(|| ColorMaxima { max_rgb: u16_at(56), max_intensity: u16_at(58) });
     let n = u64_at(16).expect("header checked");
     let nblocks = u64_at(24).expect("header checked");
     if n != points {
@@ -146,14 +177,14 @@ pub fn read(dir: &Path, points: u64) -> Result<Option<Arrival>> {
         return Err(bad(format!("declares {nblocks} blocks for {points} ranks")));
     }
     let nb = nblocks as usize;
-    let table = HEADER + 8 * nb;
+    let table = header + 8 * nb;
     if bytes.len() < table {
         return Err(bad("truncated (its block table)".into()));
     }
     let mut spans = Vec::with_capacity(nb);
     let mut at = table;
     for b in 0..nb {
-        let len = u64_at(HEADER + 8 * b).expect("table checked") as usize;
+        let len = u64_at(header + 8 * b).expect("table checked") as usize;
         let end = at.checked_add(len).filter(|&e| e <= bytes.len());
         let Some(end) = end else {
             return Err(bad(format!("truncated (block {b})")));
@@ -205,7 +236,7 @@ pub fn read(dir: &Path, points: u64) -> Result<Option<Arrival>> {
         }
         Ok(())
     })?;
-    Ok(Some(Arrival { ranks, declared }))
+    Ok(Some(Arrival { ranks, declared, colors }))
 }
 
 #[cfg(test)]
@@ -228,26 +259,40 @@ mod tests {
             .map(|i| if (i / 1000) % 2 == 0 { i } else { (i / 1000) * 1000 + 999 - i % 1000 })
             .collect();
         let declared = Some(([-5, 0, 7], [9, i32::MAX, 8]));
-        write(&d, n, |i| perm[i], declared).unwrap();
+        let colors = ColorMaxima { max_rgb: 255, max_intensity: 4000 };
+        write(&d, n, |i| perm[i], declared, colors).unwrap();
         let got = read(&d, n as u64).unwrap().unwrap();
-        assert_eq!(got, Arrival { ranks: perm, declared });
+        assert_eq!(got, Arrival { ranks: perm.clone(), declared, colors: Some(colors) });
+        // Version 1 (no colour maxima): the same file less bytes 56..64, version and flag 1.
+        let p = d.join(ARRIVAL_FILE);
+        let v2 = std::fs::read(&p).unwrap();
+        let mut v1 = v2[..56].to_vec();
+        v1[8..12].copy_from_slice(&1u32.to_le_bytes());
+        v1[12..16].copy_from_slice(&1u32.to_le_bytes());
+        v1.extend_from_slice(&v2[64..]);
+        std::fs::write(&p, &v1).unwrap();
+        let got = read(&d, n as u64).unwrap().unwrap();
+        assert_eq!(got, Arrival { ranks: perm, declared, colors: None });
+        std::fs::write(&p, &v2).unwrap();
         // Another count than the store's, a file cut short, a rank twice, a rank too large.
         assert!(read(&d, n as u64 - 1).is_err());
-        let p = d.join(ARRIVAL_FILE);
         let whole = std::fs::read(&p).unwrap();
         std::fs::write(&p, &whole[..whole.len() - 3]).unwrap();
         let e = read(&d, n as u64).unwrap_err().to_string();
         assert!(e.contains("arrival.bin") && e.contains("truncated"), "{e}");
-        write(&d, 3, |i| [0, 2, 0][i], None).unwrap();
+        write(&d, 3, |i| [0, 2, 0][i], None, colors).unwrap();
         assert!(read(&d, 3).unwrap_err().to_string().contains("twice"));
-        write(&d, 3, |i| [0, 1, 7][i], None).unwrap();
+        write(&d, 3, |i| [0, 1, 7][i], None, colors).unwrap();
         assert!(read(&d, 3).unwrap_err().to_string().contains("not below"));
         std::fs::write(&p, b"MORTARRV").unwrap();
         assert!(read(&d, 3).is_err());
         std::fs::remove_file(&p).unwrap();
         assert!(read(&d, 3).unwrap().is_none());
-        write(&d, 0, |_| 0, None).unwrap();
-        assert_eq!(read(&d, 0).unwrap().unwrap(), Arrival { ranks: Vec::new(), declared: None });
+        write(&d, 0, |_| 0, None, ColorMaxima::default()).unwrap();
+        assert_eq!(
+            read(&d, 0).unwrap().unwrap(),
+            Arrival { ranks: Vec::new(), declared: None, colors: Some(ColorMaxima::default()) }
+        );
         let _ = std::fs::remove_dir_all(&d);
     }
 }

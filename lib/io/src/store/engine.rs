@@ -287,12 +287,15 @@ pub(crate) fn write_arrival(
     arrival: &[u64],
     starts: &[usize],
     header: Option<([i32; 3], [i32; 3])>,
+    all: &PieceStats,
 ) -> Result<()> {
     let rank = |i: usize| {
         let a = arrival[i];
         (starts[(a >> 32) as usize] + (a & 0xffff_ffff) as usize) as u64
     };
-    super::arrival::write(&writer.dir, arrival.len(), rank, header)
+    let colors =
+        super::arrival::ColorMaxima { max_rgb: all.max_rgb, max_intensity: all.max_intensity };
+    super::arrival::write(&writer.dir, arrival.len(), rank, header, colors)
 }
 
 /// Builds the store in `writer` from `ds` with the sorted engine; `header` is the headers' box
@@ -357,7 +360,7 @@ pub(crate) fn build_into(
         total,
         t0,
     )?;
-    write_arrival(writer, &arrival, &starts, header)?;
+    write_arrival(writer, &arrival, &starts, header, &all)?;
     crate::cleanup::trace("arrival ranks written", t0);
     crate::cleanup::trace("written", t0);
     report.seconds = t0.elapsed().as_secs_f64();
@@ -424,11 +427,21 @@ pub(crate) fn read_input<'a>(
 
 /// The colour source from the whole input, as batch files choose it.
 pub(crate) fn color_of(ds: &Dataset, all: &PieceStats) -> ColorSource {
-    match ds.layout.attribute("rgb") {
-        Some(a) if all.max_rgb > 0 => {
-            ColorSource::Rgb { offset: a.offset, depth: RgbDepth::detect(all.max_rgb) }
+    color_source(&ds.layout, all.max_rgb, all.max_intensity)
+}
+
+/// The colour source of records of `layout` whose largest RGB component and intensity are
+/// `max_rgb` and `max_intensity`.
+pub(crate) fn color_source(
+    layout: &mortar_core::layout::RecordLayout,
+    max_rgb: u16,
+    max_intensity: u16,
+) -> ColorSource {
+    match layout.attribute("rgb") {
+        Some(a) if max_rgb > 0 => {
+            ColorSource::Rgb { offset: a.offset, depth: RgbDepth::detect(max_rgb) }
         }
-        _ => ColorSource::Intensity { max_intensity: all.max_intensity },
+        _ => ColorSource::Intensity { max_intensity },
     }
 }
 

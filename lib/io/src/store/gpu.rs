@@ -251,7 +251,7 @@ pub(crate) fn build_into(
         ds.declared_points(),
         t0,
     )?;
-    write_arrival(writer, &arrival, &starts, header)?;
+    write_arrival(writer, &arrival, &starts, header, &all)?;
     crate::cleanup::trace("arrival ranks written", t0);
     report.seconds = t0.elapsed().as_secs_f64();
     Ok(report)

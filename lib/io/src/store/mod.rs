@@ -42,6 +42,7 @@ mod incremental;
 pub mod lod;
 mod options;
 pub(crate) mod partitioned;
+pub mod patch;
 mod reader;
 mod record;
 pub(crate) mod runs;

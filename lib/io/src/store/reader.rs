@@ -229,7 +229,7 @@ impl Store {
     pub fn records_in_arrival_order(
         &self,
     ) -> Result<Option<(Vec<u8>, super::arrival::DeclaredBox)>> {
-        let Some(super::arrival::Arrival { ranks, declared }) =
+        let Some(super::arrival::Arrival { ranks, declared, .. }) =
             super::arrival::read(&self.path, self.header.points)?
         else {
             return Ok(None);
@@ -238,34 +238,13 @@ impl Store {
             path: self.path.join(super::arrival::ARRIVAL_FILE),
             error: StoreError::Arrival { why },
         };
-        let log2 = self.header.root_size_log2;
-        if log2 > 32 {
-            return Err(bad(format!("a root cube of 2^{log2} units is not supported")));
-        }
-        // Each leaf's corner, as an offset from the root's (below 2^32 on every axis).
-        let mut leaves: Vec<(usize, [u32; 3])> = Vec::with_capacity(self.leaves.len());
-        for &l in &self.leaves {
-            let e = &self.entries[l];
-            let Some(shift) = log2.checked_sub(e.level) else {
-                return Err(bad(format!(
-                    "leaf {l} lies deeper (level {}) than its root's units",
-                    e.level
-                )));
-            };
-            leaves.push((l, e.index.map(|i| ((i as u64) << shift) as u32)));
-        }
-        leaves.sort_unstable_by(|a, b| codec::morton_cmp(a.1, b.1));
-        let mut starts = Vec::with_capacity(leaves.len());
-        let mut at = 0usize;
-        for &(l, _) in &leaves {
-            starts.push(at);
-            at += self.entries[l].count as usize;
-        }
+        let (leaves, starts): (Vec<usize>, Vec<usize>) =
+            self.leaf_rank_starts().map_err(bad)?.into_iter().unzip();
         let rl = self.layout.record_len;
         let mut out = crate::sort::zeroed_huge::<u8>(ranks.len() * rl);
         let op = mortar_core::par::SendPtr(out.as_mut_ptr());
         use rayon::prelude::*;
-        leaves.par_iter().zip(starts).try_for_each(|(&(l, _), s)| {
+        leaves.par_iter().zip(starts).try_for_each(|(&l, s)| {
             let op = &op;
             let (raw, seq) =
                 codec::decode_ordered(self.node_bytes(l)).map_err(|e| self.damaged(l, e))?;
@@ -284,6 +263,37 @@ impl Store {
             Ok::<(), Error>(())
         })?;
         Ok(Some((out, declared)))
+    }
+
+    /// The leaves in the order `arrival.bin` lists their ranks (Morton order of their cubes'
+    /// corners), each with where its ranks begin there; or why the tree cannot be listed.
+    pub(crate) fn leaf_rank_starts(&self) -> std::result::Result<Vec<(usize, usize)>, String> {
+        let log2 = self.header.root_size_log2;
+        if log2 > 32 {
+            return Err(format!("a root cube of 2^{log2} units is not supported"));
+        }
+        // Each leaf's corner, as an offset from the root's (below 2^32 on every axis).
+        let mut leaves: Vec<(usize, [u32; 3])> = Vec::with_capacity(self.leaves.len());
+        for &l in &self.leaves {
+            let e = &self.entries[l];
+            let Some(shift) = log2.checked_sub(e.level) else {
+                return Err(format!(
+                    "leaf {l} lies deeper (level {}) than its root's units",
+                    e.level
+                ));
+            };
+            leaves.push((l, e.index.map(|i| ((i as u64) << shift) as u32)));
+        }
+        leaves.sort_unstable_by(|a, b| codec::morton_cmp(a.1, b.1));
+        let mut at = 0usize;
+        Ok(leaves
+            .into_iter()
+            .map(|(l, _)| {
+                let s = at;
+                at += self.entries[l].count as usize;
+                (l, s)
+            })
+            .collect())
     }
 
     /// Indices of the leaf entries.
@@ -308,7 +318,7 @@ impl Store {
         codec::decode(self.node_bytes(i)).map_err(|error| self.damaged(i, error))
     }
 
-    fn damaged(&self, i: usize, error: PayloadError) -> Error {
+    pub(crate) fn damaged(&self, i: usize, error: PayloadError) -> Error {
         let file = segment_file(self.entries[i].segment);
         Error::Payload { path: self.path.join(file), error: error.in_node(i) }
     }
@@ -359,7 +369,7 @@ impl Store {
 impl NodeData<'_> {
     /// The whole record of leaf point `i` (exact position, then every attribute byte) written
     /// into `out` (`12 + attr_len` bytes); `g` is [`NodeData::grid`].
-    fn record_into(&self, g: &BatchGrid, i: usize, out: &mut [u8]) {
+    pub(crate) fn record_into(&self, g: &BatchGrid, i: usize, out: &mut [u8]) {
         let al = self.header.attr_len as usize;
         let p = g.decode_exact([self.words[0][i], self.words[1][i], self.words[2][i]]);
         for a in 0..3 {
@@ -369,7 +379,7 @@ impl NodeData<'_> {
     }
 }
 
-fn node_data(b: &[u8]) -> NodeData<'_> {
+pub(crate) fn node_data(b: &[u8]) -> NodeData<'_> {
     let header: NodeHeader = bytemuck::pod_read_unaligned(&b[..64]);
     let n = header.count as usize;
     let words_at =
