@@ -395,8 +395,8 @@ fn append_json(store: &Path, more: &[PathBuf], extra: &[&str]) -> serde_json::Va
 /// and the store is the build of all inputs, node for node and payload byte for payload byte,
 /// with the same ranks, source header and build record: across leaves that split, points that
 /// coincide with old ones (a scan appended to itself), chained appends, a compaction, the GPU
-/// engine's store, and `MORTAR_APPEND_REBUILD=1`'s whole build. Where the root moves, every
-/// node is built again, and the warning says why.
+/// engine's store, and `MORTAR_APPEND_REBUILD=1`'s whole build. Where the root moves, or
+/// keeping the nodes would pass `--memory`, every node is built again, and the warning says why.
 #[test]
 fn an_append_inside_the_root_keeps_the_nodes_it_does_not_reach() {
     let dir = tempdir("append-in-place");
@@ -447,6 +447,13 @@ fn an_append_inside_the_root_keeps_the_nodes_it_does_not_reach() {
     let said = j["warnings"].to_string();
     assert!(said.contains("every node is built again") && said.contains("root cube"), "{j}");
     assert!(!in_place(&s), "{j}");
+    // Too little --memory to keep the nodes: everything is built again within it, and said so.
+    let m = dir.join("m");
+    build(std::slice::from_ref(&a), &m, &[]);
+    let j = append_json(&m, std::slice::from_ref(&b), &["--memory", "3M"]);
+    let said = j["warnings"].to_string();
+    assert!(said.contains("every node is built again") && said.contains("--memory"), "{j}");
+    assert!(!in_place(&m) && j["points"] == 360_000, "{j}");
     // The GPU engine's store is extended in place too, to the GPU engine's build of all inputs.
     let g = dir.join("g");
     let o =

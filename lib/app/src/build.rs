@@ -44,8 +44,11 @@ pub struct Args {
     /// capacity and colours), built into STORE.append and swapped in atomically at the end
     /// (--resume continues a stopped append). A store of the sorted or GPU engine keeps its
     /// points' arrival order (arrival.bin) and needs no original input; others are built again
-    /// from their recorded inputs, which must still be there, unchanged. Give the --crs options
-    /// the store was built with.
+    /// from their recorded inputs, which must still be there, unchanged. Where the new points
+    /// stay inside the store's root cube (and change neither its grid, record layout nor colour
+    /// scale), the nodes they do not reach are kept and only those they reach are coded again;
+    /// otherwise the report says why everything is built again. Give the --crs options the
+    /// store was built with.
     #[arg(long, value_name = "STORE", conflicts_with_all = ["output", "compact", "plan"])]
     pub append: Option<PathBuf>,
     /// Compact an existing store instead of building one: rewrite it so that `nodes.bin` holds

@@ -91,12 +91,27 @@ pub fn write(
     declared: DeclaredBox,
     colors: ColorMaxima,
 ) -> Result<()> {
+    write_blocks(dir, n, |r, out| out.extend(r.map(&rank)), declared, colors)
+}
+
+/// [`write`] with the ranks given a block at a time: `fill(range, out)` appends the ranks of
+/// the leaves' points `range` to `out` (empty), in order.
+pub fn write_blocks(
+    dir: &Path,
+    n: usize,
+    fill: impl Fn(std::ops::Range<usize>, &mut Vec<u64>) + Sync,
+    declared: DeclaredBox,
+    colors: ColorMaxima,
+) -> Result<()> {
     let blocks: Vec<Vec<u8>> = (0..n.div_ceil(BLOCK))
         .into_par_iter()
         .map(|b| {
             let s = b * BLOCK;
             let e = (s + BLOCK).min(n);
-            encode_block((s..e).map(&rank), e - s)
+            let mut ranks = Vec::with_capacity(e - s);
+            fill(s..e, &mut ranks);
+            debug_assert_eq!(ranks.len(), e - s);
+            encode_block(ranks.into_iter(), e - s)
         })
         .collect();
     let mut out = Vec::with_capacity(

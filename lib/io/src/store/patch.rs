@@ -18,7 +18,8 @@
 //! component or intensity where they choose the colours). Otherwise [`append_in_place`] says
 //! why, and the caller builds everything again as before.
 //!
-//! Memory: the store's ranks (8 bytes a point), the new records with their sort keys, and the
+//! Memory: the store's ranks (9 bytes a point with their check), the new records with their
+//! sort keys (48 bytes a point besides the record), and the
 //! records of the nodes the new points reach, at once; where that passes `--memory`, the whole
 //! build is taken (which has its own rules).
 
@@ -35,6 +36,7 @@ use super::writer::StoreWriter;
 use crate::dataset::{Dataset, OpenOptions, RecordSource};
 use crate::error::{Error, Result, StoreError};
 use crate::sort::PieceStats;
+use mortar_core::morton::encode96;
 use mortar_core::octree::patch::{code_in, patch_tree, Item, OldContent, OldNode, PatchedContent};
 use mortar_core::octree::{ColorMode, Cube, NodeKey};
 use rayon::prelude::*;
@@ -77,7 +79,9 @@ pub fn append_in_place(plan: &AppendPlan, opts: &OpenOptions, memory: u64) -> Re
         }
         n
     };
-    let need = old_n * 8 + new_declared * (rl + 48);
+    // The store's ranks and the reader's check of them (8 bytes and a bit a point), the new
+    // records, their places and sort keys.
+    let need = old_n * 9 + new_declared * (rl + 48);
     if need > memory {
         return rebuild(&format!(
             "keeping the store's nodes needs about {} MiB here, over --memory ({} MiB)",
@@ -88,6 +92,7 @@ pub fn append_in_place(plan: &AppendPlan, opts: &OpenOptions, memory: u64) -> Re
     let Some(arr) = arrival::read(&plan.store, old_n)? else {
         return rebuild("the store keeps no arrival ranks (arrival.bin)");
     };
+    crate::cleanup::trace("append in place: store and ranks read", t0);
     let Some(old_colors) = arr.colors else {
         return rebuild("its arrival.bin is of an older mortar (without the colour maxima)");
     };
@@ -140,6 +145,7 @@ pub fn append_in_place(plan: &AppendPlan, opts: &OpenOptions, memory: u64) -> Re
         }
     }
     let read_seconds = tr.elapsed().as_secs_f64();
+    crate::cleanup::trace("append in place: new points read", t0);
 
     // The root the whole build would place, and its colours.
     let root = store.root_cube();
@@ -177,6 +183,31 @@ pub fn append_in_place(plan: &AppendPlan, opts: &OpenOptions, memory: u64) -> Re
     let new_rec = |j: u32| records[order[j as usize].1 as usize];
     let new_pos: Vec<[i32; 3]> = (0..n_new as u32).map(|j| read_xyz(new_rec(j))).collect();
     let new_arrival: Vec<u64> = order.iter().map(|&(_, i)| old_n + i as u64).collect();
+
+    // What the nodes the new points reach hold, held while the tree is patched: each such
+    // node's cube is a range of codes that holds a new point.
+    let reached: u64 = store
+        .entries
+        .par_iter()
+        .filter(|e| {
+            let key = NodeKey { level: e.level as u8, index: e.index };
+            let c = key.cube_in(root);
+            let first = encode96([0, 1, 2].map(|a| (c.min[a] - root.min[a]) as u32));
+            let span = 1u128 << (3 * c.size_log2 as u32);
+            let i = order.partition_point(|&(code, _)| code < first);
+            i < order.len() && order[i].0 - first < span
+        })
+        .map(|e| e.count)
+        .sum();
+    let need = need + reached * (rl as u64 + 64);
+    if need > memory {
+        return rebuild(&format!(
+            "the nodes the new points reach hold {reached} points, and keeping the others needs \
+             about {} MiB, over --memory ({} MiB)",
+            need >> 20,
+            memory >> 20
+        ));
+    }
 
     // The old tree, and its nodes' records as the new points reach them.
     let old: Vec<OldNode> = store
@@ -222,6 +253,7 @@ pub fn append_in_place(plan: &AppendPlan, opts: &OpenOptions, memory: u64) -> Re
     let tt = Instant::now();
     let patched = patch_tree(root, &old, &new_pos, &new_arrival, &load, plan.config)?;
     let tree_seconds = tt.elapsed().as_secs_f64();
+    crate::cleanup::trace("append in place: tree patched", t0);
     let loaded = loaded.into_inner().expect("not poisoned");
 
     // The new store: the old payload files linked in, the changed payloads coded.
@@ -322,6 +354,7 @@ pub fn append_in_place(plan: &AppendPlan, opts: &OpenOptions, memory: u64) -> Re
         start = end;
     }
     let total = old_n + n_new as u64;
+    crate::cleanup::trace("append in place: payloads written", t0);
     writer.write_hierarchy(root, total, plan.config.leaf_capacity, (lo, hi))?;
 
     // The ranks, leaf by leaf in Morton order of their corners.
@@ -337,23 +370,43 @@ pub fn append_in_place(plan: &AppendPlan, opts: &OpenOptions, memory: u64) -> Re
         leaves.push((id, n.key.index.map(|i| ((i as u64) << shift) as u32), count));
     }
     leaves.sort_unstable_by(|a, b| codec::morton_cmp(a.1, b.1));
-    let mut ranks: Vec<u64> = Vec::with_capacity(total as usize);
+    // Runs of the listing: where each leaf's ranks begin, and whence (the store's listing, or
+    // the coded leaf's), looked up by position as the file is coded block by block.
+    enum Run<'a> {
+        Kept(&'a [u64]),
+        Coded(&'a [u64]),
+    }
+    let mut runs: Vec<(usize, Run)> = Vec::with_capacity(leaves.len());
+    let mut at = 0usize;
     for &(id, _, count) in &leaves {
-        match &patched[id].content {
+        let run = match &patched[id].content {
             PatchedContent::Kept(o) => {
                 let s = starts[o];
-                ranks.extend_from_slice(&arr.ranks[s..s + count as usize]);
+                Run::Kept(&arr.ranks[s..s + count as usize])
             }
-            _ => ranks.extend_from_slice(&listed[&id]),
-        }
+            _ => Run::Coded(&listed[&id]),
+        };
+        runs.push((at, run));
+        at += count as usize;
     }
-    if ranks.len() as u64 != total {
+    if at as u64 != total {
         return Err(bad_arrival(format!(
-            "the extended tree's leaves hold {} points, not {total}",
-            ranks.len()
+            "the extended tree's leaves hold {at} points, not {total}"
         )));
     }
-    arrival::write(&plan.work, ranks.len(), |i| ranks[i], declared, colors)?;
+    let fill = |r: std::ops::Range<usize>, out: &mut Vec<u64>| {
+        let mut k = runs.partition_point(|run| run.0 <= r.start) - 1;
+        let mut i = r.start;
+        while i < r.end {
+            let (start, Run::Kept(ranks) | Run::Coded(ranks)) = &runs[k];
+            let take = (start + ranks.len()).min(r.end) - i;
+            out.extend_from_slice(&ranks[i - start..i - start + take]);
+            i += take;
+            k += 1;
+        }
+    };
+    arrival::write_blocks(&plan.work, at, fill, declared, colors)?;
+    crate::cleanup::trace("append in place: ranks written", t0);
     new_record.complete = true;
     new_record.write(&plan.work)?;
     unfinished.keep();
