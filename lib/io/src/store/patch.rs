@@ -72,13 +72,14 @@ pub fn append_in_place(plan: &AppendPlan, opts: &OpenOptions, memory: u64) -> Re
         return rebuild("the store has no build record");
     };
     let rl = store.layout.record_len as u64;
-    let new_declared: u64 = {
-        let mut n = 0;
-        for p in crate::inputs::expand(&plan.more)? {
-            n += crate::inputs::open_source(&p)?.0.point_count();
-        }
-        n
-    };
+    let mut warnings = Vec::new();
+    let mut more: Vec<Box<dyn RecordSource>> = Vec::new();
+    for p in crate::inputs::expand(&plan.more)? {
+        let (src, mut w) = crate::inputs::open_source(&p)?;
+        warnings.append(&mut w);
+        more.push(src);
+    }
+    let new_declared: u64 = more.iter().map(|s| s.point_count()).sum();
     // The store's ranks and the reader's check of them (8 bytes and a bit a point), the new
     // records, their places and sort keys.
     let need = old_n * 9 + new_declared * (rl + 48);
@@ -97,14 +98,9 @@ pub fn append_in_place(plan: &AppendPlan, opts: &OpenOptions, memory: u64) -> Re
         return rebuild("its arrival.bin is of an older mortar (without the colour maxima)");
     };
     // The dataset of the whole build: the store standing for its inputs, then the new ones.
-    let mut warnings = Vec::new();
     let mut inputs: Vec<Box<dyn RecordSource>> =
         vec![Box::new(StoreInArrivalOrder::stand_in(&store, arr.declared, plan.recorded.clone()))];
-    for p in crate::inputs::expand(&plan.more)? {
-        let (src, mut w) = crate::inputs::open_source(&p)?;
-        warnings.append(&mut w);
-        inputs.push(src);
-    }
+    inputs.append(&mut more);
     let mut ds = Dataset::with_options(inputs, opts)?;
     if grid_moved(&ds) {
         return rebuild("the new inputs change the store's scale or offset");
