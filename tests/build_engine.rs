@@ -228,6 +228,9 @@ fn partitioned_equals_sorted(inputs: &[PathBuf], memory: &str, tag: &str) -> ser
                 (x.level, x.index)
             );
         }
+        // The same arrival ranks (`arrival.bin`), byte for byte.
+        let ranks = |d: &Path| std::fs::read(d.join("arrival.bin")).unwrap();
+        assert!(ranks(&a) == ranks(&b), "{name}: arrival.bin");
         let live: u64 = sb.entries.iter().map(|e| e.length).sum();
         assert_eq!(live, sb.header.nodes_len, "{name}: nodes.bin holds only live payloads");
         // No run files are left in the store.

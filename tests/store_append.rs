@@ -3,7 +3,7 @@
 //! build record), with every engine, across a grown root and chained appends; it is atomic (the
 //! old store stays whole until the swap, nothing is left beside it) and a stopped append resumes.
 //! Refusals name the store and the reason, exit 1 and leave the store as it was. A store that
-//! keeps its points' arrival ranks (`arrival.bin`: the sorted and GPU engines) is extended from
+//! keeps its points' arrival ranks (`arrival.bin`: the sorted, partitioned and GPU engines) is extended from
 //! its own points, without its original inputs, to the same bytes, on real files of every kind.
 
 mod common;
@@ -382,6 +382,45 @@ fn a_store_with_arrival_ranks_needs_no_original_inputs() {
          {regridded} refused (the new file moves the grid)"
     );
     assert!(merged > 50, "only {merged} of {pairs} pairs merged");
+}
+
+/// A store the partitioned engine built (its input larger than `--memory`) keeps its arrival
+/// ranks as the sorted engine does, and is extended in place where keeping its nodes fits the
+/// append's `--memory`: the store of the partitioned build of all inputs, with the same ranks;
+/// under the budget it was built with, it is built again within it.
+#[test]
+fn a_store_larger_than_memory_is_extended_in_place() {
+    let dir = tempdir("append-partitioned");
+    let a = dir.join("a.las");
+    run_ok(gen().args(["--points", "400000", "--seed", "9", "-o"]).arg(&a));
+    let b = scan_at(&dir, "b.las", 60_000, 4, "500200,5000200,0");
+    let small = ["--memory", "16M", "--leaf-capacity", "3000"];
+    let whole = dir.join("whole");
+    build(&[a.clone(), b.clone()], &whole, &small);
+    let sorted = dir.join("sorted");
+    build(&[a.clone(), b.clone()], &sorted, &["--engine", "sorted", "--leaf-capacity", "3000"]);
+    let engine = |s: &Path| {
+        let r: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(s.join("build.json")).unwrap()).unwrap();
+        r["engine"].as_str().unwrap().to_string()
+    };
+    assert_eq!(engine(&whole), "partitioned");
+    same_files(&whole, &sorted, &[ARRIVAL], "the partitioned and sorted engines' ranks");
+    let s = dir.join("s");
+    build(std::slice::from_ref(&a), &s, &small);
+    assert_eq!(engine(&s), "partitioned");
+    assert!(s.join(ARRIVAL).exists(), "the partitioned engine keeps arrival ranks");
+    let j = append_json(&s, std::slice::from_ref(&b), &["--memory", "256M"]);
+    assert!(j["kept_nodes"].as_u64().unwrap() > 0 && in_place(&s), "nothing kept: {j}");
+    same_store(&s, &whole, "a partitioned store, then b in place");
+    nothing_beside(&s);
+    // Under the budget it was built with: built again, by the partitioned engine.
+    let m = dir.join("m");
+    build(std::slice::from_ref(&a), &m, &small);
+    let j = append_json(&m, std::slice::from_ref(&b), &small[..2]);
+    assert!(!in_place(&m) && j["engine"] == "partitioned", "{j}");
+    same_store(&m, &whole, "a partitioned store, then b built again within 16M");
+    let _ = std::fs::remove_dir_all(&dir);
 }
 
 /// `mortar build --append STORE MORE --json`, which must succeed: its report.

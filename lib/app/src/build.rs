@@ -42,9 +42,9 @@ pub struct Args {
     /// Add the inputs to this existing store: its points come first, the new ones after, and the
     /// result is the store a build of all of them in that order gives (with the store's leaf
     /// capacity and colours), built into STORE.append and swapped in atomically at the end
-    /// (--resume continues a stopped append). A store of the sorted or GPU engine keeps its
-    /// points' arrival order (arrival.bin) and needs no original input; others are built again
-    /// from their recorded inputs, which must still be there, unchanged. Where the new points
+    /// (--resume continues a stopped append). A store of the sorted, partitioned or GPU engine
+    /// keeps its points' arrival order (arrival.bin) and needs no original input; others are
+    /// built again from their recorded inputs, which must still be there, unchanged. Where the new points
     /// stay inside the store's root cube (and change neither its grid, record layout nor colour
     /// scale), the nodes they do not reach are kept and only those they reach are coded again;
     /// otherwise the report says why everything is built again. Give the --crs options the

@@ -10,17 +10,19 @@
 //! one, whole; after it, the new one, whole.
 //!
 //! The store's inputs are its own points where it keeps their arrival ranks (`arrival.bin`,
-//! written by the sorted and GPU engines: [`super::arrival`]): its leaves' records are put back
+//! written by the sorted, partitioned and GPU engines: [`super::arrival`]): its leaves' records are put back
 //! in the order they arrived ([`Store::records_in_arrival_order`], all of them in memory) and
 //! stand first in the new build, so the original files are not needed. (Where they are all
 //! there, unchanged, and uncompressed LAS, they are read instead: faster than decoding.) A store without the file
-//! (built by the incremental or partitioned engine, or by an older mortar) is built again from
+//! (built by the incremental engine, merged from a distributed build, or by an older mortar) is
+//! built again from
 //! its recorded inputs, which must still be there, unchanged (`build.json` names them with their
 //! size and modification time).
 //!
-//! What it does not do yet: it costs a whole build (the store's nodes that no new point touches
-//! are built again rather than reused), and the store's points in arrival order must fit in
-//! memory beside the build (the partitioned engine does not read them piece by piece).
+//! This whole build is what `--append` falls back to where the store's nodes cannot be kept
+//! ([`super::patch`] says when); the store's points in arrival order must then fit in memory
+//! beside the build (the partitioned engine does not read them piece by piece), or its
+//! original inputs must be there.
 
 use super::record::{BuildRecord, InputPrint};
 use super::Store;

@@ -8,9 +8,11 @@
 //! coded order: GPS time order where the payload is coded so (codec 2), else payload order. Scans
 //! arrive in time order, so consecutive ranks then differ by little and the file is small (a
 //! leaf's Morton order would interleave its flight lines). Written once, after the last commit
-//! and before the build record says the build finished; a store without it (the incremental and
-//! partitioned engines, or an older mortar) is extended from
-//! its original inputs.
+//! and before the build record says the build finished, by the sorted, GPU and partitioned
+//! engines (the last streams them from `.partition/ranks.bin`; [`write_blocks`] codes a few
+//! blocks at a time, so memory does not grow with the store); a store without it (the
+//! incremental engine, a distributed build's merge, or an older mortar) is extended from its
+//! original inputs.
 //!
 //! The file also keeps the box the inputs' headers declared (on the store's grid, with the
 //! build's margin of one unit; [`super::bounds`]), which places the root cube of a build of
@@ -91,53 +93,80 @@ pub fn write(
     declared: DeclaredBox,
     colors: ColorMaxima,
 ) -> Result<()> {
-    write_blocks(dir, n, |r, out| out.extend(r.map(&rank)), declared, colors)
+    write_blocks(
+        dir,
+        n,
+        |r, out| {
+            out.extend(r.map(&rank));
+            Ok(())
+        },
+        declared,
+        colors,
+    )
 }
 
+/// Blocks coded at once by [`write_blocks`] (in parallel), then written: the memory it holds
+/// is this many blocks' ranks and codes, whatever the store's size.
+const BLOCKS_AT_ONCE: usize = 32;
+
 /// [`write`] with the ranks given a block at a time: `fill(range, out)` appends the ranks of
-/// the leaves' points `range` to `out` (empty), in order.
+/// the leaves' points `range` to `out` (empty), in order. The blocks are coded
+/// [`BLOCKS_AT_ONCE`] at a time and written as they are coded, the header and the blocks'
+/// lengths last, so that memory does not grow with the store.
 pub fn write_blocks(
     dir: &Path,
     n: usize,
-    fill: impl Fn(std::ops::Range<usize>, &mut Vec<u64>) + Sync,
+    fill: impl Fn(std::ops::Range<usize>, &mut Vec<u64>) -> Result<()> + Sync,
     declared: DeclaredBox,
     colors: ColorMaxima,
 ) -> Result<()> {
-    let blocks: Vec<Vec<u8>> = (0..n.div_ceil(BLOCK))
-        .into_par_iter()
-        .map(|b| {
-            let s = b * BLOCK;
-            let e = (s + BLOCK).min(n);
-            let mut ranks = Vec::with_capacity(e - s);
-            fill(s..e, &mut ranks);
-            debug_assert_eq!(ranks.len(), e - s);
-            encode_block(ranks.into_iter(), e - s)
-        })
-        .collect();
-    let mut out = Vec::with_capacity(
-        HEADER + 8 * blocks.len() + blocks.iter().map(|b| b.len()).sum::<usize>(),
-    );
-    out.extend_from_slice(&MAGIC);
-    out.extend_from_slice(&VERSION.to_le_bytes());
-    out.extend_from_slice(&(declared.is_some() as u32 | 2).to_le_bytes());
-    out.extend_from_slice(&(n as u64).to_le_bytes());
-    out.extend_from_slice(&(blocks.len() as u64).to_le_bytes());
-    let (lo, hi) = declared.unwrap_or_default();
-    for v in lo.iter().chain(&hi) {
-        out.extend_from_slice(&v.to_le_bytes());
-    }
-    out.extend_from_slice(&colors.max_rgb.to_le_bytes());
-    out.extend_from_slice(&colors.max_intensity.to_le_bytes());
-    out.extend_from_slice(&[0; 4]);
-    for b in &blocks {
-        out.extend_from_slice(&(b.len() as u64).to_le_bytes());
-    }
-    for b in &blocks {
-        out.extend_from_slice(b);
-    }
+    use std::os::unix::fs::FileExt;
     let p = dir.join(ARRIVAL_FILE);
     let tmp = dir.join(format!("{ARRIVAL_FILE}.tmp"));
-    std::fs::write(&tmp, &out).map_err(|e| Error::io(&tmp, e))?;
+    let f = std::fs::File::create(&tmp).map_err(|e| Error::io(&tmp, e))?;
+    let nblocks = n.div_ceil(BLOCK);
+    let mut lens = Vec::with_capacity(nblocks);
+    let mut at = (HEADER + 8 * nblocks) as u64;
+    for first in (0..nblocks).step_by(BLOCKS_AT_ONCE) {
+        let coded: Vec<Vec<u8>> = (first..(first + BLOCKS_AT_ONCE).min(nblocks))
+            .into_par_iter()
+            .map(|b| {
+                let s = b * BLOCK;
+                let e = (s + BLOCK).min(n);
+                let mut ranks = Vec::with_capacity(e - s);
+                fill(s..e, &mut ranks)?;
+                if ranks.len() != e - s {
+                    return Err(Error::Internal {
+                        path: p.clone(),
+                        what: "a block of arrival ranks of another length than asked",
+                    });
+                }
+                Ok(encode_block(ranks.into_iter(), e - s))
+            })
+            .collect::<Result<_>>()?;
+        let bytes = coded.concat();
+        f.write_all_at(&bytes, at).map_err(|e| Error::io(&tmp, e))?;
+        at += bytes.len() as u64;
+        lens.extend(coded.iter().map(|b| b.len() as u64));
+    }
+    let mut head = Vec::with_capacity(HEADER + 8 * nblocks);
+    head.extend_from_slice(&MAGIC);
+    head.extend_from_slice(&VERSION.to_le_bytes());
+    head.extend_from_slice(&(declared.is_some() as u32 | 2).to_le_bytes());
+    head.extend_from_slice(&(n as u64).to_le_bytes());
+    head.extend_from_slice(&(nblocks as u64).to_le_bytes());
+    let (lo, hi) = declared.unwrap_or_default();
+    for v in lo.iter().chain(&hi) {
+        head.extend_from_slice(&v.to_le_bytes());
+    }
+    head.extend_from_slice(&colors.max_rgb.to_le_bytes());
+    head.extend_from_slice(&colors.max_intensity.to_le_bytes());
+    head.extend_from_slice(&[0; 4]);
+    for l in &lens {
+        head.extend_from_slice(&l.to_le_bytes());
+    }
+    f.write_all_at(&head, 0).map_err(|e| Error::io(&tmp, e))?;
+    drop(f);
     std::fs::rename(&tmp, &p).map_err(|e| Error::io(&p, e))
 }
 

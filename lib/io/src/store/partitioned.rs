@@ -40,6 +40,7 @@
 //! - [`build`]: one build: pass 1 or what `--resume` keeps, the walk, the commit ([`build_into`]);
 //! - [`manifest`]: what pass 1 found, kept for `--resume` in `.partition/`;
 //! - [`log`]: the log of finished visits;
+//! - [`ranks`]: the leaves' arrival ranks as visits finish, coded into `arrival.bin` at the end;
 //! - [`checksum`]: the checksums of runs, tables and payloads.
 //!
 //! [`build_subtree`]: mortar_core::octree::build_subtree
@@ -51,6 +52,7 @@ mod log;
 mod manifest;
 mod partition;
 mod preview;
+mod ranks;
 #[cfg(test)]
 mod testing;
 mod unit;

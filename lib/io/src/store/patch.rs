@@ -13,7 +13,7 @@
 //! payloads from the linked segments.
 //!
 //! When: the store keeps its arrival ranks and colour maxima (`arrival.bin` of version 2, from
-//! the sorted or GPU engine), its colours are first-come, and the new points change neither the
+//! the sorted, partitioned or GPU engine), its colours are first-come, and the new points change neither the
 //! merged grid nor the record layout, nor the root cube, nor the colour scale (the largest RGB
 //! component or intensity where they choose the colours). Otherwise [`append_in_place`] says
 //! why, and the caller builds everything again as before.
@@ -400,6 +400,7 @@ pub fn append_in_place(plan: &AppendPlan, opts: &OpenOptions, memory: u64) -> Re
             i += take;
             k += 1;
         }
+        Ok(())
     };
     arrival::write_blocks(&plan.work, at, fill, declared, colors)?;
     crate::cleanup::trace("append in place: ranks written", t0);

@@ -6,10 +6,12 @@ use super::log::{read_log, LOG};
 use super::manifest::{read_manifest, write_manifest, STATE_DIR};
 use super::partition::{cell_depth, partition_all, Partition};
 use super::preview::{Preview, RootSample};
+use super::ranks::{RankLog, RANKS};
 use super::unit::unit_bytes_per_point;
 use super::walk::Walk;
 use crate::dataset::Dataset;
 use crate::error::{Error, Result};
+use crate::store::arrival::ColorMaxima;
 use crate::store::dense::Level;
 use crate::store::format::*;
 use crate::store::options::{BuildOptions, BuildProgress, BuildReport, BuiltBy};
@@ -85,11 +87,15 @@ pub(crate) fn build_into(
         .max(opts.config.leaf_capacity as u64 + 1);
     // A resumed walk: what the log holds is taken as it is; nodes.bin is cut after it.
     let log_path = state.join(LOG);
+    let ranks_path = state.join(RANKS);
     let (replay, logged, logged_hashes, logged_points, nodes_end) = if resumed {
-        read_log(&log_path, &writer.dir.join(NODES_FILE), rl)?
+        read_log(&log_path, &writer.dir.join(NODES_FILE), rl, Some(&ranks_path))?
     } else {
         Default::default()
     };
+    // The leaves' arrival ranks, kept for `arrival.bin` as the visits finish (those of the
+    // visits a resumed build keeps are in the file already).
+    let ranks = RankLog::open(&state, ds.pieces().iter().map(|p| p.piece.points), logged_points)?;
     writer.cut_nodes(nodes_end)?;
     report.kept_nodes = logged.len() as u64;
     ds.progress.stage("building", all.count, "points");
@@ -128,9 +134,10 @@ pub(crate) fn build_into(
         state: state.clone(),
         preview,
         bounds: (lo, hi),
+        ranks: Some(ranks),
     };
     w.visit(&lv, NodeKey::ROOT, root, 0, 0..cells)?;
-    let Walk { mut entries, points, preview, .. } = w;
+    let Walk { mut entries, points, preview, ranks, .. } = w;
     // The sorted engine's order: level by level, depth-first (= Morton) order in a level.
     entries.sort_by_key(|&(level, seq, _)| (level, seq));
     // The final commit names no provisional node and no scratch segment.
@@ -142,6 +149,10 @@ pub(crate) fn build_into(
     let tc = Instant::now();
     writer.write_hierarchy(root, points, opts.config.leaf_capacity, (lo, hi))?;
     report.commit_seconds += tc.elapsed().as_secs_f64();
+    // The ranks after the last commit and before the build record says the build finished,
+    // as the sorted engine writes them.
+    let colors = ColorMaxima { max_rgb: all.max_rgb, max_intensity: all.max_intensity };
+    ranks.expect("the walk keeps ranks").write_arrival(&writer.dir, points, header, colors)?;
     if let Some(pv) = preview {
         pv.remove();
     }

@@ -48,3 +48,12 @@ pub(super) fn checksum(b: &[u8]) -> u64 {
     let parts: Vec<u64> = b.par_chunks(1 << 20).map(checksum_block).collect();
     checksum_block(bytemuck::cast_slice(&parts))
 }
+
+/// The seed of [`rank_hash`]: the hash of no ranks.
+pub(super) const RANK_SEED: u64 = 0x1319_8a2e_0370_7344;
+
+/// Folds `ranks` into the running hash `h` of a visit's leaf ranks (the log keeps it, so that
+/// `--resume` takes only ranks that reached the disk as they were written).
+pub(super) fn rank_hash(h: u64, ranks: &[u64]) -> u64 {
+    ranks.iter().fold(h, |h, &r| (h ^ r).wrapping_mul(0x9e37_79b9_7f4a_7c15).rotate_left(29))
+}

@@ -3,13 +3,14 @@
 //! from its children's candidates, or a cell denser than a unit ([`dense`]); every finished
 //! visit logged for `--resume`.
 
-use super::checksum::{checksum, checksum_at};
+use super::checksum::{checksum, checksum_at, RANK_SEED};
 use super::log::{log_record, Logged, LOG};
 use super::partition::cell_depth;
+use super::ranks::RankLog;
 use super::unit::{read_unit, unit_bytes_per_point};
 use crate::dataset::Dataset;
 use crate::error::{Error, Result};
-use crate::store::codec::Order;
+use crate::store::codec::{CodedOrder, Order};
 use crate::store::dense::{self, Level};
 use crate::store::format::*;
 use crate::store::options::{BuildOptions, BuildReport};
@@ -50,6 +51,8 @@ pub(super) struct Walk<'a, 'w> {
     pub(super) preview: Option<super::preview::Preview>,
     /// The integer bounds of every point (pass 1).
     pub(super) bounds: ([i32; 3], [i32; 3]),
+    /// The leaves' arrival ranks as they are written (`None`: a distributed job keeps none).
+    pub(super) ranks: Option<RankLog>,
 }
 
 impl Walk<'_, '_> {
@@ -184,9 +187,9 @@ impl Walk<'_, '_> {
         let attr_len = rl - 12;
         if payload_len(count, attr_len as u64) <= crate::store::codec::CODE_LIMIT {
             // Small enough to be coded, as the sorted engine codes it: in memory.
-            let recs = leaf.read(0..count, false)?.0;
+            let (recs, mut arr) = leaf.read(0..count, self.ranks.is_some())?;
             let rec = |i: usize| &recs[i * rl..(i + 1) * rl];
-            let (e, b) = crate::store::codec::encode_payload(
+            let (e, b, coded) = crate::store::codec::encode_payload_ordered(
                 key,
                 LEAF,
                 count as usize,
@@ -198,6 +201,12 @@ impl Walk<'_, '_> {
             )
             .map_err(|error| Error::Payload { path: self.writer.dir.clone(), error })?;
             drop(recs);
+            if let Some(rk) = self.ranks.as_mut() {
+                if let Some(o) = coded {
+                    arr = o.iter().map(|&i| arr[i as usize]).collect();
+                }
+                rk.push(&mut arr)?;
+            }
             self.put(seq, e, &b)?;
             self.points += count;
             self.ds.progress.add(count);
@@ -223,6 +232,15 @@ impl Walk<'_, '_> {
         let mut e = r.map_err(|error| Error::Payload { path: w.dir.clone(), error })?;
         e.offset = off;
         let h = checksum_at(w, off, e.length)?;
+        // Raw: its points in the leaf's order, read again for their ranks a slice at a time.
+        if let Some(rk) = self.ranks.as_mut() {
+            let mut at = 0;
+            while at < count {
+                let end = (at + slice as u64).min(count);
+                rk.push(&mut leaf.read(at..end, true)?.1)?;
+                at = end;
+            }
+        }
         self.entries.push((e.level, seq, e));
         self.hashes.push(h);
         self.points += count;
@@ -235,10 +253,12 @@ impl Walk<'_, '_> {
 
     /// Logs a finished visit (its entries from `before` on). Not synced: see the module docs.
     fn logged(&mut self, key: NodeKey, before: usize, points: u64, out: &Cands) -> Result<()> {
+        let ranks_hash = self.ranks.as_mut().map_or(RANK_SEED, |r| r.take_hash());
         let rec = log_record(
             key,
             self.seq,
             points,
+            ranks_hash,
             self.writer.nodes_len,
             &self.entries[before..],
             &self.hashes[before..],
@@ -275,7 +295,7 @@ impl Walk<'_, '_> {
         let rl = self.rl;
         let n = count as usize;
         let ts = Instant::now();
-        let sorted = read_unit(&lv.runs, self.root, key, cells, count, rl, &self.writer.dir)?;
+        let mut sorted = read_unit(&lv.runs, self.root, key, cells, count, rl, &self.writer.dir)?;
         self.ds.progress.add(count);
         self.report.sort_seconds += ts.elapsed().as_secs_f64();
         let tt = Instant::now();
@@ -291,6 +311,8 @@ impl Walk<'_, '_> {
         let dir = self.writer.dir.clone();
         let color = &self.color;
         let root = self.root;
+        // The coded order of each leaf coded in another order than its records' (codec 2).
+        let mut orders: Vec<(usize, Vec<u32>)> = Vec::new();
         let mut start = 0;
         while start < sub.nodes.len() {
             let mut end = start;
@@ -303,7 +325,7 @@ impl Walk<'_, '_> {
             // (nodes too large to encode in memory are written raw, in slices, in place).
             let group = self.writer.group_bytes.max(crate::store::codec::CODE_LIMIT);
             let big = |i: usize| payload_len(sub.nodes[i].count() as u64, attr_len as u64) > group;
-            let coded: Vec<Option<(NodeEntry, Vec<u8>)>> = (start..end)
+            let coded: Vec<Option<(NodeEntry, Vec<u8>, CodedOrder)>> = (start..end)
                 .into_par_iter()
                 .map(|i| {
                     if big(i) {
@@ -317,7 +339,7 @@ impl Walk<'_, '_> {
                         }
                         SortedContent::Inner(v) => (INNER, Box::new(move |i| v[i] as usize)),
                     };
-                    crate::store::codec::encode_payload(
+                    crate::store::codec::encode_payload_ordered(
                         nd.key,
                         kind,
                         nd.count(),
@@ -327,19 +349,30 @@ impl Walk<'_, '_> {
                         |i| &sorted.record(idx(i))[12..],
                         Order::of(root, nd.key, &self.ds.layout),
                     )
-                    .map(Some)
+                    .map(|(e, b, o)| Some((e, b, if kind == LEAF { o } else { None })))
                     .map_err(|error| Error::Payload { path: dir.clone(), error })
                 })
                 .collect::<Result<_>>()?;
             let lens: Vec<u64> = (start..end)
                 .zip(&coded)
                 .map(|(i, c)| match c {
-                    Some((_, b)) => b.len() as u64,
+                    Some((_, b, _)) => b.len() as u64,
                     None => payload_len(sub.nodes[i].count() as u64, attr_len as u64),
                 })
                 .collect();
             let offsets = self.writer.reserve(&lens);
             let w = &*self.writer;
+            let coded: Vec<Option<(NodeEntry, Vec<u8>)>> = (start..end)
+                .zip(coded)
+                .map(|(i, c)| {
+                    c.map(|(e, b, o)| {
+                        if let (Some(o), SortedContent::Leaf(r)) = (o, &sub.nodes[i].content) {
+                            orders.push((r.start, o));
+                        }
+                        (e, b)
+                    })
+                })
+                .collect();
             let done: Vec<(NodeEntry, u64)> = (start..end)
                 .into_par_iter()
                 .zip(coded.into_par_iter())
@@ -377,6 +410,37 @@ impl Walk<'_, '_> {
         for &i in &sub.candidates {
             let r = sorted.record(i as usize);
             out.push(read_xyz(r), sorted.arrival[i as usize], r);
+        }
+        if let Some(rk) = self.ranks.as_mut() {
+            // The leaves' arrival numbers in their coded order, the leaves in Morton order.
+            let mut leaves: Vec<std::ops::Range<usize>> = sub
+                .nodes
+                .iter()
+                .filter_map(|x| match &x.content {
+                    SortedContent::Leaf(r) => Some(r.clone()),
+                    SortedContent::Inner(_) => None,
+                })
+                .collect();
+            leaves.sort_by_key(|r| r.start);
+            orders.sort_by_key(|o| o.0);
+            let mut rest: &mut [u64] = &mut sorted.arrival;
+            let mut done = 0;
+            let mut runs: Vec<(&mut [u64], Vec<u32>)> = Vec::with_capacity(orders.len());
+            for (at, o) in orders {
+                let len = o.len();
+                let (_, tail) = std::mem::take(&mut rest).split_at_mut(at - done);
+                let (run, tail) = tail.split_at_mut(len);
+                runs.push((run, o));
+                rest = tail;
+                done = at + len;
+            }
+            runs.into_par_iter().for_each(|(run, o)| {
+                let tmp: Vec<u64> = o.iter().map(|&i| run[i as usize]).collect();
+                run.copy_from_slice(&tmp);
+            });
+            for r in leaves {
+                rk.push(&mut sorted.arrival[r])?;
+            }
         }
         Ok(out)
     }
@@ -443,6 +507,7 @@ pub(crate) fn build_units(
         state: state.to_path_buf(),
         preview: None,
         bounds: ([0; 3], [0; 3]),
+        ranks: None,
     };
     let mut cands = Vec::with_capacity(units.len());
     for (key, cube, cells) in units {
