@@ -102,24 +102,30 @@ pub fn write(
         },
         declared,
         colors,
+        BLOCKS_AT_ONCE,
     )
 }
 
-/// Blocks coded at once by [`write_blocks`] (in parallel), then written: the memory it holds
-/// is this many blocks' ranks and codes, whatever the store's size.
-const BLOCKS_AT_ONCE: usize = 32;
+/// Blocks [`write`] codes at once (in parallel) before it writes them.
+pub const BLOCKS_AT_ONCE: usize = 32;
+
+/// What coding one block holds in memory at its peak: its ranks, their planes and the code.
+pub const BLOCK_BYTES: u64 = 3 * 8 * BLOCK as u64;
 
 /// [`write`] with the ranks given a block at a time: `fill(range, out)` appends the ranks of
-/// the leaves' points `range` to `out` (empty), in order. The blocks are coded
-/// [`BLOCKS_AT_ONCE`] at a time and written as they are coded, the header and the blocks'
-/// lengths last, so that memory does not grow with the store.
+/// the leaves' points `range` to `out` (empty), in order. The blocks are coded `at_once` at a
+/// time (in parallel; each holds up to [`BLOCK_BYTES`] while it is coded) and written as they
+/// are coded, the header and the blocks' lengths last, so that memory does not grow with the
+/// store.
 pub fn write_blocks(
     dir: &Path,
     n: usize,
     fill: impl Fn(std::ops::Range<usize>, &mut Vec<u64>) -> Result<()> + Sync,
     declared: DeclaredBox,
     colors: ColorMaxima,
+    at_once: usize,
 ) -> Result<()> {
+    let at_once = at_once.max(1);
     use std::os::unix::fs::FileExt;
     let p = dir.join(ARRIVAL_FILE);
     let tmp = dir.join(format!("{ARRIVAL_FILE}.tmp"));
@@ -127,8 +133,8 @@ pub fn write_blocks(
     let nblocks = n.div_ceil(BLOCK);
     let mut lens = Vec::with_capacity(nblocks);
     let mut at = (HEADER + 8 * nblocks) as u64;
-    for first in (0..nblocks).step_by(BLOCKS_AT_ONCE) {
-        let coded: Vec<Vec<u8>> = (first..(first + BLOCKS_AT_ONCE).min(nblocks))
+    for first in (0..nblocks).step_by(at_once) {
+        let coded: Vec<Vec<u8>> = (first..(first + at_once).min(nblocks))
             .into_par_iter()
             .map(|b| {
                 let s = b * BLOCK;

@@ -402,7 +402,7 @@ pub fn append_in_place(plan: &AppendPlan, opts: &OpenOptions, memory: u64) -> Re
         }
         Ok(())
     };
-    arrival::write_blocks(&plan.work, at, fill, declared, colors)?;
+    arrival::write_blocks(&plan.work, at, fill, declared, colors, arrival::BLOCKS_AT_ONCE)?;
     crate::cleanup::trace("append in place: ranks written", t0);
     new_record.complete = true;
     new_record.write(&plan.work)?;

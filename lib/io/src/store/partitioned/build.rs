@@ -152,7 +152,13 @@ pub(crate) fn build_into(
     // The ranks after the last commit and before the build record says the build finished,
     // as the sorted engine writes them.
     let colors = ColorMaxima { max_rgb: all.max_rgb, max_intensity: all.max_intensity };
-    ranks.expect("the walk keeps ranks").write_arrival(&writer.dir, points, header, colors)?;
+    ranks.expect("the walk keeps ranks").write_arrival(
+        &writer.dir,
+        points,
+        header,
+        colors,
+        opts.memory,
+    )?;
     if let Some(pv) = preview {
         pv.remove();
     }

@@ -77,13 +77,15 @@ impl RankLog {
     }
 
     /// Codes the ranks into the store's `arrival.bin` in `dir` (the store's `points` leaf
-    /// points; the inputs' declared box and colour maxima).
+    /// points; the inputs' declared box and colour maxima), as many blocks at once as
+    /// `memory` holds.
     pub(super) fn write_arrival(
         mut self,
         dir: &Path,
         points: u64,
         declared: DeclaredBox,
         colors: ColorMaxima,
+        memory: u64,
     ) -> Result<()> {
         self.file.flush().map_err(|e| Error::io(&self.path, e))?;
         if self.len != points {
@@ -98,7 +100,8 @@ impl RankLog {
             file.read_exact_at(bytemuck::cast_slice_mut(out), r.start as u64 * 8)
                 .map_err(|e| Error::io(path, e))
         };
-        arrival::write_blocks(dir, points as usize, fill, declared, colors)
+        let at_once = (memory / arrival::BLOCK_BYTES).clamp(1, arrival::BLOCKS_AT_ONCE as u64);
+        arrival::write_blocks(dir, points as usize, fill, declared, colors, at_once as usize)
     }
 }
 
