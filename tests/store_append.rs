@@ -412,6 +412,7 @@ fn a_store_larger_than_memory_is_extended_in_place() {
     assert!(s.join(ARRIVAL).exists(), "the partitioned engine keeps arrival ranks");
     let j = append_json(&s, std::slice::from_ref(&b), &["--memory", "256M"]);
     assert!(j["kept_nodes"].as_u64().unwrap() > 0 && in_place(&s), "nothing kept: {j}");
+    assert_eq!(j["engine"], "partitioned", "the report names the store's engine: {j}");
     same_store(&s, &whole, "a partitioned store, then b in place");
     nothing_beside(&s);
     // Under the budget it was built with: built again, by the partitioned engine.

@@ -419,7 +419,12 @@ pub fn append_in_place(plan: &AppendPlan, opts: &OpenOptions, memory: u64) -> Re
         })
         .sum();
     Ok(InPlace::Done(Box::new(BuildReport {
-        engine: if record.engine == BuiltBy::Gpu.name() { BuiltBy::Gpu } else { BuiltBy::Sorted },
+        // The store's engine, as `build.json` keeps it (a build of all inputs by it would record
+        // it; only the sorted, partitioned and GPU engines keep the ranks this needs).
+        engine: [BuiltBy::Gpu, BuiltBy::Partitioned]
+            .into_iter()
+            .find(|e| record.engine == e.name())
+            .unwrap_or(BuiltBy::Sorted),
         points: total,
         nodes: patched.len() as u64,
         leaves: leaf_count,
