@@ -49,11 +49,91 @@ pub(super) fn checksum(b: &[u8]) -> u64 {
     checksum_block(bytemuck::cast_slice(&parts))
 }
 
-/// The seed of [`rank_hash`]: the hash of no ranks.
-pub(super) const RANK_SEED: u64 = 0x1319_8a2e_0370_7344;
+/// A running hash of a visit's leaf ranks (the log keeps it, so that `--resume` takes only
+/// ranks that reached the disk as they were written): the visit's rank `i` goes into lane
+/// `i % 4`, so that the multiplications of consecutive ranks do not wait on one another, and
+/// the hash is the same however the ranks are handed to [`add`](Self::add).
+#[derive(Clone, Copy)]
+pub(super) struct RankHash {
+    lanes: [u64; 4],
+    n: u64,
+}
 
-/// Folds `ranks` into the running hash `h` of a visit's leaf ranks (the log keeps it, so that
-/// `--resume` takes only ranks that reached the disk as they were written).
-pub(super) fn rank_hash(h: u64, ranks: &[u64]) -> u64 {
-    ranks.iter().fold(h, |h, &r| (h ^ r).wrapping_mul(0x9e37_79b9_7f4a_7c15).rotate_left(29))
+impl Default for RankHash {
+    fn default() -> Self {
+        let s = 0x1319_8a2e_0370_7344u64;
+        RankHash { lanes: [s, s ^ 1, s ^ 2, s ^ 3], n: 0 }
+    }
+}
+
+impl RankHash {
+    #[inline]
+    fn mix(h: u64, r: u64) -> u64 {
+        (h ^ r).wrapping_mul(0x9e37_79b9_7f4a_7c15).rotate_left(29)
+    }
+
+    /// Adds the visit's next ranks.
+    pub(super) fn add(&mut self, ranks: &[u64]) {
+        let lead = ((4 - self.n % 4) % 4).min(ranks.len() as u64) as usize;
+        for &r in &ranks[..lead] {
+            let l = (self.n % 4) as usize;
+            self.lanes[l] = Self::mix(self.lanes[l], r);
+            self.n += 1;
+        }
+        let mut q = self.lanes;
+        let mut groups = ranks[lead..].chunks_exact(4);
+        for g in &mut groups {
+            for l in 0..4 {
+                q[l] = Self::mix(q[l], g[l]);
+            }
+        }
+        self.lanes = q;
+        self.n += (ranks.len() - lead - groups.remainder().len()) as u64;
+        for &r in groups.remainder() {
+            let l = (self.n % 4) as usize;
+            self.lanes[l] = Self::mix(self.lanes[l], r);
+            self.n += 1;
+        }
+    }
+
+    /// The hash of the ranks added.
+    pub(super) fn finish(&self) -> u64 {
+        self.lanes.iter().fold(self.n, |h, &l| Self::mix(h, l))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::RankHash;
+
+    #[test]
+    fn a_rank_hash_is_the_same_however_the_ranks_come() {
+        let ranks: Vec<u64> = (0..1003u64).map(|i| i.wrapping_mul(0x9e37_79b9) % 5000).collect();
+        let mut whole = RankHash::default();
+        whole.add(&ranks);
+        for cuts in [vec![1, 2, 3, 500], vec![4, 8, 999], vec![0, 0, 7, 1002], vec![333, 334]] {
+            let mut h = RankHash::default();
+            let mut at = 0;
+            for c in cuts.into_iter().chain([ranks.len()]) {
+                h.add(&ranks[at..c]);
+                at = c;
+            }
+            assert_eq!(h.finish(), whole.finish());
+        }
+        // Another rank, one rank fewer, two swapped: another hash.
+        let mut other = ranks.clone();
+        other[500] ^= 1;
+        let mut fewer = RankHash::default();
+        fewer.add(&ranks[..1002]);
+        other.swap(10, 11);
+        let mut h = RankHash::default();
+        h.add(&other);
+        assert_ne!(h.finish(), whole.finish());
+        assert_ne!(fewer.finish(), whole.finish());
+        let mut swapped = ranks.clone();
+        swapped.swap(10, 14);
+        let mut h = RankHash::default();
+        h.add(&swapped);
+        assert_ne!(h.finish(), whole.finish());
+    }
 }

@@ -184,7 +184,9 @@ mod tests {
         // The leaves' ranks of the three visits: 10, 20 and 5 of them.
         let ranks: Vec<u64> = (0..35u64).map(|i| i * 7 % 35).collect();
         let rh = |r: std::ops::Range<usize>| {
-            super::super::checksum::rank_hash(super::super::checksum::RANK_SEED, &ranks[r])
+            let mut h = super::super::checksum::RankHash::default();
+            h.add(&ranks[r]);
+            h.finish()
         };
         let rank_file = dir.join("ranks.bin");
         std::fs::write(&rank_file, bytemuck::cast_slice(&ranks)).unwrap();

@@ -4,13 +4,14 @@
 //! order), and the end of the build codes them into `arrival.bin` a block at a time. The walk
 //! visits the leaves in Morton order of their cubes, so the file is the sorted engine's.
 //!
-//! `--resume`: the log keeps the hash of each visit's ranks ([`super::checksum::rank_hash`]);
+//! `--resume`: the log keeps the hash of each visit's ranks ([`super::checksum::RankHash`]);
 //! a visit whose ranks did not reach the disk as written is redone, and the file is cut after
 //! the ranks of the visits kept.
 
-use super::checksum::{rank_hash, RANK_SEED};
+use super::checksum::RankHash;
 use crate::error::{Error, Result};
 use crate::store::arrival::{self, ColorMaxima, DeclaredBox};
+use rayon::prelude::*;
 use std::io::Write;
 use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
@@ -26,7 +27,7 @@ pub(super) struct RankLog {
     /// `piece << 32 | index` to rank).
     starts: Vec<u64>,
     /// The hash of the ranks appended since the last [`take_hash`](Self::take_hash).
-    pending: u64,
+    pending: RankHash,
     /// Ranks in the file.
     pub(super) len: u64,
 }
@@ -51,21 +52,24 @@ impl RankLog {
         for n in pieces {
             starts.push(starts.last().expect("one start") + n);
         }
-        Ok(RankLog { file: f, path, starts, pending: RANK_SEED, len: keep })
+        Ok(RankLog { file: f, path, starts, pending: RankHash::default(), len: keep })
     }
 
     /// Appends the leaf points whose arrival numbers are `arrival` (in the file's order),
     /// turning them into ranks in place.
     pub(super) fn push(&mut self, arrival: &mut [u64]) -> Result<()> {
-        for a in arrival.iter_mut() {
-            let piece = (*a >> 32) as usize;
-            let start = self.starts.get(piece).ok_or_else(|| Error::Internal {
-                path: self.path.clone(),
-                what: "an arrival number names a piece the dataset does not have",
-            })?;
-            *a = start + (*a & 0xffff_ffff);
-        }
-        self.pending = rank_hash(self.pending, arrival);
+        let starts = &self.starts;
+        arrival.par_chunks_mut(1 << 16).try_for_each(|c| {
+            for a in c.iter_mut() {
+                let start = starts.get((*a >> 32) as usize).ok_or_else(|| Error::Internal {
+                    path: self.path.clone(),
+                    what: "an arrival number names a piece the dataset does not have",
+                })?;
+                *a = start + (*a & 0xffff_ffff);
+            }
+            Ok::<(), Error>(())
+        })?;
+        self.pending.add(arrival);
         self.file.write_all(bytemuck::cast_slice(arrival)).map_err(|e| Error::io(&self.path, e))?;
         self.len += arrival.len() as u64;
         Ok(())
@@ -73,7 +77,7 @@ impl RankLog {
 
     /// The hash of the ranks appended since the last call (what the log keeps of a visit).
     pub(super) fn take_hash(&mut self) -> u64 {
-        std::mem::replace(&mut self.pending, RANK_SEED)
+        std::mem::take(&mut self.pending).finish()
     }
 
     /// Codes the ranks into the store's `arrival.bin` in `dir` (the store's `points` leaf
@@ -110,7 +114,7 @@ impl RankLog {
 pub(super) fn ranks_ok(file: Option<&std::fs::File>, from: u64, count: u64, hash: u64) -> bool {
     let Some(f) = file else { return false };
     const STEP: u64 = 1 << 16;
-    let mut h = RANK_SEED;
+    let mut h = RankHash::default();
     let mut buf = vec![0u64; STEP.min(count) as usize];
     let mut at = 0;
     while at < count {
@@ -118,8 +122,8 @@ pub(super) fn ranks_ok(file: Option<&std::fs::File>, from: u64, count: u64, hash
         if f.read_exact_at(bytemuck::cast_slice_mut(&mut buf[..m]), (from + at) * 8).is_err() {
             return false;
         }
-        h = rank_hash(h, &buf[..m]);
+        h.add(&buf[..m]);
         at += m as u64;
     }
-    h == hash
+    h.finish() == hash
 }

@@ -3,7 +3,7 @@
 //! from its children's candidates, or a cell denser than a unit ([`dense`]); every finished
 //! visit logged for `--resume`.
 
-use super::checksum::{checksum, checksum_at, RANK_SEED};
+use super::checksum::{checksum, checksum_at, RankHash};
 use super::log::{log_record, Logged, LOG};
 use super::partition::cell_depth;
 use super::ranks::RankLog;
@@ -253,7 +253,8 @@ impl Walk<'_, '_> {
 
     /// Logs a finished visit (its entries from `before` on). Not synced: see the module docs.
     fn logged(&mut self, key: NodeKey, before: usize, points: u64, out: &Cands) -> Result<()> {
-        let ranks_hash = self.ranks.as_mut().map_or(RANK_SEED, |r| r.take_hash());
+        let ranks_hash =
+            self.ranks.as_mut().map_or(RankHash::default().finish(), |r| r.take_hash());
         let rec = log_record(
             key,
             self.seq,
