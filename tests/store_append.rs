@@ -384,6 +384,16 @@ fn a_store_with_arrival_ranks_needs_no_original_inputs() {
     assert!(merged > 50, "only {merged} of {pairs} pairs merged");
 }
 
+/// A site of `points` points of `mortar-gen --seed seed` (`a.las`, 1 km square) and a day's
+/// flight of 60 k points inside its root cube (`b.las`).
+fn site_and_flight(dir: &Path, points: u64, seed: u64) -> (PathBuf, PathBuf) {
+    let a = dir.join("a.las");
+    run_ok(
+        gen().args(["--points", &points.to_string(), "--seed", &seed.to_string(), "-o"]).arg(&a),
+    );
+    (a, scan_at(dir, "b.las", 60_000, 4, "500200,5000200,0"))
+}
+
 /// A store the partitioned engine built (its input larger than `--memory`) keeps its arrival
 /// ranks as the sorted engine does, and is extended in place where keeping its nodes fits the
 /// append's `--memory`: the store of the partitioned build of all inputs, with the same ranks;
@@ -391,9 +401,7 @@ fn a_store_with_arrival_ranks_needs_no_original_inputs() {
 #[test]
 fn a_store_larger_than_memory_is_extended_in_place() {
     let dir = tempdir("append-partitioned");
-    let a = dir.join("a.las");
-    run_ok(gen().args(["--points", "400000", "--seed", "9", "-o"]).arg(&a));
-    let b = scan_at(&dir, "b.las", 60_000, 4, "500200,5000200,0");
+    let (a, b) = site_and_flight(&dir, 400_000, 9);
     let small = ["--memory", "16M", "--leaf-capacity", "3000"];
     let whole = dir.join("whole");
     build(&[a.clone(), b.clone()], &whole, &small);
@@ -440,9 +448,7 @@ fn append_json(store: &Path, more: &[PathBuf], extra: &[&str]) -> serde_json::Va
 #[test]
 fn an_append_inside_the_root_keeps_the_nodes_it_does_not_reach() {
     let dir = tempdir("append-in-place");
-    let a = dir.join("a.las");
-    run_ok(gen().args(["--points", "300000", "--seed", "3", "-o"]).arg(&a));
-    let b = scan_at(&dir, "b.las", 60_000, 4, "500200,5000200,0");
+    let (a, b) = site_and_flight(&dir, 300_000, 3);
     for extra in [vec![], vec!["--leaf-capacity", "3000"]] {
         let what = format!("{extra:?}");
         let whole_ab = dir.join("whole-ab");
