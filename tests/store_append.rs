@@ -432,6 +432,52 @@ fn a_store_larger_than_memory_is_extended_in_place() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// A store whose arrival ranks alone (8 bytes a point) pass the append's `--memory` is still
+/// extended in place: its ranks are read a block at a time (and checked as they are), not held.
+/// 8 M points are 64 MB of ranks; the flight reaches few of their leaves.
+#[test]
+fn a_store_whose_ranks_pass_memory_is_extended_in_place() {
+    let dir = tempdir("append-ranks-stream");
+    let a = dir.join("a.las");
+    run_ok(gen().args(["--points", "8000000", "--seed", "11", "-o"]).arg(&a));
+    let b = dir.join("b.las");
+    run_ok(
+        gen()
+            .args(["--points", "20000", "--seed", "4", "--origin", "500400,5000400,0"])
+            .args(["--extent", "30", "-o"])
+            .arg(&b),
+    );
+    let whole = dir.join("whole");
+    build(&[a.clone(), b.clone()], &whole, &[]);
+    let s = dir.join("s");
+    build(std::slice::from_ref(&a), &s, &[]);
+    // A copy whose well-formed ranks name one point twice: refused once read, the file named,
+    // the store as it was.
+    let d = dir.join("d");
+    std::fs::create_dir(&d).unwrap();
+    for f in std::fs::read_dir(&s).unwrap() {
+        let f = f.unwrap().path();
+        std::fs::copy(&f, d.join(f.file_name().unwrap())).unwrap();
+    }
+    let arr = mortar_io::store::arrival::read(&d, 8_000_000).unwrap().unwrap();
+    let mut ranks = arr.ranks;
+    ranks[5_000_000] = ranks[17];
+    let colors = arr.colors.unwrap();
+    mortar_io::store::arrival::write(&d, ranks.len(), |i| ranks[i], arr.declared, colors).unwrap();
+    let damaged = std::fs::read(d.join(ARRIVAL)).unwrap();
+    let o = append(&d, std::slice::from_ref(&b), &["--memory", "64M"]).output().unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(err.contains(ARRIVAL) && err.contains("twice"), "{err}");
+    nothing_beside(&d);
+    assert!(std::fs::read(d.join(ARRIVAL)).unwrap() == damaged && !in_place(&d));
+    let j = append_json(&s, std::slice::from_ref(&b), &["--memory", "64M"]);
+    assert!(j["kept_nodes"].as_u64().unwrap() > 0 && in_place(&s), "nothing kept: {j}");
+    same_store(&s, &whole, "8 M points, then 20 k in place within 64M");
+    nothing_beside(&s);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 /// `mortar build --append STORE MORE --json`, which must succeed: its report.
 fn append_json(store: &Path, more: &[PathBuf], extra: &[&str]) -> serde_json::Value {
     let o = run_ok(&mut append(store, more, &[extra, &["--json"]].concat()));

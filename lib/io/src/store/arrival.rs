@@ -72,10 +72,23 @@ pub const BLOCK: usize = 1 << 20;
 fn encode_block(ranks: impl Iterator<Item = u64>, len: usize) -> Vec<u8> {
     let mut planes = vec![0u8; 8 * len];
     let mut prev = 0u64;
-    for (i, r) in ranks.enumerate() {
+    let mut zig = ranks.map(|r| {
         let d = r.wrapping_sub(prev) as i64;
         prev = r;
-        let z = ((d << 1) ^ (d >> 63)) as u64;
+        ((d << 1) ^ (d >> 63)) as u64
+    });
+    // Eight ranks at a time, transposed in registers into eight bytes of each plane.
+    for o in 0..len / 8 {
+        let mut x = [0u64; 8];
+        for x in &mut x {
+            *x = zig.next().expect("len ranks");
+        }
+        super::codec::transpose8(&mut x);
+        for (b, x) in x.iter().enumerate() {
+            planes[b * len + 8 * o..][..8].copy_from_slice(&x.to_le_bytes());
+        }
+    }
+    for (i, z) in (len / 8 * 8..len).zip(zig) {
         for (b, byte) in z.to_le_bytes().into_iter().enumerate() {
             planes[b * len + i] = byte;
         }
@@ -183,110 +196,274 @@ pub fn exists(dir: &Path) -> bool {
 
 /// The ranks of the store `dir`'s `points` leaf points (see the module docs), checked: the
 /// file's count must be `points` and the ranks a permutation of `0..points`. `None` where the
-/// store has no arrival file.
+/// store has no arrival file. Holds every rank (8 bytes a point); [`RankFile`] reads them a
+/// block at a time.
 pub fn read(dir: &Path, points: u64) -> Result<Option<Arrival>> {
-    let p = dir.join(ARRIVAL_FILE);
-    let bytes = match std::fs::read(&p) {
-        Ok(b) => b,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
-        Err(e) => return Err(Error::io(&p, e)),
-    };
-    let bad = |why: String| Error::Store { path: p.clone(), error: StoreError::Arrival { why } };
-    let u64_at = |at: usize| -> Option<u64> {
-        bytes.get(at..at + 8).map(|b| u64::from_le_bytes(b.try_into().expect("8 bytes")))
-    };
-    if bytes.len() < HEADER_V1 || bytes[..8] != MAGIC {
-        return Err(bad("not an arrival file (no MORTARRV header)".into()));
-    }
-    let version = u32::from_le_bytes(bytes[8..12].try_into().expect("4 bytes"));
-    let header = match version {
-        1 => HEADER_V1,
-        VERSION if bytes.len() >= HEADER => HEADER,
-        VERSION => return Err(bad("truncated (its header)".into())),
-        _ => return Err(bad(format!("arrival file version {version} is not supported"))),
-    };
-    let flags = u32::from_le_bytes(bytes[12..16].try_into().expect("4 bytes"));
-    let i32_at =
-        |k: usize| i32::from_le_bytes(bytes[32 + 4 * k..36 + 4 * k].try_into().expect("4"));
-    let known = if version == 1 { 1 } else { 3 };
-    if flags & !known != 0 {
-        return Err(bad(format!("unknown flags {flags:#x}")));
-    }
-    let declared = (flags & 1 != 0).then(|| ([0, 1, 2].map(i32_at), [3, 4, 5].map(i32_at)));
-    let u16_at = |at: usize| u16::from_le_bytes([bytes[at], bytes[at + 1]]);
-    let colors =
-        (flags & 2 != 0).then(|| ColorMaxima { max_rgb: u16_at(56), max_intensity: u16_at(58) });
-    let n = u64_at(16).expect("header checked");
-    let nblocks = u64_at(24).expect("header checked");
-    if n != points {
-        return Err(bad(format!("holds {n} ranks, the store's leaves hold {points} points")));
-    }
-    // Both checked against the store's points (counted from its leaves), so sizes below are
-    // bounded by what the store holds, not by this file's header.
-    if nblocks != points.div_ceil(BLOCK as u64) {
-        return Err(bad(format!("declares {nblocks} blocks for {points} ranks")));
-    }
-    let nb = nblocks as usize;
-    let table = header + 8 * nb;
-    if bytes.len() < table {
-        return Err(bad("truncated (its block table)".into()));
-    }
-    let mut spans = Vec::with_capacity(nb);
-    let mut at = table;
-    for b in 0..nb {
-        let len = u64_at(header + 8 * b).expect("table checked") as usize;
-        let end = at.checked_add(len).filter(|&e| e <= bytes.len());
-        let Some(end) = end else {
-            return Err(bad(format!("truncated (block {b})")));
+    let Some(f) = RankFile::open(dir, points)? else { return Ok(None) };
+    let mut ranks = vec![0u64; f.n];
+    ranks.par_chunks_mut(BLOCK).enumerate().try_for_each(|(b, out)| f.decode_into(b, out))?;
+    let seen = RankCheck::new(&f);
+    ranks.par_chunks(BLOCK).try_for_each(|r| seen.mark(r, &f))?;
+    seen.finish(&f)?;
+    Ok(Some(Arrival { ranks, declared: f.declared, colors: f.colors }))
+}
+
+/// An arrival file whose header and block table were read and checked, its ranks decoded a
+/// block at a time as they are asked for: what reading ranks costs in memory is a few blocks
+/// (and a bit a point to check them), not 8 bytes a point.
+#[derive(Debug)]
+pub struct RankFile {
+    path: std::path::PathBuf,
+    file: std::fs::File,
+    /// Ranks listed.
+    n: usize,
+    /// Each block's bytes in the file.
+    spans: Vec<std::ops::Range<u64>>,
+    /// The box the inputs' headers declared.
+    pub declared: DeclaredBox,
+    /// The inputs' colour maxima (version 2 files).
+    pub colors: Option<ColorMaxima>,
+}
+
+/// The block a [`RankFile`] decoded last: its index and ranks (a reader's cursor).
+pub type BlockCache = Option<(usize, Vec<u64>)>;
+
+impl RankFile {
+    /// Opens the arrival file of the store `dir` whose leaves hold `points` points (the count
+    /// and the block table checked against them and the file's length; the ranks are checked
+    /// by [`check`](Self::check)). `None` where the store has none.
+    pub fn open(dir: &Path, points: u64) -> Result<Option<RankFile>> {
+        use std::os::unix::fs::FileExt;
+        let p = dir.join(ARRIVAL_FILE);
+        let file = match std::fs::File::open(&p) {
+            Ok(f) => f,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+            Err(e) => return Err(Error::io(&p, e)),
         };
-        spans.push(at..end);
-        at = end;
-    }
-    if at != bytes.len() {
-        return Err(bad(format!("{} bytes after its last block", bytes.len() - at)));
-    }
-    let n = points as usize;
-    let mut ranks = vec![0u64; n];
-    ranks.par_chunks_mut(BLOCK).zip(spans.into_par_iter()).enumerate().try_for_each(
-        |(b, (out, span))| {
-            let len = out.len();
-            let planes = zstd::bulk::decompress(&bytes[span], 8 * len)
-                .map_err(|e| bad(format!("block {b}: {e}")))?;
-            if planes.len() != 8 * len {
-                return Err(bad(format!(
-                    "block {b} holds {} bytes, not {}",
-                    planes.len(),
-                    8 * len
-                )));
-            }
-            let mut prev = 0u64;
-            for (i, r) in out.iter_mut().enumerate() {
-                let mut z = [0u8; 8];
-                for (k, byte) in z.iter_mut().enumerate() {
-                    *byte = planes[k * len + i];
-                }
-                let z = u64::from_le_bytes(z);
-                let d = ((z >> 1) as i64) ^ -((z & 1) as i64);
-                prev = prev.wrapping_add(d as u64);
-                *r = prev;
-            }
-            Ok(())
-        },
-    )?;
-    // A permutation of 0..n: each rank below n, none twice (a bit a rank, set in parallel).
-    use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
-    let seen: Vec<AtomicU64> = (0..n.div_ceil(64)).map(|_| AtomicU64::new(0)).collect();
-    ranks.par_iter().try_for_each(|&r| {
-        if r >= points {
-            return Err(bad(format!("rank {r} is not below the store's {points} points")));
+        let bad =
+            |why: String| Error::Store { path: p.clone(), error: StoreError::Arrival { why } };
+        let file_len = file.metadata().map_err(|e| Error::io(&p, e))?.len();
+        let mut head = vec![0u8; HEADER.min(file_len as usize)];
+        file.read_exact_at(&mut head, 0).map_err(|e| Error::io(&p, e))?;
+        if head.len() < HEADER_V1 || head[..8] != MAGIC {
+            return Err(bad("not an arrival file (no MORTARRV header)".into()));
         }
-        let bit = 1u64 << (r % 64);
-        if seen[(r / 64) as usize].fetch_or(bit, Relaxed) & bit != 0 {
-            return Err(bad(format!("rank {r} is given twice")));
+        let u32_at = |at: usize| u32::from_le_bytes(head[at..at + 4].try_into().expect("4 bytes"));
+        let u64_at = |at: usize| u64::from_le_bytes(head[at..at + 8].try_into().expect("8 bytes"));
+        let version = u32_at(8);
+        let header = match version {
+            1 => HEADER_V1,
+            VERSION if head.len() >= HEADER => HEADER,
+            VERSION => return Err(bad("truncated (its header)".into())),
+            _ => return Err(bad(format!("arrival file version {version} is not supported"))),
+        };
+        let flags = u32_at(12);
+        let known = if version == 1 { 1 } else { 3 };
+        if flags & !known != 0 {
+            return Err(bad(format!("unknown flags {flags:#x}")));
+        }
+        let i32_at = |k: usize| u32_at(32 + 4 * k) as i32;
+        let declared = (flags & 1 != 0).then(|| ([0, 1, 2].map(i32_at), [3, 4, 5].map(i32_at)));
+        let u16_at = |at: usize| u16::from_le_bytes([head[at], head[at + 1]]);
+        let colors = (flags & 2 != 0)
+            .then(|| ColorMaxima { max_rgb: u16_at(56), max_intensity: u16_at(58) });
+        let (n, nblocks) = (u64_at(16), u64_at(24));
+        if n != points {
+            return Err(bad(format!("holds {n} ranks, the store's leaves hold {points} points")));
+        }
+        // Both checked against the store's points (counted from its leaves), so sizes below
+        // are bounded by what the store holds, not by this file's header.
+        if nblocks != points.div_ceil(BLOCK as u64) {
+            return Err(bad(format!("declares {nblocks} blocks for {points} ranks")));
+        }
+        let nb = nblocks as usize;
+        let table_end = (header + 8 * nb) as u64;
+        if file_len < table_end {
+            return Err(bad("truncated (its block table)".into()));
+        }
+        let mut table = vec![0u8; 8 * nb];
+        file.read_exact_at(&mut table, header as u64).map_err(|e| Error::io(&p, e))?;
+        let mut spans = Vec::with_capacity(nb);
+        let mut at = table_end;
+        for (b, len) in table.chunks_exact(8).enumerate() {
+            let len = u64::from_le_bytes(len.try_into().expect("8 bytes"));
+            let Some(end) = at.checked_add(len).filter(|&e| e <= file_len) else {
+                return Err(bad(format!("truncated (block {b})")));
+            };
+            spans.push(at..end);
+            at = end;
+        }
+        if at != file_len {
+            return Err(bad(format!("{} bytes after its last block", file_len - at)));
+        }
+        Ok(Some(RankFile { path: p, file, n: points as usize, spans, declared, colors }))
+    }
+
+    fn bad(&self, why: String) -> Error {
+        Error::Store { path: self.path.clone(), error: StoreError::Arrival { why } }
+    }
+
+    /// The ranks listed.
+    pub fn len(&self) -> usize {
+        self.n
+    }
+
+    /// Whether it lists none.
+    pub fn is_empty(&self) -> bool {
+        self.n == 0
+    }
+
+    /// Decodes block `b` into `out` (its ranks: [`BLOCK`], or fewer for the last block).
+    fn decode_into(&self, b: usize, out: &mut [u64]) -> Result<()> {
+        use std::os::unix::fs::FileExt;
+        let span = &self.spans[b];
+        let mut coded = vec![0u8; (span.end - span.start) as usize];
+        self.file.read_exact_at(&mut coded, span.start).map_err(|e| Error::io(&self.path, e))?;
+        let len = out.len();
+        let planes = zstd::bulk::decompress(&coded, 8 * len)
+            .map_err(|e| self.bad(format!("block {b}: {e}")))?;
+        if planes.len() != 8 * len {
+            return Err(self.bad(format!(
+                "block {b} holds {} bytes, not {}",
+                planes.len(),
+                8 * len
+            )));
+        }
+        let mut prev = 0u64;
+        let mut add = |z: u64, r: &mut u64| {
+            let d = ((z >> 1) as i64) ^ -((z & 1) as i64);
+            prev = prev.wrapping_add(d as u64);
+            *r = prev;
+        };
+        // Eight ranks at a time: eight bytes of each plane, transposed in registers.
+        let len8 = len / 8 * 8;
+        for (o, r8) in out[..len8].chunks_exact_mut(8).enumerate() {
+            let mut x = [0u64; 8];
+            for (k, x) in x.iter_mut().enumerate() {
+                let at = k * len + 8 * o;
+                *x = u64::from_le_bytes(planes[at..at + 8].try_into().expect("8 bytes"));
+            }
+            super::codec::transpose8(&mut x);
+            for (x, r) in x.into_iter().zip(r8) {
+                add(x, r);
+            }
+        }
+        for (i, r) in out.iter_mut().enumerate().skip(len8) {
+            let z = (0..8).fold(0u64, |z, k| z | (planes[k * len + i] as u64) << (8 * k));
+            add(z, r);
         }
         Ok(())
-    })?;
-    Ok(Some(Arrival { ranks, declared, colors }))
+    }
+
+    /// The ranks of block `b`.
+    fn block(&self, b: usize) -> Result<Vec<u64>> {
+        let mut out = vec![0u64; (self.n - b * BLOCK).min(BLOCK)];
+        self.decode_into(b, &mut out)?;
+        Ok(out)
+    }
+
+    /// Appends the ranks of the listing's places `r` to `out`, decoding the blocks they lie in;
+    /// `cache` keeps the last block decoded, so that reading a block's ranges in order decodes
+    /// it once.
+    pub fn copy(
+        &self,
+        r: std::ops::Range<usize>,
+        cache: &mut BlockCache,
+        out: &mut Vec<u64>,
+    ) -> Result<()> {
+        if r.end > self.n {
+            return Err(Error::Internal {
+                path: self.path.clone(),
+                what: "arrival ranks asked for beyond the listing",
+            });
+        }
+        let mut i = r.start;
+        while i < r.end {
+            let b = i / BLOCK;
+            if cache.as_ref().is_none_or(|(k, _)| *k != b) {
+                *cache = Some((b, self.block(b)?));
+            }
+            let (_, ranks) = cache.as_ref().expect("just decoded");
+            let take = ((b + 1) * BLOCK).min(r.end) - i;
+            out.extend_from_slice(&ranks[i - b * BLOCK..i - b * BLOCK + take]);
+            i += take;
+        }
+        Ok(())
+    }
+
+    /// Checks that the ranks are a permutation of `0..len` (none at or above it, none twice),
+    /// decoding `at_once` blocks at a time (in parallel): a bit a rank besides them.
+    pub fn check(&self, at_once: usize) -> Result<()> {
+        let at_once = at_once.max(1);
+        let seen = RankCheck::new(self);
+        let blocks: Vec<usize> = (0..self.spans.len()).collect();
+        for group in blocks.chunks(at_once) {
+            group.par_iter().try_for_each(|&b| seen.mark(&self.block(b)?, self))?;
+        }
+        seen.finish(self)
+    }
+}
+
+/// The check that a [`RankFile`]'s ranks are a permutation of `0..len`, as they are read (in
+/// any order, from any thread): a bit a rank.
+pub struct RankCheck {
+    bits: Vec<std::sync::atomic::AtomicU64>,
+    marked: std::sync::atomic::AtomicU64,
+}
+
+impl RankCheck {
+    /// The check of `f`'s ranks, none read yet.
+    pub fn new(f: &RankFile) -> RankCheck {
+        RankCheck {
+            bits: (0..f.n.div_ceil(64)).map(|_| Default::default()).collect(),
+            marked: Default::default(),
+        }
+    }
+
+    /// Marks `ranks` read: an error where one is not below `f`'s count or was read before.
+    pub fn mark(&self, ranks: &[u64], f: &RankFile) -> Result<()> {
+        use std::sync::atomic::Ordering::Relaxed;
+        let n = f.n as u64;
+        let twice = |r: u64| f.bad(format!("rank {r} is given twice"));
+        // Consecutive ranks mostly share a word (scans arrive in time order): their bits are
+        // gathered and set with one atomic operation a word.
+        let (mut word, mut mask) = (u64::MAX, 0u64);
+        let flush = |word: u64, mask: u64| -> Result<()> {
+            if mask != 0 {
+                let had = self.bits[word as usize].fetch_or(mask, Relaxed) & mask;
+                if had != 0 {
+                    return Err(twice(64 * word + had.trailing_zeros() as u64));
+                }
+            }
+            Ok(())
+        };
+        for &r in ranks {
+            if r >= n {
+                return Err(f.bad(format!("rank {r} is not below the store's {n} points")));
+            }
+            if r / 64 != word {
+                flush(word, mask)?;
+                (word, mask) = (r / 64, 0);
+            }
+            let bit = 1u64 << (r % 64);
+            if mask & bit != 0 {
+                return Err(twice(r));
+            }
+            mask |= bit;
+        }
+        flush(word, mask)?;
+        self.marked.fetch_add(ranks.len() as u64, Relaxed);
+        Ok(())
+    }
+
+    /// Once every rank was read: an error where some were not (then some place was not read).
+    pub fn finish(&self, f: &RankFile) -> Result<()> {
+        let m = self.marked.load(std::sync::atomic::Ordering::Relaxed);
+        if m != f.n as u64 {
+            return Err(f.bad(format!("{m} of its {} ranks were read", f.n)));
+        }
+        Ok(())
+    }
 }
 
 #[cfg(test)]
@@ -313,6 +490,21 @@ mod tests {
         write(&d, n, |i| perm[i], declared, colors).unwrap();
         let got = read(&d, n as u64).unwrap().unwrap();
         assert_eq!(got, Arrival { ranks: perm.clone(), declared, colors: Some(colors) });
+        // Read a block at a time: ranges across the blocks' border, in order and not, with
+        // one cache, give the listing's ranks; the check passes; ranges beyond are refused.
+        let f = RankFile::open(&d, n as u64).unwrap().unwrap();
+        assert_eq!((f.len(), f.declared, f.colors), (n, declared, Some(colors)));
+        f.check(1).unwrap();
+        f.check(64).unwrap();
+        let mut cache = None;
+        for r in [0..10, BLOCK - 5..BLOCK + 7, 3..BLOCK + 12_345, 17..17, n - 1..n, 5..6] {
+            let mut out = vec![42];
+            f.copy(r.clone(), &mut cache, &mut out).unwrap();
+            assert_eq!(out[1..], perm[r.clone()], "{r:?}");
+            assert_eq!(out[0], 42);
+        }
+        assert!(f.copy(n - 1..n + 1, &mut cache, &mut Vec::new()).is_err());
+        drop(f);
         // Version 1 (no colour maxima): the same file less bytes 56..64, version and flag 1.
         let p = d.join(ARRIVAL_FILE);
         let v2 = std::fs::read(&p).unwrap();
@@ -330,14 +522,21 @@ mod tests {
         std::fs::write(&p, &whole[..whole.len() - 3]).unwrap();
         let e = read(&d, n as u64).unwrap_err().to_string();
         assert!(e.contains("arrival.bin") && e.contains("truncated"), "{e}");
+        assert!(RankFile::open(&d, n as u64).unwrap_err().to_string().contains("truncated"));
         write(&d, 3, |i| [0, 2, 0][i], None, colors).unwrap();
         assert!(read(&d, 3).unwrap_err().to_string().contains("twice"));
+        let f = RankFile::open(&d, 3).unwrap().unwrap();
+        assert!(f.check(1).unwrap_err().to_string().contains("twice"));
         write(&d, 3, |i| [0, 1, 7][i], None, colors).unwrap();
         assert!(read(&d, 3).unwrap_err().to_string().contains("not below"));
+        let f = RankFile::open(&d, 3).unwrap().unwrap();
+        assert!(f.check(2).unwrap_err().to_string().contains("not below"));
+        assert!(RankFile::open(&d, 4).is_err());
         std::fs::write(&p, b"MORTARRV").unwrap();
         assert!(read(&d, 3).is_err());
         std::fs::remove_file(&p).unwrap();
         assert!(read(&d, 3).unwrap().is_none());
+        assert!(RankFile::open(&d, 3).unwrap().is_none());
         write(&d, 0, |_| 0, None, ColorMaxima::default()).unwrap();
         assert_eq!(
             read(&d, 0).unwrap().unwrap(),

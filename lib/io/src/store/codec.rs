@@ -496,7 +496,7 @@ fn planes_of(rec: &[u8], al: usize, k: usize, len: usize, dst: &mut [u8], n: usi
 
 /// Transposes the 8x8 byte matrix whose row `r` is `x[r]` (byte `c` of a row: column `c`).
 #[inline]
-fn transpose8(x: &mut [u64; 8]) {
+pub(crate) fn transpose8(x: &mut [u64; 8]) {
     for (half, mask) in
         [(4, 0x0000_0000_ffff_ffffu64), (2, 0x0000_ffff_0000_ffff), (1, 0x00ff_00ff_00ff_00ff)]
     {

@@ -18,10 +18,10 @@
 //! component or intensity where they choose the colours). Otherwise [`append_in_place`] says
 //! why, and the caller builds everything again as before.
 //!
-//! Memory: the store's ranks (9 bytes a point with their check), the new records with their
-//! sort keys (48 bytes a point besides the record), and the
-//! records of the nodes the new points reach, at once; where that passes `--memory`, the whole
-//! build is taken (which has its own rules).
+//! Memory: a bit a point of the store to check its ranks (read a few blocks at a time, not
+//! held: [`arrival::RankFile`]), the new records with their sort keys (48 bytes a point besides
+//! the record), and the records and ranks of the nodes the new points reach, at once; where
+//! that passes `--memory`, the whole build is taken (which has its own rules).
 
 use super::append::{grid_moved, AppendPlan, StoreInArrivalOrder};
 use super::arrival::{self, ColorMaxima};
@@ -80,9 +80,10 @@ pub fn append_in_place(plan: &AppendPlan, opts: &OpenOptions, memory: u64) -> Re
         more.push(src);
     }
     let new_declared: u64 = more.iter().map(|s| s.point_count()).sum();
-    // The store's ranks and the reader's check of them (8 bytes and a bit a point), the new
+    // The ranks' blocks decoded at once, and the check of them (a bit a point); the new
     // records, their places and sort keys.
-    let need = old_n * 9 + new_declared * (rl + 48);
+    let at_once = (memory / 16 / arrival::BLOCK_BYTES).clamp(1, arrival::BLOCKS_AT_ONCE as u64);
+    let need = old_n / 8 + 2 * at_once * arrival::BLOCK_BYTES + new_declared * (rl + 48);
     if need > memory {
         return rebuild(&format!(
             "keeping the store's nodes needs about {} MiB here, over --memory ({} MiB)",
@@ -90,10 +91,9 @@ pub fn append_in_place(plan: &AppendPlan, opts: &OpenOptions, memory: u64) -> Re
             memory >> 20
         ));
     }
-    let Some(arr) = arrival::read(&plan.store, old_n)? else {
+    let Some(arr) = arrival::RankFile::open(&plan.store, old_n)? else {
         return rebuild("the store keeps no arrival ranks (arrival.bin)");
     };
-    crate::cleanup::trace("append in place: store and ranks read", t0);
     let Some(old_colors) = arr.colors else {
         return rebuild("its arrival.bin is of an older mortar (without the colour maxima)");
     };
@@ -182,10 +182,10 @@ pub fn append_in_place(plan: &AppendPlan, opts: &OpenOptions, memory: u64) -> Re
 
     // What the nodes the new points reach hold, held while the tree is patched: each such
     // node's cube is a range of codes that holds a new point.
-    let reached: u64 = store
-        .entries
-        .par_iter()
-        .filter(|e| {
+    let reached_ids: Vec<usize> = (0..store.entries.len())
+        .into_par_iter()
+        .filter(|&id| {
+            let e = &store.entries[id];
             let key = NodeKey { level: e.level as u8, index: e.index };
             let c = key.cube_in(root);
             let first = encode96([0, 1, 2].map(|a| (c.min[a] - root.min[a]) as u32));
@@ -193,8 +193,8 @@ pub fn append_in_place(plan: &AppendPlan, opts: &OpenOptions, memory: u64) -> Re
             let i = order.partition_point(|&(code, _)| code < first);
             i < order.len() && order[i].0 - first < span
         })
-        .map(|e| e.count)
-        .sum();
+        .collect();
+    let reached: u64 = reached_ids.iter().map(|&id| store.entries[id].count).sum();
     let need = need + reached * (rl as u64 + 64);
     if need > memory {
         return rebuild(&format!(
@@ -220,6 +220,24 @@ pub fn append_in_place(plan: &AppendPlan, opts: &OpenOptions, memory: u64) -> Re
     };
     let starts: HashMap<usize, usize> =
         store.leaf_rank_starts().map_err(bad_arrival)?.into_iter().collect();
+    // The ranks of the leaves the new points reach, kept (in the listing's order, each block
+    // decoded once); the others are copied a block at a time into the new listing below. All
+    // are checked as they are read (a permutation of the store's points) and the check is
+    // finished once the new listing is written (an error then leaves the store as it was).
+    let check = arrival::RankCheck::new(&arr);
+    let mut reached_leaves: Vec<(usize, usize)> =
+        reached_ids.iter().filter_map(|id| starts.get(id).map(|&s| (s, *id))).collect();
+    reached_leaves.sort_unstable();
+    let mut cache: arrival::BlockCache = None;
+    let mut old_ranks: HashMap<usize, Vec<u64>> = HashMap::with_capacity(reached_leaves.len());
+    for &(s, id) in &reached_leaves {
+        let mut v = Vec::with_capacity(store.entries[id].count as usize);
+        arr.copy(s..s + store.entries[id].count as usize, &mut cache, &mut v)?;
+        check.mark(&v, &arr)?;
+        old_ranks.insert(id, v);
+    }
+    drop(cache);
+    crate::cleanup::trace("append in place: reached leaves' ranks read", t0);
     #[allow(clippy::type_complexity)]
     let loaded: Mutex<HashMap<usize, Arc<(Vec<u8>, Vec<u64>)>>> = Mutex::new(HashMap::new());
     let load = |id: usize| -> Result<OldContent> {
@@ -236,9 +254,18 @@ pub fn append_in_place(plan: &AppendPlan, opts: &OpenOptions, memory: u64) -> Re
             d.record_into(&g, i, r);
         }
         let pos = recs.chunks_exact(rl).map(read_xyz).collect();
-        let arrival = match starts.get(&id) {
-            Some(&s) => {
-                (0..n).map(|i| arr.ranks[s + seq.as_ref().map_or(i, |q| q[i] as usize)]).collect()
+        let arrival = match old_ranks.get(&id) {
+            Some(r) if r.len() == n => {
+                (0..n).map(|i| r[seq.as_ref().map_or(i, |q| q[i] as usize)]).collect()
+            }
+            Some(r) => {
+                return Err(bad_arrival(format!(
+                    "leaf {id} holds {n} points, its entry {}",
+                    r.len()
+                )))
+            }
+            None if starts.contains_key(&id) => {
+                return Err(bad_arrival(format!("no ranks kept for the reached leaf {id}")))
             }
             None => Vec::new(),
         };
@@ -369,21 +396,21 @@ pub fn append_in_place(plan: &AppendPlan, opts: &OpenOptions, memory: u64) -> Re
     // Runs of the listing: where each leaf's ranks begin, and whence (the store's listing, or
     // the coded leaf's), looked up by position as the file is coded block by block.
     enum Run<'a> {
-        Kept(&'a [u64]),
+        /// The store's listing from this place.
+        Kept(usize),
         Coded(&'a [u64]),
     }
     let mut runs: Vec<(usize, Run)> = Vec::with_capacity(leaves.len());
+    let mut ends: Vec<usize> = Vec::with_capacity(leaves.len());
     let mut at = 0usize;
     for &(id, _, count) in &leaves {
         let run = match &patched[id].content {
-            PatchedContent::Kept(o) => {
-                let s = starts[o];
-                Run::Kept(&arr.ranks[s..s + count as usize])
-            }
+            PatchedContent::Kept(o) => Run::Kept(starts[o]),
             _ => Run::Coded(&listed[&id]),
         };
         runs.push((at, run));
         at += count as usize;
+        ends.push(at);
     }
     if at as u64 != total {
         return Err(bad_arrival(format!(
@@ -393,16 +420,28 @@ pub fn append_in_place(plan: &AppendPlan, opts: &OpenOptions, memory: u64) -> Re
     let fill = |r: std::ops::Range<usize>, out: &mut Vec<u64>| {
         let mut k = runs.partition_point(|run| run.0 <= r.start) - 1;
         let mut i = r.start;
+        // Kept leaves come in the store's listing's order: its blocks are decoded once here
+        // (and at most once more by the next block's fill).
+        let mut cache: arrival::BlockCache = None;
         while i < r.end {
-            let (start, Run::Kept(ranks) | Run::Coded(ranks)) = &runs[k];
-            let take = (start + ranks.len()).min(r.end) - i;
-            out.extend_from_slice(&ranks[i - start..i - start + take]);
+            let (start, run) = &runs[k];
+            let take = ends[k].min(r.end) - i;
+            match run {
+                Run::Kept(from) => {
+                    let s = from + (i - start);
+                    let had = out.len();
+                    arr.copy(s..s + take, &mut cache, out)?;
+                    check.mark(&out[had..], &arr)?;
+                }
+                Run::Coded(ranks) => out.extend_from_slice(&ranks[i - start..i - start + take]),
+            }
             i += take;
             k += 1;
         }
         Ok(())
     };
-    arrival::write_blocks(&plan.work, at, fill, declared, colors, arrival::BLOCKS_AT_ONCE)?;
+    arrival::write_blocks(&plan.work, at, fill, declared, colors, at_once as usize)?;
+    check.finish(&arr)?;
     crate::cleanup::trace("append in place: ranks written", t0);
     new_record.complete = true;
     new_record.write(&plan.work)?;
