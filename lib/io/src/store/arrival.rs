@@ -404,6 +404,61 @@ impl RankFile {
     }
 }
 
+/// A [`RankFile`]'s blocks decoded once for readers on several threads that read ranges in
+/// about the listing's order (the blocks of one listing coded from another's, in parallel):
+/// each block is decoded by the first reader that needs it and kept for the others, at most
+/// `keep` blocks at a time (the lowest dropped first).
+pub struct SharedBlocks<'a> {
+    f: &'a RankFile,
+    keep: usize,
+    #[allow(clippy::type_complexity)]
+    blocks: std::sync::Mutex<
+        std::collections::BTreeMap<usize, std::sync::Arc<std::sync::OnceLock<Option<Vec<u64>>>>>,
+    >,
+}
+
+impl<'a> SharedBlocks<'a> {
+    /// Blocks of `f`, `keep` of them kept at a time.
+    pub fn new(f: &'a RankFile, keep: usize) -> SharedBlocks<'a> {
+        SharedBlocks { f, keep: keep.max(2), blocks: Default::default() }
+    }
+
+    /// Appends the ranks of the listing's places `r` to `out` ([`RankFile::copy`]).
+    pub fn copy(&self, r: std::ops::Range<usize>, out: &mut Vec<u64>) -> Result<()> {
+        let f = self.f;
+        if r.end > f.n {
+            return Err(Error::Internal {
+                path: f.path.clone(),
+                what: "arrival ranks asked for beyond the listing",
+            });
+        }
+        let mut i = r.start;
+        while i < r.end {
+            let b = i / BLOCK;
+            let cell = {
+                let mut m = self.blocks.lock().expect("not poisoned");
+                let cell = m.entry(b).or_default().clone();
+                while m.len() > self.keep {
+                    let lowest = *m.keys().next().expect("not empty");
+                    if lowest == b {
+                        break;
+                    }
+                    m.remove(&lowest);
+                }
+                cell
+            };
+            // A block that does not decode is decoded again for its error (the same one).
+            let Some(ranks) = cell.get_or_init(|| f.block(b).ok()) else {
+                return Err(f.block(b).err().unwrap_or_else(|| f.bad(format!("block {b}"))));
+            };
+            let take = ((b + 1) * BLOCK).min(r.end) - i;
+            out.extend_from_slice(&ranks[i - b * BLOCK..i - b * BLOCK + take]);
+            i += take;
+        }
+        Ok(())
+    }
+}
+
 /// The check that a [`RankFile`]'s ranks are a permutation of `0..len`, as they are read (in
 /// any order, from any thread): a bit a rank.
 pub struct RankCheck {
@@ -504,6 +559,13 @@ mod tests {
             assert_eq!(out[0], 42);
         }
         assert!(f.copy(n - 1..n + 1, &mut cache, &mut Vec::new()).is_err());
+        let shared = SharedBlocks::new(&f, 2);
+        for r in [BLOCK - 5..BLOCK + 7, 3..BLOCK + 12_345, 0..1, n - 1..n] {
+            let mut out = Vec::new();
+            shared.copy(r.clone(), &mut out).unwrap();
+            assert_eq!(out, perm[r.clone()], "{r:?}");
+        }
+        assert!(shared.copy(n - 1..n + 1, &mut Vec::new()).is_err());
         drop(f);
         // Version 1 (no colour maxima): the same file less bytes 56..64, version and flag 1.
         let p = d.join(ARRIVAL_FILE);

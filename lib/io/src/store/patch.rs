@@ -80,8 +80,9 @@ pub fn append_in_place(plan: &AppendPlan, opts: &OpenOptions, memory: u64) -> Re
         more.push(src);
     }
     let new_declared: u64 = more.iter().map(|s| s.point_count()).sum();
-    // The ranks' blocks decoded at once, and the check of them (a bit a point); the new
-    // records, their places and sort keys.
+    // The ranks' blocks coded at once, the store's blocks kept for them (`at_once + 2` of 8
+    // MiB), and the check of the ranks (a bit a point); the new records, their places and sort
+    // keys.
     let at_once = (memory / 16 / arrival::BLOCK_BYTES).clamp(1, arrival::BLOCKS_AT_ONCE as u64);
     let need = old_n / 8 + 2 * at_once * arrival::BLOCK_BYTES + new_declared * (rl + 48);
     if need > memory {
@@ -417,12 +418,12 @@ pub fn append_in_place(plan: &AppendPlan, opts: &OpenOptions, memory: u64) -> Re
             "the extended tree's leaves hold {at} points, not {total}"
         )));
     }
+    // Kept leaves come in the store's listing's order: the blocks coded at once read a few
+    // consecutive blocks of it, each decoded once.
+    let shared = arrival::SharedBlocks::new(&arr, at_once as usize + 2);
     let fill = |r: std::ops::Range<usize>, out: &mut Vec<u64>| {
         let mut k = runs.partition_point(|run| run.0 <= r.start) - 1;
         let mut i = r.start;
-        // Kept leaves come in the store's listing's order: its blocks are decoded once here
-        // (and at most once more by the next block's fill).
-        let mut cache: arrival::BlockCache = None;
         while i < r.end {
             let (start, run) = &runs[k];
             let take = ends[k].min(r.end) - i;
@@ -430,7 +431,7 @@ pub fn append_in_place(plan: &AppendPlan, opts: &OpenOptions, memory: u64) -> Re
                 Run::Kept(from) => {
                     let s = from + (i - start);
                     let had = out.len();
-                    arr.copy(s..s + take, &mut cache, out)?;
+                    shared.copy(s..s + take, out)?;
                     check.mark(&out[had..], &arr)?;
                 }
                 Run::Coded(ranks) => out.extend_from_slice(&ranks[i - start..i - start + take]),
