@@ -371,24 +371,34 @@ impl RankFile {
         cache: &mut BlockCache,
         out: &mut Vec<u64>,
     ) -> Result<()> {
+        for (b, within) in self.pieces(r)? {
+            if cache.as_ref().is_none_or(|(k, _)| *k != b) {
+                *cache = Some((b, self.block(b)?));
+            }
+            let (_, ranks) = cache.as_ref().expect("just decoded");
+            out.extend_from_slice(&ranks[within]);
+        }
+        Ok(())
+    }
+
+    /// The listing's places `r` as pieces of blocks: each block and the places within it; an
+    /// error where `r` passes the listing's end.
+    fn pieces(
+        &self,
+        r: std::ops::Range<usize>,
+    ) -> Result<impl Iterator<Item = (usize, std::ops::Range<usize>)>> {
         if r.end > self.n {
             return Err(Error::Internal {
                 path: self.path.clone(),
                 what: "arrival ranks asked for beyond the listing",
             });
         }
-        let mut i = r.start;
-        while i < r.end {
-            let b = i / BLOCK;
-            if cache.as_ref().is_none_or(|(k, _)| *k != b) {
-                *cache = Some((b, self.block(b)?));
-            }
-            let (_, ranks) = cache.as_ref().expect("just decoded");
-            let take = ((b + 1) * BLOCK).min(r.end) - i;
-            out.extend_from_slice(&ranks[i - b * BLOCK..i - b * BLOCK + take]);
-            i += take;
-        }
-        Ok(())
+        let blocks = if r.is_empty() { 0..0 } else { r.start / BLOCK..(r.end - 1) / BLOCK + 1 };
+        Ok(blocks.map(move |b| {
+            let s = r.start.max(b * BLOCK) - b * BLOCK;
+            let e = r.end.min((b + 1) * BLOCK) - b * BLOCK;
+            (b, s..e)
+        }))
     }
 
     /// Checks that the ranks are a permutation of `0..len` (none at or above it, none twice),
@@ -426,15 +436,7 @@ impl<'a> SharedBlocks<'a> {
     /// Appends the ranks of the listing's places `r` to `out` ([`RankFile::copy`]).
     pub fn copy(&self, r: std::ops::Range<usize>, out: &mut Vec<u64>) -> Result<()> {
         let f = self.f;
-        if r.end > f.n {
-            return Err(Error::Internal {
-                path: f.path.clone(),
-                what: "arrival ranks asked for beyond the listing",
-            });
-        }
-        let mut i = r.start;
-        while i < r.end {
-            let b = i / BLOCK;
+        for (b, within) in f.pieces(r)? {
             let cell = {
                 let mut m = self.blocks.lock().expect("not poisoned");
                 let cell = m.entry(b).or_default().clone();
@@ -451,9 +453,7 @@ impl<'a> SharedBlocks<'a> {
             let Some(ranks) = cell.get_or_init(|| f.block(b).ok()) else {
                 return Err(f.block(b).err().unwrap_or_else(|| f.bad(format!("block {b}"))));
             };
-            let take = ((b + 1) * BLOCK).min(r.end) - i;
-            out.extend_from_slice(&ranks[i - b * BLOCK..i - b * BLOCK + take]);
-            i += take;
+            out.extend_from_slice(&ranks[within]);
         }
         Ok(())
     }
