@@ -92,8 +92,10 @@ fn distributed(inputs: &[PathBuf], n: usize, dir: &Path, scan: bool) -> Result<P
     Ok(store)
 }
 
-/// The stores hold the same entries in the same order with the same payloads.
+/// The stores hold the same entries in the same order with the same payloads, and the same
+/// arrival ranks (`arrival.bin`, byte for byte) where the first has them.
 fn assert_same_store(a: &Path, b: &Path, name: &str) {
+    same_ranks(a, b, name);
     let (sa, sb) = (Store::open(a).unwrap(), Store::open(b).unwrap());
     assert_eq!(sa.header.points, sb.header.points, "{name}: points");
     assert_eq!(sa.root_cube(), sb.root_cube(), "{name}: root");
@@ -117,6 +119,15 @@ fn assert_same_store(a: &Path, b: &Path, name: &str) {
         sb.covered.iter().sum::<u64>(),
         "{name}: the payload segments hold only live payloads"
     );
+}
+
+/// The stores' `arrival.bin` are the same bytes, where the first has one.
+fn same_ranks(a: &Path, b: &Path, name: &str) {
+    if let Ok(x) = std::fs::read(a.join("arrival.bin")) {
+        let y = std::fs::read(b.join("arrival.bin"))
+            .unwrap_or_else(|e| panic!("{name}: no arrival.bin in {}: {e}", b.display()));
+        assert!(x == y, "{name}: arrival.bin differs ({} and {} bytes)", x.len(), y.len());
+    }
 }
 
 fn sets() -> Vec<(String, Vec<PathBuf>)> {
@@ -215,6 +226,39 @@ fn merged_stores_equal_the_one_machine_store() {
         }
     }
     assert!(compared >= 4 * 3, "compared {compared} builds");
+    std::fs::remove_dir_all(&d).unwrap();
+}
+
+/// A merged store keeps the one-machine build's arrival ranks (compared by
+/// [`assert_same_store`] everywhere above), so `--append` extends it in place without its
+/// original inputs: the one-machine store of all inputs, node for node, ranks included.
+#[test]
+fn a_merged_store_is_extended_in_place_without_its_inputs() {
+    let d = tempdir("dist-append");
+    let (a, b) = (d.join("a.las"), d.join("b.las"));
+    run_ok(gen().args(["--points", "400000", "--seed", "9", "-o", s(&a)]));
+    run_ok(gen().args(["--points", "60000", "--seed", "4", "--extent", "300"]).args([
+        "--origin",
+        "500200,5000200,0",
+        "-o",
+        s(&b),
+    ]));
+    let whole = d.join("whole");
+    one_machine(&[a.clone(), b.clone()], &whole);
+    let store = distributed(std::slice::from_ref(&a), 4, &d, false).unwrap();
+    std::fs::rename(&a, d.join("moved.las")).unwrap();
+    let o = run_ok(mortar().args(["build", "--append", s(&store), s(&b), "--quiet", "--json"]));
+    let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert!(j["kept_nodes"].as_u64().unwrap() > 0, "nothing kept: {j}");
+    same_ranks(&whole, &store, "appended in place");
+    let (x, y) = (Store::open(&whole).unwrap(), Store::open(&store).unwrap());
+    assert_eq!(x.header.points, y.header.points);
+    assert_eq!(x.entries.len(), y.entries.len(), "node count");
+    for (i, (e, f)) in x.entries.iter().zip(&y.entries).enumerate() {
+        let key = |e: &mortar_io::store::NodeEntry| (e.level, e.kind, e.index, e.count, e.length);
+        assert_eq!(key(e), key(f), "node {i}");
+        assert!(x.node_bytes(i) == y.node_bytes(i), "node {i}'s payload differs");
+    }
     std::fs::remove_dir_all(&d).unwrap();
 }
 
@@ -344,9 +388,25 @@ fn lying_headers_and_bad_parts_are_refused() {
     assert_eq!(o.status.code(), Some(1), "{err}");
     assert!(err.contains("broken") && err.contains("damaged"), "{err}");
     assert!(!out.exists());
+    // a part's arrival ranks cut short: refused, the file named; a part without them (an
+    // older mortar's): merged, the store without ranks (extended from its inputs)
+    let ranks = part(2).join("arrival.bin");
+    let kept = std::fs::read(&ranks).unwrap();
+    std::fs::write(&ranks, &kept[..kept.len() - 3]).unwrap();
+    let o = mortar().arg("merge").args([part(0), part(1), part(2)]).args(["-o", s(&out)]).output();
+    let o = o.unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(err.contains("q2/arrival.bin") && err.contains("truncated"), "{err}");
+    assert!(!out.exists());
+    std::fs::remove_file(&ranks).unwrap();
+    run_ok(mortar().arg("merge").args([part(0), part(1), part(2)]).args(["-o", s(&out), "-q"]));
+    assert!(out.join("nodes.bin").exists() && !out.join("arrival.bin").exists());
+    std::fs::remove_dir_all(&out).unwrap();
+    std::fs::write(&ranks, &kept).unwrap();
     // a job run again gives the same part; one killed half-way and run again too
     let snapshot = |p: &Path| -> Vec<Vec<u8>> {
-        ["nodes.bin", "entries.bin", "candidates.bin", "part.json"]
+        ["nodes.bin", "entries.bin", "candidates.bin", "arrival.bin", "part.json"]
             .iter()
             .map(|n| std::fs::read(p.join(n)).unwrap())
             .collect()

@@ -10,11 +10,12 @@
 //! one, whole; after it, the new one, whole.
 //!
 //! The store's inputs are its own points where it keeps their arrival ranks (`arrival.bin`,
-//! written by the sorted, partitioned and GPU engines: [`super::arrival`]): its leaves' records are put back
+//! written by the sorted, partitioned and GPU engines and a distributed build's merge:
+//! [`super::arrival`]): its leaves' records are put back
 //! in the order they arrived ([`Store::records_in_arrival_order`], all of them in memory) and
 //! stand first in the new build, so the original files are not needed. (Where they are all
 //! there, unchanged, and uncompressed LAS, they are read instead: faster than decoding.) A store without the file
-//! (built by the incremental engine, merged from a distributed build, or by an older mortar) is
+//! (built by the incremental engine, or by an older mortar) is
 //! built again from
 //! its recorded inputs, which must still be there, unchanged (`build.json` names them with their
 //! size and modification time).

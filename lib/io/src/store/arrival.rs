@@ -10,9 +10,10 @@
 //! leaf's Morton order would interleave its flight lines). Written once, after the last commit
 //! and before the build record says the build finished, by the sorted, GPU and partitioned
 //! engines (the last streams them from `.partition/ranks.bin`; [`write_blocks`] codes a few
-//! blocks at a time, so memory does not grow with the store); a store without it (the
-//! incremental engine, a distributed build's merge, or an older mortar) is extended from its
-//! original inputs.
+//! blocks at a time, so memory does not grow with the store), and by a distributed build's
+//! merge (from the parts' own `arrival.bin`, each listing a job's leaves); a store without it
+//! (the incremental engine, parts of an older mortar merged, or an older mortar) is extended
+//! from its original inputs.
 //!
 //! The file also keeps the box the inputs' headers declared (on the store's grid, with the
 //! build's margin of one unit; [`super::bounds`]), which places the root cube of a build of

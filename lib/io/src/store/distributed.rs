@@ -31,7 +31,9 @@
 //!   payloads, makes the nodes above the cut from the candidates (as the partitioned engine
 //!   makes its nodes above the units), recolours payloads of parts whose colour scale differs
 //!   from the whole input's (intensity grey scaled to the largest intensity of all points, or
-//!   8- against 16-bit RGB), and commits the entries in the one-machine order.
+//!   8- against 16-bit RGB), commits the entries in the one-machine order, and lists the
+//!   parts' arrival ranks (each part's `arrival.bin`) as one machine lists them, so that the
+//!   store is extended in place by `--append` without its inputs.
 //!
 //! Not done: skipping LAZ chunks (a job reads every chunk of the files it needs; their chunk
 //! tables hold no bounds) and `--scan` counting the cells exactly (it takes each input's own

@@ -9,6 +9,7 @@ use super::plan::Plan;
 use crate::cleanup::TempPath;
 use crate::dataset::Dataset;
 use crate::error::{Error, JobError, PartError, PlanError, Result};
+use crate::store::arrival::ColorMaxima;
 use crate::store::format::*;
 use crate::store::partitioned::{build_units, cell_depth, partition_fixed, Filter};
 use crate::store::record::BuildRecord;
@@ -125,6 +126,11 @@ pub fn build_job(
     let rgb_offset = ds.layout.attribute("rgb").map(|a| a.offset);
     let color = color_of(rgb_offset, all.max_rgb, all.max_intensity);
     ds.progress.stage("building", hist.iter().sum(), "points");
+    // The leaves' arrival ranks among all inputs (the one-machine build's), in the part's
+    // `arrival.bin`, with the box the inputs' headers declare: the merge lists them for the
+    // store (`merge::Ranks`).
+    let declared = crate::store::bounds::header_bounds(ds, &mut Vec::new());
+    let maxima = ColorMaxima { max_rgb: all.max_rgb, max_intensity: all.max_intensity };
     let (entries, cands, points) = build_units(
         ds,
         &mut writer,
@@ -136,6 +142,7 @@ pub fn build_job(
         &units,
         color,
         &state,
+        Some((tmp.path(), declared, maxima)),
     )?;
     let _ = std::fs::remove_dir_all(&state);
     // entries.bin: the entries in the walk's order; candidates.bin: each subtree's candidates.

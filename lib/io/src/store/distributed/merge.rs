@@ -11,6 +11,7 @@ use super::part::{color_of, read_part, Part, CANDIDATES_FILE};
 use super::plan::Plan;
 use crate::cleanup::TempPath;
 use crate::error::{Error, JobError, PartError, Result};
+use crate::store::arrival::{self, BlockCache, ColorMaxima, DeclaredBox, RankFile, SharedBlocks};
 use crate::store::codec::Order;
 use crate::store::format::*;
 use crate::store::runs::Cands;
@@ -160,9 +161,13 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> Result<MergeReport> {
         group_bytes: crate::store::writer::COMMIT_GROUP_BYTES,
         segments: Vec::new(),
     };
-    // The subtrees' candidates and counts.
-    let mut subtrees: HashMap<NodeKey, (u64, Cands, usize)> = HashMap::new();
+    // The parts' arrival ranks, where every part has them (a part of an older mortar has none:
+    // the store then has none either, and is extended from its inputs).
+    let ranks = part_ranks(&parts)?;
+    // The subtrees' candidates, counts and places in their part's listing of ranks.
+    let mut subtrees: HashMap<NodeKey, Subtree> = HashMap::new();
     for (pi, p) in parts.iter().enumerate() {
+        let mut listed = 0usize;
         let cp = p.dir.join(CANDIDATES_FILE);
         let b = std::fs::read(&cp).map_err(|e| Error::io(&cp, e))?;
         let mut at = 0usize;
@@ -189,8 +194,14 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> Result<MergeReport> {
             }
             subtrees.insert(
                 NodeKey { level: n.key[0] as u8, index: [n.key[1], n.key[2], n.key[3]] },
-                (n.points, c, pi),
+                Subtree {
+                    count: n.points,
+                    cands: c,
+                    part: pi,
+                    listed: listed..listed + n.points as usize,
+                },
             );
+            listed += n.points as usize;
         }
     }
     // The nodes above the cut, from the subtrees' candidates; written after the parts' nodes.
@@ -203,11 +214,19 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> Result<MergeReport> {
         layout: layout.clone(),
         made: Vec::new(),
         absorbed: std::collections::HashSet::new(),
+        caches: vec![None; ranks.as_ref().map_or(0, |r| r.files.len())],
+        ranks: ranks.as_ref(),
     };
-    if let Visit::Small { records, unit: false, .. } = top.visit(NodeKey::ROOT, plan.root())? {
+    let listing = match top.visit(NodeKey::ROOT, plan.root())? {
+        Visit::Big { ranks, .. } => ranks,
         // Few points in all: the root is a leaf (held as it is where the cut is the root).
-        top.leaf(NodeKey::ROOT, &records)?;
-    }
+        Visit::Small { records, ranks: SmallRanks::Gathered(r), .. } => {
+            vec![top.leaf(NodeKey::ROOT, &records, r)?]
+        }
+        Visit::Small { ranks: SmallRanks::Kept { part, listed, .. }, .. } => {
+            vec![RankRun::Part { part, listed }]
+        }
+    };
     let Top { made, absorbed, .. } = top;
     let mut all: Vec<NodeEntry> = Vec::new();
     let (mut recoloured, mut linked, mut copied_bytes) = (0, 0, 0u64);
@@ -282,6 +301,10 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> Result<MergeReport> {
     }
     writer.write_hierarchy(plan.root(), points, plan.leaf_capacity, (lo, hi))?;
     drop(writer);
+    if let Some(r) = &ranks {
+        let colors = ColorMaxima { max_rgb, max_intensity: max_int };
+        r.write(&dir, &listing, points, colors)?;
+    }
     tmp.persist(out).map_err(|e| Error::io(out, e))?;
     Ok(MergeReport {
         parts: parts.len(),
@@ -330,17 +353,155 @@ fn recolour(
 
 /// What the walk above the cut gives a parent.
 enum Visit {
-    /// A node with more points than a leaf holds (inner, written): its candidates.
-    Big { cands: Cands, count: u64 },
+    /// A node with more points than a leaf holds (inner, written): its candidates, and where
+    /// its leaves' arrival ranks come from (in the store's listing order).
+    Big { cands: Cands, count: u64, ranks: Vec<RankRun> },
     /// A node with at most a leaf's points: a leaf, unless its parent is a leaf too. Its
-    /// candidates and its records in Morton order (ties in arrival order); `unit` when it is a
-    /// subtree of the cut whose part holds it as a leaf already.
-    Small { cands: Cands, count: u64, records: Vec<u8>, unit: bool },
+    /// candidates, its records in Morton order (ties in arrival order) and their ranks
+    /// ([`SmallRanks::Kept`] where it is a subtree of the cut whose part holds it as a leaf
+    /// already).
+    Small { cands: Cands, count: u64, records: Vec<u8>, ranks: SmallRanks },
+}
+
+/// A subtree of the cut as its part holds it.
+struct Subtree {
+    /// Its points.
+    count: u64,
+    /// Its candidates for its parent.
+    cands: Cands,
+    /// The part holding it.
+    part: usize,
+    /// Its leaves' places in the part's listing of arrival ranks.
+    listed: std::ops::Range<usize>,
+}
+
+/// Where a run of the store's listing of arrival ranks (`arrival.bin`: leaves depth first, each
+/// leaf's points in its coded order) comes from.
+enum RankRun {
+    /// Places of a part's listing: a subtree, or a leaf, kept as its part built it.
+    Part { part: usize, listed: std::ops::Range<usize> },
+    /// A leaf the merge made: its ranks in its coded order.
+    Made(Vec<u64>),
+}
+
+/// The arrival ranks of a node small enough to be a leaf.
+enum SmallRanks {
+    /// A leaf its part holds: its places in the part's listing and its payload's coded order
+    /// (`decode_ordered`'s: `coded[i]` is the coded place of payload point `i`).
+    Kept { part: usize, listed: std::ops::Range<usize>, coded: Option<Vec<u32>> },
+    /// The ranks of records gathered here, in their (Morton) order; none without ranks.
+    Gathered(Vec<u64>),
+}
+
+/// The parts' arrival ranks (`arrival.bin` in each part: its leaves' ranks among all inputs,
+/// its subtrees in the job's order, each as the partitioned engine lists it).
+struct Ranks {
+    files: Vec<RankFile>,
+    /// The box the inputs' headers declare (every part's).
+    declared: DeclaredBox,
+}
+
+/// Ranks decoded at once while the store's listing is coded (as `arrival::write_blocks`
+/// codes them; with the blocks of the parts' listings kept, about 0.2 GiB at the peak).
+const RANK_BLOCKS_AT_ONCE: usize = 8;
+
+/// The parts' ranks where every part has them, their counts and declared boxes checked.
+fn part_ranks(parts: &[Part]) -> Result<Option<Ranks>> {
+    let mut files = Vec::with_capacity(parts.len());
+    for p in parts {
+        let Some(f) = RankFile::open(&p.dir, p.file.points)? else { return Ok(None) };
+        if p.file.nodes.iter().map(|n| n.points).sum::<u64>() != p.file.points {
+            return Err(Error::Part {
+                path: p.dir.clone(),
+                error: PartError::Damaged { what: "its subtrees' points are not its points" },
+            });
+        }
+        if let Some(first) = files.first().map(|f: &RankFile| f.declared) {
+            if f.declared != first {
+                return Err(Error::Part {
+                    path: p.dir.clone(),
+                    error: PartError::OtherInputs { first: parts[0].dir.clone() },
+                });
+            }
+        }
+        files.push(f);
+    }
+    let declared = files.first().and_then(|f| f.declared);
+    Ok(Some(Ranks { files, declared }))
+}
+
+impl Ranks {
+    /// Appends the ranks of `part`'s listing places `listed` to `out`.
+    fn copy(
+        &self,
+        part: usize,
+        listed: std::ops::Range<usize>,
+        cache: &mut BlockCache,
+        out: &mut Vec<u64>,
+    ) -> Result<()> {
+        self.files[part].copy(listed, cache, out)
+    }
+
+    /// Writes the store's `arrival.bin` into `dir`: the `points` ranks of `listing`, with the
+    /// inputs' colour maxima `colors`, a few blocks at a time.
+    fn write(
+        &self,
+        dir: &Path,
+        listing: &[RankRun],
+        points: u64,
+        colors: ColorMaxima,
+    ) -> Result<()> {
+        let len = |r: &RankRun| match r {
+            RankRun::Part { listed, .. } => listed.len(),
+            RankRun::Made(v) => v.len(),
+        };
+        let mut starts = Vec::with_capacity(listing.len());
+        let mut at = 0usize;
+        for r in listing {
+            starts.push(at);
+            at += len(r);
+        }
+        if at as u64 != points {
+            return Err(Error::Internal {
+                path: dir.to_path_buf(),
+                what: "the merge lists another count of arrival ranks than the store's points",
+            });
+        }
+        let shared: Vec<SharedBlocks> =
+            self.files.iter().map(|f| SharedBlocks::new(f, RANK_BLOCKS_AT_ONCE + 2)).collect();
+        let fill = |r: std::ops::Range<usize>, out: &mut Vec<u64>| -> Result<()> {
+            let first = starts.partition_point(|&s| s <= r.start).saturating_sub(1);
+            for (run, &s) in listing[first..].iter().zip(&starts[first..]) {
+                if s >= r.end {
+                    break;
+                }
+                let (a, b) = (r.start.max(s) - s, r.end.min(s + len(run)) - s);
+                if a >= b {
+                    continue;
+                }
+                match run {
+                    RankRun::Part { part, listed } => {
+                        shared[*part].copy(listed.start + a..listed.start + b, out)?
+                    }
+                    RankRun::Made(v) => out.extend_from_slice(&v[a..b]),
+                }
+            }
+            Ok(())
+        };
+        arrival::write_blocks(
+            dir,
+            points as usize,
+            fill,
+            self.declared,
+            colors,
+            RANK_BLOCKS_AT_ONCE,
+        )
+    }
 }
 
 /// The walk over the nodes above the cut.
 struct Top<'a> {
-    subtrees: HashMap<NodeKey, (u64, Cands, usize)>,
+    subtrees: HashMap<NodeKey, Subtree>,
     parts: &'a [Part],
     plan: &'a Plan,
     color: ColorSource,
@@ -350,13 +511,18 @@ struct Top<'a> {
     made: Vec<(NodeEntry, Vec<u8>)>,
     /// Nodes of the parts that a leaf above them holds: not copied.
     absorbed: std::collections::HashSet<(u32, [u32; 3])>,
+    /// The parts' ranks (`None`: the store gets none), and the block each part's listing
+    /// decoded last.
+    ranks: Option<&'a Ranks>,
+    caches: Vec<BlockCache>,
 }
 
 impl Top<'_> {
     fn visit(&mut self, key: NodeKey, cube: Cube) -> Result<Visit> {
-        if let Some((count, cands, pi)) = self.subtrees.remove(&key) {
+        if let Some(Subtree { count, cands, part: pi, listed }) = self.subtrees.remove(&key) {
             if count > self.plan.leaf_capacity as u64 {
-                return Ok(Visit::Big { cands, count });
+                let ranks = vec![RankRun::Part { part: pi, listed }];
+                return Ok(Visit::Big { cands, count, ranks });
             }
             // A leaf in its part: its records, in case the node above is a leaf too.
             let p = &self.parts[pi];
@@ -375,9 +541,10 @@ impl Top<'_> {
                 let f = std::fs::File::open(&src).map_err(|x| Error::io(&src, x))?;
                 f.read_exact_at(&mut b, e.offset).map_err(|x| Error::io(&src, x))?;
             }
-            let records = records_of(&b, self.rl)
+            let (records, coded) = records_of(&b, self.rl)
                 .map_err(|error| Error::Payload { path: p.dir.clone(), error })?;
-            return Ok(Visit::Small { cands, count, records, unit: true });
+            let ranks = SmallRanks::Kept { part: pi, listed, coded };
+            return Ok(Visit::Small { cands, count, records, ranks });
         }
         if key.level >= self.plan.cell_depth {
             return Err(Error::Job { error: JobError::Uncovered { node: key.name() } });
@@ -386,38 +553,44 @@ impl Top<'_> {
         let mut voxels = Cands::default();
         let mut count = 0;
         for o in 0..8 {
-            match self.visit(key.child(o), cube.child(o))? {
-                Visit::Big { cands, count: n } => {
-                    voxels.append(cands);
-                    count += n;
-                    kids.push(None);
-                }
-                Visit::Small { cands, count: n, records, unit } => {
-                    voxels.append(cands);
-                    count += n;
-                    kids.push(Some((records, unit)));
-                }
-            }
+            let mut v = self.visit(key.child(o), cube.child(o))?;
+            let (Visit::Big { cands, count: n, .. } | Visit::Small { cands, count: n, .. }) =
+                &mut v;
+            voxels.append(std::mem::take(cands));
+            count += *n;
+            kids.push(v);
         }
         let rl = self.rl;
         let up = |voxels: &Cands| voxels.pick(&voxels.for_parent(key, cube), rl);
         if count <= self.plan.leaf_capacity as u64 {
             // A leaf of the one-machine tree (unless its parent is one too): the points below,
-            // children in octant order, which is Morton order.
+            // children in octant order, which is Morton order; their ranks in that order.
             let mut records = Vec::with_capacity(count as usize * rl);
-            for (r, _) in kids.into_iter().flatten() {
-                records.extend_from_slice(&r);
+            let mut gathered = Vec::new();
+            for k in kids {
+                if let Visit::Small { records: r, ranks, .. } = k {
+                    records.extend_from_slice(&r);
+                    self.gather(ranks, &mut gathered)?;
+                }
             }
             self.absorb_below(key);
-            return Ok(Visit::Small { cands: up(&voxels), count, records, unit: false });
+            let ranks = SmallRanks::Gathered(gathered);
+            return Ok(Visit::Small { cands: up(&voxels), count, records, ranks });
         }
         if !splits(count, key, cube, &self.plan.config()) {
             return Err(Error::Job { error: JobError::CannotSplit { node: key.name(), count } });
         }
         // Inner: small children are leaves; those the parts hold as leaves stay as they are.
+        let mut runs = Vec::new();
         for (o, k) in kids.into_iter().enumerate() {
-            if let Some((records, false)) = k {
-                self.leaf(key.child(o), &records)?;
+            match k {
+                Visit::Big { ranks, .. } => runs.extend(ranks),
+                Visit::Small { ranks: SmallRanks::Kept { part, listed, .. }, .. } => {
+                    runs.push(RankRun::Part { part, listed })
+                }
+                Visit::Small { records, ranks: SmallRanks::Gathered(r), .. } => {
+                    runs.push(self.leaf(key.child(o), &records, r)?)
+                }
             }
         }
         let color = &self.color;
@@ -433,7 +606,36 @@ impl Top<'_> {
         )
         .map_err(|m| Error::MergePayload { error: m.in_node(key.name()) })?;
         self.made.push((e, b));
-        Ok(Visit::Big { cands: up(&voxels), count })
+        Ok(Visit::Big { cands: up(&voxels), count, ranks: runs })
+    }
+
+    /// Appends the ranks of a small node's records, in their order, to `out` (nothing without
+    /// ranks).
+    fn gather(&mut self, ranks: SmallRanks, out: &mut Vec<u64>) -> Result<()> {
+        let Some(rk) = self.ranks else { return Ok(()) };
+        match ranks {
+            SmallRanks::Gathered(r) => out.extend_from_slice(&r),
+            SmallRanks::Kept { part, listed, coded } => {
+                let mut listed_ranks = Vec::with_capacity(listed.len());
+                rk.copy(part, listed, &mut self.caches[part], &mut listed_ranks)?;
+                match coded {
+                    // The part lists them in coded order: payload point i is coded at c[i].
+                    Some(c) if c.len() == listed_ranks.len() => {
+                        out.extend(c.iter().map(|&t| listed_ranks[t as usize]))
+                    }
+                    Some(_) => {
+                        return Err(Error::Part {
+                            path: self.parts[part].dir.clone(),
+                            error: PartError::Damaged {
+                                what: "a leaf's coded order and its ranks disagree",
+                            },
+                        })
+                    }
+                    None => out.extend_from_slice(&listed_ranks),
+                }
+            }
+        }
+        Ok(())
     }
 
     /// Marks every subtree of the cut under `key` as held by a leaf above.
@@ -450,12 +652,13 @@ impl Top<'_> {
         }
     }
 
-    /// Writes `records` as the leaf `key`.
-    fn leaf(&mut self, key: NodeKey, records: &[u8]) -> Result<()> {
+    /// Writes `records` (whose arrival ranks are `ranks`, in their order; none without ranks)
+    /// as the leaf `key`; its ranks in its coded order.
+    fn leaf(&mut self, key: NodeKey, records: &[u8], ranks: Vec<u64>) -> Result<RankRun> {
         let rl = self.rl;
         let n = records.len() / rl;
         let color = &self.color;
-        let (e, b) = crate::store::codec::encode_payload(
+        let (e, b, coded) = crate::store::codec::encode_payload_ordered(
             key,
             LEAF,
             n,
@@ -467,13 +670,21 @@ impl Top<'_> {
         )
         .map_err(|m| Error::MergePayload { error: m.in_node(key.name()) })?;
         self.made.push((e, b));
-        Ok(())
+        // Coded point t is payload point seq[t].
+        Ok(RankRun::Made(match coded {
+            Some(seq) if ranks.len() == n => seq.iter().map(|&i| ranks[i as usize]).collect(),
+            _ => ranks,
+        }))
     }
 }
 
-/// The records (position and attributes) of a payload, in its order.
-fn records_of(b: &[u8], rl: usize) -> std::result::Result<Vec<u8>, PayloadError> {
-    let raw = crate::store::codec::decode(b)?;
+/// The records (position and attributes) of a payload, in its order, and its coded order
+/// where it is not the payload's (`decode_ordered`).
+fn records_of(
+    b: &[u8],
+    rl: usize,
+) -> std::result::Result<(Vec<u8>, Option<Vec<u32>>), PayloadError> {
+    let (raw, coded) = crate::store::codec::decode_ordered(b)?;
     let d = DecodedLeaf::parse(&raw)?;
     if d.attr_len + 12 != rl {
         return Err(PayloadError::RecordLength);
@@ -486,7 +697,7 @@ fn records_of(b: &[u8], rl: usize) -> std::result::Result<Vec<u8>, PayloadError>
         }
         r[12..].copy_from_slice(d.attributes(i));
     }
-    Ok(out)
+    Ok((out, coded))
 }
 
 #[cfg(test)]
@@ -600,7 +811,7 @@ mod tests {
     #[test]
     fn a_payload_gives_back_its_records_and_is_recoloured() {
         let (records, b) = a_leaf();
-        assert_eq!(records_of(&b, 20).unwrap(), records);
+        assert_eq!(records_of(&b, 20).unwrap().0, records);
         assert!(matches!(records_of(&b, 21), Err(PayloadError::RecordLength)));
         assert!(matches!(records_of(&b[..40], 20), Err(PayloadError::Short)));
         // Recoloured: every colour from its record, nothing else changed.
@@ -618,7 +829,7 @@ mod tests {
             (&raw_c[..colours.start], &raw_c[colours.end..]),
             (&raw_b[..colours.start], &raw_b[colours.end..])
         );
-        assert_eq!(records_of(&c, 20).unwrap(), records);
+        assert_eq!(records_of(&c, 20).unwrap().0, records);
         assert!(matches!(recolour(&b, &color, 26, None), Err(PayloadError::RecordLength)));
     }
 }

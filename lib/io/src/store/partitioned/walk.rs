@@ -10,6 +10,7 @@ use super::ranks::RankLog;
 use super::unit::{read_unit, unit_bytes_per_point};
 use crate::dataset::Dataset;
 use crate::error::{Error, Result};
+use crate::store::arrival::{ColorMaxima, DeclaredBox};
 use crate::store::codec::{CodedOrder, Order};
 use crate::store::dense::{self, Level};
 use crate::store::format::*;
@@ -51,7 +52,7 @@ pub(super) struct Walk<'a, 'w> {
     pub(super) preview: Option<super::preview::Preview>,
     /// The integer bounds of every point (pass 1).
     pub(super) bounds: ([i32; 3], [i32; 3]),
-    /// The leaves' arrival ranks as they are written (`None`: a distributed job keeps none).
+    /// The leaves' arrival ranks as they are written (`None`: none kept).
     pub(super) ranks: Option<RankLog>,
 }
 
@@ -453,7 +454,10 @@ pub(crate) type Units = (Vec<(u32, u64, NodeEntry)>, Vec<Cands>, u64);
 
 /// Builds the subtrees `units` (key, cube, partition cells) from the runs into `writer`, each
 /// as the partitioned engine builds a node and everything under it, with `color` for the
-/// payloads.
+/// payloads. With `arrival` (a directory, the inputs' declared box and colour maxima), the
+/// leaves' arrival ranks (among all of `ds`'s records) are written there as an `arrival.bin`
+/// listing the units' leaves in the order of `units`, each unit's as the partitioned engine
+/// lists them.
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn build_units(
     ds: &Dataset,
@@ -466,6 +470,7 @@ pub(crate) fn build_units(
     units: &[(NodeKey, Cube, std::ops::Range<usize>)],
     color: ColorSource,
     state: &Path,
+    arrival: Option<(&Path, DeclaredBox, ColorMaxima)>,
 ) -> Result<Units> {
     let rl = ds.layout.record_len;
     let opts = BuildOptions {
@@ -489,6 +494,10 @@ pub(crate) fn build_units(
     let mut report = BuildReport::default();
     let depth = cell_depth(root, config.max_level);
     let lv = Level::new(runs.to_vec(), hist.to_vec(), depth);
+    let ranks = match arrival {
+        Some(_) => Some(RankLog::open(state, ds.pieces().iter().map(|p| p.piece.points), 0)?),
+        None => None,
+    };
     let mut w = Walk {
         ds,
         writer,
@@ -508,13 +517,16 @@ pub(crate) fn build_units(
         state: state.to_path_buf(),
         preview: None,
         bounds: ([0; 3], [0; 3]),
-        ranks: None,
+        ranks,
     };
     let mut cands = Vec::with_capacity(units.len());
     for (key, cube, cells) in units {
         // An empty subtree too: it is an empty leaf where its parent is inner.
         cands.push(w.visit(&lv, *key, *cube, key.level, cells.clone())?);
     }
-    let Walk { entries, points, .. } = w;
+    let Walk { entries, points, ranks, .. } = w;
+    if let (Some(rk), Some((dir, declared, colors))) = (ranks, arrival) {
+        rk.write_arrival(dir, points, declared, colors, memory)?;
+    }
     Ok((entries, cands, points))
 }
