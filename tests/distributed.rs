@@ -399,6 +399,37 @@ fn lying_headers_and_bad_parts_are_refused() {
     assert_eq!(o.status.code(), Some(1), "{err}");
     assert!(err.contains("q2/arrival.bin") && err.contains("truncated"), "{err}");
     assert!(!out.exists());
+    // well-formed ranks that name a point twice: refused, the part named
+    std::fs::write(&ranks, &kept).unwrap();
+    let points = |p: &Path| -> u64 {
+        let j: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(p.join("part.json")).unwrap()).unwrap();
+        j["points"].as_u64().unwrap()
+    };
+    let rf =
+        mortar_io::store::arrival::RankFile::open(&part(2), points(&part(2))).unwrap().unwrap();
+    let mut r = Vec::new();
+    rf.copy(0..rf.len(), &mut None, &mut r).unwrap();
+    let rf0 = mortar_io::store::arrival::RankFile::open(&part(0), points(&part(0)));
+    let mut r0 = Vec::new();
+    let rf0 = rf0.unwrap().unwrap();
+    rf0.copy(0..1, &mut None, &mut r0).unwrap();
+    let mid = r.len() / 2;
+    r[mid] = r0[0];
+    let (declared, colors) = (rf.declared, rf.colors.unwrap());
+    drop(rf);
+    mortar_io::store::arrival::write(&part(2), r.len(), |i| r[i], declared, colors).unwrap();
+    let o = mortar().arg("merge").args([part(0), part(1), part(2)]).args(["-o", s(&out)]).output();
+    let o = o.unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(
+        (err.contains("q2") || err.contains("q0"))
+            && err.contains("twice")
+            && err.contains("arrival.bin"),
+        "{err}"
+    );
+    assert!(!out.exists());
     std::fs::remove_file(&ranks).unwrap();
     run_ok(mortar().arg("merge").args([part(0), part(1), part(2)]).args(["-o", s(&out), "-q"]));
     assert!(out.join("nodes.bin").exists() && !out.join("arrival.bin").exists());

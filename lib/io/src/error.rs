@@ -599,6 +599,10 @@ pub enum PartError {
     /// The part was built from other inputs than the first part.
     #[error("its source.las differs from {first}'s: built from other inputs")]
     OtherInputs { first: PathBuf },
+    /// The parts' arrival ranks are not a permutation of the inputs' points, found in this
+    /// part's.
+    #[error("damaged arrival.bin: {why}; run its job again")]
+    Ranks { why: String },
 }
 
 /// Why points cannot be drawn or coloured as asked.

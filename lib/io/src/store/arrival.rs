@@ -460,42 +460,67 @@ impl<'a> SharedBlocks<'a> {
     }
 }
 
-/// The check that a [`RankFile`]'s ranks are a permutation of `0..len`, as they are read (in
-/// any order, from any thread): a bit a rank.
+/// The check that ranks are a permutation of `0..n`, as they are read (in any order, from any
+/// thread): a bit a rank. [`mark`](Self::mark) and [`finish`](Self::finish) check a
+/// [`RankFile`]'s ranks; [`mark_ranks`](Self::mark_ranks) and [`missing`](Self::missing) any.
 pub struct RankCheck {
+    n: u64,
     bits: Vec<std::sync::atomic::AtomicU64>,
     marked: std::sync::atomic::AtomicU64,
+}
+
+/// Why ranks are not a permutation of `0..n`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum RankFault {
+    /// A rank at or above `n`.
+    Beyond(u64),
+    /// A rank given twice.
+    Twice(u64),
 }
 
 impl RankCheck {
     /// The check of `f`'s ranks, none read yet.
     pub fn new(f: &RankFile) -> RankCheck {
+        RankCheck::of_len(f.n as u64)
+    }
+
+    /// The check of a permutation of `0..n`, no rank read yet.
+    pub fn of_len(n: u64) -> RankCheck {
         RankCheck {
-            bits: (0..f.n.div_ceil(64)).map(|_| Default::default()).collect(),
+            n,
+            bits: (0..n.div_ceil(64)).map(|_| Default::default()).collect(),
             marked: Default::default(),
         }
     }
 
     /// Marks `ranks` read: an error where one is not below `f`'s count or was read before.
     pub fn mark(&self, ranks: &[u64], f: &RankFile) -> Result<()> {
+        self.mark_ranks(ranks).map_err(|e| match e {
+            RankFault::Beyond(r) => {
+                f.bad(format!("rank {r} is not below the store's {} points", self.n))
+            }
+            RankFault::Twice(r) => f.bad(format!("rank {r} is given twice")),
+        })
+    }
+
+    /// Marks `ranks` read: the first that is not below `n` or was read before.
+    pub fn mark_ranks(&self, ranks: &[u64]) -> std::result::Result<(), RankFault> {
         use std::sync::atomic::Ordering::Relaxed;
-        let n = f.n as u64;
-        let twice = |r: u64| f.bad(format!("rank {r} is given twice"));
         // Consecutive ranks mostly share a word (scans arrive in time order): their bits are
         // gathered and set with one atomic operation a word.
         let (mut word, mut mask) = (u64::MAX, 0u64);
-        let flush = |word: u64, mask: u64| -> Result<()> {
+        let flush = |word: u64, mask: u64| -> std::result::Result<(), RankFault> {
             if mask != 0 {
                 let had = self.bits[word as usize].fetch_or(mask, Relaxed) & mask;
                 if had != 0 {
-                    return Err(twice(64 * word + had.trailing_zeros() as u64));
+                    return Err(RankFault::Twice(64 * word + had.trailing_zeros() as u64));
                 }
             }
             Ok(())
         };
         for &r in ranks {
-            if r >= n {
-                return Err(f.bad(format!("rank {r} is not below the store's {n} points")));
+            if r >= self.n {
+                return Err(RankFault::Beyond(r));
             }
             if r / 64 != word {
                 flush(word, mask)?;
@@ -503,7 +528,7 @@ impl RankCheck {
             }
             let bit = 1u64 << (r % 64);
             if mask & bit != 0 {
-                return Err(twice(r));
+                return Err(RankFault::Twice(r));
             }
             mask |= bit;
         }
@@ -512,10 +537,16 @@ impl RankCheck {
         Ok(())
     }
 
+    /// How many of the `n` ranks were not marked (once all places were read, a permutation has
+    /// none missing).
+    pub fn missing(&self) -> u64 {
+        self.n - self.marked.load(std::sync::atomic::Ordering::Relaxed).min(self.n)
+    }
+
     /// Once every rank was read: an error where some were not (then some place was not read).
     pub fn finish(&self, f: &RankFile) -> Result<()> {
-        let m = self.marked.load(std::sync::atomic::Ordering::Relaxed);
-        if m != f.n as u64 {
+        if self.missing() != 0 {
+            let m = self.n - self.missing();
             return Err(f.bad(format!("{m} of its {} ranks were read", f.n)));
         }
         Ok(())

@@ -11,7 +11,9 @@ use super::part::{color_of, read_part, Part, CANDIDATES_FILE};
 use super::plan::Plan;
 use crate::cleanup::TempPath;
 use crate::error::{Error, JobError, PartError, Result};
-use crate::store::arrival::{self, BlockCache, ColorMaxima, DeclaredBox, RankFile, SharedBlocks};
+use crate::store::arrival::{
+    self, BlockCache, ColorMaxima, DeclaredBox, RankCheck, RankFault, RankFile, SharedBlocks,
+};
 use crate::store::codec::Order;
 use crate::store::format::*;
 use crate::store::runs::Cands;
@@ -220,8 +222,8 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> Result<MergeReport> {
     let listing = match top.visit(NodeKey::ROOT, plan.root())? {
         Visit::Big { ranks, .. } => ranks,
         // Few points in all: the root is a leaf (held as it is where the cut is the root).
-        Visit::Small { records, ranks: SmallRanks::Gathered(r), .. } => {
-            vec![top.leaf(NodeKey::ROOT, &records, r)?]
+        Visit::Small { records, ranks: SmallRanks::Gathered(r, from), .. } => {
+            vec![top.leaf(NodeKey::ROOT, &records, r, from)?]
         }
         Visit::Small { ranks: SmallRanks::Kept { part, listed, .. }, .. } => {
             vec![RankRun::Part { part, listed }]
@@ -303,7 +305,7 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> Result<MergeReport> {
     drop(writer);
     if let Some(r) = &ranks {
         let colors = ColorMaxima { max_rgb, max_intensity: max_int };
-        r.write(&dir, &listing, points, colors)?;
+        r.write(&dir, &listing, points, colors, dirs)?;
     }
     tmp.persist(out).map_err(|e| Error::io(out, e))?;
     Ok(MergeReport {
@@ -380,8 +382,9 @@ struct Subtree {
 enum RankRun {
     /// Places of a part's listing: a subtree, or a leaf, kept as its part built it.
     Part { part: usize, listed: std::ops::Range<usize> },
-    /// A leaf the merge made: its ranks in its coded order.
-    Made(Vec<u64>),
+    /// A leaf the merge made: its ranks in its coded order, and a part they came from (named
+    /// where they are wrong).
+    Made(Vec<u64>, usize),
 }
 
 /// The arrival ranks of a node small enough to be a leaf.
@@ -389,8 +392,9 @@ enum SmallRanks {
     /// A leaf its part holds: its places in the part's listing and its payload's coded order
     /// (`decode_ordered`'s: `coded[i]` is the coded place of payload point `i`).
     Kept { part: usize, listed: std::ops::Range<usize>, coded: Option<Vec<u32>> },
-    /// The ranks of records gathered here, in their (Morton) order; none without ranks.
-    Gathered(Vec<u64>),
+    /// The ranks of records gathered here, in their (Morton) order (none without ranks), and
+    /// a part they came from.
+    Gathered(Vec<u64>, usize),
 }
 
 /// The parts' arrival ranks (`arrival.bin` in each part: its leaves' ranks among all inputs,
@@ -443,17 +447,21 @@ impl Ranks {
     }
 
     /// Writes the store's `arrival.bin` into `dir`: the `points` ranks of `listing`, with the
-    /// inputs' colour maxima `colors`, a few blocks at a time.
+    /// inputs' colour maxima `colors`, a few blocks at a time; checked to be a permutation of
+    /// `0..points` as they are listed (a bit a point), else a part whose listing holds the
+    /// wrong rank is named (of a rank given twice, the one found second: blocks are listed in
+    /// parallel). `parts` are the parts' directories.
     fn write(
         &self,
         dir: &Path,
         listing: &[RankRun],
         points: u64,
         colors: ColorMaxima,
+        parts: &[PathBuf],
     ) -> Result<()> {
         let len = |r: &RankRun| match r {
             RankRun::Part { listed, .. } => listed.len(),
-            RankRun::Made(v) => v.len(),
+            RankRun::Made(v, _) => v.len(),
         };
         let mut starts = Vec::with_capacity(listing.len());
         let mut at = 0usize;
@@ -469,6 +477,20 @@ impl Ranks {
         }
         let shared: Vec<SharedBlocks> =
             self.files.iter().map(|f| SharedBlocks::new(f, RANK_BLOCKS_AT_ONCE + 2)).collect();
+        let check = RankCheck::of_len(points);
+        let checked = |part: usize, ranks: &[u64]| -> Result<()> {
+            check.mark_ranks(ranks).map_err(|f| Error::Part {
+                path: parts[part].clone(),
+                error: PartError::Ranks {
+                    why: match f {
+                        RankFault::Beyond(r) => {
+                            format!("rank {r} is not below the inputs' {points} points")
+                        }
+                        RankFault::Twice(r) => format!("rank {r} is given twice"),
+                    },
+                },
+            })
+        };
         let fill = |r: std::ops::Range<usize>, out: &mut Vec<u64>| -> Result<()> {
             let first = starts.partition_point(|&s| s <= r.start).saturating_sub(1);
             for (run, &s) in listing[first..].iter().zip(&starts[first..]) {
@@ -479,11 +501,16 @@ impl Ranks {
                 if a >= b {
                     continue;
                 }
+                let at = out.len();
                 match run {
                     RankRun::Part { part, listed } => {
-                        shared[*part].copy(listed.start + a..listed.start + b, out)?
+                        shared[*part].copy(listed.start + a..listed.start + b, out)?;
+                        checked(*part, &out[at..])?;
                     }
-                    RankRun::Made(v) => out.extend_from_slice(&v[a..b]),
+                    RankRun::Made(v, part) => {
+                        out.extend_from_slice(&v[a..b]);
+                        checked(*part, &out[at..])?;
+                    }
                 }
             }
             Ok(())
@@ -567,14 +594,15 @@ impl Top<'_> {
             // children in octant order, which is Morton order; their ranks in that order.
             let mut records = Vec::with_capacity(count as usize * rl);
             let mut gathered = Vec::new();
+            let mut from = None;
             for k in kids {
                 if let Visit::Small { records: r, ranks, .. } = k {
                     records.extend_from_slice(&r);
-                    self.gather(ranks, &mut gathered)?;
+                    from = from.or(self.gather(ranks, &mut gathered)?);
                 }
             }
             self.absorb_below(key);
-            let ranks = SmallRanks::Gathered(gathered);
+            let ranks = SmallRanks::Gathered(gathered, from.unwrap_or(0));
             return Ok(Visit::Small { cands: up(&voxels), count, records, ranks });
         }
         if !splits(count, key, cube, &self.plan.config()) {
@@ -588,8 +616,8 @@ impl Top<'_> {
                 Visit::Small { ranks: SmallRanks::Kept { part, listed, .. }, .. } => {
                     runs.push(RankRun::Part { part, listed })
                 }
-                Visit::Small { records, ranks: SmallRanks::Gathered(r), .. } => {
-                    runs.push(self.leaf(key.child(o), &records, r)?)
+                Visit::Small { records, ranks: SmallRanks::Gathered(r, from), .. } => {
+                    runs.push(self.leaf(key.child(o), &records, r, from)?)
                 }
             }
         }
@@ -610,11 +638,14 @@ impl Top<'_> {
     }
 
     /// Appends the ranks of a small node's records, in their order, to `out` (nothing without
-    /// ranks).
-    fn gather(&mut self, ranks: SmallRanks, out: &mut Vec<u64>) -> Result<()> {
-        let Some(rk) = self.ranks else { return Ok(()) };
-        match ranks {
-            SmallRanks::Gathered(r) => out.extend_from_slice(&r),
+    /// ranks); the part they came from, where any.
+    fn gather(&mut self, ranks: SmallRanks, out: &mut Vec<u64>) -> Result<Option<usize>> {
+        let Some(rk) = self.ranks else { return Ok(None) };
+        Ok(Some(match ranks {
+            SmallRanks::Gathered(r, from) => {
+                out.extend_from_slice(&r);
+                from
+            }
             SmallRanks::Kept { part, listed, coded } => {
                 let mut listed_ranks = Vec::with_capacity(listed.len());
                 rk.copy(part, listed, &mut self.caches[part], &mut listed_ranks)?;
@@ -633,9 +664,9 @@ impl Top<'_> {
                     }
                     None => out.extend_from_slice(&listed_ranks),
                 }
+                part
             }
-        }
-        Ok(())
+        }))
     }
 
     /// Marks every subtree of the cut under `key` as held by a leaf above.
@@ -654,7 +685,13 @@ impl Top<'_> {
 
     /// Writes `records` (whose arrival ranks are `ranks`, in their order; none without ranks)
     /// as the leaf `key`; its ranks in its coded order.
-    fn leaf(&mut self, key: NodeKey, records: &[u8], ranks: Vec<u64>) -> Result<RankRun> {
+    fn leaf(
+        &mut self,
+        key: NodeKey,
+        records: &[u8],
+        ranks: Vec<u64>,
+        from: usize,
+    ) -> Result<RankRun> {
         let rl = self.rl;
         let n = records.len() / rl;
         let color = &self.color;
@@ -671,10 +708,11 @@ impl Top<'_> {
         .map_err(|m| Error::MergePayload { error: m.in_node(key.name()) })?;
         self.made.push((e, b));
         // Coded point t is payload point seq[t].
-        Ok(RankRun::Made(match coded {
+        let ranks = match coded {
             Some(seq) if ranks.len() == n => seq.iter().map(|&i| ranks[i as usize]).collect(),
             _ => ranks,
-        }))
+        };
+        Ok(RankRun::Made(ranks, from))
     }
 }
 
