@@ -434,6 +434,12 @@ impl<'a> SharedBlocks<'a> {
         SharedBlocks { f, keep: keep.max(2), blocks: Default::default() }
     }
 
+    /// Drops every block kept (a reader that holds one keeps it until it is done; a later
+    /// reader decodes it again).
+    pub fn forget(&self) {
+        self.blocks.lock().expect("not poisoned").clear();
+    }
+
     /// Appends the ranks of the listing's places `r` to `out` ([`RankFile::copy`]).
     pub fn copy(&self, r: std::ops::Range<usize>, out: &mut Vec<u64>) -> Result<()> {
         let f = self.f;

@@ -216,7 +216,7 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> Result<MergeReport> {
         layout: layout.clone(),
         made: Vec::new(),
         absorbed: std::collections::HashSet::new(),
-        caches: vec![None; ranks.as_ref().map_or(0, |r| r.files.len())],
+        cache: None,
         ranks: ranks.as_ref(),
     };
     let listing = match top.visit(NodeKey::ROOT, plan.root())? {
@@ -506,6 +506,12 @@ impl Ranks {
                     RankRun::Part { part, listed } => {
                         shared[*part].copy(listed.start + a..listed.start + b, out)?;
                         checked(*part, &out[at..])?;
+                        // The listing meets the parts one after another: once a part's last
+                        // rank is read, its blocks are not kept (a reader still inside it
+                        // holds what it took, or decodes it again).
+                        if listed.start + b == self.files[*part].len() {
+                            shared[*part].forget();
+                        }
                     }
                     RankRun::Made(v, part) => {
                         out.extend_from_slice(&v[a..b]);
@@ -538,10 +544,10 @@ struct Top<'a> {
     made: Vec<(NodeEntry, Vec<u8>)>,
     /// Nodes of the parts that a leaf above them holds: not copied.
     absorbed: std::collections::HashSet<(u32, [u32; 3])>,
-    /// The parts' ranks (`None`: the store gets none), and the block each part's listing
-    /// decoded last.
+    /// The parts' ranks (`None`: the store gets none), and the part and block decoded last
+    /// (one for all parts: the walk meets the parts one after another, and a block is 8 MiB).
     ranks: Option<&'a Ranks>,
-    caches: Vec<BlockCache>,
+    cache: Option<(usize, BlockCache)>,
 }
 
 impl Top<'_> {
@@ -648,7 +654,11 @@ impl Top<'_> {
             }
             SmallRanks::Kept { part, listed, coded } => {
                 let mut listed_ranks = Vec::with_capacity(listed.len());
-                rk.copy(part, listed, &mut self.caches[part], &mut listed_ranks)?;
+                if self.cache.as_ref().is_none_or(|(p, _)| *p != part) {
+                    self.cache = Some((part, None));
+                }
+                let (_, cache) = self.cache.as_mut().expect("just set");
+                rk.copy(part, listed, cache, &mut listed_ranks)?;
                 match coded {
                     // The part lists them in coded order: payload point i is coded at c[i].
                     Some(c) if c.len() == listed_ranks.len() => {
